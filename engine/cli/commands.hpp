@@ -1,0 +1,9 @@
+// The pillarseg subcommands; each registers itself on the CLI11 app and runs when selected.
+#pragma once
+
+#include <CLI/CLI.hpp>
+
+namespace pillarseg::cli {
+
+
+}  // namespace pillarseg::cli

@@ -1,0 +1,17 @@
+#!/usr/bin/env bash
+# Installs the Debian packages pillarseg builds with, when any is missing.
+# Usage: scripts/install-deps.sh [--with-torch]   (python3-torch: only for golden files and the peer benchmark)
+set -euo pipefail
+packages=(cmake make g++ pkg-config libeigen3-dev libyaml-cpp-dev libcli11-dev libspdlog-dev
+          libfmt-dev libpng-dev libgtest-dev libgmock-dev libbenchmark-dev)
+if [[ "${1:-}" == "--with-torch" ]]; then packages+=(python3-torch python3-numpy); fi
+missing=()
+for p in "${packages[@]}"; do
+  dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
+done
+if ((${#missing[@]} == 0)); then exit 0; fi
+echo "install-deps: installing ${missing[*]}"
+sudo_cmd=()
+if [[ $(id -u) -ne 0 ]]; then sudo_cmd=(sudo); fi
+"${sudo_cmd[@]}" apt-get update -qq
+DEBIAN_FRONTEND=noninteractive "${sudo_cmd[@]}" apt-get install -y -qq "${missing[@]}"

@@ -1,0 +1,34 @@
+// Helpers shared by the tests: paths to the shared data, temporary directories, tolerant
+// tensor comparison that reports the worst element.
+#pragma once
+
+#include <gtest/gtest.h>
+
+#include <filesystem>
+#include <string>
+
+#include "engine/core/tensor.hpp"
+
+namespace pillarseg::test {
+
+// ../shared/data (the real SemanticKITTI scan lives in semantickitti/sequences/99).
+std::filesystem::path shared_data_dir();
+// A fresh, empty directory under the build tree, named after the running test.
+std::filesystem::path temp_dir();
+
+// Compares element-wise with |a - b| <= atol + rtol * |b|; NaN and Inf must match. On failure
+// the message names the worst element, its index, and both values.
+::testing::AssertionResult all_close(const float* actual, const float* expected, int64_t n, double atol,
+                                     double rtol);
+::testing::AssertionResult all_close(const double* actual, const double* expected, int64_t n, double atol,
+                                     double rtol);
+template <class T>
+::testing::AssertionResult all_close(const Tensor<T>& actual, const Tensor<T>& expected, double atol,
+                                     double rtol) {
+  if (actual.shape() != expected.shape())
+    return ::testing::AssertionFailure()
+           << "shape " << shape_str(actual.shape()) << " != expected " << shape_str(expected.shape());
+  return all_close(actual.data(), expected.data(), actual.numel(), atol, rtol);
+}
+
+}  // namespace pillarseg::test

@@ -1,0 +1,147 @@
+// Core utilities: RNG determinism and distributions, the grid, the class table, atomic files.
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <fstream>
+
+#include "engine/core/grid.hpp"
+#include "engine/core/image.hpp"
+#include "engine/core/io.hpp"
+#include "engine/core/rng.hpp"
+#include "engine/data/classes.hpp"
+#include "tests/support/test_support.hpp"
+
+using namespace pillarseg;
+
+TEST(Rng, SameSeedSameStreamAndStateRoundTrip) {
+  Rng a(42), b(42), c(43);
+  for (int i = 0; i < 100; ++i) {
+    const uint64_t va = a.next_u64();
+    EXPECT_EQ(va, b.next_u64());
+    if (i == 0) {
+      EXPECT_NE(va, c.next_u64());
+    }
+  }
+  Rng d(7);
+  d.next_u64();
+  Rng e;
+  e.set_state(d.state());
+  EXPECT_EQ(d.next_u64(), e.next_u64());
+  EXPECT_NE(Rng::derive(1, 2, 3).next_u64(), Rng::derive(1, 3, 2).next_u64());
+}
+
+TEST(Rng, DistributionMoments) {
+  Rng r(1);
+  const int n = 200000;
+  double su = 0, sn = 0, sn2 = 0;
+  int64_t hist[10] = {};
+  for (int i = 0; i < n; ++i) {
+    const double u = r.uniform();
+    ASSERT_GE(u, 0.0);
+    ASSERT_LT(u, 1.0);
+    su += u;
+    const double z = r.normal();
+    sn += z, sn2 += z * z;
+    hist[r.uniform_int(10)]++;
+  }
+  EXPECT_NEAR(su / n, 0.5, 0.005);
+  EXPECT_NEAR(sn / n, 0.0, 0.01);
+  EXPECT_NEAR(sn2 / n, 1.0, 0.02);
+  for (int64_t h : hist) EXPECT_NEAR(static_cast<double>(h) / n, 0.1, 0.005);
+}
+
+TEST(Grid, DefaultsAndCellIndices) {
+  GridSpec g;
+  EXPECT_EQ(g.width(), 1000);
+  EXPECT_EQ(g.height(), 500);
+  EXPECT_EQ(g.layers(), 20);
+  EXPECT_EQ(g.ix(-50.0), 0);
+  EXPECT_EQ(g.ix(-49.95), 0);
+  EXPECT_EQ(g.ix(0.0), 500);
+  EXPECT_EQ(g.ix(-0.05), 499);
+  EXPECT_EQ(g.iy(24.99), 499);
+  EXPECT_TRUE(g.contains(49.99, 24.99, 1.49));
+  EXPECT_FALSE(g.contains(50.0, 0, 0));
+  EXPECT_FALSE(g.contains(0, -25.01, 0));
+  EXPECT_FALSE(g.contains(0, 0, 1.5));
+  EXPECT_TRUE(g.contains(0, 0, -2.5));
+  EXPECT_EQ(g.iz(-2.5), 0);
+  EXPECT_EQ(g.iz(1.49), 19);
+}
+
+TEST(ClassTable, DefaultMapping) {
+  const ClassTable t = ClassTable::defaults();
+  EXPECT_EQ(t.class_of(10), 1);
+  EXPECT_EQ(t.class_of(252), 1);
+  EXPECT_EQ(t.class_of(30), 2);
+  EXPECT_EQ(t.class_of(11), 3);
+  EXPECT_EQ(t.class_of(253), 4);
+  EXPECT_EQ(t.class_of(60), 5);
+  EXPECT_EQ(t.class_of(48), 6);
+  EXPECT_EQ(t.class_of(49), 7);
+  EXPECT_EQ(t.class_of(50), 8);
+  EXPECT_EQ(t.class_of(81), 9);
+  EXPECT_EQ(t.class_of(70), 10);
+  EXPECT_EQ(t.class_of(71), 11);
+  EXPECT_EQ(t.class_of(72), 12);
+  EXPECT_EQ(t.class_of(52), 0);
+  EXPECT_EQ(t.class_of(1234), 0);                 // not listed
+  EXPECT_EQ(t.class_of((77u << 16) | 10u), 1);    // instance bits ignored
+  EXPECT_TRUE(t.is_moving((5u << 16) | 257u));
+  EXPECT_FALSE(t.is_moving(10));
+  EXPECT_EQ(t.gt_weight(1), 5);
+  EXPECT_EQ(t.gt_weight(5), 1);
+  EXPECT_EQ(t.gt_weight(0), 0);
+  EXPECT_EQ(t.color(5), (Rgb{255, 0, 255}));
+}
+
+TEST(ClassTable, YamlOverrideMovesRawIdsAndChangesFingerprint) {
+  const auto dir = test::temp_dir();
+  {
+    std::ofstream f(dir / "classes.yaml");
+    f << "classes:\n  - {id: 9, raw: [51, 80, 81, 52]}\n  - {id: 2, gt_weight: 7, color: [1, 2, 3]}\n";
+  }
+  const ClassTable t = ClassTable::from_yaml((dir / "classes.yaml").string());
+  EXPECT_EQ(t.class_of(52), 9);
+  EXPECT_EQ(t.gt_weight(2), 7);
+  EXPECT_EQ(t.color(2), (Rgb{1, 2, 3}));
+  EXPECT_NE(t.fingerprint(), ClassTable::defaults().fingerprint());
+  {
+    std::ofstream f(dir / "bad.yaml");
+    f << "classes:\n  - {id: 40}\n";
+  }
+  try {
+    ClassTable::from_yaml((dir / "bad.yaml").string());
+    FAIL() << "expected an error";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("bad.yaml"), std::string::npos);
+  }
+}
+
+TEST(Io, AtomicWriteLeavesNoFileOnFailure) {
+  const auto dir = test::temp_dir();
+  const auto target = dir / "out.bin";
+  EXPECT_THROW(write_file_atomic(target, [](std::ostream&) { throw Error("boom"); }), Error);
+  EXPECT_FALSE(std::filesystem::exists(target));
+  EXPECT_EQ(std::distance(std::filesystem::directory_iterator(dir), {}), 0);
+  const char data[] = "abc";
+  write_file_atomic(target, data, 3);
+  EXPECT_EQ(read_file_text(target), "abc");
+  EXPECT_THROW(read_file_bytes(dir / "missing"), Error);
+}
+
+TEST(Image, PngRoundTrip) {
+  const auto dir = test::temp_dir();
+  ImageRgb img(5, 3);
+  for (int y = 0; y < 3; ++y)
+    for (int x = 0; x < 5; ++x) {
+      img.at(x, y)[0] = static_cast<uint8_t>(x * 40);
+      img.at(x, y)[1] = static_cast<uint8_t>(y * 80);
+      img.at(x, y)[2] = 7;
+    }
+  write_png_rgb(dir / "a.png", img);
+  const ImageRgb back = read_png_rgb(dir / "a.png");
+  EXPECT_EQ(back.width, 5);
+  EXPECT_EQ(back.height, 3);
+  EXPECT_EQ(back.pixels, img.pixels);
+}
