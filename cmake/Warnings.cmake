@@ -1,7 +1,9 @@
 function(pillarseg_set_warnings target)
   target_compile_options(${target} PRIVATE $<$<COMPILE_LANGUAGE:CXX>:-Wall -Wextra -Wpedantic
                          -Wshadow -Wnon-virtual-dtor -Wcast-align -Woverloaded-virtual
-                         -Wno-unknown-pragmas>)
+                         -Wno-unknown-pragmas
+                         # GCC 12 reports false positives inside Eigen's AVX-512 code paths.
+                         -Wno-maybe-uninitialized>)
   if(PILLARSEG_WERROR)
     target_compile_options(${target} PRIVATE $<$<COMPILE_LANGUAGE:CXX>:-Werror>)
   endif()
