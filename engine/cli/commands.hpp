@@ -5,5 +5,6 @@
 
 namespace pillarseg::cli {
 
+void add_info(CLI::App& app);
 
 }  // namespace pillarseg::cli

@@ -25,6 +25,8 @@ int main(int argc, char** argv) {
   });
 
 
+  pillarseg::cli::add_info(app);
+
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
