@@ -145,3 +145,33 @@ TEST(Image, PngRoundTrip) {
   EXPECT_EQ(back.height, 3);
   EXPECT_EQ(back.pixels, img.pixels);
 }
+
+TEST(Tensor, OwningAndViewSemantics) {
+  TensorF a({2, 3}, 1.5f);
+  EXPECT_EQ(a.numel(), 6);
+  EXPECT_EQ(a(1, 2), 1.5f);
+  a(1, 2) = 4.0f;
+  EXPECT_EQ(a[5], 4.0f);
+  const TensorF copy = a;  // deep copy
+  a[0] = 9.0f;
+  EXPECT_EQ(copy[0], 1.5f);
+
+  std::vector<float> memory(6, -1.0f);
+  TensorF v = TensorF::view(memory.data(), {3, 2});
+  EXPECT_TRUE(v.is_view());
+  v.resize({6});  // same element count: zero-filled in place
+  EXPECT_EQ(memory[3], 0.0f);
+  EXPECT_THROW(v.resize({7}), Error);
+  v = a;  // copies the elements into the view's memory
+  EXPECT_EQ(v.data(), memory.data());
+  EXPECT_EQ(memory[0], 9.0f);
+  EXPECT_EQ(v.shape(), (Shape{2, 3}));
+  EXPECT_THROW(v = TensorF({5}), Error);
+  TensorF owned = v;  // copying a view gives an owning tensor
+  EXPECT_FALSE(owned.is_view());
+  owned[0] = 2.0f;
+  EXPECT_EQ(memory[0], 9.0f);
+  TensorF moved = std::move(a);
+  EXPECT_EQ(moved.numel(), 6);
+  EXPECT_EQ(a.numel(), 0);
+}
