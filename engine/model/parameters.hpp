@@ -1,0 +1,75 @@
+// ParameterSet: every tensor of the model with its PyTorch state_dict name. Trainable
+// parameters live in one flat array (values, gradients and the two Adam moments each one
+// allocation), so the optimiser, the gradient norm and checkpointing work on whole arrays.
+// BatchNorm running statistics are buffers in a second flat array; num_batches_tracked
+// counters are host integers.
+#pragma once
+
+#include <cstdint>
+#include <map>
+#include <string>
+#include <vector>
+
+#include "engine/model/backend.hpp"
+
+namespace pillarseg {
+
+struct ParamEntry {
+  std::string name;
+  Shape shape;
+  int64_t offset = 0;  // in elements within its flat array
+  bool trainable = true;
+  int64_t fan_in = 0;  // for PyTorch's default initialisation; 0: constant init
+  float init_value = 0.0f;  // used when fan_in == 0
+};
+
+class ParameterSet {
+ public:
+  explicit ParameterSet(Backend& backend);
+  ~ParameterSet();
+  ParameterSet(const ParameterSet&) = delete;
+  ParameterSet& operator=(const ParameterSet&) = delete;
+
+  // Declaration phase (before finalize()). Returns the index of the entry.
+  int add_trainable(const std::string& name, Shape shape, int64_t fan_in, float init_value = 0.0f);
+  int add_buffer(const std::string& name, Shape shape, float init_value);
+  int64_t* add_counter(const std::string& name);  // num_batches_tracked
+  // Allocates the flat arrays and initialises: weights and biases uniform(-1/sqrt(fan_in),
+  // 1/sqrt(fan_in)) (PyTorch's default for Linear/Conv), constants elsewhere.
+  void finalize(uint64_t seed);
+
+  Ref value(int index);
+  Ref grad(int index);
+  Ref values() const { return values_; }  // all trainable values (flat)
+  Ref grads() const { return grads_; }
+  Ref adam_m() const { return m_; }
+  Ref adam_v() const { return v_; }
+  Ref buffers() const { return buffers_; }
+  int64_t num_trainable() const { return trainable_count_; }
+  int64_t num_buffer_values() const { return buffer_count_; }
+
+  const std::vector<ParamEntry>& entries() const { return entries_; }
+  const std::map<std::string, int64_t>& counters() const { return counters_; }
+  std::map<std::string, int64_t>& counters() { return counters_; }
+
+  // Host copies by name (state_dict order), and loading them back (shapes must match).
+  Tensor<float> download(int index) const;
+  void upload(int index, const Tensor<float>& t);
+  int find(const std::string& name) const;  // -1 if absent
+
+  // Whole-array host copies for checkpoints (values, m, v, buffers).
+  std::vector<float> download_flat(const Ref& r) const;
+  void upload_flat(const Ref& r, const std::vector<float>& data);
+  void zero_grads();
+
+ private:
+  Backend& backend_;
+  std::vector<ParamEntry> entries_;
+  std::map<std::string, int64_t> counters_;
+  int64_t trainable_count_ = 0, buffer_count_ = 0;
+  void* block_ = nullptr;
+  Ref values_, grads_, m_, v_, buffers_;
+  bool finalized_ = false;
+};
+
+}  // namespace pillarseg

@@ -1,0 +1,501 @@
+#include "engine/model/pillarsegnet.hpp"
+
+#include <fmt/format.h>
+
+#include "engine/core/error.hpp"
+
+namespace pillarseg {
+
+namespace {
+
+// Conv2d parameters: weight (O, I, k, k), optional bias (O).
+struct ConvParams {
+  int weight = -1, bias = -1;
+  int in = 0, out = 0, k = 3, pad = 1;
+};
+
+ConvParams declare_conv(ParameterSet& ps, const std::string& prefix, int in, int out, int k, bool bias) {
+  ConvParams c;
+  c.in = in, c.out = out, c.k = k, c.pad = k / 2;
+  const int64_t fan_in = int64_t{in} * k * k;
+  c.weight = ps.add_trainable(prefix + ".weight", {out, in, k, k}, fan_in);
+  if (bias) c.bias = ps.add_trainable(prefix + ".bias", {out}, fan_in);
+  return c;
+}
+
+struct BnParams {
+  int gamma = -1, beta = -1, mean = -1, var = -1;
+  std::string counter;
+  float eps = 1e-5f, momentum = 0.1f;
+  Ref save_mean, save_invstd;  // activations arena
+};
+
+BnParams declare_bn(ParameterSet& ps, const std::string& prefix, int channels, float eps, float momentum) {
+  BnParams b;
+  b.gamma = ps.add_trainable(prefix + ".weight", {channels}, 0, 1.0f);
+  b.beta = ps.add_trainable(prefix + ".bias", {channels}, 0, 0.0f);
+  b.mean = ps.add_buffer(prefix + ".running_mean", {channels}, 0.0f);
+  b.var = ps.add_buffer(prefix + ".running_var", {channels}, 1.0f);
+  b.counter = prefix + ".num_batches_tracked";
+  ps.add_counter(b.counter);
+  b.eps = eps, b.momentum = momentum;
+  return b;
+}
+
+BatchNormRefs bn_refs(ParameterSet& ps, const BnParams& b) {
+  BatchNormRefs r;
+  r.gamma = ps.value(b.gamma);
+  r.beta = ps.value(b.beta);
+  r.running_mean = ps.value(b.mean);
+  r.running_var = ps.value(b.var);
+  r.save_mean = b.save_mean;
+  r.save_invstd = b.save_invstd;
+  r.eps = b.eps;
+  r.momentum = b.momentum;
+  return r;
+}
+
+// Conv -> BatchNorm -> ReLU with its activations.
+struct ConvBnRelu {
+  ConvParams conv;
+  BnParams bn;
+  Ref conv_out, out, d_conv_out, d_out;
+
+  void plan(Arena& a, int batch, int h, int w) {
+    const Shape s{batch, conv.out, h, w};
+    conv_out = a.take<float>(s);
+    out = a.take<float>(s);
+    d_conv_out = a.take<float>(s);
+    d_out = a.take<float>(s);
+    bn.save_mean = a.take<float>({conv.out});
+    bn.save_invstd = a.take<float>({conv.out});
+  }
+  void forward(Backend& be, ParameterSet& ps, const Ref& x, bool training) {
+    Ref bias;
+    if (conv.bias >= 0) bias = ps.value(conv.bias);
+    be.conv2d_forward(x, ps.value(conv.weight), conv.bias >= 0 ? &bias : nullptr, conv.pad, conv_out);
+    BatchNormRefs r = bn_refs(ps, bn);
+    be.batchnorm_relu_forward(conv_out, r, training, out);
+    if (training) ps.counters()[bn.counter] += 1;
+  }
+  // Uses d_out (filled by the consumer); writes dx when given.
+  void backward(Backend& be, ParameterSet& ps, const Ref& x, Ref* dx) {
+    const BatchNormRefs r = bn_refs(ps, bn);
+    Ref dgamma = ps.grad(bn.gamma), dbeta = ps.grad(bn.beta);
+    be.batchnorm_relu_backward(conv_out, out, d_out, r, d_conv_out, dgamma, dbeta);
+    Ref dw = ps.grad(conv.weight);
+    Ref db;
+    if (conv.bias >= 0) db = ps.grad(conv.bias);
+    be.conv2d_backward(x, ps.value(conv.weight), d_conv_out, conv.pad, dx, dw, conv.bias >= 0 ? &db : nullptr);
+  }
+};
+
+// [Conv3x3 (bias) -> BN -> ReLU] x 2, PyTorch module `double_conv` (indices 0,1 and 3,4).
+struct DoubleConv {
+  ConvBnRelu first, second;
+
+  static DoubleConv declare(ParameterSet& ps, const std::string& prefix, int in, int out, int mid) {
+    DoubleConv d;
+    d.first.conv = declare_conv(ps, prefix + ".double_conv.0", in, mid, 3, true);
+    d.first.bn = declare_bn(ps, prefix + ".double_conv.1", mid, 1e-5f, 0.1f);
+    d.second.conv = declare_conv(ps, prefix + ".double_conv.3", mid, out, 3, true);
+    d.second.bn = declare_bn(ps, prefix + ".double_conv.4", out, 1e-5f, 0.1f);
+    return d;
+  }
+  void plan(Arena& a, int batch, int h, int w) {
+    first.plan(a, batch, h, w);
+    second.plan(a, batch, h, w);
+  }
+  const Ref& out() const { return second.out; }
+  Ref& d_out() { return second.d_out; }
+  void forward(Backend& be, ParameterSet& ps, const Ref& x, bool training) {
+    first.forward(be, ps, x, training);
+    second.forward(be, ps, first.out, training);
+  }
+  void backward(Backend& be, ParameterSet& ps, const Ref& x, Ref* dx) {
+    second.backward(be, ps, first.out, &first.d_out);
+    first.backward(be, ps, x, dx);
+  }
+};
+
+// MaxPool 2x2 -> DoubleConv.
+struct Down {
+  DoubleConv conv;
+  int in = 0, out = 0;
+  Ref pooled, d_pooled, d_x_part;
+  IRef argmax;
+
+  void plan(Arena& a, int batch, int h, int w) {  // h, w: input size
+    pooled = a.take<float>({batch, in, h / 2, w / 2});
+    d_pooled = a.take<float>({batch, in, h / 2, w / 2});
+    argmax = a.take<int32_t>({batch, in, h / 2, w / 2});
+    d_x_part = a.take<float>({batch, in, h, w});
+    conv.plan(a, batch, h / 2, w / 2);
+  }
+  void forward(Backend& be, ParameterSet& ps, const Ref& x, bool training) {
+    be.maxpool2x2_forward(x, pooled, argmax);
+    conv.forward(be, ps, pooled, training);
+  }
+  // d_out of conv filled by the consumer; adds this block's gradient into dx.
+  void backward(Backend& be, ParameterSet& ps, Ref& dx) {
+    conv.backward(be, ps, pooled, &d_pooled);
+    be.maxpool2x2_backward(d_pooled, argmax, d_x_part);
+    be.add_inplace(dx, d_x_part);
+  }
+};
+
+// Upsample (bilinear x2 or ConvTranspose 2x2/2) -> pad to the skip -> [skip, up] -> DoubleConv.
+struct Up {
+  DoubleConv conv;
+  bool transposed = false;
+  ConvParams up;  // transposed only: weight (in, in/2, 2, 2), bias (in/2)
+  int in = 0, up_channels = 0, skip_channels = 0;
+  Ref upsampled, d_upsampled, cat, d_cat;
+
+  void plan(Arena& a, int batch, int h, int w, int skip_h, int skip_w) {  // h, w: input size
+    upsampled = a.take<float>({batch, up_channels, 2 * h, 2 * w});
+    d_upsampled = a.take<float>({batch, up_channels, 2 * h, 2 * w});
+    cat = a.take<float>({batch, skip_channels + up_channels, skip_h, skip_w});
+    d_cat = a.take<float>({batch, skip_channels + up_channels, skip_h, skip_w});
+    conv.plan(a, batch, skip_h, skip_w);
+  }
+  void forward(Backend& be, ParameterSet& ps, const Ref& x, const Ref& skip, bool training) {
+    if (transposed) {
+      Ref bias = ps.value(up.bias);
+      be.conv_transpose2d_forward(x, ps.value(up.weight), &bias, upsampled);
+    } else {
+      be.upsample2x_forward(x, upsampled);
+    }
+    be.pad_concat_forward(skip, upsampled, cat);
+    conv.forward(be, ps, cat, training);
+  }
+  // Writes d_skip and dx (both overwritten).
+  void backward(Backend& be, ParameterSet& ps, const Ref& x, Ref& d_skip, Ref& dx) {
+    conv.backward(be, ps, cat, &d_cat);
+    be.pad_concat_backward(d_cat, d_skip, d_upsampled);
+    if (transposed) {
+      Ref dw = ps.grad(up.weight), db = ps.grad(up.bias);
+      be.conv_transpose2d_backward(x, ps.value(up.weight), d_upsampled, dx, dw, &db);
+    } else {
+      be.upsample2x_backward(d_upsampled, dx);
+    }
+  }
+};
+
+}  // namespace
+
+struct PillarSegNet::Impl {
+  // Pillar stream.
+  int pfn_weight = -1;
+  BnParams pfn_bn;
+  Ref pillar_points, pfn_pre, pfn_out, pfn_dout;
+  IRef pillar_cells, pfn_argmax;
+  int64_t pillar_capacity = -1, num_pillars = 0;
+  // Occupancy stream.
+  ConvBnRelu occupancy;
+  Ref occupancy_input;
+  // Grid-map input.
+  Ref grid_map_input;
+  // U-Net.
+  std::vector<Down> downs;
+  std::vector<Up> ups;
+  ConvParams head;
+  std::vector<Ref> x, dx;  // x[0] input canvas, x[i] output of down i
+  Ref logits, d_logits, coefficients;
+  LRef labels, predicted;
+  Ref probs;
+  int planned_batch = -1;
+
+  std::unique_ptr<Arena> activations, pillars;
+};
+
+PillarSegNet::PillarSegNet(const ModelConfig& config, Backend& backend, uint64_t seed)
+    : config_(config), backend_(backend), params_(backend), impl_(std::make_unique<Impl>()) {
+  config_.validate();
+  Impl& m = *impl_;
+  ParameterSet& ps = params_;
+  const int C = config_.pillar_channels, b = config_.base_width, depth = config_.depth;
+  if (config_.pillar_input) {
+    m.pfn_weight = ps.add_trainable("vfe.pfn_layers.0.linear.weight", {C, 10}, 10);
+    m.pfn_bn = declare_bn(ps, "vfe.pfn_layers.0.norm", C, 1e-3f, 0.01f);
+  }
+  if (config_.occupancy != OccupancyInput::None) {
+    m.occupancy.conv =
+        declare_conv(ps, "occupancy.conv", config_.occupancy_input_channels(), config_.occupancy_channels, 3, false);
+    m.occupancy.bn = declare_bn(ps, "occupancy.norm", config_.occupancy_channels, 1e-3f, 0.01f);
+  }
+  // Channel counts: c[0] = I; bilinear: c[i] = b * 2^i for i < depth, c[depth] = c[depth-1]
+  // (milesial's factor 2); transposed: c[i] = b * 2^i for every i.
+  std::vector<int> c(static_cast<size_t>(depth) + 1);
+  c[0] = config_.input_channels();
+  for (int i = 1; i <= depth; ++i) c[i] = b << i;
+  if (!config_.transposed && depth >= 2) c[depth] = c[depth - 1];
+  if (!config_.transposed && depth == 1) c[1] = b;
+  for (int i = 1; i <= depth; ++i) {
+    Down d;
+    d.in = c[i - 1], d.out = c[i];
+    d.conv = DoubleConv::declare(ps, fmt::format("segmentation_head.down{}.maxpool_conv.1", i), d.in, d.out, d.out);
+    m.downs.push_back(std::move(d));
+  }
+  int current = c[depth];
+  for (int j = 1; j <= depth; ++j) {
+    const int skip_level = depth - j;
+    Up u;
+    u.transposed = config_.transposed;
+    u.in = current;
+    u.skip_channels = c[skip_level];
+    const std::string prefix = fmt::format("segmentation_head.up{}", j);
+    if (config_.transposed) {
+      u.up_channels = current / 2;
+      u.up.in = current, u.up.out = current / 2, u.up.k = 2, u.up.pad = 0;
+      // PyTorch's fan_in of a ConvTranspose weight (in, out, k, k) is out * k * k.
+      u.up.weight = ps.add_trainable(prefix + ".up.weight", {current, current / 2, 2, 2}, int64_t{current / 2} * 4);
+      u.up.bias = ps.add_trainable(prefix + ".up.bias", {current / 2}, int64_t{current / 2} * 4);
+    } else {
+      u.up_channels = current;
+    }
+    const int cat = u.skip_channels + u.up_channels;
+    const int out = skip_level == 0 ? b : (config_.transposed ? c[skip_level] : c[skip_level] / 2);
+    const int mid = config_.transposed ? out : cat / 2;
+    u.conv = DoubleConv::declare(ps, prefix + ".conv", cat, out, mid);
+    current = out;
+    m.ups.push_back(std::move(u));
+  }
+  m.head = declare_conv(ps, "segmentation_head.outc.conv", current, config_.num_classes, 1, true);
+  params_.finalize(seed);
+  m.activations = std::make_unique<Arena>(backend_);
+  m.pillars = std::make_unique<Arena>(backend_);
+}
+
+PillarSegNet::~PillarSegNet() = default;
+
+void PillarSegNet::plan(int batch) {
+  Impl& m = *impl_;
+  if (m.planned_batch == batch) return;
+  const int H = config_.grid.height(), W = config_.grid.width(), depth = config_.depth;
+  Arena& a = *m.activations;
+  // Two passes: measure, then take from one block of that size.
+  for (int pass = 0; pass < 2; ++pass) {
+    if (pass == 0) {
+      a.release();
+      a.begin_measure();
+    } else {
+      a.reserve(a.used());
+      a.reset();
+    }
+    m.x.assign(static_cast<size_t>(depth) + 1, Ref{});
+    m.dx.assign(static_cast<size_t>(depth) + 1, Ref{});
+    std::vector<int> hs(static_cast<size_t>(depth) + 1), ws(static_cast<size_t>(depth) + 1);
+    hs[0] = H, ws[0] = W;
+    m.x[0] = a.take<float>({batch, config_.input_channels(), H, W});
+    m.dx[0] = a.take<float>({batch, config_.input_channels(), H, W});
+    if (config_.occupancy != OccupancyInput::None) {
+      m.occupancy_input = a.take<float>({batch, config_.occupancy_input_channels(), H, W});
+      m.occupancy.plan(a, batch, H, W);
+    }
+    if (config_.grid_map_input) m.grid_map_input = a.take<float>({batch, 6, H, W});
+    for (int i = 1; i <= depth; ++i) {
+      Down& d = m.downs[static_cast<size_t>(i - 1)];
+      d.plan(a, batch, hs[i - 1], ws[i - 1]);
+      hs[i] = hs[i - 1] / 2, ws[i] = ws[i - 1] / 2;
+      m.x[i] = d.conv.out();
+      m.dx[i] = d.conv.d_out();  // the gradient of x[i] is the block's output gradient
+    }
+    int h = hs[depth], w = ws[depth];
+    for (int j = 1; j <= depth; ++j) {
+      const int skip = depth - j;
+      m.ups[static_cast<size_t>(j - 1)].plan(a, batch, h, w, hs[skip], ws[skip]);
+      h = hs[skip], w = ws[skip];
+    }
+    m.logits = a.take<float>({batch, config_.num_classes, H, W});
+    m.d_logits = a.take<float>({batch, config_.num_classes, H, W});
+    m.probs = a.take<float>({batch, config_.num_classes, H, W});
+    m.labels = a.take<uint8_t>({batch, H, W});
+    m.predicted = a.take<uint8_t>({batch, H, W});
+    m.coefficients = a.take<float>({13});
+  }
+  m.planned_batch = batch;
+  logits_ = m.logits;
+}
+
+void PillarSegNet::plan_pillars(int64_t pillars) {
+  Impl& m = *impl_;
+  const int N = config_.max_points_per_pillar, C = config_.pillar_channels;
+  if (pillars > m.pillar_capacity) {
+    // Grow with headroom so that a slowly rising pillar count does not re-plan every batch.
+    const int64_t capacity = std::max<int64_t>(pillars + pillars / 4, 1024);
+    Arena& a = *m.pillars;
+    a.release();
+    a.begin_measure();
+    for (int pass = 0; pass < 2; ++pass) {
+      if (pass == 1) {
+        a.reserve(a.used());
+        a.reset();
+      }
+      a.take<float>({capacity, N, 10});
+      a.take<int32_t>({capacity, 3});
+      a.take<float>({capacity, N, C});
+      a.take<int32_t>({capacity, C});
+      a.take<float>({capacity, C});
+      a.take<float>({capacity, C});
+      a.take<float>({C});
+      a.take<float>({C});
+    }
+    m.pillar_capacity = capacity;
+  }
+  // Views of the current size at the start of each buffer.
+  Arena& a = *m.pillars;
+  a.reset();
+  const int64_t cap = m.pillar_capacity;
+  const auto carve = [&](auto tag, Shape full, Shape used) {
+    using T = decltype(tag);
+    RefT<T> r = a.take<T>(std::move(full));
+    r.shape = std::move(used);
+    return r;
+  };
+  m.pillar_points = carve(float{}, {cap, N, 10}, {pillars, N, 10});
+  m.pillar_cells = carve(int32_t{}, {cap, 3}, {pillars, 3});
+  m.pfn_pre = carve(float{}, {cap, N, C}, {pillars, N, C});
+  m.pfn_argmax = carve(int32_t{}, {cap, C}, {pillars, C});
+  m.pfn_out = carve(float{}, {cap, C}, {pillars, C});
+  m.pfn_dout = carve(float{}, {cap, C}, {pillars, C});
+  m.pfn_bn.save_mean = a.take<float>({C});
+  m.pfn_bn.save_invstd = a.take<float>({C});
+  m.num_pillars = pillars;
+}
+
+size_t PillarSegNet::activation_bytes() const { return impl_->activations->used() + impl_->pillars->used(); }
+
+void PillarSegNet::forward(const ModelBatch& batch, bool training) {
+  Impl& m = *impl_;
+  Backend& be = backend_;
+  ParameterSet& ps = params_;
+  const int H = config_.grid.height(), W = config_.grid.width();
+  PS_CHECK(batch.batch >= 1, "forward: batch size must be >= 1, got {}", batch.batch);
+  plan(batch.batch);
+  Ref& canvas = m.x[0];
+  be.fill_zero(canvas.data, canvas.bytes());
+  int channel = 0;
+  if (config_.pillar_input) {
+    const int64_t P = batch.pillar_points.rank() == 3 ? batch.pillar_points.dim(0) : 0;
+    PS_CHECK(batch.pillar_points.rank() == 3 || batch.pillar_points.numel() == 0,
+             "forward: pillar_points must be (P, N, 10), got {}", shape_str(batch.pillar_points.shape()));
+    if (P > 0) {
+      PS_CHECK(batch.pillar_points.dim(1) == config_.max_points_per_pillar && batch.pillar_points.dim(2) == 10,
+               "forward: pillar_points must be (P, {}, 10), got {}", config_.max_points_per_pillar,
+               shape_str(batch.pillar_points.shape()));
+      PS_CHECK(batch.pillar_cells.shape() == (Shape{P, 3}), "forward: pillar_cells must be ({}, 3), got {}", P,
+               shape_str(batch.pillar_cells.shape()));
+    }
+    plan_pillars(P);
+    if (P > 0) {
+      be.upload(m.pillar_points.data, batch.pillar_points.data(), m.pillar_points.bytes());
+      be.upload(m.pillar_cells.data, batch.pillar_cells.data(), m.pillar_cells.bytes());
+      BatchNormRefs r = bn_refs(ps, m.pfn_bn);
+      be.pfn_forward(m.pillar_points, ps.value(m.pfn_weight), r, training, m.pfn_pre, m.pfn_argmax, m.pfn_out);
+      if (training) ps.counters()[m.pfn_bn.counter] += 1;
+      be.scatter_forward(m.pfn_out, m.pillar_cells, 0, canvas);
+    }
+    channel += config_.pillar_channels;
+  }
+  if (config_.occupancy != OccupancyInput::None) {
+    const Shape expected{batch.batch, config_.occupancy_input_channels(), H, W};
+    PS_CHECK(batch.occupancy.shape() == expected, "forward: occupancy input must be {}, got {}", shape_str(expected),
+             shape_str(batch.occupancy.shape()));
+    be.upload(m.occupancy_input.data, batch.occupancy.data(), m.occupancy_input.bytes());
+    m.occupancy.forward(be, ps, m.occupancy_input, training);
+    be.copy_channels(m.occupancy.out, channel, canvas);
+    channel += config_.occupancy_channels;
+  }
+  if (config_.grid_map_input) {
+    const Shape expected{batch.batch, 6, H, W};
+    PS_CHECK(batch.grid_map.shape() == expected, "forward: grid_map input must be {}, got {}", shape_str(expected),
+             shape_str(batch.grid_map.shape()));
+    be.upload(m.grid_map_input.data, batch.grid_map.data(), m.grid_map_input.bytes());
+    be.copy_channels(m.grid_map_input, channel, canvas);
+  }
+  const int depth = config_.depth;
+  for (int i = 1; i <= depth; ++i) m.downs[static_cast<size_t>(i - 1)].forward(be, ps, m.x[i - 1], training);
+  Ref current = m.x[depth];
+  for (int j = 1; j <= depth; ++j) {
+    Up& u = m.ups[static_cast<size_t>(j - 1)];
+    u.forward(be, ps, current, m.x[depth - j], training);
+    current = u.conv.out();
+  }
+  Ref head_bias = ps.value(m.head.bias);
+  be.conv2d_forward(current, ps.value(m.head.weight), &head_bias, 0, m.logits);
+}
+
+double PillarSegNet::loss(const Tensor<uint8_t>& labels, LossKind kind, const std::array<float, 13>& coefficients) {
+  Impl& m = *impl_;
+  PS_CHECK(m.planned_batch > 0, "loss() before forward()");
+  const Shape expected{m.planned_batch, config_.grid.height(), config_.grid.width()};
+  PS_CHECK(labels.shape() == expected, "loss: labels must be {}, got {}", shape_str(expected), shape_str(labels.shape()));
+  backend_.upload(m.labels.data, labels.data(), m.labels.bytes());
+  backend_.upload(m.coefficients.data, coefficients.data(), m.coefficients.bytes());
+  return backend_.loss(kind, m.logits, m.labels, m.coefficients, m.d_logits);
+}
+
+void PillarSegNet::backward() {
+  Impl& m = *impl_;
+  Backend& be = backend_;
+  ParameterSet& ps = params_;
+  const int depth = config_.depth;
+  Up& last = m.ups.back();
+  Ref dw = ps.grad(m.head.weight), db = ps.grad(m.head.bias);
+  be.conv2d_backward(last.conv.out(), ps.value(m.head.weight), m.d_logits, 0, &last.conv.d_out(), dw, &db);
+  for (int j = depth; j >= 1; --j) {
+    Up& u = m.ups[static_cast<size_t>(j - 1)];
+    const Ref& input = j == 1 ? m.x[depth] : m.ups[static_cast<size_t>(j - 2)].conv.out();
+    Ref& d_input = j == 1 ? m.dx[depth] : m.ups[static_cast<size_t>(j - 2)].conv.d_out();
+    u.backward(be, ps, input, m.dx[depth - j], d_input);
+  }
+  for (int i = depth; i >= 1; --i) {
+    // dx[i] (the block's d_out) is complete: the Up's skip gradient plus block i+1's part.
+    m.downs[static_cast<size_t>(i - 1)].backward(be, ps, m.dx[i - 1]);
+  }
+  int channel = 0;
+  if (config_.pillar_input) {
+    if (m.num_pillars > 0) {
+      be.scatter_backward(m.dx[0], m.pillar_cells, 0, m.pfn_dout);
+      const BatchNormRefs r = bn_refs(ps, m.pfn_bn);
+      Ref dweight = ps.grad(m.pfn_weight), dgamma = ps.grad(m.pfn_bn.gamma), dbeta = ps.grad(m.pfn_bn.beta);
+      be.pfn_backward(m.pillar_points, ps.value(m.pfn_weight), r, m.pfn_pre, m.pfn_argmax, m.pfn_dout, dweight,
+                      dgamma, dbeta);
+    } else {
+      for (int idx : {m.pfn_weight, m.pfn_bn.gamma, m.pfn_bn.beta}) {
+        Ref g = ps.grad(idx);
+        be.fill_zero(g.data, g.bytes());
+      }
+    }
+    channel += config_.pillar_channels;
+  }
+  if (config_.occupancy != OccupancyInput::None) {
+    be.extract_channels(m.dx[0], channel, m.occupancy.d_out);
+    m.occupancy.backward(be, ps, m.occupancy_input, nullptr);
+  }
+}
+
+Tensor<float> PillarSegNet::download_logits() const {
+  Tensor<float> out(logits_.shape);
+  backend_.download(out.data(), logits_.data, logits_.bytes());
+  return out;
+}
+
+Tensor<float> PillarSegNet::probabilities() {
+  Impl& m = *impl_;
+  backend_.softmax(m.logits, m.probs);
+  Tensor<float> out(m.probs.shape);
+  backend_.download(out.data(), m.probs.data, m.probs.bytes());
+  return out;
+}
+
+Tensor<uint8_t> PillarSegNet::predict_labels() {
+  Impl& m = *impl_;
+  backend_.argmax(m.logits, m.predicted);
+  Tensor<uint8_t> out(m.predicted.shape);
+  backend_.download(out.data(), m.predicted.data, m.predicted.bytes());
+  return out;
+}
+
+}  // namespace pillarseg

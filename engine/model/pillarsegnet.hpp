@@ -1,0 +1,73 @@
+// PillarSegNet (DESIGN.md section 2) on any Backend: pillar feature net + scatter, optional
+// occupancy stream (Conv3x3 -> BN -> ReLU to Q channels) and grid-map layers, concatenated
+// into the input canvas (B, I, H, W); the authors' U-Net without its input block (bilinear or
+// transposed-convolution upsampling); a 1x1 head to 12 classes. Forward keeps what backward
+// needs; backward writes every parameter gradient (overwriting).
+//
+// Activation memory is planned once per (batch, H, W) in one arena; pillar buffers grow
+// only when a batch has more pillars than any before, so the steady-state loop allocates
+// nothing.
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <memory>
+#include <vector>
+
+#include "engine/core/tensor.hpp"
+#include "engine/model/backend.hpp"
+#include "engine/model/config.hpp"
+#include "engine/model/parameters.hpp"
+
+namespace pillarseg {
+
+// One batch of network inputs, on the host.
+struct ModelBatch {
+  int batch = 1;
+  Tensor<float> pillar_points;   // (P, N, 10) decorated points of all samples
+  Tensor<int32_t> pillar_cells;  // (P, 3): sample index, iy, ix
+  Tensor<float> occupancy;       // (B, 1 or Z, H, W) when the config has an occupancy stream
+  Tensor<float> grid_map;        // (B, 6, H, W) when the config has the grid-map input
+};
+
+class PillarSegNet {
+ public:
+  PillarSegNet(const ModelConfig& config, Backend& backend, uint64_t seed = 0);
+  ~PillarSegNet();
+  PillarSegNet(const PillarSegNet&) = delete;
+  PillarSegNet& operator=(const PillarSegNet&) = delete;
+
+  const ModelConfig& config() const { return config_; }
+  Backend& backend() { return backend_; }
+  ParameterSet& parameters() { return params_; }
+  const ParameterSet& parameters() const { return params_; }
+
+  // Runs the network; training: batch statistics (and running-statistic updates).
+  void forward(const ModelBatch& batch, bool training);
+  // After forward: the mean loss over labelled cells of labels (B, H, W), and the gradient
+  // of the logits, ready for backward(). coefficients: per class id 0..12.
+  double loss(const Tensor<uint8_t>& labels, LossKind kind, const std::array<float, 13>& coefficients);
+  // After loss(): every parameter gradient.
+  void backward();
+
+  Ref logits() const { return logits_; }
+  Tensor<float> download_logits() const;           // (B, 12, H, W)
+  Tensor<float> probabilities();                   // softmax, (B, 12, H, W)
+  Tensor<uint8_t> predict_labels();                // argmax class ids 1..12, (B, H, W)
+  // Bytes of activation memory planned for the current batch shape.
+  size_t activation_bytes() const;
+
+  struct Impl;
+
+ private:
+  void plan(int batch);
+  void plan_pillars(int64_t pillars);
+
+  ModelConfig config_;
+  Backend& backend_;
+  ParameterSet params_;
+  std::unique_ptr<Impl> impl_;
+  Ref logits_;
+};
+
+}  // namespace pillarseg
