@@ -59,11 +59,12 @@ class Backend {
 
   // Pillar feature net: decorated points (P, N, 10), W (C, 10) -> BN -> ReLU -> max over N
   // -> (P, C). Training uses batch statistics over all P*N rows and saves what backward needs
-  // (linear output (P, N, C) in `pre`, the arg-max slot (P, C) in `argmax`).
-  virtual void pfn_forward(const Ref& points, const Ref& weight, BatchNormRefs& bn, bool training, Ref& pre,
-                           IRef& argmax, Ref& out) = 0;
-  virtual void pfn_backward(const Ref& points, const Ref& weight, const BatchNormRefs& bn, const Ref& pre,
-                            const IRef& argmax, const Ref& dout, Ref& dweight, Ref& dgamma, Ref& dbeta) = 0;
+  // (the batch statistics in bn.save_*, the arg-max slot (P, C) in `argmax`, -1 where the
+  // output is 0). Backward recomputes the linear output; d_points (P, N, 10) is scratch.
+  virtual void pfn_forward(const Ref& points, const Ref& weight, BatchNormRefs& bn, bool training, IRef& argmax,
+                           Ref& out) = 0;
+  virtual void pfn_backward(const Ref& points, const Ref& weight, const BatchNormRefs& bn, const IRef& argmax,
+                            const Ref& dout, Ref& d_points, Ref& dweight, Ref& dgamma, Ref& dbeta) = 0;
   // Pillar features (P, C) + cells (P, 3: batch, iy, ix) -> canvas (B, C, H, W) at channel
   // offset `channel0` of a canvas with more channels (the other channels are untouched).
   virtual void scatter_forward(const Ref& features, const IRef& cells, int channel0, Ref& canvas) = 0;

@@ -188,7 +188,7 @@ struct PillarSegNet::Impl {
   // Pillar stream.
   int pfn_weight = -1;
   BnParams pfn_bn;
-  Ref pillar_points, pfn_pre, pfn_out, pfn_dout;
+  Ref pillar_points, pfn_dpoints, pfn_out, pfn_dout;
   IRef pillar_cells, pfn_argmax;
   int64_t pillar_capacity = -1, num_pillars = 0;
   // Occupancy stream.
@@ -334,7 +334,7 @@ void PillarSegNet::plan_pillars(int64_t pillars) {
       }
       a.take<float>({capacity, N, 10});
       a.take<int32_t>({capacity, 3});
-      a.take<float>({capacity, N, C});
+      a.take<float>({capacity, N, 10});
       a.take<int32_t>({capacity, C});
       a.take<float>({capacity, C});
       a.take<float>({capacity, C});
@@ -355,7 +355,7 @@ void PillarSegNet::plan_pillars(int64_t pillars) {
   };
   m.pillar_points = carve(float{}, {cap, N, 10}, {pillars, N, 10});
   m.pillar_cells = carve(int32_t{}, {cap, 3}, {pillars, 3});
-  m.pfn_pre = carve(float{}, {cap, N, C}, {pillars, N, C});
+  m.pfn_dpoints = carve(float{}, {cap, N, 10}, {pillars, N, 10});
   m.pfn_argmax = carve(int32_t{}, {cap, C}, {pillars, C});
   m.pfn_out = carve(float{}, {cap, C}, {pillars, C});
   m.pfn_dout = carve(float{}, {cap, C}, {pillars, C});
@@ -392,7 +392,7 @@ void PillarSegNet::forward(const ModelBatch& batch, bool training) {
       be.upload(m.pillar_points.data, batch.pillar_points.data(), m.pillar_points.bytes());
       be.upload(m.pillar_cells.data, batch.pillar_cells.data(), m.pillar_cells.bytes());
       BatchNormRefs r = bn_refs(ps, m.pfn_bn);
-      be.pfn_forward(m.pillar_points, ps.value(m.pfn_weight), r, training, m.pfn_pre, m.pfn_argmax, m.pfn_out);
+      be.pfn_forward(m.pillar_points, ps.value(m.pfn_weight), r, training, m.pfn_argmax, m.pfn_out);
       if (training) ps.counters()[m.pfn_bn.counter] += 1;
       be.scatter_forward(m.pfn_out, m.pillar_cells, 0, canvas);
     }
@@ -460,7 +460,7 @@ void PillarSegNet::backward() {
       be.scatter_backward(m.dx[0], m.pillar_cells, 0, m.pfn_dout);
       const BatchNormRefs r = bn_refs(ps, m.pfn_bn);
       Ref dweight = ps.grad(m.pfn_weight), dgamma = ps.grad(m.pfn_bn.gamma), dbeta = ps.grad(m.pfn_bn.beta);
-      be.pfn_backward(m.pillar_points, ps.value(m.pfn_weight), r, m.pfn_pre, m.pfn_argmax, m.pfn_dout, dweight,
+      be.pfn_backward(m.pillar_points, ps.value(m.pfn_weight), r, m.pfn_argmax, m.pfn_dout, m.pfn_dpoints, dweight,
                       dgamma, dbeta);
     } else {
       for (int idx : {m.pfn_weight, m.pfn_bn.gamma, m.pfn_bn.beta}) {
