@@ -5,5 +5,7 @@
 
 namespace pillarseg::cli {
 
+// pillarseg gt: ground truth of one scan (PNG or .u8) or the cache of a sequence.
+void add_gt(CLI::App& app);
 
 }  // namespace pillarseg::cli
