@@ -6,5 +6,6 @@
 namespace pillarseg::cli {
 
 void add_info(CLI::App& app);
+void add_gt(CLI::App& app);
 
 }  // namespace pillarseg::cli

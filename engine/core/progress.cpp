@@ -28,7 +28,7 @@ void Progress::update(int64_t done, const std::string& message) {
   message_ = message;
   const auto now = std::chrono::steady_clock::now();
   const double since = std::chrono::duration<double>(now - last_draw_).count();
-  if (since >= (tty_ ? 0.2 : 5.0) || done_ == total_) {
+  if (since >= (tty_ ? 0.2 : 5.0)) {  // the final state is drawn by finish()
     last_draw_ = now;
     draw(false);
   }

@@ -135,6 +135,13 @@ class Tensor {
   template <class... I>
   const T& operator()(I... idx) const { return data()[offset(idx...)]; }
 
+  // The elements as a plain vector (a copy), e.g. to compare in tests.
+  std::vector<T> values() const { return std::vector<T>(begin(), end()); }
+  // Same shape and the same elements (bitwise equal for floats, so NaN != NaN).
+  bool operator==(const Tensor& other) const {
+    return shape_ == other.shape_ && std::equal(begin(), end(), other.begin());
+  }
+
   void fill(T value) { std::fill(begin(), end(), value); }
   void set_zero() { fill(T{}); }
   // Same data, new shape with the same element count.
