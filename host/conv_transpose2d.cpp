@@ -1,0 +1,148 @@
+// ConvTranspose2d, kernel 2x2, stride 2: x (B, I, H, W), w (I, O, 2, 2), bias (O) ->
+// y (B, O, 2H, 2W); backward dy (B, O, 2H, 2W) -> dx, dw, db.
+//
+// With stride equal to the kernel size the output windows do not overlap: output pixel
+// (2h + dy, 2w + dx) depends on input pixel (h, w) only. The op is therefore a 1x1 convolution
+// from I to 4 O channels, channel o * 4 + dy * 2 + dx holding sub-pixel (dy, dx) of output
+// channel o, followed by a pixel shuffle that moves each sub-pixel channel to its place; its
+// backward is the inverse shuffle followed by the 1x1 convolution's backward (host/conv2d).
+#include "host/conv_transpose2d.hpp"
+
+#include <cstdint>
+#include <type_traits>
+
+#include "engine/core/error.hpp"
+#include "engine/core/parallel.hpp"
+#include "host/conv2d.hpp"
+
+namespace pillarseg::host {
+namespace {
+
+constexpr int64_t kSubPixels = 4;  // (dy, dx) in {0, 1}^2, index dy * 2 + dx
+
+// Checks x, w and bias; `op` names the caller in messages.
+template <class T>
+void check_args(const char* op, const Tensor<T>& x, const Tensor<T>& w,
+                const std::type_identity_t<Tensor<T>>* bias) {
+  PS_CHECK(x.rank() == 4, "{}: x must be (B, I, H, W), got shape {}", op, shape_str(x.shape()));
+  PS_CHECK(x.dim(2) >= 1 && x.dim(3) >= 1, "{}: x must have H, W >= 1, got shape {}", op,
+           shape_str(x.shape()));
+  PS_CHECK(w.rank() == 4 && w.dim(2) == 2 && w.dim(3) == 2,
+           "{}: w must be (I, O, 2, 2) (PyTorch ConvTranspose2d layout), got shape {}", op,
+           shape_str(w.shape()));
+  PS_CHECK(w.dim(0) == x.dim(1), "{}: w {} expects I = {} input channels, but x {} has {} channels",
+           op, shape_str(w.shape()), w.dim(0), shape_str(x.shape()), x.dim(1));
+  if (bias != nullptr) {
+    PS_CHECK(bias->rank() == 1 && bias->dim(0) == w.dim(1),
+             "{}: bias must be (O) = ({}) for w {}, got shape {}", op, w.dim(1),
+             shape_str(w.shape()), shape_str(bias->shape()));
+  }
+}
+
+// w (I, O, 2, 2) -> the equivalent 1x1 convolution weight (4 O, I, 1, 1):
+// pointwise[o * 4 + s, i] = w[i, o, s / 2, s % 2].
+template <class T>
+Tensor<T> pointwise_weight(const Tensor<T>& w) {
+  const int64_t in_channels = w.dim(0);
+  const int64_t out_channels = w.dim(1);
+  Tensor<T> pointwise({out_channels * kSubPixels, in_channels, 1, 1});
+  for (int64_t i = 0; i < in_channels; ++i)
+    for (int64_t o = 0; o < out_channels; ++o)
+      for (int64_t s = 0; s < kSubPixels; ++s)
+        pointwise(o * kSubPixels + s, i, 0, 0) = w(i, o, s / 2, s % 2);
+  return pointwise;
+}
+
+}  // namespace
+
+template <class T>
+void conv_transpose2d_forward(const Tensor<T>& x, const Tensor<T>& w,
+                              const std::type_identity_t<Tensor<T>>* bias, Tensor<T>& y) {
+  check_args("conv_transpose2d_forward", x, w, bias);
+  PS_CHECK(&y != &x && &y != &w && &y != bias,
+           "conv_transpose2d_forward: the output y must be a different tensor from x, w, bias");
+  const int64_t batch = x.dim(0);
+  const int64_t height = x.dim(2);
+  const int64_t width = x.dim(3);
+  const int64_t out_channels = w.dim(1);
+
+  Tensor<T> sub_pixels;  // (B, 4 O, H, W)
+  conv2d_forward(x, pointwise_weight(w), nullptr, 0, sub_pixels);
+
+  y.resize({batch, out_channels, 2 * height, 2 * width});
+  parallel_for(batch * out_channels, [&](int64_t plane) {
+    const int64_t b = plane / out_channels;
+    const int64_t o = plane % out_channels;
+    const T offset = bias != nullptr ? (*bias)[o] : T{0};
+    for (int64_t s = 0; s < kSubPixels; ++s)
+      for (int64_t h = 0; h < height; ++h)
+        for (int64_t c = 0; c < width; ++c)
+          y(b, o, 2 * h + s / 2, 2 * c + s % 2) = sub_pixels(b, o * kSubPixels + s, h, c) + offset;
+  });
+}
+
+template <class T>
+void conv_transpose2d_backward(const Tensor<T>& x, const Tensor<T>& w, const Tensor<T>& dy,
+                               std::type_identity_t<Tensor<T>>* dx,
+                               std::type_identity_t<Tensor<T>>* dw,
+                               std::type_identity_t<Tensor<T>>* db) {
+  check_args("conv_transpose2d_backward", x, w, nullptr);
+  const int64_t batch = x.dim(0);
+  const int64_t height = x.dim(2);
+  const int64_t width = x.dim(3);
+  const int64_t in_channels = w.dim(0);
+  const int64_t out_channels = w.dim(1);
+  const Shape y_shape = {batch, out_channels, 2 * height, 2 * width};
+  PS_CHECK(dy.shape() == y_shape,
+           "conv_transpose2d_backward: dy must have the output shape {}, got {}",
+           shape_str(y_shape), shape_str(dy.shape()));
+  for (const Tensor<T>* grad : {dx, dw, db}) {
+    PS_CHECK(grad == nullptr || (grad != &x && grad != &w && grad != &dy),
+             "conv_transpose2d_backward: the gradients dx, dw, db must be different tensors "
+             "from x, w, dy");
+  }
+
+  if (db != nullptr) {
+    db->resize({out_channels});
+    for (int64_t b = 0; b < batch; ++b)
+      for (int64_t o = 0; o < out_channels; ++o)
+        for (int64_t p = 0; p < 4 * height * width; ++p)
+          (*db)[o] += dy[(b * out_channels + o) * 4 * height * width + p];
+  }
+  if (dx == nullptr && dw == nullptr) return;
+
+  // Inverse pixel shuffle: d_sub_pixels[b, o * 4 + s, h, w] = dy[b, o, 2 h + s / 2, 2 w + s % 2].
+  Tensor<T> d_sub_pixels({batch, out_channels * kSubPixels, height, width});
+  parallel_for(batch * out_channels, [&](int64_t plane) {
+    const int64_t b = plane / out_channels;
+    const int64_t o = plane % out_channels;
+    for (int64_t s = 0; s < kSubPixels; ++s)
+      for (int64_t h = 0; h < height; ++h)
+        for (int64_t c = 0; c < width; ++c)
+          d_sub_pixels(b, o * kSubPixels + s, h, c) = dy(b, o, 2 * h + s / 2, 2 * c + s % 2);
+  });
+
+  Tensor<T> d_pointwise;  // (4 O, I, 1, 1)
+  conv2d_backward(x, pointwise_weight(w), d_sub_pixels, 0, dx,
+                  dw != nullptr ? &d_pointwise : nullptr, nullptr);
+  if (dw != nullptr) {
+    dw->resize(w.shape());
+    for (int64_t i = 0; i < in_channels; ++i)
+      for (int64_t o = 0; o < out_channels; ++o)
+        for (int64_t s = 0; s < kSubPixels; ++s)
+          (*dw)(i, o, s / 2, s % 2) = d_pointwise(o * kSubPixels + s, i, 0, 0);
+  }
+}
+
+template void conv_transpose2d_forward<float>(const Tensor<float>&, const Tensor<float>&,
+                                              const Tensor<float>*, Tensor<float>&);
+template void conv_transpose2d_forward<double>(const Tensor<double>&, const Tensor<double>&,
+                                               const Tensor<double>*, Tensor<double>&);
+template void conv_transpose2d_backward<float>(const Tensor<float>&, const Tensor<float>&,
+                                               const Tensor<float>&, Tensor<float>*, Tensor<float>*,
+                                               Tensor<float>*);
+template void conv_transpose2d_backward<double>(const Tensor<double>&, const Tensor<double>&,
+                                                const Tensor<double>&, Tensor<double>*,
+                                                Tensor<double>*, Tensor<double>*);
+
+}  // namespace pillarseg::host
