@@ -5,5 +5,6 @@
 
 namespace pillarseg::cli {
 
+void add_simulate(CLI::App& app);
 
 }  // namespace pillarseg::cli

@@ -24,6 +24,7 @@ int main(int argc, char** argv) {
     spdlog::set_pattern("[%l] %v");
   });
 
+  pillarseg::cli::add_simulate(app);
 
   try {
     app.parse(argc, argv);
