@@ -693,8 +693,9 @@ class CityBuilder {
         // corral in the parking strip or on the sidewalk with the parking in front kept free.
         for (double s = rng.uniform(5.0, 30.0); s < st.length(); s += rng.uniform(30.0, 70.0)) {
           const int count = 3 + static_cast<int>(rng.uniform_int(4));
-          const bool corral = ss.parking > 0 && rng.bernoulli(0.6);
-          const double a = corral ? ss.e_bike + 0.5 * ss.parking : ss.e_lawn + 0.9;
+          // Racks stand on the sidewalk only where it is wide enough to walk past them.
+          const bool corral = ss.parking > 0 && (rng.bernoulli(0.6) || ss.sidewalk < 3.0);
+          const double a = corral ? ss.e_bike + 0.5 * ss.parking : ss.e_lawn + 0.6;
           const double sign = rng.bernoulli(0.5) ? 1.0 : -1.0;
           const double angle = sign * rng.uniform(0.5, 0.9);
           std::vector<Placement> rack;
@@ -747,7 +748,7 @@ class CityBuilder {
         // Bicyclists waiting with their bicycle at the curb (the person is bicyclist 31, the
         // bicycle 11) and motorcyclists stopped in the parking strip (32 on motorcycle 15).
         for (double s = rng.uniform(10.0, 80.0); s < st.length(); s += rng.uniform(60.0, 140.0)) {
-          const Placement p = on_street(ki, side, s, ss.e_lawn + 0.9, side == 0 ? 0.0 : kPi);
+          const Placement p = on_street(ki, side, s, ss.e_lawn + 0.5, side == 0 ? 0.0 : kPi);
           Agent rider = sample_agent(AgentKind::kBicyclist, 0, 0, rng);
           if (!on_ground(p, {raw::kSidewalk}) || !occupancy_.free(p.x, p.y, 1.0)) continue;
           rider.label = label_word(raw::kBicyclist, new_instance());
@@ -914,8 +915,10 @@ class CityBuilder {
       for (int side = 0; side < 2; ++side) {
         const StreetSide& ss = st.sides[static_cast<size_t>(side)];
         const double sign = side == 0 ? -1.0 : 1.0;
-        const double out = ss.e_lawn + rng.uniform(0.3, 0.45) * ss.sidewalk;
-        const double back = ss.e_lawn + rng.uniform(0.55, 0.7) * ss.sidewalk;
+        // Between the racks and waiting cyclists at the curb side of the sidewalk and the
+        // cabinets and leaning bicycles at its back.
+        const double out = ss.e_lawn + rng.uniform(0.42, 0.55) * ss.sidewalk;
+        const double back = ss.e_lawn + rng.uniform(0.62, 0.72) * ss.sidewalk;
         Route route{Route::Kind::kShuttle, ki, start, end, sign * out, sign * back};
         fill_route(route, 2 * (end - start), rng.uniform(1.0, 1.6), 35.0, 100.0, rng, [&](Rng& r) {
           return sample_agent(AgentKind::kPerson, label_word(raw::kMovingPerson, new_instance()), 0,
