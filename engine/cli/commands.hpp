@@ -5,7 +5,8 @@
 
 namespace pillarseg::cli {
 
-void add_info(CLI::App& app);
+void add_simulate(CLI::App& app);
 void add_gt(CLI::App& app);
+void add_info(CLI::App& app);
 
 }  // namespace pillarseg::cli

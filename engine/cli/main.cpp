@@ -24,8 +24,8 @@ int main(int argc, char** argv) {
     spdlog::set_pattern("[%l] %v");
   });
 
+  pillarseg::cli::add_simulate(app);
   pillarseg::cli::add_gt(app);
-
   pillarseg::cli::add_info(app);
 
   try {

@@ -1,0 +1,1174 @@
+#include "engine/sim/city.hpp"
+
+#include <Eigen/Geometry>
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <numbers>
+#include <tuple>
+#include <unordered_map>
+
+#include "engine/core/error.hpp"
+
+namespace pillarseg::sim {
+
+namespace {
+
+using Eigen::Vector2d;
+using Eigen::Vector3d;
+
+constexpr double kPi = std::numbers::pi;
+constexpr double kVertexSpacing = 2.0;  // polyline vertices, m
+constexpr double kMargin = 170.0;       // main street before and after the ego's drive, m
+constexpr double kBackyard = 25.0;      // depth of the backyard band behind the building line, m
+constexpr double kSceneCell = 2.0;      // static scene grid cell, m
+constexpr double kMaxEgoSpeed = 11.5;   // m/s
+
+double deg(double d) {
+  return d * kPi / 180.0;
+}
+
+double wrap(double u, double period) {
+  const double r = std::fmod(u, period);
+  return r < 0 ? r + period : r;
+}
+
+// Value in [-1, 1] fixed for each 0.6 m cell of the ground: the texture of worn asphalt, pavers
+// and grass, so that the reflectance of a surface varies in space and not only per point.
+double ground_texture(double x, double y) {
+  uint64_t h =
+      static_cast<uint64_t>(static_cast<int64_t>(std::floor(x / 0.6))) * 0x9E3779B97F4A7C15ull;
+  h ^= static_cast<uint64_t>(static_cast<int64_t>(std::floor(y / 0.6))) * 0xC2B2AE3D27D4EB4Full;
+  h ^= h >> 31;
+  h *= 0xBF58476D1CE4E5B9ull;
+  h ^= h >> 29;
+  return static_cast<double>(h >> 11) * 0x1.0p-52 - 1.0;
+}
+
+double point_segment_distance(const Vector2d& q, const Vector2d& a, const Vector2d& b) {
+  const Vector2d ab = b - a;
+  const double len2 = ab.squaredNorm();
+  const double u = len2 > 0 ? std::clamp((q - a).dot(ab) / len2, 0.0, 1.0) : 0.0;
+  return (q - (a + u * ab)).norm();
+}
+
+// Discs of ground taken by static things, so that new ones are not put on top of old ones.
+class Occupancy {
+ public:
+  bool free(double x, double y, double r) const {
+    const int64_t cx = cell(x), cy = cell(y);
+    for (int64_t iy = cy - 1; iy <= cy + 1; ++iy)
+      for (int64_t ix = cx - 1; ix <= cx + 1; ++ix) {
+        const auto it = cells_.find(key(ix, iy));
+        if (it == cells_.end()) continue;
+        for (const Vector3d& d : it->second)
+          if (std::hypot(d.x() - x, d.y() - y) < d.z() + r) return false;
+      }
+    return true;
+  }
+  void add(double x, double y, double r) { cells_[key(cell(x), cell(y))].push_back({x, y, r}); }
+
+ private:
+  static constexpr double kCell = 4.0;  // larger than any two radii together
+  static int64_t cell(double v) { return static_cast<int64_t>(std::floor(v / kCell)); }
+  static int64_t key(int64_t ix, int64_t iy) { return ix * 1000003 + iy; }
+  std::unordered_map<int64_t, std::vector<Vector3d>> cells_;
+};
+
+}  // namespace
+
+// ---- Street ------------------------------------------------------------------------------
+
+void StreetSide::set_edges(double road_half_width, double backyard) {
+  e_road = road_half_width;
+  e_bike = e_road + bike;
+  e_curb = e_bike + parking;
+  e_lawn = e_curb + lawn;
+  e_walk = e_lawn + sidewalk;
+  e_front = e_walk + front;
+  e_back = e_front + backyard;
+}
+
+Street::Street(std::vector<Vector2d> polyline) : points(std::move(polyline)) {
+  PS_CHECK(points.size() >= 2, "Street: a centre line needs at least 2 points, got {}",
+           points.size());
+  arc.assign(points.size(), 0.0);
+  for (size_t i = 1; i < points.size(); ++i)
+    arc[i] = arc[i - 1] + (points[i] - points[i - 1]).norm();
+}
+
+StreetFrame Street::at(double s) const {
+  s = std::clamp(s, 0.0, length());
+  const int n = segments();
+  const int j = std::clamp(
+      static_cast<int>(std::upper_bound(arc.begin(), arc.end(), s) - arc.begin()) - 1, 0, n - 1);
+  const double len = arc[j + 1] - arc[j];
+  const double u = len > 0 ? (s - arc[j]) / len : 0.0;
+  const auto seg_tangent = [&](int k) { return (points[k + 1] - points[k]).normalized().eval(); };
+  Vector2d t = seg_tangent(j);
+  if (u < 0.5 && j > 0) {
+    const double w = u + 0.5;
+    t = ((1 - w) * seg_tangent(j - 1) + w * t).normalized();
+  } else if (u >= 0.5 && j < n - 1) {
+    const double w = u - 0.5;
+    t = ((1 - w) * t + w * seg_tangent(j + 1)).normalized();
+  }
+  return {points[j] + u * (points[j + 1] - points[j]), t, Vector2d(-t.y(), t.x())};
+}
+
+Vector2d Street::point(double s, double d) const {
+  const StreetFrame f = at(s);
+  return f.p + d * f.normal;
+}
+
+int Street::project(const Vector2d& q, int hint, double* s, double* d) const {
+  const int n = segments();
+  const auto dist = [&](int k) { return point_segment_distance(q, points[k], points[k + 1]); };
+  int j = std::clamp(hint, 0, n - 1);
+  double best = dist(j);
+  for (int step : {-1, 1}) {
+    while (j + step >= 0 && j + step < n) {
+      const double dk = dist(j + step);
+      if (dk >= best) break;
+      best = dk;
+      j += step;
+    }
+  }
+  const Vector2d a = points[j];
+  const double len = arc[j + 1] - arc[j];
+  const Vector2d t = (points[j + 1] - a) / len;
+  double u = (q - a).dot(t);
+  if (j > 0) u = std::max(u, 0.0);
+  if (j < n - 1) u = std::min(u, len);
+  *s = arc[j] + u;
+  *d = t.x() * (q.y() - a.y()) - t.y() * (q.x() - a.x());
+  return j;
+}
+
+Zone Street::zone(double s, double d) const {
+  if (s < 0 || s > length()) return Zone::kOutside;
+  const StreetSide& side = side_of(d);
+  const double a = std::abs(d);
+  if (a < side.e_road) return Zone::kRoad;
+  if (a < side.e_bike) return Zone::kBikeLane;
+  if (a < side.e_curb) return Zone::kParking;
+  if (a < side.e_lawn) return Zone::kLawn;
+  if (a < side.e_walk) return Zone::kSidewalk;
+  if (a < side.e_front) return Zone::kFront;
+  if (a < side.e_back) return Zone::kBack;
+  return Zone::kOutside;
+}
+
+double EgoDrive::s(double t) const {
+  return s0 + v0 * t + (omega > 0 ? accel_amp / omega * (1.0 - std::cos(omega * t)) : 0.0);
+}
+
+double EgoDrive::speed(double t) const {
+  return v0 + accel_amp * std::sin(omega * t);
+}
+
+// ---- generation --------------------------------------------------------------------------
+
+class CityBuilder {
+ public:
+  CityBuilder(uint64_t seed, int scans) : seed_(seed), scans_(scans) {}
+
+  City build() {
+    plan_ego();
+    plan_main_street();
+    plan_side_streets();
+    plan_stretches_and_lots();
+    plan_crosswalks();
+    city_.build_ground_index();
+    place_buildings();
+    place_yards();
+    place_street_furniture();
+    place_people_and_two_wheelers();
+    place_parked_vehicles();
+    plan_traffic();
+    plan_cyclists_and_walkers();
+    city_.static_scene_ = SceneGrid(std::move(static_), kSceneCell);
+    return std::move(city_);
+  }
+
+ private:
+  Rng stage(uint64_t id) const { return Rng::derive(seed_, id); }
+
+  uint32_t new_instance() {
+    PS_CHECK(next_instance_ < 65536,
+             "simulated city has more than 65535 object instances (a .label holds 16 bits)");
+    return next_instance_++;
+  }
+
+  // True when q lies in no band of another street up to its front yards, and not closer than
+  // `own_min` to the centre of its own street k (curves bring far points of a side closer).
+  bool clear_of_streets(const Vector2d& q, int k, Zone own_min) const {
+    std::array<StreetCoord, 8> near;
+    const int n = city_.locate(q.x(), q.y(), &near);
+    for (int i = 0; i < n; ++i) {
+      const StreetCoord& c = near[static_cast<size_t>(i)];
+      if (c.street == k ? c.zone < own_min : c.zone < Zone::kBack) return false;
+    }
+    return true;
+  }
+
+  double heading(const Vector2d& t) const { return std::atan2(t.y(), t.x()); }
+
+  // Placement at arc length s, distance a from the centre line on `side` of street k, heading
+  // along the street plus yaw_offset; its z is the ground there.
+  Placement on_street(int k, int side, double s, double a, double yaw_offset = 0.0) const {
+    const Street& st = city_.streets_[static_cast<size_t>(k)];
+    const StreetFrame f = st.at(s);
+    const Vector2d q = f.p + (side == 0 ? -a : a) * f.normal;
+    return {q.x(), q.y(), city_.ground_z(q.x(), q.y()), heading(f.tangent) + yaw_offset};
+  }
+
+  uint32_t ground_label(const Placement& p) const { return city_.ground_at(p.x, p.y).label; }
+
+  // ---- layout ----
+
+  void plan_ego() {
+    Rng rng = stage(1);
+    EgoDrive& e = city_.ego_;
+    e.v0 = rng.uniform(6.5, 10.0);
+    e.accel_amp = rng.uniform(0.0, std::min({1.5, e.v0 - 5.5, kMaxEgoSpeed - e.v0}));
+    e.omega = 2 * kPi / rng.uniform(8.0, 20.0);
+    e.s0 = kMargin;
+    e.sway = rng.uniform(0.0, 0.15);
+    e.sway_omega = 2 * kPi / rng.uniform(4.0, 12.0);
+    e.pitch_amp = deg(rng.uniform(0.02, 0.08));
+    e.roll_amp = deg(rng.uniform(0.02, 0.08));
+  }
+
+  void plan_main_street() {
+    Rng rng = stage(2);
+    const double drive = city_.ego_.s(std::max(0, scans_ - 1) * kScanPeriod) - city_.ego_.s0;
+    const double length = 2 * kMargin + drive;
+    std::vector<Vector2d> pts{{0.0, 0.0}};
+    const double start_heading = rng.uniform(-kPi, kPi);
+    double h = start_heading, total = 0.0;
+    int last_turn = rng.bernoulli(0.5) ? 1 : -1;
+    bool straight = true;
+    while (total < length) {
+      double piece = 0, curvature = 0;
+      if (straight) {
+        piece = rng.uniform(40.0, 150.0);
+      } else {
+        // Curves alternate mostly, and turn back when the street has drifted far from its
+        // first heading, so that it never closes on itself.
+        const double drift = h - start_heading;
+        int turn = rng.bernoulli(0.7) ? -last_turn : last_turn;
+        if (std::abs(drift) > deg(30)) turn = drift > 0 ? -1 : 1;
+        const double radius = rng.uniform(90.0, 300.0);
+        piece = radius * deg(rng.uniform(10.0, 40.0));
+        curvature = turn / radius;
+        last_turn = turn;
+      }
+      for (double done = 0; done < piece && total < length;
+           done += kVertexSpacing, total += kVertexSpacing) {
+        h += 0.5 * curvature * kVertexSpacing;
+        pts.push_back(pts.back() + kVertexSpacing * Vector2d(std::cos(h), std::sin(h)));
+        h += 0.5 * curvature * kVertexSpacing;
+      }
+      straight = !straight;
+    }
+    Street main(std::move(pts));
+    main.lanes = rng.bernoulli(0.35) ? 2 : 1;
+    main.lane_width = rng.uniform(3.0, 3.5);
+    main.road_albedo = static_cast<float>(rng.uniform(0.14, 0.22));
+    // The main street always has bike lanes: cyclists ride there beside the ego's lane.
+    const double bike = rng.uniform(1.3, 1.8);
+    for (StreetSide& side : main.sides) {
+      side.bike = bike;
+      side.parking = rng.bernoulli(0.85) ? rng.uniform(2.1, 2.5) : 0.0;
+      side.lawn = rng.bernoulli(0.6) ? rng.uniform(1.2, 3.0) : 0.0;
+      side.sidewalk = rng.uniform(2.0, 4.0);
+      side.front = rng.bernoulli(0.6) ? rng.uniform(1.5, 7.0) : rng.uniform(0.0, 1.5);
+      side.set_edges(main.lanes * main.lane_width, kBackyard);
+    }
+    city_.ego_.lane_offset = -(main.lanes - 0.5) * main.lane_width;
+    city_.streets_.push_back(std::move(main));
+    city_.side_angle_.push_back(0.0);
+    attach_s_.push_back(0.0);
+    attach_side_.push_back(0);
+  }
+
+  // Distance from q to the nearest centre-line vertex of the streets so far, leaving out the
+  // main street's vertices within 80 m (of arc) of where a new side street leaves it at sx,
+  // and the side street leaving at sx on the other side (it goes the opposite way).
+  double distance_to_streets(const Vector2d& q, double sx) const {
+    double best = std::numeric_limits<double>::infinity();
+    for (size_t k = 0; k < city_.streets_.size(); ++k) {
+      if (k != 0 && attach_s_[k] == sx) continue;
+      const Street& st = city_.streets_[k];
+      for (size_t i = 0; i < st.points.size(); ++i)
+        if (k != 0 || std::abs(st.arc[i] - sx) > 80.0)
+          best = std::min(best, (st.points[i] - q).squaredNorm());
+    }
+    return std::sqrt(best);
+  }
+
+  void plan_side_streets() {
+    Rng rng = stage(3);
+    const double main_length = city_.streets_[0].length();
+    for (double sx = rng.uniform(30.0, 70.0); sx < main_length - 30.0;
+         sx += rng.uniform(55.0, 100.0)) {
+      const double r = rng.uniform();
+      for (int side = 0; side < 2; ++side) {
+        const bool wanted = r < 0.4 || (r < 0.7 ? side == 1 : side == 0);
+        const double angle = deg(rng.uniform(-12.0, 12.0));
+        const double length = rng.uniform(90.0, 170.0);
+        const double curvature = rng.uniform(-1.0 / 500.0, 1.0 / 500.0);
+        if (!wanted) continue;
+        const StreetFrame f = city_.streets_[0].at(sx);
+        const Vector2d out = side == 1 ? f.normal : Vector2d(-f.normal);
+        double h = std::atan2(out.y(), out.x()) + angle;
+        std::vector<Vector2d> pts{f.p};
+        for (double done = 0; done < length; done += kVertexSpacing) {
+          h += 0.5 * curvature * kVertexSpacing;
+          const Vector2d next = pts.back() + kVertexSpacing * Vector2d(std::cos(h), std::sin(h));
+          h += 0.5 * curvature * kVertexSpacing;
+          // Stop well short of any other street (other side streets, or the main street again).
+          if (done > 20.0 && distance_to_streets(next, sx) < 35.0) {
+            pts.resize(pts.size() > 8 ? pts.size() - 7 : 1);
+            break;
+          }
+          pts.push_back(next);
+        }
+        if (static_cast<double>(pts.size() - 1) * kVertexSpacing < 45.0) continue;
+        Street st(std::move(pts));
+        st.lanes = 1;
+        st.lane_width = rng.uniform(2.9, 3.3);
+        st.road_albedo = static_cast<float>(rng.uniform(0.14, 0.24));
+        const double bike = rng.bernoulli(0.25) ? rng.uniform(1.3, 1.6) : 0.0;
+        for (StreetSide& ss : st.sides) {
+          ss.bike = bike;
+          ss.parking = rng.bernoulli(0.7) ? rng.uniform(2.1, 2.4) : 0.0;
+          ss.lawn = rng.bernoulli(0.4) ? rng.uniform(1.0, 2.5) : 0.0;
+          ss.sidewalk = rng.uniform(1.8, 3.2);
+          ss.front = rng.uniform(0.0, 6.0);
+          ss.set_edges(st.lane_width, kBackyard);
+        }
+        city_.streets_.push_back(std::move(st));
+        city_.side_angle_.push_back(angle);
+        attach_s_.push_back(sx);
+        attach_side_.push_back(side);
+      }
+    }
+  }
+
+  void plan_stretches_and_lots() {
+    Rng rng = stage(4);
+    for (Street& st : city_.streets_) {
+      const bool is_main = &st == &city_.streets_[0];
+      for (StreetSide& side : st.sides) {
+        for (double s = 0; s < st.length();) {
+          s += rng.uniform(15.0, 45.0);
+          side.stretch_end.push_back(s);
+          side.stretch_parking.push_back(side.parking > 0 && rng.bernoulli(0.8) ? 1 : 0);
+        }
+        for (double s = 0; s < st.length();) {
+          Lot lot;
+          lot.s0 = s;
+          s += rng.uniform(8.0, 28.0);
+          lot.s1 = s;
+          lot.building = rng.bernoulli(is_main ? 0.72 : 0.65);
+          lot.front_label = rng.bernoulli(0.6) ? raw::kTerrain : raw::kOtherGround;
+          lot.back_label = rng.bernoulli(0.65) ? raw::kTerrain : raw::kOtherGround;
+          side.lots.push_back(lot);
+        }
+      }
+    }
+  }
+
+  void plan_crosswalks() {
+    Rng rng = stage(5);
+    Street& main = city_.streets_[0];
+    for (size_t k = 1; k < city_.streets_.size(); ++k) {
+      Street& st = city_.streets_[k];
+      const double cos_angle = std::cos(city_.side_angle_[k]);
+      const StreetSide& main_side = main.sides[static_cast<size_t>(attach_side_[k])];
+      if (rng.bernoulli(0.8)) {
+        const double c0 = main_side.e_curb / cos_angle + 1.0;
+        st.crosswalks.emplace_back(c0, c0 + 3.5);
+      }
+      const double w = std::max(st.sides[0].e_curb, st.sides[1].e_curb) / cos_angle + 1.0;
+      for (int dir : {-1, 1})
+        if (rng.bernoulli(0.6)) {
+          const double near = attach_s_[k] + dir * w, far = attach_s_[k] + dir * (w + 3.5);
+          main.crosswalks.emplace_back(std::min(near, far), std::max(near, far));
+        }
+    }
+  }
+
+  // ---- static things ----
+
+  void place_buildings() {
+    Rng rng = stage(6);
+    for (size_t k = 0; k < city_.streets_.size(); ++k) {
+      Street& st = city_.streets_[k];
+      const bool is_main = k == 0;
+      for (int side = 0; side < 2; ++side) {
+        StreetSide& ss = st.sides[static_cast<size_t>(side)];
+        for (Lot& lot : ss.lots) {
+          const double width = (lot.s1 - lot.s0) - rng.uniform(0.3, 2.5);
+          const double depth = rng.uniform(8.0, 16.0);
+          const double height = is_main ? rng.uniform(6.0, 22.0) : rng.uniform(5.0, 16.0);
+          const double setback = rng.uniform(0.0, 1.5);
+          const float albedo = static_cast<float>(rng.uniform(0.1, 0.45));
+          if (!lot.building) continue;
+          const double s_mid = 0.5 * (lot.s0 + lot.s1);
+          if (width < 5.0 || s_mid > st.length()) {
+            lot.building = false;
+            continue;
+          }
+          const StreetFrame f = st.at(s_mid);
+          const double sign = side == 0 ? -1.0 : 1.0;
+          const Vector2d center = f.p + sign * (ss.e_front + setback + 0.5 * depth) * f.normal;
+          bool clear = true;
+          for (double u : {-0.5, 0.0, 0.5})
+            for (double v : {-0.5, 0.0, 0.5}) {
+              const Vector2d q = center + u * width * f.tangent + v * depth * f.normal;
+              clear = clear && clear_of_streets(q, static_cast<int>(k), Zone::kFront);
+            }
+          if (!clear) {
+            lot.building = false;
+            continue;
+          }
+          const double z0 = city_.curb_height_;
+          static_.push_back(make_box({center.x(), center.y(), z0 + 0.5 * height},
+                                     {0.5 * width, 0.5 * depth, 0.5 * height}, heading(f.tangent),
+                                     raw::kBuilding, albedo));
+        }
+      }
+      // A building closes the far end of a side street.
+      if (!is_main) {
+        const StreetFrame f = st.at(st.length());
+        const double width =
+            2 * std::max(st.sides[0].e_walk, st.sides[1].e_walk) + rng.uniform(4.0, 16.0);
+        const double depth = rng.uniform(8.0, 14.0), height = rng.uniform(6.0, 18.0);
+        const Vector2d center = f.p + (rng.uniform(2.0, 6.0) + 0.5 * depth) * f.tangent;
+        bool clear = true;
+        for (double u : {-0.5, 0.0, 0.5})
+          for (double v : {-0.5, 0.0, 0.5}) {
+            const Vector2d q = center + u * depth * f.tangent + v * width * f.normal;
+            clear = clear && clear_of_streets(q, static_cast<int>(k), Zone::kRoad);
+          }
+        if (clear)
+          static_.push_back(make_box({center.x(), center.y(), city_.curb_height_ + 0.5 * height},
+                                     {0.5 * depth, 0.5 * width, 0.5 * height}, heading(f.tangent),
+                                     raw::kBuilding, static_cast<float>(rng.uniform(0.1, 0.45))));
+      }
+    }
+  }
+
+  // A thin wall (fence or hedge) along street k at distance a, from s0 to s1, in pieces of at
+  // most 6 m that follow the curve; pieces that would cross another street are left out.
+  void wall_along(int k, int side, double s0, double s1, double a, double half_thickness,
+                  double height, uint32_t label, float albedo, Surface surface) {
+    const Street& st = city_.streets_[static_cast<size_t>(k)];
+    s1 = std::min(s1, st.length());
+    const int pieces = static_cast<int>(std::ceil((s1 - s0) / 6.0));
+    for (int i = 0; i < pieces; ++i) {
+      const double a0 = s0 + (s1 - s0) * i / pieces, a1 = s0 + (s1 - s0) * (i + 1) / pieces;
+      const Placement p = on_street(k, side, 0.5 * (a0 + a1), a);
+      const Vector2d q0 = st.point(a0, side == 0 ? -a : a), q1 = st.point(a1, side == 0 ? -a : a);
+      if (!clear_of_streets(q0, k, Zone::kFront) || !clear_of_streets(q1, k, Zone::kFront) ||
+          !clear_of_streets({p.x, p.y}, k, Zone::kFront))
+        continue;
+      static_.push_back(make_box({p.x, p.y, p.z + 0.5 * height},
+                                 {0.5 * (a1 - a0) + 0.02, half_thickness, 0.5 * height}, p.yaw,
+                                 label, albedo, surface));
+    }
+  }
+
+  void add_tree(const Placement& at, Rng& rng) {
+    emit_tree(sample_tree(rng), at, raw::kTrunk, raw::kVegetation, static_);
+    occupancy_.add(at.x, at.y, 0.6);
+  }
+
+  void place_yards() {
+    Rng rng = stage(7);
+    for (size_t k = 0; k < city_.streets_.size(); ++k) {
+      const int ki = static_cast<int>(k);
+      for (int side = 0; side < 2; ++side) {
+        const StreetSide& ss = city_.streets_[k].sides[static_cast<size_t>(side)];
+        for (const Lot& lot : ss.lots) {
+          const double boundary = rng.uniform();
+          const double fence_height = rng.uniform(1.0, 1.8), hedge_height = rng.uniform(0.8, 1.8);
+          const double hedge_half = rng.uniform(0.3, 0.5);
+          const bool wire = rng.bernoulli(0.5);
+          const float fence_albedo = static_cast<float>(rng.uniform(0.2, 0.45));
+          const float leaf_albedo = static_cast<float>(rng.uniform(0.32, 0.48));
+          const double gate = rng.uniform(0.0, 3.0);
+          const double s0 = lot.s0 + 0.3, s1 = lot.s1 - 0.3 - gate;
+          if (s1 - s0 < 2.0) continue;
+          // Gaps between buildings are closed by fences or hedges; front gardens of
+          // buildings sometimes by hedges.
+          if (!lot.building && boundary < 0.35) {
+            wall_along(ki, side, s0, s1, ss.e_walk + 0.05, 0.03, fence_height, raw::kFence,
+                       fence_albedo, wire ? Surface::kMesh : Surface::kSolid);
+          } else if ((!lot.building && boundary < 0.8) ||
+                     (lot.building && ss.front > 1.5 && boundary < 0.45)) {
+            wall_along(ki, side, s0, s1, ss.e_walk + hedge_half + 0.05, hedge_half, hedge_height,
+                       raw::kVegetation, leaf_albedo, Surface::kFoliage);
+          }
+          // Trees and bushes in the yards.
+          const int trees = lot.building ? (ss.front > 3.0 && rng.bernoulli(0.4) ? 1 : 0)
+                                         : static_cast<int>(rng.uniform_int(3));
+          for (int i = 0; i < trees; ++i) {
+            const double s = rng.uniform(lot.s0 + 1.0, lot.s1 - 1.0);
+            const double a = lot.building ? ss.e_walk + 0.5 * ss.front
+                                          : rng.uniform(ss.e_walk + 2.0, ss.e_front + 12.0);
+            const Placement p = on_street(ki, side, s, a);
+            if (clear_of_streets({p.x, p.y}, ki, Zone::kFront) && occupancy_.free(p.x, p.y, 1.5))
+              add_tree(p, rng);
+          }
+          const int bushes = rng.bernoulli(0.5) ? 1 + static_cast<int>(rng.uniform_int(3)) : 0;
+          for (int i = 0; i < bushes; ++i) {
+            const double s = rng.uniform(lot.s0 + 1.0, lot.s1 - 1.0);
+            const double a =
+                ss.e_walk + rng.uniform(1.0, std::max(1.2, lot.building ? ss.front - 0.5 : 10.0));
+            const Placement p = on_street(ki, side, s, a);
+            const double r = rng.uniform(0.5, 1.2), rz = rng.uniform(0.4, 1.0);
+            if (!clear_of_streets({p.x, p.y}, ki, Zone::kFront) || !occupancy_.free(p.x, p.y, r))
+              continue;
+            const double width = r * rng.uniform(0.7, 1.0);
+            const double yaw = rng.uniform(0.0, kPi);
+            static_.push_back(make_ellipsoid({p.x, p.y, p.z + 0.8 * rz}, {r, width, rz}, yaw,
+                                             raw::kVegetation, leaf_albedo, Surface::kFoliage));
+            occupancy_.add(p.x, p.y, r);
+          }
+        }
+      }
+    }
+  }
+
+  // True when the ground at p is one of the labels.
+  bool on_ground(const Placement& p, std::initializer_list<uint32_t> labels) const {
+    const uint32_t g = ground_label(p);
+    return std::find(labels.begin(), labels.end(), g) != labels.end();
+  }
+
+  void place_street_furniture() {
+    Rng rng = stage(8);
+    for (size_t k = 0; k < city_.streets_.size(); ++k) {
+      const int ki = static_cast<int>(k);
+      const Street& st = city_.streets_[k];
+      for (int side = 0; side < 2; ++side) {
+        const StreetSide& ss = st.sides[static_cast<size_t>(side)];
+        const double to_road = side == 0 ? kPi / 2 : -kPi / 2;  // yaw offset facing the road
+        // Street lamps at the curb.
+        for (double s = rng.uniform(5.0, 20.0); s < st.length(); s += rng.uniform(25.0, 38.0)) {
+          const Placement p = on_street(ki, side, s, ss.e_curb + 0.5, to_road);
+          const double height = rng.uniform(6.5, 9.0);
+          if (!on_ground(p, {raw::kSidewalk, raw::kTerrain}) || !occupancy_.free(p.x, p.y, 0.5))
+            continue;
+          emit_street_lamp(p, height, raw::kPole, static_);
+          occupancy_.add(p.x, p.y, 0.5);
+        }
+        // Trees on the lawn, or in tree pits at the curb.
+        const bool pits = ss.lawn < 1.2 && rng.bernoulli(0.5);
+        if (ss.lawn >= 1.2 || pits) {
+          for (double s = rng.uniform(2.0, 10.0); s < st.length(); s += rng.uniform(7.0, 14.0)) {
+            const double a = pits ? ss.e_curb + 0.8 : ss.e_curb + 0.5 * ss.lawn;
+            const Placement p = on_street(ki, side, s, a);
+            const bool shrub = !pits && rng.bernoulli(0.35);
+            const double r = rng.uniform(0.4, std::min(1.0, 0.5 * ss.lawn)),
+                         rz = rng.uniform(0.4, 0.9);
+            const float leaf_albedo = static_cast<float>(rng.uniform(0.32, 0.48));
+            if (!on_ground(p, {raw::kSidewalk, raw::kTerrain}) || !occupancy_.free(p.x, p.y, 0.8))
+              continue;
+            if (!shrub) {
+              add_tree(p, rng);
+              continue;
+            }
+            // A shrub on the lawn instead of a tree.
+            static_.push_back(make_ellipsoid({p.x, p.y, p.z + 0.8 * rz}, {r, r, rz}, 0.0,
+                                             raw::kVegetation, leaf_albedo, Surface::kFoliage));
+            occupancy_.add(p.x, p.y, r);
+          }
+        }
+        // Traffic signs facing the traffic of this side (which drives towards +s on the right).
+        for (double s = rng.uniform(5.0, 30.0); s < st.length(); s += rng.uniform(25.0, 60.0)) {
+          const Placement p = on_street(ki, side, s, ss.e_curb + 0.35, side == 0 ? kPi : 0.0);
+          const double height = rng.uniform(2.2, 2.8);
+          const int plates = rng.bernoulli(0.3) ? 2 : 1;
+          if (!on_ground(p, {raw::kSidewalk, raw::kTerrain}) || !occupancy_.free(p.x, p.y, 0.35))
+            continue;
+          emit_traffic_sign(p, height, plates, raw::kPole, raw::kTrafficSign, static_);
+          occupancy_.add(p.x, p.y, 0.35);
+        }
+        // Bins (other-object) at the curb, utility cabinets (unlabeled) at the back of the
+        // sidewalk, now and then a bus shelter (other-structure).
+        for (double s = rng.uniform(5.0, 40.0); s < st.length(); s += rng.uniform(25.0, 55.0)) {
+          const Placement p = on_street(ki, side, s, ss.e_lawn + 0.45);
+          if (!on_ground(p, {raw::kSidewalk}) || !occupancy_.free(p.x, p.y, 0.45)) continue;
+          static_.push_back(make_box({p.x, p.y, p.z + 0.5}, {0.3, 0.3, 0.5}, p.yaw,
+                                     raw::kOtherObject, static_cast<float>(rng.uniform(0.1, 0.5))));
+          occupancy_.add(p.x, p.y, 0.45);
+        }
+        for (double s = rng.uniform(10.0, 80.0); s < st.length(); s += rng.uniform(60.0, 120.0)) {
+          const Placement p = on_street(ki, side, s, ss.e_walk - 0.3);
+          if (!on_ground(p, {raw::kSidewalk}) || !occupancy_.free(p.x, p.y, 0.45)) continue;
+          static_.push_back(make_box({p.x, p.y, p.z + 0.65}, {0.35, 0.2, 0.65}, p.yaw,
+                                     raw::kUnlabeled, static_cast<float>(rng.uniform(0.2, 0.5))));
+          occupancy_.add(p.x, p.y, 0.45);
+        }
+        for (double s = rng.uniform(40.0, 200.0); s < st.length(); s += rng.uniform(150.0, 300.0)) {
+          const Placement p = on_street(ki, side, s, ss.e_walk - 0.9);
+          if (!on_ground(p, {raw::kSidewalk}) || ss.sidewalk < 2.5 ||
+              !occupancy_.free(p.x, p.y, 1.8))
+            continue;
+          const Placement back = on_street(ki, side, s, ss.e_walk - 0.3);
+          static_.push_back(make_box({back.x, back.y, back.z + 1.2}, {1.6, 0.03, 1.1}, back.yaw,
+                                     raw::kOtherStructure, 0.2f, Surface::kGlass));
+          static_.push_back(make_box({p.x, p.y, p.z + 2.45}, {1.7, 0.8, 0.05}, p.yaw,
+                                     raw::kOtherStructure, 0.3f));
+          occupancy_.add(p.x, p.y, 1.8);
+        }
+      }
+    }
+  }
+
+  void place_parked_vehicles() {
+    Rng rng = stage(9);
+    for (size_t k = 0; k < city_.streets_.size(); ++k) {
+      const int ki = static_cast<int>(k);
+      const Street& st = city_.streets_[k];
+      for (int side = 0; side < 2; ++side) {
+        const StreetSide& ss = st.sides[static_cast<size_t>(side)];
+        if (ss.parking <= 0) continue;
+        const double a = ss.e_bike + 0.5 * ss.parking;
+        const double along = side == 0 ? 0.0 : kPi;  // parked in the direction of traffic
+        for (double s = rng.uniform(0.0, 5.0); s < st.length();) {
+          const double u = rng.uniform();
+          const bool occupied = rng.bernoulli(0.6);
+          AgentKind kind = AgentKind::kCar;
+          uint32_t semantic = raw::kCar;
+          if (u > 0.88) {
+            kind = AgentKind::kMotorcycle, semantic = raw::kMotorcycle;
+          } else if (u > 0.82) {
+            kind = AgentKind::kTrailer, semantic = raw::kOtherVehicle;
+          } else if (u > 0.75) {
+            kind = AgentKind::kTruck, semantic = raw::kTruck;
+          }
+          Agent agent = sample_agent(kind, 0, 0, rng);
+          const double gap = rng.uniform(0.6, 3.0);
+          if (!occupied) {
+            s += rng.uniform(2.0, 7.0);
+            continue;
+          }
+          const double sc = s + 0.5 * agent.length;
+          const Placement p = on_street(ki, side, sc, a, along);
+          bool fits = ground_label(p) == raw::kParking;
+          const double c = std::cos(p.yaw), sn = std::sin(p.yaw);
+          for (double fx : {-0.5, 0.5})
+            for (double fy : {-0.5, 0.5}) {
+              const double x = p.x + fx * agent.length * c - fy * agent.width * sn;
+              const double y = p.y + fx * agent.length * sn + fy * agent.width * c;
+              fits = fits && !city_.ground_at(x, y).raised && occupancy_.free(x, y, 0.2);
+            }
+          if (fits) {
+            agent.label = label_word(semantic, new_instance());
+            emit_agent(agent, p, 0.0, static_);
+            for (double fx : {-0.35, 0.0, 0.35})
+              occupancy_.add(p.x + fx * agent.length * c, p.y + fx * agent.length * sn,
+                             0.5 * agent.width);
+          }
+          s += agent.length + gap;
+        }
+      }
+    }
+  }
+
+  void place_people_and_two_wheelers() {
+    Rng rng = stage(10);
+    for (size_t k = 0; k < city_.streets_.size(); ++k) {
+      const int ki = static_cast<int>(k);
+      const Street& st = city_.streets_[k];
+      for (int side = 0; side < 2; ++side) {
+        const StreetSide& ss = st.sides[static_cast<size_t>(side)];
+        // Bicycle racks: 3-6 bicycles side by side at an angle to the street, either in a
+        // corral in the parking strip or on the sidewalk with the parking in front kept free.
+        for (double s = rng.uniform(5.0, 30.0); s < st.length(); s += rng.uniform(30.0, 70.0)) {
+          const int count = 3 + static_cast<int>(rng.uniform_int(4));
+          // Racks stand on the sidewalk only where it is wide enough to walk past them.
+          const bool corral = ss.parking > 0 && (rng.bernoulli(0.6) || ss.sidewalk < 3.0);
+          const double a = corral ? ss.e_bike + 0.5 * ss.parking : ss.e_lawn + 0.6;
+          const double sign = rng.bernoulli(0.5) ? 1.0 : -1.0;
+          const double angle = sign * rng.uniform(0.5, 0.9);
+          std::vector<Placement> rack;
+          for (int i = 0; i < count; ++i) {
+            const Placement p = on_street(ki, side, s + 0.8 * i, a, angle + rng.uniform(-0.1, 0.1));
+            const bool ground_ok = corral ? ground_label(p) == raw::kParking
+                                          : on_ground(p, {raw::kSidewalk, raw::kTerrain});
+            if (ground_ok && occupancy_.free(p.x, p.y, 0.3)) rack.push_back(p);
+          }
+          for (const Placement& p : rack) {
+            Agent bike = sample_agent(AgentKind::kBicycle, 0, 0, rng);
+            bike.label = label_word(raw::kBicycle, new_instance());
+            emit_agent(bike, p, 0.0, static_);
+            occupancy_.add(p.x, p.y, 0.5);
+          }
+          if (!rack.empty() && ss.parking > 0)
+            for (double f = s - 2.0; f < s + 0.8 * count + 2.0; f += 1.5) {
+              const Placement q = on_street(ki, side, f, ss.e_bike + 0.5 * ss.parking);
+              occupancy_.add(q.x, q.y, 1.2);
+            }
+        }
+        // Bicycles leaning at the back of the sidewalk, along the street.
+        for (const Lot& lot : ss.lots) {
+          if (!rng.bernoulli(0.25)) continue;
+          const double s = rng.uniform(lot.s0, lot.s1);
+          const Placement p = on_street(ki, side, s, ss.e_walk - 0.35, rng.uniform(-0.1, 0.1));
+          if (!on_ground(p, {raw::kSidewalk}) || !occupancy_.free(p.x, p.y, 0.4)) continue;
+          Agent bike = sample_agent(AgentKind::kBicycle, 0, 0, rng);
+          bike.label = label_word(raw::kBicycle, new_instance());
+          emit_agent(bike, p, 0.0, static_);
+          occupancy_.add(p.x, p.y, 0.6);
+        }
+        // Standing people: alone or in groups of two or three, on the sidewalk.
+        for (double s = rng.uniform(2.0, 20.0); s < st.length(); s += rng.uniform(20.0, 45.0)) {
+          const int group = rng.bernoulli(0.6) ? 1 : (rng.bernoulli(0.75) ? 2 : 3);
+          const double a = ss.e_lawn + rng.uniform(0.4, std::max(0.5, ss.sidewalk - 0.4));
+          const double face = rng.uniform(-kPi, kPi);
+          for (int i = 0; i < group; ++i) {
+            const Placement p =
+                on_street(ki, side, s + 0.7 * i, a + rng.uniform(-0.2, 0.2), face + i * 2.2);
+            Agent person = sample_agent(AgentKind::kPerson, 0, 0, rng);
+            if (!on_ground(p, {raw::kSidewalk, raw::kTerrain, raw::kOtherGround}) ||
+                !occupancy_.free(p.x, p.y, 0.3))
+              continue;
+            person.label = label_word(raw::kPerson, new_instance());
+            emit_agent(person, p, 0.0, static_);
+            occupancy_.add(p.x, p.y, 0.3);
+          }
+        }
+        // Bicyclists waiting with their bicycle at the curb (the person is bicyclist 31, the
+        // bicycle 11) and motorcyclists stopped in the parking strip (32 on motorcycle 15).
+        for (double s = rng.uniform(10.0, 80.0); s < st.length(); s += rng.uniform(60.0, 140.0)) {
+          const Placement p = on_street(ki, side, s, ss.e_lawn + 0.5, side == 0 ? 0.0 : kPi);
+          Agent rider = sample_agent(AgentKind::kBicyclist, 0, 0, rng);
+          if (!on_ground(p, {raw::kSidewalk}) || !occupancy_.free(p.x, p.y, 1.0)) continue;
+          rider.label = label_word(raw::kBicyclist, new_instance());
+          rider.vehicle_label = label_word(raw::kBicycle, new_instance());
+          emit_agent(rider, p, 0.0, static_);
+          occupancy_.add(p.x, p.y, 1.0);
+        }
+        if (ss.parking > 0) {
+          for (double s = rng.uniform(20.0, 200.0); s < st.length();
+               s += rng.uniform(150.0, 300.0)) {
+            const Placement p =
+                on_street(ki, side, s, ss.e_bike + 0.5 * ss.parking, side == 0 ? 0.0 : kPi);
+            Agent rider = sample_agent(AgentKind::kMotorcyclist, 0, 0, rng);
+            if (ground_label(p) != raw::kParking || !occupancy_.free(p.x, p.y, 1.2)) continue;
+            rider.label = label_word(raw::kMotorcyclist, new_instance());
+            rider.vehicle_label = label_word(raw::kMotorcycle, new_instance());
+            emit_agent(rider, p, 0.0, static_);
+            occupancy_.add(p.x, p.y, 1.2);
+          }
+        }
+      }
+    }
+    place_waiting_at_corners(rng);
+  }
+
+  // At the corners of each junction, where no car parks, bicyclists wait with their bicycle
+  // and people wait to cross, at the main street's curb on both sides of the side street.
+  void place_waiting_at_corners(Rng& rng) {
+    const Street& main = city_.streets_[0];
+    for (size_t k = 1; k < city_.streets_.size(); ++k) {
+      const int side = attach_side_[k];
+      const StreetSide& ms = main.sides[static_cast<size_t>(side)];
+      const StreetSide& near_side = city_.streets_[k].sides[side == 0 ? 1 : 0];
+      const double half_width = std::max(near_side.e_walk, city_.streets_[k].sides[side].e_walk);
+      for (int dir : {-1, 1}) {
+        const double s = attach_s_[k] + dir * (half_width / std::cos(city_.side_angle_[k]) +
+                                               rng.uniform(0.5, 3.0));
+        const double a = ms.e_curb + 0.7;
+        const bool cyclist = rng.bernoulli(0.6);
+        const Placement p =
+            on_street(0, side, s, a, (side == 0 ? 0.0 : kPi) + rng.uniform(-0.3, 0.3));
+        if (!on_ground(p, {raw::kSidewalk, raw::kTerrain}) || !occupancy_.free(p.x, p.y, 1.0))
+          continue;
+        if (cyclist) {
+          Agent rider = sample_agent(AgentKind::kBicyclist, 0, 0, rng);
+          rider.label = label_word(raw::kBicyclist, new_instance());
+          rider.vehicle_label = label_word(raw::kBicycle, new_instance());
+          emit_agent(rider, p, 0.0, static_);
+        } else {
+          for (int i = 0; i < 2; ++i) {
+            const Placement q =
+                on_street(0, side, s + 0.8 * i, a + rng.uniform(0.0, 0.5), p.yaw + kPi / 2);
+            Agent person = sample_agent(AgentKind::kPerson, 0, 0, rng);
+            person.label = label_word(raw::kPerson, new_instance());
+            emit_agent(person, q, 0.0, static_);
+          }
+        }
+        occupancy_.add(p.x, p.y, 1.0);
+      }
+    }
+  }
+
+  // ---- moving agents ----
+
+  // Fills a route with agents spaced gap_lo..gap_hi apart (plus their lengths), leaving at
+  // least gap_lo between the last one and the first one, which follows it on a loop.
+  template <class MakeAgent>
+  void fill_route(const Route& route, double route_length, double speed, double gap_lo,
+                  double gap_hi, Rng& rng, MakeAgent&& make_agent) {
+    const double first = rng.uniform(0.0, gap_hi);
+    for (double u = first;;) {
+      MovingAgent m;
+      m.agent = make_agent(rng);
+      if (u + m.agent.length + gap_lo > first + route_length) break;
+      m.route = route;
+      m.u0 = u + 0.5 * m.agent.length;
+      m.speed = speed;
+      city_.movers_.push_back(m);
+      u += m.agent.length + rng.uniform(gap_lo, gap_hi);
+    }
+  }
+
+  Agent traffic_agent(Rng& rng, double bus_share, double truck_share, double motorcycle_share) {
+    const double u = rng.uniform();
+    if (u < motorcycle_share) {
+      const uint32_t id = new_instance();
+      return sample_agent(AgentKind::kMotorcyclist, label_word(raw::kMovingMotorcyclist, id),
+                          label_word(raw::kMovingMotorcyclist, id), rng);
+    }
+    if (u < motorcycle_share + truck_share)
+      return sample_agent(AgentKind::kTruck, label_word(raw::kMovingTruck, new_instance()), 0, rng);
+    if (u < motorcycle_share + truck_share + bus_share)
+      return sample_agent(AgentKind::kBus, label_word(raw::kMovingOtherVehicle, new_instance()), 0,
+                          rng);
+    return sample_agent(AgentKind::kCar, label_word(raw::kMovingCar, new_instance()), 0, rng);
+  }
+
+  Agent moving_bicyclist(Rng& rng) {
+    // A moving bicyclist is one object: rider and bicycle are both 253, one instance.
+    const uint32_t word = label_word(raw::kMovingBicyclist, new_instance());
+    return sample_agent(AgentKind::kBicyclist, word, word, rng);
+  }
+
+  // Start of a side street's routes: past the main street's sidewalk.
+  double side_route_start(size_t k, double beyond) const {
+    const StreetSide& main_side = city_.streets_[0].sides[static_cast<size_t>(attach_side_[k])];
+    return (main_side.e_walk + beyond) / std::cos(city_.side_angle_[k]);
+  }
+
+  void plan_traffic() {
+    Rng rng = stage(11);
+    const Street& main = city_.streets_[0];
+    const double length = main.length(), lw = main.lane_width;
+    const auto vehicle = [&](Rng& r) { return traffic_agent(r, 0.06, 0.08, 0.07); };
+    // Oncoming lanes (left of the centre line) and, on four-lane streets, the ego's inner
+    // neighbour lane: loops over the whole street, wrapping far from the ego.
+    for (int lane = 0; lane < main.lanes; ++lane) {
+      Route oncoming{Route::Kind::kLoopBackward, 0, 0.0, length, (lane + 0.5) * lw, 0.0};
+      fill_route(oncoming, length, rng.uniform(8.0, 13.0), 10.0, 55.0, rng, vehicle);
+    }
+    if (main.lanes == 2) {
+      Route inner{Route::Kind::kLoopForward, 0, 0.0, length, -0.5 * lw, 0.0};
+      fill_route(inner, length, rng.uniform(9.0, 14.0), 12.0, 60.0, rng, vehicle);
+    }
+    // The car ahead of the ego and the one behind it in its lane drive at its speed.
+    for (auto [share, lo, hi] : {std::tuple{0.6, 14.0, 35.0}, std::tuple{0.5, -25.0, -10.0}}) {
+      if (!rng.bernoulli(share)) continue;
+      MovingAgent m;
+      m.agent = sample_agent(AgentKind::kCar, label_word(raw::kMovingCar, new_instance()), 0, rng);
+      m.route = Route{Route::Kind::kFollowEgo, 0, 0.0, length, city_.ego_.lane_offset, 0.0};
+      m.u0 = rng.uniform(lo, hi);
+      city_.movers_.push_back(m);
+    }
+    // Side streets: vehicles drive out and back (turning at the far end and before the main
+    // street, so that they never cross the ego's path).
+    for (size_t k = 1; k < city_.streets_.size(); ++k) {
+      const Street& st = city_.streets_[k];
+      const double s0 = side_route_start(k, 2.0), s1 = st.length() - 5.0;
+      if (s1 - s0 < 20.0) continue;
+      Route route{Route::Kind::kShuttle, static_cast<int>(k), s0, s1,
+                  -0.5 * st.lane_width,  0.5 * st.lane_width};
+      fill_route(route, 2 * (s1 - s0), rng.uniform(5.0, 9.0), 15.0, 70.0, rng,
+                 [&](Rng& r) { return traffic_agent(r, 0.0, 0.05, 0.1); });
+    }
+  }
+
+  void plan_cyclists_and_walkers() {
+    Rng rng = stage(12);
+    for (size_t k = 0; k < city_.streets_.size(); ++k) {
+      const Street& st = city_.streets_[k];
+      const int ki = static_cast<int>(k);
+      const double start = k == 0 ? 0.0 : side_route_start(k, 0.5);
+      const double end = st.length() - 1.0;
+      if (end - start < 20.0) continue;
+      // Bicyclists in the bike lanes, out on the right and back on the left.
+      if (st.sides[0].bike > 0) {
+        const double a = st.sides[0].e_road + 0.5 * st.sides[0].bike;
+        const double b = st.sides[1].e_road + 0.5 * st.sides[1].bike;
+        Route route{Route::Kind::kShuttle, ki, start, end, -a, b};
+        fill_route(route, 2 * (end - start), rng.uniform(3.5, 6.5), 20.0, 65.0, rng,
+                   [&](Rng& r) { return moving_bicyclist(r); });
+      }
+      // Walkers on each sidewalk, on two tracks (out and back) so they do not meet.
+      for (int side = 0; side < 2; ++side) {
+        const StreetSide& ss = st.sides[static_cast<size_t>(side)];
+        const double sign = side == 0 ? -1.0 : 1.0;
+        // Between the racks and waiting cyclists at the curb side of the sidewalk and the
+        // cabinets and leaning bicycles at its back.
+        const double out = ss.e_lawn + rng.uniform(0.42, 0.55) * ss.sidewalk;
+        const double back = ss.e_lawn + rng.uniform(0.62, 0.72) * ss.sidewalk;
+        Route route{Route::Kind::kShuttle, ki, start, end, sign * out, sign * back};
+        fill_route(route, 2 * (end - start), rng.uniform(1.0, 1.6), 35.0, 100.0, rng, [&](Rng& r) {
+          return sample_agent(AgentKind::kPerson, label_word(raw::kMovingPerson, new_instance()), 0,
+                              r);
+        });
+      }
+    }
+  }
+
+  uint64_t seed_;
+  int scans_;
+  City city_;
+  std::vector<Primitive> static_;
+  Occupancy occupancy_;
+  uint32_t next_instance_ = 1;
+  std::vector<double> attach_s_;  // per street: arc length on the main street where it leaves it
+  std::vector<int> attach_side_;  // per street: the main street's side it leaves from
+};
+
+// ---- City --------------------------------------------------------------------------------
+
+City City::generate(uint64_t seed, int scans) {
+  PS_CHECK(scans >= 1, "City::generate: scans must be >= 1, got {}", scans);
+  return CityBuilder(seed, scans).build();
+}
+
+void City::build_ground_index() {
+  double x0 = std::numeric_limits<double>::infinity(), y0 = x0, x1 = -x0, y1 = -x0;
+  double reach = 0;
+  for (const Street& st : streets_) {
+    for (const StreetSide& side : st.sides) reach = std::max(reach, side.e_back);
+    for (const Vector2d& p : st.points) {
+      x0 = std::min(x0, p.x()), y0 = std::min(y0, p.y());
+      x1 = std::max(x1, p.x()), y1 = std::max(y1, p.y());
+    }
+  }
+  const double pad = reach + 2 * index_cell_;
+  index_x0_ = x0 - pad;
+  index_y0_ = y0 - pad;
+  index_nx_ = static_cast<int>(std::ceil((x1 - x0 + 2 * pad) / index_cell_));
+  index_ny_ = static_cast<int>(std::ceil((y1 - y0 + 2 * pad) / index_cell_));
+  const size_t cells = static_cast<size_t>(index_nx_) * static_cast<size_t>(index_ny_);
+
+  // Per street: the nearest segment to each cell centre within its reach (plus most of a cell
+  // diagonal), found by visiting the cells around each segment.
+  std::vector<std::vector<std::pair<size_t, IndexEntry>>> per_street(streets_.size());
+  std::vector<double> best(cells, 0.0);
+  std::vector<int32_t> best_segment(cells, -1);
+  const auto cell_of = [&](double v, double origin, int n) {
+    return std::clamp(static_cast<int>(std::floor((v - origin) / index_cell_)), 0, n - 1);
+  };
+  for (size_t k = 0; k < streets_.size(); ++k) {
+    const Street& st = streets_[k];
+    const double radius = std::max(st.sides[0].e_back, st.sides[1].e_back) + 0.75 * index_cell_;
+    std::vector<size_t> touched;
+    for (int j = 0; j < st.segments(); ++j) {
+      const Vector2d a = st.points[static_cast<size_t>(j)],
+                     b = st.points[static_cast<size_t>(j) + 1];
+      const int ix0 = cell_of(std::min(a.x(), b.x()) - radius, index_x0_, index_nx_);
+      const int ix1 = cell_of(std::max(a.x(), b.x()) + radius, index_x0_, index_nx_);
+      const int iy0 = cell_of(std::min(a.y(), b.y()) - radius, index_y0_, index_ny_);
+      const int iy1 = cell_of(std::max(a.y(), b.y()) + radius, index_y0_, index_ny_);
+      for (int iy = iy0; iy <= iy1; ++iy)
+        for (int ix = ix0; ix <= ix1; ++ix) {
+          const Vector2d c(index_x0_ + (ix + 0.5) * index_cell_,
+                           index_y0_ + (iy + 0.5) * index_cell_);
+          const double dist = point_segment_distance(c, a, b);
+          if (dist > radius) continue;
+          const size_t cell = static_cast<size_t>(iy) * index_nx_ + ix;
+          if (best_segment[cell] < 0) {
+            touched.push_back(cell);
+          } else if (dist >= best[cell]) {
+            continue;
+          }
+          best[cell] = dist;
+          best_segment[cell] = j;
+        }
+    }
+    std::sort(touched.begin(), touched.end());
+    for (size_t cell : touched) {
+      per_street[k].push_back({cell, {static_cast<int32_t>(k), best_segment[cell]}});
+      best_segment[cell] = -1;
+    }
+  }
+  index_begin_.assign(cells + 1, 0);
+  for (const auto& list : per_street)
+    for (const auto& [cell, entry] : list) ++index_begin_[cell + 1];
+  for (size_t c = 0; c < cells; ++c) index_begin_[c + 1] += index_begin_[c];
+  index_entries_.resize(static_cast<size_t>(index_begin_[cells]));
+  std::vector<int64_t> fill(index_begin_.begin(), index_begin_.end() - 1);
+  for (const auto& list : per_street)  // streets in order, so each cell lists them ascending
+    for (const auto& [cell, entry] : list)
+      index_entries_[static_cast<size_t>(fill[cell]++)] = entry;
+}
+
+int City::locate(double x, double y, std::array<StreetCoord, 8>* out) const {
+  const double fx = std::floor((x - index_x0_) / index_cell_),
+               fy = std::floor((y - index_y0_) / index_cell_);
+  if (!(fx >= 0 && fy >= 0 && fx < index_nx_ && fy < index_ny_)) return 0;
+  const size_t c = static_cast<size_t>(fy) * index_nx_ + static_cast<size_t>(fx);
+  int n = 0;
+  for (int64_t k = index_begin_[c]; k < index_begin_[c + 1] && n < 8; ++k) {
+    const IndexEntry& e = index_entries_[static_cast<size_t>(k)];
+    const Street& st = streets_[static_cast<size_t>(e.street)];
+    StreetCoord& sc = (*out)[static_cast<size_t>(n++)];
+    sc.street = e.street;
+    st.project({x, y}, e.segment, &sc.s, &sc.d);
+    sc.zone = st.zone(sc.s, sc.d);
+  }
+  return n;
+}
+
+GroundSample City::ground_at(double x, double y) const {
+  std::array<StreetCoord, 8> near;
+  const int n = locate(x, y, &near);
+  int owner = -1, roadlike = 0;
+  for (int i = 0; i < n; ++i) {
+    const StreetCoord& c = near[static_cast<size_t>(i)];
+    if (c.zone <= Zone::kParking) ++roadlike;
+    if (owner < 0 || c.zone < near[static_cast<size_t>(owner)].zone) owner = i;
+  }
+  GroundSample g;
+  const double texture = ground_texture(x, y);
+  if (owner < 0 || near[static_cast<size_t>(owner)].zone == Zone::kOutside) {
+    g.label = raw::kTerrain;
+    g.albedo = static_cast<float>(0.42 + 0.08 * texture);
+    return g;
+  }
+  const StreetCoord& c = near[static_cast<size_t>(owner)];
+  const Street& st = streets_[static_cast<size_t>(c.street)];
+  const StreetSide& side = st.side_of(c.d);
+  const double a = std::abs(c.d);
+  g.raised = c.zone > Zone::kParking;
+  double albedo = 0.3;
+  switch (c.zone) {
+    case Zone::kRoad:
+    case Zone::kBikeLane:
+    case Zone::kParking: {
+      g.label = raw::kRoad;
+      albedo = st.road_albedo;
+      if (roadlike >= 2) break;  // inside an intersection: plain asphalt
+      bool marked = false;
+      for (const auto& [c0, c1] : st.crosswalks)
+        marked = marked || (c.s >= c0 && c.s < c1 && wrap(c.d, 1.0) < 0.5);
+      if (c.zone == Zone::kParking) {
+        const size_t i = static_cast<size_t>(
+            std::lower_bound(side.stretch_end.begin(), side.stretch_end.end(), c.s) -
+            side.stretch_end.begin());
+        if (!marked && i < side.stretch_parking.size() && side.stretch_parking[i]) {
+          g.label = raw::kParking;
+          albedo = 0.38;
+        }
+      } else if (st.lanes == 1) {
+        marked = marked || (a < 0.075 && wrap(c.s, 10.0) < 4.0);
+      } else {
+        marked =
+            marked || a < 0.08 || (std::abs(a - st.lane_width) < 0.07 && wrap(c.s, 12.0) < 4.0);
+      }
+      // Edge line between the lanes and the bike lane or curb.
+      marked = marked || (c.zone == Zone::kRoad && a > side.e_road - 0.15);
+      if (marked) {
+        g.label = raw::kLaneMarking;
+        albedo = 0.75;
+      }
+      break;
+    }
+    case Zone::kLawn:
+      g.label = raw::kTerrain;
+      albedo = 0.42;
+      break;
+    case Zone::kSidewalk:
+      g.label = raw::kSidewalk;
+      albedo = 0.3;
+      break;
+    case Zone::kFront:
+    case Zone::kBack: {
+      const auto it = std::upper_bound(side.lots.begin(), side.lots.end(), c.s,
+                                       [](double s, const Lot& lot) { return s < lot.s1; });
+      const Lot& lot = it == side.lots.end() ? side.lots.back() : *it;
+      g.label = c.zone == Zone::kFront ? lot.front_label : lot.back_label;
+      albedo = g.label == raw::kTerrain ? 0.42 : 0.2;
+      break;
+    }
+    case Zone::kOutside:
+      break;
+  }
+  g.albedo = static_cast<float>(std::clamp(albedo * (1.0 + 0.2 * texture), 0.0, 1.0));
+  return g;
+}
+
+Placement City::mover_pose(const MovingAgent& m, double t, double* travelled) const {
+  const Street& st = streets_[static_cast<size_t>(m.route.street)];
+  const double u = m.u0 + m.speed * t;
+  const double len = m.route.s1 - m.route.s0;
+  double s = 0, d = m.route.offset_out;
+  bool backward = false;
+  switch (m.route.kind) {
+    case Route::Kind::kLoopForward:
+      s = m.route.s0 + wrap(u, len);
+      break;
+    case Route::Kind::kLoopBackward:
+      s = m.route.s1 - wrap(u, len);
+      backward = true;
+      break;
+    case Route::Kind::kShuttle: {
+      const double v = wrap(u, 2 * len);
+      backward = v >= len;
+      s = backward ? m.route.s1 - (v - len) : m.route.s0 + v;
+      d = backward ? m.route.offset_back : m.route.offset_out;
+      break;
+    }
+    case Route::Kind::kFollowEgo:
+      s = ego_.s(t) + m.u0;
+      break;
+  }
+  if (travelled) *travelled = m.route.kind == Route::Kind::kFollowEgo ? ego_.s(t) - ego_.s0 : u;
+  const StreetFrame f = st.at(s);
+  const Vector2d q = f.p + d * f.normal;
+  const double yaw = std::atan2(f.tangent.y(), f.tangent.x()) + (backward ? kPi : 0.0);
+  return {q.x(), q.y(), ground_z(q.x(), q.y()), yaw};
+}
+
+void City::moving_primitives(double t, const Vector2d& center, double radius,
+                             std::vector<Primitive>& out) const {
+  for (const MovingAgent& m : movers_) {
+    double travelled = 0;
+    const Placement p = mover_pose(m, t, &travelled);
+    if (std::hypot(p.x - center.x(), p.y - center.y()) > radius + m.agent.length) continue;
+    // One stride of a walker is about 0.75 m: the gait phase advances by pi per stride.
+    emit_agent(m.agent, p, travelled / 0.75 * kPi, out);
+  }
+}
+
+Eigen::Matrix4d City::lidar_pose(double t) const {
+  const Street& main = streets_[0];
+  const double s = ego_.s(t);
+  const double d = ego_.lane_offset + ego_.sway * std::sin(ego_.sway_omega * t);
+  const double d_rate = ego_.sway * ego_.sway_omega * std::cos(ego_.sway_omega * t);
+  const StreetFrame f = main.at(s);
+  const Vector2d q = f.p + d * f.normal;
+  const double yaw = std::atan2(f.tangent.y(), f.tangent.x()) + std::atan2(d_rate, ego_.speed(t));
+  const double pitch = ego_.pitch_amp * std::sin(1.3 * t + 0.4);
+  const double roll = ego_.roll_amp * std::sin(1.7 * t + 1.1);
+  Eigen::Matrix4d pose = Eigen::Matrix4d::Identity();
+  pose.topLeftCorner<3, 3>() =
+      (Eigen::AngleAxisd(yaw, Vector3d::UnitZ()) * Eigen::AngleAxisd(pitch, Vector3d::UnitY()) *
+       Eigen::AngleAxisd(roll, Vector3d::UnitX()))
+          .toRotationMatrix();
+  pose.topRightCorner<3, 1>() = Vector3d(q.x(), q.y(), kSensorHeight);
+  return pose;
+}
+
+}  // namespace pillarseg::sim

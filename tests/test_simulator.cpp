@@ -1,0 +1,674 @@
+// Simulator: ray-primitive intersection by hand, the scene grid against brute force, street
+// geometry and the ground layout, the LiDAR model, and one written sequence (1 x 6 scans):
+// determinism across thread counts, point counts, file order, beams, ground height, classes,
+// instances, moving agents, poses and calibration.
+#include <gtest/gtest.h>
+#include <unistd.h>
+
+#include <Eigen/Eigenvalues>
+#include <Eigen/Geometry>
+#include <Eigen/LU>
+#include <algorithm>
+#include <cmath>
+#include <map>
+#include <memory>
+#include <numbers>
+#include <unordered_map>
+
+#include "engine/core/error.hpp"
+#include "engine/core/io.hpp"
+#include "engine/core/parallel.hpp"
+#include "engine/data/classes.hpp"
+#include "engine/data/semantickitti.hpp"
+#include "engine/sim/simulate.hpp"
+#include "tests/support/test_support.hpp"
+
+using namespace pillarseg;
+using namespace pillarseg::sim;
+namespace fs = std::filesystem;
+using Eigen::Vector2d;
+using Eigen::Vector3d;
+
+namespace {
+
+constexpr double kPi = std::numbers::pi;
+constexpr uint64_t kSeed = 2024;  // data set seed of the written test sequence
+constexpr int kSequence = 3;      // its id
+constexpr int kScans = 6;
+
+// The test sequence, written once (2 threads) and read back.
+struct Written {
+  fs::path root;
+  std::unique_ptr<SequenceSimulator> sim;
+  std::unique_ptr<Sequence> seq;
+  std::vector<Scan> scans;
+};
+
+const Written& written() {
+  static const Written w = [] {
+    Written out;
+    // One directory per process: CTest runs the tests of this file as parallel processes.
+    out.root = fs::path(PILLARSEG_BINARY_DIR) / "test_tmp" / ("Simulator.shared." + std::to_string(::getpid()));
+    fs::remove_all(out.root);
+    const int threads = num_threads();
+    set_num_threads(2);
+    SimulateOptions options;
+    options.out = out.root;
+    options.sequences = 1;
+    options.scans = kScans;
+    options.seed = kSeed;
+    options.first_sequence = kSequence;
+    simulate(options);
+    set_num_threads(threads);
+    out.sim = std::make_unique<SequenceSimulator>(sequence_seed(kSeed, kSequence), kScans);
+    out.seq = std::make_unique<Sequence>(out.root, kSequence);
+    for (size_t i = 0; i < out.seq->size(); ++i) out.scans.push_back(out.seq->load(i));
+    return out;
+  }();
+  return w;
+}
+
+Vector3d to_world(const Pose& pose, const Point& p) {
+  return (pose * Eigen::Vector4d(p.x, p.y, p.z, 1.0)).head<3>();
+}
+
+double median(std::vector<double> v) {
+  if (v.empty()) return std::nan("");
+  std::nth_element(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(v.size() / 2), v.end());
+  return v[v.size() / 2];
+}
+
+// Distance of each query to the plane fitted to the points of `cloud` within 0.4 m of it (the
+// queries with fewer than 6 such points are left out): how far the query lies off the surface
+// the cloud samples, whatever the two samplings' spacing.
+std::vector<double> plane_distances(const std::vector<Vector3d>& cloud,
+                                    const std::vector<Vector3d>& queries) {
+  const double cell = 0.4;
+  const auto key = [](int64_t x, int64_t y, int64_t z) {
+    return (x * 73856093) ^ (y * 19349663) ^ (z * 83492791);
+  };
+  const auto idx = [&](double v) { return static_cast<int64_t>(std::floor(v / cell)); };
+  std::unordered_multimap<int64_t, size_t> hash;
+  for (size_t i = 0; i < cloud.size(); ++i)
+    hash.emplace(key(idx(cloud[i].x()), idx(cloud[i].y()), idx(cloud[i].z())), i);
+  std::vector<double> out;
+  std::vector<Vector3d> near;
+  for (const Vector3d& q : queries) {
+    near.clear();
+    for (int64_t dx = -1; dx <= 1; ++dx)
+      for (int64_t dy = -1; dy <= 1; ++dy)
+        for (int64_t dz = -1; dz <= 1; ++dz) {
+          const auto range =
+              hash.equal_range(key(idx(q.x()) + dx, idx(q.y()) + dy, idx(q.z()) + dz));
+          for (auto it = range.first; it != range.second; ++it)
+            if ((cloud[it->second] - q).norm() < cell) near.push_back(cloud[it->second]);
+        }
+    if (near.size() < 6) continue;
+    Vector3d mean = Vector3d::Zero();
+    for (const Vector3d& p : near) mean += p;
+    mean /= static_cast<double>(near.size());
+    Eigen::Matrix3d cov = Eigen::Matrix3d::Zero();
+    for (const Vector3d& p : near) cov += (p - mean) * (p - mean).transpose();
+    const Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> solver(cov);
+    out.push_back(std::abs(solver.eigenvectors().col(0).dot(q - mean)));
+  }
+  return out;
+}
+
+Primitive random_primitive(Rng& rng) {
+  Vector3d c, h;  // one draw per statement, so the scene does not depend on the compiler
+  for (int a = 0; a < 3; ++a) c[a] = a < 2 ? rng.uniform(-20, 20) : rng.uniform(0, 4);
+  for (int a = 0; a < 3; ++a) h[a] = rng.uniform(0.05, 3);
+  const double yaw = rng.uniform(-kPi, kPi);
+  switch (rng.uniform_int(3)) {
+    case 0:
+      return make_box(c, h, yaw, 10, 0.5f);
+    case 1:
+      return make_cylinder(c.x(), c.y(), c.z() - h.z(), c.z() + h.z(), h.x(), 80, 0.3f);
+    default:
+      return make_ellipsoid(c, h, yaw, 70, 0.4f);
+  }
+}
+
+}  // namespace
+
+// ---- primitives and the scene grid --------------------------------------------------------
+
+TEST(SimScene, IntersectsBoxCylinderEllipsoidByHand) {
+  Hit h;
+  // A box 2 x 4 x 6 turned by 90 deg: its local y axis (half 2) lies along world x.
+  const Primitive box = make_box({0, 0, 0}, {1, 2, 3}, kPi / 2, 10, 0.5f);
+  ASSERT_TRUE(intersect(box, {{10, 0, 0}, {-1, 0, 0}}, 0, 100, &h));
+  EXPECT_NEAR(h.t_enter, 8.0, 1e-12);
+  EXPECT_NEAR(h.t_exit, 12.0, 1e-12);
+  EXPECT_NEAR(h.normal.x(), 1.0, 1e-12);
+  ASSERT_TRUE(intersect(box, {{0, 10, 0}, {0, -1, 0}}, 0, 100, &h));
+  EXPECT_NEAR(h.t_enter, 9.0, 1e-12);
+  EXPECT_FALSE(intersect(box, {{10, 0, 0}, {-1, 0, 0}}, 0, 7.9, &h)) << "beyond t_max";
+  EXPECT_FALSE(intersect(box, {{0, 0, 0}, {1, 0, 0}}, 0, 100, &h))
+      << "a ray from inside does not hit";
+  EXPECT_FALSE(intersect(box, {{10, 0, 3.5}, {-1, 0, 0}}, 0, 100, &h)) << "passes over";
+
+  const Primitive cyl = make_cylinder(1, 1, 0, 2, 0.5, 80, 0.3f);
+  ASSERT_TRUE(intersect(cyl, {{5, 1, 1}, {-1, 0, 0}}, 0, 100, &h));
+  EXPECT_NEAR(h.t_enter, 3.5, 1e-12);
+  EXPECT_NEAR(h.normal.x(), 1.0, 1e-12);
+  ASSERT_TRUE(intersect(cyl, {{1.2, 1, 10}, {0, 0, -1}}, 0, 100, &h))
+      << "vertical ray onto the top cap";
+  EXPECT_NEAR(h.t_enter, 8.0, 1e-12);
+  EXPECT_NEAR(h.normal.z(), 1.0, 1e-12);
+  EXPECT_FALSE(intersect(cyl, {{1.6, 1, 10}, {0, 0, -1}}, 0, 100, &h)) << "vertical ray beside it";
+
+  const Primitive ell = make_ellipsoid({0, 0, 1}, {2, 1, 0.5}, 0.0, 70, 0.4f);
+  ASSERT_TRUE(intersect(ell, {{5, 0, 1}, {-1, 0, 0}}, 0, 100, &h));
+  EXPECT_NEAR(h.t_enter, 3.0, 1e-12);
+  EXPECT_NEAR(h.t_exit, 7.0, 1e-12);
+  ASSERT_TRUE(intersect(ell, {{0, 0, 5}, {0, 0, -1}}, 0, 100, &h));
+  EXPECT_NEAR(h.t_enter, 3.5, 1e-12);
+  EXPECT_NEAR(h.normal.z(), 1.0, 1e-12);
+  // The same ellipsoid turned by 90 deg is 1 m (not 2 m) deep along x.
+  const Primitive turned = make_ellipsoid({0, 0, 1}, {2, 1, 0.5}, kPi / 2, 70, 0.4f);
+  ASSERT_TRUE(intersect(turned, {{5, 0, 1}, {-1, 0, 0}}, 0, 100, &h));
+  EXPECT_NEAR(h.t_enter, 4.0, 1e-12);
+}
+
+TEST(SimScene, FootprintBoundsTheShape) {
+  const Footprint f = footprint(make_box({1, 2, 3}, {2, 1, 0.5}, kPi / 2, 0, 0.f));
+  EXPECT_NEAR(f.x0, 0.0, 1e-12);
+  EXPECT_NEAR(f.x1, 2.0, 1e-12);
+  EXPECT_NEAR(f.y0, 0.0, 1e-12);
+  EXPECT_NEAR(f.y1, 4.0, 1e-12);
+  EXPECT_NEAR(f.z0, 2.5, 1e-12);
+  EXPECT_NEAR(f.z1, 3.5, 1e-12);
+  const Footprint e = footprint(make_ellipsoid({0, 0, 0}, {2, 1, 1}, kPi / 4, 0, 0.f));
+  EXPECT_NEAR(e.x1, std::sqrt(2.5), 1e-12);  // hypot(2 cos 45, 1 sin 45)
+}
+
+TEST(SimScene, GridTraceEqualsBruteForce) {
+  Rng rng(5);
+  std::vector<Primitive> prims;
+  for (int i = 0; i < 300; ++i) prims.push_back(random_primitive(rng));
+  for (double cell : {0.7, 2.0, 9.0}) {
+    const SceneGrid grid(prims, cell);
+    int hits = 0;
+    for (int r = 0; r < 4000; ++r) {
+      Ray ray;
+      Vector3d d;
+      for (int a = 0; a < 3; ++a) ray.origin[a] = a < 2 ? rng.uniform(-30, 30) : rng.uniform(-1, 6);
+      for (int a = 0; a < 3; ++a) d[a] = (a < 2 ? 1.0 : 0.3) * rng.normal();
+      if (r % 10 == 0) d = Vector3d(0, 0, -1);                    // vertical
+      if (r % 10 == 1) d = Vector3d(r % 20 == 1 ? 1 : -1, 0, 0);  // along a grid axis
+      ray.dir = d.normalized();
+      const double t_min = r % 3 == 0 ? 0.0 : rng.uniform(0, 10), t_max = rng.uniform(5, 80);
+      Hit a, b;
+      const bool fa = grid.trace(ray, t_min, t_max, &a),
+                 fb = trace_brute_force(prims, ray, t_min, t_max, &b);
+      ASSERT_EQ(fa, fb) << "ray " << r << " cell " << cell;
+      if (!fa) continue;
+      ++hits;
+      EXPECT_EQ(a.primitive, b.primitive) << "ray " << r;
+      EXPECT_EQ(a.t_enter, b.t_enter) << "ray " << r;
+    }
+    EXPECT_GT(hits, 400) << "the random rays must hit often enough to test something";
+  }
+  EXPECT_FALSE(SceneGrid({}, 2.0).trace({{0, 0, 0}, {1, 0, 0}}, 0, 100, nullptr)) << "empty scene";
+  EXPECT_THROW(SceneGrid(prims, 0.0), Error);
+}
+
+// ---- streets and the city -----------------------------------------------------------------
+
+TEST(SimStreet, ProjectsOntoStraightAndCurvedCentreLines) {
+  std::vector<Vector2d> line;
+  for (int i = 0; i <= 50; ++i) line.emplace_back(2.0 * i, 0.0);
+  Street straight(line);
+  EXPECT_DOUBLE_EQ(straight.length(), 100.0);
+  double s = 0, d = 0;
+  straight.project({50.3, 3.0}, 0, &s, &d);
+  EXPECT_NEAR(s, 50.3, 1e-12);
+  EXPECT_NEAR(d, 3.0, 1e-12);
+  straight.project({20.0, -4.0}, 49, &s, &d);  // a far hint walks back
+  EXPECT_NEAR(s, 20.0, 1e-12);
+  EXPECT_NEAR(d, -4.0, 1e-12);
+  straight.project({105.0, 1.0}, 10, &s, &d);
+  EXPECT_NEAR(s, 105.0, 1e-12) << "extrapolated beyond the end";
+  EXPECT_EQ(straight.zone(s, d), Zone::kOutside);
+  const StreetFrame f = straight.at(25.0);
+  EXPECT_NEAR(f.p.x(), 25.0, 1e-12);
+  EXPECT_NEAR(f.normal.y(), 1.0, 1e-12);
+
+  // Quarter circle of radius 50, counter-clockwise: left of it is the centre.
+  std::vector<Vector2d> arc;
+  for (int i = 0; i <= 200; ++i)
+    arc.emplace_back(50 * std::cos(i * kPi / 400), 50 * std::sin(i * kPi / 400));
+  Street curved(arc);
+  for (double theta : {0.2, 0.7, 1.3}) {
+    curved.project({45 * std::cos(theta), 45 * std::sin(theta)}, 0, &s, &d);
+    EXPECT_NEAR(s, 50 * theta, 0.02);
+    EXPECT_NEAR(d, 5.0, 0.01);
+  }
+}
+
+TEST(SimStreet, ZonesFollowTheCrossSection) {
+  std::vector<Vector2d> line;
+  for (int i = 0; i <= 50; ++i) line.emplace_back(2.0 * i, 0.0);
+  Street st(line);
+  StreetSide& right = st.sides[0];
+  right.bike = 1.5, right.parking = 2.0, right.lawn = 1.0, right.sidewalk = 3.0, right.front = 4.0;
+  right.set_edges(3.0, 20.0);
+  st.sides[1] = right;
+  EXPECT_DOUBLE_EQ(right.e_curb, 6.5);
+  EXPECT_DOUBLE_EQ(right.e_walk, 10.5);
+  const std::vector<std::pair<double, Zone>> expected = {
+      {0.5, Zone::kRoad},  {3.5, Zone::kBikeLane}, {5.0, Zone::kParking},
+      {7.0, Zone::kLawn},  {9.0, Zone::kSidewalk}, {12.0, Zone::kFront},
+      {30.0, Zone::kBack}, {40.0, Zone::kOutside}};
+  for (const auto& [a, zone] : expected) {
+    EXPECT_EQ(st.zone(50.0, -a), zone) << "right at " << a;
+    EXPECT_EQ(st.zone(50.0, a), zone) << "left at " << a;
+  }
+  EXPECT_EQ(st.zone(-0.1, 0.0), Zone::kOutside);
+}
+
+TEST(SimCity, GroundFollowsTheStreetBandsAndHeights) {
+  const City city = City::generate(11, 50);
+  const Street& main = city.streets()[0];
+  ASSERT_GE(city.streets().size(), 2u) << "side streets";
+  int checked = 0;
+  for (double s = city.ego().s0; s < city.ego().s0 + 150.0; s += 1.7) {
+    for (int side = 0; side < 2; ++side) {
+      const StreetSide& ss = main.sides[static_cast<size_t>(side)];
+      const double sign = side == 0 ? -1.0 : 1.0;
+      const auto sample_at = [&](double a) {
+        const Vector2d q = main.point(s, sign * a);
+        std::array<StreetCoord, 8> near;
+        const int n = city.locate(q.x(), q.y(), &near);
+        bool alone = true;
+        for (int i = 0; i < n; ++i) {
+          const StreetCoord& c = near[static_cast<size_t>(i)];
+          alone = alone && (c.street == 0 || c.zone >= Zone::kBack);
+        }
+        return std::pair{city.ground_at(q.x(), q.y()), alone};
+      };
+      // Only where no other street comes closer than its backyards (away from intersections).
+      const auto [road, alone] = sample_at(0.5 * ss.e_road);
+      if (!alone) continue;
+      EXPECT_FALSE(road.raised);
+      EXPECT_TRUE(road.label == raw::kRoad || road.label == raw::kLaneMarking) << road.label;
+      const auto [walk, alone_walk] = sample_at(ss.e_lawn + 0.5 * ss.sidewalk);
+      if (alone_walk) {
+        EXPECT_TRUE(walk.raised);
+        EXPECT_EQ(walk.label, raw::kSidewalk);
+      }
+      if (ss.parking > 0) {
+        const auto [park, alone_park] = sample_at(ss.e_bike + 0.5 * ss.parking);
+        if (alone_park) {
+          EXPECT_FALSE(park.raised);
+          EXPECT_TRUE(park.label == raw::kParking || park.label == raw::kRoad ||
+                      park.label == raw::kLaneMarking)
+              << park.label;
+        }
+      }
+      if (ss.lawn > 0.3) {
+        const auto [lawn, alone_lawn] = sample_at(ss.e_curb + 0.5 * ss.lawn);
+        if (alone_lawn) {
+          EXPECT_EQ(lawn.label, raw::kTerrain);
+        }
+      }
+      ++checked;
+    }
+  }
+  EXPECT_GT(checked, 80);
+  EXPECT_DOUBLE_EQ(city.ground_z(1e7, 1e7), city.curb_height()) << "far outside: raised terrain";
+}
+
+TEST(SimCity, HasSideStreetsEvery100mAndDiffersBySeed) {
+  const City a = City::generate(3, 200), b = City::generate(3, 200), c = City::generate(4, 200);
+  ASSERT_EQ(a.static_scene().size(), b.static_scene().size());
+  EXPECT_EQ(a.static_scene().primitives()[100].center, b.static_scene().primitives()[100].center);
+  EXPECT_EQ(a.movers().size(), b.movers().size());
+  EXPECT_NE(a.streets()[0].points.back(), c.streets()[0].points.back())
+      << "another seed, another street";
+  const Street& main = a.streets()[0];
+  // Where the side streets leave the main street.
+  std::vector<double> junctions;
+  for (size_t k = 1; k < a.streets().size(); ++k) {
+    double s = 0, d = 0;
+    main.project(a.streets()[k].points.front(), main.segments() / 2, &s, &d);
+    EXPECT_NEAR(d, 0.0, 1e-6);
+    junctions.push_back(s);
+  }
+  EXPECT_GE(static_cast<double>(junctions.size()), main.length() / 120.0)
+      << junctions.size() << " side streets on " << main.length() << " m";
+  EXPECT_THROW(City::generate(1, 0), Error);
+}
+
+TEST(SimCity, EgoDrivesAtCitySpeedsOnItsLane) {
+  const City city = City::generate(8, 100);
+  for (int i = 0; i + 1 < 100; ++i) {
+    const Pose a = city.lidar_pose(i * kScanPeriod), b = city.lidar_pose((i + 1) * kScanPeriod);
+    const double speed = (b.topRightCorner<3, 1>() - a.topRightCorner<3, 1>()).norm() / kScanPeriod;
+    EXPECT_GE(speed, 4.8);
+    EXPECT_LE(speed, 12.2);
+    EXPECT_NEAR(a(2, 3), kSensorHeight, 1e-12);
+    const Vector3d x_axis = a.topLeftCorner<3, 3>().col(0);
+    EXPECT_LT(std::abs(x_axis.z()), std::sin(0.1 * kPi / 180)) << "pitch within 0.1 deg";
+    const GroundSample under = city.ground_at(a(0, 3), a(1, 3));
+    EXPECT_FALSE(under.raised) << "the ego drives on the road";
+  }
+}
+
+// ---- the LiDAR model ----------------------------------------------------------------------
+
+TEST(SimLidar, Hdl64eBeamTableAndPulseCount) {
+  const LidarModel m = LidarModel::hdl64e(2000);
+  ASSERT_EQ(m.beams(), 64);
+  EXPECT_DOUBLE_EQ(m.elevation_deg.front(), 2.0);
+  EXPECT_NEAR(m.elevation_deg[31], -8.33, 1e-12);
+  EXPECT_NEAR(m.elevation_deg[32], -8.83, 1e-12);
+  EXPECT_NEAR(m.elevation_deg.back(), -24.9, 1e-12);
+  for (int b = 1; b < 64; ++b)
+    EXPECT_LT(m.elevation_deg[static_cast<size_t>(b)], m.elevation_deg[static_cast<size_t>(b) - 1]);
+  // Denser upper block (1/3 deg) than lower block (about 1/2 deg), as on the HDL-64E.
+  EXPECT_NEAR(m.elevation_deg[0] - m.elevation_deg[1], 10.33 / 31, 1e-12);
+  EXPECT_NEAR(m.elevation_deg[32] - m.elevation_deg[33], 16.07 / 31, 1e-12);
+  EXPECT_NEAR(m.azimuth(0), -kPi + kPi / 2000, 1e-12);
+  const int steps = LidarModel::azimuth_steps_for(120000);
+  EXPECT_GE(steps, 1800);
+  EXPECT_LE(steps, 2400);
+  EXPECT_THROW(LidarModel::azimuth_steps_for(5000), Error);
+  EXPECT_THROW(LidarModel::hdl64e(100), Error);
+}
+
+TEST(SimLidar, FlatGroundAndAWallByHand) {
+  // A city far away: the sensor stands on its default raised terrain, with one wall 10 m ahead.
+  const City city = City::generate(1, 1);
+  LidarModel lidar = LidarModel::hdl64e(720);
+  lidar.dropout = 0.0;
+  lidar.outlier_rate = 0.0;
+  lidar.range_noise = 0.0;
+  Pose pose = Pose::Identity();
+  pose.topRightCorner<3, 1>() = Vector3d(1e6, 1e6, city.curb_height() + kSensorHeight);
+  const SceneGrid wall(
+      {make_box({1e6 + 10.5, 1e6, 5}, {0.5, 20, 5}, 0.0, label_word(raw::kBuilding, 0), 0.4f)},
+      2.0);
+  const SimScan scan = cast_scan(lidar, city, wall, pose, 1);
+  int on_wall = 0, on_ground = 0;
+  for (size_t i = 0; i < scan.points.size(); ++i) {
+    const Point& p = scan.points[i];
+    if (scan.labels[i] == raw::kBuilding) {
+      ++on_wall;
+      EXPECT_NEAR(p.x, 10.0, 1e-4);
+    } else {
+      ASSERT_EQ(scan.labels[i], raw::kTerrain);
+      ++on_ground;
+      EXPECT_GE(p.z, -kSensorHeight - 1e-4);  // grass returns from its top 7 cm
+      EXPECT_LE(p.z, -kSensorHeight + 0.07 + 1e-4);
+    }
+    EXPECT_GE(p.r, 0.f);
+    EXPECT_LE(p.r, 1.f);
+  }
+  EXPECT_GT(on_wall, 500);
+  EXPECT_GT(on_ground, 10000);
+  // No return from inside the ego body box.
+  for (const Point& p : scan.points)
+    EXPECT_FALSE(p.x > lidar.body_min.x() && p.x < lidar.body_max.x() &&
+                 std::abs(p.y) < lidar.body_max.y() && p.z < lidar.body_max.z());
+}
+
+// ---- the written sequence -----------------------------------------------------------------
+
+TEST(SimSequence, ReadsBackWithCountsInRange) {
+  const Written& w = written();
+  ASSERT_EQ(w.seq->size(), static_cast<size_t>(kScans));
+  ASSERT_TRUE(w.seq->has_poses());
+  for (size_t i = 0; i < w.scans.size(); ++i) {
+    const Scan& s = w.scans[i];
+    EXPECT_EQ(s.labels.size(), s.points.size());
+    EXPECT_EQ(s.dropped_nonfinite, 0u);
+    EXPECT_GE(s.points.size(), 90000u) << "scan " << i;
+    EXPECT_LE(s.points.size(), 150000u) << "scan " << i;
+    EXPECT_EQ(w.seq->frame(i), static_cast<int>(i));
+  }
+}
+
+TEST(SimSequence, ByteIdenticalWhateverTheThreadsAndDifferentOtherwise) {
+  const Written& w = written();
+  const fs::path dir = test::temp_dir();
+  const int threads = num_threads();
+  set_num_threads(1);
+  SimulateOptions options;
+  options.out = dir;
+  options.scans = kScans;
+  options.seed = kSeed;
+  options.first_sequence = kSequence;
+  simulate(options);
+  set_num_threads(threads);
+  const fs::path a = w.root / "sequences" / "03", b = dir / "sequences" / "03";
+  for (const std::string name :
+       {"poses.txt", "calib.txt", "velodyne/000000.bin", "labels/000000.label",
+        "velodyne/000005.bin", "labels/000005.label"})
+    EXPECT_EQ(read_file_bytes(a / name), read_file_bytes(b / name)) << name;
+  // Another data set seed, or another sequence id, gives another street.
+  const SimScan other_seed = SequenceSimulator(sequence_seed(kSeed + 1, kSequence), 1).scan(0);
+  const SimScan other_id = SequenceSimulator(sequence_seed(kSeed, kSequence + 1), 1).scan(0);
+  EXPECT_NE(other_seed.labels, w.scans[0].labels);
+  EXPECT_NE(other_id.labels, w.scans[0].labels);
+  EXPECT_NE(sequence_seed(kSeed, 0), sequence_seed(kSeed, 1));
+}
+
+TEST(SimSequence, PointsComeBeamByBeamOnTheBeamTable) {
+  const Written& w = written();
+  const auto& table = w.sim->lidar().elevation_deg;
+  for (const Scan& s : w.scans) {
+    int prev_beam = -1;
+    double prev_az = -10;
+    int64_t off_table = 0;
+    for (const Point& p : s.points) {
+      const double el = std::atan2(p.z, std::hypot(p.x, p.y)) * 180 / kPi;
+      int beam = 0;
+      for (int b = 1; b < 64; ++b)
+        if (std::abs(table[static_cast<size_t>(b)] - el) <
+            std::abs(table[static_cast<size_t>(beam)] - el))
+          beam = b;
+      off_table += std::abs(table[static_cast<size_t>(beam)] - el) > 0.005;
+      const double az = std::atan2(p.y, p.x);
+      ASSERT_GE(beam, prev_beam) << "beams come top to bottom";
+      if (beam == prev_beam) {
+        ASSERT_GT(az, prev_az) << "azimuth increases within a beam";
+      }
+      prev_beam = beam;
+      prev_az = az;
+    }
+    // Outliers (raw 1) lie on their pulse too, so every return is on the table.
+    EXPECT_EQ(off_table, 0);
+  }
+}
+
+TEST(SimSequence, RoadNearTheCarLiesAtMinus173) {
+  const Written& w = written();
+  std::vector<double> heights;
+  for (const Scan& s : w.scans)
+    for (size_t i = 0; i < s.points.size(); ++i) {
+      const uint32_t sem = s.labels[i] & 0xFFFF;
+      const Point& p = s.points[i];
+      const double r = std::hypot(p.x, p.y);
+      if ((sem == raw::kRoad || sem == raw::kLaneMarking) && r > 4 && r < 15) {
+        heights.push_back(p.z);
+        EXPECT_NEAR(p.z, -kSensorHeight, 0.05);
+      }
+    }
+  ASSERT_GT(heights.size(), 10000u);
+  EXPECT_NEAR(median(heights), -kSensorHeight, 0.01);
+}
+
+TEST(SimSequence, EveryClassWithRareOnesInQuantity) {
+  const Written& w = written();
+  const ClassTable classes = ClassTable::defaults();
+  std::array<int64_t, kNumClassIds> count{};
+  std::map<uint32_t, double> reflectance_sum, reflectance_n;
+  for (const Scan& s : w.scans)
+    for (size_t i = 0; i < s.points.size(); ++i) {
+      const uint32_t label = s.labels[i], sem = label & 0xFFFF, instance = label >> 16;
+      const int c = classes.class_of(label);
+      ++count[static_cast<size_t>(c)];
+      // Things (vehicles, people, two-wheelers, riders) carry an instance id, stuff does not.
+      if (c >= 1 && c <= 4) {
+        EXPECT_NE(instance, 0u) << "raw " << sem;
+      } else if (c >= 5) {
+        EXPECT_EQ(instance, 0u) << "raw " << sem;
+      }
+      reflectance_sum[sem] += s.points[i].r;
+      reflectance_n[sem] += 1;
+    }
+  for (int c = 1; c <= kNumClasses; ++c)
+    EXPECT_GE(count[static_cast<size_t>(c)], 100) << classes.name(c);
+  for (int c : {2, 3, 4})
+    EXPECT_GE(count[static_cast<size_t>(c)] / kScans, 200) << classes.name(c) << " per scan";
+  EXPECT_GT(count[0], 0) << "a few unlabeled / outlier points";
+  const auto mean = [&](uint32_t sem) { return reflectance_sum[sem] / reflectance_n[sem]; };
+  EXPECT_GT(mean(raw::kLaneMarking), mean(raw::kRoad) + 0.25) << "lane marks are bright";
+  EXPECT_GT(mean(raw::kTrafficSign), 0.6) << "signs are retroreflective";
+}
+
+TEST(SimSequence, MovingAgentsMoveAndTheirPointsFollowThem) {
+  const Written& w = written();
+  const City& city = w.sim->city();
+  std::map<uint32_t, const MovingAgent*> movers;
+  for (const MovingAgent& m : city.movers()) movers[m.agent.label >> 16] = &m;
+  const auto inside = [&](const MovingAgent& m, double t, const Vector3d& q) {
+    const Placement p = city.mover_pose(m, t);
+    const double dx = q.x() - p.x, dy = q.y() - p.y;
+    const double lx = std::cos(p.yaw) * dx + std::sin(p.yaw) * dy,
+                 ly = -std::sin(p.yaw) * dx + std::cos(p.yaw) * dy;
+    return std::abs(lx) <= 0.5 * m.agent.length + 0.3 &&
+           std::abs(ly) <= 0.5 * m.agent.width + 0.35 && q.z() - p.z >= -0.1 &&
+           q.z() - p.z <= m.agent.height + 0.3;
+  };
+  int64_t moving_points = 0, outside_now = 0, fast_points = 0, outside_later = 0;
+  std::vector<double> shift_errors;
+  for (int i = 0; i < kScans; ++i) {
+    const Pose pose = w.sim->lidar_pose_world(i);
+    const double t = SequenceSimulator::scan_time(i);
+    const Scan& s = w.scans[static_cast<size_t>(i)];
+    for (size_t k = 0; k < s.points.size(); ++k) {
+      const uint32_t sem = s.labels[k] & 0xFFFF;
+      if (sem < 252 || sem > 259) continue;
+      const auto it = movers.find(s.labels[k] >> 16);
+      ASSERT_NE(it, movers.end()) << "moving point of unknown instance " << (s.labels[k] >> 16);
+      const Vector3d q = to_world(pose, s.points[k]);
+      ++moving_points;
+      outside_now += !inside(*it->second, t, q);
+      if (it->second->speed > 3.0) {
+        ++fast_points;
+        outside_later += !inside(*it->second, t + 1.0, q);
+      }
+    }
+  }
+  ASSERT_GT(moving_points, 2000);
+  EXPECT_EQ(outside_now, 0) << "every moving point lies on its agent posed at the scan time";
+  ASSERT_GT(fast_points, 500);
+  EXPECT_GT(outside_later, fast_points * 9 / 10) << "1 s later the agents have moved on";
+
+  // From the files alone: centroids of moving instances in the world move between consecutive
+  // scans by about what their agents travel in 0.1 s.
+  for (int i = 0; i + 1 < kScans; ++i) {
+    std::map<uint32_t, std::pair<Vector3d, int>> a, b;
+    for (int j : {i, i + 1}) {
+      auto& acc = j == i ? a : b;
+      const Scan& s = w.scans[static_cast<size_t>(j)];
+      for (size_t k = 0; k < s.points.size(); ++k) {
+        const uint32_t sem = s.labels[k] & 0xFFFF;
+        if (sem < 252 || sem > 259) continue;
+        auto& [sum, n] = acc[s.labels[k] >> 16];
+        if (n == 0) sum.setZero();
+        sum += to_world(w.seq->pose(static_cast<size_t>(j)), s.points[k]);
+        ++n;
+      }
+    }
+    for (const auto& [id, an] : a) {
+      const auto bt = b.find(id);
+      if (an.second < 80 || bt == b.end() || bt->second.second < 80) continue;
+      const double shift =
+          (bt->second.first / bt->second.second - an.first / an.second).head<2>().norm();
+      const Placement p0 = city.mover_pose(*movers[id], SequenceSimulator::scan_time(i));
+      const Placement p1 = city.mover_pose(*movers[id], SequenceSimulator::scan_time(i + 1));
+      const double travelled = std::hypot(p1.x - p0.x, p1.y - p0.y);
+      EXPECT_GT(travelled, 0.08) << "instance " << id << " moves at least 0.8 m/s";
+      shift_errors.push_back(std::abs(shift - travelled));
+    }
+  }
+  ASSERT_GE(shift_errors.size(), 5u);
+  EXPECT_LT(median(shift_errors), 0.1);
+}
+
+TEST(SimSequence, StaticPointsOfTwoScansCoincideThroughThePoses) {
+  const Written& w = written();
+  const auto building_points = [&](size_t i, const Pose& to_frame) {
+    std::vector<Vector3d> out;
+    const Scan& s = w.scans[i];
+    for (size_t k = 0; k < s.points.size(); ++k) {
+      const Point& p = s.points[k];
+      if ((s.labels[k] & 0xFFFF) == raw::kBuilding && std::hypot(p.x, p.y) < 30)
+        out.push_back(to_world(to_frame, p));
+    }
+    return out;
+  };
+  const std::vector<Vector3d> first = building_points(0, Pose::Identity());
+  ASSERT_GT(first.size(), 2000u);
+  const Pose relative = w.seq->relative(0, kScans - 1);
+  ASSERT_GT((relative.topRightCorner<3, 1>().norm()), 2.0) << "the ego moved";
+  // Facade points of the last scan, brought into the first scan's frame, lie on the facades
+  // the first scan saw (up to the 2 cm range noise of both); 0.3 m off, they do not.
+  const std::vector<double> aligned = plane_distances(first, building_points(kScans - 1, relative));
+  Pose shifted = relative;
+  shifted(1, 3) += 0.3;
+  shifted(0, 3) += 0.3;
+  const std::vector<double> misaligned =
+      plane_distances(first, building_points(kScans - 1, shifted));
+  ASSERT_GT(aligned.size(), 1000u);
+  EXPECT_LT(median(aligned), 0.025);
+  EXPECT_GT(median(misaligned), 0.15);
+}
+
+TEST(SimSequence, PosesAndCalibMatchTheTrueLidarMotion) {
+  const Written& w = written();
+  const Calib calib = read_calib(w.seq->dir() / "calib.txt");
+  Eigen::Matrix3d swap;
+  swap << 0, -1, 0, 0, 0, -1, 1, 0, 0;
+  const Eigen::Matrix3d tilt = calib.Tr.topLeftCorner<3, 3>() * swap.transpose();
+  EXPECT_LT(Eigen::AngleAxisd(tilt).angle(), 2.0 * kPi / 180)
+      << "Tr is KITTI's axis swap, slightly tilted";
+  EXPECT_NEAR(calib.Tr(1, 3), -0.08, 0.05);
+  EXPECT_NEAR(calib.Tr(2, 3), -0.27, 0.05);
+  const Pose first_inv = w.sim->lidar_pose_world(0).inverse();
+  for (int i = 0; i < kScans; ++i) {
+    const Pose expected = first_inv * w.sim->lidar_pose_world(i);
+    const Pose& actual = w.seq->pose(static_cast<size_t>(i));
+    EXPECT_TRUE(test::all_close(actual.data(), expected.data(), 16, 1e-8, 1e-8)) << "scan " << i;
+  }
+  const auto cam0 = read_poses(w.seq->dir() / "poses.txt");
+  ASSERT_EQ(cam0.size(), static_cast<size_t>(kScans));
+  EXPECT_TRUE(cam0[0].isApprox(Pose::Identity(), 1e-9))
+      << "poses are relative to the first cam0 frame";
+  // The camera looks forward: cam0 moves along its z axis.
+  EXPECT_GT(cam0.back()(2, 3), 2.0);
+}
+
+TEST(SimSequence, RejectsOptionsItCannotWrite) {
+  SimulateOptions options;
+  options.out = test::temp_dir();
+  options.sequences = 0;
+  EXPECT_THROW(simulate(options), Error);
+  options.sequences = 2;
+  options.first_sequence = 99;
+  try {
+    simulate(options);
+    ADD_FAILURE() << "sequence id 100 accepted";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("two digits"), std::string::npos) << e.what();
+  }
+  options.first_sequence = 0;
+  options.scans = 0;
+  EXPECT_THROW(simulate(options), Error);
+  EXPECT_FALSE(fs::exists(options.out / "sequences")) << "nothing written for bad options";
+}
