@@ -1,0 +1,164 @@
+// Weighted softmax cross-entropy and one-hot sigmoid BCE over the labelled cells of
+// logits (B, K, H, W) with labels (B, H, W); each returns the loss and writes d_logits.
+#include "host/losses.hpp"
+
+#include <algorithm>
+#include <cmath>
+
+// GCC 12 reports false (maybe-)uninitialized values inside its own AVX-512 intrinsics
+// (_mm512_undefined_ps) when Eigen vectorises for AVX-512 (GCC bug 105593).
+#pragma GCC diagnostic push
+#pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
+#pragma GCC diagnostic ignored "-Wuninitialized"
+#include <Eigen/Core>
+#pragma GCC diagnostic pop
+
+namespace pillarseg::host {
+
+namespace {
+
+template <class T>
+using Plane = Eigen::Array<T, Eigen::Dynamic, 1>;
+
+// Checks the shapes, the labels and the weights; returns M, the number of labelled cells.
+template <class T>
+int64_t check_and_count_labelled(const char* op, const Tensor<T>& logits,
+                                 const Tensor<uint8_t>& labels,
+                                 std::span<const double> class_weights, const Tensor<T>* d_logits) {
+  PS_CHECK(logits.rank() == 4 && logits.dim(1) > 0,
+           "{}: expected logits of shape (B, K, H, W) with K > 0, given {}", op,
+           shape_str(logits.shape()));
+  const int64_t classes = logits.dim(1), height = logits.dim(2), width = logits.dim(3);
+  const Shape label_shape{logits.dim(0), height, width};
+  PS_CHECK(labels.shape() == label_shape,
+           "{}: expected labels of shape {} for logits of shape {}, given {}", op,
+           shape_str(label_shape), shape_str(logits.shape()), shape_str(labels.shape()));
+  PS_CHECK(static_cast<int64_t>(class_weights.size()) == classes + 1,
+           "{}: expected {} class weights (one per class id 0..{}), given {}", op, classes + 1,
+           classes, class_weights.size());
+  for (int64_t k = 1; k <= classes; ++k) {
+    PS_CHECK(std::isfinite(class_weights[k]) && class_weights[k] >= 0,
+             "{}: expected finite class weights >= 0, given {} for class {}", op, class_weights[k],
+             k);
+  }
+  PS_CHECK(d_logits != &logits, "{}: d_logits must not be the logits (not in place)", op);
+  int64_t labelled = 0;
+  for (int64_t i = 0; i < labels.numel(); ++i) {
+    PS_CHECK(labels[i] <= classes,
+             "{}: label {} at (batch {}, iy {}, ix {}) is not a class id in 0..{}", op, labels[i],
+             i / (height * width), i / width % height, i % width, classes);
+    labelled += labels[i] != 0;
+  }
+  return labelled;
+}
+
+}  // namespace
+
+template <class T>
+double cross_entropy_loss(const Tensor<T>& logits, const Tensor<uint8_t>& labels,
+                          std::span<const double> class_weights,
+                          std::type_identity_t<Tensor<T>>* d_logits) {
+  const int64_t labelled =
+      check_and_count_labelled("cross_entropy_loss", logits, labels, class_weights, d_logits);
+  if (d_logits) d_logits->resize(logits.shape());
+  if (labelled == 0) return 0.0;
+
+  const int64_t batch = logits.dim(0), classes = logits.dim(1);
+  const int64_t plane = logits.dim(2) * logits.dim(3);
+  const double inv_labelled = 1.0 / static_cast<double>(labelled);
+  Plane<T> max_logit(plane);
+  Plane<T> sum_exp(plane);
+  Plane<T> log_sum_exp(plane);
+  Plane<T> cell_weight(plane);  // c[y] / M in labelled cells
+  double loss = 0;
+  for (int64_t b = 0; b < batch; ++b) {
+    const T* zb = logits.data() + b * classes * plane;
+    auto z = [&](int64_t k) { return Eigen::Map<const Plane<T>>(zb + k * plane, plane); };
+    const uint8_t* y = labels.data() + b * plane;
+
+    max_logit = z(0);
+    for (int64_t k = 1; k < classes; ++k) max_logit = max_logit.max(z(k));
+    sum_exp.setZero();
+    for (int64_t k = 0; k < classes; ++k) sum_exp += (z(k) - max_logit).exp();
+    log_sum_exp = max_logit + sum_exp.log();
+
+    for (int64_t i = 0; i < plane; ++i) {
+      const int label = y[i];
+      if (label == 0) continue;
+      const double true_logit = zb[(label - 1) * plane + i];
+      loss += class_weights[label] * (static_cast<double>(log_sum_exp[i]) - true_logit);
+      cell_weight[i] = static_cast<T>(class_weights[label] * inv_labelled);
+    }
+    if (!d_logits) continue;
+    // d_k = c[y] / M * (softmax_k - [k == y - 1]) in labelled cells, 0 elsewhere (even for NaN
+    // logits there). The exponentials are vectorised over the plane; the per-cell choice is a
+    // plain loop (Eigen 3.4 does not vectorise select()).
+    for (int64_t k = 0; k < classes; ++k) {
+      T* d = d_logits->data() + (b * classes + k) * plane;
+      Eigen::Map<Plane<T>>(d, plane) = (z(k) - log_sum_exp).exp();
+      for (int64_t i = 0; i < plane; ++i) {
+        d[i] = y[i] == 0 ? T(0) : cell_weight[i] * (d[i] - T(y[i] == k + 1));
+      }
+    }
+  }
+  return loss * inv_labelled;
+}
+
+template <class T>
+double bce_loss(const Tensor<T>& logits, const Tensor<uint8_t>& labels,
+                std::span<const double> class_weights, std::type_identity_t<Tensor<T>>* d_logits) {
+  const int64_t labelled =
+      check_and_count_labelled("bce_loss", logits, labels, class_weights, d_logits);
+  if (d_logits) d_logits->resize(logits.shape());
+  if (labelled == 0) return 0.0;
+
+  const int64_t batch = logits.dim(0), classes = logits.dim(1);
+  const int64_t plane = logits.dim(2) * logits.dim(3);
+  const double inv_pairs = 1.0 / static_cast<double>(labelled * classes);
+  Plane<T> exp_minus_abs(plane);  // exp(-|z|) in (0, 1]: neither softplus nor sigmoid overflows
+  Plane<T> log1p_exp_minus_abs(plane);
+  double loss = 0;
+  for (int64_t b = 0; b < batch; ++b) {
+    const uint8_t* y = labels.data() + b * plane;
+    for (int64_t k = 0; k < classes; ++k) {
+      const T* z = logits.data() + (b * classes + k) * plane;
+      const Eigen::Map<const Plane<T>> z_plane(z, plane);
+      exp_minus_abs = (-z_plane.abs()).exp();
+      log1p_exp_minus_abs = exp_minus_abs.log1p();
+      // Per cell: softplus(x) = max(x, 0) + log(1 + exp(-|x|)); the loss is softplus(-z) for
+      // the positive channel (k == y - 1) and softplus(z) for the others. The gradient is
+      // sigmoid(z) - [positive], sigmoid(z) = 1 / (1 + exp(-z)) for z >= 0 and
+      // exp(z) / (1 + exp(z)) for z < 0.
+      const auto positive_class = static_cast<uint8_t>(k + 1);
+      const auto gradient_scale = static_cast<T>(class_weights[k + 1] * inv_pairs);
+      T* d = d_logits ? d_logits->data() + (b * classes + k) * plane : nullptr;
+      double channel_loss = 0;
+      for (int64_t i = 0; i < plane; ++i) {
+        if (y[i] == 0) {
+          if (d) d[i] = T(0);
+          continue;
+        }
+        const bool positive = y[i] == positive_class;
+        const T signed_z = positive ? -z[i] : z[i];
+        channel_loss += std::max(signed_z, T(0)) + log1p_exp_minus_abs[i];
+        if (d) {
+          const T sigmoid = (z[i] >= T(0) ? T(1) : exp_minus_abs[i]) / (T(1) + exp_minus_abs[i]);
+          d[i] = gradient_scale * (sigmoid - T(positive));
+        }
+      }
+      loss += class_weights[k + 1] * channel_loss;
+    }
+  }
+  return loss * inv_pairs;
+}
+
+template double cross_entropy_loss<float>(const Tensor<float>&, const Tensor<uint8_t>&,
+                                          std::span<const double>, Tensor<float>*);
+template double cross_entropy_loss<double>(const Tensor<double>&, const Tensor<uint8_t>&,
+                                           std::span<const double>, Tensor<double>*);
+template double bce_loss<float>(const Tensor<float>&, const Tensor<uint8_t>&,
+                                std::span<const double>, Tensor<float>*);
+template double bce_loss<double>(const Tensor<double>&, const Tensor<uint8_t>&,
+                                 std::span<const double>, Tensor<double>*);
+
+}  // namespace pillarseg::host
