@@ -1,0 +1,231 @@
+// CpuBackend: the Backend interface on the host/ reference ops (Eigen, OpenMP). Refs are
+// host pointers; each op wraps them as Tensor views (no copies) and calls host/.
+#include <cstdlib>
+#include <cstring>
+#include <span>
+
+#include "engine/core/error.hpp"
+#include "engine/core/parallel.hpp"
+#include "engine/model/backend.hpp"
+#include "host/adam.hpp"
+#include "host/batchnorm.hpp"
+#include "host/conv2d.hpp"
+#include "host/conv_transpose2d.hpp"
+#include "host/losses.hpp"
+#include "host/maxpool2d.hpp"
+#include "host/pad_concat.hpp"
+#include "host/pfn.hpp"
+#include "host/scatter.hpp"
+#include "host/softmax.hpp"
+#include "host/upsample_bilinear.hpp"
+
+namespace pillarseg {
+
+namespace {
+
+template <class T>
+Tensor<T> view(const RefT<T>& r) {
+  return Tensor<T>::view(r.data, r.shape);
+}
+
+host::BatchNormOptions bn_options(const BatchNormRefs& bn) { return {bn.eps, bn.momentum}; }
+
+host::BatchNormSaved<float> bn_saved(const BatchNormRefs& bn) {
+  return {view(bn.save_mean), view(bn.save_invstd)};
+}
+
+class CpuBackend final : public Backend {
+ public:
+  Device device() const override { return Device::Cpu; }
+  std::string name() const override { return "cpu"; }
+
+  void* allocate(size_t bytes) override {
+    void* p = std::aligned_alloc(64, (bytes + 63) / 64 * 64);
+    PS_CHECK(p, "out of host memory allocating {} bytes", bytes);
+    return p;
+  }
+  void deallocate(void* p) noexcept override { std::free(p); }
+  void upload(void* dst, const void* src, size_t bytes) override { std::memcpy(dst, src, bytes); }
+  void download(void* dst, const void* src, size_t bytes) override { std::memcpy(dst, src, bytes); }
+  void fill_zero(void* dst, size_t bytes) override { std::memset(dst, 0, bytes); }
+
+  void pfn_forward(const Ref& points, const Ref& weight, BatchNormRefs& bn, bool training, IRef& argmax,
+                   Ref& out) override {
+    Tensor<float> y = view(out), mean = view(bn.running_mean), var = view(bn.running_var);
+    if (training) {
+      host::PfnSaved<float> saved{bn_saved(bn), view(argmax)};
+      int64_t counted = 0;  // the model keeps num_batches_tracked
+      host::pfn_forward_train(view(points), view(weight), view(bn.gamma), view(bn.beta), bn_options(bn), mean, var,
+                              counted, y, saved);
+    } else {
+      host::pfn_forward_eval(view(points), view(weight), view(bn.gamma), view(bn.beta), mean, var, bn_options(bn), y);
+    }
+  }
+  void pfn_backward(const Ref& points, const Ref& weight, const BatchNormRefs& bn, const IRef& argmax,
+                    const Ref& dout, Ref& d_points, Ref& dweight, Ref& dgamma, Ref& dbeta) override {
+    const host::PfnSaved<float> saved{bn_saved(bn), view(argmax)};
+    Tensor<float> dp = view(d_points), dw = view(dweight), dg = view(dgamma), db = view(dbeta);
+    host::pfn_backward(view(dout), view(points), view(weight), view(bn.gamma), saved, dp, dw, dg, db);
+  }
+
+  void scatter_forward(const Ref& features, const IRef& cells, int channel0, Ref& canvas) override {
+    const int64_t B = canvas.dim(0), Cc = canvas.dim(1), H = canvas.dim(2), W = canvas.dim(3), C = features.dim(1);
+    PS_CHECK(channel0 >= 0 && channel0 + C <= Cc, "scatter: channels [{}, {}) outside the canvas's {}", channel0,
+             channel0 + C, Cc);
+    if (C == Cc) {  // the canvas is the pillar stream alone
+      Tensor<float> out = view(canvas);
+      host::scatter_forward(view(features), view(cells), B, H, W, out);
+      return;
+    }
+    Tensor<float> part;
+    host::scatter_forward(view(features), view(cells), B, H, W, part);
+    Ref part_ref{part.data(), part.shape()};
+    copy_channels(part_ref, channel0, canvas);
+  }
+  void scatter_backward(const Ref& dcanvas, const IRef& cells, int channel0, Ref& dfeatures) override {
+    const int64_t B = dcanvas.dim(0), H = dcanvas.dim(2), W = dcanvas.dim(3), C = dfeatures.dim(1);
+    Tensor<float> df = view(dfeatures);
+    if (C == dcanvas.dim(1)) {
+      host::scatter_backward(view(dcanvas), view(cells), df);
+      return;
+    }
+    Tensor<float> part({B, C, H, W});
+    Ref part_ref{part.data(), part.shape()};
+    extract_channels(dcanvas, channel0, part_ref);
+    host::scatter_backward(part, view(cells), df);
+  }
+  void copy_channels(const Ref& x, int channel0, Ref& y) override {
+    move_channels(x, channel0, y, /*into_y=*/true);
+  }
+  void extract_channels(const Ref& y, int channel0, Ref& x) override {
+    move_channels(x, channel0, y, /*into_y=*/false);
+  }
+
+  void conv2d_forward(const Ref& x, const Ref& w, const Ref* bias, int pad, Ref& y) override {
+    Tensor<float> out = view(y);
+    Tensor<float> b;
+    if (bias) b = view(*bias);
+    host::conv2d_forward(view(x), view(w), bias ? &b : nullptr, pad, out);
+  }
+  void conv2d_backward(const Ref& x, const Ref& w, const Ref& dy, int pad, Ref* dx, Ref& dw, Ref* dbias) override {
+    Tensor<float> gx, gw = view(dw), gb;
+    if (dx) gx = view(*dx);
+    if (dbias) gb = view(*dbias);
+    host::conv2d_backward(view(x), view(w), view(dy), pad, dx ? &gx : nullptr, &gw, dbias ? &gb : nullptr);
+  }
+  void conv_transpose2d_forward(const Ref& x, const Ref& w, const Ref* bias, Ref& y) override {
+    Tensor<float> out = view(y), b;
+    if (bias) b = view(*bias);
+    host::conv_transpose2d_forward(view(x), view(w), bias ? &b : nullptr, out);
+  }
+  void conv_transpose2d_backward(const Ref& x, const Ref& w, const Ref& dy, Ref& dx, Ref& dw, Ref* dbias) override {
+    Tensor<float> gx = view(dx), gw = view(dw), gb;
+    if (dbias) gb = view(*dbias);
+    host::conv_transpose2d_backward(view(x), view(w), view(dy), &gx, &gw, dbias ? &gb : nullptr);
+  }
+  void batchnorm_relu_forward(const Ref& x, BatchNormRefs& bn, bool training, Ref& y) override {
+    Tensor<float> out = view(y), mean = view(bn.running_mean), var = view(bn.running_var);
+    if (training) {
+      host::BatchNormSaved<float> saved = bn_saved(bn);
+      int64_t counted = 0;  // the model keeps num_batches_tracked
+      host::batchnorm_relu_forward_train(view(x), view(bn.gamma), view(bn.beta), bn_options(bn), mean, var, counted,
+                                         out, saved);
+    } else {
+      host::batchnorm_relu_forward_eval(view(x), view(bn.gamma), view(bn.beta), mean, var, bn_options(bn), out);
+    }
+  }
+  void batchnorm_relu_backward(const Ref& x, const Ref& y, const Ref& dy, const BatchNormRefs& bn, Ref& dx,
+                               Ref& dgamma, Ref& dbeta) override {
+    Tensor<float> gx = view(dx), gg = view(dgamma), gb = view(dbeta);
+    host::batchnorm_relu_backward(view(dy), view(x), view(y), view(bn.gamma), bn_saved(bn), gx, gg, gb);
+  }
+  void maxpool2x2_forward(const Ref& x, Ref& y, IRef& argmax) override {
+    Tensor<float> out = view(y);
+    Tensor<int32_t> idx = view(argmax);
+    host::maxpool2d_forward(view(x), out, &idx);
+  }
+  void maxpool2x2_backward(const Ref& dy, const IRef& argmax, Ref& dx) override {
+    Tensor<float> gx = view(dx);
+    host::maxpool2d_backward(view(dy), view(argmax), dx.shape, gx);
+  }
+  void upsample2x_forward(const Ref& x, Ref& y) override {
+    Tensor<float> out = view(y);
+    host::upsample_bilinear_forward(view(x), out);
+  }
+  void upsample2x_backward(const Ref& dy, Ref& dx) override {
+    Tensor<float> gx = view(dx);
+    host::upsample_bilinear_backward(view(dy), gx);
+  }
+  void pad_concat_forward(const Ref& skip, const Ref& up, Ref& y) override {
+    Tensor<float> out = view(y);
+    host::pad_concat_forward(view(skip), view(up), out);
+  }
+  void pad_concat_backward(const Ref& dy, Ref& dskip, Ref& dup) override {
+    Tensor<float> gs = view(dskip), gu = view(dup);
+    host::pad_concat_backward(view(dy), dskip.shape, dup.shape, &gs, &gu);
+  }
+  void add_inplace(Ref& a, const Ref& b) override {
+    PS_CHECK(a.shape == b.shape, "add_inplace: shapes {} and {} differ", shape_str(a.shape), shape_str(b.shape));
+    float* pa = a.data;
+    const float* pb = b.data;
+    parallel_for(a.numel(), [&](int64_t i) { pa[i] += pb[i]; });
+  }
+
+  void softmax(const Ref& logits, Ref& probs) override {
+    Tensor<float> p = view(probs);
+    host::softmax_channels(view(logits), p);
+  }
+  void argmax(const Ref& logits, LRef& labels) override {
+    Tensor<uint8_t> l = view(labels);
+    host::argmax_class_ids(view(logits), l);
+  }
+  double loss(LossKind kind, const Ref& logits, const LRef& labels, const Ref& coefficients, Ref& dlogits) override {
+    PS_CHECK(coefficients.numel() == 13, "loss: 13 class coefficients expected, got {}", coefficients.numel());
+    double c[13];
+    for (int i = 0; i < 13; ++i) c[i] = coefficients.data[i];
+    Tensor<float> d = view(dlogits);
+    const std::span<const double> weights(c, 13);
+    return kind == LossKind::CrossEntropy ? host::cross_entropy_loss(view(logits), view(labels), weights, &d)
+                                          : host::bce_loss(view(logits), view(labels), weights, &d);
+  }
+
+  double sum_of_squares(const Ref& x) override {
+    const std::span<float> s(x.data, static_cast<size_t>(x.numel()));
+    const std::span<float> all[] = {s};
+    const double norm = host::grad_norm<float>(std::span<const std::span<float>>(all));
+    return norm * norm;
+  }
+  void scale(Ref& x, float factor) override {
+    float* p = x.data;
+    parallel_for(x.numel(), [&](int64_t i) { p[i] *= factor; });
+  }
+  void adam_step(Ref& param, const Ref& grad, Ref& m, Ref& v, const AdamHyper& h) override {
+    const size_t n = static_cast<size_t>(param.numel());
+    host::AdamOptions o;
+    o.lr = h.lr, o.beta1 = h.beta1, o.beta2 = h.beta2, o.eps = h.eps, o.weight_decay = h.weight_decay;
+    host::adam_step<float>(std::span<float>(param.data, n), std::span<const float>(grad.data, n),
+                           std::span<float>(m.data, n), std::span<float>(v.data, n), h.step, o);
+  }
+
+ private:
+  // Copies x (B, Cx, H, W) to or from channels [channel0, channel0 + Cx) of y (B, Cy, H, W).
+  static void move_channels(const Ref& x, int channel0, const Ref& y, bool into_y) {
+    PS_CHECK(x.shape.size() == 4 && y.shape.size() == 4 && x.dim(0) == y.dim(0) && x.dim(2) == y.dim(2) &&
+                 x.dim(3) == y.dim(3) && channel0 >= 0 && channel0 + x.dim(1) <= y.dim(1),
+             "channel copy: {} does not fit at channel {} of {}", shape_str(x.shape), channel0, shape_str(y.shape));
+    const int64_t B = x.dim(0), Cx = x.dim(1), Cy = y.dim(1), plane = x.dim(2) * x.dim(3);
+    for (int64_t b = 0; b < B; ++b) {
+      float* ys = y.data + (b * Cy + channel0) * plane;
+      float* xs = x.data + b * Cx * plane;
+      const size_t bytes = static_cast<size_t>(Cx * plane) * sizeof(float);
+      if (into_y) std::memcpy(ys, xs, bytes);
+      else std::memcpy(xs, ys, bytes);
+    }
+  }
+};
+
+}  // namespace
+
+std::unique_ptr<Backend> make_cpu_backend() { return std::make_unique<CpuBackend>(); }
+
+}  // namespace pillarseg
