@@ -41,3 +41,12 @@ std::unique_ptr<Backend> make_backend(const std::string& device) {
 }
 
 }  // namespace pillarseg
+
+#ifndef PILLARSEG_WITH_CUDA_BACKEND
+namespace pillarseg {
+std::unique_ptr<Backend> make_cuda_backend() {
+  PS_FAIL("--device cuda: this build has no CUDA backend (the CUDA kernels are not wired into the engine yet; "
+          "see README, 'Status'); use --device cpu");
+}
+}  // namespace pillarseg
+#endif
