@@ -45,8 +45,7 @@ namespace {
 
 // Sets `t` to `shape` filled with `value`, reusing its allocation when large enough.
 void assign(Tensor<int32_t>& t, const Shape& shape, int32_t value) {
-  t.storage().assign(static_cast<size_t>(shape_numel(shape)), value);
-  t.reshape(shape);
+  t.assign(shape, value);
 }
 
 }  // namespace

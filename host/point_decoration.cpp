@@ -54,8 +54,7 @@ void decorate_points(const std::vector<Point>& points, const Pillars& pillars, c
   const int64_t num_pillars = pillars.num_pillars();
   const int64_t slots = pillars.point_index.dim(1);
   // Keep the capacity of `out`: every element is written below.
-  out.storage().resize(static_cast<size_t>(num_pillars * slots * kDecoratedFeatures));
-  out.reshape({num_pillars, slots, kDecoratedFeatures});
+  out.resize_for_overwrite({num_pillars, slots, kDecoratedFeatures});
 
   const double centre_z = grid.z_min + 0.5 * (grid.z_max - grid.z_min);
   parallel_chunks(num_pillars, [&](int64_t begin, int64_t end, int) {

@@ -410,16 +410,16 @@ TEST(PointDecoration, ReusedOutputEqualsFreshAndAnyThreadCount) {
     set_num_threads(threads);
     const Tensor<float> many = decorate_points(points, pillars, grid);
     ASSERT_EQ(many.shape(), one_thread.shape());
-    EXPECT_EQ(many.storage(), one_thread.storage()) << threads << " threads";
+    EXPECT_EQ(many.values(), one_thread.values()) << threads << " threads";
   }
   // A bigger and a smaller previous output are reused and fully overwritten.
   Tensor<float> reused({pillars.num_pillars() + 5, 20, 10}, 7.0f);
   decorate_points(points, pillars, grid, reused);
   EXPECT_EQ(reused.shape(), one_thread.shape());
-  EXPECT_EQ(reused.storage(), one_thread.storage());
+  EXPECT_EQ(reused.values(), one_thread.values());
   Tensor<float> small({1, 2, 10}, -3.0f);
   decorate_points(points, pillars, grid, small);
-  EXPECT_EQ(small.storage(), one_thread.storage());
+  EXPECT_EQ(small.values(), one_thread.values());
 }
 
 TEST(PillarGather, ReusedWorkspaceAndOutputGiveTheSameResult) {
@@ -440,10 +440,10 @@ TEST(PillarGather, ReusedWorkspaceAndOutputGiveTheSameResult) {
     const Pillars fresh = pillar_gather(points, grid, cfg, mode, &rng_fresh);
     pillar_gather(points, grid, cfg, mode, &rng_reused, workspace, reused);
     EXPECT_EQ(reused.cell.shape(), fresh.cell.shape()) << "round " << round;
-    EXPECT_EQ(reused.cell.storage(), fresh.cell.storage()) << "round " << round;
+    EXPECT_EQ(reused.cell.values(), fresh.cell.values()) << "round " << round;
     EXPECT_EQ(reused.point_index.shape(), fresh.point_index.shape()) << "round " << round;
-    EXPECT_EQ(reused.point_index.storage(), fresh.point_index.storage()) << "round " << round;
-    EXPECT_EQ(reused.count.storage(), fresh.count.storage()) << "round " << round;
+    EXPECT_EQ(reused.point_index.values(), fresh.point_index.values()) << "round " << round;
+    EXPECT_EQ(reused.count.values(), fresh.count.values()) << "round " << round;
     EXPECT_TRUE(workspace.cell_map_clean);
     EXPECT_TRUE(std::all_of(workspace.pillar_of_cell.begin(), workspace.pillar_of_cell.end(),
                             [](int32_t pillar) { return pillar == -1; }))
@@ -461,11 +461,11 @@ TEST(PillarGatherTraining, SameSeedSameResultDifferentSeedDifferentSubset) {
   const Pillars first = pillar_gather(points, grid, cfg, SampleMode::Training, &a);
   const Pillars again = pillar_gather(points, grid, cfg, SampleMode::Training, &b);
   const Pillars other = pillar_gather(points, grid, cfg, SampleMode::Training, &c);
-  EXPECT_EQ(first.cell.storage(), again.cell.storage());
-  EXPECT_EQ(first.point_index.storage(), again.point_index.storage());
-  EXPECT_EQ(first.count.storage(), again.count.storage());
-  EXPECT_NE(first.cell.storage(), other.cell.storage());
-  EXPECT_NE(first.point_index.storage(), other.point_index.storage());
+  EXPECT_EQ(first.cell.values(), again.cell.values());
+  EXPECT_EQ(first.point_index.values(), again.point_index.values());
+  EXPECT_EQ(first.count.values(), again.count.values());
+  EXPECT_NE(first.cell.values(), other.cell.values());
+  EXPECT_NE(first.point_index.values(), other.point_index.values());
 }
 
 TEST(PillarGatherTraining, KeptSetsAreOrderedSubsetsOfTheRightSize) {

@@ -149,6 +149,23 @@ class Tensor {
     PS_CHECK(shape_numel(shape) == numel_, "cannot reshape {} to {}", shape_str(shape_), shape_str(shape));
     shape_ = std::move(shape);
   }
+  // New shape filled with value, reusing the allocation when it is large enough.
+  void assign(Shape shape, T value) {
+    resize_for_overwrite(std::move(shape));
+    fill(value);
+  }
+  // New shape whose every element the caller will write: keeps the allocation and leaves the
+  // contents unspecified (no zero-fill pass). A view must keep its element count.
+  void resize_for_overwrite(Shape shape) {
+    const int64_t n = shape_numel(shape);
+    if (view_) {
+      PS_CHECK(n == numel_, "a view of shape {} cannot be resized to {}", shape_str(shape_), shape_str(shape));
+    } else {
+      data_.resize(static_cast<size_t>(n));
+      numel_ = n;
+    }
+    shape_ = std::move(shape);
+  }
   // New shape; contents are zero. A view keeps its memory and must keep its element count.
   void resize(Shape shape) {
     if (view_) {
