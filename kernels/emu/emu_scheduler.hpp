@@ -1,0 +1,65 @@
+// The block scheduler of the CUDA emulation: runs a grid of blocks of threads on the host.
+//
+// Blocks are spread over OpenMP threads. The threads of one block run as fibers on one OS thread,
+// one after the other: a thread runs until it returns or until it must wait for other threads of
+// its block (__syncthreads, or a warp shuffle/vote/__syncwarp that needs every lane of its mask);
+// only then does the scheduler start or resume another thread. A kernel that never waits so costs
+// one fiber switch per block, not per thread. Misuse that would hang or be undefined on a GPU (a
+// barrier some threads never reach, a warp mask naming lanes that returned or do not exist,
+// different warp operations with one mask) stops the launch with a pillarseg::Error saying which
+// block, thread and operation.
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+
+#include "kernels/emu/emu_types.hpp"
+
+namespace pillarseg::emu {
+
+// One launch as the scheduler sees it: the shapes, the dynamic shared memory per block, and a
+// function running the kernel for the current thread with the launch's bound arguments.
+struct GridLaunch {
+  dim3 grid;
+  dim3 block;
+  std::size_t dynamic_shared_bytes = 0;
+  const void* bound_arguments = nullptr;
+  void (*run_thread)(const void* bound_arguments) = nullptr;
+};
+
+// Runs every thread of every block of `launch`; returns when all have returned. Throws
+// pillarseg::Error (naming the block and the thread) on misuse, and rethrows anything a kernel
+// throws. Preconditions (shapes within CUDA's limits) are checked by the runtime's launch.
+void run_grid(const GridLaunch& launch);
+
+// ---- the device side: called by the functions of emu_device.hpp from inside a kernel ----
+
+// The warp-synchronous operations; all lanes of a mask must call the same one.
+enum class WarpOp : std::uint8_t {
+  Sync,
+  ShuffleIndex,
+  ShuffleUp,
+  ShuffleDown,
+  ShuffleXor,
+  Ballot,
+  Any,
+  All
+};
+
+// __syncthreads(): waits until every thread of the block has arrived; returns how many arrived
+// with a non-zero predicate (for __syncthreads_count/_and/_or).
+int block_barrier(int predicate);
+
+// Shuffles: each lane of `mask` gives `value` and receives the value of the lane that `op` and
+// `lane_argument` (source lane, delta or lane mask) select within its segment of `width` lanes.
+std::uint64_t warp_shuffle(WarpOp op, unsigned mask, std::uint64_t value, int lane_argument,
+                           int width);
+
+// Votes and __syncwarp: returns the ballot of `predicate` over the lanes of `mask`.
+unsigned warp_vote(WarpOp op, unsigned mask, int predicate);
+
+// The current block's dynamic shared memory (the launch's dynamic_shared_bytes, 256-byte
+// aligned; nullptr when the launch asked for none).
+std::byte* dynamic_shared_memory();
+
+}  // namespace pillarseg::emu

@@ -1,0 +1,339 @@
+// kernels/relu.cu (relu_forward, relu_backward) and kernels/reduce.cu (sum_of_squares), run on
+// the CUDA emulation and compared with plain host loops: sizes around the warp, block and float4
+// boundaries up to 2^20 + 3, pointers at every 4-byte misalignment (float4 path with scalar head
+// and tail; mixed misalignments take the scalar path), NaN, Inf and -0 inputs, in-place use, guard
+// words before and after every output, determinism across runs, thread counts and alignments, and
+// the launchers' argument checks.
+#include <gtest/gtest.h>
+#include <omp.h>
+
+#include <bit>
+#include <cmath>
+#include <cstdint>
+#include <functional>
+#include <limits>
+#include <string>
+#include <vector>
+
+#include "engine/core/error.hpp"
+#include "engine/core/rng.hpp"
+#include "kernels/common.cuh"
+#include "kernels/device_buffer.hpp"
+#include "kernels/reduce.cuh"
+#include "kernels/relu.cuh"
+
+using namespace pillarseg;
+using cuda::DeviceBuffer;
+
+namespace {
+
+const std::vector<std::int64_t> kSizes = {0, 1, 31, 32, 33, 1000, (1 << 20) + 3};
+constexpr std::int64_t kGuardFloats = 16;
+constexpr std::uint32_t kGuardBits = 0x7FC0DEADu;  // a NaN payload no kernel produces
+
+// n floats of device memory at `offset` floats past a 64-byte boundary (so offsets 0..3 give
+// every 4-byte misalignment modulo 16), with kGuardFloats guard words before and after.
+class GuardedDeviceArray {
+ public:
+  GuardedDeviceArray(std::int64_t n, std::int64_t offset)
+      : n_(n), offset_(offset), storage_(static_cast<size_t>(2 * kGuardFloats + offset + n)) {
+    const std::vector<float> guards(storage_.size(), std::bit_cast<float>(kGuardBits));
+    storage_.copy_from_host(guards);
+  }
+  float* data() { return storage_.data() + kGuardFloats + offset_; }
+  void upload(const std::vector<float>& values) {
+    PS_CUDA_CHECK(
+        cudaMemcpy(data(), values.data(), values.size() * sizeof(float), cudaMemcpyHostToDevice));
+  }
+  std::vector<float> download() const {
+    const std::vector<float> all = storage_.to_host();
+    return std::vector<float>(all.begin() + kGuardFloats + offset_,
+                              all.begin() + kGuardFloats + offset_ + n_);
+  }
+  ::testing::AssertionResult guards_intact() const {
+    const std::vector<float> all = storage_.to_host();
+    for (size_t i = 0; i < all.size(); ++i) {
+      const auto inside = static_cast<std::int64_t>(i) - kGuardFloats - offset_;
+      if (inside >= 0 && inside < n_) continue;
+      if (std::bit_cast<std::uint32_t>(all[i]) != kGuardBits) {
+        return ::testing::AssertionFailure() << "guard word " << i << " (element " << inside
+                                             << " of " << n_ << ") was overwritten with " << all[i];
+      }
+    }
+    return ::testing::AssertionSuccess();
+  }
+
+ private:
+  std::int64_t n_;
+  std::int64_t offset_;
+  DeviceBuffer<float> storage_;
+};
+
+// n values from N(0, 1) with the special values spread over the head, the body and the tail.
+std::vector<float> test_values(std::int64_t n, std::uint64_t seed) {
+  Rng rng(seed);
+  std::vector<float> values(static_cast<size_t>(n));
+  for (float& v : values) v = static_cast<float>(rng.normal());
+  const float specials[] = {std::numeric_limits<float>::quiet_NaN(),
+                            -std::numeric_limits<float>::quiet_NaN(),
+                            std::numeric_limits<float>::infinity(),
+                            -std::numeric_limits<float>::infinity(),
+                            0.0f,
+                            -0.0f,
+                            std::numeric_limits<float>::denorm_min(),
+                            -std::numeric_limits<float>::denorm_min(),
+                            std::numeric_limits<float>::max(),
+                            -std::numeric_limits<float>::max()};
+  const std::int64_t count = std::size(specials);
+  for (std::int64_t k = 0; k < count && k < n; ++k) {
+    values[static_cast<size_t>(k * 7919 % n)] = specials[k];  // spread out, first one at 0
+    values[static_cast<size_t>(n - 1 - k)] = specials[(k + 3) % count];
+  }
+  return values;
+}
+
+// Bitwise equality (NaN payloads included), naming the first differing element.
+::testing::AssertionResult same_bits(const std::vector<float>& actual,
+                                     const std::vector<float>& expected) {
+  if (actual.size() != expected.size()) {
+    return ::testing::AssertionFailure() << "size " << actual.size() << " != " << expected.size();
+  }
+  for (size_t i = 0; i < actual.size(); ++i) {
+    if (std::bit_cast<std::uint32_t>(actual[i]) != std::bit_cast<std::uint32_t>(expected[i])) {
+      return ::testing::AssertionFailure()
+             << "element " << i << ": " << actual[i] << " != expected " << expected[i];
+    }
+  }
+  return ::testing::AssertionSuccess();
+}
+
+std::vector<float> reference_relu(const std::vector<float>& x) {
+  std::vector<float> y(x.size());
+  for (size_t i = 0; i < x.size(); ++i) y[i] = x[i] <= 0.0f ? 0.0f : x[i];
+  return y;
+}
+
+std::vector<float> reference_relu_backward(const std::vector<float>& x,
+                                           const std::vector<float>& dy) {
+  std::vector<float> dx(x.size());
+  for (size_t i = 0; i < x.size(); ++i) dx[i] = x[i] <= 0.0f ? 0.0f : dy[i];
+  return dx;
+}
+
+std::string error_message(const std::function<void()>& fn) {
+  try {
+    fn();
+  } catch (const Error& e) {
+    return e.what();
+  }
+  return "";
+}
+
+struct Offsets {
+  std::int64_t a, b, c;
+};
+// Same misalignment for every pointer (float4 path with heads of 0..3 elements), then mixed.
+const std::vector<Offsets> kOffsets = {{0, 0, 0}, {1, 1, 1}, {2, 2, 2},
+                                       {3, 3, 3}, {0, 1, 2}, {3, 0, 1}};
+
+}  // namespace
+
+TEST(ReluKernels, ForwardMatchesTheHostLoopBitForBit) {
+  for (const std::int64_t n : kSizes) {
+    for (const Offsets& offsets : kOffsets) {
+      SCOPED_TRACE(::testing::Message()
+                   << "n " << n << ", offsets x " << offsets.a << " y " << offsets.b);
+      const std::vector<float> x = test_values(n, 1);
+      GuardedDeviceArray device_x(n, offsets.a), device_y(n, offsets.b);
+      device_x.upload(x);
+      cuda::relu_forward(device_x.data(), device_y.data(), n, nullptr);
+      EXPECT_TRUE(same_bits(device_y.download(), reference_relu(x)));
+      EXPECT_TRUE(device_y.guards_intact());
+      EXPECT_TRUE(same_bits(device_x.download(), x)) << "the input must not change";
+    }
+  }
+}
+
+TEST(ReluKernels, BackwardMatchesTheHostLoopBitForBit) {
+  for (const std::int64_t n : kSizes) {
+    for (const Offsets& offsets : kOffsets) {
+      SCOPED_TRACE(::testing::Message() << "n " << n << ", offsets x " << offsets.a << " dy "
+                                        << offsets.b << " dx " << offsets.c);
+      const std::vector<float> x = test_values(n, 2);
+      const std::vector<float> dy = test_values(n, 3);
+      GuardedDeviceArray device_x(n, offsets.a), device_dy(n, offsets.b), device_dx(n, offsets.c);
+      device_x.upload(x);
+      device_dy.upload(dy);
+      cuda::relu_backward(device_x.data(), device_dy.data(), device_dx.data(), n, nullptr);
+      EXPECT_TRUE(same_bits(device_dx.download(), reference_relu_backward(x, dy)));
+      EXPECT_TRUE(device_dx.guards_intact());
+    }
+  }
+}
+
+TEST(ReluKernels, SpecialValuesByHand) {
+  const float nan = std::numeric_limits<float>::quiet_NaN();
+  const float inf = std::numeric_limits<float>::infinity();
+  const std::vector<float> x = {nan, inf, -inf, -0.0f, 0.0f, 2.5f, -2.5f, 1e-45f};
+  const std::vector<float> dy = {7.0f, 7.0f, 7.0f, 7.0f, 7.0f, nan, nan, -3.0f};
+  auto device_x = DeviceBuffer<float>::from_host(x);
+  auto device_dy = DeviceBuffer<float>::from_host(dy);
+  DeviceBuffer<float> device_y(x.size()), device_dx(x.size());
+  cuda::relu_forward(device_x.data(), device_y.data(), static_cast<std::int64_t>(x.size()),
+                     nullptr);
+  cuda::relu_backward(device_x.data(), device_dy.data(), device_dx.data(),
+                      static_cast<std::int64_t>(x.size()), nullptr);
+  const std::vector<float> y = device_y.to_host();
+  const std::vector<float> dx = device_dx.to_host();
+  EXPECT_TRUE(std::isnan(y[0])) << "NaN passes through the forward";
+  EXPECT_EQ(y[1], inf);
+  EXPECT_EQ(y[2], 0.0f);
+  EXPECT_EQ(std::bit_cast<std::uint32_t>(y[3]), 0u) << "-0 becomes +0";
+  EXPECT_EQ(y[4], 0.0f);
+  EXPECT_EQ(y[5], 2.5f);
+  EXPECT_EQ(y[6], 0.0f);
+  EXPECT_EQ(y[7], 1e-45f);
+  EXPECT_EQ(dx[0], 7.0f) << "a NaN input lets the gradient through (threshold_backward)";
+  EXPECT_EQ(dx[1], 7.0f);
+  EXPECT_EQ(dx[2], 0.0f);
+  EXPECT_EQ(dx[3], 0.0f);
+  EXPECT_EQ(dx[4], 0.0f);
+  EXPECT_TRUE(std::isnan(dx[5])) << "a NaN gradient passes where x > 0";
+  EXPECT_EQ(dx[6], 0.0f) << "and is cut where x <= 0";
+  EXPECT_EQ(dx[7], -3.0f);
+}
+
+TEST(ReluKernels, InPlace) {
+  const std::int64_t n = 1001;
+  const std::vector<float> x = test_values(n, 4);
+  const std::vector<float> dy = test_values(n, 5);
+  GuardedDeviceArray device_x(n, 1), device_dy(n, 1);
+  device_x.upload(x);
+  device_dy.upload(dy);
+  cuda::relu_backward(device_x.data(), device_dy.data(), device_dy.data(), n, nullptr);
+  cuda::relu_forward(device_x.data(), device_x.data(), n, nullptr);
+  EXPECT_TRUE(same_bits(device_x.download(), reference_relu(x)));
+  EXPECT_TRUE(same_bits(device_dy.download(), reference_relu_backward(x, dy)));
+  EXPECT_TRUE(device_x.guards_intact());
+  EXPECT_TRUE(device_dy.guards_intact());
+}
+
+TEST(ReluKernels, LaunchersCheckTheirArguments) {
+  DeviceBuffer<float> buffer(4);
+  const std::string negative =
+      error_message([&] { cuda::relu_forward(buffer.data(), buffer.data(), -1, nullptr); });
+  EXPECT_NE(negative.find("relu_forward: n = -1; expected a number of elements >= 0"),
+            std::string::npos)
+      << negative;
+  const std::string null_input = error_message(
+      [&] { cuda::relu_backward(nullptr, buffer.data(), buffer.data(), 4, nullptr); });
+  EXPECT_NE(null_input.find("relu_backward: x, dy and dx must point to 4 floats of device memory"),
+            std::string::npos)
+      << null_input;
+  cuda::relu_forward(nullptr, nullptr, 0, nullptr);  // nothing to do, nothing checked
+}
+
+namespace {
+
+// sum_of_squares of `x` placed at `offset` floats past a 64-byte boundary; checks the guards
+// around the scratch and the result.
+double device_sum_of_squares(const std::vector<float>& x, std::int64_t offset) {
+  const auto n = static_cast<std::int64_t>(x.size());
+  GuardedDeviceArray device_x(n, offset);
+  device_x.upload(x);
+  // Scratch and result as doubles between guard doubles.
+  const std::int64_t guard = 4;
+  const double guard_value = std::bit_cast<double>(0x7FF8DEADDEADDEADull);
+  const std::int64_t scratch_size = guard + cuda::kSumOfSquaresPartials + guard + 1 + guard;
+  auto scratch = DeviceBuffer<double>::from_host(
+      std::vector<double>(static_cast<size_t>(scratch_size), guard_value));
+  double* partials = scratch.data() + guard;
+  double* result = partials + cuda::kSumOfSquaresPartials + guard;
+  cuda::sum_of_squares(device_x.data(), n, partials, result, nullptr);
+  const std::vector<double> host = scratch.to_host();
+  for (std::int64_t i = 0; i < scratch_size; ++i) {
+    const bool is_partial = i >= guard && i < guard + cuda::kSumOfSquaresPartials;
+    const bool is_result = i == guard + cuda::kSumOfSquaresPartials + guard;
+    if (is_partial || is_result) continue;
+    EXPECT_EQ(std::bit_cast<std::uint64_t>(host[static_cast<size_t>(i)]),
+              std::bit_cast<std::uint64_t>(guard_value))
+        << "guard word " << i << " overwritten";
+  }
+  return host[static_cast<size_t>(guard + cuda::kSumOfSquaresPartials + guard)];
+}
+
+std::vector<float> finite_values(std::int64_t n, std::uint64_t seed) {
+  Rng rng(seed);
+  std::vector<float> values(static_cast<size_t>(n));
+  for (float& v : values) v = static_cast<float>(rng.normal() * 3.0);
+  return values;
+}
+
+}  // namespace
+
+TEST(ReduceKernels, SumOfSquaresMatchesTheHostLoop) {
+  for (const std::int64_t n : kSizes) {
+    const std::vector<float> x = finite_values(n, 10 + static_cast<std::uint64_t>(n));
+    long double expected = 0.0L;
+    for (const float v : x) expected += static_cast<long double>(v) * v;
+    for (const std::int64_t offset : {0, 1, 2, 3}) {
+      const double actual = device_sum_of_squares(x, offset);
+      EXPECT_NEAR(actual, static_cast<double>(expected), 1e-13 * static_cast<double>(expected))
+          << "n " << n << ", offset " << offset;
+    }
+  }
+}
+
+TEST(ReduceKernels, HandComputedSums) {
+  EXPECT_EQ(device_sum_of_squares({}, 0), 0.0);
+  EXPECT_EQ(device_sum_of_squares({-3.0f}, 0), 9.0);
+  EXPECT_EQ(device_sum_of_squares({3.0f, 4.0f}, 1), 25.0);
+  // 1e20^2 overflows float but not the double accumulator.
+  EXPECT_EQ(device_sum_of_squares({1e20f, -1e20f}, 2),
+            2.0 * static_cast<double>(1e20f) * static_cast<double>(1e20f));
+  // 2^20 + 3 ones: every partial and the final sum are exact integers.
+  EXPECT_EQ(device_sum_of_squares(std::vector<float>((1 << 20) + 3, 1.0f), 3),
+            static_cast<double>((1 << 20) + 3));
+}
+
+TEST(ReduceKernels, NanAndInfPropagate) {
+  std::vector<float> x = finite_values(5000, 7);
+  x[4321] = std::numeric_limits<float>::infinity();
+  EXPECT_EQ(device_sum_of_squares(x, 0), std::numeric_limits<double>::infinity());
+  x[17] = std::numeric_limits<float>::quiet_NaN();
+  EXPECT_TRUE(std::isnan(device_sum_of_squares(x, 1)));
+}
+
+TEST(ReduceKernels, SameBitsForEveryRunThreadCountAndAlignment) {
+  const std::vector<float> x = finite_values((1 << 18) + 77, 99);
+  const double reference = device_sum_of_squares(x, 0);
+  const int threads = omp_get_max_threads();
+  for (const int t : {1, 2, 3}) {
+    omp_set_num_threads(t);
+    for (const std::int64_t offset : {0, 1, 3}) {
+      EXPECT_EQ(std::bit_cast<std::uint64_t>(device_sum_of_squares(x, offset)),
+                std::bit_cast<std::uint64_t>(reference))
+          << t << " threads, offset " << offset;
+    }
+  }
+  omp_set_num_threads(threads);
+}
+
+TEST(ReduceKernels, LauncherChecksItsArguments) {
+  DeviceBuffer<float> x(4);
+  DeviceBuffer<double> scratch(cuda::kSumOfSquaresPartials + 1);
+  const std::string negative = error_message([&] {
+    cuda::sum_of_squares(x.data(), -5, scratch.data(), scratch.data() + cuda::kSumOfSquaresPartials,
+                         nullptr);
+  });
+  EXPECT_NE(negative.find("sum_of_squares: n = -5"), std::string::npos) << negative;
+  const std::string null_x = error_message([&] {
+    cuda::sum_of_squares(nullptr, 4, scratch.data(), scratch.data() + cuda::kSumOfSquaresPartials,
+                         nullptr);
+  });
+  EXPECT_NE(null_x.find("sum_of_squares: x is null with n = 4 elements"), std::string::npos)
+      << null_x;
+  const std::string null_result =
+      error_message([&] { cuda::sum_of_squares(x.data(), 4, scratch.data(), nullptr, nullptr); });
+  EXPECT_NE(null_result.find("must be device memory"), std::string::npos) << null_result;
+}
