@@ -1,0 +1,615 @@
+// Ray walks through the top-view grid: 2D observability counts (H, W) and 3D occupancy counts
+// (Z, H, W); raywalk.hpp defines the walk exactly.
+//
+// How a ray is walked: it is cut into slabs across one axis (rows, or columns), and in each slab
+// its cells form one run along the other axis, from the cell where it crosses into the slab to
+// the cell where it crosses out (in 3D a run splits where the ray crosses a layer boundary). The
+// cell at a crossing is a pure function of that crossing, decided exactly, not of the cells
+// walked before; so any choice of slab axis gives the same cells, and a walk may start at any
+// slab and still visit exactly the cells of the whole walk: this is what makes clipping to the
+// grid, and splitting the grid into row bands between threads, exact.
+//
+// How rays are counted: each thread owns a band of rows and walks the part of every ray inside
+// it. A run adds to a difference array at its first cell and subtracts after its last, so that it
+// costs two updates whatever its length; prefix sums at the end turn differences into counts.
+#include "host/raywalk.hpp"
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <limits>
+
+#include "engine/core/error.hpp"
+#include "engine/core/parallel.hpp"
+
+namespace pillarseg::host {
+namespace {
+
+// floor(value) clamped to [-1, n]: -1 and n stand for every cell beyond the grid on that side
+// (a float point may lie 1e38 m away, where no int64 index reaches).
+int64_t clamped_floor(double value, int64_t n) {
+  if (!(value >= -1.0)) return -1;
+  if (value >= static_cast<double>(n)) return n;
+  return static_cast<int64_t>(std::floor(value));
+}
+
+// One axis of a ray in cell coordinates, from `origin` (t = 0) to `end` (t = 1), on an axis of
+// n cells.
+struct RayAxis {
+  double origin = 0.0, end = 0.0;
+  double delta = 0.0;  // end - origin, rounded
+  int step = 0;        // sign of end - origin (exact)
+  int64_t first = 0;   // the cell the ray enters from the origin, clamped to [-1, n]
+  int64_t last = 0;    // the end point's cell floor(end), clamped to [-1, n]
+
+  int64_t lo() const { return std::min(first, last); }
+  int64_t hi() const { return std::max(first, last); }
+};
+
+RayAxis make_axis(double origin, double end, int64_t n) {
+  RayAxis axis;
+  axis.origin = origin;
+  axis.end = end;
+  axis.delta = end - origin;
+  axis.step = (end > origin) - (end < origin);
+  axis.first = axis.step < 0 ? clamped_floor(std::ceil(origin) - 1.0, n) : clamped_floor(origin, n);
+  axis.last = clamped_floor(end, n);
+  return axis;
+}
+
+// sum + err == a + b exactly (Knuth's two-sum, any order of magnitudes).
+void two_sum(double a, double b, double& sum, double& err) {
+  sum = a + b;
+  const double b_virtual = sum - a;
+  const double a_virtual = sum - b_virtual;
+  err = (a - a_virtual) + (b - b_virtual);
+}
+
+// The exact sign of sum_i x[i] * y[i]. Each product is split into its rounded value and its
+// exact rounding error (fma); the terms are accumulated into a nonoverlapping expansion
+// (Shewchuk's Grow-Expansion with zero elimination), whose sign is that of its largest
+// component.
+template <size_t N>
+int exact_sign_of_dot(const std::array<double, N>& x, const std::array<double, N>& y) {
+  std::array<double, 2 * N> expansion{};
+  size_t size = 0;
+  const auto grow = [&](double term) {
+    size_t kept = 0;
+    double running = term;
+    for (size_t i = 0; i < size; ++i) {
+      double sum = 0.0, err = 0.0;
+      two_sum(running, expansion[i], sum, err);
+      if (err != 0.0) expansion[kept++] = err;
+      running = sum;
+    }
+    if (running != 0.0) expansion[kept++] = running;
+    size = kept;
+  };
+  for (size_t i = 0; i < N; ++i) {
+    const double product = x[i] * y[i];
+    grow(std::fma(x[i], y[i], -product));
+    grow(product);
+  }
+  if (size == 0) return 0;
+  return expansion[size - 1] > 0.0 ? 1 : -1;
+}
+
+// The cell along axis m that the ray occupies where it crosses a cell boundary of axis a: the
+// m-cell of the last cell before that a-step and of the first cell after it, clamped to
+// [m.lo(), m.hi()]. Where the ray crosses an m-boundary at the same t, m_steps_first says which
+// axis steps first (the walk steps x, then y, then z).
+class CrossingCell {
+ public:
+  CrossingCell(const RayAxis& m, const RayAxis& a, bool m_steps_first, int64_t m_cells)
+      : m_(m), a_(a), m_steps_first_(m_steps_first), lo_(m.lo()), hi_(m.hi()) {
+    slope_ = a.delta != 0.0 ? m.delta / a.delta : 0.0;
+    // The double evaluation errs by less than 2^-50 (|value| + |m.origin|) (rounded deltas,
+    // slope, difference and fma); it decides alone outside a window far wider than that.
+    window_ = 0x1p-30 * (static_cast<double>(m_cells) + 2.0 + std::abs(m.origin));
+  }
+
+  // boundary: the a-coordinate of the crossed boundary (an integer).
+  int64_t at(double boundary) const {
+    if (m_.step == 0) return m_.first;
+    const double value = std::fma(boundary - a_.origin, slope_, m_.origin);
+    // Beyond the range the exact cell lies beyond it too, whatever the rounding.
+    if (!(value > static_cast<double>(lo_))) return lo_;
+    if (!(value < static_cast<double>(hi_ + 1))) return hi_;
+    const double nearest = std::nearbyint(value);
+    const int64_t cell = std::abs(value - nearest) > window_ ? static_cast<int64_t>(std::floor(value))
+                                                             : exact_cell(boundary, nearest);
+    return std::clamp(cell, lo_, hi_);
+  }
+
+  // out[i] = at(first_boundary + i * boundary_step) for i < count, as doubles: one pass in
+  // double that the compiler vectorises (floor by adding and subtracting 1.5 * 2^52, which
+  // rounds to the nearest integer, as GCC does not vectorise std::floor), and the exact pass only
+  // where some value lies near a tie.
+  void fill(double first_boundary, double boundary_step, int64_t count, double* out) const {
+    const double lo = static_cast<double>(lo_), hi = static_cast<double>(hi_);
+    if (m_.step == 0) {
+      std::fill(out, out + count, static_cast<double>(m_.first));
+      return;
+    }
+    constexpr double kRoundToInteger = 0x1.8p52;
+    const double offset = first_boundary - a_.origin;
+    int64_t near_ties = 0;
+    for (int64_t i = 0; i < count; ++i) {
+      const double along = offset + static_cast<double>(i) * boundary_step;
+      // Clamped into [lo - 1/2, hi + 3/2], a value floors to the same cell, once clamped, as in
+      // at(), and stays far below 2^51, where the rounding trick holds.
+      const double value = std::min(std::max(std::fma(along, slope_, m_.origin), lo - 0.5), hi + 1.5);
+      const double nearest = (value + kRoundToInteger) - kRoundToInteger;
+      const double distance = value - nearest;
+      near_ties += std::abs(distance) <= window_;
+      out[i] = std::min(std::max(distance < 0.0 ? nearest - 1.0 : nearest, lo), hi);
+    }
+    if (near_ties == 0) return;
+    for (int64_t i = 0; i < count; ++i)
+      out[i] = static_cast<double>(at(first_boundary + static_cast<double>(i) * boundary_step));
+  }
+
+ private:
+  // The cell beside the integer k, from the exact sign of (m(t) - k) * (a.end - a.origin) =
+  // (m.origin - k) (a.end - a.origin) + (boundary - a.origin) (m.end - m.origin), expanded into
+  // products of the inputs.
+  int64_t exact_cell(double boundary, double k) const {
+    const int side =
+        a_.step * exact_sign_of_dot<6>({m_.origin, -k, k, boundary, -boundary, -a_.origin},
+                                       {a_.end, a_.end, a_.origin, m_.end, m_.origin, m_.end});
+    const auto cell = static_cast<int64_t>(k);
+    if (side > 0) return cell;
+    if (side < 0) return cell - 1;
+    // Tie: m crosses k at the same t; the cell after m's step if m steps first, else before.
+    return m_steps_first_ == (m_.step > 0) ? cell : cell - 1;
+  }
+
+  RayAxis m_, a_;
+  bool m_steps_first_;
+  int64_t lo_, hi_;
+  double slope_ = 0.0, window_ = 0.0;
+};
+
+// Narrows [t0, t1] to where the ray lies within one cell of the cells [lo, hi) of this axis
+// (t0 > t1 when it never does). The one-cell margin keeps rounding from losing a cell at the
+// faces of the box; the walk itself decides which cells are visited.
+void clip_to_cells(const RayAxis& axis, int64_t lo, int64_t hi, double& t0, double& t1) {
+  if (axis.lo() >= lo && axis.hi() < hi) return;  // both ends inside: so is the whole ray
+  if (axis.step == 0) {
+    t1 = -1.0;
+    return;
+  }
+  const double inverse = 1.0 / axis.delta;
+  double ta = (static_cast<double>(lo - 1) - axis.origin) * inverse;
+  double tb = (static_cast<double>(hi + 1) - axis.origin) * inverse;
+  if (ta > tb) std::swap(ta, tb);
+  t0 = std::max(t0, ta);
+  t1 = std::min(t1, tb);
+}
+
+// Boundary of axis cell c crossed when leaving it with the given step: c + 1 upwards, c
+// downwards (as a coordinate).
+double exit_boundary(int64_t c, int64_t step) { return static_cast<double>(step > 0 ? c + 1 : c); }
+double entry_boundary(int64_t c, int64_t step) { return exit_boundary(c - step, step); }
+
+// A box of cells [x_lo, x_hi) x [y_lo, y_hi) x [z_lo, z_hi) the walk is restricted to.
+struct CellBox {
+  int64_t x_lo, x_hi, y_lo, y_hi, z_lo = 0, z_hi = 1;
+};
+
+// The grid's cell counts W, H and (for 3D walks) Z, computed once per call, as GridSpec computes
+// them on each ask. A 2D walk is a walk through one layer.
+struct GridSize {
+  int64_t width, height, layers;
+  GridSize(const GridSpec& grid, bool with_layers)
+      : width(grid.width()), height(grid.height()), layers(with_layers ? grid.layers() : 1) {}
+};
+
+// The w axis of a 2D walk: one layer, never crossed.
+RayAxis flat_axis() { return make_axis(0.5, 0.5, 1); }
+
+// Buffers for the crossings of one ray, reused from ray to ray (one set per thread).
+struct WalkScratch {
+  explicit WalkScratch(const GridSize& size)
+      : run_exits(static_cast<size_t>(std::max(size.width, size.height)) + 3), layer_exits(run_exits.size()) {}
+  std::vector<double> run_exits;    // where the ray leaves each slab, along the run axis
+  std::vector<double> layer_exits;  // layer where the ray leaves each slab
+};
+
+// Calls run(slab, layer, from, to) for the cells of the walk of (u, v, w) inside the box's slab
+// range, in walk order. The walk is cut into slabs across the run axis, which is x when
+// kRunsAlongX (slabs are rows, cells (from..to, slab)), else y (slabs are columns, cells
+// (slab, from..to)); runs are not cut to the box along the run axis nor in z. In each slab the
+// ray's cells form one run along the run axis, from where it crosses into the slab to where it
+// crosses out; where it crosses layer boundaries within the slab, the run splits at the cell of
+// each crossing, which both parts share. Runs along the axis the ray moves most along are the
+// longest and fewest.
+template <bool kRunsAlongX, bool kThreeD, class Run>
+void walk_runs(const RayAxis& u, const RayAxis& v, const RayAxis& w, const GridSize& size, const CellBox& box,
+               WalkScratch& scratch, Run&& run) {
+  double t0 = 0.0, t1 = 1.0;
+  clip_to_cells(u, box.x_lo, box.x_hi, t0, t1);
+  clip_to_cells(v, box.y_lo, box.y_hi, t0, t1);
+  if constexpr (kThreeD) clip_to_cells(w, box.z_lo, box.z_hi, t0, t1);
+  if (t0 > t1) return;
+  const RayAxis& across = kRunsAlongX ? v : u;  // the slab axis
+  const RayAxis& along = kRunsAlongX ? u : v;   // the run axis
+  const int64_t across_cells = kRunsAlongX ? size.height : size.width;
+  const int64_t along_cells = kRunsAlongX ? size.width : size.height;
+  // The slabs in the box that may hold cells of the ray for t in [t0, t1], with one slab of
+  // margin on both sides: the range only bounds the walk, the crossings decide its cells.
+  const double at_t0 = across.origin + t0 * across.delta, at_t1 = across.origin + t1 * across.delta;
+  const int64_t lo = std::max({clamped_floor(std::min(at_t0, at_t1), across_cells) - 1, across.lo(),
+                               kRunsAlongX ? box.y_lo : box.x_lo});
+  const int64_t hi = std::min({clamped_floor(std::max(at_t0, at_t1), across_cells) + 1, across.hi(),
+                               (kRunsAlongX ? box.y_hi : box.x_hi) - 1});
+  if (lo > hi) return;
+  const int64_t step = across.step >= 0 ? 1 : -1;
+  const int64_t first = step > 0 ? lo : hi, slabs = hi - lo + 1;
+  const bool starts_here = first == across.first, ends_here = (step > 0 ? hi : lo) == across.last;
+  // Where the ray leaves each slab: run_exits[i] along the run axis (x steps before y at a tie).
+  const CrossingCell along_at_slab(along, across, /*m_steps_first=*/kRunsAlongX, along_cells);
+  double* run_exits = scratch.run_exits.data();
+  along_at_slab.fill(exit_boundary(first, step), static_cast<double>(step), slabs - (ends_here ? 1 : 0), run_exits);
+  if (ends_here) run_exits[slabs - 1] = static_cast<double>(along.last);
+  int64_t cell = starts_here ? along.first : along_at_slab.at(entry_boundary(first, step));
+  if constexpr (!kThreeD) {
+    for (int64_t i = 0; i < slabs; ++i) {
+      const auto cell_out = static_cast<int64_t>(run_exits[i]);
+      run(first + i * step, int64_t{0}, cell, cell_out);
+      cell = cell_out;
+    }
+  } else {
+    // The layer where the ray leaves each slab (z steps after x and y at a tie), and the cell
+    // along the run axis where it crosses a layer boundary (x and y step first).
+    const CrossingCell layer_at_slab(w, across, /*m_steps_first=*/false, size.layers);
+    const CrossingCell along_at_layer(along, w, /*m_steps_first=*/true, along_cells);
+    double* layer_exits = scratch.layer_exits.data();
+    layer_at_slab.fill(exit_boundary(first, step), static_cast<double>(step), slabs - (ends_here ? 1 : 0),
+                       layer_exits);
+    if (ends_here) layer_exits[slabs - 1] = static_cast<double>(w.last);
+    int64_t layer = starts_here ? w.first : layer_at_slab.at(entry_boundary(first, step));
+    for (int64_t i = 0; i < slabs; ++i) {
+      const int64_t slab = first + i * step;
+      const auto cell_out = static_cast<int64_t>(run_exits[i]);
+      const auto layer_out = static_cast<int64_t>(layer_exits[i]);
+      for (; (layer_out - layer) * w.step > 0; layer += w.step) {
+        const int64_t cell_at = along_at_layer.at(exit_boundary(layer, w.step));
+        run(slab, layer, cell, cell_at);
+        cell = cell_at;
+      }
+      run(slab, layer, cell, cell_out);
+      cell = cell_out;
+    }
+  }
+}
+
+// Calls cell(ix, iy, iz) for the cells of the walk inside the box, in walk order.
+template <bool kRunsAlongX, bool kThreeD, class Cell>
+void walk_cells_along(const RayAxis& u, const RayAxis& v, const RayAxis& w, const GridSize& size,
+                      const CellBox& box, WalkScratch& scratch, Cell&& cell) {
+  walk_runs<kRunsAlongX, kThreeD>(u, v, w, size, box, scratch, [&](int64_t slab, int64_t layer, int64_t from, int64_t to) {
+    if (layer < box.z_lo || layer >= box.z_hi) return;
+    const int64_t step = to >= from ? 1 : -1;
+    for (int64_t i = from;; i += step) {
+      if constexpr (kRunsAlongX) {
+        if (i >= box.x_lo && i < box.x_hi) cell(i, slab, layer);
+      } else {
+        if (i >= box.y_lo && i < box.y_hi) cell(slab, i, layer);
+      }
+      if (i == to) break;
+    }
+  });
+}
+
+template <bool kThreeD, class Cell>
+void walk_cells(const RayAxis& u, const RayAxis& v, const RayAxis& w, const GridSize& size, const CellBox& box,
+                WalkScratch& scratch, Cell&& cell) {
+  if (std::abs(u.delta) >= std::abs(v.delta)) {
+    walk_cells_along<true, kThreeD>(u, v, w, size, box, scratch, cell);
+  } else {
+    walk_cells_along<false, kThreeD>(u, v, w, size, box, scratch, cell);
+  }
+}
+
+// Counts (Z, H, W) kept as differences while rays are walked, so that a run costs two updates
+// whatever its length: a run along x, columns c0..c1 of a row, adds its weight to along_x at c0
+// and takes it at c1 + 1 (where c1 + 1 < W); a run along y, rows r0..r1 of a column, adds 1 to
+// along_y at r0 and takes it at r1 + 1 (where r1 + 1 is still in the thread's band, where the
+// sums along y stop). Sums are mod 2^32, exact while the counts fit uint32. along_x becomes the
+// counts; along_y is null when no run goes along y.
+struct RunCounts {
+  uint32_t* along_x;
+  uint32_t* along_y;
+  int64_t width, height;
+
+  uint32_t* line(uint32_t* counts, int64_t layer, int64_t row) const {
+    return counts + (layer * height + row) * width;
+  }
+
+  void add_along_x(int64_t row, int64_t layer, int64_t from, int64_t to, uint32_t weight) const {
+    const int64_t lo = std::max<int64_t>(std::min(from, to), 0), hi = std::min(std::max(from, to), width - 1);
+    if (lo > hi) return;
+    uint32_t* counts = line(along_x, layer, row);
+    counts[lo] += weight;
+    if (hi + 1 < width) counts[hi + 1] -= weight;
+  }
+
+  void add_along_y(int64_t column, int64_t layer, int64_t from, int64_t to, int64_t band_lo, int64_t band_hi) const {
+    const int64_t lo = std::max(std::min(from, to), band_lo), hi = std::min(std::max(from, to), band_hi - 1);
+    if (lo > hi) return;
+    ++line(along_y, layer, lo)[column];
+    if (hi + 1 < band_hi) --line(along_y, layer, hi + 1)[column];
+  }
+
+  // Turns the differences of the rows [row_lo, row_hi) of every layer into counts in along_x:
+  // sums along x of along_x plus sums along y, from row_lo, of along_y.
+  void finish(int64_t row_lo, int64_t row_hi, int64_t layers) const {
+    for (int64_t layer = 0; layer < layers; ++layer) {
+      for (int64_t row = row_lo; row < row_hi; ++row) {
+        uint32_t* counts = line(along_x, layer, row);
+        uint32_t running = 0;
+        if (along_y == nullptr) {
+          for (int64_t c = 0; c < width; ++c) counts[c] = running += counts[c];
+          continue;
+        }
+        uint32_t* from_y = line(along_y, layer, row);
+        if (row > row_lo) {
+          const uint32_t* above = from_y - width;
+          for (int64_t c = 0; c < width; ++c) from_y[c] += above[c];
+        }
+        for (int64_t c = 0; c < width; ++c) {
+          running += counts[c];
+          counts[c] = running + from_y[c];
+        }
+      }
+    }
+  }
+};
+
+void check_grid(const GridSpec& grid, bool with_layers, const char* caller) {
+  constexpr int64_t kMaxCells = int64_t{1} << 24;
+  PS_CHECK(std::isfinite(grid.cell) && grid.cell > 0.0, "{}: grid cell must be a positive size, got {}",
+           caller, grid.cell);
+  PS_CHECK(std::isfinite(grid.x_min) && std::isfinite(grid.y_min) && std::isfinite(grid.z_min),
+           "{}: grid minimum must be finite, got ({}, {}, {})", caller, grid.x_min, grid.y_min, grid.z_min);
+  PS_CHECK(grid.width() >= 1 && grid.width() <= kMaxCells && grid.height() >= 1 && grid.height() <= kMaxCells,
+           "{}: grid must have 1 to {} cells per axis, got W = {}, H = {}", caller, kMaxCells, grid.width(),
+           grid.height());
+  if (with_layers) {
+    PS_CHECK(std::isfinite(grid.voxel_z) && grid.voxel_z > 0.0,
+             "{}: grid voxel_z must be a positive size, got {}", caller, grid.voxel_z);
+    PS_CHECK(grid.layers() >= 1 && grid.layers() <= kMaxCells, "{}: grid must have 1 to {} layers, got Z = {}",
+             caller, kMaxCells, grid.layers());
+  }
+}
+
+void check_origin(const Eigen::Vector3d& origin, const char* caller) {
+  PS_CHECK(origin.allFinite(), "{}: sensor origin must be finite, got ({}, {}, {})", caller, origin.x(),
+           origin.y(), origin.z());
+}
+
+void check_point_count(size_t count, const char* caller) {
+  PS_CHECK(count <= std::numeric_limits<uint32_t>::max(), "{}: at most {} points fit the uint32 counts, got {}",
+           caller, std::numeric_limits<uint32_t>::max(), count);
+}
+
+bool finite(const Point& p) { return std::isfinite(p.x) && std::isfinite(p.y) && std::isfinite(p.z); }
+
+// Cell coordinates of a position, as the walk uses them (w only for 3D walks).
+struct CellCoordinates {
+  double u, v, w;
+};
+CellCoordinates cell_coordinates(double x, double y, double z, const GridSpec& grid, bool with_w) {
+  return {(x - grid.x_min) / grid.cell, (y - grid.y_min) / grid.cell,
+          with_w ? (z - grid.z_min) / grid.voxel_z : 0.0};
+}
+
+// GridSpec::contains_xy, reusing the point's cells u.last, v.last (floor((x - x_min) / cell) etc.).
+bool contains_xy(const Point& p, const GridSpec& grid, const GridSize& size, const RayAxis& u, const RayAxis& v) {
+  return p.x >= grid.x_min && p.x < grid.x_max && p.y >= grid.y_min && p.y < grid.y_max && u.last >= 0 &&
+         u.last < size.width && v.last >= 0 && v.last < size.height;
+}
+
+// GridSpec::contains, likewise.
+bool contains(const Point& p, const GridSpec& grid, const GridSize& size, const RayAxis& u, const RayAxis& v,
+              const RayAxis& w) {
+  return contains_xy(p, grid, size, u, v) && p.z >= grid.z_min && p.z < grid.z_max && w.last >= 0 &&
+         w.last < size.layers;
+}
+
+// Row bands [bounds[t], bounds[t + 1]) of the grid, one per thread, cut so that each holds about
+// the same number of (ray, row) pairs, the unit of walk work. The counts do not depend on the
+// cut, only the balance does.
+std::vector<int64_t> balanced_row_bands(const std::vector<Point>& points, const CellCoordinates& origin,
+                                        const GridSpec& grid, int threads) {
+  const int64_t height = grid.height();
+  std::vector<int64_t> bounds(static_cast<size_t>(threads) + 1, height);
+  bounds[0] = 0;
+  if (threads == 1) return bounds;
+  // Per thread, a difference array over the rows: a ray spans rows lo..hi.
+  std::vector<std::vector<int64_t>> partial(static_cast<size_t>(threads),
+                                            std::vector<int64_t>(static_cast<size_t>(height) + 1, 0));
+  parallel_chunks(static_cast<int64_t>(points.size()), [&](int64_t begin, int64_t end, int t) {
+    std::vector<int64_t>& diff = partial[static_cast<size_t>(t)];
+    for (int64_t i = begin; i < end; ++i) {
+      const Point& p = points[static_cast<size_t>(i)];
+      if (!finite(p)) continue;
+      const RayAxis v = make_axis(origin.v, (p.y - grid.y_min) / grid.cell, height);
+      const int64_t lo = std::max<int64_t>(v.lo(), 0), hi = std::min<int64_t>(v.hi(), height - 1);
+      if (lo > hi) continue;
+      ++diff[static_cast<size_t>(lo)];
+      --diff[static_cast<size_t>(hi) + 1];
+    }
+  });
+  std::vector<int64_t> work(static_cast<size_t>(height), 0);  // work of rows 0..r
+  int64_t rays = 0, total = 0;
+  for (int64_t r = 0; r < height; ++r) {
+    for (const std::vector<int64_t>& diff : partial) rays += diff[static_cast<size_t>(r)];
+    total += rays;
+    work[static_cast<size_t>(r)] = total;
+  }
+  int64_t r = 0;
+  for (int t = 1; t < threads; ++t) {
+    while (r < height && work[static_cast<size_t>(r)] * threads < total * t) ++r;
+    bounds[static_cast<size_t>(t)] = std::max(bounds[static_cast<size_t>(t) - 1], std::min(r + 1, height));
+  }
+  return bounds;
+}
+
+// Walks every ray of the scan through the grid and counts, per cell of `passed` (Z, H, W), the
+// rays that pass it before their end cell, and per cell of `ended` the rays that end in it with
+// the point inside the grid (GridSpec::contains_xy in 2D, contains in 3D). One band of rows per
+// thread: every thread walks the part of each ray inside its band.
+template <bool kThreeD>
+void count_rays(const std::vector<Point>& points, const Eigen::Vector3d& origin, const GridSpec& grid,
+                const GridSize& size, uint32_t* passed, uint32_t* ended) {
+  const CellCoordinates o = cell_coordinates(origin.x(), origin.y(), origin.z(), grid, kThreeD);
+  const std::vector<int64_t> bands = balanced_row_bands(points, o, grid, num_threads());
+  // The differences along x go straight into `passed`. Those along y need a second array: a 2D
+  // walk affords it (H x W), so its rays run along the axis they move most along; a 3D walk would
+  // need Z times more, so its rays all run along x (rows of one or two cells for steep rays).
+  std::vector<uint32_t> along_y(kThreeD ? 0 : static_cast<size_t>(size.height * size.width), 0);
+  const RunCounts runs{passed, kThreeD ? nullptr : along_y.data(), size.width, size.height};
+  parallel_for(static_cast<int64_t>(bands.size()) - 1, [&](int64_t band) {
+    const CellBox box{0, size.width, bands[static_cast<size_t>(band)], bands[static_cast<size_t>(band) + 1], 0,
+                      size.layers};
+    if (box.y_lo >= box.y_hi) return;
+    WalkScratch scratch(size);
+    const RayAxis flat = flat_axis();
+    // Layers outside the volume are the walk's outside cells (2D walks have one layer, 0).
+    const auto add_along_x = [runs, layers = size.layers](int64_t row, int64_t layer, int64_t from, int64_t to) {
+      if (!kThreeD || (layer >= 0 && layer < layers)) runs.add_along_x(row, layer, from, to, 1);
+    };
+    const auto add_along_y = [runs, band_lo = box.y_lo, band_hi = box.y_hi](int64_t column, int64_t layer,
+                                                                          int64_t from, int64_t to) {
+      runs.add_along_y(column, layer, from, to, band_lo, band_hi);
+    };
+    for (const Point& p : points) {
+      if (!finite(p)) continue;
+      const CellCoordinates point = cell_coordinates(p.x, p.y, p.z, grid, kThreeD);
+      const RayAxis v = make_axis(o.v, point.v, size.height);
+      if (v.hi() < box.y_lo || v.lo() >= box.y_hi) continue;
+      const RayAxis u = make_axis(o.u, point.u, size.width);
+      const RayAxis w = kThreeD ? make_axis(o.w, point.w, size.layers) : flat;
+      if (kThreeD || std::abs(u.delta) >= std::abs(v.delta)) {
+        walk_runs<true, kThreeD>(u, v, w, size, box, scratch, add_along_x);
+      } else {
+        walk_runs<false, kThreeD>(u, v, w, size, box, scratch, add_along_y);
+      }
+      // The walk's last cell is the end cell, which counts a detection (hit), not a transmission.
+      const bool end_in_box = u.last >= 0 && u.last < size.width && v.last >= box.y_lo && v.last < box.y_hi &&
+                              w.last >= 0 && w.last < size.layers;
+      if (!end_in_box) continue;
+      runs.add_along_x(v.last, w.last, u.last, u.last, static_cast<uint32_t>(-1));
+      const bool inside = kThreeD ? contains(p, grid, size, u, v, w) : contains_xy(p, grid, size, u, v);
+      if (inside) ++ended[(w.last * size.height + v.last) * size.width + u.last];
+    }
+    runs.finish(box.y_lo, box.y_hi, size.layers);
+  });
+}
+
+}  // namespace
+
+ObservabilityCounts observability_2d(const std::vector<Point>& points, const Eigen::Vector3d& origin,
+                                     const GridSpec& grid) {
+  constexpr const char* kCaller = "observability_2d";
+  check_grid(grid, false, kCaller);
+  check_origin(origin, kCaller);
+  check_point_count(points.size(), kCaller);
+  const GridSize size(grid, false);
+  ObservabilityCounts counts{Tensor<uint32_t>::zeros({size.height, size.width}),
+                             Tensor<uint32_t>::zeros({size.height, size.width})};
+  count_rays<false>(points, origin, grid, size, counts.transmissions.data(), counts.detections.data());
+  return counts;
+}
+
+Tensor<uint32_t> observability_map(const ObservabilityCounts& counts) {
+  PS_CHECK(counts.transmissions.rank() == 2 && counts.transmissions.shape() == counts.detections.shape(),
+           "observability_map: transmissions and detections must both be (H, W), got {} and {}",
+           shape_str(counts.transmissions.shape()), shape_str(counts.detections.shape()));
+  Tensor<uint32_t> map(counts.transmissions.shape());
+  for (int64_t i = 0; i < map.numel(); ++i) map[i] = counts.transmissions[i] + counts.detections[i];
+  return map;
+}
+
+OccupancyCounts occupancy_counts_3d(const std::vector<Point>& points, const Eigen::Vector3d& origin,
+                                    const GridSpec& grid) {
+  constexpr const char* kCaller = "occupancy_counts_3d";
+  check_grid(grid, true, kCaller);
+  check_origin(origin, kCaller);
+  check_point_count(points.size(), kCaller);
+  const GridSize size(grid, true);
+  OccupancyCounts counts{Tensor<uint32_t>::zeros({size.layers, size.height, size.width}),
+                         Tensor<uint32_t>::zeros({size.layers, size.height, size.width})};
+  count_rays<true>(points, origin, grid, size, counts.passes.data(), counts.hits.data());
+  return counts;
+}
+
+namespace {
+
+// The occupancy probability of a voxel with `hits` and `passes`, as specified.
+float probability_of(uint32_t hits, uint32_t passes) {
+  if (hits == 0 && passes == 0) return 0.5f;
+  const double log_odds = hits * std::log(0.7 / 0.3) + passes * std::log(0.4 / 0.6);
+  return static_cast<float>(1.0 / (1.0 + std::exp(-log_odds)));
+}
+
+}  // namespace
+
+Tensor<float> occupancy_probability(const OccupancyCounts& counts) {
+  PS_CHECK(counts.hits.rank() == 3 && counts.hits.shape() == counts.passes.shape(),
+           "occupancy_probability: hits and passes must both be (Z, H, W), got {} and {}",
+           shape_str(counts.hits.shape()), shape_str(counts.passes.shape()));
+  // Most voxels have few hits and passes: their probabilities come from a table of the same
+  // formula (so the same values), the rest from the formula.
+  constexpr uint32_t kTableHits = 16, kTablePasses = 256;
+  std::vector<float> table(kTableHits * kTablePasses);
+  for (uint32_t h = 0; h < kTableHits; ++h)
+    for (uint32_t p = 0; p < kTablePasses; ++p) table[h * kTablePasses + p] = probability_of(h, p);
+  Tensor<float> probability(counts.hits.shape());
+  const uint32_t* hits = counts.hits.data();
+  const uint32_t* passes = counts.passes.data();
+  float* out = probability.data();
+  parallel_for(probability.numel(), [&](int64_t i) {
+    const uint32_t h = hits[i], p = passes[i];
+    out[i] = h < kTableHits && p < kTablePasses ? table[h * kTablePasses + p] : probability_of(h, p);
+  });
+  return probability;
+}
+
+std::vector<WalkCell> ray_cells_2d(const Eigen::Vector3d& origin, const Eigen::Vector3d& point,
+                                   const GridSpec& grid) {
+  check_grid(grid, false, "ray_cells_2d");
+  check_origin(origin, "ray_cells_2d");
+  PS_CHECK(point.allFinite(), "ray_cells_2d: point must be finite, got ({}, {}, {})", point.x(), point.y(),
+           point.z());
+  const GridSize size(grid, false);
+  const CellCoordinates o = cell_coordinates(origin.x(), origin.y(), origin.z(), grid, false);
+  const CellCoordinates p = cell_coordinates(point.x(), point.y(), point.z(), grid, false);
+  std::vector<WalkCell> cells;
+  WalkScratch scratch(size);
+  walk_cells<false>(make_axis(o.u, p.u, size.width), make_axis(o.v, p.v, size.height), flat_axis(), size,
+             CellBox{0, size.width, 0, size.height}, scratch,
+             [&](int64_t ix, int64_t iy, int64_t) { cells.push_back({ix, iy, 0}); });
+  return cells;
+}
+
+std::vector<WalkCell> ray_voxels_3d(const Eigen::Vector3d& origin, const Eigen::Vector3d& point,
+                                    const GridSpec& grid) {
+  check_grid(grid, true, "ray_voxels_3d");
+  check_origin(origin, "ray_voxels_3d");
+  PS_CHECK(point.allFinite(), "ray_voxels_3d: point must be finite, got ({}, {}, {})", point.x(), point.y(),
+           point.z());
+  const GridSize size(grid, true);
+  const CellCoordinates o = cell_coordinates(origin.x(), origin.y(), origin.z(), grid, true);
+  const CellCoordinates p = cell_coordinates(point.x(), point.y(), point.z(), grid, true);
+  std::vector<WalkCell> voxels;
+  WalkScratch scratch(size);
+  walk_cells<true>(make_axis(o.u, p.u, size.width), make_axis(o.v, p.v, size.height), make_axis(o.w, p.w, size.layers),
+             size, CellBox{0, size.width, 0, size.height, 0, size.layers}, scratch,
+             [&](int64_t ix, int64_t iy, int64_t iz) { voxels.push_back({ix, iy, iz}); });
+  return voxels;
+}
+
+}  // namespace pillarseg::host
