@@ -8,5 +8,8 @@ namespace pillarseg::cli {
 void add_simulate(CLI::App& app);
 void add_gt(CLI::App& app);
 void add_info(CLI::App& app);
+void add_maps(CLI::App& app);
+void add_train(CLI::App& app);
+void add_infer(CLI::App& app);
 
 }  // namespace pillarseg::cli

@@ -26,6 +26,9 @@ int main(int argc, char** argv) {
 
   pillarseg::cli::add_simulate(app);
   pillarseg::cli::add_gt(app);
+  pillarseg::cli::add_maps(app);
+  pillarseg::cli::add_train(app);
+  pillarseg::cli::add_infer(app);
   pillarseg::cli::add_info(app);
 
   try {

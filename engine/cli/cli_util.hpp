@@ -1,0 +1,31 @@
+// Small helpers shared by the subcommands.
+#pragma once
+
+#include <filesystem>
+#include <string>
+
+#include "engine/core/error.hpp"
+#include "engine/data/semantickitti.hpp"
+
+namespace pillarseg::cli {
+
+// Index within the sequence of the scan whose file is NNNNNN.bin for frame `frame`.
+inline size_t scan_index(const Sequence& seq, int frame) {
+  for (size_t i = 0; i < seq.size(); ++i)
+    if (seq.frame(i) == frame) return i;
+  PS_FAIL("--scan {}: no file {:06}.bin in {}", frame, frame, (seq.dir() / "velodyne").string());
+}
+
+// Checks that an output path has one of the given extensions (lower case, with the dot).
+inline void require_extension(const std::filesystem::path& path, std::initializer_list<const char*> allowed,
+                              const std::string& option) {
+  std::string ext = path.extension().string();
+  for (char& c : ext) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
+  for (const char* a : allowed)
+    if (ext == a) return;
+  std::string list;
+  for (const char* a : allowed) list += (list.empty() ? "" : ", ") + std::string(a);
+  PS_FAIL("{} {}: unsupported extension '{}' (expected {})", option, path.string(), ext, list);
+}
+
+}  // namespace pillarseg::cli

@@ -1,0 +1,61 @@
+#include "engine/eval/evaluate.hpp"
+
+#include "engine/core/progress.hpp"
+#include "engine/train/dataset.hpp"
+
+namespace pillarseg {
+
+Prediction predict_scan(PillarSegNet& net, const ModelConfig& model, const std::vector<Point>& points,
+                        bool with_probabilities, bool with_observability) {
+  ScanInputs inputs =
+      compute_scan_inputs(points, Eigen::Vector3d::Zero(), model, host::SampleMode::Inference, nullptr, with_observability);
+  net.forward(collate({&inputs}, model), /*training=*/false);
+  Prediction p;
+  p.labels = net.predict_labels();
+  p.labels.reshape({model.grid.height(), model.grid.width()});
+  if (with_probabilities) {
+    p.probabilities = net.probabilities();
+    p.probabilities.reshape({model.num_classes, model.grid.height(), model.grid.width()});
+  }
+  p.observability = std::move(inputs.observability);
+  return p;
+}
+
+SegmentationMetrics evaluate(PillarSegNet& net, const RunConfig& config, const EvalOptions& options) {
+  const std::vector<int>& sequences = options.sequences.empty() ? config.eval.sequences : options.sequences;
+  const int stride = options.scan_stride > 0 ? options.scan_stride : config.eval.scan_stride;
+  const ClassTable classes = ClassTable::defaults();
+  ScanDataset data(options.data_root, sequences, stride, 0, config.model, classes, options.mode, options.cache_dir,
+                   false);
+  const bool dense = options.mode == GroundTruthKind::dense;
+  SegmentationMetrics metrics;
+  Progress progress(dense ? "dense eval" : "sparse eval", static_cast<int64_t>(data.size()), "scans");
+  for (size_t i = 0; i < data.size(); ++i) {
+    const Sample s = data.eval_sample(i, options.mode, dense);
+    net.forward(collate({&s.inputs}, config.model), /*training=*/false);
+    Tensor<uint8_t> predicted = net.predict_labels();
+    predicted.reshape(s.labels.shape());
+    metrics.add(s.labels, predicted, dense ? &s.mask : nullptr);
+    if (options.progress) progress.update(static_cast<int64_t>(i) + 1);
+  }
+  if (options.progress) progress.finish();
+  return metrics;
+}
+
+std::string eval_mode_label(GroundTruthKind train, GroundTruthKind eval) {
+  return std::string(train == GroundTruthKind::dense ? "Dense Train" : "Sparse Train") + " / " +
+         (eval == GroundTruthKind::dense ? "Dense Eval" : "Sparse Eval");
+}
+
+std::string method_label(const ModelConfig& model) {
+  if (!model.pillar_input && model.grid_map_input && model.occupancy == OccupancyInput::None)
+    return "Grid map (Bieder et al.)";
+  std::string s = model.pillar_input ? "Pillar" : "";
+  const auto join = [&](const std::string& part) { s += (s.empty() ? "" : " + ") + part; };
+  if (model.occupancy == OccupancyInput::Observability2D) join("2D Occupancy");
+  if (model.occupancy == OccupancyInput::Occupancy3D) join("3D Occupancy");
+  if (model.grid_map_input) join("Grid map");
+  return s;
+}
+
+}  // namespace pillarseg

@@ -1,0 +1,97 @@
+#include "engine/train/checkpoint.hpp"
+
+#include <fmt/format.h>
+
+#include <charconv>
+#include <set>
+
+#include "engine/core/error.hpp"
+
+namespace pillarseg {
+
+namespace fs = std::filesystem;
+
+namespace {
+constexpr const char* kFormat = "pillarseg-checkpoint-1";
+
+int64_t parse_int(const std::string& text, const std::string& what, const fs::path& path) {
+  int64_t v = 0;
+  const auto [ptr, ec] = std::from_chars(text.data(), text.data() + text.size(), v);
+  PS_CHECK(ec == std::errc() && ptr == text.data() + text.size(), "{}: metadata {} is not an integer: '{}'",
+           path.string(), what, text);
+  return v;
+}
+}  // namespace
+
+void save_checkpoint(const fs::path& path, const PillarSegNet& net, const RunConfig& config, const TrainState& state,
+                     bool with_optimizer) {
+  const ParameterSet& ps = net.parameters();
+  weights::SafeTensors file;
+  for (size_t i = 0; i < ps.entries().size(); ++i) file.add_f32(ps.entries()[i].name, ps.download(static_cast<int>(i)));
+  for (const auto& [name, count] : ps.counters()) file.add_i64(name, {}, {count});
+  if (with_optimizer) {
+    Tensor<float> m({ps.num_trainable()}), v({ps.num_trainable()});
+    const auto hm = ps.download_flat(ps.adam_m()), hv = ps.download_flat(ps.adam_v());
+    std::copy(hm.begin(), hm.end(), m.begin());
+    std::copy(hv.begin(), hv.end(), v.begin());
+    file.add_f32("optimizer.exp_avg", m);
+    file.add_f32("optimizer.exp_avg_sq", v);
+  }
+  file.metadata["format"] = kFormat;
+  file.metadata["config"] = config.text;
+  file.metadata["epoch"] = std::to_string(state.epoch);
+  file.metadata["step"] = std::to_string(state.step);
+  file.write(path);
+}
+
+Checkpoint read_checkpoint(const fs::path& path) {
+  PS_CHECK(fs::exists(path), "--weights {}: no such file", path.string());
+  Checkpoint c;
+  c.file = weights::SafeTensors::read(path);
+  const auto& md = c.file.metadata;
+  if (auto it = md.find("config"); it != md.end()) c.config = parse_run_config(it->second, path.string() + " (config)");
+  if (auto it = md.find("epoch"); it != md.end()) c.state.epoch = parse_int(it->second, "epoch", path);
+  if (auto it = md.find("step"); it != md.end()) c.state.step = parse_int(it->second, "step", path);
+  c.has_optimizer = c.file.contains("optimizer.exp_avg") && c.file.contains("optimizer.exp_avg_sq");
+  return c;
+}
+
+void load_weights(const Checkpoint& checkpoint, PillarSegNet& net, bool with_optimizer) {
+  ParameterSet& ps = net.parameters();
+  const weights::SafeTensors& file = checkpoint.file;
+  std::vector<weights::ExpectedTensor> expected;
+  for (const ParamEntry& e : ps.entries()) expected.push_back({e.name, e.shape, weights::ValueKind::Float});
+  for (const auto& [name, count] : ps.counters()) expected.push_back({name, {}, weights::ValueKind::Integer});
+  // The optimiser moments are not model tensors: check the model's set without them.
+  weights::SafeTensors model_part;
+  for (const std::string& name : file.names())
+    if (name.rfind("optimizer.", 0) != 0) model_part.add(file.at(name));
+  weights::check_names_and_shapes(model_part, expected, file.source());
+  for (size_t i = 0; i < ps.entries().size(); ++i) {
+    const ParamEntry& e = ps.entries()[i];
+    ps.upload(static_cast<int>(i), file.get_f32(e.name, e.shape));
+  }
+  for (auto& [name, count] : ps.counters()) {
+    const auto v = file.get_i64(name);
+    PS_CHECK(v.size() == 1, "{}: {} must hold one integer", file.source(), name);
+    count = v[0];
+  }
+  if (with_optimizer) {
+    PS_CHECK(checkpoint.has_optimizer, "{}: no optimizer state (optimizer.exp_avg / exp_avg_sq); cannot resume",
+             file.source());
+    const Shape flat{ps.num_trainable()};
+    const Tensor<float> m = file.get_f32("optimizer.exp_avg", flat), v = file.get_f32("optimizer.exp_avg_sq", flat);
+    ps.upload_flat(ps.adam_m(), std::vector<float>(m.begin(), m.end()));
+    ps.upload_flat(ps.adam_v(), std::vector<float>(v.begin(), v.end()));
+  }
+}
+
+RunConfig config_for(const Checkpoint& checkpoint, const fs::path& config_override) {
+  if (!config_override.empty()) return load_run_config(config_override);
+  PS_CHECK(checkpoint.config.has_value(),
+           "{}: the file carries no run config (a weights-only file); pass --config with the model's settings",
+           checkpoint.file.source());
+  return *checkpoint.config;
+}
+
+}  // namespace pillarseg

@@ -1,0 +1,43 @@
+// Checkpoints are safetensors files. The model's tensors carry their PyTorch state_dict names
+// (DESIGN.md section 2), so a PyTorch model with the authors' module names loads them with
+// load_state_dict, and we load theirs. A training checkpoint adds the Adam moments
+// (optimizer.exp_avg / optimizer.exp_avg_sq, flat, in parameter order) and, in the metadata,
+// the run's YAML config, the epoch and the optimiser step; everything else a resumed run needs
+// (sample order, augmentation) derives from the seed, epoch and sample index.
+#pragma once
+
+#include <cstdint>
+#include <filesystem>
+#include <optional>
+
+#include "engine/model/pillarsegnet.hpp"
+#include "engine/train/run_config.hpp"
+#include "weights_io/safetensors.hpp"
+
+namespace pillarseg {
+
+struct TrainState {
+  int64_t epoch = 0;  // epochs completed
+  int64_t step = 0;   // optimiser steps completed
+};
+
+// Writes atomically (temporary file, then rename).
+void save_checkpoint(const std::filesystem::path& path, const PillarSegNet& net, const RunConfig& config,
+                     const TrainState& state, bool with_optimizer);
+
+struct Checkpoint {
+  weights::SafeTensors file;
+  std::optional<RunConfig> config;  // absent in a weights-only file (e.g. exported from PyTorch)
+  TrainState state;
+  bool has_optimizer = false;
+};
+Checkpoint read_checkpoint(const std::filesystem::path& path);
+
+// Loads every model tensor by name; a missing, extra or misshaped tensor is an error that
+// names them all. with_optimizer: the Adam moments too (required then).
+void load_weights(const Checkpoint& checkpoint, PillarSegNet& net, bool with_optimizer);
+
+// The run config of a checkpoint, or of --config when given (which wins).
+RunConfig config_for(const Checkpoint& checkpoint, const std::filesystem::path& config_override);
+
+}  // namespace pillarseg

@@ -1,0 +1,92 @@
+#include "engine/train/dataset.hpp"
+
+#include <fmt/format.h>
+
+#include "engine/core/error.hpp"
+#include "host/rasterize_labels.hpp"
+
+namespace pillarseg {
+
+namespace fs = std::filesystem;
+
+ScanDataset::ScanDataset(const fs::path& root, const std::vector<int>& sequences, int stride, int max_per_sequence,
+                         const ModelConfig& model, const ClassTable& classes, GroundTruthKind kind,
+                         const std::optional<fs::path>& cache_dir, bool augmented_dense)
+    : model_(model), classes_(classes), kind_(kind) {
+  PS_CHECK(stride >= 1, "scan stride must be >= 1, got {}", stride);
+  const std::vector<int> present = list_sequences(root);
+  GroundTruthSettings settings;
+  settings.grid = model.grid;
+  // Dense training with augmentation re-rasterises each scan's aggregated point set after
+  // moving it: caching those sets avoids reading 40 scans per sample every epoch.
+  settings.cache_dense_points = augmented_dense;
+  const fs::path cache_root = cache_dir ? *cache_dir : default_cache_dir(root);
+  for (int id : sequences) {
+    PS_CHECK(std::find(present.begin(), present.end(), id) != present.end(),
+             "sequence {} not found under {}/sequences (present: {})", sequence_name(id), root.string(),
+             fmt::join(present, ", "));
+    auto builder = std::make_unique<GroundTruthBuilder>(Sequence(root, id), classes, settings, Cache(cache_root));
+    const Sequence& seq = builder->sequence();
+    size_t taken = 0;
+    for (size_t i = 0; i < seq.size(); i += static_cast<size_t>(stride)) {
+      if (max_per_sequence > 0 && taken >= static_cast<size_t>(max_per_sequence)) break;
+      PS_CHECK(seq.has_labels(i), "{}: no labels for this scan (training and evaluation need labels)",
+               seq.label_path(i).string());
+      items_.push_back({builders_.size(), i});
+      ++taken;
+    }
+    builders_.push_back(std::move(builder));
+  }
+  PS_CHECK(!items_.empty(), "no scans in sequences {} under {}", fmt::join(sequences, ", "), root.string());
+}
+
+std::string ScanDataset::describe(size_t i) const {
+  const Item& it = item(i);
+  const Sequence& seq = sequence(it.sequence_slot);
+  return fmt::format("{}/{:06}", sequence_name(seq.id()), seq.frame(it.scan));
+}
+
+Sample ScanDataset::training_sample(size_t i, uint64_t epoch, const TrainConfig& train) const {
+  const Item& it = item(i);
+  const GroundTruthBuilder& builder = *builders_[it.sequence_slot];
+  Scan scan = builder.sequence().load(it.scan);
+  Rng rng = Rng::derive(train.seed, epoch, i);
+  AugmentTransform transform;
+  if (train.augment) transform = sample_augmentation(train.augmentation, rng);
+  const bool augmented = !transform.is_identity();
+  if (augmented) transform.apply(scan.points);
+  const Eigen::Vector3d origin = transform.apply(Eigen::Vector3d::Zero());
+  Sample s;
+  s.inputs = compute_scan_inputs(scan.points, origin, model_, host::SampleMode::Training, &rng);
+  if (kind_ == GroundTruthKind::sparse) {
+    s.labels = rasterize_labels(scan.points, scan.labels, classes_, model_.grid);
+  } else if (!augmented) {
+    s.labels = builder.map(it.scan, GroundTruthKind::dense);
+  } else {
+    LabelledPoints aggregated = builder.dense_points(it.scan);
+    aggregated.transform(transform.as_matrix());
+    s.labels = rasterize_classes(aggregated.points, aggregated.classes, classes_, model_.grid);
+  }
+  return s;
+}
+
+Sample ScanDataset::eval_sample(size_t i, GroundTruthKind kind, bool with_mask) const {
+  const Item& it = item(i);
+  const GroundTruthBuilder& builder = *builders_[it.sequence_slot];
+  const Scan scan = builder.sequence().load(it.scan);
+  Sample s;
+  s.inputs = compute_scan_inputs(scan.points, Eigen::Vector3d::Zero(), model_, host::SampleMode::Inference, nullptr,
+                                 with_mask);
+  s.labels = builder.map(it.scan, kind);
+  if (with_mask) {
+    s.mask = Tensor<uint8_t>(s.inputs.observability.shape());
+    for (int64_t c = 0; c < s.mask.numel(); ++c) s.mask[c] = s.inputs.observability[c] > 0;
+  }
+  return s;
+}
+
+void ScanDataset::build_cache(GroundTruthKind kind) const {
+  for (const auto& builder : builders_) builder->build_all(kind, true);
+}
+
+}  // namespace pillarseg

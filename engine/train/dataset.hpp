@@ -1,0 +1,57 @@
+// ScanDataset: the scans of some sequences of a SemanticKITTI root, with everything training
+// and evaluation need per scan: network inputs, labels (sparse or dense ground truth through
+// the on-disk cache), and the observability mask of Dense Eval. Training samples are augmented
+// from their own random stream, Rng::derive(seed, epoch, index), so a sample does not depend
+// on which thread builds it or on the order of the others.
+#pragma once
+
+#include <filesystem>
+#include <memory>
+#include <optional>
+#include <vector>
+
+#include "engine/data/ground_truth.hpp"
+#include "engine/train/features.hpp"
+#include "engine/train/run_config.hpp"
+
+namespace pillarseg {
+
+struct Sample {
+  ScanInputs inputs;
+  Tensor<uint8_t> labels;  // (H, W) class ids, 0 = unlabeled
+  Tensor<uint8_t> mask;    // (H, W) 1 where observed (observability > 0); empty unless asked for
+};
+
+class ScanDataset {
+ public:
+  struct Item {
+    size_t sequence_slot;  // index into the dataset's sequences
+    size_t scan;           // index within the Sequence
+  };
+
+  // stride: every stride-th scan; max_per_sequence: 0 = all.
+  ScanDataset(const std::filesystem::path& root, const std::vector<int>& sequences, int stride, int max_per_sequence,
+              const ModelConfig& model, const ClassTable& classes, GroundTruthKind kind,
+              const std::optional<std::filesystem::path>& cache_dir, bool augmented_dense);
+
+  size_t size() const { return items_.size(); }
+  const Item& item(size_t i) const { return items_.at(i); }
+  const Sequence& sequence(size_t slot) const { return builders_.at(slot)->sequence(); }
+  std::string describe(size_t i) const;  // "08/000123"
+
+  // Augmented (when train.augment) training sample i of `epoch`.
+  Sample training_sample(size_t i, uint64_t epoch, const TrainConfig& train) const;
+  // Unaugmented sample with ground truth of `kind`; with_mask: the observability mask too.
+  Sample eval_sample(size_t i, GroundTruthKind kind, bool with_mask) const;
+  // Builds the ground-truth cache of every scan (progress on stderr).
+  void build_cache(GroundTruthKind kind) const;
+
+ private:
+  ModelConfig model_;
+  ClassTable classes_;
+  GroundTruthKind kind_;
+  std::vector<std::unique_ptr<GroundTruthBuilder>> builders_;
+  std::vector<Item> items_;
+};
+
+}  // namespace pillarseg

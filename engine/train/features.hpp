@@ -1,0 +1,35 @@
+// The network inputs of one scan (DESIGN.md sections 1 and 2): pillars with decorated points,
+// the occupancy input (2D observability as log(1 + count), or the 3D occupancy probability),
+// and the grid-map layers; and the batching of several scans into one ModelBatch.
+#pragma once
+
+#include <Eigen/Core>
+#include <vector>
+
+#include "engine/core/rng.hpp"
+#include "engine/core/tensor.hpp"
+#include "engine/data/scan.hpp"
+#include "engine/model/config.hpp"
+#include "engine/model/pillarsegnet.hpp"
+#include "host/pillar_gather.hpp"
+
+namespace pillarseg {
+
+struct ScanInputs {
+  Tensor<float> pillar_points;   // (P, N, 10)
+  Tensor<int32_t> pillar_cells;  // (P, 2): iy, ix
+  Tensor<float> occupancy;       // (1 or Z, H, W) when the model has an occupancy stream
+  Tensor<float> grid_map;        // (6, H, W) when the model has the grid-map input
+  Tensor<uint32_t> observability;  // (H, W) ray counts, when computed (occupancy or grid map, or asked for)
+};
+
+// Points and origin in the scan's (possibly augmented) frame. Training mode samples pillar
+// points with rng; inference is deterministic (rng may be null).
+ScanInputs compute_scan_inputs(const std::vector<Point>& points, const Eigen::Vector3d& origin,
+                               const ModelConfig& config, host::SampleMode mode, Rng* rng,
+                               bool want_observability = false);
+
+// Concatenates the scans' pillars (cells get their sample index) and stacks the maps.
+ModelBatch collate(const std::vector<const ScanInputs*>& scans, const ModelConfig& config);
+
+}  // namespace pillarseg

@@ -1,0 +1,58 @@
+// RunConfig: one YAML file (configs/*.yaml) with the grid, the model, training and
+// evaluation settings (configs/README.md lists every key). Unknown keys are errors, so a typo
+// does not silently train the wrong model. The file's text travels in every checkpoint.
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <filesystem>
+#include <string>
+#include <vector>
+
+#include "engine/data/augment.hpp"
+#include "engine/data/classes.hpp"
+#include "engine/data/ground_truth.hpp"
+#include "engine/model/backend.hpp"
+#include "engine/model/config.hpp"
+
+namespace pillarseg {
+
+struct TrainConfig {
+  GroundTruthKind ground_truth = GroundTruthKind::sparse;
+  LossKind loss = LossKind::CrossEntropy;
+  int epochs = 30;
+  int batch_size = 2;
+  uint64_t seed = 0;
+  // Adam with decoupled weight decay; OpenPCDet's adam_onecycle or a constant rate.
+  double lr = 1e-3, weight_decay = 0.01, beta2 = 0.99, eps = 1e-8;
+  bool onecycle = true;
+  double div_factor = 10, pct_start = 0.4, momentum_max = 0.95, momentum_min = 0.85;
+  double grad_clip = 10;  // 0: off
+  bool augment = true;
+  AugmentConfig augmentation;
+  std::array<float, kNumClassIds> coefficients{};  // per class id; filled by the loader
+  std::vector<int> sequences = {0, 1, 2, 3, 4, 5, 6, 7, 9, 10};
+  int max_scans_per_sequence = 0;  // 0: all
+  int scan_stride = 1;
+};
+
+struct EvalConfig {
+  std::vector<int> sequences = {8};
+  int scan_stride = 1;
+};
+
+struct RunConfig {
+  ModelConfig model;
+  TrainConfig train;
+  EvalConfig eval;
+  std::string text;    // the YAML text it was read from
+  std::string source;  // file name, for messages
+};
+
+RunConfig load_run_config(const std::filesystem::path& path);
+RunConfig parse_run_config(const std::string& yaml_text, const std::string& source);
+// The paper's loss coefficients: vehicle 2 (sparse) or 5 (dense); person, two-wheel, rider 8;
+// others 1; unlabeled 0.
+std::array<float, kNumClassIds> default_coefficients(GroundTruthKind kind);
+
+}  // namespace pillarseg

@@ -1,0 +1,170 @@
+#include "engine/train/trainer.hpp"
+
+#include <fmt/format.h>
+#include <spdlog/spdlog.h>
+
+#include <chrono>
+#include <cmath>
+#include <fstream>
+#include <numeric>
+
+#include "engine/core/error.hpp"
+#include "engine/core/io.hpp"
+#include "engine/core/parallel.hpp"
+#include "engine/core/progress.hpp"
+#include "engine/train/checkpoint.hpp"
+#include "engine/train/dataset.hpp"
+#include "host/lr_schedule.hpp"
+
+namespace pillarseg {
+
+namespace fs = std::filesystem;
+
+fs::path latest_checkpoint(const fs::path& run_dir) { return run_dir / "checkpoint.safetensors"; }
+
+namespace {
+
+// Sample order of an epoch: a permutation drawn from its own stream.
+std::vector<size_t> epoch_order(size_t n, uint64_t seed, uint64_t epoch) {
+  std::vector<size_t> order(n);
+  std::iota(order.begin(), order.end(), size_t{0});
+  Rng rng = Rng::derive(seed, epoch, 0x5348554646ull);  // "SHUFF"
+  rng.shuffle(order.begin(), order.end());
+  return order;
+}
+
+class MetricsLog {
+ public:
+  MetricsLog(const fs::path& path, bool append) : out_(path, append ? std::ios::app : std::ios::trunc) {
+    PS_CHECK(out_, "{}: cannot open the metrics log for writing", path.string());
+  }
+  void line(const std::string& json) {
+    out_ << json << '\n';
+    out_.flush();
+  }
+
+ private:
+  std::ofstream out_;
+};
+
+}  // namespace
+
+TrainResult train(const TrainOptions& options) {
+  const RunConfig& cfg = options.config;
+  const TrainConfig& tc = cfg.train;
+  fs::create_directories(options.run_dir);
+  const fs::path ckpt_path = latest_checkpoint(options.run_dir);
+  const ClassTable classes = ClassTable::defaults();
+
+  const bool augmented_dense = tc.ground_truth == GroundTruthKind::dense && tc.augment;
+  ScanDataset data(options.data_root, tc.sequences, tc.scan_stride, tc.max_scans_per_sequence, cfg.model, classes,
+                   tc.ground_truth, options.cache_dir, augmented_dense);
+  if (tc.ground_truth == GroundTruthKind::dense) data.build_cache(GroundTruthKind::dense);
+
+  auto backend = make_backend(options.device);
+  PillarSegNet net(cfg.model, *backend, tc.seed);
+  ParameterSet& ps = net.parameters();
+
+  TrainState state;
+  if (options.resume) {
+    PS_CHECK(fs::exists(ckpt_path), "--resume: no checkpoint at {}", ckpt_path.string());
+    const Checkpoint ckpt = read_checkpoint(ckpt_path);
+    PS_CHECK(ckpt.config && ckpt.config->text == cfg.text,
+             "--resume: {} was written with a different config than {}; resume with the same config", ckpt_path.string(),
+             cfg.source);
+    load_weights(ckpt, net, /*with_optimizer=*/true);
+    state = ckpt.state;
+    spdlog::info("resuming from {} (epoch {}, step {})", ckpt_path.string(), state.epoch, state.step);
+  } else {
+    PS_CHECK(!fs::exists(ckpt_path), "{} exists: pass --resume to continue that run, or choose another --out",
+             ckpt_path.string());
+    write_file_atomic(options.run_dir / "config.yaml", cfg.text.data(), cfg.text.size());
+  }
+  MetricsLog log(options.run_dir / "metrics.jsonl", options.resume);
+
+  const size_t n = data.size();
+  const size_t B = static_cast<size_t>(tc.batch_size);
+  const int64_t steps_per_epoch = static_cast<int64_t>((n + B - 1) / B);
+  host::LrScheduleOptions schedule;
+  schedule.kind = tc.onecycle ? host::LrScheduleKind::kOneCycle : host::LrScheduleKind::kConstant;
+  schedule.lr_max = tc.lr;
+  schedule.total_steps = steps_per_epoch * tc.epochs;
+  schedule.div_factor = tc.div_factor;
+  schedule.pct_start = tc.pct_start;
+  schedule.momentum_max = tc.momentum_max;
+  schedule.momentum_min = tc.momentum_min;
+  schedule.constant_beta1 = 0.9;
+
+  spdlog::info("training on {} scans ({} steps per epoch, batch {}), {} epochs, device {}, {} threads", n,
+               steps_per_epoch, B, tc.epochs, backend->name(), num_threads());
+  TrainResult result;
+  const int64_t last_epoch =
+      options.max_epochs_this_run > 0 ? std::min<int64_t>(tc.epochs, state.epoch + options.max_epochs_this_run)
+                                      : tc.epochs;
+  const auto started = std::chrono::steady_clock::now();
+  for (int64_t epoch = state.epoch; epoch < last_epoch; ++epoch) {
+    const std::vector<size_t> order = epoch_order(n, tc.seed, static_cast<uint64_t>(epoch));
+    Progress progress(fmt::format("epoch {}/{}", epoch + 1, tc.epochs), steps_per_epoch, "steps");
+    double loss_sum = 0;
+    for (int64_t s = 0; s < steps_per_epoch; ++s) {
+      const size_t begin = static_cast<size_t>(s) * B, end = std::min(n, begin + B);
+      std::vector<Sample> samples(end - begin);
+      parallel_for(static_cast<int64_t>(samples.size()), [&](int64_t k) {
+        samples[static_cast<size_t>(k)] =
+            data.training_sample(order[begin + static_cast<size_t>(k)], static_cast<uint64_t>(epoch), tc);
+      });
+      std::vector<const ScanInputs*> inputs;
+      Tensor<uint8_t> labels({static_cast<int64_t>(samples.size()), cfg.model.grid.height(), cfg.model.grid.width()});
+      const int64_t plane = cfg.model.grid.cells();
+      for (size_t k = 0; k < samples.size(); ++k) {
+        inputs.push_back(&samples[k].inputs);
+        std::copy(samples[k].labels.begin(), samples[k].labels.end(), labels.data() + static_cast<int64_t>(k) * plane);
+      }
+      net.forward(collate(inputs, cfg.model), /*training=*/true);
+      const double loss = net.loss(labels, tc.loss, tc.coefficients);
+      if (!std::isfinite(loss)) {
+        PS_FAIL("non-finite loss ({}) at epoch {}, step {} (scans {}); stopping. {}", loss, epoch + 1, state.step + 1,
+                data.describe(order[begin]),
+                fs::exists(ckpt_path) ? fmt::format("The last good checkpoint is {}", ckpt_path.string())
+                                      : std::string("No checkpoint was written yet."));
+      }
+      net.backward();
+      Ref grads = ps.grads();
+      const double grad_norm = std::sqrt(backend->sum_of_squares(grads));
+      PS_CHECK(std::isfinite(grad_norm), "non-finite gradient norm at epoch {}, step {}; stopping. {}", epoch + 1,
+               state.step + 1,
+               fs::exists(ckpt_path) ? fmt::format("The last good checkpoint is {}", ckpt_path.string())
+                                     : std::string("No checkpoint was written yet."));
+      if (tc.grad_clip > 0 && grad_norm > tc.grad_clip)
+        backend->scale(grads, static_cast<float>(tc.grad_clip / (grad_norm + 1e-6)));
+      const host::LrAndMomentum lm = host::lr_schedule_at(schedule, state.step);
+      AdamHyper hyper;
+      hyper.lr = static_cast<float>(lm.lr);
+      hyper.beta1 = static_cast<float>(lm.beta1);
+      hyper.beta2 = static_cast<float>(tc.beta2);
+      hyper.eps = static_cast<float>(tc.eps);
+      hyper.weight_decay = static_cast<float>(tc.weight_decay);
+      hyper.step = state.step + 1;
+      Ref values = ps.values(), m = ps.adam_m(), v = ps.adam_v();
+      backend->adam_step(values, grads, m, v, hyper);
+      ++state.step;
+      loss_sum += loss;
+      const double elapsed = std::chrono::duration<double>(std::chrono::steady_clock::now() - started).count();
+      log.line(fmt::format(R"({{"type": "step", "epoch": {}, "step": {}, "loss": {:.6f}, "lr": {:.6e}, "beta1": {:.4f}, "grad_norm": {:.4f}, "elapsed_s": {:.2f}}})",
+                           epoch + 1, state.step, loss, lm.lr, lm.beta1, grad_norm, elapsed));
+      if (options.progress) progress.update(s + 1, fmt::format("loss {:.4f} lr {:.2e}", loss, lm.lr));
+    }
+    state.epoch = epoch + 1;
+    result.last_epoch_loss = loss_sum / static_cast<double>(steps_per_epoch);
+    if (options.progress) progress.finish(fmt::format("mean loss {:.4f}", result.last_epoch_loss));
+    save_checkpoint(ckpt_path, net, cfg, state, /*with_optimizer=*/true);
+    log.line(fmt::format(R"({{"type": "epoch", "epoch": {}, "step": {}, "mean_loss": {:.6f}, "checkpoint": "{}"}})",
+                         state.epoch, state.step, result.last_epoch_loss, ckpt_path.filename().string()));
+  }
+  result.epochs_done = state.epoch;
+  result.steps_done = state.step;
+  result.checkpoint = ckpt_path;
+  return result;
+}
+
+}  // namespace pillarseg

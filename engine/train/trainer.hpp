@@ -1,0 +1,40 @@
+// Training (DESIGN.md section 3): batches of augmented scans, weighted loss over labelled
+// cells, backward, gradient-norm clipping, Adam with decoupled weight decay on the one-cycle
+// (or constant) schedule. A checkpoint per epoch (atomic), exact resume from it, a metrics log
+// (RUN_DIR/metrics.jsonl: one line per step and per epoch), and a clear stop on a non-finite
+// loss that leaves the last good checkpoint in place.
+#pragma once
+
+#include <filesystem>
+#include <optional>
+#include <string>
+
+#include "engine/train/run_config.hpp"
+
+namespace pillarseg {
+
+struct TrainOptions {
+  std::filesystem::path data_root;
+  std::filesystem::path run_dir;
+  RunConfig config;
+  std::string device = "cpu";
+  std::optional<std::filesystem::path> cache_dir;
+  bool resume = false;
+  bool progress = true;
+  // Stop after this many epochs of this invocation (0: run to config.train.epochs); the
+  // schedule still spans all epochs, so a stopped run resumes exactly.
+  int max_epochs_this_run = 0;
+};
+
+struct TrainResult {
+  int64_t epochs_done = 0, steps_done = 0;
+  double last_epoch_loss = 0;
+  std::filesystem::path checkpoint;
+};
+
+TrainResult train(const TrainOptions& options);
+
+// RUN_DIR/checkpoint.safetensors: the latest epoch's checkpoint.
+std::filesystem::path latest_checkpoint(const std::filesystem::path& run_dir);
+
+}  // namespace pillarseg
