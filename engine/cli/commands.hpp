@@ -11,5 +11,6 @@ void add_info(CLI::App& app);
 void add_maps(CLI::App& app);
 void add_train(CLI::App& app);
 void add_infer(CLI::App& app);
+void add_bench(CLI::App& app);
 
 }  // namespace pillarseg::cli

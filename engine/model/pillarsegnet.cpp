@@ -2,6 +2,8 @@
 
 #include <fmt/format.h>
 
+#include <chrono>
+
 #include "engine/core/error.hpp"
 
 namespace pillarseg {
@@ -372,6 +374,16 @@ void PillarSegNet::forward(const ModelBatch& batch, bool training) {
   ParameterSet& ps = params_;
   const int H = config_.grid.height(), W = config_.grid.width();
   PS_CHECK(batch.batch >= 1, "forward: batch size must be >= 1, got {}", batch.batch);
+  // Stage clock: with timing on, each call closes the stage that ran since the previous one.
+  auto last = std::chrono::steady_clock::now();
+  const auto lap = [&](double& stage) {
+    if (!time_stages_) return;
+    be.synchronize();
+    const auto now = std::chrono::steady_clock::now();
+    stage = std::chrono::duration<double, std::milli>(now - last).count();
+    last = now;
+  };
+  stage_times_ = StageTimes{};
   plan(batch.batch);
   Ref& canvas = m.x[0];
   be.fill_zero(canvas.data, canvas.bytes());
@@ -391,10 +403,13 @@ void PillarSegNet::forward(const ModelBatch& batch, bool training) {
     if (P > 0) {
       be.upload(m.pillar_points.data, batch.pillar_points.data(), m.pillar_points.bytes());
       be.upload(m.pillar_cells.data, batch.pillar_cells.data(), m.pillar_cells.bytes());
+      lap(stage_times_.upload);
       BatchNormRefs r = bn_refs(ps, m.pfn_bn);
       be.pfn_forward(m.pillar_points, ps.value(m.pfn_weight), r, training, m.pfn_argmax, m.pfn_out);
       if (training) ps.counters()[m.pfn_bn.counter] += 1;
+      lap(stage_times_.pfn);
       be.scatter_forward(m.pfn_out, m.pillar_cells, 0, canvas);
+      lap(stage_times_.scatter);
     }
     channel += config_.pillar_channels;
   }
@@ -406,6 +421,7 @@ void PillarSegNet::forward(const ModelBatch& batch, bool training) {
     m.occupancy.forward(be, ps, m.occupancy_input, training);
     be.copy_channels(m.occupancy.out, channel, canvas);
     channel += config_.occupancy_channels;
+    lap(stage_times_.occupancy);
   }
   if (config_.grid_map_input) {
     const Shape expected{batch.batch, 6, H, W};
@@ -422,8 +438,10 @@ void PillarSegNet::forward(const ModelBatch& batch, bool training) {
     u.forward(be, ps, current, m.x[depth - j], training);
     current = u.conv.out();
   }
+  lap(stage_times_.unet);
   Ref head_bias = ps.value(m.head.bias);
   be.conv2d_forward(current, ps.value(m.head.weight), &head_bias, 0, m.logits);
+  lap(stage_times_.head);
 }
 
 double PillarSegNet::loss(const Tensor<uint8_t>& labels, LossKind kind, const std::array<float, 13>& coefficients) {

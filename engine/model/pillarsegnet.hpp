@@ -42,6 +42,14 @@ class PillarSegNet {
   ParameterSet& parameters() { return params_; }
   const ParameterSet& parameters() const { return params_; }
 
+  // Wall time of each stage of the last forward, in ms (pfn, scatter, occupancy, unet, head),
+  // when timing is on; the backend is synchronised at every stage boundary then.
+  struct StageTimes {
+    double upload = 0, pfn = 0, scatter = 0, occupancy = 0, unet = 0, head = 0;
+  };
+  void set_stage_timing(bool on) { time_stages_ = on; }
+  const StageTimes& stage_times() const { return stage_times_; }
+
   // Runs the network; training: batch statistics (and running-statistic updates).
   void forward(const ModelBatch& batch, bool training);
   // After forward: the mean loss over labelled cells of labels (B, H, W), and the gradient
@@ -68,6 +76,8 @@ class PillarSegNet {
   ParameterSet params_;
   std::unique_ptr<Impl> impl_;
   Ref logits_;
+  bool time_stages_ = false;
+  StageTimes stage_times_;
 };
 
 }  // namespace pillarseg
