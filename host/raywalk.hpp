@@ -50,8 +50,8 @@ struct ObservabilityCounts {
 
 // points: M points in the LiDAR frame (non-finite ones are skipped); origin: the sensor origin
 // in the same frame, anywhere (inside the grid or not). z plays no part.
-ObservabilityCounts observability_2d(const std::vector<Point>& points, const Eigen::Vector3d& origin,
-                                     const GridSpec& grid);
+ObservabilityCounts observability_2d(const std::vector<Point>& points,
+                                     const Eigen::Vector3d& origin, const GridSpec& grid);
 
 // (H, W): transmissions + detections per cell, the number of rays that touched the cell.
 Tensor<uint32_t> observability_map(const ObservabilityCounts& counts);
