@@ -103,8 +103,8 @@ class CrossingCell {
   CrossingCell(const RayAxis& m, const RayAxis& a, bool m_steps_first, int64_t m_cells)
       : m_(m), a_(a), m_steps_first_(m_steps_first), lo_(m.lo()), hi_(m.hi()) {
     slope_ = a.delta != 0.0 ? m.delta / a.delta : 0.0;
-    // The double evaluation errs by less than 2^-50 (|value| + |m.origin|) (rounded deltas,
-    // slope, difference and fma); it decides alone outside a window far wider than that.
+    // The double evaluation errs by less than 2^-48 (|value| + |m.origin|) (rounded deltas,
+    // slope, differences and fma); it decides alone outside a window far wider than that.
     window_ = 0x1p-30 * (static_cast<double>(m_cells) + 2.0 + std::abs(m.origin));
   }
 
@@ -298,19 +298,19 @@ void walk_runs(const RayAxis& u, const RayAxis& v, const RayAxis& w, const GridS
 template <bool kRunsAlongX, bool kThreeD, class Cell>
 void walk_cells_along(const RayAxis& u, const RayAxis& v, const RayAxis& w, const GridSize& size,
                       const CellBox& box, WalkScratch& scratch, Cell&& cell) {
-  walk_runs<kRunsAlongX, kThreeD>(u, v, w, size, box, scratch,
-                                  [&](int64_t slab, int64_t layer, int64_t from, int64_t to) {
-                                    if (layer < box.z_lo || layer >= box.z_hi) return;
-                                    const int64_t step = to >= from ? 1 : -1;
-                                    for (int64_t i = from;; i += step) {
-                                      if constexpr (kRunsAlongX) {
-                                        if (i >= box.x_lo && i < box.x_hi) cell(i, slab, layer);
-                                      } else {
-                                        if (i >= box.y_lo && i < box.y_hi) cell(slab, i, layer);
-                                      }
-                                      if (i == to) break;
-                                    }
-                                  });
+  const auto run_cells = [&](int64_t slab, int64_t layer, int64_t from, int64_t to) {
+    if (layer < box.z_lo || layer >= box.z_hi) return;
+    const int64_t step = to >= from ? 1 : -1;
+    for (int64_t i = from;; i += step) {
+      if constexpr (kRunsAlongX) {
+        if (i >= box.x_lo && i < box.x_hi) cell(i, slab, layer);
+      } else {
+        if (i >= box.y_lo && i < box.y_hi) cell(slab, i, layer);
+      }
+      if (i == to) break;
+    }
+  };
+  walk_runs<kRunsAlongX, kThreeD>(u, v, w, size, box, scratch, run_cells);
 }
 
 template <bool kThreeD, class Cell>
