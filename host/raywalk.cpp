@@ -326,39 +326,48 @@ void walk_cells(const RayAxis& u, const RayAxis& v, const RayAxis& w, const Grid
 // Counts (Z, H, W) kept as differences while rays are walked, so that a run costs two updates
 // whatever its length: a run along x, columns c0..c1 of a row, adds its weight to along_x at c0
 // and takes it at c1 + 1 (where c1 + 1 < W); a run along y, rows r0..r1 of a column, adds 1 to
-// along_y at r0 and takes it at r1 + 1 (where r1 + 1 is still in the thread's band, where the
-// sums along y stop). Sums are mod 2^32, exact while the counts fit uint32. along_x becomes the
-// counts; along_y is null when no run goes along y.
+// along_y at r0 and takes it at r1 + 1 (where r1 + 1 is still in the thread's band of rows
+// [band_lo, band_hi), where the sums along y stop). Sums are mod 2^32, exact while the counts fit
+// uint32. along_x becomes the counts; along_y is null when no run goes along y. kCut: the run
+// may reach beyond the grid (or band, or volume) and is cut to it; else it lies inside.
 struct RunCounts {
   uint32_t* along_x;
   uint32_t* along_y;
-  int64_t width, height;
+  int64_t width, height, layers;
 
   uint32_t* line(uint32_t* counts, int64_t layer, int64_t row) const {
     return counts + (layer * height + row) * width;
   }
 
+  template <bool kCut>
   void add_along_x(int64_t row, int64_t layer, int64_t from, int64_t to, uint32_t weight) const {
-    const int64_t lo = std::max<int64_t>(std::min(from, to), 0),
-                  hi = std::min(std::max(from, to), width - 1);
-    if (lo > hi) return;
+    int64_t lo = std::min(from, to), hi = std::max(from, to);
+    if constexpr (kCut) {
+      lo = std::max<int64_t>(lo, 0);
+      hi = std::min(hi, width - 1);
+      if (lo > hi || layer < 0 || layer >= layers) return;
+    }
     uint32_t* counts = line(along_x, layer, row);
     counts[lo] += weight;
     if (hi + 1 < width) counts[hi + 1] -= weight;
   }
 
-  void add_along_y(int64_t column, int64_t layer, int64_t from, int64_t to, int64_t band_lo,
+  template <bool kCut>
+  void add_along_y(int64_t column, int64_t from, int64_t to, int64_t band_lo,
                    int64_t band_hi) const {
-    const int64_t lo = std::max(std::min(from, to), band_lo),
-                  hi = std::min(std::max(from, to), band_hi - 1);
-    if (lo > hi) return;
-    ++line(along_y, layer, lo)[column];
-    if (hi + 1 < band_hi) --line(along_y, layer, hi + 1)[column];
+    int64_t lo = std::min(from, to), hi = std::max(from, to);
+    if constexpr (kCut) {
+      lo = std::max(lo, band_lo);
+      hi = std::min(hi, band_hi - 1);
+      if (lo > hi) return;
+    }
+    ++line(along_y, 0, lo)[column];
+    if (hi + 1 < band_hi) --line(along_y, 0, hi + 1)[column];
   }
 
   // Turns the differences of the rows [row_lo, row_hi) of every layer into counts in along_x:
   // sums along x of along_x plus sums along y, from row_lo, of along_y.
-  void finish(int64_t row_lo, int64_t row_hi, int64_t layers) const {
+  void finish(int64_t row_lo, int64_t row_hi) const {
     for (int64_t layer = 0; layer < layers; ++layer) {
       for (int64_t row = row_lo; row < row_hi; ++row) {
         uint32_t* counts = line(along_x, layer, row);
@@ -380,6 +389,23 @@ struct RunCounts {
     }
   }
 };
+
+// Adds the cells of one ray's walk inside the box to the run counts, with runs along x or y.
+template <bool kRunsAlongX, bool kThreeD, bool kCut>
+void count_walk(const RayAxis& u, const RayAxis& v, const RayAxis& w, const GridSize& size,
+                const CellBox& box, WalkScratch& scratch, const RunCounts& runs) {
+  if constexpr (kRunsAlongX) {
+    const auto add = [&runs](int64_t row, int64_t layer, int64_t from, int64_t to) {
+      runs.add_along_x<kCut>(row, layer, from, to, 1);
+    };
+    walk_runs<true, kThreeD>(u, v, w, size, box, scratch, add);
+  } else {
+    const auto add = [&runs, &box](int64_t column, int64_t, int64_t from, int64_t to) {
+      runs.add_along_y<kCut>(column, from, to, box.y_lo, box.y_hi);
+    };
+    walk_runs<false, kThreeD>(u, v, w, size, box, scratch, add);
+  }
+}
 
 void check_grid(const GridSpec& grid, bool with_layers, const char* caller) {
   constexpr int64_t kMaxCells = int64_t{1} << 24;
@@ -492,7 +518,8 @@ void count_rays(const std::vector<Point>& points, const Eigen::Vector3d& origin,
   // walk affords it (H x W), so its rays run along the axis they move most along; a 3D walk would
   // need Z times more, so its rays all run along x (rows of one or two cells for steep rays).
   std::vector<uint32_t> along_y(kThreeD ? 0 : static_cast<size_t>(size.height * size.width), 0);
-  const RunCounts runs{passed, kThreeD ? nullptr : along_y.data(), size.width, size.height};
+  const RunCounts runs{passed, kThreeD ? nullptr : along_y.data(), size.width, size.height,
+                       size.layers};
   parallel_for(static_cast<int64_t>(bands.size()) - 1, [&](int64_t band) {
     const CellBox box{
         0, size.width, bands[static_cast<size_t>(band)], bands[static_cast<size_t>(band) + 1],
@@ -500,15 +527,6 @@ void count_rays(const std::vector<Point>& points, const Eigen::Vector3d& origin,
     if (box.y_lo >= box.y_hi) return;
     WalkScratch scratch(size);
     const RayAxis flat = flat_axis();
-    // Layers outside the volume are the walk's outside cells (2D walks have one layer, 0).
-    const auto add_along_x = [runs, layers = size.layers](int64_t row, int64_t layer, int64_t from,
-                                                          int64_t to) {
-      if (!kThreeD || (layer >= 0 && layer < layers)) runs.add_along_x(row, layer, from, to, 1);
-    };
-    const auto add_along_y = [runs, band_lo = box.y_lo, band_hi = box.y_hi](
-                                 int64_t column, int64_t layer, int64_t from, int64_t to) {
-      runs.add_along_y(column, layer, from, to, band_lo, band_hi);
-    };
     for (const Point& p : points) {
       if (!finite(p)) continue;
       const CellCoordinates point = cell_coordinates(p.x, p.y, p.z, grid, kThreeD);
@@ -516,21 +534,32 @@ void count_rays(const std::vector<Point>& points, const Eigen::Vector3d& origin,
       if (v.hi() < box.y_lo || v.lo() >= box.y_hi) continue;
       const RayAxis u = make_axis(o.u, point.u, size.width);
       const RayAxis w = kThreeD ? make_axis(o.w, point.w, size.layers) : flat;
+      // Runs need cutting only where the ray's cells reach beyond the box along them.
       if (kThreeD || std::abs(u.delta) >= std::abs(v.delta)) {
-        walk_runs<true, kThreeD>(u, v, w, size, box, scratch, add_along_x);
+        const bool inside =
+            u.lo() >= 0 && u.hi() < size.width && w.lo() >= 0 && w.hi() < size.layers;
+        if (inside) {
+          count_walk<true, kThreeD, false>(u, v, w, size, box, scratch, runs);
+        } else {
+          count_walk<true, kThreeD, true>(u, v, w, size, box, scratch, runs);
+        }
       } else {
-        walk_runs<false, kThreeD>(u, v, w, size, box, scratch, add_along_y);
+        if (v.lo() >= box.y_lo && v.hi() < box.y_hi) {
+          count_walk<false, kThreeD, false>(u, v, w, size, box, scratch, runs);
+        } else {
+          count_walk<false, kThreeD, true>(u, v, w, size, box, scratch, runs);
+        }
       }
       // The walk's last cell is the end cell, which counts a detection (hit), not a transmission.
       const bool end_in_box = u.last >= 0 && u.last < size.width && v.last >= box.y_lo &&
                               v.last < box.y_hi && w.last >= 0 && w.last < size.layers;
       if (!end_in_box) continue;
-      runs.add_along_x(v.last, w.last, u.last, u.last, static_cast<uint32_t>(-1));
+      runs.add_along_x<false>(v.last, w.last, u.last, u.last, static_cast<uint32_t>(-1));
       const bool inside =
           kThreeD ? contains(p, grid, size, u, v, w) : contains_xy(p, grid, size, u, v);
       if (inside) ++ended[(w.last * size.height + v.last) * size.width + u.last];
     }
-    runs.finish(box.y_lo, box.y_hi, size.layers);
+    runs.finish(box.y_lo, box.y_hi);
   });
 }
 

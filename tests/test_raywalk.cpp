@@ -18,7 +18,6 @@
 #include "engine/core/error.hpp"
 #include "engine/core/parallel.hpp"
 #include "engine/core/rng.hpp"
-#include "tests/support/test_support.hpp"
 
 namespace pillarseg::host {
 
@@ -492,28 +491,6 @@ TEST(Observability2D, MatchesSingleRayWalksForEveryThreadCount) {
   }
 }
 
-TEST(Occupancy3D, IdenticalForOneAndTwoThreadsOnDefaultGrid) {
-  ThreadCountGuard guard;
-  const GridSpec grid;
-  Rng rng(22);
-  std::vector<Point> points;
-  for (int i = 0; i < 20000; ++i)
-    points.push_back({static_cast<float>(rng.normal(0.0, 20.0)),
-                      static_cast<float>(rng.normal(0.0, 15.0)),
-                      static_cast<float>(rng.uniform(-3.0, 2.0)), 0.0f});
-  const Vec3 origin(0.3, -0.2, 0.05);
-  set_num_threads(1);
-  const OccupancyCounts one = occupancy_counts_3d(points, origin, grid);
-  set_num_threads(2);
-  const OccupancyCounts two = occupancy_counts_3d(points, origin, grid);
-  EXPECT_TRUE(same_counts(two.passes, one.passes));
-  EXPECT_TRUE(same_counts(two.hits, one.hits));
-  uint64_t hit = 0, inside = 0;
-  for (int64_t i = 0; i < one.hits.numel(); ++i) hit += one.hits[i];
-  for (const Point& p : points) inside += grid.contains(p.x, p.y, p.z);
-  EXPECT_EQ(hit, inside);
-}
-
 TEST(Observability2D, IdenticalForOneAndTwoThreadsOnDefaultGrid) {
   ThreadCountGuard guard;
   const GridSpec grid;
@@ -606,6 +583,28 @@ TEST(Occupancy3D, MatchesSingleRayWalksForEveryThreadCount) {
       }
     }
   }
+}
+
+TEST(Occupancy3D, IdenticalForOneAndTwoThreadsOnDefaultGrid) {
+  ThreadCountGuard guard;
+  const GridSpec grid;
+  Rng rng(22);
+  std::vector<Point> points;
+  for (int i = 0; i < 20000; ++i)
+    points.push_back({static_cast<float>(rng.normal(0.0, 20.0)),
+                      static_cast<float>(rng.normal(0.0, 15.0)),
+                      static_cast<float>(rng.uniform(-3.0, 2.0)), 0.0f});
+  const Vec3 origin(0.3, -0.2, 0.05);
+  set_num_threads(1);
+  const OccupancyCounts one = occupancy_counts_3d(points, origin, grid);
+  set_num_threads(2);
+  const OccupancyCounts two = occupancy_counts_3d(points, origin, grid);
+  EXPECT_TRUE(same_counts(two.passes, one.passes));
+  EXPECT_TRUE(same_counts(two.hits, one.hits));
+  uint64_t hit = 0, inside = 0;
+  for (int64_t i = 0; i < one.hits.numel(); ++i) hit += one.hits[i];
+  for (const Point& p : points) inside += grid.contains(p.x, p.y, p.z);
+  EXPECT_EQ(hit, inside);
 }
 
 TEST(Occupancy3D, HandComputedCountsAndZClipping) {
