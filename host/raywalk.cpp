@@ -555,12 +555,19 @@ void count_rays(const std::vector<Point>& points, const Eigen::Vector3d& origin,
                               v.last < box.y_hi && w.last >= 0 && w.last < size.layers;
       if (!end_in_box) continue;
       runs.add_along_x<false>(v.last, w.last, u.last, u.last, static_cast<uint32_t>(-1));
-      const bool inside =
+      const bool ends_inside =
           kThreeD ? contains(p, grid, size, u, v, w) : contains_xy(p, grid, size, u, v);
-      if (inside) ++ended[(w.last * size.height + v.last) * size.width + u.last];
+      if (ends_inside) ++ended[(w.last * size.height + v.last) * size.width + u.last];
     }
     runs.finish(box.y_lo, box.y_hi);
   });
+}
+
+// The occupancy probability of a voxel with `hits` and `passes`, as specified.
+float probability_of(uint32_t hits, uint32_t passes) {
+  if (hits == 0 && passes == 0) return 0.5f;
+  const double log_odds = hits * std::log(0.7 / 0.3) + passes * std::log(0.4 / 0.6);
+  return static_cast<float>(1.0 / (1.0 + std::exp(-log_odds)));
 }
 
 }  // namespace
@@ -601,17 +608,6 @@ OccupancyCounts occupancy_counts_3d(const std::vector<Point>& points, const Eige
   count_rays<true>(points, origin, grid, size, counts.passes.data(), counts.hits.data());
   return counts;
 }
-
-namespace {
-
-// The occupancy probability of a voxel with `hits` and `passes`, as specified.
-float probability_of(uint32_t hits, uint32_t passes) {
-  if (hits == 0 && passes == 0) return 0.5f;
-  const double log_odds = hits * std::log(0.7 / 0.3) + passes * std::log(0.4 / 0.6);
-  return static_cast<float>(1.0 / (1.0 + std::exp(-log_odds)));
-}
-
-}  // namespace
 
 Tensor<float> occupancy_probability(const OccupancyCounts& counts) {
   PS_CHECK(counts.hits.rank() == 3 && counts.hits.shape() == counts.passes.shape(),
