@@ -103,8 +103,8 @@ class CrossingCell {
   CrossingCell(const RayAxis& m, const RayAxis& a, bool m_steps_first, int64_t m_cells)
       : m_(m), a_(a), m_steps_first_(m_steps_first), lo_(m.lo()), hi_(m.hi()) {
     slope_ = a.delta != 0.0 ? m.delta / a.delta : 0.0;
-    // The double evaluation errs by less than 2^-50 (|value| + |m.origin|) (rounded deltas,
-    // slope, difference and fma); it decides alone outside a window far wider than that.
+    // The double evaluation errs by less than 2^-48 (|value| + |m.origin|) (rounded deltas,
+    // slope, differences and fma); it decides alone outside a window far wider than that.
     window_ = 0x1p-30 * (static_cast<double>(m_cells) + 2.0 + std::abs(m.origin));
   }
 
@@ -116,8 +116,9 @@ class CrossingCell {
     if (!(value > static_cast<double>(lo_))) return lo_;
     if (!(value < static_cast<double>(hi_ + 1))) return hi_;
     const double nearest = std::nearbyint(value);
-    const int64_t cell = std::abs(value - nearest) > window_ ? static_cast<int64_t>(std::floor(value))
-                                                             : exact_cell(boundary, nearest);
+    const int64_t cell = std::abs(value - nearest) > window_
+                             ? static_cast<int64_t>(std::floor(value))
+                             : exact_cell(boundary, nearest);
     return std::clamp(cell, lo_, hi_);
   }
 
@@ -138,7 +139,8 @@ class CrossingCell {
       const double along = offset + static_cast<double>(i) * boundary_step;
       // Clamped into [lo - 1/2, hi + 3/2], a value floors to the same cell, once clamped, as in
       // at(), and stays far below 2^51, where the rounding trick holds.
-      const double value = std::min(std::max(std::fma(along, slope_, m_.origin), lo - 0.5), hi + 1.5);
+      const double value =
+          std::min(std::max(std::fma(along, slope_, m_.origin), lo - 0.5), hi + 1.5);
       const double nearest = (value + kRoundToInteger) - kRoundToInteger;
       const double distance = value - nearest;
       near_ties += std::abs(distance) <= window_;
@@ -189,8 +191,12 @@ void clip_to_cells(const RayAxis& axis, int64_t lo, int64_t hi, double& t0, doub
 
 // Boundary of axis cell c crossed when leaving it with the given step: c + 1 upwards, c
 // downwards (as a coordinate).
-double exit_boundary(int64_t c, int64_t step) { return static_cast<double>(step > 0 ? c + 1 : c); }
-double entry_boundary(int64_t c, int64_t step) { return exit_boundary(c - step, step); }
+double exit_boundary(int64_t c, int64_t step) {
+  return static_cast<double>(step > 0 ? c + 1 : c);
+}
+double entry_boundary(int64_t c, int64_t step) {
+  return exit_boundary(c - step, step);
+}
 
 // A box of cells [x_lo, x_hi) x [y_lo, y_hi) x [z_lo, z_hi) the walk is restricted to.
 struct CellBox {
@@ -206,12 +212,15 @@ struct GridSize {
 };
 
 // The w axis of a 2D walk: one layer, never crossed.
-RayAxis flat_axis() { return make_axis(0.5, 0.5, 1); }
+RayAxis flat_axis() {
+  return make_axis(0.5, 0.5, 1);
+}
 
 // Buffers for the crossings of one ray, reused from ray to ray (one set per thread).
 struct WalkScratch {
   explicit WalkScratch(const GridSize& size)
-      : run_exits(static_cast<size_t>(std::max(size.width, size.height)) + 3), layer_exits(run_exits.size()) {}
+      : run_exits(static_cast<size_t>(std::max(size.width, size.height)) + 3),
+        layer_exits(run_exits.size()) {}
   std::vector<double> run_exits;    // where the ray leaves each slab, along the run axis
   std::vector<double> layer_exits;  // layer where the ray leaves each slab
 };
@@ -225,8 +234,8 @@ struct WalkScratch {
 // each crossing, which both parts share. Runs along the axis the ray moves most along are the
 // longest and fewest.
 template <bool kRunsAlongX, bool kThreeD, class Run>
-void walk_runs(const RayAxis& u, const RayAxis& v, const RayAxis& w, const GridSize& size, const CellBox& box,
-               WalkScratch& scratch, Run&& run) {
+void walk_runs(const RayAxis& u, const RayAxis& v, const RayAxis& w, const GridSize& size,
+               const CellBox& box, WalkScratch& scratch, Run&& run) {
   double t0 = 0.0, t1 = 1.0;
   clip_to_cells(u, box.x_lo, box.x_hi, t0, t1);
   clip_to_cells(v, box.y_lo, box.y_hi, t0, t1);
@@ -250,7 +259,8 @@ void walk_runs(const RayAxis& u, const RayAxis& v, const RayAxis& w, const GridS
   // Where the ray leaves each slab: run_exits[i] along the run axis (x steps before y at a tie).
   const CrossingCell along_at_slab(along, across, /*m_steps_first=*/kRunsAlongX, along_cells);
   double* run_exits = scratch.run_exits.data();
-  along_at_slab.fill(exit_boundary(first, step), static_cast<double>(step), slabs - (ends_here ? 1 : 0), run_exits);
+  along_at_slab.fill(exit_boundary(first, step), static_cast<double>(step),
+                     slabs - (ends_here ? 1 : 0), run_exits);
   if (ends_here) run_exits[slabs - 1] = static_cast<double>(along.last);
   int64_t cell = starts_here ? along.first : along_at_slab.at(entry_boundary(first, step));
   if constexpr (!kThreeD) {
@@ -265,8 +275,8 @@ void walk_runs(const RayAxis& u, const RayAxis& v, const RayAxis& w, const GridS
     const CrossingCell layer_at_slab(w, across, /*m_steps_first=*/false, size.layers);
     const CrossingCell along_at_layer(along, w, /*m_steps_first=*/true, along_cells);
     double* layer_exits = scratch.layer_exits.data();
-    layer_at_slab.fill(exit_boundary(first, step), static_cast<double>(step), slabs - (ends_here ? 1 : 0),
-                       layer_exits);
+    layer_at_slab.fill(exit_boundary(first, step), static_cast<double>(step),
+                       slabs - (ends_here ? 1 : 0), layer_exits);
     if (ends_here) layer_exits[slabs - 1] = static_cast<double>(w.last);
     int64_t layer = starts_here ? w.first : layer_at_slab.at(entry_boundary(first, step));
     for (int64_t i = 0; i < slabs; ++i) {
@@ -288,7 +298,7 @@ void walk_runs(const RayAxis& u, const RayAxis& v, const RayAxis& w, const GridS
 template <bool kRunsAlongX, bool kThreeD, class Cell>
 void walk_cells_along(const RayAxis& u, const RayAxis& v, const RayAxis& w, const GridSize& size,
                       const CellBox& box, WalkScratch& scratch, Cell&& cell) {
-  walk_runs<kRunsAlongX, kThreeD>(u, v, w, size, box, scratch, [&](int64_t slab, int64_t layer, int64_t from, int64_t to) {
+  const auto run_cells = [&](int64_t slab, int64_t layer, int64_t from, int64_t to) {
     if (layer < box.z_lo || layer >= box.z_hi) return;
     const int64_t step = to >= from ? 1 : -1;
     for (int64_t i = from;; i += step) {
@@ -299,12 +309,13 @@ void walk_cells_along(const RayAxis& u, const RayAxis& v, const RayAxis& w, cons
       }
       if (i == to) break;
     }
-  });
+  };
+  walk_runs<kRunsAlongX, kThreeD>(u, v, w, size, box, scratch, run_cells);
 }
 
 template <bool kThreeD, class Cell>
-void walk_cells(const RayAxis& u, const RayAxis& v, const RayAxis& w, const GridSize& size, const CellBox& box,
-                WalkScratch& scratch, Cell&& cell) {
+void walk_cells(const RayAxis& u, const RayAxis& v, const RayAxis& w, const GridSize& size,
+                const CellBox& box, WalkScratch& scratch, Cell&& cell) {
   if (std::abs(u.delta) >= std::abs(v.delta)) {
     walk_cells_along<true, kThreeD>(u, v, w, size, box, scratch, cell);
   } else {
@@ -315,36 +326,48 @@ void walk_cells(const RayAxis& u, const RayAxis& v, const RayAxis& w, const Grid
 // Counts (Z, H, W) kept as differences while rays are walked, so that a run costs two updates
 // whatever its length: a run along x, columns c0..c1 of a row, adds its weight to along_x at c0
 // and takes it at c1 + 1 (where c1 + 1 < W); a run along y, rows r0..r1 of a column, adds 1 to
-// along_y at r0 and takes it at r1 + 1 (where r1 + 1 is still in the thread's band, where the
-// sums along y stop). Sums are mod 2^32, exact while the counts fit uint32. along_x becomes the
-// counts; along_y is null when no run goes along y.
+// along_y at r0 and takes it at r1 + 1 (where r1 + 1 is still in the thread's band of rows
+// [band_lo, band_hi), where the sums along y stop). Sums are mod 2^32, exact while the counts fit
+// uint32. along_x becomes the counts; along_y is null when no run goes along y. kCut: the run
+// may reach beyond the grid (or band, or volume) and is cut to it; else it lies inside.
 struct RunCounts {
   uint32_t* along_x;
   uint32_t* along_y;
-  int64_t width, height;
+  int64_t width, height, layers;
 
   uint32_t* line(uint32_t* counts, int64_t layer, int64_t row) const {
     return counts + (layer * height + row) * width;
   }
 
+  template <bool kCut>
   void add_along_x(int64_t row, int64_t layer, int64_t from, int64_t to, uint32_t weight) const {
-    const int64_t lo = std::max<int64_t>(std::min(from, to), 0), hi = std::min(std::max(from, to), width - 1);
-    if (lo > hi) return;
+    int64_t lo = std::min(from, to), hi = std::max(from, to);
+    if constexpr (kCut) {
+      lo = std::max<int64_t>(lo, 0);
+      hi = std::min(hi, width - 1);
+      if (lo > hi || layer < 0 || layer >= layers) return;
+    }
     uint32_t* counts = line(along_x, layer, row);
     counts[lo] += weight;
     if (hi + 1 < width) counts[hi + 1] -= weight;
   }
 
-  void add_along_y(int64_t column, int64_t layer, int64_t from, int64_t to, int64_t band_lo, int64_t band_hi) const {
-    const int64_t lo = std::max(std::min(from, to), band_lo), hi = std::min(std::max(from, to), band_hi - 1);
-    if (lo > hi) return;
-    ++line(along_y, layer, lo)[column];
-    if (hi + 1 < band_hi) --line(along_y, layer, hi + 1)[column];
+  template <bool kCut>
+  void add_along_y(int64_t column, int64_t from, int64_t to, int64_t band_lo,
+                   int64_t band_hi) const {
+    int64_t lo = std::min(from, to), hi = std::max(from, to);
+    if constexpr (kCut) {
+      lo = std::max(lo, band_lo);
+      hi = std::min(hi, band_hi - 1);
+      if (lo > hi) return;
+    }
+    ++line(along_y, 0, lo)[column];
+    if (hi + 1 < band_hi) --line(along_y, 0, hi + 1)[column];
   }
 
   // Turns the differences of the rows [row_lo, row_hi) of every layer into counts in along_x:
   // sums along x of along_x plus sums along y, from row_lo, of along_y.
-  void finish(int64_t row_lo, int64_t row_hi, int64_t layers) const {
+  void finish(int64_t row_lo, int64_t row_hi) const {
     for (int64_t layer = 0; layer < layers; ++layer) {
       for (int64_t row = row_lo; row < row_hi; ++row) {
         uint32_t* counts = line(along_x, layer, row);
@@ -367,34 +390,56 @@ struct RunCounts {
   }
 };
 
+// Adds the cells of one ray's walk inside the box to the run counts, with runs along x or y.
+template <bool kRunsAlongX, bool kThreeD, bool kCut>
+void count_walk(const RayAxis& u, const RayAxis& v, const RayAxis& w, const GridSize& size,
+                const CellBox& box, WalkScratch& scratch, const RunCounts& runs) {
+  if constexpr (kRunsAlongX) {
+    const auto add = [&runs](int64_t row, int64_t layer, int64_t from, int64_t to) {
+      runs.add_along_x<kCut>(row, layer, from, to, 1);
+    };
+    walk_runs<true, kThreeD>(u, v, w, size, box, scratch, add);
+  } else {
+    const auto add = [&runs, &box](int64_t column, int64_t, int64_t from, int64_t to) {
+      runs.add_along_y<kCut>(column, from, to, box.y_lo, box.y_hi);
+    };
+    walk_runs<false, kThreeD>(u, v, w, size, box, scratch, add);
+  }
+}
+
 void check_grid(const GridSpec& grid, bool with_layers, const char* caller) {
   constexpr int64_t kMaxCells = int64_t{1} << 24;
-  PS_CHECK(std::isfinite(grid.cell) && grid.cell > 0.0, "{}: grid cell must be a positive size, got {}",
-           caller, grid.cell);
+  PS_CHECK(std::isfinite(grid.cell) && grid.cell > 0.0,
+           "{}: grid cell must be a positive size, got {}", caller, grid.cell);
   PS_CHECK(std::isfinite(grid.x_min) && std::isfinite(grid.y_min) && std::isfinite(grid.z_min),
-           "{}: grid minimum must be finite, got ({}, {}, {})", caller, grid.x_min, grid.y_min, grid.z_min);
-  PS_CHECK(grid.width() >= 1 && grid.width() <= kMaxCells && grid.height() >= 1 && grid.height() <= kMaxCells,
-           "{}: grid must have 1 to {} cells per axis, got W = {}, H = {}", caller, kMaxCells, grid.width(),
-           grid.height());
+           "{}: grid minimum must be finite, got ({}, {}, {})", caller, grid.x_min, grid.y_min,
+           grid.z_min);
+  PS_CHECK(grid.width() >= 1 && grid.width() <= kMaxCells && grid.height() >= 1 &&
+               grid.height() <= kMaxCells,
+           "{}: grid must have 1 to {} cells per axis, got W = {}, H = {}", caller, kMaxCells,
+           grid.width(), grid.height());
   if (with_layers) {
     PS_CHECK(std::isfinite(grid.voxel_z) && grid.voxel_z > 0.0,
              "{}: grid voxel_z must be a positive size, got {}", caller, grid.voxel_z);
-    PS_CHECK(grid.layers() >= 1 && grid.layers() <= kMaxCells, "{}: grid must have 1 to {} layers, got Z = {}",
-             caller, kMaxCells, grid.layers());
+    PS_CHECK(grid.layers() >= 1 && grid.layers() <= kMaxCells,
+             "{}: grid must have 1 to {} layers, got Z = {}", caller, kMaxCells, grid.layers());
   }
 }
 
 void check_origin(const Eigen::Vector3d& origin, const char* caller) {
-  PS_CHECK(origin.allFinite(), "{}: sensor origin must be finite, got ({}, {}, {})", caller, origin.x(),
-           origin.y(), origin.z());
+  PS_CHECK(origin.allFinite(), "{}: sensor origin must be finite, got ({}, {}, {})", caller,
+           origin.x(), origin.y(), origin.z());
 }
 
 void check_point_count(size_t count, const char* caller) {
-  PS_CHECK(count <= std::numeric_limits<uint32_t>::max(), "{}: at most {} points fit the uint32 counts, got {}",
-           caller, std::numeric_limits<uint32_t>::max(), count);
+  PS_CHECK(count <= std::numeric_limits<uint32_t>::max(),
+           "{}: at most {} points fit the uint32 counts, got {}", caller,
+           std::numeric_limits<uint32_t>::max(), count);
 }
 
-bool finite(const Point& p) { return std::isfinite(p.x) && std::isfinite(p.y) && std::isfinite(p.z); }
+bool finite(const Point& p) {
+  return std::isfinite(p.x) && std::isfinite(p.y) && std::isfinite(p.z);
+}
 
 // Cell coordinates of a position, as the walk uses them (w only for 3D walks).
 struct CellCoordinates {
@@ -406,14 +451,15 @@ CellCoordinates cell_coordinates(double x, double y, double z, const GridSpec& g
 }
 
 // GridSpec::contains_xy, reusing the point's cells u.last, v.last (floor((x - x_min) / cell) etc.).
-bool contains_xy(const Point& p, const GridSpec& grid, const GridSize& size, const RayAxis& u, const RayAxis& v) {
-  return p.x >= grid.x_min && p.x < grid.x_max && p.y >= grid.y_min && p.y < grid.y_max && u.last >= 0 &&
-         u.last < size.width && v.last >= 0 && v.last < size.height;
+bool contains_xy(const Point& p, const GridSpec& grid, const GridSize& size, const RayAxis& u,
+                 const RayAxis& v) {
+  return p.x >= grid.x_min && p.x < grid.x_max && p.y >= grid.y_min && p.y < grid.y_max &&
+         u.last >= 0 && u.last < size.width && v.last >= 0 && v.last < size.height;
 }
 
 // GridSpec::contains, likewise.
-bool contains(const Point& p, const GridSpec& grid, const GridSize& size, const RayAxis& u, const RayAxis& v,
-              const RayAxis& w) {
+bool contains(const Point& p, const GridSpec& grid, const GridSize& size, const RayAxis& u,
+              const RayAxis& v, const RayAxis& w) {
   return contains_xy(p, grid, size, u, v) && p.z >= grid.z_min && p.z < grid.z_max && w.last >= 0 &&
          w.last < size.layers;
 }
@@ -421,15 +467,16 @@ bool contains(const Point& p, const GridSpec& grid, const GridSize& size, const 
 // Row bands [bounds[t], bounds[t + 1]) of the grid, one per thread, cut so that each holds about
 // the same number of (ray, row) pairs, the unit of walk work. The counts do not depend on the
 // cut, only the balance does.
-std::vector<int64_t> balanced_row_bands(const std::vector<Point>& points, const CellCoordinates& origin,
-                                        const GridSpec& grid, int threads) {
+std::vector<int64_t> balanced_row_bands(const std::vector<Point>& points,
+                                        const CellCoordinates& origin, const GridSpec& grid,
+                                        int threads) {
   const int64_t height = grid.height();
   std::vector<int64_t> bounds(static_cast<size_t>(threads) + 1, height);
   bounds[0] = 0;
   if (threads == 1) return bounds;
   // Per thread, a difference array over the rows: a ray spans rows lo..hi.
-  std::vector<std::vector<int64_t>> partial(static_cast<size_t>(threads),
-                                            std::vector<int64_t>(static_cast<size_t>(height) + 1, 0));
+  std::vector<std::vector<int64_t>> partial(
+      static_cast<size_t>(threads), std::vector<int64_t>(static_cast<size_t>(height) + 1, 0));
   parallel_chunks(static_cast<int64_t>(points.size()), [&](int64_t begin, int64_t end, int t) {
     std::vector<int64_t>& diff = partial[static_cast<size_t>(t)];
     for (int64_t i = begin; i < end; ++i) {
@@ -452,7 +499,8 @@ std::vector<int64_t> balanced_row_bands(const std::vector<Point>& points, const 
   int64_t r = 0;
   for (int t = 1; t < threads; ++t) {
     while (r < height && work[static_cast<size_t>(r)] * threads < total * t) ++r;
-    bounds[static_cast<size_t>(t)] = std::max(bounds[static_cast<size_t>(t) - 1], std::min(r + 1, height));
+    bounds[static_cast<size_t>(t)] =
+        std::max(bounds[static_cast<size_t>(t) - 1], std::min(r + 1, height));
   }
   return bounds;
 }
@@ -462,29 +510,23 @@ std::vector<int64_t> balanced_row_bands(const std::vector<Point>& points, const 
 // the point inside the grid (GridSpec::contains_xy in 2D, contains in 3D). One band of rows per
 // thread: every thread walks the part of each ray inside its band.
 template <bool kThreeD>
-void count_rays(const std::vector<Point>& points, const Eigen::Vector3d& origin, const GridSpec& grid,
-                const GridSize& size, uint32_t* passed, uint32_t* ended) {
+void count_rays(const std::vector<Point>& points, const Eigen::Vector3d& origin,
+                const GridSpec& grid, const GridSize& size, uint32_t* passed, uint32_t* ended) {
   const CellCoordinates o = cell_coordinates(origin.x(), origin.y(), origin.z(), grid, kThreeD);
   const std::vector<int64_t> bands = balanced_row_bands(points, o, grid, num_threads());
   // The differences along x go straight into `passed`. Those along y need a second array: a 2D
   // walk affords it (H x W), so its rays run along the axis they move most along; a 3D walk would
   // need Z times more, so its rays all run along x (rows of one or two cells for steep rays).
   std::vector<uint32_t> along_y(kThreeD ? 0 : static_cast<size_t>(size.height * size.width), 0);
-  const RunCounts runs{passed, kThreeD ? nullptr : along_y.data(), size.width, size.height};
+  const RunCounts runs{passed, kThreeD ? nullptr : along_y.data(), size.width, size.height,
+                       size.layers};
   parallel_for(static_cast<int64_t>(bands.size()) - 1, [&](int64_t band) {
-    const CellBox box{0, size.width, bands[static_cast<size_t>(band)], bands[static_cast<size_t>(band) + 1], 0,
-                      size.layers};
+    const CellBox box{
+        0, size.width, bands[static_cast<size_t>(band)], bands[static_cast<size_t>(band) + 1],
+        0, size.layers};
     if (box.y_lo >= box.y_hi) return;
     WalkScratch scratch(size);
     const RayAxis flat = flat_axis();
-    // Layers outside the volume are the walk's outside cells (2D walks have one layer, 0).
-    const auto add_along_x = [runs, layers = size.layers](int64_t row, int64_t layer, int64_t from, int64_t to) {
-      if (!kThreeD || (layer >= 0 && layer < layers)) runs.add_along_x(row, layer, from, to, 1);
-    };
-    const auto add_along_y = [runs, band_lo = box.y_lo, band_hi = box.y_hi](int64_t column, int64_t layer,
-                                                                          int64_t from, int64_t to) {
-      runs.add_along_y(column, layer, from, to, band_lo, band_hi);
-    };
     for (const Point& p : points) {
       if (!finite(p)) continue;
       const CellCoordinates point = cell_coordinates(p.x, p.y, p.z, grid, kThreeD);
@@ -492,27 +534,46 @@ void count_rays(const std::vector<Point>& points, const Eigen::Vector3d& origin,
       if (v.hi() < box.y_lo || v.lo() >= box.y_hi) continue;
       const RayAxis u = make_axis(o.u, point.u, size.width);
       const RayAxis w = kThreeD ? make_axis(o.w, point.w, size.layers) : flat;
+      // Runs need cutting only where the ray's cells reach beyond the box along them.
       if (kThreeD || std::abs(u.delta) >= std::abs(v.delta)) {
-        walk_runs<true, kThreeD>(u, v, w, size, box, scratch, add_along_x);
+        const bool inside =
+            u.lo() >= 0 && u.hi() < size.width && w.lo() >= 0 && w.hi() < size.layers;
+        if (inside) {
+          count_walk<true, kThreeD, false>(u, v, w, size, box, scratch, runs);
+        } else {
+          count_walk<true, kThreeD, true>(u, v, w, size, box, scratch, runs);
+        }
       } else {
-        walk_runs<false, kThreeD>(u, v, w, size, box, scratch, add_along_y);
+        if (v.lo() >= box.y_lo && v.hi() < box.y_hi) {
+          count_walk<false, kThreeD, false>(u, v, w, size, box, scratch, runs);
+        } else {
+          count_walk<false, kThreeD, true>(u, v, w, size, box, scratch, runs);
+        }
       }
       // The walk's last cell is the end cell, which counts a detection (hit), not a transmission.
-      const bool end_in_box = u.last >= 0 && u.last < size.width && v.last >= box.y_lo && v.last < box.y_hi &&
-                              w.last >= 0 && w.last < size.layers;
+      const bool end_in_box = u.last >= 0 && u.last < size.width && v.last >= box.y_lo &&
+                              v.last < box.y_hi && w.last >= 0 && w.last < size.layers;
       if (!end_in_box) continue;
-      runs.add_along_x(v.last, w.last, u.last, u.last, static_cast<uint32_t>(-1));
-      const bool inside = kThreeD ? contains(p, grid, size, u, v, w) : contains_xy(p, grid, size, u, v);
-      if (inside) ++ended[(w.last * size.height + v.last) * size.width + u.last];
+      runs.add_along_x<false>(v.last, w.last, u.last, u.last, static_cast<uint32_t>(-1));
+      const bool ends_inside =
+          kThreeD ? contains(p, grid, size, u, v, w) : contains_xy(p, grid, size, u, v);
+      if (ends_inside) ++ended[(w.last * size.height + v.last) * size.width + u.last];
     }
-    runs.finish(box.y_lo, box.y_hi, size.layers);
+    runs.finish(box.y_lo, box.y_hi);
   });
+}
+
+// The occupancy probability of a voxel with `hits` and `passes`, as specified.
+float probability_of(uint32_t hits, uint32_t passes) {
+  if (hits == 0 && passes == 0) return 0.5f;
+  const double log_odds = hits * std::log(0.7 / 0.3) + passes * std::log(0.4 / 0.6);
+  return static_cast<float>(1.0 / (1.0 + std::exp(-log_odds)));
 }
 
 }  // namespace
 
-ObservabilityCounts observability_2d(const std::vector<Point>& points, const Eigen::Vector3d& origin,
-                                     const GridSpec& grid) {
+ObservabilityCounts observability_2d(const std::vector<Point>& points,
+                                     const Eigen::Vector3d& origin, const GridSpec& grid) {
   constexpr const char* kCaller = "observability_2d";
   check_grid(grid, false, kCaller);
   check_origin(origin, kCaller);
@@ -520,14 +581,16 @@ ObservabilityCounts observability_2d(const std::vector<Point>& points, const Eig
   const GridSize size(grid, false);
   ObservabilityCounts counts{Tensor<uint32_t>::zeros({size.height, size.width}),
                              Tensor<uint32_t>::zeros({size.height, size.width})};
-  count_rays<false>(points, origin, grid, size, counts.transmissions.data(), counts.detections.data());
+  count_rays<false>(points, origin, grid, size, counts.transmissions.data(),
+                    counts.detections.data());
   return counts;
 }
 
 Tensor<uint32_t> observability_map(const ObservabilityCounts& counts) {
-  PS_CHECK(counts.transmissions.rank() == 2 && counts.transmissions.shape() == counts.detections.shape(),
-           "observability_map: transmissions and detections must both be (H, W), got {} and {}",
-           shape_str(counts.transmissions.shape()), shape_str(counts.detections.shape()));
+  PS_CHECK(
+      counts.transmissions.rank() == 2 && counts.transmissions.shape() == counts.detections.shape(),
+      "observability_map: transmissions and detections must both be (H, W), got {} and {}",
+      shape_str(counts.transmissions.shape()), shape_str(counts.detections.shape()));
   Tensor<uint32_t> map(counts.transmissions.shape());
   for (int64_t i = 0; i < map.numel(); ++i) map[i] = counts.transmissions[i] + counts.detections[i];
   return map;
@@ -546,17 +609,6 @@ OccupancyCounts occupancy_counts_3d(const std::vector<Point>& points, const Eige
   return counts;
 }
 
-namespace {
-
-// The occupancy probability of a voxel with `hits` and `passes`, as specified.
-float probability_of(uint32_t hits, uint32_t passes) {
-  if (hits == 0 && passes == 0) return 0.5f;
-  const double log_odds = hits * std::log(0.7 / 0.3) + passes * std::log(0.4 / 0.6);
-  return static_cast<float>(1.0 / (1.0 + std::exp(-log_odds)));
-}
-
-}  // namespace
-
 Tensor<float> occupancy_probability(const OccupancyCounts& counts) {
   PS_CHECK(counts.hits.rank() == 3 && counts.hits.shape() == counts.passes.shape(),
            "occupancy_probability: hits and passes must both be (Z, H, W), got {} and {}",
@@ -573,7 +625,8 @@ Tensor<float> occupancy_probability(const OccupancyCounts& counts) {
   float* out = probability.data();
   parallel_for(probability.numel(), [&](int64_t i) {
     const uint32_t h = hits[i], p = passes[i];
-    out[i] = h < kTableHits && p < kTablePasses ? table[h * kTablePasses + p] : probability_of(h, p);
+    out[i] =
+        h < kTableHits && p < kTablePasses ? table[h * kTablePasses + p] : probability_of(h, p);
   });
   return probability;
 }
@@ -582,16 +635,18 @@ std::vector<WalkCell> ray_cells_2d(const Eigen::Vector3d& origin, const Eigen::V
                                    const GridSpec& grid) {
   check_grid(grid, false, "ray_cells_2d");
   check_origin(origin, "ray_cells_2d");
-  PS_CHECK(point.allFinite(), "ray_cells_2d: point must be finite, got ({}, {}, {})", point.x(), point.y(),
-           point.z());
+  PS_CHECK(point.allFinite(), "ray_cells_2d: point must be finite, got ({}, {}, {})", point.x(),
+           point.y(), point.z());
   const GridSize size(grid, false);
   const CellCoordinates o = cell_coordinates(origin.x(), origin.y(), origin.z(), grid, false);
   const CellCoordinates p = cell_coordinates(point.x(), point.y(), point.z(), grid, false);
   std::vector<WalkCell> cells;
   WalkScratch scratch(size);
-  walk_cells<false>(make_axis(o.u, p.u, size.width), make_axis(o.v, p.v, size.height), flat_axis(), size,
-             CellBox{0, size.width, 0, size.height}, scratch,
-             [&](int64_t ix, int64_t iy, int64_t) { cells.push_back({ix, iy, 0}); });
+  walk_cells<false>(make_axis(o.u, p.u, size.width), make_axis(o.v, p.v, size.height), flat_axis(),
+                    size, CellBox{0, size.width, 0, size.height}, scratch,
+                    [&](int64_t ix, int64_t iy, int64_t) {
+                      cells.push_back({ix, iy, 0});
+                    });
   return cells;
 }
 
@@ -599,16 +654,19 @@ std::vector<WalkCell> ray_voxels_3d(const Eigen::Vector3d& origin, const Eigen::
                                     const GridSpec& grid) {
   check_grid(grid, true, "ray_voxels_3d");
   check_origin(origin, "ray_voxels_3d");
-  PS_CHECK(point.allFinite(), "ray_voxels_3d: point must be finite, got ({}, {}, {})", point.x(), point.y(),
-           point.z());
+  PS_CHECK(point.allFinite(), "ray_voxels_3d: point must be finite, got ({}, {}, {})", point.x(),
+           point.y(), point.z());
   const GridSize size(grid, true);
   const CellCoordinates o = cell_coordinates(origin.x(), origin.y(), origin.z(), grid, true);
   const CellCoordinates p = cell_coordinates(point.x(), point.y(), point.z(), grid, true);
   std::vector<WalkCell> voxels;
   WalkScratch scratch(size);
-  walk_cells<true>(make_axis(o.u, p.u, size.width), make_axis(o.v, p.v, size.height), make_axis(o.w, p.w, size.layers),
-             size, CellBox{0, size.width, 0, size.height, 0, size.layers}, scratch,
-             [&](int64_t ix, int64_t iy, int64_t iz) { voxels.push_back({ix, iy, iz}); });
+  walk_cells<true>(make_axis(o.u, p.u, size.width), make_axis(o.v, p.v, size.height),
+                   make_axis(o.w, p.w, size.layers), size,
+                   CellBox{0, size.width, 0, size.height, 0, size.layers}, scratch,
+                   [&](int64_t ix, int64_t iy, int64_t iz) {
+                     voxels.push_back({ix, iy, iz});
+                   });
   return voxels;
 }
 

@@ -11,15 +11,16 @@
 //   o + t * (p - o), t in [0, 1]; the 2D walk ignores w.
 // - First cell, per axis: floor(o), or ceil(o) - 1 where p - o < 0 on that axis: the cell the
 //   ray enters from the origin, which for an origin on a cell boundary (the default origin
-//   (0, 0, 0) lies on cell corners) depends on the direction.
+//   (0, 0, 0) lies on cell corners) depends on the direction. Where p - o = 0 on an axis, the
+//   ray stays in cell floor(o) of that axis, also when it runs along a cell border.
 // - Last cell: floor(p), as GridSpec::ix / iy / iz.
 // - In between, one axis step at a time, the cells the segment crosses: |dix| + |diy| (+ |diz|)
 //   + 1 cells in all. A ray whose first and last cells coincide has that one cell.
 // - Ties: where the segment crosses boundaries of several axes at the same t (it passes exactly
-//   through a cell corner, or in 3D a voxel edge), the walk steps x first, then y, then z. So a
-//   ray with dx > 0, dy > 0 through the corner shared by cells (i, j) and (i + 1, j + 1) visits
-//   (i + 1, j) between them, and one with dx < 0, dy > 0 through the corner shared by (i, j) and
-//   (i - 1, j + 1) visits (i - 1, j).
+//   through a cell corner, or in 3D a voxel edge or corner), the walk steps x first, then y,
+//   then z. So a ray with dx > 0, dy > 0 through the corner shared by cells (i, j) and
+//   (i + 1, j + 1) visits (i + 1, j) between them, and one with dx < 0, dy > 0 through the
+//   corner shared by (i, j) and (i - 1, j + 1) visits (i - 1, j).
 // - Every crossing is decided exactly for the segment between the double cell coordinates of
 //   o and p: a double evaluation, and where that lies within rounding of a tie, the exact sign
 //   of the orientation (error-free products and expansion sums).
@@ -50,8 +51,8 @@ struct ObservabilityCounts {
 
 // points: M points in the LiDAR frame (non-finite ones are skipped); origin: the sensor origin
 // in the same frame, anywhere (inside the grid or not). z plays no part.
-ObservabilityCounts observability_2d(const std::vector<Point>& points, const Eigen::Vector3d& origin,
-                                     const GridSpec& grid);
+ObservabilityCounts observability_2d(const std::vector<Point>& points,
+                                     const Eigen::Vector3d& origin, const GridSpec& grid);
 
 // (H, W): transmissions + detections per cell, the number of rays that touched the cell.
 Tensor<uint32_t> observability_map(const ObservabilityCounts& counts);
