@@ -9,14 +9,14 @@
 #include "engine/core/image.hpp"
 #include "engine/core/io.hpp"
 #include "engine/eval/render.hpp"
-#include "host/raywalk.hpp"
+#include "engine/data/ground_truth.hpp"
 
 namespace pillarseg::cli {
 
 namespace {
 
 struct MapArgs {
-  std::string data, out;
+  std::string data, out, cache;
   int sequence = -1, scan = -1;
 };
 
@@ -26,15 +26,21 @@ CLI::App* add_map_command(CLI::App& app, const std::string& name, const std::str
   cmd->add_option("--sequence", args.sequence, "sequence number")->required();
   cmd->add_option("--scan", args.scan, "scan (frame) number")->required();
   cmd->add_option("--out", args.out, "output file")->required();
+  cmd->add_option("--cache", args.cache, "cache directory (default: beside the data, else ~/.cache/pillarseg)");
   return cmd;
+}
+
+// The scan's maps come through the ground-truth builder's cache.
+GroundTruthBuilder builder_for(const MapArgs& args) {
+  const Cache cache(args.cache.empty() ? default_cache_dir(args.data) : std::filesystem::path(args.cache));
+  return GroundTruthBuilder(Sequence(args.data, args.sequence), ClassTable::defaults(), GroundTruthSettings{}, cache);
 }
 
 void run_observability(const MapArgs& args) {
   require_extension(args.out, {".png", ".u16"}, "--out");
-  const Sequence seq(args.data, args.sequence);
-  const Scan scan = seq.load(scan_index(seq, args.scan));
-  const GridSpec grid;
-  const Tensor<uint32_t> counts = host::observability_map(host::observability_2d(scan.points, Eigen::Vector3d::Zero(), grid));
+  const GroundTruthBuilder builder = builder_for(args);
+  const Sequence& seq = builder.sequence();
+  const Tensor<uint32_t> counts = builder.observability(scan_index(seq, args.scan));
   if (lower_extension(args.out) == ".u16") {
     std::vector<uint16_t> raw(static_cast<size_t>(counts.numel()));
     for (int64_t i = 0; i < counts.numel(); ++i) raw[static_cast<size_t>(i)] = static_cast<uint16_t>(std::min<uint32_t>(counts[i], 65535));
@@ -50,10 +56,9 @@ void run_observability(const MapArgs& args) {
 
 void run_occupancy(const MapArgs& args) {
   require_extension(args.out, {".png", ".f32"}, "--out");
-  const Sequence seq(args.data, args.sequence);
-  const Scan scan = seq.load(scan_index(seq, args.scan));
-  const GridSpec grid;
-  const Tensor<float> prob = host::occupancy_probability(host::occupancy_counts_3d(scan.points, Eigen::Vector3d::Zero(), grid));
+  const GroundTruthBuilder builder = builder_for(args);
+  const Sequence& seq = builder.sequence();
+  const Tensor<float> prob = builder.occupancy(scan_index(seq, args.scan));
   if (lower_extension(args.out) == ".f32") {
     write_file_atomic(args.out, prob.data(), static_cast<size_t>(prob.numel()) * sizeof(float));
   } else {

@@ -14,6 +14,7 @@
 #include "engine/core/parallel.hpp"
 #include "engine/core/progress.hpp"
 #include "host/rasterize_labels.hpp"
+#include "host/raywalk.hpp"
 
 namespace pillarseg {
 
@@ -303,6 +304,52 @@ CacheKey GroundTruthBuilder::key(size_t i, GroundTruthKind kind) const {
   settings.add(static_cast<uint64_t>(settings_.max_scans));
   settings.add(kDenseDistanceFactor);
   return make_key(i, kind_key(kind), settings.digest(), dense_inputs_hash(neighbours(i)));
+}
+
+namespace {
+// Observability and occupancy of a scan: the key covers the grid and the scan file.
+CacheKey ray_map_key(const Sequence& seq, const std::string& path, size_t i, const std::string& kind,
+                     const GridSpec& grid) {
+  Hasher settings;
+  settings.add(kGroundTruthVersion);
+  settings.add(std::string_view(kind));
+  add_grid(settings, grid);
+  Hasher inputs;
+  hash_file_stamp(inputs, seq.bin_path(i));
+  return CacheKey{path, seq.frame(i), kind, settings.digest(), inputs.digest()};
+}
+
+template <class T, class Compute>
+Tensor<T> cached_map(const std::optional<Cache>& cache, const CacheKey& key, bool* from_cache, Compute&& compute) {
+  if (cache) {
+    if (std::optional<Tensor<T>> hit = cache->load<T>(key)) {
+      if (from_cache) *from_cache = true;
+      return std::move(*hit);
+    }
+  }
+  if (from_cache) *from_cache = false;
+  Tensor<T> map = compute();
+  if (cache) cache->store(key, map);
+  return map;
+}
+}  // namespace
+
+Tensor<uint32_t> GroundTruthBuilder::observability(size_t i, bool* from_cache) const {
+  check_index(sequence_, i);
+  const CacheKey key = ray_map_key(sequence_, sequence_path_, i, "observability", settings_.grid);
+  return cached_map<uint32_t>(cache_, key, from_cache, [&] {
+    const Scan scan = sequence_.load(i);
+    return host::observability_map(host::observability_2d(scan.points, Eigen::Vector3d::Zero(), settings_.grid));
+  });
+}
+
+Tensor<float> GroundTruthBuilder::occupancy(size_t i, bool* from_cache) const {
+  check_index(sequence_, i);
+  const CacheKey key = ray_map_key(sequence_, sequence_path_, i, "occupancy", settings_.grid);
+  return cached_map<float>(cache_, key, from_cache, [&] {
+    const Scan scan = sequence_.load(i);
+    return host::occupancy_probability(host::occupancy_counts_3d(scan.points, Eigen::Vector3d::Zero(), settings_.grid));
+  });
 }
 
 std::vector<size_t> GroundTruthBuilder::neighbours(size_t i) const {

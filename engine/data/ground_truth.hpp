@@ -142,6 +142,10 @@ class GroundTruthBuilder {
 
   // (H, W) map of the sequence's i-th scan; *from_cache (if given) tells whether it was read.
   Tensor<uint8_t> map(size_t i, GroundTruthKind kind, bool* from_cache = nullptr) const;
+  // The 2D observability counts (H, W) and the 3D occupancy probability (Z, H, W) of scan i
+  // in its own frame (the sensor at the origin, no augmentation), through the cache.
+  Tensor<uint32_t> observability(size_t i, bool* from_cache = nullptr) const;
+  Tensor<float> occupancy(size_t i, bool* from_cache = nullptr) const;
   // dense_neighbours of scan i (cached: a lookup then needs no scan read).
   std::vector<size_t> neighbours(size_t i) const;
   // dense_points of scan i cropped for settings().augmentation, in scan i's frame.

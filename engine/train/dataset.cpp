@@ -74,9 +74,17 @@ Sample ScanDataset::eval_sample(size_t i, GroundTruthKind kind, bool with_mask) 
   const Item& it = item(i);
   const GroundTruthBuilder& builder = *builders_[it.sequence_slot];
   const Scan scan = builder.sequence().load(it.scan);
+  // Unaugmented scans: the ray-walk maps come from the cache (the grid-map layers need the
+  // per-cell detection and transmission counts and are computed).
+  ModelConfig direct = model_;
+  direct.occupancy = OccupancyInput::None;
   Sample s;
-  s.inputs = compute_scan_inputs(scan.points, Eigen::Vector3d::Zero(), model_, host::SampleMode::Inference, nullptr,
-                                 with_mask);
+  s.inputs = compute_scan_inputs(scan.points, Eigen::Vector3d::Zero(), direct, host::SampleMode::Inference, nullptr);
+  if (model_.occupancy == OccupancyInput::Occupancy3D) s.inputs.occupancy = builder.occupancy(it.scan);
+  if (model_.occupancy == OccupancyInput::Observability2D || with_mask) {
+    s.inputs.observability = builder.observability(it.scan);
+    if (model_.occupancy == OccupancyInput::Observability2D) s.inputs.occupancy = observability_input(s.inputs.observability);
+  }
   s.labels = builder.map(it.scan, kind);
   if (with_mask) {
     s.mask = Tensor<uint8_t>(s.inputs.observability.shape());

@@ -24,17 +24,21 @@ ScanInputs compute_scan_inputs(const std::vector<Point>& points, const Eigen::Ve
   if (need_2d) {
     const host::ObservabilityCounts counts = host::observability_2d(points, origin, grid);
     in.observability = host::observability_map(counts);
-    if (config.occupancy == OccupancyInput::Observability2D) {
-      in.occupancy = Tensor<float>({1, grid.height(), grid.width()});
-      for (int64_t i = 0; i < in.observability.numel(); ++i)
-        in.occupancy[i] = static_cast<float>(std::log1p(static_cast<double>(in.observability[i])));
-    }
+    if (config.occupancy == OccupancyInput::Observability2D) in.occupancy = observability_input(in.observability);
     if (config.grid_map_input)
       in.grid_map = host::grid_map_features(points, counts.detections, counts.transmissions, grid);
   }
   if (config.occupancy == OccupancyInput::Occupancy3D)
     in.occupancy = host::occupancy_probability(host::occupancy_counts_3d(points, origin, grid));
   return in;
+}
+
+Tensor<float> observability_input(const Tensor<uint32_t>& observability) {
+  PS_CHECK(observability.rank() == 2, "observability_input: expected (H, W), got {}", shape_str(observability.shape()));
+  Tensor<float> out({1, observability.dim(0), observability.dim(1)});
+  for (int64_t i = 0; i < observability.numel(); ++i)
+    out[i] = static_cast<float>(std::log1p(static_cast<double>(observability[i])));
+  return out;
 }
 
 ModelBatch collate(const std::vector<const ScanInputs*>& scans, const ModelConfig& config) {

@@ -29,6 +29,9 @@ ScanInputs compute_scan_inputs(const std::vector<Point>& points, const Eigen::Ve
                                const ModelConfig& config, host::SampleMode mode, Rng* rng,
                                bool want_observability = false);
 
+// The 2D occupancy input (1, H, W): log(1 + count) of the observability counts (H, W).
+Tensor<float> observability_input(const Tensor<uint32_t>& observability);
+
 // Concatenates the scans' pillars (cells get their sample index) and stacks the maps.
 ModelBatch collate(const std::vector<const ScanInputs*>& scans, const ModelConfig& config);
 
