@@ -28,7 +28,7 @@ struct PlanarShape {
 };
 
 // The scratch, in doubles, that batchnorm_forward_train and batchnorm_backward need for `shape`:
-// 2 * C * B * ceil(S / 4096) + 2 * C (about 64 KiB per channel for a 2 x 500 x 1000 batch).
+// 2 * C * B * ceil(S / 4096) + 2 * C (about 4 KiB per channel for a 2 x 500 x 1000 batch).
 std::int64_t batchnorm_workspace_doubles(const PlanarShape& shape);
 
 // Training forward. x, y (B, C, S); gamma, beta (C); running_mean, running_var (C) updated in

@@ -27,8 +27,9 @@ struct PfnShape {
   __host__ __device__ std::int64_t rows() const { return pillars * slots; }
 };
 
-// The scratch, in doubles, that pfn_forward_train and pfn_backward need for `shape`: about
-// 12 C doubles per 1024 rows (P * N) plus 4 C.
+// The scratch, in doubles, that pfn_forward_train and pfn_backward need for `shape`: the larger
+// of C (1 + 2 R) and C (2 ceil(P / 256) + 2 + 10 R), R = ceil(P * N / 1024) (4 MiB for 40000
+// pillars of 20 slots and C = 64).
 std::int64_t pfn_workspace_doubles(const PfnShape& shape);
 
 // Training forward. points (P, N, 10), weight (C, 10), gamma, beta (C); running_mean and
