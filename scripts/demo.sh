@@ -7,7 +7,7 @@ set -euo pipefail
 bin=${1:?usage: demo.sh PILLARSEG_BINARY OUT_DIR}
 out=${2:?usage: demo.sh PILLARSEG_BINARY OUT_DIR}
 here=$(cd "$(dirname "$0")/.." && pwd)
-config="$here/configs/small_cpu.yaml"
+config="${DEMO_CONFIG:-$here/configs/small_cpu.yaml}"  # DEMO_CONFIG: another run config
 data="$out/data" cache="$out/cache" run="$out/run" pictures="$out/pictures"
 mkdir -p "$out" "$pictures"
 
