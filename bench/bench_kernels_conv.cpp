@@ -1,0 +1,325 @@
+// The convolution kernels (kernels/conv2d.cu, kernels/conv_transpose2d.cu) on the GPU at the
+// U-Net's layer shapes (b = 64 on the 1000 x 500 grid, the transposed-convolution variant's
+// upsamplings, a small CPU-sized model): conv2d forward, input gradient and parameter gradients
+// (dw + db), conv_transpose2d the same. Each pass is timed with CUDA events on its own stream
+// after one warm-up run, and reported in ms and GFLOP/s (2 multiply-add flops per weight tap and
+// output pixel: 2 B O I k k Ho Wo for every pass of conv2d, 2 B I 4O H W for conv_transpose2d).
+// Built with cuDNN (bench/bench_cudnn_conv.cu, PILLARSEG_BENCH_CUDNN), conv2d forward also runs
+// through cudnnConvolutionForward (FP32 FMA math, and cuDNN's default math, which may use TF32
+// tensor cores) and through im2col + cublasSgemmStridedBatched; those rows add
+// ours_ms/peer_ms, our forward's time over theirs (> 1: the peer is faster).
+//
+// Without a CUDA device, and in the emulated build (whose times say nothing about a GPU), it
+// prints "skipped: no CUDA device" and runs nothing.
+#include <benchmark/benchmark.h>
+
+#include <cstdint>
+#include <cstdio>
+#include <functional>
+#include <map>
+#include <string>
+#include <vector>
+
+#include "engine/core/rng.hpp"
+#include "kernels/common.cuh"
+#include "kernels/conv2d.cuh"
+#include "kernels/conv_transpose2d.cuh"
+#include "kernels/device_buffer.hpp"
+
+using namespace pillarseg;
+using cuda::DeviceBuffer;
+
+#if defined(PILLARSEG_BENCH_CUDNN)
+namespace pillarseg::bench {
+// Defined in bench/bench_cudnn_conv.cu: conv2d forward y = conv(x, w) + bias (bias may be
+// nullptr) on device buffers of `shape`'s sizes, set up once (descriptors, algorithm choice,
+// workspace); the returned function queues one forward on a stream. allow_tensor_cores: cuDNN's
+// default math (TF32 on Ampere and later) instead of FP32 FMA only.
+std::function<void(cudaStream_t)> cudnn_conv2d_forward(const cuda::Conv2dShape& shape,
+                                                       const float* x, const float* w,
+                                                       const float* bias, float* y,
+                                                       bool allow_tensor_cores);
+std::function<void(cudaStream_t)> cublas_im2col_conv2d_forward(const cuda::Conv2dShape& shape,
+                                                               const float* x, const float* w,
+                                                               const float* bias, float* y);
+}  // namespace pillarseg::bench
+#endif
+
+namespace {
+
+struct ConvLayer {
+  const char* name;
+  cuda::Conv2dShape shape;  // {batch, I, H, W, O, k, pad}
+  bool bias;
+};
+
+// The full model (b = 64, I = 64, 1000 x 500 grid: images of 500 rows x 1000 columns), its
+// occupancy convolution (20 -> 16, no bias) and head, and a small model (b = 16) at batch 2.
+const ConvLayer kConvLayers[] = {
+    {"full_occupancy_20to16_500x1000", {1, 20, 500, 1000, 16, 3, 1}, false},
+    {"full_inc_64to64_500x1000", {1, 64, 500, 1000, 64, 3, 1}, true},
+    {"full_down1_64to128_250x500", {1, 64, 250, 500, 128, 3, 1}, true},
+    {"full_down2_128to256_125x250", {1, 128, 125, 250, 256, 3, 1}, true},
+    {"full_up1_512to256_62x125", {1, 512, 62, 125, 256, 3, 1}, true},
+    {"full_head_64to12_1x1_500x1000", {1, 64, 500, 1000, 12, 1, 0}, true},
+    {"small_down1_16to32_125x250_B2", {2, 16, 125, 250, 32, 3, 1}, true},
+};
+
+struct ConvTransposeLayer {
+  const char* name;
+  cuda::ConvTranspose2dShape shape;  // {batch, I, H, W, O}
+};
+
+// The transposed-convolution variant (widths 2b .. 16b with b = 64) upsampling its deepest and
+// its last level.
+const ConvTransposeLayer kConvTransposeLayers[] = {
+    {"full_up1_1024to512_31x62", {1, 1024, 31, 62, 512}},
+    {"full_up4_128to64_250x500", {1, 128, 250, 500, 64}},
+};
+
+double conv_flops(const cuda::Conv2dShape& s) {
+  return 2.0 * static_cast<double>(s.batch * s.out_channels * s.in_channels * s.kernel * s.kernel) *
+         static_cast<double>(s.out_height() * s.out_width());
+}
+
+double conv_transpose_flops(const cuda::ConvTranspose2dShape& s) {
+  return 2.0 * static_cast<double>(s.batch * s.in_channels * 4 * s.out_channels) *
+         static_cast<double>(s.height * s.width);
+}
+
+DeviceBuffer<float> random_buffer(std::int64_t n, std::uint64_t seed) {
+  Rng rng(seed);
+  std::vector<float> values(static_cast<size_t>(n));
+  for (float& v : values) v = static_cast<float>(rng.uniform(-1.0, 1.0));
+  return DeviceBuffer<float>::from_host(values);
+}
+
+// A stream and two events: times what `run` queues on the stream.
+class EventTimer {
+ public:
+  EventTimer() {
+    PS_CUDA_CHECK(cudaStreamCreateWithFlags(&stream_, cudaStreamNonBlocking));
+    PS_CUDA_CHECK(cudaEventCreate(&start_));
+    PS_CUDA_CHECK(cudaEventCreate(&stop_));
+  }
+  ~EventTimer() {
+    static_cast<void>(cudaEventDestroy(stop_));
+    static_cast<void>(cudaEventDestroy(start_));
+    static_cast<void>(cudaStreamDestroy(stream_));
+  }
+  EventTimer(const EventTimer&) = delete;
+  EventTimer& operator=(const EventTimer&) = delete;
+
+  cudaStream_t stream() const { return stream_; }
+
+  // Milliseconds between the events recorded around run(stream).
+  double milliseconds(const std::function<void(cudaStream_t)>& run) {
+    PS_CUDA_CHECK(cudaEventRecord(start_, stream_));
+    run(stream_);
+    PS_CUDA_CHECK(cudaEventRecord(stop_, stream_));
+    PS_CUDA_CHECK(cudaEventSynchronize(stop_));
+    float ms = 0.0f;
+    PS_CUDA_CHECK(cudaEventElapsedTime(&ms, start_, stop_));
+    return ms;
+  }
+
+ private:
+  cudaStream_t stream_ = nullptr;
+  cudaEvent_t start_ = nullptr;
+  cudaEvent_t stop_ = nullptr;
+};
+
+// One warm-up run, then each iteration's event time; sets the GFLOP/s counter. Returns the mean
+// time in ms.
+double time_pass(benchmark::State& state, double flops,
+                 const std::function<void(cudaStream_t)>& run) {
+  EventTimer timer;
+  timer.milliseconds(run);
+  double total_ms = 0.0;
+  std::int64_t runs = 0;
+  for (auto _ : state) {
+    const double ms = timer.milliseconds(run);
+    state.SetIterationTime(ms * 1e-3);
+    total_ms += ms;
+    ++runs;
+  }
+  state.counters["GFLOP/s"] =
+      benchmark::Counter(flops * 1e-9, benchmark::Counter::kIsIterationInvariantRate);
+  return runs > 0 ? total_ms / static_cast<double>(runs) : 0.0;
+}
+
+// Our conv2d forward time per layer, for the peers' ratio.
+std::map<std::string, double>& forward_ms() {
+  static std::map<std::string, double> times;
+  return times;
+}
+
+// Device tensors of one conv2d layer.
+struct ConvBuffers {
+  explicit ConvBuffers(const cuda::Conv2dShape& s)
+      : x(random_buffer(s.batch * s.in_channels * s.height * s.width, 1)),
+        w(random_buffer(s.out_channels * s.in_channels * s.kernel * s.kernel, 2)),
+        bias(random_buffer(s.out_channels, 3)),
+        dy(random_buffer(s.batch * s.out_channels * s.out_height() * s.out_width(), 4)),
+        y(dy.size()),
+        dx(x.size()),
+        dw(w.size()),
+        db(bias.size()),
+        workspace(cuda::conv2d_backward_weights_workspace(s)) {}
+  DeviceBuffer<float> x, w, bias, dy, y, dx, dw, db, workspace;
+};
+
+void BM_Conv2dForward(benchmark::State& state, const ConvLayer& l) {
+  ConvBuffers b(l.shape);
+  const double ms = time_pass(state, conv_flops(l.shape), [&](cudaStream_t stream) {
+    cuda::conv2d_forward(b.x.data(), b.w.data(), l.bias ? b.bias.data() : nullptr, b.y.data(),
+                         l.shape, stream);
+  });
+  forward_ms()[l.name] = ms;
+}
+
+void BM_Conv2dBackwardData(benchmark::State& state, const ConvLayer& l) {
+  ConvBuffers b(l.shape);
+  time_pass(state, conv_flops(l.shape), [&](cudaStream_t stream) {
+    cuda::conv2d_backward_data(b.dy.data(), b.w.data(), b.dx.data(), l.shape, stream);
+  });
+}
+
+void BM_Conv2dBackwardWeights(benchmark::State& state, const ConvLayer& l) {
+  ConvBuffers b(l.shape);
+  time_pass(state, conv_flops(l.shape), [&](cudaStream_t stream) {
+    cuda::conv2d_backward_weights(b.x.data(), b.dy.data(), b.dw.data(),
+                                  l.bias ? b.db.data() : nullptr, l.shape, b.workspace.data(),
+                                  b.workspace.size(), stream);
+  });
+  state.counters["workspace_MiB"] = static_cast<double>(b.workspace.bytes()) / (1 << 20);
+}
+
+#if defined(PILLARSEG_BENCH_CUDNN)
+using PeerFactory =
+    std::function<std::function<void(cudaStream_t)>(const ConvLayer&, ConvBuffers&)>;
+
+void BM_Conv2dForwardPeer(benchmark::State& state, const ConvLayer& l,
+                          const PeerFactory& make_peer) {
+  ConvBuffers b(l.shape);
+  const std::function<void(cudaStream_t)> peer = make_peer(l, b);
+  const double ms = time_pass(state, conv_flops(l.shape), peer);
+  const auto ours = forward_ms().find(l.name);
+  if (ours != forward_ms().end() && ms > 0.0) state.counters["ours_ms/peer_ms"] = ours->second / ms;
+}
+#endif
+
+struct ConvTransposeBuffers {
+  explicit ConvTransposeBuffers(const cuda::ConvTranspose2dShape& s)
+      : x(random_buffer(s.batch * s.in_channels * s.height * s.width, 5)),
+        w(random_buffer(s.in_channels * s.out_channels * 4, 6)),
+        bias(random_buffer(s.out_channels, 7)),
+        dy(random_buffer(s.batch * s.out_channels * s.out_height() * s.out_width(), 8)),
+        y(dy.size()),
+        dx(x.size()),
+        dw(w.size()),
+        db(bias.size()),
+        workspace(cuda::conv_transpose2d_backward_weights_workspace(s)) {}
+  DeviceBuffer<float> x, w, bias, dy, y, dx, dw, db, workspace;
+};
+
+void BM_ConvTranspose2dForward(benchmark::State& state, const ConvTransposeLayer& l) {
+  ConvTransposeBuffers b(l.shape);
+  time_pass(state, conv_transpose_flops(l.shape), [&](cudaStream_t stream) {
+    cuda::conv_transpose2d_forward(b.x.data(), b.w.data(), b.bias.data(), b.y.data(), l.shape,
+                                   stream);
+  });
+}
+
+void BM_ConvTranspose2dBackwardData(benchmark::State& state, const ConvTransposeLayer& l) {
+  ConvTransposeBuffers b(l.shape);
+  time_pass(state, conv_transpose_flops(l.shape), [&](cudaStream_t stream) {
+    cuda::conv_transpose2d_backward_data(b.dy.data(), b.w.data(), b.dx.data(), l.shape, stream);
+  });
+}
+
+void BM_ConvTranspose2dBackwardWeights(benchmark::State& state, const ConvTransposeLayer& l) {
+  ConvTransposeBuffers b(l.shape);
+  time_pass(state, conv_transpose_flops(l.shape), [&](cudaStream_t stream) {
+    cuda::conv_transpose2d_backward_weights(b.x.data(), b.dy.data(), b.dw.data(), b.db.data(),
+                                            l.shape, b.workspace.data(), b.workspace.size(),
+                                            stream);
+  });
+  state.counters["workspace_MiB"] = static_cast<double>(b.workspace.bytes()) / (1 << 20);
+}
+
+template <class Function, class Layer>
+void register_pass(const std::string& name, Function function, const Layer& layer) {
+  benchmark::RegisterBenchmark(name.c_str(), function, layer)
+      ->Unit(benchmark::kMillisecond)
+      ->UseManualTime();
+}
+
+void register_benchmarks() {
+  for (const ConvLayer& l : kConvLayers) {
+    register_pass(std::string("Conv2dForward/") + l.name, BM_Conv2dForward, l);
+#if defined(PILLARSEG_BENCH_CUDNN)
+    const auto with_peer = [&](const char* peer, PeerFactory make_peer) {
+      benchmark::RegisterBenchmark((std::string("Conv2dForward_") + peer + "/" + l.name).c_str(),
+                                   BM_Conv2dForwardPeer, l, std::move(make_peer))
+          ->Unit(benchmark::kMillisecond)
+          ->UseManualTime();
+    };
+    with_peer("cudnn_fp32", [](const ConvLayer& layer, ConvBuffers& b) {
+      return bench::cudnn_conv2d_forward(layer.shape, b.x.data(), b.w.data(),
+                                         layer.bias ? b.bias.data() : nullptr, b.y.data(),
+                                         /*allow_tensor_cores=*/false);
+    });
+    with_peer("cudnn_default_math", [](const ConvLayer& layer, ConvBuffers& b) {
+      return bench::cudnn_conv2d_forward(layer.shape, b.x.data(), b.w.data(),
+                                         layer.bias ? b.bias.data() : nullptr, b.y.data(),
+                                         /*allow_tensor_cores=*/true);
+    });
+    with_peer("cublas_im2col", [](const ConvLayer& layer, ConvBuffers& b) {
+      return bench::cublas_im2col_conv2d_forward(layer.shape, b.x.data(), b.w.data(),
+                                                 layer.bias ? b.bias.data() : nullptr, b.y.data());
+    });
+#endif
+    register_pass(std::string("Conv2dBackwardData/") + l.name, BM_Conv2dBackwardData, l);
+    register_pass(std::string("Conv2dBackwardWeights/") + l.name, BM_Conv2dBackwardWeights, l);
+  }
+  for (const ConvTransposeLayer& l : kConvTransposeLayers) {
+    register_pass(std::string("ConvTranspose2dForward/") + l.name, BM_ConvTranspose2dForward, l);
+    register_pass(std::string("ConvTranspose2dBackwardData/") + l.name,
+                  BM_ConvTranspose2dBackwardData, l);
+    register_pass(std::string("ConvTranspose2dBackwardWeights/") + l.name,
+                  BM_ConvTranspose2dBackwardWeights, l);
+  }
+}
+
+// Empty when a CUDA device can run the kernels, else why not.
+std::string missing_device() {
+#if defined(PILLARSEG_CUDA_EMULATION)
+  return "this build runs the kernels on the CPU emulation";
+#else
+  int devices = 0;
+  const cudaError_t error = cudaGetDeviceCount(&devices);
+  if (error != cudaSuccess) {
+    static_cast<void>(cudaGetLastError());
+    return std::string(cudaGetErrorName(error)) + ": " + cudaGetErrorString(error);
+  }
+  if (devices == 0) return "cudaGetDeviceCount found none";
+  return "";
+#endif
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  const std::string missing = missing_device();
+  if (!missing.empty()) {
+    std::printf("bench_kernels_conv skipped: no CUDA device (%s)\n", missing.c_str());
+    return 0;
+  }
+  register_benchmarks();
+  benchmark::Initialize(&argc, argv);
+  if (benchmark::ReportUnrecognizedArguments(argc, argv)) return 1;
+  benchmark::RunSpecifiedBenchmarks();
+  benchmark::Shutdown();
+  return 0;
+}
