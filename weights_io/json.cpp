@@ -281,7 +281,7 @@ class Parser {
     }
   }
 
-  // After a backslash: one of \" \\ \/ \b \f \n \r \t \uXXXX (with surrogate pairs).
+  // After a backslash: one of \" \\ \/ \b \f \n \r \t \u and four hex digits (with surrogate pairs).
   void parse_escape(std::string& out) {
     if (at_end()) fail("unterminated escape");
     const char c = peek();

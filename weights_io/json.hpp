@@ -1,5 +1,5 @@
 // A small strict JSON reader and writer, enough for safetensors headers: objects (member order
-// kept, duplicate keys rejected), arrays, strings (all escapes, \uXXXX with surrogate pairs,
+// kept, duplicate keys rejected), arrays, strings (all escapes, \u plus four hex digits, with surrogate pairs,
 // UTF-8 validated), 64-bit integers, true/false/null. Fractional and exponent numbers are
 // rejected, as is anything RFC 8259 does not allow (trailing commas, leading zeros, control
 // characters in strings, lone surrogates, overlong UTF-8, trailing text).

@@ -15,7 +15,7 @@ namespace pillarseg {
 std::vector<char> read_file_bytes(const std::filesystem::path& path);
 std::string read_file_text(const std::filesystem::path& path);
 
-// Calls write(out) on a stream to "path.tmp-XXXX", flushes, checks, and renames onto path.
+// Calls write(out) on a stream to "path.tmp-<pid>-<n>", flushes, checks, and renames onto path.
 // Creates missing parent directories.
 void write_file_atomic(const std::filesystem::path& path, const std::function<void(std::ostream&)>& write);
 void write_file_atomic(const std::filesystem::path& path, const void* data, size_t size);
