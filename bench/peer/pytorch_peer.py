@@ -31,7 +31,7 @@ torch.profiler, its ops by self CPU time as PEER_PROFILE lines):
 gflop counts 2 x the multiply-adds of every Conv2d, ConvTranspose2d and Linear of one forward
 (from their output shapes, recorded by forward hooks); a training step counts 3 x that (the
 backward of each layer computes dx and dw, each as many multiply-adds as the forward).
-peak_rss_mb is getrusage(RUSAGE_SELF).ru_maxrss of this process, which runs one case only.
+peak_rss_mb is the peak resident memory of this process (VmHWM), which runs one case only.
 
 Input: --inputs DIR with points.f32 (P, N, 10), cells.i32 (P, 3) and labels.u8 (B, H, W) as raw
 little-endian arrays (bench_model writes them), or without --inputs a synthetic scan: --pillars
@@ -280,6 +280,20 @@ def parse_args():
     return args
 
 
+def peak_rss_mb():
+    """This process's peak resident memory: VmHWM in /proc/self/status. Not ru_maxrss: Linux
+    carries the parent's peak into a child started by posix_spawn (through exec, which records
+    the peak of the memory it replaces), so a peer of a large bench_model would report that."""
+    try:
+        with open("/proc/self/status") as status:
+            for line in status:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
 def timed(step):
     """Wall and process CPU seconds (all threads) of one call of step()."""
     start, cpu_start = time.perf_counter(), time.process_time()
@@ -407,7 +421,6 @@ def main():
         for _ in range(args.reps):
             run_command(["step"])
     median = statistics.median(times) if times else float("nan")
-    peak_rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     fields = {
         "case": args.case, "variant": args.variant, "threads": args.threads,
         "batch": args.batch, "height": args.height, "width": args.width,
@@ -417,7 +430,7 @@ def main():
         "median_cpu_ms": f"{statistics.median(cpu_times) * 1e3 if times else median:.1f}",
         "times_ms": ",".join(f"{t * 1e3:.1f}" for t in times) or "-",
         "gflop": f"{step_gflop:.2f}", "gflops": f"{step_gflop / median:.2f}",
-        "peak_rss_mb": f"{peak_rss_mb:.0f}", "params": params, "torch": torch.__version__,
+        "peak_rss_mb": f"{peak_rss_mb():.0f}", "params": params, "torch": torch.__version__,
     }
     print("PEER " + " ".join(f"{k}={v}" for k, v in fields.items()), flush=True)
     if args.profile:
