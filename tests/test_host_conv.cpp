@@ -18,37 +18,12 @@
 #include "tests/support/test_support.hpp"
 
 using namespace pillarseg;
+using pillarseg::test::dot;
+using pillarseg::test::numeric_gradient;
+using pillarseg::test::random_tensor;
 using namespace pillarseg::host;
 
 namespace {
-
-TensorD random_tensor(const Shape& shape, Rng& rng) {
-  TensorD t(shape);
-  for (int64_t i = 0; i < t.numel(); ++i) t[i] = rng.uniform(-1.0, 1.0);
-  return t;
-}
-
-double dot(const TensorD& a, const TensorD& b) {
-  double sum = 0;
-  for (int64_t i = 0; i < a.numel(); ++i) sum += a[i] * b[i];
-  return sum;
-}
-
-// Central differences of loss() with respect to every element of param, which loss() reads.
-TensorD numeric_gradient(TensorD& param, const std::function<double()>& loss) {
-  constexpr double kEps = 1e-6;
-  TensorD grad(param.shape());
-  for (int64_t i = 0; i < param.numel(); ++i) {
-    const double saved = param[i];
-    param[i] = saved + kEps;
-    const double up = loss();
-    param[i] = saved - kEps;
-    const double down = loss();
-    param[i] = saved;
-    grad[i] = (up - down) / (2 * kEps);
-  }
-  return grad;
-}
 
 // The convolutions are linear in each argument, so central differences are exact up to
 // rounding: about 1e-16 |loss| / eps ~ 1e-9 here.

@@ -19,18 +19,15 @@
 #include "tests/support/test_support.hpp"
 
 using namespace pillarseg;
+using pillarseg::test::dot;
+using pillarseg::test::numeric_gradient;
+using pillarseg::test::random_tensor;
 using namespace pillarseg::host;
 
 namespace {
 
 constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 constexpr double kInf = std::numeric_limits<double>::infinity();
-
-TensorD random_tensor(const Shape& shape, Rng& rng) {
-  TensorD t(shape);
-  for (int64_t i = 0; i < t.numel(); ++i) t[i] = rng.uniform(-1.0, 1.0);
-  return t;
-}
 
 // Distinct values at least 0.01 apart in random order: no window of maxpool has two values
 // within a finite-difference step of each other, so the argmax cannot change under it.
@@ -50,32 +47,10 @@ TensorD filled(const Shape& shape, std::vector<double> values) {
   return t;
 }
 
-double dot(const TensorD& a, const TensorD& b) {
-  double sum = 0;
-  for (int64_t i = 0; i < a.numel(); ++i) sum += a[i] * b[i];
-  return sum;
-}
-
 double sum(const TensorD& t) {
   double s = 0;
   for (int64_t i = 0; i < t.numel(); ++i) s += t[i];
   return s;
-}
-
-// Central differences of loss() with respect to every element of param, which loss() reads.
-TensorD numeric_gradient(TensorD& param, const std::function<double()>& loss) {
-  constexpr double kEps = 1e-6;
-  TensorD grad(param.shape());
-  for (int64_t i = 0; i < param.numel(); ++i) {
-    const double saved = param[i];
-    param[i] = saved + kEps;
-    const double up = loss();
-    param[i] = saved - kEps;
-    const double down = loss();
-    param[i] = saved;
-    grad[i] = (up - down) / (2 * kEps);
-  }
-  return grad;
 }
 
 // These ops are linear (or piecewise linear away from their kinks), so central differences are

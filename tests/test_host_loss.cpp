@@ -17,6 +17,9 @@
 #include "tests/support/test_support.hpp"
 
 using namespace pillarseg;
+using pillarseg::test::dot;
+using pillarseg::test::numeric_gradient;
+using pillarseg::test::random_tensor;
 using namespace pillarseg::host;
 using ::testing::HasSubstr;
 
@@ -26,13 +29,6 @@ constexpr int64_t kClasses = 12;
 // The sparse-ground-truth coefficients: vehicle 2, person / two-wheel / rider 8, others 1.
 const std::vector<double> kWeights = {0, 2, 8, 8, 8, 1, 1, 1, 1, 1, 1, 1, 1};
 const double kNaN = std::numeric_limits<double>::quiet_NaN();
-
-template <class T = double>
-Tensor<T> random_tensor(const Shape& shape, Rng& rng, double lo = -1, double hi = 1) {
-  Tensor<T> t(shape);
-  for (int64_t i = 0; i < t.numel(); ++i) t[i] = static_cast<T>(rng.uniform(lo, hi));
-  return t;
-}
 
 Tensor<uint8_t> random_labels(const Shape& shape, Rng& rng) {
   Tensor<uint8_t> labels(shape);

@@ -16,38 +16,13 @@
 #include "tests/support/test_support.hpp"
 
 using namespace pillarseg;
+using pillarseg::test::dot;
+using pillarseg::test::numeric_gradient;
+using pillarseg::test::random_tensor;
 using namespace pillarseg::host;
 using ::testing::HasSubstr;
 
 namespace {
-
-template <class T = double>
-Tensor<T> random_tensor(const Shape& shape, Rng& rng, double lo = -1, double hi = 1) {
-  Tensor<T> t(shape);
-  for (int64_t i = 0; i < t.numel(); ++i) t[i] = static_cast<T>(rng.uniform(lo, hi));
-  return t;
-}
-
-double dot(const TensorD& a, const TensorD& b) {
-  double s = 0;
-  for (int64_t i = 0; i < a.numel(); ++i) s += a[i] * b[i];
-  return s;
-}
-
-// Central differences (f(v + h) - f(v - h)) / 2h of the scalar f along every element v of value.
-TensorD numeric_gradient(TensorD& value, const std::function<double()>& f, double h = 1e-6) {
-  TensorD grad(value.shape());
-  for (int64_t i = 0; i < value.numel(); ++i) {
-    const double saved = value[i];
-    value[i] = saved + h;
-    const double plus = f();
-    value[i] = saved - h;
-    const double minus = f();
-    value[i] = saved;
-    grad[i] = (plus - minus) / (2 * h);
-  }
-  return grad;
-}
 
 // Message of the pillarseg::Error thrown by fn ("" when nothing is thrown).
 std::string error_message(const std::function<void()>& fn) {

@@ -102,6 +102,11 @@ TrainResult train(const TrainOptions& options) {
       options.max_epochs_this_run > 0 ? std::min<int64_t>(tc.epochs, state.epoch + options.max_epochs_this_run)
                                       : tc.epochs;
   const auto started = std::chrono::steady_clock::now();
+  // The end of a stop message: the checkpoint a user can resume from, if any.
+  const auto last_good_checkpoint = [&] {
+    return fs::exists(ckpt_path) ? fmt::format("The last good checkpoint is {}", ckpt_path.string())
+                                 : std::string("No checkpoint was written yet.");
+  };
   for (int64_t epoch = state.epoch; epoch < last_epoch; ++epoch) {
     const std::vector<size_t> order = epoch_order(n, tc.seed, static_cast<uint64_t>(epoch));
     Progress progress(fmt::format("epoch {}/{}", epoch + 1, tc.epochs), steps_per_epoch, "steps");
@@ -124,17 +129,13 @@ TrainResult train(const TrainOptions& options) {
       const double loss = net.loss(labels, tc.loss, tc.coefficients);
       if (!std::isfinite(loss)) {
         PS_FAIL("non-finite loss ({}) at epoch {}, step {} (scans {}); stopping. {}", loss, epoch + 1, state.step + 1,
-                data.describe(order[begin]),
-                fs::exists(ckpt_path) ? fmt::format("The last good checkpoint is {}", ckpt_path.string())
-                                      : std::string("No checkpoint was written yet."));
+                data.describe(order[begin]), last_good_checkpoint());
       }
       net.backward();
       Ref grads = ps.grads();
       const double grad_norm = std::sqrt(backend->sum_of_squares(grads));
       PS_CHECK(std::isfinite(grad_norm), "non-finite gradient norm at epoch {}, step {}; stopping. {}", epoch + 1,
-               state.step + 1,
-               fs::exists(ckpt_path) ? fmt::format("The last good checkpoint is {}", ckpt_path.string())
-                                     : std::string("No checkpoint was written yet."));
+               state.step + 1, last_good_checkpoint());
       if (tc.grad_clip > 0 && grad_norm > tc.grad_clip)
         backend->scale(grads, static_cast<float>(tc.grad_clip / (grad_norm + 1e-6)));
       const host::LrAndMomentum lm = host::lr_schedule_at(schedule, state.step);

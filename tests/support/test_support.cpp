@@ -54,6 +54,26 @@ template <class T>
 }
 }  // namespace
 
+double dot(const TensorD& a, const TensorD& b) {
+  double s = 0;
+  for (int64_t i = 0; i < a.numel(); ++i) s += a[i] * b[i];
+  return s;
+}
+
+TensorD numeric_gradient(TensorD& value, const std::function<double()>& f, double h) {
+  TensorD grad(value.shape());
+  for (int64_t i = 0; i < value.numel(); ++i) {
+    const double saved = value[i];
+    value[i] = saved + h;
+    const double plus = f();
+    value[i] = saved - h;
+    const double minus = f();
+    value[i] = saved;
+    grad[i] = (plus - minus) / (2 * h);
+  }
+  return grad;
+}
+
 ::testing::AssertionResult all_close(const float* a, const float* e, int64_t n, double atol, double rtol) {
   return all_close_impl(a, e, n, atol, rtol);
 }

@@ -5,8 +5,10 @@
 #include <gtest/gtest.h>
 
 #include <filesystem>
+#include <functional>
 #include <string>
 
+#include "engine/core/rng.hpp"
 #include "engine/core/tensor.hpp"
 
 namespace pillarseg::test {
@@ -30,5 +32,20 @@ template <class T>
            << "shape " << shape_str(actual.shape()) << " != expected " << shape_str(expected.shape());
   return all_close(actual.data(), expected.data(), actual.numel(), atol, rtol);
 }
+
+// Elements drawn uniformly from [lo, hi).
+template <class T = double>
+Tensor<T> random_tensor(const Shape& shape, Rng& rng, double lo = -1, double hi = 1) {
+  Tensor<T> t(shape);
+  for (int64_t i = 0; i < t.numel(); ++i) t[i] = static_cast<T>(rng.uniform(lo, hi));
+  return t;
+}
+
+// Sum of a[i] * b[i] (a scalar functional for gradient checks).
+double dot(const TensorD& a, const TensorD& b);
+
+// Central differences (f(v + h) - f(v - h)) / 2h of the scalar f along every element v of
+// value, which f reads.
+TensorD numeric_gradient(TensorD& value, const std::function<double()>& f, double h = 1e-6);
 
 }  // namespace pillarseg::test
