@@ -57,4 +57,5 @@ TEST(Configs, ErrorsNameTheKey) {
   EXPECT_NE(message("grid: {x: [0, 1.6], y: [0, 0.8], cell: 0.1}\nmodel: {depth: 4}").find("too small"),
             std::string::npos);
   EXPECT_NE(message("train: {epochs: 0}").find("train.epochs"), std::string::npos);
+  EXPECT_NE(message("train: {precise_bn_batches: -1}").find("train.precise_bn_batches"), std::string::npos);
 }

@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <map>
 #include <set>
 
 #include "engine/core/rng.hpp"
@@ -216,6 +217,48 @@ TEST(Model, AdamStepsReduceTheLossAndEvalUsesRunningStatistics) {
     EXPECT_GE(l, 1);
     EXPECT_LE(l, 12);
   }
+}
+
+// Precise BatchNorm: momentum 1 and then 1/2 over two batches leaves each running statistic at the
+// mean of the two batches' statistics; momentum 0 restores the module's own update rule.
+TEST(Model, BatchNormMomentumOverrideAveragesBatches) {
+  const ModelConfig c = tiny_config(OccupancyInput::Observability2D);
+  const TinyData first = tiny_data(c, 2, 21), second = tiny_data(c, 2, 22);
+  auto backend = make_cpu_backend();
+  const auto running_after = [&](const std::vector<std::pair<const TinyData*, float>>& forwards) {
+    PillarSegNet net(c, *backend, 5);
+    for (const auto& [data, momentum] : forwards) {
+      net.set_batchnorm_momentum(momentum);
+      net.forward(data->batch, true);
+    }
+    const ParameterSet& ps = net.parameters();
+    std::map<std::string, std::vector<float>> stats;
+    for (const char* name : {"vfe.pfn_layers.0.norm.running_mean", "occupancy.norm.running_var",
+                             "segmentation_head.up2.conv.double_conv.4.running_mean"}) {
+      const Tensor<float> t = ps.download(ps.find(name));
+      EXPECT_GT(t.numel(), 0) << name;
+      stats[name].assign(t.begin(), t.end());
+    }
+    return stats;
+  };
+  const auto alone1 = running_after({{&first, 1.0f}}), alone2 = running_after({{&second, 1.0f}});
+  const auto averaged = running_after({{&first, 1.0f}, {&second, 0.5f}});
+  for (const auto& [name, values] : averaged) {
+    ASSERT_EQ(values.size(), alone1.at(name).size());
+    for (size_t i = 0; i < values.size(); ++i) {
+      const float expected = 0.5f * (alone1.at(name)[i] + alone2.at(name)[i]);
+      EXPECT_NEAR(values[i], expected, 1e-5f * (1 + std::abs(expected))) << name << "[" << i << "]";
+    }
+  }
+  // Restored: the PFN's momentum 0.01 after a momentum-1 batch.
+  const auto restored = running_after({{&first, 1.0f}, {&second, 0.0f}});
+  const std::string pfn = "vfe.pfn_layers.0.norm.running_mean";
+  for (size_t i = 0; i < restored.at(pfn).size(); ++i) {
+    const float expected = 0.99f * alone1.at(pfn)[i] + 0.01f * alone2.at(pfn)[i];
+    EXPECT_NEAR(restored.at(pfn)[i], expected, 1e-5f * (1 + std::abs(expected)));
+  }
+  PillarSegNet net(c, *backend, 5);
+  EXPECT_THROW(net.set_batchnorm_momentum(1.5f), Error);
 }
 
 TEST(Model, EmptyScanAndBadInputs) {

@@ -104,15 +104,26 @@ TEST(Train, WritesCheckpointAndLogAndIsBitwiseReproducible) {
 
 TEST(Train, ResumeIsExact) {
   const fs::path dir = test::temp_dir();
-  train(options_for(dir / "straight", tiny_config_text()));
-  TrainOptions first = options_for(dir / "split", tiny_config_text());
-  first.max_epochs_this_run = 1;
-  EXPECT_EQ(train(first).epochs_done, 1);
-  TrainOptions second = options_for(dir / "split", tiny_config_text());
-  second.resume = true;
-  EXPECT_EQ(train(second).epochs_done, 2);
-  EXPECT_EQ(checkpoint_values(dir / "straight" / "checkpoint.safetensors"),
-            checkpoint_values(dir / "split" / "checkpoint.safetensors"));
+  // With precise BatchNorm too: the recalibrated statistics are part of the checkpoint.
+  for (const std::string extra : {"", "  precise_bn_batches: 1\n"}) {
+    const std::string name = extra.empty() ? "" : "_precise_bn";
+    train(options_for(dir / ("straight" + name), tiny_config_text(extra)));
+    TrainOptions first = options_for(dir / ("split" + name), tiny_config_text(extra));
+    first.max_epochs_this_run = 1;
+    EXPECT_EQ(train(first).epochs_done, 1);
+    TrainOptions second = options_for(dir / ("split" + name), tiny_config_text(extra));
+    second.resume = true;
+    EXPECT_EQ(train(second).epochs_done, 2);
+    EXPECT_EQ(checkpoint_values(dir / ("straight" + name) / "checkpoint.safetensors"),
+              checkpoint_values(dir / ("split" + name) / "checkpoint.safetensors"));
+  }
+  // Recalibration changes the running statistics, and only them.
+  const Checkpoint plain = read_checkpoint(dir / "straight" / "checkpoint.safetensors");
+  const Checkpoint precise = read_checkpoint(dir / "straight_precise_bn" / "checkpoint.safetensors");
+  EXPECT_EQ(plain.file.get_f32("segmentation_head.outc.conv.weight"),
+            precise.file.get_f32("segmentation_head.outc.conv.weight"));
+  EXPECT_FALSE(plain.file.get_f32("vfe.pfn_layers.0.norm.running_mean") ==
+               precise.file.get_f32("vfe.pfn_layers.0.norm.running_mean"));
   // A fresh run refuses to overwrite, and resume refuses another config.
   EXPECT_THROW(train(options_for(dir / "split", tiny_config_text())), Error);
   std::string other = tiny_config_text();

@@ -29,6 +29,7 @@ struct BnParams {
   int gamma = -1, beta = -1, mean = -1, var = -1;
   std::string counter;
   float eps = 1e-5f, momentum = 0.1f;
+  float module_momentum = 0.1f;  // the PyTorch module's; `momentum` differs while recalibrating
   Ref save_mean, save_invstd;  // activations arena
 };
 
@@ -40,7 +41,7 @@ BnParams declare_bn(ParameterSet& ps, const std::string& prefix, int channels, f
   b.var = ps.add_buffer(prefix + ".running_var", {channels}, 1.0f);
   b.counter = prefix + ".num_batches_tracked";
   ps.add_counter(b.counter);
-  b.eps = eps, b.momentum = momentum;
+  b.eps = eps, b.momentum = momentum, b.module_momentum = momentum;
   return b;
 }
 
@@ -209,6 +210,16 @@ struct PillarSegNet::Impl {
   int planned_batch = -1;
 
   std::unique_ptr<Arena> activations, pillars;
+
+  // Every BatchNorm of the network (pointers into the members above, fixed after construction).
+  std::vector<BnParams*> batchnorms() {
+    std::vector<BnParams*> all;
+    if (pfn_weight >= 0) all.push_back(&pfn_bn);
+    if (occupancy.conv.weight >= 0) all.push_back(&occupancy.bn);
+    for (Down& d : downs) all.insert(all.end(), {&d.conv.first.bn, &d.conv.second.bn});
+    for (Up& u : ups) all.insert(all.end(), {&u.conv.first.bn, &u.conv.second.bn});
+    return all;
+  }
 };
 
 PillarSegNet::PillarSegNet(const ModelConfig& config, Backend& backend, uint64_t seed)
@@ -270,6 +281,11 @@ PillarSegNet::PillarSegNet(const ModelConfig& config, Backend& backend, uint64_t
 }
 
 PillarSegNet::~PillarSegNet() = default;
+
+void PillarSegNet::set_batchnorm_momentum(float momentum) {
+  PS_CHECK(momentum <= 1, "BatchNorm momentum must be at most 1, got {}", momentum);
+  for (BnParams* bn : impl_->batchnorms()) bn->momentum = momentum > 0 ? momentum : bn->module_momentum;
+}
 
 void PillarSegNet::plan(int batch) {
   Impl& m = *impl_;

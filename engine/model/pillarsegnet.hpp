@@ -58,6 +58,12 @@ class PillarSegNet {
   // After loss(): every parameter gradient.
   void backward();
 
+  // The momentum of every BatchNorm's running statistics in training-mode forwards; 0 (or
+  // less) restores each module's own (0.1 in the U-Net, 0.01 in the PFN and occupancy stream).
+  // Recalibration sets 1/k before the k-th of K forwards: the running statistics become the
+  // plain average of the K batches' statistics under the current weights.
+  void set_batchnorm_momentum(float momentum);
+
   Ref logits() const { return logits_; }
   Tensor<float> download_logits() const;           // (B, 12, H, W)
   Tensor<float> probabilities();                   // softmax, (B, 12, H, W)

@@ -34,6 +34,7 @@ void read_train(const YAML::Node& t, const ClassTable& classes, const std::strin
     else if (key == "seed") c.seed = get<uint64_t>(v, where);
     else if (key == "max_scans_per_sequence") c.max_scans_per_sequence = get<int>(v, where);
     else if (key == "scan_stride") c.scan_stride = get<int>(v, where);
+    else if (key == "precise_bn_batches") c.precise_bn_batches = get<int>(v, where);
     else if (key == "sequences") c.sequences = get<std::vector<int>>(v, where);
     else if (key == "coefficients") coefficients = v;
     else if (key == "optimizer") {
@@ -90,6 +91,8 @@ void read_train(const YAML::Node& t, const ClassTable& classes, const std::strin
   PS_CHECK(c.epochs >= 1, "{}: train.epochs must be >= 1, got {}", source, c.epochs);
   PS_CHECK(c.batch_size >= 1, "{}: train.batch_size must be >= 1, got {}", source, c.batch_size);
   PS_CHECK(c.scan_stride >= 1, "{}: train.scan_stride must be >= 1, got {}", source, c.scan_stride);
+  PS_CHECK(c.precise_bn_batches >= 0, "{}: train.precise_bn_batches must be >= 0, got {}", source,
+           c.precise_bn_batches);
   PS_CHECK(c.lr > 0, "{}: train.optimizer.lr must be > 0, got {}", source, c.lr);
   PS_CHECK(c.pct_start > 0 && c.pct_start < 1, "{}: train.optimizer.pct_start must be in (0, 1)", source);
 }

@@ -34,6 +34,11 @@ struct TrainConfig {
   std::vector<int> sequences = {0, 1, 2, 3, 4, 5, 6, 7, 9, 10};
   int max_scans_per_sequence = 0;  // 0: all
   int scan_stride = 1;
+  // Precise BatchNorm: after each epoch, the running statistics are recomputed as the average
+  // over this many unaugmented training batches under the final weights (0: off, keep the
+  // momentum averages). Short runs need it: the PFN's momentum of 0.01 still remembers weights
+  // from hundreds of steps before.
+  int precise_bn_batches = 0;
 };
 
 struct EvalConfig {

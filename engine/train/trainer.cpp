@@ -3,6 +3,7 @@
 #include <fmt/format.h>
 #include <spdlog/spdlog.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <fstream>
@@ -46,6 +47,28 @@ class MetricsLog {
  private:
   std::ofstream out_;
 };
+
+// Precise BatchNorm (train.precise_bn_batches): sets every running statistic to the mean of the
+// batch statistics of K full batches of unaugmented training scans, spread evenly over the data
+// set, under the current weights. Deterministic: the same scans in the same order every time.
+void recalibrate_batchnorm(PillarSegNet& net, const ScanDataset& data, const TrainConfig& tc) {
+  const size_t n = data.size();
+  const size_t B = std::min(n, static_cast<size_t>(tc.batch_size));
+  const size_t batches = std::clamp<size_t>(n / B, 1, static_cast<size_t>(tc.precise_bn_batches));
+  const size_t used = batches * B;
+  for (size_t k = 0; k < batches; ++k) {
+    std::vector<Sample> samples(B);
+    parallel_for(static_cast<int64_t>(B), [&](int64_t j) {
+      const size_t slot = k * B + static_cast<size_t>(j);
+      samples[static_cast<size_t>(j)] = data.eval_sample(slot * n / used, tc.ground_truth, /*with_mask=*/false);
+    });
+    std::vector<const ScanInputs*> inputs;
+    for (const Sample& sample : samples) inputs.push_back(&sample.inputs);
+    net.set_batchnorm_momentum(1.0f / static_cast<float>(k + 1));
+    net.forward(collate(inputs, net.config()), /*training=*/true);
+  }
+  net.set_batchnorm_momentum(0);
+}
 
 }  // namespace
 
@@ -158,6 +181,7 @@ TrainResult train(const TrainOptions& options) {
     state.epoch = epoch + 1;
     result.last_epoch_loss = loss_sum / static_cast<double>(steps_per_epoch);
     if (options.progress) progress.finish(fmt::format("mean loss {:.4f}", result.last_epoch_loss));
+    if (tc.precise_bn_batches > 0) recalibrate_batchnorm(net, data, tc);
     save_checkpoint(ckpt_path, net, cfg, state, /*with_optimizer=*/true);
     log.line(fmt::format(R"({{"type": "epoch", "epoch": {}, "step": {}, "mean_loss": {:.6f}, "checkpoint": "{}"}})",
                          state.epoch, state.step, result.last_epoch_loss, ckpt_path.filename().string()));
