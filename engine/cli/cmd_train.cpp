@@ -35,8 +35,9 @@ void run_train(const TrainArgs& a) {
   o.resume = a.resume;
   o.max_epochs_this_run = a.epochs_now;
   const TrainResult r = train(o);
-  fmt::print("trained {} epochs ({} steps), last epoch mean loss {:.4f}; checkpoint {}\n", r.epochs_done, r.steps_done,
-             r.last_epoch_loss, r.checkpoint.string());
+  fmt::print("trained {} epochs ({} steps) in {:.1f} min ({:.1f} CPU-min), last epoch mean loss {:.4f}; checkpoint {}\n",
+             r.epochs_done, r.steps_done, r.wall_seconds / 60, r.cpu_seconds / 60, r.last_epoch_loss,
+             r.checkpoint.string());
 }
 
 void run_eval(const EvalArgs& a) {

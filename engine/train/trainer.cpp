@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <ctime>
 #include <fstream>
 #include <numeric>
 
@@ -125,6 +126,7 @@ TrainResult train(const TrainOptions& options) {
       options.max_epochs_this_run > 0 ? std::min<int64_t>(tc.epochs, state.epoch + options.max_epochs_this_run)
                                       : tc.epochs;
   const auto started = std::chrono::steady_clock::now();
+  const std::clock_t cpu_started = std::clock();
   // The end of a stop message: the checkpoint a user can resume from, if any.
   const auto last_good_checkpoint = [&] {
     return fs::exists(ckpt_path) ? fmt::format("The last good checkpoint is {}", ckpt_path.string())
@@ -188,6 +190,8 @@ TrainResult train(const TrainOptions& options) {
   }
   result.epochs_done = state.epoch;
   result.steps_done = state.step;
+  result.wall_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - started).count();
+  result.cpu_seconds = static_cast<double>(std::clock() - cpu_started) / CLOCKS_PER_SEC;
   result.checkpoint = ckpt_path;
   return result;
 }

@@ -29,6 +29,7 @@ struct TrainOptions {
 struct TrainResult {
   int64_t epochs_done = 0, steps_done = 0;
   double last_epoch_loss = 0;
+  double wall_seconds = 0, cpu_seconds = 0;  // of this invocation (process CPU time, all threads)
   std::filesystem::path checkpoint;
 };
 
