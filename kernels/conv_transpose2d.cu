@@ -270,13 +270,10 @@ void check_shape(const char* op, const ConvTranspose2dShape& s) {
   gemm::check_elements(op, "w (I, O, 2, 2)", in_channels * out_channels * kSubPixels);
 }
 
-struct Counts {
-  std::int64_t x, w, y;
-};
-Counts element_counts(const ConvTranspose2dShape& s) {
-  return Counts{s.batch * s.in_channels * s.height * s.width,
-                s.in_channels * s.out_channels * kSubPixels,
-                s.batch * s.out_channels * s.out_height() * s.out_width()};
+gemm::OperandCounts element_counts(const ConvTranspose2dShape& s) {
+  return gemm::OperandCounts{s.batch * s.in_channels * s.height * s.width,
+                             s.in_channels * s.out_channels * kSubPixels,
+                             s.batch * s.out_channels * s.out_height() * s.out_width()};
 }
 
 template <class Tile>
@@ -328,13 +325,8 @@ void conv_transpose2d_forward(const float* x, const float* w, const float* bias,
                               const ConvTranspose2dShape& shape, cudaStream_t stream) {
   constexpr const char* kOp = "conv_transpose2d_forward";
   check_shape(kOp, shape);
-  const Counts n = element_counts(shape);
-  gemm::check_pointer(kOp, "x", x, n.x);
-  gemm::check_pointer(kOp, "w", w, n.w);
-  gemm::check_pointer(kOp, "y", y, n.y);
-  gemm::check_disjoint(kOp, "y", y, n.y, "x", x, n.x);
-  gemm::check_disjoint(kOp, "y", y, n.y, "w", w, n.w);
-  gemm::check_disjoint(kOp, "y", y, n.y, "bias", bias, shape.out_channels);
+  const gemm::OperandCounts n = element_counts(shape);
+  gemm::check_forward_operands(kOp, n, x, w, bias, shape.out_channels, y);
   if (n.y == 0) return;
   if (kSubPixels * shape.out_channels <= gemm::kNarrowTileMaxRows) {
     launch_forward<NarrowTile>(x, w, bias, y, shape, stream);
@@ -347,12 +339,8 @@ void conv_transpose2d_backward_data(const float* dy, const float* w, float* dx,
                                     const ConvTranspose2dShape& shape, cudaStream_t stream) {
   constexpr const char* kOp = "conv_transpose2d_backward_data";
   check_shape(kOp, shape);
-  const Counts n = element_counts(shape);
-  gemm::check_pointer(kOp, "dy", dy, n.y);
-  gemm::check_pointer(kOp, "w", w, n.w);
-  gemm::check_pointer(kOp, "dx", dx, n.x);
-  gemm::check_disjoint(kOp, "dx", dx, n.x, "dy", dy, n.y);
-  gemm::check_disjoint(kOp, "dx", dx, n.x, "w", w, n.w);
+  const gemm::OperandCounts n = element_counts(shape);
+  gemm::check_backward_data_operands(kOp, n, dy, w, dx);
   if (n.x == 0) return;
   if (shape.in_channels <= gemm::kNarrowTileMaxRows) {
     launch_backward_data<NarrowTile>(dy, w, dx, shape, stream);
@@ -375,26 +363,11 @@ void conv_transpose2d_backward_weights(const float* x, const float* dy, float* d
                                        std::size_t workspace_floats, cudaStream_t stream) {
   constexpr const char* kOp = "conv_transpose2d_backward_weights";
   check_shape(kOp, shape);
-  const Counts n = element_counts(shape);
+  const gemm::OperandCounts n = element_counts(shape);
   const std::size_t needed = conv_transpose2d_backward_weights_workspace(shape);
-  gemm::check_pointer(kOp, "x", x, n.x);
-  gemm::check_pointer(kOp, "dy", dy, n.y);
-  gemm::check_pointer(kOp, "dw", dw, n.w);
-  PS_CHECK(workspace_floats >= needed && (needed == 0 || workspace != nullptr),
-           "{}: the workspace must hold conv_transpose2d_backward_weights_workspace(shape) = {} "
-           "floats, got {} floats at {}",
-           kOp, needed, workspace_floats, fmt::ptr(workspace));
-  const auto ws = static_cast<std::int64_t>(needed);
   const std::int64_t nb = db != nullptr ? shape.out_channels : 0;
-  gemm::check_disjoint(kOp, "dw", dw, n.w, "x", x, n.x);
-  gemm::check_disjoint(kOp, "dw", dw, n.w, "dy", dy, n.y);
-  gemm::check_disjoint(kOp, "dw", dw, n.w, "db", db, nb);
-  gemm::check_disjoint(kOp, "dw", dw, n.w, "workspace", workspace, ws);
-  gemm::check_disjoint(kOp, "db", db, nb, "x", x, n.x);
-  gemm::check_disjoint(kOp, "db", db, nb, "dy", dy, n.y);
-  gemm::check_disjoint(kOp, "db", db, nb, "workspace", workspace, ws);
-  gemm::check_disjoint(kOp, "workspace", workspace, ws, "x", x, n.x);
-  gemm::check_disjoint(kOp, "workspace", workspace, ws, "dy", dy, n.y);
+  gemm::check_backward_weights_operands(kOp, "conv_transpose2d_backward_weights_workspace", n, x,
+                                        dy, dw, db, nb, workspace, workspace_floats, needed);
   if (shape.out_channels == 0) return;
 
   const gemm::SplitPlan plan = plan_weight_gradient(shape);

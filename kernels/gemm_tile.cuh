@@ -633,6 +633,60 @@ inline void check_disjoint(const char* op, const char* a_name, const float* a, s
            op, a_name, a_count, fmt::ptr(a), b_name, b_count, fmt::ptr(b));
 }
 
+// The element counts of a convolution's input x, weight w and output y.
+struct OperandCounts {
+  std::int64_t x, w, y;
+};
+
+// The operand checks of the convolution launchers (conv2d.cu, conv_transpose2d.cu): every tensor
+// with elements has a pointer, and no output aliases an input or another output.
+// Forward: x, w, bias (nullptr, or `bias_count` floats) -> y.
+inline void check_forward_operands(const char* op, const OperandCounts& n, const float* x,
+                                   const float* w, const float* bias, std::int64_t bias_count,
+                                   const float* y) {
+  check_pointer(op, "x", x, n.x);
+  check_pointer(op, "w", w, n.w);
+  check_pointer(op, "y", y, n.y);
+  check_disjoint(op, "y", y, n.y, "x", x, n.x);
+  check_disjoint(op, "y", y, n.y, "w", w, n.w);
+  check_disjoint(op, "y", y, n.y, "bias", bias, bias_count);
+}
+
+// Input gradient: dy, w -> dx.
+inline void check_backward_data_operands(const char* op, const OperandCounts& n, const float* dy,
+                                         const float* w, const float* dx) {
+  check_pointer(op, "dy", dy, n.y);
+  check_pointer(op, "w", w, n.w);
+  check_pointer(op, "dx", dx, n.x);
+  check_disjoint(op, "dx", dx, n.x, "dy", dy, n.y);
+  check_disjoint(op, "dx", dx, n.x, "w", w, n.w);
+}
+
+// Parameter gradients: x, dy -> dw, db (nullptr, or `db_count` floats), through `workspace` of
+// `workspace_floats`, of which `needed` (what `workspace_function`(shape) returns) are required.
+inline void check_backward_weights_operands(const char* op, const char* workspace_function,
+                                            const OperandCounts& n, const float* x, const float* dy,
+                                            const float* dw, const float* db, std::int64_t db_count,
+                                            const float* workspace, std::size_t workspace_floats,
+                                            std::size_t needed) {
+  check_pointer(op, "x", x, n.x);
+  check_pointer(op, "dy", dy, n.y);
+  check_pointer(op, "dw", dw, n.w);
+  PS_CHECK(workspace_floats >= needed && (needed == 0 || workspace != nullptr),
+           "{}: the workspace must hold {}(shape) = {} floats, got {} floats at {}", op,
+           workspace_function, needed, workspace_floats, fmt::ptr(workspace));
+  const auto ws = static_cast<std::int64_t>(needed);
+  check_disjoint(op, "dw", dw, n.w, "x", x, n.x);
+  check_disjoint(op, "dw", dw, n.w, "dy", dy, n.y);
+  check_disjoint(op, "dw", dw, n.w, "db", db, db_count);
+  check_disjoint(op, "dw", dw, n.w, "workspace", workspace, ws);
+  check_disjoint(op, "db", db, db_count, "x", x, n.x);
+  check_disjoint(op, "db", db, db_count, "dy", dy, n.y);
+  check_disjoint(op, "db", db, db_count, "workspace", workspace, ws);
+  check_disjoint(op, "workspace", workspace, ws, "x", x, n.x);
+  check_disjoint(op, "workspace", workspace, ws, "dy", dy, n.y);
+}
+
 // The grid of a GEMM of rows x columns in Tile's blocks, `splits` deep; throws if CUDA cannot
 // launch it (at most 65535 blocks along y and z).
 template <class Tile>
