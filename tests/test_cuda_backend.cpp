@@ -118,11 +118,13 @@ const Variant kVariants[] = {
 
 // Per-quantity tolerances, |cuda - cpu| <= atol + rtol |cpu|. The two backends sum in different
 // orders (tiled GEMMs, per-block partial sums in double) over at most a few hundred terms per
-// output, in float: forward values agree to a few ulp per layer; training-mode BatchNorm divides
-// by a batch deviation and so amplifies them through the depth, which the gradients inherit.
-constexpr double kForwardRtol = 1e-4, kForwardAtol = 1e-5;
-constexpr double kLossRtol = 1e-5;
-constexpr double kGradientRtol = 2e-3, kGradientAtolScale = 1e-4;  // atol = scale * max |grad|
+// output, in float; training-mode BatchNorm divides by a batch deviation and so amplifies the
+// differences through the depth, which the gradients inherit. Measured worst cases over the
+// variants below: logits 2.4e-6 relative, losses 1e-8 relative, gradients 1.5e-7 absolute
+// (3.5e-5 relative); the tolerances leave a margin of about 5 to 10.
+constexpr double kForwardRtol = 2e-5, kForwardAtol = 2e-6;
+constexpr double kLossRtol = 1e-6;
+constexpr double kGradientRtol = 2e-4, kGradientAtolScale = 2e-5, kGradientAtolFloor = 1e-7;
 
 }  // namespace
 
@@ -150,6 +152,9 @@ TEST_P(CudaBackendModel, MatchesTheCpuBackend) {
     EXPECT_NEAR(cuda_loss, cpu_loss, kLossRtol * std::abs(cpu_loss));
     cpu_net.backward();
     cuda_net.backward();
+    // atol: relative to the tensor's own scale, with a floor for the convolution biases ahead
+    // of a BatchNorm, whose true gradient is 0 (the normalisation removes any shift): both
+    // backends give rounding noise of about 1e-8 there.
     int compared = 0;
     for (int i = 0; i < static_cast<int>(cpu_ps.entries().size()); ++i) {
       const ParamEntry& e = cpu_ps.entries()[static_cast<size_t>(i)];
@@ -157,13 +162,11 @@ TEST_P(CudaBackendModel, MatchesTheCpuBackend) {
       Tensor<float> cpu_grad(e.shape), cuda_grad(e.shape);
       cpu->download(cpu_grad.data(), cpu_ps.grad(i).data, cpu_grad.numel() * sizeof(float));
       cuda.download(cuda_grad.data(), cuda_ps.grad(i).data, cuda_grad.numel() * sizeof(float));
-      EXPECT_TRUE(test::all_close(cuda_grad, cpu_grad,
-                                  kGradientAtolScale * max_abs(cpu_grad) + 1e-7, kGradientRtol))
-          << e.name;
-      EXPECT_GT(max_abs(cpu_grad), 0.0) << e.name << ": a zero gradient checks nothing";
-      ++compared;
+      const double atol = kGradientAtolScale * max_abs(cpu_grad) + kGradientAtolFloor;
+      EXPECT_TRUE(test::all_close(cuda_grad, cpu_grad, atol, kGradientRtol)) << e.name;
+      if (max_abs(cpu_grad) > 1e-4) ++compared;
     }
-    EXPECT_GT(compared, 20);
+    EXPECT_GT(compared, 20) << "tensors with gradients well above rounding noise";
     // Running statistics (moved by both training forwards so far) and their counters.
     EXPECT_TRUE(test::all_close(as_tensor(cuda_ps.download_flat(cuda_ps.buffers())),
                                 as_tensor(cpu_ps.download_flat(cpu_ps.buffers())), 1e-6, 1e-5));
@@ -199,7 +202,7 @@ TEST_P(CudaBackendModel, MatchesTheCpuBackend) {
   EXPECT_EQ(cuda.stats().graph_replays, 1);
   const Tensor<float> cpu_logits = cpu_net.download_logits();
   EXPECT_TRUE(test::all_close(cuda_net.download_logits(), cpu_logits, kForwardAtol, kForwardRtol));
-  EXPECT_TRUE(test::all_close(cuda_net.probabilities(), cpu_net.probabilities(), 1e-6, 1e-4));
+  EXPECT_TRUE(test::all_close(cuda_net.probabilities(), cpu_net.probabilities(), 1e-7, 2e-5));
   // Class maps agree wherever the top two logits are apart by more than the tolerance.
   const Tensor<uint8_t> cpu_labels = cpu_net.predict_labels(),
                         cuda_labels = cuda_net.predict_labels();

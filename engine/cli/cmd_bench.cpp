@@ -42,6 +42,7 @@ void run_bench(const BenchArgs& a) {
   ModelConfig model;
   if (!a.config.empty()) model = load_run_config(a.config).model;
   model.transposed = model.transposed || a.transposed;
+  auto backend = make_backend(a.device);  // first: no device, no scratch files left behind
   const fs::path scratch = fs::temp_directory_path() / fmt::format("pillarseg_bench_{}", ::getpid());
   fs::path scan_path = a.scan;
   if (scan_path.empty()) {
@@ -50,7 +51,6 @@ void run_bench(const BenchArgs& a) {
     scan_path = scratch / "scan.bin";
     write_bin(scan_path, simulator.scan(0).points);
   }
-  auto backend = make_backend(a.device);
   PillarSegNet net(model, *backend);
   if (!a.weights.empty()) load_weights(read_checkpoint(a.weights), net, false);
   net.set_stage_timing(true);
