@@ -220,7 +220,7 @@ T* CudaBackend::grow(cuda::DeviceBuffer<T>& buffer, size_t count) {
            (count - buffer.size()) * sizeof(T));
   wait_for_stream();  // queued kernels may still use the old buffer
   stats_.workspace_bytes -= buffer.bytes();
-  buffer = cuda::DeviceBuffer<T>();
+  buffer = cuda::DeviceBuffer<T>();  // freed first: its content is scratch, and peak memory drops
   buffer = cuda::DeviceBuffer<T>(count);
   stats_.workspace_bytes += buffer.bytes();
   ++stats_.device_allocations;
