@@ -9,8 +9,14 @@
 #include "engine/cli/commands.hpp"
 #include "engine/core/error.hpp"
 #include "engine/core/parallel.hpp"
+#if defined(PILLARSEG_WITH_CUDA_BACKEND)
+#include "engine/cuda/cuda_backend.hpp"
+#endif
 
 int main(int argc, char** argv) {
+#if defined(PILLARSEG_WITH_CUDA_BACKEND)
+  pillarseg::install_cuda_backend();  // --device cuda runs the kernels (engine/cuda/)
+#endif
   CLI::App app{"pillarseg: dense top-view semantic grid maps from one LiDAR sweep (PillarSegNet)"};
   app.require_subcommand(1);
   int threads = 0;

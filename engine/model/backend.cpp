@@ -1,5 +1,8 @@
 #include "engine/model/backend.hpp"
 
+#include <atomic>
+#include <chrono>
+
 #include "engine/core/error.hpp"
 
 namespace pillarseg {
@@ -7,7 +10,17 @@ namespace pillarseg {
 namespace {
 constexpr size_t kAlignment = 64;
 size_t align_up(size_t n) { return (n + kAlignment - 1) / kAlignment * kAlignment; }
+std::atomic<BackendFactory> cuda_backend_factory{nullptr};
 }  // namespace
+
+double Backend::clock_ms() {
+  synchronize();
+  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now().time_since_epoch()).count();
+}
+
+std::unique_ptr<CapturedGraph> Backend::capture(const std::function<void()>&) {
+  PS_FAIL("backend {} cannot capture graphs (check supports_capture() first)", name());
+}
 
 void Arena::reserve(size_t bytes) {
   measuring_ = false;
@@ -34,6 +47,16 @@ void* Arena::take_bytes(size_t bytes) {
   return static_cast<char*>(base_) + offset;
 }
 
+void set_cuda_backend_factory(BackendFactory factory) { cuda_backend_factory.store(factory); }
+
+std::unique_ptr<Backend> make_cuda_backend() {
+  const BackendFactory factory = cuda_backend_factory.load();
+  PS_CHECK(factory != nullptr,
+           "--device cuda: this build has no CUDA backend (configure with the CUDA toolkit installed, so that "
+           "CMake finds nvcc); use --device cpu");
+  return factory();
+}
+
 std::unique_ptr<Backend> make_backend(const std::string& device) {
   if (device == "cpu") return make_cpu_backend();
   if (device == "cuda") return make_cuda_backend();
@@ -41,12 +64,3 @@ std::unique_ptr<Backend> make_backend(const std::string& device) {
 }
 
 }  // namespace pillarseg
-
-#ifndef PILLARSEG_WITH_CUDA_BACKEND
-namespace pillarseg {
-std::unique_ptr<Backend> make_cuda_backend() {
-  PS_FAIL("--device cuda: this build has no CUDA backend (the CUDA kernels are not wired into the engine yet; "
-          "see README, 'Status'); use --device cpu");
-}
-}  // namespace pillarseg
-#endif

@@ -6,6 +6,7 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <string>
 
@@ -38,6 +39,15 @@ struct BatchNormRefs {
 
 enum class LossKind { CrossEntropy, Bce };
 
+// Device work recorded once by Backend::capture() (a CUDA graph) and run again by replay(), on
+// the memory the recorded ops named, with whatever it holds at replay time. Must not outlive its
+// backend.
+class CapturedGraph {
+ public:
+  virtual ~CapturedGraph() = default;
+  virtual void replay() = 0;
+};
+
 struct AdamHyper {
   float lr = 1e-3f, beta1 = 0.9f, beta2 = 0.99f, eps = 1e-8f, weight_decay = 0.01f;
   int64_t step = 1;  // 1-based, for the bias correction
@@ -56,6 +66,15 @@ class Backend {
   virtual void download(void* host_dst, const void* src, size_t bytes) = 0;
   virtual void fill_zero(void* dst, size_t bytes) = 0;
   virtual void synchronize() {}
+  // Waits for the work queued so far, then reads the backend's clock, in ms from an arbitrary
+  // origin (stage timing): the host's steady clock here, CUDA events on the CUDA backend.
+  virtual double clock_ms();
+
+  // Graph capture: a backend that supports it records the ops that `work` queues, without
+  // running them, and returns them for replay. Recorded ops must not allocate, upload, download
+  // or wait (the model records only the evaluation forward's device work).
+  virtual bool supports_capture() const { return false; }
+  virtual std::unique_ptr<CapturedGraph> capture(const std::function<void()>& work);
 
   // Pillar feature net: decorated points (P, N, 10), W (C, 10) -> BN -> ReLU -> max over N
   // -> (P, C). Training uses batch statistics over all P*N rows and saves what backward needs
@@ -107,9 +126,14 @@ class Backend {
 };
 
 std::unique_ptr<Backend> make_cpu_backend();
-// The CUDA backend; throws pillarseg::Error with the reason when it is not available.
+// The CUDA backend; throws pillarseg::Error with the reason when it is not available (a build
+// without it, or no device).
 std::unique_ptr<Backend> make_cuda_backend();
 std::unique_ptr<Backend> make_backend(const std::string& device);
+// What make_cuda_backend() calls. pillarseg_lib holds no CUDA code: a program linked with a CUDA
+// backend library installs its factory (engine/cuda/cuda_backend.hpp, install_cuda_backend()).
+using BackendFactory = std::unique_ptr<Backend> (*)();
+void set_cuda_backend_factory(BackendFactory factory);
 
 // Owns one allocation of a backend and hands out Refs from it in order (a bump allocator);
 // `reset()` forgets them, `reserve()` grows the block (invalidating earlier Refs). Planning

@@ -6,7 +6,7 @@
 //
 // Activation memory is planned once per (batch, H, W) in one arena; pillar buffers grow
 // only when a batch has more pillars than any before, so the steady-state loop allocates
-// nothing.
+// nothing, and a recorded evaluation graph stays valid until then.
 #pragma once
 
 #include <array>
@@ -42,15 +42,18 @@ class PillarSegNet {
   ParameterSet& parameters() { return params_; }
   const ParameterSet& parameters() const { return params_; }
 
-  // Wall time of each stage of the last forward, in ms (pfn, scatter, occupancy, unet, head),
-  // when timing is on; the backend is synchronised at every stage boundary then.
+  // Time of each stage of the last forward, in ms (upload, pfn, scatter, occupancy, unet, head),
+  // when timing is on: read from Backend::clock_ms() at every stage boundary (it waits for the
+  // device; CUDA events on the CUDA backend).
   struct StageTimes {
     double upload = 0, pfn = 0, scatter = 0, occupancy = 0, unet = 0, head = 0;
   };
   void set_stage_timing(bool on) { time_stages_ = on; }
   const StageTimes& stage_times() const { return stage_times_; }
 
-  // Runs the network; training: batch statistics (and running-statistic updates).
+  // Runs the network; training: batch statistics (and running-statistic updates). Evaluation
+  // on a backend that captures graphs (and with stage timing off) records its device work once
+  // per planned shape and replays it (see forward() in the .cpp).
   void forward(const ModelBatch& batch, bool training);
   // After forward: the mean loss over labelled cells of labels (B, H, W), and the gradient
   // of the logits, ready for backward(). coefficients: per class id 0..12.
@@ -75,7 +78,7 @@ class PillarSegNet {
 
  private:
   void plan(int batch);
-  void plan_pillars(int64_t pillars);
+  void plan_pillars(int64_t pillars, bool at_capacity);
 
   ModelConfig config_;
   Backend& backend_;

@@ -1,0 +1,624 @@
+// CudaBackend (see cuda_backend.hpp): each Backend op checks its Refs' shapes (the API edge),
+// works out the kernel's shape struct and calls its launcher on the backend's stream. Refs hold
+// device pointers; shapes follow the Backend interface: activations (B, C, H, W), pillar tensors
+// (P, N, 10) and (P, C), cells (P, 3), labels (B, H, W).
+#include "engine/cuda/cuda_backend.hpp"
+
+#include <fmt/format.h>
+
+#include <algorithm>
+#include <cstring>
+#include <type_traits>
+
+#include "engine/core/error.hpp"
+#include "kernels/adam.cuh"
+#include "kernels/batchnorm.cuh"
+#include "kernels/common.cuh"
+#include "kernels/conv2d.cuh"
+#include "kernels/conv_transpose2d.cuh"
+#include "kernels/elementwise.cuh"
+#include "kernels/maxpool2d.cuh"
+#include "kernels/pad_concat.cuh"
+#include "kernels/pfn.cuh"
+#include "kernels/reduce.cuh"
+#include "kernels/scatter.cuh"
+#include "kernels/softmax.cuh"
+#include "kernels/upsample_bilinear.cuh"
+
+namespace pillarseg {
+
+namespace {
+
+constexpr size_t kStagingAlignment = 256;
+
+size_t align_staging(size_t bytes) {
+  return (bytes + kStagingAlignment - 1) / kStagingAlignment * kStagingAlignment;
+}
+
+template <class T>
+void require_shape(const char* op, const char* what, const RefT<T>& r, const Shape& expected) {
+  PS_CHECK(r.shape == expected, "{}: {} must be {}, got {}", op, what, shape_str(expected),
+           shape_str(r.shape));
+}
+
+template <class T>
+void require_rank(const char* op, const char* what, const RefT<T>& r, size_t rank) {
+  PS_CHECK(r.shape.size() == rank, "{}: {} must have {} dimensions, got {}", op, what, rank,
+           shape_str(r.shape));
+}
+
+// (B, C, H, W) seen as B items of C planes of H * W values.
+cuda::PlanarShape planar(const Ref& x) {
+  return {x.dim(0), x.dim(1), x.dim(2) * x.dim(3)};
+}
+
+// A CUDA graph instance, replayed on its backend's stream.
+class CudaGraph final : public CapturedGraph {
+ public:
+  CudaGraph(cudaGraphExec_t executable, cudaStream_t stream, int64_t& replays)
+      : executable_(executable), stream_(stream), replays_(replays) {}
+  ~CudaGraph() override {
+    // A destructor cannot throw; this fails only for a context that is already broken, which the
+    // next checked call reports.
+    static_cast<void>(cudaGraphExecDestroy(executable_));
+  }
+  CudaGraph(const CudaGraph&) = delete;
+  CudaGraph& operator=(const CudaGraph&) = delete;
+
+  void replay() override {
+    PS_CUDA_CHECK(cudaGraphLaunch(executable_, stream_));
+    ++replays_;
+  }
+
+ private:
+  cudaGraphExec_t executable_;
+  cudaStream_t stream_;
+  int64_t& replays_;
+};
+
+}  // namespace
+
+std::string no_cuda_device_message(cudaError_t error, int device_count) {
+  const std::string reason = error != cudaSuccess
+                                 ? fmt::format("cudaGetDeviceCount failed with {} ({})",
+                                               cudaGetErrorName(error), cudaGetErrorString(error))
+                                 : fmt::format("the CUDA runtime reports {} devices", device_count);
+  return fmt::format("no CUDA device found: {}; use --device cpu", reason);
+}
+
+CudaBackend::CudaBackend(const CudaBackendOptions& options) : options_(options) {
+  PS_CHECK(options_.max_staging_bytes >= kStagingAlignment,
+           "CudaBackend: max_staging_bytes must be at least {}, got {}", kStagingAlignment,
+           options_.max_staging_bytes);
+  int devices = 0;
+  const cudaError_t counted = cudaGetDeviceCount(&devices);
+  if (counted != cudaSuccess || devices < 1) {
+    static_cast<void>(cudaGetLastError());  // later checks start clean
+    PS_FAIL("{}", no_cuda_device_message(counted, devices));
+  }
+  PS_CUDA_CHECK(cudaSetDevice(0));
+  cudaDeviceProp properties;
+  PS_CUDA_CHECK(cudaGetDeviceProperties(&properties, 0));
+  name_ = fmt::format("cuda ({})", properties.name);
+  PS_CUDA_CHECK(cudaStreamCreateWithFlags(&stream_, cudaStreamNonBlocking));
+  try {
+    for (cudaEvent_t& event : clock_events_) PS_CUDA_CHECK(cudaEventCreate(&event));
+    workspace_.sum_of_squares = cuda::DeviceBuffer<double>(cuda::kSumOfSquaresPartials + 1);
+    workspace_.loss_partials = cuda::DeviceBuffer<cuda::LossPartial>(cuda::kLossPartials);
+    workspace_.loss_result = cuda::DeviceBuffer<cuda::LossResult>(1);
+  } catch (...) {
+    for (cudaEvent_t event : clock_events_)
+      if (event != nullptr) static_cast<void>(cudaEventDestroy(event));
+    static_cast<void>(cudaStreamDestroy(stream_));
+    throw;
+  }
+  stats_.device_allocations += 3;
+  stats_.workspace_bytes = workspace_.sum_of_squares.bytes() + workspace_.loss_partials.bytes() +
+                           workspace_.loss_result.bytes();
+}
+
+CudaBackend::~CudaBackend() {
+  // Nothing may be in flight when the memory goes; a failure here leaves nothing to report to.
+  static_cast<void>(cudaStreamSynchronize(stream_));
+  release_staging();
+  workspace_ = Workspace{};
+  for (cudaEvent_t event : clock_events_) static_cast<void>(cudaEventDestroy(event));
+  static_cast<void>(cudaStreamDestroy(stream_));
+}
+
+// ---- memory ----
+
+void* CudaBackend::allocate(size_t bytes) {
+  require_not_capturing("allocate");
+  void* p = nullptr;
+  PS_CUDA_CHECK(cudaMalloc(&p, std::max<size_t>(bytes, 1)));
+  ++stats_.device_allocations;
+  return p;
+}
+
+void CudaBackend::deallocate(void* p) noexcept {
+  // cudaFree waits for the device; it fails only for a context that is already broken.
+  static_cast<void>(cudaFree(p));
+}
+
+void CudaBackend::upload(void* dst, const void* host_src, size_t bytes) {
+  require_not_capturing("upload");
+  const auto* src = static_cast<const char*>(host_src);
+  auto* out = static_cast<char*>(dst);
+  while (bytes > 0) {
+    const size_t piece = std::min(bytes, options_.max_staging_bytes);
+    void* slot = staging_slot(piece);
+    std::memcpy(slot, src, piece);
+    PS_CUDA_CHECK(cudaMemcpyAsync(out, slot, piece, cudaMemcpyHostToDevice, stream_));
+    src += piece, out += piece, bytes -= piece;
+  }
+}
+
+void CudaBackend::download(void* host_dst, const void* src, size_t bytes) {
+  require_not_capturing("download");
+  if (bytes == 0) return;
+  PS_CUDA_CHECK(cudaMemcpyAsync(host_dst, src, bytes, cudaMemcpyDeviceToHost, stream_));
+  wait_for_stream();
+}
+
+void CudaBackend::fill_zero(void* dst, size_t bytes) {
+  if (bytes == 0) return;
+  PS_CUDA_CHECK(cudaMemsetAsync(dst, 0, bytes, stream_));
+}
+
+void CudaBackend::synchronize() {
+  require_not_capturing("synchronize");
+  wait_for_stream();
+}
+
+void CudaBackend::wait_for_stream() {
+  PS_CUDA_CHECK(cudaStreamSynchronize(stream_));
+  staging_used_ = 0;
+}
+
+void CudaBackend::require_not_capturing(const char* op) const {
+  PS_CHECK(!capturing_,
+           "CudaBackend::{} while a graph is being captured: a graph may hold device work only "
+           "(upload inputs before the capture, download after the replay)",
+           op);
+}
+
+void* CudaBackend::staging_slot(size_t bytes) {
+  const size_t needed = align_staging(bytes);
+  if (staging_used_ + needed > staging_capacity_) {
+    const size_t interval_bytes = staging_used_ + needed;
+    wait_for_stream();  // the copies out of the staging buffer are done: all of it is free
+    const size_t limit = align_staging(options_.max_staging_bytes);
+    if (staging_capacity_ < limit) {
+      // Doubling at least: a run of growing uploads reallocates only a few times.
+      const size_t capacity = std::min(std::max(interval_bytes, 2 * staging_capacity_), limit);
+      release_staging();
+      PS_CUDA_CHECK(cudaMallocHost(&staging_, capacity));
+      staging_capacity_ = capacity;
+      stats_.staging_bytes = capacity;
+      ++stats_.pinned_allocations;
+    }
+  }
+  void* slot = static_cast<char*>(staging_) + staging_used_;
+  staging_used_ += needed;
+  return slot;
+}
+
+void CudaBackend::release_staging() noexcept {
+  if (staging_ != nullptr) static_cast<void>(cudaFreeHost(staging_));
+  staging_ = nullptr;
+  staging_capacity_ = staging_used_ = 0;
+  stats_.staging_bytes = 0;
+}
+
+template <class T>
+T* CudaBackend::grow(cuda::DeviceBuffer<T>& buffer, size_t count) {
+  if (count <= buffer.size()) return buffer.data();
+  PS_CHECK(!capturing_,
+           "CudaBackend: an op needs {} more bytes of workspace while a graph is being captured; "
+           "run the work once before capturing it",
+           (count - buffer.size()) * sizeof(T));
+  wait_for_stream();  // queued kernels may still use the old buffer
+  stats_.workspace_bytes -= buffer.bytes();
+  buffer = cuda::DeviceBuffer<T>();  // freed first: its content is scratch, and peak memory drops
+  buffer = cuda::DeviceBuffer<T>(count);
+  stats_.workspace_bytes += buffer.bytes();
+  ++stats_.device_allocations;
+  return buffer.data();
+}
+
+float* CudaBackend::float_workspace(size_t count) {
+  return grow(workspace_.floats, count);
+}
+
+double* CudaBackend::double_workspace(int64_t count) {
+  return grow(workspace_.doubles, static_cast<size_t>(std::max<int64_t>(count, 1)));
+}
+
+// ---- clock and graphs ----
+
+double CudaBackend::clock_ms() {
+  require_not_capturing("clock_ms");
+  cudaEvent_t now = clock_events_[clock_next_];
+  PS_CUDA_CHECK(cudaEventRecord(now, stream_));
+  PS_CUDA_CHECK(cudaEventSynchronize(now));
+  staging_used_ = 0;  // the stream has drained
+  if (clock_started_) {
+    float elapsed = 0;
+    PS_CUDA_CHECK(cudaEventElapsedTime(&elapsed, clock_events_[1 - clock_next_], now));
+    clock_total_ms_ += elapsed;  // summed per interval: float event times stay precise
+  }
+  clock_started_ = true;
+  clock_next_ = 1 - clock_next_;
+  return clock_total_ms_;
+}
+
+std::unique_ptr<CapturedGraph> CudaBackend::capture(const std::function<void()>& work) {
+  PS_CHECK(options_.graphs, "CudaBackend::capture: this backend was made with graphs off");
+  require_not_capturing("capture");
+  PS_CUDA_CHECK(cudaStreamBeginCapture(stream_, cudaStreamCaptureModeGlobal));
+  capturing_ = true;
+  try {
+    work();
+  } catch (...) {
+    capturing_ = false;
+    cudaGraph_t partial = nullptr;
+    if (cudaStreamEndCapture(stream_, &partial) == cudaSuccess && partial != nullptr) {
+      static_cast<void>(cudaGraphDestroy(partial));
+    }
+    static_cast<void>(cudaGetLastError());
+    throw;
+  }
+  capturing_ = false;
+  cudaGraph_t graph = nullptr;
+  PS_CUDA_CHECK(cudaStreamEndCapture(stream_, &graph));
+  // The recorded graph is needed only to make the executable one.
+  const auto destroy = [](cudaGraph_t g) { static_cast<void>(cudaGraphDestroy(g)); };
+  const std::unique_ptr<std::remove_pointer_t<cudaGraph_t>, decltype(destroy)> recorded(graph,
+                                                                                        destroy);
+  cudaGraphExec_t executable = nullptr;
+  PS_CUDA_CHECK(cudaGraphInstantiate(&executable, graph, 0));
+  ++stats_.graphs_captured;
+  return std::make_unique<CudaGraph>(executable, stream_, stats_.graph_replays);
+}
+
+// ---- pillar feature net and scatter ----
+
+void CudaBackend::pfn_forward(const Ref& points, const Ref& weight, BatchNormRefs& bn,
+                              bool training, IRef& argmax, Ref& out) {
+  const char* op = "pfn_forward";
+  require_rank(op, "points", points, 3);
+  require_rank(op, "weight", weight, 2);
+  const cuda::PfnShape shape{points.dim(0), points.dim(1), weight.dim(0)};
+  require_shape(op, "points", points, {shape.pillars, shape.slots, cuda::kPfnFeatures});
+  require_shape(op, "weight", weight, {shape.channels, cuda::kPfnFeatures});
+  require_shape(op, "out", out, {shape.pillars, shape.channels});
+  if (!training) {
+    // Evaluation needs no arg-max slots (nothing flows back).
+    cuda::pfn_forward_eval(points.data, weight.data, shape, bn.gamma.data, bn.beta.data,
+                           bn.running_mean.data, bn.running_var.data, bn.eps, out.data, nullptr,
+                           stream_);
+    return;
+  }
+  require_shape(op, "argmax", argmax, {shape.pillars, shape.channels});
+  double* workspace = double_workspace(cuda::pfn_workspace_doubles(shape));
+  cuda::pfn_forward_train(points.data, weight.data, shape, bn.gamma.data, bn.beta.data, bn.eps,
+                          bn.momentum, bn.running_mean.data, bn.running_var.data, out.data,
+                          argmax.data, bn.save_mean.data, bn.save_invstd.data, workspace, stream_);
+}
+
+void CudaBackend::pfn_backward(const Ref& points, const Ref& weight, const BatchNormRefs& bn,
+                               const IRef& argmax, const Ref& dout, Ref& d_points, Ref& dweight,
+                               Ref& dgamma, Ref& dbeta) {
+  const char* op = "pfn_backward";
+  require_rank(op, "points", points, 3);
+  require_rank(op, "weight", weight, 2);
+  const cuda::PfnShape shape{points.dim(0), points.dim(1), weight.dim(0)};
+  require_shape(op, "dout", dout, {shape.pillars, shape.channels});
+  require_shape(op, "argmax", argmax, {shape.pillars, shape.channels});
+  require_shape(op, "d_points", d_points, points.shape);
+  require_shape(op, "dweight", dweight, weight.shape);
+  double* workspace = double_workspace(cuda::pfn_workspace_doubles(shape));
+  // The points are inputs: their gradient (d_points, scratch by the interface) is not computed.
+  cuda::pfn_backward(dout.data, points.data, weight.data, shape, bn.gamma.data, bn.save_mean.data,
+                     bn.save_invstd.data, argmax.data, nullptr, dweight.data, dgamma.data,
+                     dbeta.data, workspace, stream_);
+}
+
+void CudaBackend::scatter_forward(const Ref& features, const IRef& cells, int channel0,
+                                  Ref& canvas) {
+  const char* op = "scatter_forward";
+  require_rank(op, "features", features, 2);
+  require_rank(op, "canvas", canvas, 4);
+  require_shape(op, "cells", cells, {features.dim(0), 3});
+  const cuda::ScatterCanvas shape{canvas.dim(0), canvas.dim(1), canvas.dim(2), canvas.dim(3),
+                                  channel0};
+  cuda::scatter_forward(features.data, cells.data, features.dim(0), features.dim(1), shape,
+                        canvas.data, stream_);
+}
+
+void CudaBackend::scatter_backward(const Ref& dcanvas, const IRef& cells, int channel0,
+                                   Ref& dfeatures) {
+  const char* op = "scatter_backward";
+  require_rank(op, "dfeatures", dfeatures, 2);
+  require_rank(op, "dcanvas", dcanvas, 4);
+  require_shape(op, "cells", cells, {dfeatures.dim(0), 3});
+  const cuda::ScatterCanvas shape{dcanvas.dim(0), dcanvas.dim(1), dcanvas.dim(2), dcanvas.dim(3),
+                                  channel0};
+  cuda::scatter_backward(dcanvas.data, shape, cells.data, dfeatures.dim(0), dfeatures.dim(1),
+                         dfeatures.data, stream_);
+}
+
+namespace {
+
+// x (B, Cx, H, W) as the band [channel0, channel0 + Cx) of y (B, Cy, H, W).
+cuda::ChannelBand channel_band(const char* op, const Ref& x, int channel0, const Ref& y) {
+  require_rank(op, "x", x, 4);
+  require_rank(op, "y", y, 4);
+  PS_CHECK(x.dim(0) == y.dim(0) && x.dim(2) == y.dim(2) && x.dim(3) == y.dim(3) && channel0 >= 0 &&
+               channel0 + x.dim(1) <= y.dim(1),
+           "{}: x {} does not fit at channel {} of y {}", op, shape_str(x.shape), channel0,
+           shape_str(y.shape));
+  return {x.dim(0), x.dim(1), x.dim(2) * x.dim(3), y.dim(1), channel0};
+}
+
+}  // namespace
+
+void CudaBackend::copy_channels(const Ref& x, int channel0, Ref& y) {
+  cuda::copy_channels(x.data, channel_band("copy_channels", x, channel0, y), y.data, stream_);
+}
+
+void CudaBackend::extract_channels(const Ref& y, int channel0, Ref& x) {
+  cuda::extract_channels(y.data, channel_band("extract_channels", x, channel0, y), x.data, stream_);
+}
+
+// ---- convolutions ----
+
+namespace {
+
+cuda::Conv2dShape conv_shape(const char* op, const Ref& x, const Ref& w, int pad) {
+  require_rank(op, "x", x, 4);
+  require_rank(op, "weight", w, 4);
+  PS_CHECK(w.dim(1) == x.dim(1) && w.dim(2) == w.dim(3),
+           "{}: weight (O, I, k, k) must have I = {} (the input's channels), got {}", op, x.dim(1),
+           shape_str(w.shape));
+  return {x.dim(0), x.dim(1), x.dim(2), x.dim(3), w.dim(0), w.dim(2), pad};
+}
+
+Shape conv_output(const cuda::Conv2dShape& s) {
+  return {s.batch, s.out_channels, s.out_height(), s.out_width()};
+}
+
+cuda::ConvTranspose2dShape conv_transpose_shape(const char* op, const Ref& x, const Ref& w) {
+  require_rank(op, "x", x, 4);
+  require_rank(op, "weight", w, 4);
+  PS_CHECK(w.dim(0) == x.dim(1) && w.dim(2) == 2 && w.dim(3) == 2,
+           "{}: weight must be ({}, O, 2, 2), got {}", op, x.dim(1), shape_str(w.shape));
+  return {x.dim(0), x.dim(1), x.dim(2), x.dim(3), w.dim(1)};
+}
+
+Shape conv_transpose_output(const cuda::ConvTranspose2dShape& s) {
+  return {s.batch, s.out_channels, s.out_height(), s.out_width()};
+}
+
+}  // namespace
+
+void CudaBackend::conv2d_forward(const Ref& x, const Ref& w, const Ref* bias, int pad, Ref& y) {
+  const char* op = "conv2d_forward";
+  const cuda::Conv2dShape shape = conv_shape(op, x, w, pad);
+  require_shape(op, "y", y, conv_output(shape));
+  if (bias) require_shape(op, "bias", *bias, {shape.out_channels});
+  cuda::conv2d_forward(x.data, w.data, bias ? bias->data : nullptr, y.data, shape, stream_);
+}
+
+void CudaBackend::conv2d_backward(const Ref& x, const Ref& w, const Ref& dy, int pad, Ref* dx,
+                                  Ref& dw, Ref* dbias) {
+  const char* op = "conv2d_backward";
+  const cuda::Conv2dShape shape = conv_shape(op, x, w, pad);
+  require_shape(op, "dy", dy, conv_output(shape));
+  require_shape(op, "dw", dw, w.shape);
+  if (dbias) require_shape(op, "dbias", *dbias, {shape.out_channels});
+  if (dx) {
+    require_shape(op, "dx", *dx, x.shape);
+    cuda::conv2d_backward_data(dy.data, w.data, dx->data, shape, stream_);
+  }
+  const size_t floats = cuda::conv2d_backward_weights_workspace(shape);
+  float* workspace = float_workspace(floats);
+  cuda::conv2d_backward_weights(x.data, dy.data, dw.data, dbias ? dbias->data : nullptr, shape,
+                                workspace, workspace_.floats.size(), stream_);
+}
+
+void CudaBackend::conv_transpose2d_forward(const Ref& x, const Ref& w, const Ref* bias, Ref& y) {
+  const char* op = "conv_transpose2d_forward";
+  const cuda::ConvTranspose2dShape shape = conv_transpose_shape(op, x, w);
+  require_shape(op, "y", y, conv_transpose_output(shape));
+  if (bias) require_shape(op, "bias", *bias, {shape.out_channels});
+  cuda::conv_transpose2d_forward(x.data, w.data, bias ? bias->data : nullptr, y.data, shape,
+                                 stream_);
+}
+
+void CudaBackend::conv_transpose2d_backward(const Ref& x, const Ref& w, const Ref& dy, Ref& dx,
+                                            Ref& dw, Ref* dbias) {
+  const char* op = "conv_transpose2d_backward";
+  const cuda::ConvTranspose2dShape shape = conv_transpose_shape(op, x, w);
+  require_shape(op, "dy", dy, conv_transpose_output(shape));
+  require_shape(op, "dx", dx, x.shape);
+  require_shape(op, "dw", dw, w.shape);
+  if (dbias) require_shape(op, "dbias", *dbias, {shape.out_channels});
+  cuda::conv_transpose2d_backward_data(dy.data, w.data, dx.data, shape, stream_);
+  const size_t floats = cuda::conv_transpose2d_backward_weights_workspace(shape);
+  float* workspace = float_workspace(floats);
+  cuda::conv_transpose2d_backward_weights(x.data, dy.data, dw.data, dbias ? dbias->data : nullptr,
+                                          shape, workspace, workspace_.floats.size(), stream_);
+}
+
+// ---- BatchNorm + ReLU, pooling, upsampling, joins ----
+
+void CudaBackend::batchnorm_relu_forward(const Ref& x, BatchNormRefs& bn, bool training, Ref& y) {
+  const char* op = "batchnorm_relu_forward";
+  require_rank(op, "x", x, 4);
+  require_shape(op, "y", y, x.shape);
+  require_shape(op, "gamma", bn.gamma, {x.dim(1)});
+  const cuda::PlanarShape shape = planar(x);
+  if (!training) {
+    cuda::batchnorm_forward_eval(x.data, shape, bn.gamma.data, bn.beta.data, bn.running_mean.data,
+                                 bn.running_var.data, bn.eps, /*relu=*/true, y.data, stream_);
+    return;
+  }
+  double* workspace = double_workspace(cuda::batchnorm_workspace_doubles(shape));
+  cuda::batchnorm_forward_train(x.data, shape, bn.gamma.data, bn.beta.data, bn.eps, bn.momentum,
+                                bn.running_mean.data, bn.running_var.data, /*relu=*/true, y.data,
+                                bn.save_mean.data, bn.save_invstd.data, workspace, stream_);
+}
+
+void CudaBackend::batchnorm_relu_backward(const Ref& x, const Ref& y, const Ref& dy,
+                                          const BatchNormRefs& bn, Ref& dx, Ref& dgamma,
+                                          Ref& dbeta) {
+  const char* op = "batchnorm_relu_backward";
+  require_rank(op, "x", x, 4);
+  require_shape(op, "y", y, x.shape);
+  require_shape(op, "dy", dy, x.shape);
+  require_shape(op, "dx", dx, x.shape);
+  require_shape(op, "dgamma", dgamma, {x.dim(1)});
+  require_shape(op, "dbeta", dbeta, {x.dim(1)});
+  const cuda::PlanarShape shape = planar(x);
+  double* workspace = double_workspace(cuda::batchnorm_workspace_doubles(shape));
+  cuda::batchnorm_backward(dy.data, x.data, y.data, shape, bn.gamma.data, bn.save_mean.data,
+                           bn.save_invstd.data, dx.data, dgamma.data, dbeta.data, workspace,
+                           stream_);
+}
+
+void CudaBackend::maxpool2x2_forward(const Ref& x, Ref& y, IRef& argmax) {
+  const char* op = "maxpool2x2_forward";
+  require_rank(op, "x", x, 4);
+  const Shape pooled{x.dim(0), x.dim(1), x.dim(2) / 2, x.dim(3) / 2};
+  require_shape(op, "y", y, pooled);
+  require_shape(op, "argmax", argmax, pooled);
+  cuda::maxpool2d_forward(x.data, x.dim(0) * x.dim(1), x.dim(2), x.dim(3), y.data, argmax.data,
+                          stream_);
+}
+
+void CudaBackend::maxpool2x2_backward(const Ref& dy, const IRef& argmax, Ref& dx) {
+  const char* op = "maxpool2x2_backward";
+  require_rank(op, "dx", dx, 4);
+  const Shape pooled{dx.dim(0), dx.dim(1), dx.dim(2) / 2, dx.dim(3) / 2};
+  require_shape(op, "dy", dy, pooled);
+  require_shape(op, "argmax", argmax, pooled);
+  cuda::maxpool2d_backward(dy.data, argmax.data, dx.dim(0) * dx.dim(1), dx.dim(2), dx.dim(3),
+                           dx.data, stream_);
+}
+
+void CudaBackend::upsample2x_forward(const Ref& x, Ref& y) {
+  require_rank("upsample2x_forward", "x", x, 4);
+  require_shape("upsample2x_forward", "y", y, {x.dim(0), x.dim(1), 2 * x.dim(2), 2 * x.dim(3)});
+  cuda::upsample_bilinear_forward(x.data, x.dim(0) * x.dim(1), x.dim(2), x.dim(3), y.data, stream_);
+}
+
+void CudaBackend::upsample2x_backward(const Ref& dy, Ref& dx) {
+  require_rank("upsample2x_backward", "dx", dx, 4);
+  require_shape("upsample2x_backward", "dy", dy,
+                {dx.dim(0), dx.dim(1), 2 * dx.dim(2), 2 * dx.dim(3)});
+  cuda::upsample_bilinear_backward(dy.data, dx.dim(0) * dx.dim(1), dx.dim(2), dx.dim(3), dx.data,
+                                   stream_);
+}
+
+namespace {
+
+cuda::PadConcatShape pad_concat_shape(const char* op, const Ref& skip, const Ref& up,
+                                      const Ref& joined) {
+  require_rank(op, "skip", skip, 4);
+  require_rank(op, "up", up, 4);
+  PS_CHECK(up.dim(0) == skip.dim(0) && up.dim(2) <= skip.dim(2) && up.dim(3) <= skip.dim(3),
+           "{}: up {} must fit inside skip {}", op, shape_str(up.shape), shape_str(skip.shape));
+  require_shape(op, "the joined tensor", joined,
+                {skip.dim(0), skip.dim(1) + up.dim(1), skip.dim(2), skip.dim(3)});
+  return {skip.dim(0), skip.dim(1), up.dim(1), skip.dim(2), skip.dim(3), up.dim(2), up.dim(3)};
+}
+
+}  // namespace
+
+void CudaBackend::pad_concat_forward(const Ref& skip, const Ref& up, Ref& y) {
+  cuda::pad_concat_forward(skip.data, up.data, pad_concat_shape("pad_concat_forward", skip, up, y),
+                           y.data, stream_);
+}
+
+void CudaBackend::pad_concat_backward(const Ref& dy, Ref& dskip, Ref& dup) {
+  cuda::pad_concat_backward(dy.data, pad_concat_shape("pad_concat_backward", dskip, dup, dy),
+                            dskip.data, dup.data, stream_);
+}
+
+void CudaBackend::add_inplace(Ref& a, const Ref& b) {
+  require_shape("add_inplace", "b", b, a.shape);
+  cuda::add_inplace(a.data, b.data, a.numel(), stream_);
+}
+
+// ---- head, loss, optimiser ----
+
+void CudaBackend::softmax(const Ref& logits, Ref& probs) {
+  require_rank("softmax", "logits", logits, 4);
+  require_shape("softmax", "probs", probs, logits.shape);
+  cuda::softmax_channels(logits.data, logits.dim(0), logits.dim(1), logits.dim(2) * logits.dim(3),
+                         probs.data, stream_);
+}
+
+void CudaBackend::argmax(const Ref& logits, LRef& labels) {
+  require_rank("argmax", "logits", logits, 4);
+  require_shape("argmax", "labels", labels, {logits.dim(0), logits.dim(2), logits.dim(3)});
+  cuda::argmax_class_ids(logits.data, logits.dim(0), logits.dim(1), logits.dim(2) * logits.dim(3),
+                         labels.data, stream_);
+}
+
+double CudaBackend::loss(LossKind kind, const Ref& logits, const LRef& labels,
+                         const Ref& coefficients, Ref& dlogits) {
+  const char* op = "loss";
+  require_not_capturing(op);
+  require_rank(op, "logits", logits, 4);
+  const int64_t B = logits.dim(0), K = logits.dim(1), S = logits.dim(2) * logits.dim(3);
+  require_shape(op, "labels", labels, {B, logits.dim(2), logits.dim(3)});
+  require_shape(op, "coefficients (one per class id, 0 unused)", coefficients, {K + 1});
+  require_shape(op, "dlogits", dlogits, logits.shape);
+  const auto run = kind == LossKind::CrossEntropy ? &cuda::cross_entropy_loss : &cuda::bce_loss;
+  run(logits.data, labels.data, B, K, S, coefficients.data, dlogits.data,
+      workspace_.loss_partials.data(), workspace_.loss_result.data(), stream_);
+  const double value = cuda::loss_value(workspace_.loss_result.data(), stream_);
+  staging_used_ = 0;  // loss_value waited for the stream
+  return value;
+}
+
+double CudaBackend::sum_of_squares(const Ref& x) {
+  require_not_capturing("sum_of_squares");
+  double* partials = workspace_.sum_of_squares.data();
+  double* result = partials + cuda::kSumOfSquaresPartials;
+  cuda::sum_of_squares(x.data, x.numel(), partials, result, stream_);
+  double host = 0;
+  download(&host, result, sizeof(double));
+  return host;
+}
+
+void CudaBackend::scale(Ref& x, float factor) {
+  cuda::scale(x.data, factor, x.numel(), stream_);
+}
+
+void CudaBackend::adam_step(Ref& param, const Ref& grad, Ref& m, Ref& v, const AdamHyper& hyper) {
+  const char* op = "adam_step";
+  require_shape(op, "grad", grad, param.shape);
+  require_shape(op, "m", m, param.shape);
+  require_shape(op, "v", v, param.shape);
+  cuda::AdamOptions options;
+  options.lr = hyper.lr, options.beta1 = hyper.beta1, options.beta2 = hyper.beta2;
+  options.eps = hyper.eps, options.weight_decay = hyper.weight_decay;
+  cuda::adam_step(param.data, grad.data, m.data, v.data, param.numel(), hyper.step, options,
+                  stream_);
+}
+
+// ---- factory ----
+
+std::unique_ptr<Backend> make_cuda_device_backend() {
+  return std::make_unique<CudaBackend>();
+}
+
+void install_cuda_backend() {
+  set_cuda_backend_factory(&make_cuda_device_backend);
+}
+
+}  // namespace pillarseg

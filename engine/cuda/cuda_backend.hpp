@@ -1,0 +1,149 @@
+// CudaBackend: the Backend interface (engine/model/backend.hpp) on the CUDA kernels of kernels/,
+// every op of the network one or more kernel launches on the backend's own stream, nothing on the
+// host. The same source builds two libraries, as the kernels do: pillarseg_cuda_backend (nvcc
+// kernels, a GPU) and pillarseg_cuda_backend_emu (the kernels on the CUDA emulation, what the
+// tests run); a program links one of them.
+//
+// Memory: activations, parameters and gradients come from allocate() (cudaMalloc; the model's
+// arenas plan them once). The kernels' scratch (convolution weight-gradient partials, BatchNorm and
+// PFN statistics, loss and reduction partials) lives in the backend's Workspace, grown only when
+// an op needs more than any before, so a training loop allocates nothing after its first step.
+// Uploads go through a pinned staging buffer (cudaMallocHost) and cudaMemcpyAsync; only
+// download(), synchronize(), loss() and sum_of_squares() wait for the device.
+//
+// Graphs: capture() records the work queued by a callback as a CUDA graph (stream capture) and
+// returns it for replay; PillarSegNet records its evaluation forward this way.
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <string>
+
+#include "engine/model/backend.hpp"
+#include "kernels/device_buffer.hpp"
+#include "kernels/losses.cuh"
+
+namespace pillarseg {
+
+struct CudaBackendOptions {
+  bool graphs = true;  // supports_capture(): the model replays its evaluation forward as a graph
+  // Largest pinned staging buffer; a larger upload is copied in pieces of this size.
+  size_t max_staging_bytes = size_t{64} << 20;
+};
+
+// What the backend has allocated and recorded so far (the steady state adds nothing).
+struct CudaBackendStats {
+  int64_t device_allocations = 0;  // cudaMalloc calls: allocate() and workspace growth
+  int64_t pinned_allocations = 0;  // cudaMallocHost calls: staging growth
+  size_t workspace_bytes = 0;      // device scratch held now
+  size_t staging_bytes = 0;        // pinned staging held now
+  int64_t graphs_captured = 0;
+  int64_t graph_replays = 0;
+};
+
+class CudaBackend final : public Backend {
+ public:
+  // Selects device 0 and creates the stream; throws pillarseg::Error "no CUDA device found: ..."
+  // when the runtime reports none.
+  explicit CudaBackend(const CudaBackendOptions& options = {});
+  ~CudaBackend() override;
+  CudaBackend(const CudaBackend&) = delete;
+  CudaBackend& operator=(const CudaBackend&) = delete;
+
+  Device device() const override { return Device::Cuda; }
+  std::string name() const override { return name_; }
+  const CudaBackendStats& stats() const { return stats_; }
+  cudaStream_t stream() const { return stream_; }
+
+  void* allocate(size_t bytes) override;
+  void deallocate(void* p) noexcept override;
+  void upload(void* dst, const void* host_src, size_t bytes) override;
+  void download(void* host_dst, const void* src, size_t bytes) override;
+  void fill_zero(void* dst, size_t bytes) override;
+  void synchronize() override;
+  double clock_ms() override;
+  bool supports_capture() const override { return options_.graphs; }
+  std::unique_ptr<CapturedGraph> capture(const std::function<void()>& work) override;
+
+  void pfn_forward(const Ref& points, const Ref& weight, BatchNormRefs& bn, bool training,
+                   IRef& argmax, Ref& out) override;
+  void pfn_backward(const Ref& points, const Ref& weight, const BatchNormRefs& bn,
+                    const IRef& argmax, const Ref& dout, Ref& d_points, Ref& dweight, Ref& dgamma,
+                    Ref& dbeta) override;
+  void scatter_forward(const Ref& features, const IRef& cells, int channel0, Ref& canvas) override;
+  void scatter_backward(const Ref& dcanvas, const IRef& cells, int channel0,
+                        Ref& dfeatures) override;
+  void copy_channels(const Ref& x, int channel0, Ref& y) override;
+  void extract_channels(const Ref& y, int channel0, Ref& x) override;
+  void conv2d_forward(const Ref& x, const Ref& w, const Ref* bias, int pad, Ref& y) override;
+  void conv2d_backward(const Ref& x, const Ref& w, const Ref& dy, int pad, Ref* dx, Ref& dw,
+                       Ref* dbias) override;
+  void conv_transpose2d_forward(const Ref& x, const Ref& w, const Ref* bias, Ref& y) override;
+  void conv_transpose2d_backward(const Ref& x, const Ref& w, const Ref& dy, Ref& dx, Ref& dw,
+                                 Ref* dbias) override;
+  void batchnorm_relu_forward(const Ref& x, BatchNormRefs& bn, bool training, Ref& y) override;
+  void batchnorm_relu_backward(const Ref& x, const Ref& y, const Ref& dy, const BatchNormRefs& bn,
+                               Ref& dx, Ref& dgamma, Ref& dbeta) override;
+  void maxpool2x2_forward(const Ref& x, Ref& y, IRef& argmax) override;
+  void maxpool2x2_backward(const Ref& dy, const IRef& argmax, Ref& dx) override;
+  void upsample2x_forward(const Ref& x, Ref& y) override;
+  void upsample2x_backward(const Ref& dy, Ref& dx) override;
+  void pad_concat_forward(const Ref& skip, const Ref& up, Ref& y) override;
+  void pad_concat_backward(const Ref& dy, Ref& dskip, Ref& dup) override;
+  void add_inplace(Ref& a, const Ref& b) override;
+  void softmax(const Ref& logits, Ref& probs) override;
+  void argmax(const Ref& logits, LRef& labels) override;
+  double loss(LossKind kind, const Ref& logits, const LRef& labels, const Ref& coefficients,
+              Ref& dlogits) override;
+  double sum_of_squares(const Ref& x) override;
+  void scale(Ref& x, float factor) override;
+  void adam_step(Ref& param, const Ref& grad, Ref& m, Ref& v, const AdamHyper& hyper) override;
+
+ private:
+  // The kernels' scratch, in one place. `floats` and `doubles` grow to the largest request so
+  // far; the loss and reduction buffers have fixed sizes.
+  struct Workspace {
+    cuda::DeviceBuffer<float> floats;           // convolution weight-gradient partials
+    cuda::DeviceBuffer<double> doubles;         // BatchNorm and PFN statistics
+    cuda::DeviceBuffer<double> sum_of_squares;  // kSumOfSquaresPartials partials, then the result
+    cuda::DeviceBuffer<cuda::LossPartial> loss_partials;
+    cuda::DeviceBuffer<cuda::LossResult> loss_result;
+  };
+  float* float_workspace(size_t count);
+  double* double_workspace(int64_t count);
+  template <class T>
+  T* grow(cuda::DeviceBuffer<T>& buffer, size_t count);
+
+  // Pinned memory for `bytes` of upload: the next free part of the staging buffer. When the
+  // buffer is full it waits for the stream (earlier copies out of it are then done) and, the
+  // first times, grows to hold everything uploaded between two waits.
+  void* staging_slot(size_t bytes);
+  void release_staging() noexcept;
+  void wait_for_stream();  // cudaStreamSynchronize; the staging buffer is free again
+  void require_not_capturing(const char* op) const;
+
+  CudaBackendOptions options_;
+  std::string name_;
+  cudaStream_t stream_ = nullptr;
+  cudaEvent_t clock_events_[2] = {nullptr, nullptr};  // clock_ms(): the last two marks
+  int clock_next_ = 0;
+  bool clock_started_ = false;
+  double clock_total_ms_ = 0;
+  Workspace workspace_;
+  void* staging_ = nullptr;
+  size_t staging_capacity_ = 0, staging_used_ = 0;
+  bool capturing_ = false;
+  CudaBackendStats stats_;
+};
+
+// "no CUDA device found: <reason>; use --device cpu", for the result of cudaGetDeviceCount.
+std::string no_cuda_device_message(cudaError_t error, int device_count);
+
+// A CudaBackend with default options (for make_cuda_backend()).
+std::unique_ptr<Backend> make_cuda_device_backend();
+// Makes make_cuda_backend() (and so --device cuda) build a CudaBackend.
+void install_cuda_backend();
+
+}  // namespace pillarseg

@@ -1,0 +1,430 @@
+// CudaBackend (engine/cuda/) on the CUDA emulation against CpuBackend, whole PillarSegNet at a
+// tiny size (24 x 16 grid, base width 4, depth 2): forward logits, both losses, every parameter
+// gradient, running statistics, an AdamW step, evaluation logits and class maps, for the
+// bilinear and transposed U-Nets with the pillar and occupancy streams. Then what only the CUDA
+// backend has: the evaluation forward replayed as a graph matches the uncaptured forward bit for
+// bit (across pillar counts, parameter updates and re-plans), the steady-state training loop
+// allocates nothing, uploads larger than the staging buffer arrive whole, and the errors say what
+// is wrong.
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <string>
+#include <vector>
+
+#include "engine/core/rng.hpp"
+#include "engine/cuda/cuda_backend.hpp"
+#include "engine/model/pillarsegnet.hpp"
+#include "tests/support/test_support.hpp"
+
+using namespace pillarseg;
+
+namespace {
+
+ModelConfig tiny_config(OccupancyInput occupancy, bool transposed, bool grid_map = false) {
+  ModelConfig c;
+  c.grid.x_min = 0, c.grid.x_max = 2.4, c.grid.y_min = 0, c.grid.y_max = 1.6;  // 24 x 16 cells
+  c.grid.z_min = -1, c.grid.z_max = 1, c.grid.voxel_z = 0.5;                   // 4 layers
+  c.max_points_per_pillar = 3;
+  c.pillar_channels = 4;
+  c.occupancy = occupancy;
+  c.occupancy_channels = 3;
+  c.grid_map_input = grid_map;
+  c.base_width = 4;
+  c.depth = 2;
+  c.transposed = transposed;
+  return c;
+}
+
+struct TinyData {
+  ModelBatch batch;
+  Tensor<uint8_t> labels;
+};
+
+// Pillars over distinct cells of a (B, H, W) grid (each cell with probability `density`), each
+// with 1..N random points, random occupancy, grid-map layers and labels 0..12.
+TinyData tiny_data(const ModelConfig& c, int B, uint64_t seed, double density = 0.3) {
+  Rng rng(seed);
+  TinyData d;
+  const int H = c.grid.height(), W = c.grid.width(), N = c.max_points_per_pillar;
+  std::vector<std::array<int32_t, 3>> cells;
+  for (int b = 0; b < B; ++b)
+    for (int y = 0; y < H; ++y)
+      for (int x = 0; x < W; ++x)
+        if (rng.bernoulli(density)) cells.push_back({b, y, x});
+  const int64_t P = static_cast<int64_t>(cells.size());
+  d.batch.batch = B;
+  d.batch.pillar_points = Tensor<float>({P, N, 10});
+  d.batch.pillar_cells = Tensor<int32_t>({P, 3});
+  for (int64_t p = 0; p < P; ++p) {
+    for (int k = 0; k < 3; ++k)
+      d.batch.pillar_cells(p, k) = cells[static_cast<size_t>(p)][static_cast<size_t>(k)];
+    const int n = 1 + static_cast<int>(rng.uniform_int(N));
+    for (int s = 0; s < n; ++s)
+      for (int f = 0; f < 10; ++f)
+        d.batch.pillar_points(p, s, f) = static_cast<float>(rng.normal());
+  }
+  if (c.occupancy != OccupancyInput::None) {
+    d.batch.occupancy = Tensor<float>({B, c.occupancy_input_channels(), H, W});
+    for (float& v : d.batch.occupancy) v = static_cast<float>(rng.uniform());
+  }
+  if (c.grid_map_input) {
+    d.batch.grid_map = Tensor<float>({B, 6, H, W});
+    for (float& v : d.batch.grid_map) v = static_cast<float>(rng.normal());
+  }
+  d.labels = Tensor<uint8_t>({B, H, W});
+  for (auto& l : d.labels) l = static_cast<uint8_t>(rng.uniform_int(13));
+  return d;
+}
+
+const std::array<float, 13> kCoefficients = {0, 2, 8, 8, 8, 1, 1, 1, 1, 1, 1, 1, 1};
+
+Tensor<float> as_tensor(const std::vector<float>& v) {
+  Tensor<float> t({static_cast<int64_t>(v.size())});
+  std::copy(v.begin(), v.end(), t.begin());
+  return t;
+}
+
+// The largest |x|: gradients of different layers differ by orders of magnitude, so their
+// tolerance is relative to the tensor's own scale.
+double max_abs(const Tensor<float>& t) {
+  double m = 0;
+  for (float v : t) m = std::max(m, static_cast<double>(std::abs(v)));
+  return m;
+}
+
+// One AdamW step over all trainable parameters.
+void adam(Backend& backend, ParameterSet& ps, int64_t step) {
+  AdamHyper h;
+  h.lr = 1e-2f;
+  h.step = step;
+  Ref values = ps.values(), m = ps.adam_m(), v = ps.adam_v();
+  backend.adam_step(values, ps.grads(), m, v, h);
+}
+
+struct Variant {
+  const char* name;
+  OccupancyInput occupancy;
+  bool transposed, grid_map;
+};
+
+const Variant kVariants[] = {
+    {"bilinear_occupancy2d", OccupancyInput::Observability2D, false, false},
+    {"transposed_occupancy2d", OccupancyInput::Observability2D, true, false},
+    {"bilinear_occupancy3d_gridmap", OccupancyInput::Occupancy3D, false, true},
+};
+
+// Per-quantity tolerances, |cuda - cpu| <= atol + rtol |cpu|. The two backends sum in different
+// orders (tiled GEMMs, per-block partial sums in double) over at most a few hundred terms per
+// output, in float; training-mode BatchNorm divides by a batch deviation and so amplifies the
+// differences through the depth, which the gradients inherit. Measured worst cases over the
+// variants below: logits 2.4e-6 relative, losses 1e-8 relative, gradients 1.5e-7 absolute
+// (3.5e-5 relative); the tolerances leave a margin of about 5 to 10.
+constexpr double kForwardRtol = 2e-5, kForwardAtol = 2e-6;
+constexpr double kLossRtol = 1e-6;
+constexpr double kGradientRtol = 2e-4, kGradientAtolScale = 2e-5, kGradientAtolFloor = 1e-7;
+
+}  // namespace
+
+class CudaBackendModel : public ::testing::TestWithParam<Variant> {};
+
+TEST_P(CudaBackendModel, MatchesTheCpuBackend) {
+  const Variant& variant = GetParam();
+  const ModelConfig c = tiny_config(variant.occupancy, variant.transposed, variant.grid_map);
+  auto cpu = make_cpu_backend();
+  CudaBackend cuda;
+  PillarSegNet cpu_net(c, *cpu, /*seed=*/7), cuda_net(c, cuda, /*seed=*/7);
+  ParameterSet &cpu_ps = cpu_net.parameters(), &cuda_ps = cuda_net.parameters();
+  ASSERT_EQ(cuda_ps.download_flat(cuda_ps.values()), cpu_ps.download_flat(cpu_ps.values()));
+
+  const TinyData data = tiny_data(c, 2, 21);
+  for (LossKind kind : {LossKind::CrossEntropy, LossKind::Bce}) {
+    const char* kind_name = kind == LossKind::Bce ? "bce" : "cross-entropy";
+    SCOPED_TRACE(kind_name);
+    cpu_net.forward(data.batch, true);
+    cuda_net.forward(data.batch, true);
+    EXPECT_TRUE(test::all_close(cuda_net.download_logits(), cpu_net.download_logits(), kForwardAtol,
+                                kForwardRtol));
+    const double cpu_loss = cpu_net.loss(data.labels, kind, kCoefficients);
+    const double cuda_loss = cuda_net.loss(data.labels, kind, kCoefficients);
+    EXPECT_NEAR(cuda_loss, cpu_loss, kLossRtol * std::abs(cpu_loss));
+    cpu_net.backward();
+    cuda_net.backward();
+    // atol: relative to the tensor's own scale, with a floor for the convolution biases ahead
+    // of a BatchNorm, whose true gradient is 0 (the normalisation removes any shift): both
+    // backends give rounding noise of about 1e-8 there.
+    int compared = 0;
+    for (int i = 0; i < static_cast<int>(cpu_ps.entries().size()); ++i) {
+      const ParamEntry& e = cpu_ps.entries()[static_cast<size_t>(i)];
+      if (!e.trainable) continue;
+      Tensor<float> cpu_grad(e.shape), cuda_grad(e.shape);
+      cpu->download(cpu_grad.data(), cpu_ps.grad(i).data, cpu_grad.numel() * sizeof(float));
+      cuda.download(cuda_grad.data(), cuda_ps.grad(i).data, cuda_grad.numel() * sizeof(float));
+      const double atol = kGradientAtolScale * max_abs(cpu_grad) + kGradientAtolFloor;
+      EXPECT_TRUE(test::all_close(cuda_grad, cpu_grad, atol, kGradientRtol)) << e.name;
+      if (max_abs(cpu_grad) > 1e-4) ++compared;
+    }
+    EXPECT_GT(compared, 20) << "tensors with gradients well above rounding noise";
+    // Running statistics (moved by both training forwards so far) and their counters.
+    EXPECT_TRUE(test::all_close(as_tensor(cuda_ps.download_flat(cuda_ps.buffers())),
+                                as_tensor(cpu_ps.download_flat(cpu_ps.buffers())), 1e-6, 1e-5));
+    EXPECT_EQ(cuda_ps.counters(), cpu_ps.counters());
+  }
+
+  // One AdamW step from the same gradients (the CPU's: a first step moves each parameter by
+  // about lr sign(g), so a gradient near 0 whose sign the backends disagree on would move it by
+  // 2 lr the other way) and the same parameters.
+  cuda_ps.upload_flat(cuda_ps.grads(), cpu_ps.download_flat(cpu_ps.grads()));
+  cuda_ps.upload_flat(cuda_ps.values(), cpu_ps.download_flat(cpu_ps.values()));
+  adam(*cpu, cpu_ps, 1);
+  adam(cuda, cuda_ps, 1);
+  // The same float formula on both sides: the parameters (O(0.1)) agree to about their ulp, the
+  // moments to a relative ulp or two.
+  struct State {
+    const char* name;
+    Ref cuda, cpu;
+    double atol;
+  };
+  const State states[] = {{"parameters", cuda_ps.values(), cpu_ps.values(), 1e-7},
+                          {"exp_avg", cuda_ps.adam_m(), cpu_ps.adam_m(), 1e-12},
+                          {"exp_avg_sq", cuda_ps.adam_v(), cpu_ps.adam_v(), 1e-15}};
+  for (const State& state : states) {
+    EXPECT_TRUE(test::all_close(as_tensor(cuda_ps.download_flat(state.cuda)),
+                                as_tensor(cpu_ps.download_flat(state.cpu)), state.atol, 1e-6))
+        << state.name;
+  }
+
+  // Evaluation with the running statistics (through the recorded graph on the CUDA side).
+  cpu_net.forward(data.batch, false);
+  cuda_net.forward(data.batch, false);
+  EXPECT_EQ(cuda.stats().graph_replays, 1);
+  const Tensor<float> cpu_logits = cpu_net.download_logits();
+  EXPECT_TRUE(test::all_close(cuda_net.download_logits(), cpu_logits, kForwardAtol, kForwardRtol));
+  EXPECT_TRUE(test::all_close(cuda_net.probabilities(), cpu_net.probabilities(), 1e-7, 2e-5));
+  // Class maps agree wherever the top two logits are apart by more than the tolerance.
+  const Tensor<uint8_t> cpu_labels = cpu_net.predict_labels(),
+                        cuda_labels = cuda_net.predict_labels();
+  ASSERT_EQ(cuda_labels.shape(), cpu_labels.shape());
+  const int64_t K = cpu_logits.dim(1), S = cpu_logits.dim(2) * cpu_logits.dim(3);
+  int64_t decided = 0;
+  for (int64_t b = 0; b < cpu_logits.dim(0); ++b) {
+    for (int64_t s = 0; s < S; ++s) {
+      std::vector<float> z(static_cast<size_t>(K));
+      for (int64_t k = 0; k < K; ++k)
+        z[static_cast<size_t>(k)] = cpu_logits.data()[(b * K + k) * S + s];
+      std::vector<float> sorted = z;
+      std::sort(sorted.begin(), sorted.end(), std::greater<>());
+      const int64_t cell = b * S + s;
+      if (sorted[0] - sorted[1] <= 1e-4 * (1 + std::abs(sorted[0]))) continue;
+      ++decided;
+      EXPECT_EQ(cuda_labels.data()[cell], cpu_labels.data()[cell]) << "cell " << cell;
+    }
+  }
+  EXPECT_GT(decided, cpu_labels.numel() * 9 / 10);
+}
+
+INSTANTIATE_TEST_SUITE_P(Variants, CudaBackendModel, ::testing::ValuesIn(kVariants),
+                         [](const ::testing::TestParamInfo<Variant>& case_info) {
+                           return std::string(case_info.param.name);
+                         });
+
+// The recorded evaluation forward against the same model run op by op on a backend with graphs
+// off: the same kernels on the same data, so the same bits.
+TEST(CudaBackendGraph, ReplayMatchesTheUncapturedForward) {
+  const ModelConfig c = tiny_config(OccupancyInput::Observability2D, /*transposed=*/false);
+  CudaBackendOptions no_graphs;
+  no_graphs.graphs = false;
+  CudaBackend graphed, direct(no_graphs);
+  ASSERT_TRUE(graphed.supports_capture());
+  ASSERT_FALSE(direct.supports_capture());
+  PillarSegNet graph_net(c, graphed, 3), direct_net(c, direct, 3);
+  // A training step first, so that the running statistics are not their initial values.
+  const TinyData train = tiny_data(c, 2, 1);
+  for (PillarSegNet* net : {&graph_net, &direct_net}) {
+    net->forward(train.batch, true);
+    net->loss(train.labels, LossKind::CrossEntropy, kCoefficients);
+    net->backward();
+    adam(net->backend(), net->parameters(), 1);
+  }
+  const auto expect_same = [&](const ModelBatch& batch, const char* what) {
+    graph_net.forward(batch, false);
+    direct_net.forward(batch, false);
+    EXPECT_EQ(graph_net.download_logits(), direct_net.download_logits()) << what;
+    EXPECT_EQ(graph_net.predict_labels(), direct_net.predict_labels()) << what;
+  };
+  const TinyData dense = tiny_data(c, 2, 2, 0.5), sparse = tiny_data(c, 2, 3, 0.1);
+  ASSERT_GT(dense.batch.pillar_points.dim(0), 2 * sparse.batch.pillar_points.dim(0));
+  expect_same(dense.batch, "first replay");
+  EXPECT_EQ(graphed.stats().graphs_captured, 1);
+  // Fewer pillars than last time: the rows the dense scan filled must not reach the canvas.
+  expect_same(sparse.batch, "fewer pillars");
+  ModelBatch no_pillars = sparse.batch;
+  no_pillars.pillar_points = Tensor<float>({0, c.max_points_per_pillar, 10});
+  no_pillars.pillar_cells = Tensor<int32_t>({0, 3});
+  expect_same(no_pillars, "no pillars");
+  EXPECT_EQ(graphed.stats().graphs_captured, 1);
+  EXPECT_EQ(graphed.stats().graph_replays, 3);
+  // The graph reads the parameters at replay time.
+  for (PillarSegNet* net : {&graph_net, &direct_net}) {
+    net->forward(train.batch, true);
+    net->loss(train.labels, LossKind::Bce, kCoefficients);
+    net->backward();
+    adam(net->backend(), net->parameters(), 2);
+  }
+  expect_same(dense.batch, "after a parameter update");
+  EXPECT_EQ(graphed.stats().graphs_captured, 1);
+  // A new batch size with more pillars than the capacity re-plans and records again.
+  const TinyData bigger = tiny_data(c, 3, 4, 1.0);
+  ASSERT_GT(bigger.batch.pillar_points.dim(0), 1024);
+  expect_same(bigger.batch, "after a re-plan");
+  EXPECT_EQ(graphed.stats().graphs_captured, 2);
+  // Stage timing runs the forward op by op (it waits between stages) with the same result.
+  graph_net.set_stage_timing(true);
+  expect_same(bigger.batch, "with stage timing");
+  EXPECT_EQ(graphed.stats().graphs_captured, 2);
+  EXPECT_EQ(graphed.stats().graph_replays, 5);
+  const auto& st = graph_net.stage_times();
+  for (double t : {st.upload, st.pfn, st.scatter, st.occupancy, st.unet, st.head})
+    EXPECT_GE(t, 0.0);
+}
+
+TEST(CudaBackendGraph, CaptureRefusesHostWorkAndLeavesTheBackendUsable) {
+  CudaBackend backend;
+  void* device = backend.allocate(64);
+  const std::vector<float> host(16, 1.5f);
+  try {
+    backend.capture([&] { backend.upload(device, host.data(), 64); });
+    FAIL() << "an upload inside a capture must throw";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("while a graph is being captured"), std::string::npos)
+        << e.what();
+  }
+  // The stream captures no more: work runs again, and a capture of device work replays.
+  backend.upload(device, host.data(), 64);
+  std::vector<float> back(16, 0.0f);
+  backend.download(back.data(), device, 64);
+  EXPECT_EQ(back, host);
+  const auto graph = backend.capture([&] { backend.fill_zero(device, 64); });
+  backend.download(back.data(), device, 64);
+  EXPECT_EQ(back, host) << "capturing must not run the work";
+  graph->replay();
+  backend.download(back.data(), device, 64);
+  EXPECT_EQ(back, std::vector<float>(16, 0.0f));
+  backend.deallocate(device);
+}
+
+TEST(CudaBackendMemory, SteadyStateTrainingAllocatesNothing) {
+  const ModelConfig c = tiny_config(OccupancyInput::Observability2D, /*transposed=*/false);
+  CudaBackend backend;
+  PillarSegNet net(c, backend, 5);
+  ParameterSet& ps = net.parameters();
+  const TinyData first = tiny_data(c, 2, 10, 0.4), later = tiny_data(c, 2, 11, 0.2);
+  const auto step = [&](const TinyData& d, int64_t t) {
+    net.forward(d.batch, true);
+    net.loss(d.labels, LossKind::CrossEntropy, kCoefficients);
+    net.backward();
+    const double norm = std::sqrt(backend.sum_of_squares(ps.grads()));
+    Ref grads = ps.grads();
+    backend.scale(grads, static_cast<float>(1.0 / (norm + 1e-6)));
+    adam(backend, ps, t);
+    net.forward(d.batch, false);  // validation
+    net.predict_labels();
+  };
+  step(first, 1);
+  const CudaBackendStats warm = backend.stats();
+  const size_t activation_bytes = net.activation_bytes();
+  EXPECT_GT(warm.device_allocations, 0);
+  EXPECT_GT(warm.workspace_bytes, 0u);
+  for (int64_t t = 2; t <= 4; ++t) step(t % 2 == 0 ? later : first, t);
+  const CudaBackendStats steady = backend.stats();
+  EXPECT_EQ(steady.device_allocations, warm.device_allocations);
+  EXPECT_EQ(steady.pinned_allocations, warm.pinned_allocations);
+  EXPECT_EQ(steady.workspace_bytes, warm.workspace_bytes);
+  EXPECT_EQ(steady.staging_bytes, warm.staging_bytes);
+  EXPECT_EQ(steady.graphs_captured, 1);
+  EXPECT_EQ(net.activation_bytes(), activation_bytes);
+}
+
+TEST(CudaBackendMemory, UploadsLargerThanTheStagingBufferArriveWhole) {
+  CudaBackendOptions small;
+  small.max_staging_bytes = 1024;
+  CudaBackend backend(small);
+  std::vector<float> host(10007);  // 40028 bytes: 40 pieces, the last one partial
+  for (size_t i = 0; i < host.size(); ++i) host[i] = static_cast<float>(i) * 0.25f - 7.0f;
+  void* device = backend.allocate(host.size() * sizeof(float));
+  backend.upload(device, host.data(), host.size() * sizeof(float));
+  std::vector<float> back(host.size());
+  backend.download(back.data(), device, back.size() * sizeof(float));
+  EXPECT_EQ(back, host);
+  EXPECT_EQ(backend.stats().staging_bytes, 1024u);
+  backend.deallocate(device);
+
+  // The whole model through the small staging buffer: the same bits as through a large one.
+  const ModelConfig c = tiny_config(OccupancyInput::Occupancy3D, /*transposed=*/false);
+  CudaBackend large;
+  PillarSegNet small_net(c, backend, 2), large_net(c, large, 2);
+  const TinyData data = tiny_data(c, 2, 8);
+  small_net.forward(data.batch, true);
+  large_net.forward(data.batch, true);
+  EXPECT_EQ(small_net.download_logits(), large_net.download_logits());
+  EXPECT_EQ(small_net.loss(data.labels, LossKind::Bce, kCoefficients),
+            large_net.loss(data.labels, LossKind::Bce, kCoefficients));
+}
+
+TEST(CudaBackendErrors, SayWhatIsWrong) {
+  const auto message_of = [](const auto& fn) {
+    try {
+      fn();
+    } catch (const Error& e) {
+      return std::string(e.what());
+    }
+    return std::string("(no error)");
+  };
+  // A program that did not install the CUDA backend (pillarseg_lib alone).
+  EXPECT_NE(message_of([] { make_backend("cuda"); }).find("this build has no CUDA backend"),
+            std::string::npos);
+  install_cuda_backend();
+  const auto backend = make_backend("cuda");
+  EXPECT_EQ(backend->device(), Device::Cuda);
+  EXPECT_EQ(backend->name().rfind("cuda (", 0), 0u) << backend->name();
+  set_cuda_backend_factory(nullptr);
+
+  // What CudaBackend throws on a machine whose runtime finds no GPU.
+  const std::string no_device = no_cuda_device_message(cudaErrorNoDevice, 0);
+  EXPECT_EQ(no_device.rfind("no CUDA device found: ", 0), 0u) << no_device;
+  EXPECT_NE(no_device.find("cudaErrorNoDevice"), std::string::npos) << no_device;
+  EXPECT_NE(no_device.find("--device cpu"), std::string::npos) << no_device;
+  EXPECT_NE(no_cuda_device_message(cudaSuccess, 0).find("reports 0 devices"), std::string::npos);
+
+  // Shapes are checked at the API edge, naming the op and both shapes.
+  CudaBackend cuda;
+  Arena arena(cuda);
+  arena.reserve(1 << 16);
+  Ref x = arena.take<float>({1, 2, 5, 5}), w = arena.take<float>({3, 2, 3, 3});
+  Ref y = arena.take<float>({1, 3, 4, 4});
+  const std::string conv = message_of([&] { cuda.conv2d_forward(x, w, nullptr, 1, y); });
+  EXPECT_NE(conv.find("conv2d_forward: y must be (1, 3, 5, 5), got (1, 3, 4, 4)"),
+            std::string::npos)
+      << conv;
+  Ref coefficients = arena.take<float>({12});
+  Ref logits = arena.take<float>({1, 12, 2, 2}), dlogits = arena.take<float>({1, 12, 2, 2});
+  LRef labels = arena.take<uint8_t>({1, 2, 2});
+  const std::string loss =
+      message_of([&] { cuda.loss(LossKind::Bce, logits, labels, coefficients, dlogits); });
+  EXPECT_NE(loss.find("coefficients"), std::string::npos) << loss;
+  EXPECT_NE(loss.find("(13)"), std::string::npos) << loss;
+}
+
+TEST(CudaBackendClock, IsMonotoneAndWaitsForTheWork) {
+  CudaBackend backend;
+  const double t0 = backend.clock_ms();
+  void* device = backend.allocate(1 << 20);
+  backend.fill_zero(device, 1 << 20);
+  const double t1 = backend.clock_ms();
+  const double t2 = backend.clock_ms();
+  EXPECT_LE(t0, t1);
+  EXPECT_LE(t1, t2);
+  backend.deallocate(device);
+}
