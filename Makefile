@@ -6,7 +6,7 @@ JOBS ?= $(shell nproc)
 CMAKE_FLAGS ?=
 DEMO_OUT ?= demo_out
 
-.PHONY: all deps configure build test demo bench asan clean
+.PHONY: all deps configure build test demo bench asan kernel-report clean
 
 all: build
 
@@ -34,5 +34,13 @@ asan: deps
 	@cmake --build build-asan -j $(JOBS)
 	@ctest --test-dir build-asan --output-on-failure -j $(JOBS)
 
+# Every CUDA kernel with its registers, shared memory, stack and spills per architecture, from
+# ptxas (a separate build of the kernel library; needs nvcc). Fails if a kernel spills.
+kernel-report: deps
+	@cmake -S . -B build-kernels -DCMAKE_BUILD_TYPE=Release -DPILLARSEG_CUDA_RESOURCE_USAGE=ON >/dev/null
+	@cmake --build build-kernels --target pillarseg_kernels_cuda --clean-first -j $(JOBS) > build-kernels/resource-usage.log 2>&1 \
+	  || { tail -20 build-kernels/resource-usage.log; exit 1; }
+	@python3 scripts/kernel_report.py build-kernels/resource-usage.log build-kernels/kernels/libpillarseg_kernels_cuda.a
+
 clean:
-	rm -rf $(BUILD) build-asan
+	rm -rf $(BUILD) build-asan build-kernels

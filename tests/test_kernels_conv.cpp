@@ -37,7 +37,9 @@
 #include "kernels/conv2d.cuh"
 #include "kernels/conv_transpose2d.cuh"
 #include "kernels/device_buffer.hpp"
-#include "kernels/gemm_tile.cuh"
+#ifdef PILLARSEG_CUDA_EMULATION
+#include "kernels/gemm_tile.cuh"  // device code: only the emulated build compiles it on the host
+#endif
 #include "tests/support/test_support.hpp"
 
 using namespace pillarseg;
@@ -553,7 +555,9 @@ TEST(ConvTranspose2dKernelsArguments, LaunchersSayWhatIsWrong) {
 }
 
 // ---- FastDivmod ----
-
+// A device-side helper, tested on the host through the emulation (test_kernels_conv_gpu, built
+// by the host compiler against the nvcc kernels, cannot include it).
+#ifdef PILLARSEG_CUDA_EMULATION
 TEST(FastDivmod, ExactForEveryDivisorAndDividendRange) {
   constexpr std::int64_t kMaxInt = std::numeric_limits<int>::max();
   std::vector<std::int64_t> divisors;
@@ -583,5 +587,7 @@ TEST(FastDivmod, ExactForEveryDivisorAndDividendRange) {
     }
   }
 }
+
+#endif  // PILLARSEG_CUDA_EMULATION
 
 }  // namespace
