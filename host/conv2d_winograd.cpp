@@ -50,7 +50,7 @@ constexpr int kPositions = 36;  // kInputTile^2 products per tile and channel pa
 constexpr int64_t kCacheBlockBytes = int64_t{2} << 20;
 constexpr int64_t kMinCacheBlockTiles = 32;
 constexpr int64_t kMaxTilesPerBlock = 512;
-constexpr int64_t kScratchBytes = int64_t{64} << 20;
+constexpr int64_t kScratchBytes = int64_t{32} << 20;
 // Below this many multiply-adds in a block, an OpenMP region costs more than it saves.
 constexpr int64_t kMinParallelWork = int64_t{1} << 16;
 
@@ -155,22 +155,29 @@ void for_each_item(int64_t count, const Body& body) {
   for (int64_t item = 0; item < count; ++item) body(item);
 }
 
-// U (36, O, I): U[p][o][i] = (G g G^T)[p] of the 3x3 kernel weight_at(o, i, ky, kx).
+// U (36, O, I): U[p][o][i] = (G g G^T)[p] of the 3x3 kernel weight_at(o, i, ky, kx). Each
+// output channel's 36 x I values are built in a local buffer and copied out as 36 contiguous
+// runs, rather than written 36 planes apart one value at a time.
 template <class WeightAt>
 void transform_weights(const WinogradShape& s, const WeightAt& weight_at, float* u) {
   const int64_t O = s.out_channels, I = s.in_channels;
-  parallel_for(O, [&](int64_t o) {
-    for (int64_t i = 0; i < I; ++i) {
-      std::array<std::array<double, 3>, kInputTile> gg{};  // G g
-      for (int k = 0; k < kInputTile; ++k)
-        for (int kx = 0; kx < 3; ++kx)
-          for (int ky = 0; ky < 3; ++ky) gg[k][kx] += kG[k][ky] * weight_at(o, i, ky, kx);
-      for (int k = 0; k < kInputTile; ++k)
-        for (int j = 0; j < kInputTile; ++j) {
-          double v = 0;
-          for (int kx = 0; kx < 3; ++kx) v += gg[k][kx] * kG[j][kx];
-          u[((k * kInputTile + j) * O + o) * I + i] = static_cast<float>(v);
-        }
+  parallel_chunks(O, [&](int64_t o_begin, int64_t o_end, int) {
+    std::vector<float> local(static_cast<size_t>(kPositions * I));
+    for (int64_t o = o_begin; o < o_end; ++o) {
+      for (int64_t i = 0; i < I; ++i) {
+        std::array<std::array<double, 3>, kInputTile> gg{};  // G g
+        for (int k = 0; k < kInputTile; ++k)
+          for (int kx = 0; kx < 3; ++kx)
+            for (int ky = 0; ky < 3; ++ky) gg[k][kx] += kG[k][ky] * weight_at(o, i, ky, kx);
+        for (int k = 0; k < kInputTile; ++k)
+          for (int j = 0; j < kInputTile; ++j) {
+            double v = 0;
+            for (int kx = 0; kx < 3; ++kx) v += gg[k][kx] * kG[j][kx];
+            local[static_cast<size_t>((k * kInputTile + j) * I + i)] = static_cast<float>(v);
+          }
+      }
+      for (int p = 0; p < kPositions; ++p)
+        std::copy(local.begin() + p * I, local.begin() + (p + 1) * I, u + (p * O + o) * I);
     }
   });
 }
@@ -317,7 +324,7 @@ void winograd_convolution(const float* x, const WinogradShape& s, const WeightAt
   const auto grow = [](std::vector<float>& buffer, int64_t n) {
     buffer.resize(std::max(buffer.size(), static_cast<size_t>(n)));
   };
-  ws.weights.resize(static_cast<size_t>(kPositions * O * I));
+  grow(ws.weights, kPositions * O * I);
   grow(ws.inputs, copies * kPositions * I * max_tiles);
   grow(ws.products, copies * kPositions * O * max_tiles);
   transform_weights(s, weight_at, ws.weights.data());

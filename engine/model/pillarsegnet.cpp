@@ -4,6 +4,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <tuple>
 #include <utility>
 #include <vector>
 
@@ -160,8 +161,12 @@ struct Up {
   ConvParams up;  // transposed only: weight (in, in/2, 2, 2), bias (in/2)
   int in = 0, up_channels = 0, skip_channels = 0;
   Ref upsampled, d_upsampled, cat, d_cat;
+  // Eval with batch 1 and no padding: `upsampled` is the band of `cat` after the skip, so the
+  // upsampling writes its part of the concatenation in place.
+  bool upsampled_in_cat = false;
 
   void plan(Arena& a, int batch, int h, int w, int skip_h, int skip_w) {  // h, w: input size
+    upsampled_in_cat = false;
     upsampled = a.take<float>({batch, up_channels, 2 * h, 2 * w});
     d_upsampled = a.take<float>({batch, up_channels, 2 * h, 2 * w});
     cat = a.take<float>({batch, skip_channels + up_channels, skip_h, skip_w});
@@ -175,7 +180,11 @@ struct Up {
     } else {
       be.upsample2x_forward(x, upsampled);
     }
-    be.pad_concat_forward(skip, upsampled, cat);
+    if (upsampled_in_cat) {
+      be.copy_channels(skip, 0, cat);
+    } else {
+      be.pad_concat_forward(skip, upsampled, cat);
+    }
     conv.forward(be, ps, cat, training);
   }
   // Writes d_skip and dx (both overwritten).
@@ -407,6 +416,7 @@ void PillarSegNet::plan_eval(int batch) {
   constexpr int kEnd = 1 << 30;  // alive until the next forward
   LifetimePlanner planner;
   std::vector<std::pair<float**, int>> float_slots;
+  std::vector<std::tuple<float**, int, size_t>> band_slots;  // a Ref inside another, at a byte offset
   std::vector<std::pair<int32_t**, int>> int_slots;
   std::vector<std::pair<uint8_t**, int>> label_slots;
   const auto place = [&](Ref& r, Shape shape, int first, int last) {
@@ -454,9 +464,16 @@ void PillarSegNet::plan_eval(int batch) {
     Up& u = m.ups[static_cast<size_t>(j - 1)];
     const int skip = depth - j;
     planner.use_until(current, step + 1);
-    place(u.upsampled, {batch, u.up_channels, 2 * h, 2 * w}, step + 1, step + 2);
+    u.upsampled_in_cat = batch == 1 && 2 * h == hs[skip] && 2 * w == ws[skip];
     planner.use_until(x_ids[static_cast<size_t>(skip)], step + 2);
-    place(u.cat, {batch, u.skip_channels + u.up_channels, hs[skip], ws[skip]}, step + 2, step + 3);
+    if (u.upsampled_in_cat) {
+      const int cat_id = place(u.cat, {batch, u.skip_channels + u.up_channels, hs[skip], ws[skip]}, step + 1, step + 3);
+      u.upsampled = Ref{nullptr, {batch, u.up_channels, 2 * h, 2 * w}};
+      band_slots.push_back({&u.upsampled.data, cat_id, static_cast<size_t>(u.skip_channels) * hs[skip] * ws[skip] * sizeof(float)});
+    } else {
+      place(u.upsampled, {batch, u.up_channels, 2 * h, 2 * w}, step + 1, step + 2);
+      place(u.cat, {batch, u.skip_channels + u.up_channels, hs[skip], ws[skip]}, step + 2, step + 3);
+    }
     place(u.conv.first.out, {batch, u.conv.first.conv.out, hs[skip], ws[skip]}, step + 3, step + 4);
     current = place(u.conv.second.out, {batch, u.conv.second.conv.out, hs[skip], ws[skip]}, step + 4, step + 4);
     h = hs[skip], w = ws[skip];
@@ -479,6 +496,7 @@ void PillarSegNet::plan_eval(int batch) {
   a.reset();
   uint8_t* base = a.take<uint8_t>({static_cast<int64_t>(bytes)}).data;
   for (auto& [ptr, id] : float_slots) *ptr = reinterpret_cast<float*>(base + planner.offset(id));
+  for (auto& [ptr, id, bytes_in] : band_slots) *ptr = reinterpret_cast<float*>(base + planner.offset(id) + bytes_in);
   for (auto& [ptr, id] : int_slots) *ptr = reinterpret_cast<int32_t*>(base + planner.offset(id));
   for (auto& [ptr, id] : label_slots) *ptr = base + planner.offset(id);
   // The Refs copied before their data pointers were set.
