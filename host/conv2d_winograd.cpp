@@ -56,11 +56,11 @@ constexpr int64_t kMinParallelWork = int64_t{1} << 16;
 
 // G (6 x 3) of F(4x4, 3x3): u = G g G^T.
 constexpr std::array<std::array<double, 3>, kInputTile> kG = {{{1.0 / 4, 0, 0},
-                                                              {-1.0 / 6, -1.0 / 6, -1.0 / 6},
-                                                              {-1.0 / 6, 1.0 / 6, -1.0 / 6},
-                                                              {1.0 / 24, 1.0 / 12, 1.0 / 6},
-                                                              {1.0 / 24, -1.0 / 12, 1.0 / 6},
-                                                              {0, 0, 1}}};
+                                                               {-1.0 / 6, -1.0 / 6, -1.0 / 6},
+                                                               {-1.0 / 6, 1.0 / 6, -1.0 / 6},
+                                                               {1.0 / 24, 1.0 / 12, 1.0 / 6},
+                                                               {1.0 / 24, -1.0 / 12, 1.0 / 6},
+                                                               {0, 0, 1}}};
 
 // out[k][n] = (B^T d)[k] for the six rows d[0..5] of length n, B^T =
 //   [4  0 -5  0 1 0; 0 -4 -4  1 1 0; 0 4 -4 -1 1 0; 0 -2 -1 2 1 0; 0 2 -1 -2 1 0; 0 4 0 -5 0 1].
@@ -91,8 +91,8 @@ inline void input_transform_rows(const float* __restrict d0, const float* __rest
 inline void output_transform_rows(const float* __restrict m0, const float* __restrict m1,
                                   const float* __restrict m2, const float* __restrict m3,
                                   const float* __restrict m4, const float* __restrict m5,
-                                  float* __restrict o0, float* __restrict o1,
-                                  float* __restrict o2, float* __restrict o3, int64_t n) {
+                                  float* __restrict o0, float* __restrict o1, float* __restrict o2,
+                                  float* __restrict o3, int64_t n) {
   for (int64_t t = 0; t < n; ++t) {
     const float sum12 = m1[t] + m2[t], diff12 = m1[t] - m2[t];
     const float sum34 = m3[t] + m4[t], diff34 = m3[t] - m4[t];
@@ -126,13 +126,16 @@ struct Block {
 };
 
 // Whole tile rows per block when a tile row fits in the target, else each tile row split
-// into equal runs.
+// into equal runs; either way the blocks of an image are of (nearly) equal size.
 std::vector<Block> plan_blocks(const WinogradShape& s) {
   const int64_t th = s.tile_rows(), tw = s.tile_cols(), target = s.target_tiles();
   std::vector<Block> blocks;
   for (int64_t b = 0; b < s.batch; ++b) {
     if (target >= tw) {
-      const int64_t rows = std::min(th, target / tw);
+      // As many blocks as the target needs, of equal rows (a last block of a few tiles would
+      // run thin GEMMs that repack all of U).
+      const int64_t blocks_per_image = (th + target / tw - 1) / (target / tw);
+      const int64_t rows = (th + blocks_per_image - 1) / blocks_per_image;
       for (int64_t ty0 = 0; ty0 < th; ty0 += rows)
         blocks.push_back({b, ty0, std::min(rows, th - ty0), 0, tw});
     } else {
@@ -226,8 +229,7 @@ void transform_input_channel(const float* plane, const WinogradShape& s, const B
       for (int j = 0; j < kInputTile; ++j)
         out[j] = v + ((k * kInputTile + j) * I + i) * tiles + r_t * cols;
       input_transform_rows(z, z + phase_len, z + 2 * phase_len, z + 3 * phase_len, z + 1,
-                           z + phase_len + 1, out[0], out[1], out[2], out[3], out[4], out[5],
-                           cols);
+                           z + phase_len + 1, out[0], out[1], out[2], out[3], out[4], out[5], cols);
     }
   }
 }
@@ -331,7 +333,8 @@ void winograd_convolution(const float* x, const WinogradShape& s, const WeightAt
   const float* u = ws.weights.data();
   const int64_t count = static_cast<int64_t>(blocks.size());
   const bool parallel =
-      threads > 1 && kPositions * O * I * s.batch * s.tile_rows() * s.tile_cols() >= kMinParallelWork;
+      threads > 1 &&
+      kPositions * O * I * s.batch * s.tile_rows() * s.tile_cols() >= kMinParallelWork;
 
   if (s.cache_blocks()) {
 #pragma omp parallel num_threads(threads) if (parallel)
@@ -364,8 +367,8 @@ void winograd_convolution(const float* x, const WinogradShape& s, const WeightAt
         m_p.noalias() = u_p * v_p;
       });
       for_each_item(O, [&](int64_t o) {
-        transform_output_channel(m, s, blk, o, e, y + (blk.b * O + o) * plane, scratch.a,
-                                 scratch.b, scratch.c);
+        transform_output_channel(m, s, blk, o, e, y + (blk.b * O + o) * plane, scratch.a, scratch.b,
+                                 scratch.c);
       });
     }
   }
@@ -374,8 +377,7 @@ void winograd_convolution(const float* x, const WinogradShape& s, const WeightAt
 // Checks a 4D float tensor and returns its sizes with `out_channels` outputs.
 WinogradShape shape_of(const char* op, const Tensor<float>& x, const Tensor<float>& w,
                        int64_t weight_in_axis, int64_t weight_out_axis) {
-  PS_CHECK(x.rank() == 4, "{}: input must be (B, C, H, W), got shape {}", op,
-           shape_str(x.shape()));
+  PS_CHECK(x.rank() == 4, "{}: input must be (B, C, H, W), got shape {}", op, shape_str(x.shape()));
   PS_CHECK(w.rank() == 4 && w.dim(2) == 3 && w.dim(3) == 3,
            "{}: w must be (O, I, 3, 3), got shape {}", op, shape_str(w.shape()));
   PS_CHECK(w.dim(weight_in_axis) == x.dim(1),

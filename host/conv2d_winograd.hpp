@@ -36,7 +36,9 @@ struct ConvEpilogue {
 // products M (36, O, tiles). It grows to the largest layer and keeps that size.
 struct WinogradWorkspace {
   std::vector<float> weights, inputs, products;
-  size_t bytes() const { return (weights.size() + inputs.size() + products.size()) * sizeof(float); }
+  size_t bytes() const {
+    return (weights.size() + inputs.size() + products.size()) * sizeof(float);
+  }
 };
 
 // x (B, I, H, W), w (O, I, 3, 3) -> y (B, O, H, W) with the epilogue. y is resized and

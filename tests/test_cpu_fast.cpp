@@ -83,7 +83,8 @@ INSTANTIATE_TEST_SUITE_P(Shapes, WinogradConv,
                          ::testing::Values(ConvCase{1, 1, 1, 1, 1}, ConvCase{2, 3, 7, 9, 5},
                                            ConvCase{1, 4, 1, 13, 3}, ConvCase{1, 5, 13, 1, 2},
                                            ConvCase{2, 16, 33, 17, 8}, ConvCase{1, 8, 4, 4, 8},
-                                           ConvCase{1, 40, 70, 9, 24}, ConvCase{1, 300, 9, 22, 170}));
+                                           ConvCase{1, 40, 70, 9, 24},
+                                           ConvCase{1, 300, 9, 22, 170}));
 
 // Large enough to run in parallel and in several blocks, in both schedules (blocks per thread:
 // 48 + 40 channels; shared phases: 300 + 200); the bits must not depend on threads.

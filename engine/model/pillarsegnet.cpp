@@ -228,7 +228,8 @@ class LifetimePlanner {
       std::vector<std::pair<size_t, size_t>> busy;  // [begin, end) of those tensors
       for (size_t j : placed) {
         const Item& other = items_[j];
-        if (other.first <= it.last && it.first <= other.last) busy.push_back({other.offset, other.offset + other.bytes});
+        const bool meet = other.first <= it.last && it.first <= other.last;
+        if (meet) busy.push_back({other.offset, other.offset + other.bytes});
       }
       std::sort(busy.begin(), busy.end());
       size_t offset = 0;
@@ -469,7 +470,8 @@ void PillarSegNet::plan_eval(int batch) {
     if (u.upsampled_in_cat) {
       const int cat_id = place(u.cat, {batch, u.skip_channels + u.up_channels, hs[skip], ws[skip]}, step + 1, step + 3);
       u.upsampled = Ref{nullptr, {batch, u.up_channels, 2 * h, 2 * w}};
-      band_slots.push_back({&u.upsampled.data, cat_id, static_cast<size_t>(u.skip_channels) * hs[skip] * ws[skip] * sizeof(float)});
+      const size_t skip_bytes = static_cast<size_t>(u.skip_channels) * hs[skip] * ws[skip] * sizeof(float);
+      band_slots.push_back({&u.upsampled.data, cat_id, skip_bytes});
     } else {
       place(u.upsampled, {batch, u.up_channels, 2 * h, 2 * w}, step + 1, step + 2);
       place(u.cat, {batch, u.skip_channels + u.up_channels, hs[skip], ws[skip]}, step + 2, step + 3);
