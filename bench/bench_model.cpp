@@ -6,9 +6,9 @@
 //   Gemm/4096/threads:T     C (4096 x 4096) = A * B in fp32 with Eigen: the machine's matrix-
 //                           product rate; threads 1 is one Eigen call, threads T splits the
 //                           rows of A over OpenMP (the build defines EIGEN_DONT_PARALLELIZE).
-//   Conv3x3/<layer>         host::conv2d_forward at each 3x3 conv shape of the full-size U-Nets,
-//                           x (1, I, h, w) -> y (1, O, h, w), against the GEMM's rate and
-//                           against PyTorch's nn.Conv2d at the same shape.
+//   Conv3x3/<layer>         the CPU backend's 3x3 conv (Winograd) at each 3x3 conv shape of the
+//                           full-size U-Nets, x (1, I, h, w) -> y (1, O, h, w), against the
+//                           GEMM's rate, the host/ reference and PyTorch's nn.Conv2d.
 //   Model/<size>/<variant>/<forward|train>
 //                           forward: eval mode (PyTorch: under no_grad); train: training-mode
 //                           forward + weighted cross-entropy + backward + gradient-norm clip 10
@@ -344,6 +344,11 @@ class TimedBackend final : public Backend {
   void conv2d_forward(const Ref& x, const Ref& w, const Ref* bias, int pad, Ref& y) override {
     timed(conv_op(w, "forward"), conv_flops(y, w),
           [&] { inner_->conv2d_forward(x, w, bias, pad, y); });
+  }
+  void conv2d_bn_relu_eval(const Ref& x, const Ref& w, const Ref* bias, const BatchNormRefs& bn,
+                           int pad, Ref& y) override {
+    timed(conv_op(w, "+BN+ReLU eval"), conv_flops(y, w),
+          [&] { inner_->conv2d_bn_relu_eval(x, w, bias, bn, pad, y); });
   }
   void conv2d_backward(const Ref& x, const Ref& w, const Ref& dy, int pad, Ref* dx, Ref& dw,
                        Ref* dbias) override {
@@ -706,7 +711,7 @@ std::map<int, Rate> g_gemm;  // by thread count
 struct LayerResult {
   std::string name, shape;
   double gflop = 0.0;
-  StepTimes ours, torch;
+  StepTimes ours, reference, torch;  // ours: the CPU backend's fast path; reference: host/
 };
 std::vector<LayerResult> g_layers;
 std::string g_layer_peer_note;
@@ -787,29 +792,39 @@ void finish_conv_peer() {
   peer.reset();
 }
 
-// Ours and PyTorch's nn.Conv2d at one layer shape, alternating.
+// Ours (the CPU backend's 3x3 convolution: Winograd, bias in its epilogue), the host/ reference
+// and PyTorch's nn.Conv2d at one layer shape, alternating ours and PyTorch.
 void BM_Conv3x3(benchmark::State& state, const Layer& l) {
   const TensorF x = random_tensor({l.batch, l.in, l.h, l.w}, 1);
-  const TensorF w = random_tensor({l.out, l.in, 3, 3}, 2);
-  const TensorF bias = random_tensor({l.out}, 3);
+  TensorF w = random_tensor({l.out, l.in, 3, 3}, 2);
+  TensorF bias = random_tensor({l.out}, 3);
   TensorF y({l.batch, l.out, l.h, l.w});  // zero-filled: its pages are touched before timing
+  TensorF y_reference({l.batch, l.out, l.h, l.w});
+  const std::unique_ptr<Backend> backend = make_cpu_backend();
+  const Ref x_ref{const_cast<float*>(x.data()), x.shape()}, w_ref{w.data(), w.shape()},
+      bias_ref{bias.data(), bias.shape()};
+  Ref y_ref{y.data(), y.shape()};
   if (g_options.peer && !conv_peer() && g_layer_peer_note.empty()) {
     conv_peer().emplace(std::vector<std::string>{"--case", "conv3x3"});
   }
   PeerProcess* peer = conv_peer() && conv_peer()->ok() ? &*conv_peer() : nullptr;
   const std::string command = fmt::format("conv3x3 {}:{}:{}:{}", l.in, l.out, l.h, l.w);
   LayerResult r{
-      l.name, fmt::format("{} -> {} @ {}x{}", l.in, l.out, l.h, l.w), l.flops() * 1e-9, {}, {}};
+      l.name, fmt::format("{} -> {} @ {}x{}", l.in, l.out, l.h, l.w), l.flops() * 1e-9, {}, {}, {}};
   int64_t pair = 0;
   for (auto _ : state) {
     // The order alternates so that a load rising or falling through the run weighs on both.
     const bool ours_first = pair++ % 2 == 0;
     if (peer && !ours_first) peer->step(command, r.torch);
     state.SetIterationTime(time_once(r.ours, [&] {
-      host::conv2d_forward(x, w, &bias, 1, y);
+      backend->conv2d_forward(x_ref, w_ref, &bias_ref, 1, y_ref);
       benchmark::DoNotOptimize(y.data());
     }));
     if (peer && ours_first) peer->step(command, r.torch);
+    time_once(r.reference, [&] {
+      host::conv2d_forward(x, w, &bias, 1, y_reference);
+      benchmark::DoNotOptimize(y_reference.data());
+    });
   }
   if (peer && !peer->ok()) finish_conv_peer();
   set_rate_counters(state, l.flops(), r.ours);
@@ -989,21 +1004,25 @@ void print_gemm_and_layers() {
     return fmt::format("{:.0f}%", 100.0 * rate / gemm_rate);
   };
   fmt::print(
-      "\n3x3 conv layers, host::conv2d_forward, batch 1, {} threads, median of {}: ms, GFLOP/s, "
-      "CPU ms, GFLOP per CPU-s, % of the {}-thread GEMM's rate by wall and by CPU time; PyTorch's "
+      "\n3x3 conv layers, the CPU backend's conv2d_forward (Winograd F(4x4,3x3)), batch 1, {} "
+      "threads, median of {}: ms, GFLOP/s, CPU ms, GFLOP per CPU-s, % of the {}-thread GEMM's "
+      "rate by wall and by CPU time (GFLOP: the direct convolution's 2 O I 9 h w, so Winograd's "
+      "fewer multiplies show as a higher rate); the host/ reference (im2col + GEMM) ms; PyTorch's "
       "nn.Conv2d run in turn, and the median step ratio ours / torch (wall, CPU):\n",
       num_threads(), g_options.layer_reps, num_threads());
-  fmt::print("  {:<30} {:>22} {:>7} {:>7} {:>7} {:>8} {:>6} {:>6} | {:>8} {:>7} | {:>5} {:>5}\n",
-             "layer", "I -> O @ h x w", "ms", "GFLOP/s", "CPU ms", "GF/cpu-s", "%wall", "%CPU",
-             "torch ms", "CPU ms", "wall", "CPU");
+  fmt::print(
+      "  {:<30} {:>22} {:>7} {:>7} {:>7} {:>8} {:>6} {:>6} | {:>7} | {:>8} {:>7} | {:>5} {:>5}\n",
+      "layer", "I -> O @ h x w", "ms", "GFLOP/s", "CPU ms", "GF/cpu-s", "%wall", "%CPU", "ref ms",
+      "torch ms", "CPU ms", "wall", "CPU");
   for (const LayerResult& l : g_layers) {
     const double wall_rate = l.gflop / l.ours.wall_median(),
                  cpu_rate = l.gflop / l.ours.cpu_median();
     fmt::print(
-        "  {:<30} {:>22} {:>7.0f} {:>7.1f} {:>7.0f} {:>8.1f} {:>6} {:>6} | {:>8} {:>7} | {:>5} "
-        "{:>5}\n",
+        "  {:<30} {:>22} {:>7.0f} {:>7.1f} {:>7.0f} {:>8.1f} {:>6} {:>6} | {:>7.0f} | {:>8} {:>7} "
+        "| {:>5} {:>5}\n",
         l.name, l.shape, l.ours.wall_median() * 1e3, wall_rate, l.ours.cpu_median() * 1e3, cpu_rate,
-        share(wall_rate, false), share(cpu_rate, true), fixed(wall_ms(l.torch), 0),
+        share(wall_rate, false), share(cpu_rate, true), l.reference.wall_median() * 1e3,
+        fixed(wall_ms(l.torch), 0),
         fixed(cpu_ms(l.torch), 0), ratio(l.ours.wall, l.torch.wall),
         ratio(l.ours.cpu, l.torch.cpu));
   }

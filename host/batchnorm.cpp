@@ -131,7 +131,14 @@ void normalize_per_channel(const T* x, const ChannelBlocks& blocks, const ArrayX
 template <class T>
 void normalize_per_channel(const Tensor<T>& x, const ChannelBlocks& blocks, const ArrayXd& center,
                            const ArrayXd& scale, const ArrayXd& shift, bool relu, Tensor<T>& y) {
-  if (&y != &x) y.resize(x.shape());  // in place: every value is read before it is written
+  // In place (y is x, or a view of x's memory): every value is read before it is written; a
+  // resize would zero x first.
+  if (y.data() == x.data() && y.numel() > 0) {
+    PS_CHECK(y.shape() == x.shape(), "batchnorm in place: y {} must have the shape of x {}", shape_str(y.shape()),
+             shape_str(x.shape()));
+  } else {
+    y.resize_for_overwrite(x.shape());
+  }
   if (blocks.channels_last) {
     normalize_per_channel<Eigen::ColMajor>(x.data(), blocks, center, scale, shift, relu, y.data());
   } else {

@@ -1,15 +1,19 @@
 // Pillar gather: M points -> P' pillars of at most N points (see pillar_gather.hpp). Two passes
 // over the points and no per-point allocation: pass 1 numbers the pillars through a W * H
 // cell -> pillar map, pass 2 lists each pillar's points in file order (counting sort, CSR),
-// then the kept pillars and points are copied out.
+// then the kept pillars and points are copied out. The per-point cell test and, in
+// Inference (no random draws), the copy-out run on all threads; each item writes only its own
+// entries, so the result does not depend on the thread count.
 #include "host/pillar_gather.hpp"
 
 #include <algorithm>
 #include <cmath>
 #include <limits>
 #include <numeric>
+#include <vector>
 
 #include "engine/core/error.hpp"
+#include "engine/core/parallel.hpp"
 
 namespace pillarseg::host {
 
@@ -75,7 +79,7 @@ void pillar_gather(const std::vector<Point>& points, const GridSpec& grid, const
   // so a far or non-finite point is never converted to an integer.
   const double cells_x = static_cast<double>(width), cells_y = static_cast<double>(height);
   ws.pillar_of_point.resize(points.size());
-  for (int32_t i = 0; i < num_points; ++i) {
+  parallel_for(num_points, [&](int64_t i) {
     const double x = points[i].x, y = points[i].y, z = points[i].z;
     const double fx = std::floor((x - grid.x_min) / grid.cell);
     const double fy = std::floor((y - grid.y_min) / grid.cell);
@@ -85,7 +89,7 @@ void pillar_gather(const std::vector<Point>& points, const GridSpec& grid, const
     ws.pillar_of_point[i] =
         inside ? static_cast<int32_t>(fy) * static_cast<int32_t>(width) + static_cast<int32_t>(fx)
                : -1;
-  }
+  });
 
   // Pass 1b: replace each cell by its pillar id, numbered by first appearance. The map is
   // marked dirty while in use, so a call interrupted by an exception makes the next one refill
@@ -137,7 +141,7 @@ void pillar_gather(const std::vector<Point>& points, const GridSpec& grid, const
   assign(out.point_index, {num_kept, max_points}, -1);
   assign(out.count, {num_kept}, 0);
   ws.positions.resize(static_cast<size_t>(max_points));
-  for (int64_t q = 0; q < num_kept; ++q) {
+  const auto copy_out = [&](int64_t q, int32_t* positions) {
     const int32_t pillar = ws.kept_pillars[q];
     const int32_t flat_cell = ws.pillar_flat_cell[pillar];
     out.cell(q, 0) = static_cast<int32_t>(flat_cell / width);
@@ -149,10 +153,20 @@ void pillar_gather(const std::vector<Point>& points, const GridSpec& grid, const
       for (int32_t k = 0; k < size; ++k) slots[k] = pillar_points[k];
       out.count[q] = size;
     } else {
-      select_positions(size, max_points, mode, rng, ws.positions.data());
-      for (int k = 0; k < max_points; ++k) slots[k] = pillar_points[ws.positions[k]];
+      select_positions(size, max_points, mode, rng, positions);
+      for (int k = 0; k < max_points; ++k) slots[k] = pillar_points[positions[k]];
       out.count[q] = max_points;
     }
+  };
+  if (mode == SampleMode::Inference) {
+    // Evenly spaced positions draw nothing from rng: the pillars are independent.
+    parallel_chunks(num_kept, [&](int64_t begin, int64_t end, int) {
+      std::vector<int32_t> positions(static_cast<size_t>(max_points));
+      for (int64_t q = begin; q < end; ++q) copy_out(q, positions.data());
+    });
+  } else {
+    // Training draws each pillar's subset from rng in pillar order.
+    for (int64_t q = 0; q < num_kept; ++q) copy_out(q, ws.positions.data());
   }
 }
 

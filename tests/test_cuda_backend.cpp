@@ -133,7 +133,7 @@ class CudaBackendModel : public ::testing::TestWithParam<Variant> {};
 TEST_P(CudaBackendModel, MatchesTheCpuBackend) {
   const Variant& variant = GetParam();
   const ModelConfig c = tiny_config(variant.occupancy, variant.transposed, variant.grid_map);
-  auto cpu = make_cpu_backend();
+  auto cpu = make_cpu_reference_backend();
   CudaBackend cuda;
   PillarSegNet cpu_net(c, *cpu, /*seed=*/7), cuda_net(c, cuda, /*seed=*/7);
   ParameterSet &cpu_ps = cpu_net.parameters(), &cuda_ps = cuda_net.parameters();

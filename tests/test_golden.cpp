@@ -4,7 +4,9 @@
 // training-mode logits (B, 12, H, W), the loss, every parameter gradient, the running
 // statistics, eval-mode logits, and the state after two AdamW steps. Here the engine builds
 // the model from the file's config, loads the weights by name, runs the same steps in float32
-// on the CPU backend and compares every tensor element-wise (|a - b| <= atol + rtol * |b|,
+// on the CPU reference backend (host/ alone; the fast paths of the CPU backend, Winograd
+// convolutions and fused eval blocks, are checked against it in test_model and test_cpu_fast)
+// and compares every tensor element-wise (|a - b| <= atol + rtol * |b|,
 // worst element reported). The files cover pillars (bilinear, CE, depth 3), pillars + 2D
 // observability (bilinear, BCE), pillars + 3D occupancy (transposed convolutions, CE) and the
 // grid-map baseline (bilinear, BCE), on odd grid sizes where pooling floors and Up pads.
@@ -214,7 +216,7 @@ class GoldenTest : public ::testing::TestWithParam<const char*> {};
 
 TEST_P(GoldenTest, TrainingStepAndEvalMatchPyTorch) {
   const Golden g = load_golden(GetParam());
-  auto backend = make_cpu_backend();
+  auto backend = make_cpu_reference_backend();
   auto net = build(g, *backend);
   ParameterSet& ps = net->parameters();
 
@@ -268,7 +270,7 @@ TEST_P(GoldenTest, TrainingStepAndEvalMatchPyTorch) {
 // gradient, the reference and the engine agree to rounding.
 TEST_P(GoldenTest, TwoAdamStepsMatchPyTorch) {
   const Golden g = load_golden(GetParam());
-  auto backend = make_cpu_backend();
+  auto backend = make_cpu_reference_backend();
   auto net = build(g, *backend);
   ParameterSet& ps = net->parameters();
   ASSERT_EQ(g.adam_steps, 2);
@@ -347,7 +349,7 @@ TEST(Golden, FilesCoverTheVariants) {
 // U-Net moves the logits beyond the tolerance.
 TEST(Golden, MissingOrExtraNamesAndAWrongWeightAreCaught) {
   const Golden g = load_golden(kFiles[0]);
-  auto backend = make_cpu_backend();
+  auto backend = make_cpu_reference_backend();
   auto net = build(g, *backend);
   const std::string dropped = "param.segmentation_head.up1.conv.double_conv.3.weight";
   Golden broken;

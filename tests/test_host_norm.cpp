@@ -136,6 +136,14 @@ TEST(HostBatchNorm, InPlaceMatchesOutOfPlace) {
     batchnorm_forward_eval(x, gamma, beta, mean1, var1, {}, y);
     batchnorm_forward_eval(in_place, gamma, beta, mean1, var1, {}, in_place);
     EXPECT_TRUE(test::all_close(in_place, y, 0, 0));
+    // In place through two views of one buffer (as the backends call it): not zeroed first.
+    in_place = x;
+    const TensorD x_view = TensorD::view(in_place.data(), shape);
+    TensorD y_view = TensorD::view(in_place.data(), shape);
+    batchnorm_relu_forward_eval(x_view, gamma, beta, mean1, var1, {}, y_view);
+    TensorD relu_y;
+    batchnorm_relu_forward_eval(x, gamma, beta, mean1, var1, {}, relu_y);
+    EXPECT_TRUE(test::all_close(in_place, relu_y, 0, 0));
 
     TensorD dy = random_tensor(shape, rng), dx, dgamma, dbeta;
     batchnorm_backward(dy, x, gamma, saved1, dx, dgamma, dbeta);

@@ -1,11 +1,15 @@
 // PillarSegNet on the CPU backend at tiny sizes: parameter names and shapes of the authors'
-// model, a whole-model gradient check by finite differences, and training reduces the loss.
+// model, a whole-model gradient check by finite differences, training reduces the loss, and the
+// CPU fast paths (Winograd convolutions, fused eval Conv -> BN -> ReLU, the lifetime-planned
+// eval memory) against the reference backend.
 #include <gtest/gtest.h>
 
 #include <cmath>
 #include <map>
 #include <set>
+#include <tuple>
 
+#include "engine/core/error.hpp"
 #include "engine/core/rng.hpp"
 #include "engine/model/pillarsegnet.hpp"
 #include "tests/support/test_support.hpp"
@@ -139,7 +143,9 @@ TEST_P(ModelGradient, MatchesFiniteDifferences) {
                         : variant == 1 ? tiny_config(OccupancyInput::Observability2D)
                         : variant == 2 ? tiny_config(OccupancyInput::Occupancy3D, true)
                                        : tiny_config(OccupancyInput::None, false, /*grid_map=*/true);
-  auto backend = make_cpu_backend();
+  // The reference backend: float central differences need the reference's smaller rounding
+  // (the fast paths are checked against it below).
+  auto backend = make_cpu_reference_backend();
   PillarSegNet net(c, *backend, /*seed=*/11);
   const TinyData data = tiny_data(c, 2, 5);
   ParameterSet& ps = net.parameters();
@@ -275,4 +281,77 @@ TEST(Model, EmptyScanAndBadInputs) {
   const ModelConfig occ = tiny_config(OccupancyInput::Observability2D);
   PillarSegNet with_occupancy(occ, *backend);
   EXPECT_THROW(with_occupancy.forward(tiny_data(c, 1, 2).batch, false), Error);  // no occupancy input given
+}
+
+// The fast CPU backend against the reference one on the same weights, random running
+// statistics and inputs: the eval forward (fused Conv -> BN -> ReLU, memory overlaid by
+// lifetime) and a training step's gradients; odd grid sizes and batch 1 and 2.
+class FastBackend : public ::testing::TestWithParam<std::tuple<int, int>> {};
+
+TEST_P(FastBackend, MatchesReferenceBackend) {
+  const auto [variant, B] = GetParam();
+  ModelConfig c = variant == 0   ? tiny_config()
+                  : variant == 1 ? tiny_config(OccupancyInput::Observability2D)
+                  : variant == 2 ? tiny_config(OccupancyInput::Occupancy3D, true)
+                                 : tiny_config(OccupancyInput::None, false, /*grid_map=*/true);
+  if (variant == 1) c.grid.x_max = 2.3, c.grid.y_max = 1.5;  // 23 x 15 cells: odd sizes at every level
+  const TinyData data = tiny_data(c, B, 40 + variant);
+  auto fast_backend = make_cpu_backend();
+  auto reference_backend = make_cpu_reference_backend();
+  PillarSegNet fast(c, *fast_backend, 3), reference(c, *reference_backend, 3);
+  // Running statistics away from (0, 1), so that the folded BatchNorm is exercised.
+  Rng rng(17);
+  std::vector<float> buffers = reference.parameters().download_flat(reference.parameters().buffers());
+  for (float& v : buffers) v = static_cast<float>(rng.uniform(0.5, 1.5));
+  for (PillarSegNet* net : {&fast, &reference}) net->parameters().upload_flat(net->parameters().buffers(), buffers);
+
+  for (int pass = 0; pass < 2; ++pass) {  // eval, then eval again after a training step
+    fast.forward(data.batch, false);
+    reference.forward(data.batch, false);
+    EXPECT_TRUE(test::all_close(fast.download_logits(), reference.download_logits(), 1e-4, 1e-3))
+        << "eval logits, pass " << pass;
+    EXPECT_LT(fast.activation_bytes(), reference.activation_bytes() + 1);
+
+    fast.forward(data.batch, true);
+    reference.forward(data.batch, true);
+    EXPECT_TRUE(test::all_close(fast.download_logits(), reference.download_logits(), 1e-4, 1e-3))
+        << "training logits, pass " << pass;
+    fast.loss(data.labels, LossKind::CrossEntropy, kCoefficients);
+    reference.loss(data.labels, LossKind::CrossEntropy, kCoefficients);
+    fast.backward();
+    reference.backward();
+    const std::vector<float> g_fast = fast.parameters().download_flat(fast.parameters().grads());
+    const std::vector<float> g_ref = reference.parameters().download_flat(reference.parameters().grads());
+    double scale = 0;
+    for (float g : g_ref) scale = std::max(scale, double{std::abs(g)});
+    EXPECT_TRUE(test::all_close(g_fast.data(), g_ref.data(), static_cast<int64_t>(g_ref.size()), 1e-4 * scale, 1e-3))
+        << "gradients, pass " << pass;
+  }
+}
+
+INSTANTIATE_TEST_SUITE_P(VariantsAndBatches, FastBackend,
+                         ::testing::Combine(::testing::Values(0, 1, 2, 3), ::testing::Values(1, 2)));
+
+// Eval overlays activations by lifetime: far less memory than training keeps, and the same
+// logits after switching modes back and forth.
+TEST(Model, EvalMemoryIsPlannedByLifetime) {
+  ModelConfig c = tiny_config();
+  c.depth = 3;
+  c.grid.x_max = 6.4, c.grid.y_max = 3.2;  // 64 x 32 cells
+  const TinyData data = tiny_data(c, 1, 8);
+  auto backend = make_cpu_backend();
+  PillarSegNet net(c, *backend, 2);
+  ParameterSet& ps = net.parameters();
+  const std::vector<float> running = ps.download_flat(ps.buffers());
+  net.forward(data.batch, false);
+  const size_t eval_bytes = net.activation_bytes();  // both include the pillar buffers
+  const Tensor<float> first = net.download_logits();
+  net.forward(data.batch, true);
+  const size_t training_bytes = net.activation_bytes();
+  EXPECT_LT(2 * eval_bytes, training_bytes);
+  ps.upload_flat(ps.buffers(), running);  // undo the training forward's running-statistic update
+  net.forward(data.batch, false);
+  EXPECT_EQ(net.activation_bytes(), eval_bytes);
+  EXPECT_EQ(first, net.download_logits());
+  EXPECT_THROW(net.backward(), Error);
 }

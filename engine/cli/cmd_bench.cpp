@@ -1,9 +1,12 @@
 // pillarseg bench: the stage breakdown of one inference on a real-size scan (read, pillarize,
-// input maps, upload, PFN, scatter, occupancy stream, U-Net, head, argmax + write), median
-// over repetitions, and the total. Network stages are timed on the backend's clock (CUDA events
-// with --device cuda); where the backend records graphs, the forward is also timed as one graph
-// replay (stage timing waits between stages, so the breakdown itself runs uncaptured).
+// input maps, upload, PFN, scatter, occupancy stream, U-Net, head, write: argmax + label map),
+// median over repetitions, the total, and the process's peak resident memory. Stages the config
+// does not have (input maps, occupancy stream) are not listed. Network stages are timed on the
+// backend's clock (CUDA events with --device cuda); where the backend records graphs, the
+// forward is also timed as one graph replay (stage timing waits between stages, so the
+// breakdown itself runs uncaptured).
 #include <fmt/format.h>
+#include <sys/resource.h>
 
 #include <algorithm>
 #include <chrono>
@@ -57,7 +60,12 @@ void run_bench(const BenchArgs& a) {
   const ClassTable classes = ClassTable::defaults();
 
   std::vector<std::string> names = {"read", "pillarize", "input maps", "upload", "PFN", "scatter", "occupancy",
-                                    "U-Net", "head", "argmax+write", "total"};
+                                    "U-Net", "head", "write", "total"};
+  const bool has_maps = model.occupancy != OccupancyInput::None || model.grid_map_input;
+  const auto listed = [&](size_t stage) {
+    return (names[stage] != "input maps" || has_maps) &&
+           (names[stage] != "occupancy" || model.occupancy != OccupancyInput::None);
+  };
   std::vector<std::vector<double>> times(names.size());
   std::vector<double> graph_forward;  // upload + replay of the recorded forward
   size_t points = 0;
@@ -118,7 +126,8 @@ void run_bench(const BenchArgs& a) {
              model.base_width, model.transposed ? "transposed" : "bilinear", occupancy_name(model.occupancy));
   fmt::print("scan: {} ({} points); median of {} runs after one warm-up\n", scan_path.string(), points, a.repeat);
   fmt::print("{:<14} {:>10}\n", "stage", "ms");
-  for (size_t i = 0; i < names.size(); ++i) fmt::print("{:<14} {:>10.2f}\n", names[i], median(times[i]));
+  for (size_t i = 0; i < names.size(); ++i)
+    if (listed(i)) fmt::print("{:<14} {:>10.2f}\n", names[i], median(times[i]));
   fmt::print("throughput: {:.2f} scans/s, {:.2f} M points/s\n", 1000.0 / median(times.back()),
              static_cast<double>(points) / median(times.back()) / 1000.0);
   if (!graph_forward.empty()) {
@@ -127,6 +136,10 @@ void run_bench(const BenchArgs& a) {
     fmt::print("forward as a graph replay (upload included): {:.2f} ms; stage by stage above: {:.2f} ms ({:.2f}x)\n",
                median(graph_forward), staged, staged / std::max(median(graph_forward), 1e-9));
   }
+  rusage usage{};
+  getrusage(RUSAGE_SELF, &usage);
+  fmt::print("peak resident memory: {:.0f} MiB (host; activations planned: {:.0f} MiB)\n",
+             static_cast<double>(usage.ru_maxrss) / 1024.0, static_cast<double>(net.activation_bytes()) / (1 << 20));
 }
 
 }  // namespace

@@ -98,6 +98,15 @@ class Backend {
   // ConvTranspose2d kernel 2 stride 2, weight (I, O, 2, 2).
   virtual void conv_transpose2d_forward(const Ref& x, const Ref& w, const Ref* bias, Ref& y) = 0;
   virtual void conv_transpose2d_backward(const Ref& x, const Ref& w, const Ref& dy, Ref& dx, Ref& dw, Ref* dbias) = 0;
+  // Eval-mode Conv2d -> BatchNorm (running statistics) -> ReLU, y = relu(bn(conv(x, w) + bias)),
+  // which a backend may run as one pass (BatchNorm folded into the convolution's output). The
+  // default composes conv2d_forward and batchnorm_relu_forward, the latter in place on y.
+  virtual void conv2d_bn_relu_eval(const Ref& x, const Ref& w, const Ref* bias, const BatchNormRefs& bn, int pad,
+                                   Ref& y) {
+    conv2d_forward(x, w, bias, pad, y);
+    BatchNormRefs running = bn;
+    batchnorm_relu_forward(y, running, /*training=*/false, y);
+  }
   // BatchNorm over channels (axis 1) followed by ReLU; y = relu(bn(x)).
   virtual void batchnorm_relu_forward(const Ref& x, BatchNormRefs& bn, bool training, Ref& y) = 0;
   virtual void batchnorm_relu_backward(const Ref& x, const Ref& y, const Ref& dy, const BatchNormRefs& bn, Ref& dx,
@@ -126,6 +135,9 @@ class Backend {
 };
 
 std::unique_ptr<Backend> make_cpu_backend();
+// The CPU backend on the host/ reference ops alone (no Winograd, Conv -> BN -> ReLU composed):
+// what the fast paths are tested and benchmarked against.
+std::unique_ptr<Backend> make_cpu_reference_backend();
 // The CUDA backend; throws pillarseg::Error with the reason when it is not available (a build
 // without it, or no device).
 std::unique_ptr<Backend> make_cuda_backend();

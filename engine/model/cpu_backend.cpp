@@ -1,8 +1,22 @@
 // CpuBackend: the Backend interface on the host/ reference ops (Eigen, OpenMP). Refs are
-// host pointers; each op wraps them as Tensor views (no copies) and calls host/.
+// host pointers; each op wraps them as Tensor views (no copies) and calls host/. The 3x3 / pad 1
+// convolutions (forward, input gradient, and eval-mode Conv -> BatchNorm -> ReLU in one pass)
+// run on the Winograd fast path host/conv2d_winograd, which is tested against host/conv2d; the
+// eval PFN runs fused per block of pillars. make_cpu_reference_backend() has neither.
+#include <algorithm>
+#include <cmath>
 #include <cstdlib>
 #include <cstring>
 #include <span>
+#include <vector>
+
+// GCC 12 flags its own AVX-512 intrinsics, inlined into Eigen's GEMM packing, as reading an
+// uninitialised value (GCC bug 105593, fixed in GCC 13); the warnings are silenced for Eigen only.
+#pragma GCC diagnostic push
+#pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
+#pragma GCC diagnostic ignored "-Wuninitialized"
+#include <Eigen/Core>
+#pragma GCC diagnostic pop
 
 #include "engine/core/error.hpp"
 #include "engine/core/parallel.hpp"
@@ -10,6 +24,7 @@
 #include "host/adam.hpp"
 #include "host/batchnorm.hpp"
 #include "host/conv2d.hpp"
+#include "host/conv2d_winograd.hpp"
 #include "host/conv_transpose2d.hpp"
 #include "host/losses.hpp"
 #include "host/maxpool2d.hpp"
@@ -36,8 +51,9 @@ host::BatchNormSaved<float> bn_saved(const BatchNormRefs& bn) {
 
 class CpuBackend final : public Backend {
  public:
+  explicit CpuBackend(bool fast_paths) : fast_paths_(fast_paths) {}
   Device device() const override { return Device::Cpu; }
-  std::string name() const override { return "cpu"; }
+  std::string name() const override { return fast_paths_ ? "cpu" : "cpu-reference"; }
 
   void* allocate(size_t bytes) override {
     void* p = std::aligned_alloc(64, (bytes + 63) / 64 * 64);
@@ -57,6 +73,8 @@ class CpuBackend final : public Backend {
       int64_t counted = 0;  // the model keeps num_batches_tracked
       host::pfn_forward_train(view(points), view(weight), view(bn.gamma), view(bn.beta), bn_options(bn), mean, var,
                               counted, y, saved);
+    } else if (fast_paths_) {
+      pfn_forward_eval_blocked(points, weight, bn, out);
     } else {
       host::pfn_forward_eval(view(points), view(weight), view(bn.gamma), view(bn.beta), mean, var, bn_options(bn), y);
     }
@@ -103,15 +121,48 @@ class CpuBackend final : public Backend {
 
   void conv2d_forward(const Ref& x, const Ref& w, const Ref* bias, int pad, Ref& y) override {
     Tensor<float> out = view(y);
+    if (winograd_applies(w, pad)) {
+      host::conv3x3_winograd_forward(view(x), view(w), {nullptr, bias ? bias->data : nullptr, false}, out,
+                                     winograd_);
+      return;
+    }
     Tensor<float> b;
     if (bias) b = view(*bias);
     host::conv2d_forward(view(x), view(w), bias ? &b : nullptr, pad, out);
   }
   void conv2d_backward(const Ref& x, const Ref& w, const Ref& dy, int pad, Ref* dx, Ref& dw, Ref* dbias) override {
     Tensor<float> gx, gw = view(dw), gb;
-    if (dx) gx = view(*dx);
     if (dbias) gb = view(*dbias);
-    host::conv2d_backward(view(x), view(w), view(dy), pad, dx ? &gx : nullptr, &gw, dbias ? &gb : nullptr);
+    const bool fast_dx = dx && winograd_applies(w, pad);
+    if (dx) gx = view(*dx);
+    host::conv2d_backward(view(x), view(w), view(dy), pad, dx && !fast_dx ? &gx : nullptr, &gw,
+                          dbias ? &gb : nullptr);
+    if (fast_dx) host::conv3x3_winograd_input_gradient(view(dy), view(w), gx, winograd_);
+  }
+  // BatchNorm with running statistics folded into the epilogue of the convolution:
+  //   y = relu(conv(x, w) * s + (bias - mean) * s + beta),  s = gamma / sqrt(var + eps),
+  // computed in double as host::batchnorm_relu_forward_eval does.
+  void conv2d_bn_relu_eval(const Ref& x, const Ref& w, const Ref* bias, const BatchNormRefs& bn, int pad,
+                           Ref& y) override {
+    if (!winograd_applies(w, pad)) {
+      Backend::conv2d_bn_relu_eval(x, w, bias, bn, pad, y);
+      return;
+    }
+    const int64_t O = w.dim(0);
+    PS_CHECK(bn.gamma.numel() == O && bn.beta.numel() == O && bn.running_mean.numel() == O &&
+                 bn.running_var.numel() == O,
+             "conv2d_bn_relu_eval: BatchNorm parameters must have the conv's {} output channels", O);
+    epilogue_scale_.resize(static_cast<size_t>(O));
+    epilogue_shift_.resize(static_cast<size_t>(O));
+    for (int64_t o = 0; o < O; ++o) {
+      const double s = bn.gamma.data[o] / std::sqrt(static_cast<double>(bn.running_var.data[o]) + bn.eps);
+      const double b = bias ? bias->data[o] : 0.0;
+      epilogue_scale_[static_cast<size_t>(o)] = static_cast<float>(s);
+      epilogue_shift_[static_cast<size_t>(o)] = static_cast<float>((b - bn.running_mean.data[o]) * s + bn.beta.data[o]);
+    }
+    Tensor<float> out = view(y);
+    host::conv3x3_winograd_forward(view(x), view(w), {epilogue_scale_.data(), epilogue_shift_.data(), true}, out,
+                                   winograd_);
   }
   void conv_transpose2d_forward(const Ref& x, const Ref& w, const Ref* bias, Ref& y) override {
     Tensor<float> out = view(y), b;
@@ -208,6 +259,54 @@ class CpuBackend final : public Backend {
   }
 
  private:
+  // The Winograd fast path covers the U-Net's 3x3 / pad 1 convolutions.
+  bool winograd_applies(const Ref& w, int pad) const {
+    return fast_paths_ && w.shape.size() == 4 && w.dim(2) == 3 && w.dim(3) == 3 && pad == 1;
+  }
+
+  // Eval PFN, fused per block of pillars so that the (P N, C) linear output never exists whole
+  // (host::pfn_forward_eval's is 200 MB on a real scan): points (P, N, 10), weight (C, 10) ->
+  // out (P, C) = max over n of relu(z s + t), z = the linear output, s and t BatchNorm's
+  // running statistics folded (in double, as host/batchnorm does).
+  void pfn_forward_eval_blocked(const Ref& points, const Ref& weight, const BatchNormRefs& bn, Ref& out) {
+    PS_CHECK(points.shape.size() == 3 && points.dim(2) == 10 && weight.shape == (Shape{out.dim(1), 10}) &&
+                 out.dim(0) == points.dim(0),
+             "pfn_forward: points (P, N, 10) {}, weight (C, 10) {} and out (P, C) {} do not fit",
+             shape_str(points.shape), shape_str(weight.shape), shape_str(out.shape));
+    using RowMatrix = Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
+    constexpr int64_t kPillarsPerBlock = 64;
+    const int64_t P = points.dim(0), N = points.dim(1), C = weight.dim(0);
+    std::vector<float> scale(static_cast<size_t>(C)), shift(static_cast<size_t>(C));
+    for (int64_t c = 0; c < C; ++c) {
+      const double sc = bn.gamma.data[c] / std::sqrt(static_cast<double>(bn.running_var.data[c]) + bn.eps);
+      scale[static_cast<size_t>(c)] = static_cast<float>(sc);
+      shift[static_cast<size_t>(c)] = static_cast<float>(bn.beta.data[c] - bn.running_mean.data[c] * sc);
+    }
+    const Eigen::Map<const RowMatrix> w(weight.data, C, 10);
+    const int64_t blocks = (P + kPillarsPerBlock - 1) / kPillarsPerBlock;
+    parallel_chunks(blocks, [&](int64_t block_begin, int64_t block_end, int) {
+      RowMatrix z;
+      for (int64_t blk = block_begin; blk < block_end; ++blk) {
+        const int64_t p0 = blk * kPillarsPerBlock, p1 = std::min(P, p0 + kPillarsPerBlock);
+        const Eigen::Map<const RowMatrix> x(points.data + p0 * N * 10, (p1 - p0) * N, 10);
+        z.noalias() = x * w.transpose();
+        for (int64_t p = p0; p < p1; ++p) {
+          float* best = out.data + p * C;
+          for (int64_t c = 0; c < C; ++c) best[c] = 0.0f;  // relu: the max is at least 0
+          for (int64_t n = 0; n < N; ++n) {
+            const float* row = z.data() + ((p - p0) * N + n) * C;
+            for (int64_t c = 0; c < C; ++c)
+              best[c] = std::max(best[c], row[c] * scale[static_cast<size_t>(c)] + shift[static_cast<size_t>(c)]);
+          }
+        }
+      }
+    });
+  }
+
+  bool fast_paths_;
+  host::WinogradWorkspace winograd_;
+  std::vector<float> epilogue_scale_, epilogue_shift_;
+
   // Copies x (B, Cx, H, W) to or from channels [channel0, channel0 + Cx) of y (B, Cy, H, W).
   static void move_channels(const Ref& x, int channel0, const Ref& y, bool into_y) {
     PS_CHECK(x.shape.size() == 4 && y.shape.size() == 4 && x.dim(0) == y.dim(0) && x.dim(2) == y.dim(2) &&
@@ -226,6 +325,7 @@ class CpuBackend final : public Backend {
 
 }  // namespace
 
-std::unique_ptr<Backend> make_cpu_backend() { return std::make_unique<CpuBackend>(); }
+std::unique_ptr<Backend> make_cpu_backend() { return std::make_unique<CpuBackend>(/*fast_paths=*/true); }
+std::unique_ptr<Backend> make_cpu_reference_backend() { return std::make_unique<CpuBackend>(/*fast_paths=*/false); }
 
 }  // namespace pillarseg

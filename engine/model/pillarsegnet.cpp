@@ -2,6 +2,12 @@
 
 #include <fmt/format.h>
 
+#include <algorithm>
+#include <chrono>
+#include <tuple>
+#include <utility>
+#include <vector>
+
 #include "engine/core/error.hpp"
 
 namespace pillarseg {
@@ -74,10 +80,14 @@ struct ConvBnRelu {
   void forward(Backend& be, ParameterSet& ps, const Ref& x, bool training) {
     Ref bias;
     if (conv.bias >= 0) bias = ps.value(conv.bias);
-    be.conv2d_forward(x, ps.value(conv.weight), conv.bias >= 0 ? &bias : nullptr, conv.pad, conv_out);
     BatchNormRefs r = bn_refs(ps, bn);
+    if (!training) {  // running statistics: one fused pass, no conv_out kept
+      be.conv2d_bn_relu_eval(x, ps.value(conv.weight), conv.bias >= 0 ? &bias : nullptr, r, conv.pad, out);
+      return;
+    }
+    be.conv2d_forward(x, ps.value(conv.weight), conv.bias >= 0 ? &bias : nullptr, conv.pad, conv_out);
     be.batchnorm_relu_forward(conv_out, r, training, out);
-    if (training) ps.counters()[bn.counter] += 1;
+    ps.counters()[bn.counter] += 1;
   }
   // Uses d_out (filled by the consumer); writes dx when given.
   void backward(Backend& be, ParameterSet& ps, const Ref& x, Ref* dx) {
@@ -152,8 +162,12 @@ struct Up {
   ConvParams up;  // transposed only: weight (in, in/2, 2, 2), bias (in/2)
   int in = 0, up_channels = 0, skip_channels = 0;
   Ref upsampled, d_upsampled, cat, d_cat;
+  // Eval with batch 1 and no padding: `upsampled` is the band of `cat` after the skip, so the
+  // upsampling writes its part of the concatenation in place.
+  bool upsampled_in_cat = false;
 
   void plan(Arena& a, int batch, int h, int w, int skip_h, int skip_w) {  // h, w: input size
+    upsampled_in_cat = false;
     upsampled = a.take<float>({batch, up_channels, 2 * h, 2 * w});
     d_upsampled = a.take<float>({batch, up_channels, 2 * h, 2 * w});
     cat = a.take<float>({batch, skip_channels + up_channels, skip_h, skip_w});
@@ -167,7 +181,11 @@ struct Up {
     } else {
       be.upsample2x_forward(x, upsampled);
     }
-    be.pad_concat_forward(skip, upsampled, cat);
+    if (upsampled_in_cat) {
+      be.copy_channels(skip, 0, cat);
+    } else {
+      be.pad_concat_forward(skip, upsampled, cat);
+    }
     conv.forward(be, ps, cat, training);
   }
   // Writes d_skip and dx (both overwritten).
@@ -181,6 +199,60 @@ struct Up {
       be.upsample2x_backward(d_upsampled, dx);
     }
   }
+};
+
+// Places tensors with known lifetimes (first and last step of the forward that uses them) in
+// one block so that two tensors share bytes only when their lifetimes are disjoint. Greedy by
+// size: each tensor, largest first, goes to the lowest 64-byte aligned offset that overlaps no
+// placed tensor alive at the same time (the usual heuristic for static memory planning).
+class LifetimePlanner {
+ public:
+  int add(size_t bytes, int first, int last) {
+    items_.push_back({(bytes + 63) / 64 * 64, first, last, 0});
+    return static_cast<int>(items_.size()) - 1;
+  }
+  void use_until(int id, int step) {
+    Item& it = items_[static_cast<size_t>(id)];
+    it.last = std::max(it.last, step);
+  }
+  // Assigns the offsets; returns the bytes of the block.
+  size_t plan() {
+    std::vector<size_t> order(items_.size());
+    for (size_t i = 0; i < order.size(); ++i) order[i] = i;
+    std::stable_sort(order.begin(), order.end(),
+                     [&](size_t a, size_t b) { return items_[a].bytes > items_[b].bytes; });
+    std::vector<size_t> placed;
+    size_t total = 0;
+    for (size_t i : order) {
+      Item& it = items_[i];
+      // Candidate offsets: 0 and the end of every placed tensor alive at the same time.
+      std::vector<std::pair<size_t, size_t>> busy;  // [begin, end) of those tensors
+      for (size_t j : placed) {
+        const Item& other = items_[j];
+        const bool meet = other.first <= it.last && it.first <= other.last;
+        if (meet) busy.push_back({other.offset, other.offset + other.bytes});
+      }
+      std::sort(busy.begin(), busy.end());
+      size_t offset = 0;
+      for (const auto& [begin, end] : busy) {
+        if (offset + it.bytes <= begin) break;
+        offset = std::max(offset, end);
+      }
+      it.offset = offset;
+      total = std::max(total, offset + it.bytes);
+      placed.push_back(i);
+    }
+    return total;
+  }
+  size_t offset(int id) const { return items_[static_cast<size_t>(id)].offset; }
+
+ private:
+  struct Item {
+    size_t bytes;
+    int first, last;
+    size_t offset;
+  };
+  std::vector<Item> items_;
 };
 
 }  // namespace
@@ -206,8 +278,12 @@ struct PillarSegNet::Impl {
   LRef labels, predicted;
   Ref probs;
   int planned_batch = -1;
+  bool planned_training = false;
+  // Training keeps every activation for the backward; eval reuses memory by lifetime.
+  size_t training_bytes = 0, eval_bytes = 0;
+  int training_batch = -1, eval_batch = -1;
 
-  std::unique_ptr<Arena> activations, pillars;
+  std::unique_ptr<Arena> activations, eval_activations, pillars;
 
   // Every BatchNorm of the network (pointers into the members above, fixed after construction).
   std::vector<BnParams*> batchnorms() {
@@ -280,6 +356,7 @@ PillarSegNet::PillarSegNet(const ModelConfig& config, Backend& backend, uint64_t
   m.head = declare_conv(ps, "segmentation_head.outc.conv", current, config_.num_classes, 1, true);
   params_.finalize(seed);
   m.activations = std::make_unique<Arena>(backend_);
+  m.eval_activations = std::make_unique<Arena>(backend_);
   m.pillars = std::make_unique<Arena>(backend_);
 }
 
@@ -290,16 +367,28 @@ void PillarSegNet::set_batchnorm_momentum(float momentum) {
   for (BnParams* bn : impl_->batchnorms()) bn->momentum = momentum > 0 ? momentum : bn->module_momentum;
 }
 
-void PillarSegNet::plan(int batch) {
+void PillarSegNet::plan(int batch, bool training) {
   Impl& m = *impl_;
-  if (m.planned_batch == batch) return;
-  m.eval_graph.reset();  // it names the old buffers
+  if (m.planned_batch == batch && m.planned_training == training) return;
+  if (training) {
+    plan_training(batch);
+  } else {
+    plan_eval(batch);
+  }
+  m.planned_batch = batch;
+  m.planned_training = training;
+  logits_ = m.logits;
+}
+
+void PillarSegNet::plan_training(int batch) {
+  Impl& m = *impl_;
   const int H = config_.grid.height(), W = config_.grid.width(), depth = config_.depth;
   Arena& a = *m.activations;
-  // Two passes: measure, then take from one block of that size.
+  // Two passes: measure, then take from one block of that size (kept while the batch size
+  // stays, so that switching between training and eval does not allocate).
   for (int pass = 0; pass < 2; ++pass) {
     if (pass == 0) {
-      a.release();
+      if (m.training_batch != batch) a.release();
       a.begin_measure();
     } else {
       a.reserve(a.used());
@@ -336,8 +425,112 @@ void PillarSegNet::plan(int batch) {
     m.predicted = a.take<uint8_t>({batch, H, W});
     m.coefficients = a.take<float>({13});
   }
-  m.planned_batch = batch;
-  logits_ = m.logits;
+  m.training_batch = batch;
+  m.training_bytes = a.used();
+}
+
+// The eval forward's tensors in the order it runs, each with the steps that read or write it;
+// the planner overlays those whose lifetimes are disjoint. Eval needs no conv_out (Conv, BN and
+// ReLU run as one op) and no gradients; the training-only Refs stay null.
+void PillarSegNet::plan_eval(int batch) {
+  Impl& m = *impl_;
+  const int H = config_.grid.height(), W = config_.grid.width(), depth = config_.depth;
+  constexpr int kEnd = 1 << 30;  // alive until the next forward
+  LifetimePlanner planner;
+  std::vector<std::pair<float**, int>> float_slots;
+  std::vector<std::tuple<float**, int, size_t>> band_slots;  // a Ref inside another, at a byte offset
+  std::vector<std::pair<int32_t**, int>> int_slots;
+  std::vector<std::pair<uint8_t**, int>> label_slots;
+  const auto place = [&](Ref& r, Shape shape, int first, int last) {
+    r = Ref{nullptr, std::move(shape)};
+    const int id = planner.add(r.bytes(), first, last);
+    float_slots.push_back({&r.data, id});
+    return id;
+  };
+  for (Down& d : m.downs) d.conv.first.conv_out = d.conv.second.conv_out = Ref{};
+  for (Up& u : m.ups) u.conv.first.conv_out = u.conv.second.conv_out = Ref{};
+  m.occupancy.conv_out = Ref{};
+  m.dx.assign(static_cast<size_t>(depth) + 1, Ref{});
+  m.x.assign(static_cast<size_t>(depth) + 1, Ref{});
+
+  int step = 0;
+  std::vector<int> x_ids(static_cast<size_t>(depth) + 1);
+  std::vector<int> hs(static_cast<size_t>(depth) + 1), ws(static_cast<size_t>(depth) + 1);
+  hs[0] = H, ws[0] = W;
+  x_ids[0] = place(m.x[0], {batch, config_.input_channels(), H, W}, step, step);
+  if (config_.occupancy != OccupancyInput::None) {
+    place(m.occupancy_input, {batch, config_.occupancy_input_channels(), H, W}, step, step + 1);
+    place(m.occupancy.out, {batch, config_.occupancy_channels, H, W}, step + 1, step + 2);
+    step += 2;
+  }
+  if (config_.grid_map_input) {
+    place(m.grid_map_input, {batch, 6, H, W}, step, step + 1);
+    step += 1;
+  }
+  for (int i = 1; i <= depth; ++i) {
+    Down& d = m.downs[static_cast<size_t>(i - 1)];
+    const int h = hs[i - 1] / 2, w = ws[i - 1] / 2;
+    planner.use_until(x_ids[static_cast<size_t>(i - 1)], step + 1);
+    place(d.pooled, {batch, d.in, h, w}, step + 1, step + 2);
+    d.argmax = IRef{nullptr, {batch, d.in, h, w}};
+    int_slots.push_back({&d.argmax.data, planner.add(d.argmax.bytes(), step + 1, step + 1)});
+    place(d.conv.first.out, {batch, d.conv.first.conv.out, h, w}, step + 2, step + 3);
+    x_ids[static_cast<size_t>(i)] = place(d.conv.second.out, {batch, d.out, h, w}, step + 3, step + 3);
+    m.x[static_cast<size_t>(i)] = d.conv.second.out;
+    hs[i] = h, ws[i] = w;
+    step += 3;
+  }
+  int current = x_ids[static_cast<size_t>(depth)];
+  int h = hs[depth], w = ws[depth];
+  for (int j = 1; j <= depth; ++j) {
+    Up& u = m.ups[static_cast<size_t>(j - 1)];
+    const int skip = depth - j;
+    planner.use_until(current, step + 1);
+    u.upsampled_in_cat = batch == 1 && 2 * h == hs[skip] && 2 * w == ws[skip];
+    planner.use_until(x_ids[static_cast<size_t>(skip)], step + 2);
+    if (u.upsampled_in_cat) {
+      const int cat_id = place(u.cat, {batch, u.skip_channels + u.up_channels, hs[skip], ws[skip]}, step + 1, step + 3);
+      u.upsampled = Ref{nullptr, {batch, u.up_channels, 2 * h, 2 * w}};
+      const size_t skip_bytes = static_cast<size_t>(u.skip_channels) * hs[skip] * ws[skip] * sizeof(float);
+      band_slots.push_back({&u.upsampled.data, cat_id, skip_bytes});
+    } else {
+      place(u.upsampled, {batch, u.up_channels, 2 * h, 2 * w}, step + 1, step + 2);
+      place(u.cat, {batch, u.skip_channels + u.up_channels, hs[skip], ws[skip]}, step + 2, step + 3);
+    }
+    place(u.conv.first.out, {batch, u.conv.first.conv.out, hs[skip], ws[skip]}, step + 3, step + 4);
+    current = place(u.conv.second.out, {batch, u.conv.second.conv.out, hs[skip], ws[skip]}, step + 4, step + 4);
+    h = hs[skip], w = ws[skip];
+    step += 4;
+  }
+  planner.use_until(current, step + 1);
+  place(m.logits, {batch, config_.num_classes, H, W}, step + 1, kEnd);
+  place(m.d_logits, {batch, config_.num_classes, H, W}, step + 1, kEnd);
+  place(m.probs, {batch, config_.num_classes, H, W}, step + 1, kEnd);
+  place(m.coefficients, {13}, step + 1, kEnd);
+  for (LRef* r : {&m.labels, &m.predicted}) {
+    *r = LRef{nullptr, {batch, H, W}};
+    label_slots.push_back({&r->data, planner.add(r->bytes(), step + 1, kEnd)});
+  }
+
+  const size_t bytes = planner.plan();
+  Arena& a = *m.eval_activations;
+  // The same batch size gives the same plan in the same block: a recorded graph stays valid
+  // across switches between training and eval; another batch size records again.
+  if (m.eval_batch != batch) {
+    a.release();
+    m.eval_graph.reset();
+  }
+  a.reserve(bytes);
+  a.reset();
+  uint8_t* base = a.take<uint8_t>({static_cast<int64_t>(bytes)}).data;
+  for (auto& [ptr, id] : float_slots) *ptr = reinterpret_cast<float*>(base + planner.offset(id));
+  for (auto& [ptr, id, bytes_in] : band_slots) *ptr = reinterpret_cast<float*>(base + planner.offset(id) + bytes_in);
+  for (auto& [ptr, id] : int_slots) *ptr = reinterpret_cast<int32_t*>(base + planner.offset(id));
+  for (auto& [ptr, id] : label_slots) *ptr = base + planner.offset(id);
+  // The Refs copied before their data pointers were set.
+  for (int i = 1; i <= depth; ++i) m.x[static_cast<size_t>(i)] = m.downs[static_cast<size_t>(i - 1)].conv.second.out;
+  m.eval_batch = batch;
+  m.eval_bytes = bytes;
 }
 
 void PillarSegNet::plan_pillars(int64_t pillars, bool at_capacity) {
@@ -388,7 +581,10 @@ void PillarSegNet::plan_pillars(int64_t pillars, bool at_capacity) {
   m.num_pillars = pillars;
 }
 
-size_t PillarSegNet::activation_bytes() const { return impl_->activations->used() + impl_->pillars->used(); }
+size_t PillarSegNet::activation_bytes() const {
+  const Impl& m = *impl_;
+  return (m.planned_training ? m.training_bytes : m.eval_bytes) + m.pillars->used();
+}
 
 void PillarSegNet::forward(const ModelBatch& batch, bool training) {
   Impl& m = *impl_;
@@ -405,7 +601,7 @@ void PillarSegNet::forward(const ModelBatch& batch, bool training) {
     last = now;
   };
   stage_times_ = StageTimes{};
-  plan(batch.batch);
+  plan(batch.batch, training);
   // The evaluation forward replays a recorded graph where the backend records them (and stage
   // timing, which waits between stages, is off). The graph runs the pillar stream at the pillar
   // capacity: rows past this batch's P hold zero points and cells (-1, -1, -1), which the scatter
@@ -510,6 +706,8 @@ double PillarSegNet::loss(const Tensor<uint8_t>& labels, LossKind kind, const st
 
 void PillarSegNet::backward() {
   Impl& m = *impl_;
+  PS_CHECK(m.planned_training, "backward() needs a training-mode forward first (the eval forward keeps no "
+                               "activations for it)");
   Backend& be = backend_;
   ParameterSet& ps = params_;
   const int depth = config_.depth;

@@ -4,9 +4,11 @@
 // transposed-convolution upsampling); a 1x1 head to 12 classes. Forward keeps what backward
 // needs; backward writes every parameter gradient (overwriting).
 //
-// Activation memory is planned once per (batch, H, W) in one arena; pillar buffers grow
-// only when a batch has more pillars than any before, so the steady-state loop allocates
-// nothing, and a recorded evaluation graph stays valid until then.
+// Activation memory is planned once per (batch, H, W) and mode in one arena each: training
+// keeps every activation for the backward; eval overlays tensors whose lifetimes do not meet
+// (an activation dies after its last reader, a skip tensor after its decoder's concat). Pillar
+// buffers grow only when a batch has more pillars than any before, so the steady-state loop
+// allocates nothing, and a recorded evaluation graph stays valid until then.
 #pragma once
 
 #include <array>
@@ -71,13 +73,15 @@ class PillarSegNet {
   Tensor<float> download_logits() const;           // (B, 12, H, W)
   Tensor<float> probabilities();                   // softmax, (B, 12, H, W)
   Tensor<uint8_t> predict_labels();                // argmax class ids 1..12, (B, H, W)
-  // Bytes of activation memory planned for the current batch shape.
+  // Bytes of activation memory planned for the current batch shape and mode.
   size_t activation_bytes() const;
 
   struct Impl;
 
  private:
-  void plan(int batch);
+  void plan(int batch, bool training);
+  void plan_training(int batch);
+  void plan_eval(int batch);
   void plan_pillars(int64_t pillars, bool at_capacity);
 
   ModelConfig config_;

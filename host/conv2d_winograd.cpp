@@ -1,0 +1,432 @@
+// Conv2d 3x3 / pad 1 by Winograd F(4x4, 3x3): weight, input and output transforms around 36
+// Eigen GEMMs per block of tiles. x (B, I, H, W), w (O, I, 3, 3) -> y (B, O, H, W).
+//
+// Layout. The output is cut into 4x4 tiles, th = ceil(H / 4) rows of tw = ceil(W / 4) tiles; a
+// block is a run of whole tile rows of one image, or a run of tiles within one tile row, T
+// tiles in all. For a block:
+//   V (36, I, T): V[p][i][t] = (B^T d B)[p] of input channel i's 6x6 tile t,
+//   M (36, O, T): M[p] = U[p] (O, I) * V[p] (I, T), one GEMM per position p = 6 k + j,
+//   y: the 4x4 tile A^T M[., o, t] A, through the epilogue, where it lies inside the image.
+// The transforms run over a block's tile row at once so that they vectorise: the input row band
+// is split by column phase (x mod 4) first, which makes tile tx's six columns contiguous runs
+// over tx.
+// Scheduling. Where V and M of a block fit in a core's cache (few channels, large images), the
+// threads take whole blocks, each with its own V and M. Otherwise (many channels, small images)
+// the blocks are large and run one after the other, each in three parallel phases: input
+// transform by channel, the 36 GEMMs, output transform by channel. Either way the arithmetic
+// of every block is the same, so the scheduling cannot change the results.
+#include "host/conv2d_winograd.hpp"
+
+#include <algorithm>
+#include <array>
+
+#include <omp.h>
+
+// GCC 12 flags its own AVX-512 intrinsics, inlined into Eigen's GEMM packing, as reading an
+// uninitialised value (GCC bug 105593, fixed in GCC 13); the warnings are silenced for Eigen only.
+#pragma GCC diagnostic push
+#pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
+#pragma GCC diagnostic ignored "-Wuninitialized"
+#include <Eigen/Core>
+#pragma GCC diagnostic pop
+
+#include "engine/core/error.hpp"
+#include "engine/core/parallel.hpp"
+
+namespace pillarseg::host {
+namespace {
+
+using RowMajorMatrix = Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
+using MatrixView = Eigen::Map<RowMajorMatrix, Eigen::Unaligned, Eigen::OuterStride<>>;
+using ConstMatrixView = Eigen::Map<const RowMajorMatrix, Eigen::Unaligned, Eigen::OuterStride<>>;
+
+constexpr int kTile = 4;        // output tile side
+constexpr int kInputTile = 6;   // input tile side: kTile + 3 - 1
+constexpr int kPositions = 36;  // kInputTile^2 products per tile and channel pair
+// Block sizes. A block whose V and M fit in kCacheBlockBytes (about a core's L2) is a cache
+// block, taken whole by one thread; it needs at least kMinCacheBlockTiles tiles so that its
+// GEMMs are not too thin. Otherwise a block has up to kMaxTilesPerBlock tiles (enough that
+// packing U[p] for a GEMM, O I values for 2 O I T flops, costs little) within kScratchBytes.
+constexpr int64_t kCacheBlockBytes = int64_t{2} << 20;
+constexpr int64_t kMinCacheBlockTiles = 32;
+constexpr int64_t kMaxTilesPerBlock = 512;
+constexpr int64_t kScratchBytes = int64_t{32} << 20;
+// Below this many multiply-adds in a block, an OpenMP region costs more than it saves.
+constexpr int64_t kMinParallelWork = int64_t{1} << 16;
+
+// G (6 x 3) of F(4x4, 3x3): u = G g G^T.
+constexpr std::array<std::array<double, 3>, kInputTile> kG = {{{1.0 / 4, 0, 0},
+                                                               {-1.0 / 6, -1.0 / 6, -1.0 / 6},
+                                                               {-1.0 / 6, 1.0 / 6, -1.0 / 6},
+                                                               {1.0 / 24, 1.0 / 12, 1.0 / 6},
+                                                               {1.0 / 24, -1.0 / 12, 1.0 / 6},
+                                                               {0, 0, 1}}};
+
+// out[k][n] = (B^T d)[k] for the six rows d[0..5] of length n, B^T =
+//   [4  0 -5  0 1 0; 0 -4 -4  1 1 0; 0 4 -4 -1 1 0; 0 -2 -1 2 1 0; 0 2 -1 -2 1 0; 0 4 0 -5 0 1].
+// The output rows may be offset views of one array, so they are written through distinct
+// restrict pointers, never read.
+inline void input_transform_rows(const float* __restrict d0, const float* __restrict d1,
+                                 const float* __restrict d2, const float* __restrict d3,
+                                 const float* __restrict d4, const float* __restrict d5,
+                                 float* __restrict o0, float* __restrict o1, float* __restrict o2,
+                                 float* __restrict o3, float* __restrict o4, float* __restrict o5,
+                                 int64_t n) {
+  for (int64_t m = 0; m < n; ++m) {
+    const float a = d4[m] - 4.0f * d2[m];
+    const float b = d3[m] - 4.0f * d1[m];
+    const float c = d4[m] - d2[m];
+    const float e = 2.0f * (d3[m] - d1[m]);
+    o0[m] = 4.0f * d0[m] - 5.0f * d2[m] + d4[m];
+    o1[m] = a + b;
+    o2[m] = a - b;
+    o3[m] = c + e;
+    o4[m] = c - e;
+    o5[m] = 4.0f * d1[m] - 5.0f * d3[m] + d5[m];
+  }
+}
+
+// out[r][n] = (A^T m)[r] for six rows m[0..5] of length n, A^T =
+//   [1 1 1 1 1 0; 0 1 -1 2 -2 0; 0 1 1 4 4 0; 0 1 -1 8 -8 1].
+inline void output_transform_rows(const float* __restrict m0, const float* __restrict m1,
+                                  const float* __restrict m2, const float* __restrict m3,
+                                  const float* __restrict m4, const float* __restrict m5,
+                                  float* __restrict o0, float* __restrict o1, float* __restrict o2,
+                                  float* __restrict o3, int64_t n) {
+  for (int64_t t = 0; t < n; ++t) {
+    const float sum12 = m1[t] + m2[t], diff12 = m1[t] - m2[t];
+    const float sum34 = m3[t] + m4[t], diff34 = m3[t] - m4[t];
+    o0[t] = m0[t] + sum12 + sum34;
+    o1[t] = diff12 + 2.0f * diff34;
+    o2[t] = sum12 + 4.0f * sum34;
+    o3[t] = diff12 + 8.0f * diff34 + m5[t];
+  }
+}
+
+struct WinogradShape {
+  int64_t batch = 0, in_channels = 0, height = 0, width = 0, out_channels = 0;
+  int64_t tile_rows() const { return (height + kTile - 1) / kTile; }
+  int64_t tile_cols() const { return (width + kTile - 1) / kTile; }
+  int64_t bytes_per_tile() const {
+    return kPositions * (in_channels + out_channels) * int64_t{sizeof(float)};
+  }
+  bool cache_blocks() const { return kCacheBlockBytes / bytes_per_tile() >= kMinCacheBlockTiles; }
+  // Tiles per block, from the shapes alone (so the blocking, and every sum, is the same
+  // whatever the thread count).
+  int64_t target_tiles() const {
+    if (cache_blocks()) return std::min(kMaxTilesPerBlock, kCacheBlockBytes / bytes_per_tile());
+    return std::max<int64_t>(1, std::min(kMaxTilesPerBlock, kScratchBytes / bytes_per_tile()));
+  }
+};
+
+// Tile rows [ty0, ty0 + rows) x tile columns [tx0, tx0 + cols) of image b.
+struct Block {
+  int64_t b = 0, ty0 = 0, rows = 0, tx0 = 0, cols = 0;
+  int64_t tiles() const { return rows * cols; }
+};
+
+// Whole tile rows per block when a tile row fits in the target, else each tile row split
+// into equal runs; either way the blocks of an image are of (nearly) equal size.
+std::vector<Block> plan_blocks(const WinogradShape& s) {
+  const int64_t th = s.tile_rows(), tw = s.tile_cols(), target = s.target_tiles();
+  std::vector<Block> blocks;
+  for (int64_t b = 0; b < s.batch; ++b) {
+    if (target >= tw) {
+      // As many blocks as the target needs, of equal rows (a last block of a few tiles would
+      // run thin GEMMs that repack all of U).
+      const int64_t blocks_per_image = (th + target / tw - 1) / (target / tw);
+      const int64_t rows = (th + blocks_per_image - 1) / blocks_per_image;
+      for (int64_t ty0 = 0; ty0 < th; ty0 += rows)
+        blocks.push_back({b, ty0, std::min(rows, th - ty0), 0, tw});
+    } else {
+      const int64_t runs = (tw + target - 1) / target;
+      for (int64_t ty = 0; ty < th; ++ty)
+        for (int64_t r = 0; r < runs; ++r) {
+          const int64_t tx0 = tw * r / runs, tx1 = tw * (r + 1) / runs;
+          blocks.push_back({b, ty, 1, tx0, tx1 - tx0});
+        }
+    }
+  }
+  return blocks;
+}
+
+// Runs body(item) for item in [0, count) inside the enclosing parallel region (or serially
+// when there is none), dynamic schedule; items write disjoint outputs.
+template <class Body>
+void for_each_item(int64_t count, const Body& body) {
+#pragma omp for schedule(dynamic, 1)
+  for (int64_t item = 0; item < count; ++item) body(item);
+}
+
+// U (36, O, I): U[p][o][i] = (G g G^T)[p] of the 3x3 kernel weight_at(o, i, ky, kx). Each
+// output channel's 36 x I values are built in a local buffer and copied out as 36 contiguous
+// runs, rather than written 36 planes apart one value at a time.
+template <class WeightAt>
+void transform_weights(const WinogradShape& s, const WeightAt& weight_at, float* u) {
+  const int64_t O = s.out_channels, I = s.in_channels;
+  parallel_chunks(O, [&](int64_t o_begin, int64_t o_end, int) {
+    std::vector<float> local(static_cast<size_t>(kPositions * I));
+    for (int64_t o = o_begin; o < o_end; ++o) {
+      for (int64_t i = 0; i < I; ++i) {
+        std::array<std::array<double, 3>, kInputTile> gg{};  // G g
+        for (int k = 0; k < kInputTile; ++k)
+          for (int kx = 0; kx < 3; ++kx)
+            for (int ky = 0; ky < 3; ++ky) gg[k][kx] += kG[k][ky] * weight_at(o, i, ky, kx);
+        for (int k = 0; k < kInputTile; ++k)
+          for (int j = 0; j < kInputTile; ++j) {
+            double v = 0;
+            for (int kx = 0; kx < 3; ++kx) v += gg[k][kx] * kG[j][kx];
+            local[static_cast<size_t>((k * kInputTile + j) * I + i)] = static_cast<float>(v);
+          }
+      }
+      for (int p = 0; p < kPositions; ++p)
+        std::copy(local.begin() + p * I, local.begin() + (p + 1) * I, u + (p * O + o) * I);
+    }
+  });
+}
+
+// V[p][i][t] for input channel i of one image plane (H, W) over the block's tiles, t = tile
+// row in the block * cols + tile column in the block. Scratch: band and vert (6 rows of
+// 4 (cols + 1) values), padded_row (4 (cols + 1)).
+void transform_input_channel(const float* plane, const WinogradShape& s, const Block& blk,
+                             int64_t i, float* v, std::vector<float>& band,
+                             std::vector<float>& vert, std::vector<float>& padded_row) {
+  const int64_t H = s.height, W = s.width, I = s.in_channels, cols = blk.cols;
+  const int64_t phase_len = cols + 1;  // tile tx reads phase entries tx and tx + 1
+  const int64_t row_len = kTile * phase_len;
+  const int64_t tiles = blk.tiles();
+  // The band's column q is input column x0 + q; the valid ones are q in [q0, q1).
+  const int64_t x0 = kTile * blk.tx0 - 1;
+  const int64_t q0 = std::max<int64_t>(0, -x0), q1 = std::min(row_len, W - x0);
+  band.resize(static_cast<size_t>(kInputTile * row_len));
+  vert.resize(static_cast<size_t>(kInputTile * row_len));
+  padded_row.assign(static_cast<size_t>(row_len), 0.0f);
+  for (int64_t r_t = 0; r_t < blk.rows; ++r_t) {
+    const int64_t ty = blk.ty0 + r_t;
+    // band[r][ph * phase_len + m] = x(4 ty - 1 + r, x0 + 4 m + ph), zero outside the image.
+    for (int r = 0; r < kInputTile; ++r) {
+      float* dst = band.data() + r * row_len;
+      const int64_t iy = kTile * ty - 1 + r;
+      if (iy < 0 || iy >= H) {
+        std::fill(dst, dst + row_len, 0.0f);
+        continue;
+      }
+      // padded_row[q] = x(iy, x0 + q) for q in [q0, q1); the rest stays zero.
+      std::copy(plane + iy * W + x0 + q0, plane + iy * W + x0 + q1, padded_row.begin() + q0);
+      for (int64_t m = 0; m < phase_len; ++m)
+        for (int ph = 0; ph < kTile; ++ph)
+          dst[ph * phase_len + m] = padded_row[static_cast<size_t>(kTile * m + ph)];
+    }
+    const float* b = band.data();
+    float* t = vert.data();
+    input_transform_rows(b, b + row_len, b + 2 * row_len, b + 3 * row_len, b + 4 * row_len,
+                         b + 5 * row_len, t, t + row_len, t + 2 * row_len, t + 3 * row_len,
+                         t + 4 * row_len, t + 5 * row_len, row_len);
+    // Columns: tile tx's column c is phase c mod 4, entry tx + c / 4.
+    for (int k = 0; k < kInputTile; ++k) {
+      const float* z = vert.data() + k * row_len;
+      float* out[kInputTile];
+      for (int j = 0; j < kInputTile; ++j)
+        out[j] = v + ((k * kInputTile + j) * I + i) * tiles + r_t * cols;
+      input_transform_rows(z, z + phase_len, z + 2 * phase_len, z + 3 * phase_len, z + 1,
+                           z + phase_len + 1, out[0], out[1], out[2], out[3], out[4], out[5], cols);
+    }
+  }
+}
+
+// Output channel o of one image plane (H, W) from M[.][o][.] over the block's tiles, through
+// the epilogue. Scratch: cols (6 x 4 rows of tw), tile_out (4 rows of tw), out_rows (4 rows of
+// 4 tw), tw the block's tile columns.
+void transform_output_channel(const float* m, const WinogradShape& s, const Block& blk, int64_t o,
+                              const ConvEpilogue& e, float* plane, std::vector<float>& cols,
+                              std::vector<float>& tile_out, std::vector<float>& out_rows) {
+  const int64_t H = s.height, W = s.width, tw = blk.cols, O = s.out_channels;
+  const int64_t block_tiles = blk.tiles();
+  const int64_t row_len = kTile * tw;
+  const int64_t x0 = kTile * blk.tx0, out_cols = std::min(row_len, W - x0);
+  const float scale = e.scale != nullptr ? e.scale[o] : 1.0f;
+  const float shift = e.shift != nullptr ? e.shift[o] : 0.0f;
+  cols.resize(static_cast<size_t>(kInputTile * kTile * tw));
+  tile_out.resize(static_cast<size_t>(kTile * tw));
+  out_rows.resize(static_cast<size_t>(kTile * row_len));
+  for (int64_t r_t = 0; r_t < blk.rows; ++r_t) {
+    const int64_t ty = blk.ty0 + r_t;
+    // cols[k][cx][tx] = (M_k A)[cx] of tile tx, M_k the k-th row of its 6x6 products.
+    for (int k = 0; k < kInputTile; ++k) {
+      const float* mk[kInputTile];
+      for (int j = 0; j < kInputTile; ++j)
+        mk[j] = m + ((k * kInputTile + j) * O + o) * block_tiles + r_t * tw;
+      float* c = cols.data() + k * kTile * tw;
+      output_transform_rows(mk[0], mk[1], mk[2], mk[3], mk[4], mk[5], c, c + tw, c + 2 * tw,
+                            c + 3 * tw, tw);
+    }
+    // tile_out[ry][tx] = (A^T cols[.][cx])[ry]: output (4 ty + ry, 4 tx + cx).
+    const int64_t k_stride = kTile * tw;
+    for (int cx = 0; cx < kTile; ++cx) {
+      const float* c = cols.data() + cx * tw;
+      float* t = tile_out.data();
+      output_transform_rows(c, c + k_stride, c + 2 * k_stride, c + 3 * k_stride, c + 4 * k_stride,
+                            c + 5 * k_stride, t, t + tw, t + 2 * tw, t + 3 * tw, tw);
+      for (int ry = 0; ry < kTile; ++ry) {
+        float* dst = out_rows.data() + ry * row_len + cx;
+        const float* src = tile_out.data() + ry * tw;
+        for (int64_t tx = 0; tx < tw; ++tx) dst[kTile * tx] = src[tx];
+      }
+    }
+    for (int ry = 0; ry < kTile; ++ry) {
+      const int64_t oy = kTile * ty + ry;
+      if (oy >= H) break;
+      const float* src = out_rows.data() + ry * row_len;
+      float* dst = plane + oy * W + x0;
+      if (e.relu) {
+        for (int64_t ox = 0; ox < out_cols; ++ox) dst[ox] = std::max(src[ox] * scale + shift, 0.0f);
+      } else {
+        for (int64_t ox = 0; ox < out_cols; ++ox) dst[ox] = src[ox] * scale + shift;
+      }
+    }
+  }
+}
+
+// Scratch of one thread for one block: the transforms' rows.
+struct TransformScratch {
+  std::vector<float> a, b, c;
+};
+
+// The transforms and GEMMs of one block on the calling thread: V and M hold its tiles.
+void run_block(const float* x, const WinogradShape& s, const Block& blk, const float* u, float* v,
+               float* m, const ConvEpilogue& e, float* y, TransformScratch& scratch) {
+  const int64_t I = s.in_channels, O = s.out_channels, plane = s.height * s.width;
+  const int64_t tiles = blk.tiles();
+  for (int64_t i = 0; i < I; ++i)
+    transform_input_channel(x + (blk.b * I + i) * plane, s, blk, i, v, scratch.a, scratch.b,
+                            scratch.c);
+  for (int p = 0; p < kPositions; ++p) {
+    const ConstMatrixView u_p(u + p * O * I, O, I, Eigen::OuterStride<>(I));
+    const ConstMatrixView v_p(v + p * I * tiles, I, tiles, Eigen::OuterStride<>(tiles));
+    MatrixView m_p(m + p * O * tiles, O, tiles, Eigen::OuterStride<>(tiles));
+    m_p.noalias() = u_p * v_p;
+  }
+  for (int64_t o = 0; o < O; ++o)
+    transform_output_channel(m, s, blk, o, e, y + (blk.b * O + o) * plane, scratch.a, scratch.b,
+                             scratch.c);
+}
+
+// The convolution of x (B, I, H, W) with the kernel weight_at(o, i, ky, kx) (O, I, 3, 3), pad 1,
+// through the epilogue, into y (B, O, H, W).
+template <class WeightAt>
+void winograd_convolution(const float* x, const WinogradShape& s, const WeightAt& weight_at,
+                          const ConvEpilogue& e, float* y, WinogradWorkspace& ws) {
+  const int64_t I = s.in_channels, O = s.out_channels, plane = s.height * s.width;
+  const std::vector<Block> blocks = plan_blocks(s);
+  int64_t max_tiles = 0;
+  for (const Block& blk : blocks) max_tiles = std::max(max_tiles, blk.tiles());
+  const int threads = num_threads();
+  // Cache blocks: one V and M per thread; large blocks: one V and M shared by the threads.
+  const int64_t copies = s.cache_blocks() ? threads : 1;
+  const auto grow = [](std::vector<float>& buffer, int64_t n) {
+    buffer.resize(std::max(buffer.size(), static_cast<size_t>(n)));
+  };
+  grow(ws.weights, kPositions * O * I);
+  grow(ws.inputs, copies * kPositions * I * max_tiles);
+  grow(ws.products, copies * kPositions * O * max_tiles);
+  transform_weights(s, weight_at, ws.weights.data());
+  const float* u = ws.weights.data();
+  const int64_t count = static_cast<int64_t>(blocks.size());
+  const bool parallel =
+      threads > 1 &&
+      kPositions * O * I * s.batch * s.tile_rows() * s.tile_cols() >= kMinParallelWork;
+
+  if (s.cache_blocks()) {
+#pragma omp parallel num_threads(threads) if (parallel)
+    {
+      TransformScratch scratch;
+      const int64_t thread = parallel ? omp_get_thread_num() : 0;
+      float* v = ws.inputs.data() + thread * kPositions * I * max_tiles;
+      float* m = ws.products.data() + thread * kPositions * O * max_tiles;
+      for_each_item(count, [&](int64_t k) {
+        run_block(x, s, blocks[static_cast<size_t>(k)], u, v, m, e, y, scratch);
+      });
+    }
+    return;
+  }
+  float* v = ws.inputs.data();
+  float* m = ws.products.data();
+  for (const Block& blk : blocks) {
+    const int64_t tiles = blk.tiles();
+#pragma omp parallel num_threads(threads) if (parallel)
+    {
+      TransformScratch scratch;
+      for_each_item(I, [&](int64_t i) {
+        transform_input_channel(x + (blk.b * I + i) * plane, s, blk, i, v, scratch.a, scratch.b,
+                                scratch.c);
+      });
+      for_each_item(kPositions, [&](int64_t p) {
+        const ConstMatrixView u_p(u + p * O * I, O, I, Eigen::OuterStride<>(I));
+        const ConstMatrixView v_p(v + p * I * tiles, I, tiles, Eigen::OuterStride<>(tiles));
+        MatrixView m_p(m + p * O * tiles, O, tiles, Eigen::OuterStride<>(tiles));
+        m_p.noalias() = u_p * v_p;
+      });
+      for_each_item(O, [&](int64_t o) {
+        transform_output_channel(m, s, blk, o, e, y + (blk.b * O + o) * plane, scratch.a, scratch.b,
+                                 scratch.c);
+      });
+    }
+  }
+}
+
+// Checks a 4D float tensor and returns its sizes with `out_channels` outputs.
+WinogradShape shape_of(const char* op, const Tensor<float>& x, const Tensor<float>& w,
+                       int64_t weight_in_axis, int64_t weight_out_axis) {
+  PS_CHECK(x.rank() == 4, "{}: input must be (B, C, H, W), got shape {}", op, shape_str(x.shape()));
+  PS_CHECK(w.rank() == 4 && w.dim(2) == 3 && w.dim(3) == 3,
+           "{}: w must be (O, I, 3, 3), got shape {}", op, shape_str(w.shape()));
+  PS_CHECK(w.dim(weight_in_axis) == x.dim(1),
+           "{}: w {} expects {} channels in its input, but it has shape {}", op,
+           shape_str(w.shape()), w.dim(weight_in_axis), shape_str(x.shape()));
+  WinogradShape s;
+  s.batch = x.dim(0);
+  s.in_channels = x.dim(1);
+  s.height = x.dim(2);
+  s.width = x.dim(3);
+  s.out_channels = w.dim(weight_out_axis);
+  PS_CHECK(s.height >= 1 && s.width >= 1, "{}: the image must be at least 1x1, got {}x{}", op,
+           s.height, s.width);
+  return s;
+}
+
+}  // namespace
+
+void conv3x3_winograd_forward(const Tensor<float>& x, const Tensor<float>& w,
+                              const ConvEpilogue& epilogue, Tensor<float>& y,
+                              WinogradWorkspace& workspace) {
+  const WinogradShape s = shape_of("conv3x3_winograd_forward", x, w, 1, 0);
+  PS_CHECK(&y != &x && &y != &w,
+           "conv3x3_winograd_forward: the output y must be a different tensor from x and w");
+  y.resize({s.batch, s.out_channels, s.height, s.width});
+  if (y.numel() == 0) return;
+  const float* weights = w.data();
+  const int64_t I = s.in_channels;
+  const auto weight_at = [weights, I](int64_t o, int64_t i, int ky, int kx) {
+    return static_cast<double>(weights[((o * I + i) * 3 + ky) * 3 + kx]);
+  };
+  winograd_convolution(x.data(), s, weight_at, epilogue, y.data(), workspace);
+}
+
+void conv3x3_winograd_input_gradient(const Tensor<float>& dy, const Tensor<float>& w,
+                                     Tensor<float>& dx, WinogradWorkspace& workspace) {
+  // The correlation's "input" is dy (O channels), its "output" dx (I channels).
+  const WinogradShape s = shape_of("conv3x3_winograd_input_gradient", dy, w, 0, 1);
+  PS_CHECK(&dx != &dy && &dx != &w,
+           "conv3x3_winograd_input_gradient: dx must be a different tensor from dy and w");
+  dx.resize({s.batch, s.out_channels, s.height, s.width});
+  if (dx.numel() == 0) return;
+  const float* weights = w.data();
+  const int64_t I = w.dim(1);
+  // flipped[i][o][ky][kx] = w[o][i][2 - ky][2 - kx]: here "o" indexes dx's channels (w's I).
+  const auto weight_at = [weights, I](int64_t out_c, int64_t in_c, int ky, int kx) {
+    return static_cast<double>(weights[((in_c * I + out_c) * 3 + (2 - ky)) * 3 + (2 - kx)]);
+  };
+  winograd_convolution(dy.data(), s, weight_at, ConvEpilogue{}, dx.data(), workspace);
+}
+
+}  // namespace pillarseg::host
