@@ -170,18 +170,20 @@ void BM_Conv2dForward(benchmark::State& state, const ConvLayer& l) {
 
 void BM_Conv2dBackwardData(benchmark::State& state, const ConvLayer& l) {
   ConvBuffers b(l.shape);
-  our_ms()[std::string("backward_data/") + l.name] = time_pass(state, conv_flops(l.shape), [&](cudaStream_t stream) {
-    cuda::conv2d_backward_data(b.dy.data(), b.w.data(), b.dx.data(), l.shape, stream);
-  });
+  our_ms()[std::string("backward_data/") + l.name] =
+      time_pass(state, conv_flops(l.shape), [&](cudaStream_t stream) {
+        cuda::conv2d_backward_data(b.dy.data(), b.w.data(), b.dx.data(), l.shape, stream);
+      });
 }
 
 void BM_Conv2dBackwardWeights(benchmark::State& state, const ConvLayer& l) {
   ConvBuffers b(l.shape);
-  our_ms()[std::string("backward_weights/") + l.name] = time_pass(state, conv_flops(l.shape), [&](cudaStream_t stream) {
-    cuda::conv2d_backward_weights(b.x.data(), b.dy.data(), b.dw.data(),
-                                  l.bias ? b.db.data() : nullptr, l.shape, b.workspace.data(),
-                                  b.workspace.size(), stream);
-  });
+  our_ms()[std::string("backward_weights/") + l.name] =
+      time_pass(state, conv_flops(l.shape), [&](cudaStream_t stream) {
+        cuda::conv2d_backward_weights(b.x.data(), b.dy.data(), b.dw.data(),
+                                      l.bias ? b.db.data() : nullptr, l.shape, b.workspace.data(),
+                                      b.workspace.size(), stream);
+      });
   state.counters["workspace_MiB"] = static_cast<double>(b.workspace.bytes()) / (1 << 20);
 }
 
@@ -236,18 +238,17 @@ void register_peers(const ConvLayer& l, Pass pass, const char* our_name) {
   };
   const Peer peers[] = {
 #if defined(PILLARSEG_WITH_CUDNN)
-      {"cudnn_fp32", ConvolutionImpl::Cudnn, false},
-      {"cudnn_default_math", ConvolutionImpl::Cudnn, true},
+    {"cudnn_fp32", ConvolutionImpl::Cudnn, false},
+    {"cudnn_default_math", ConvolutionImpl::Cudnn, true},
 #endif
-      {"cublas_im2col", ConvolutionImpl::Cublas, false},
+    {"cublas_im2col", ConvolutionImpl::Cublas, false},
   };
   for (const Peer& peer : peers) {
     cuda::VendorConvOptions options;
     options.allow_tensor_cores = peer.tensor_cores;
     options.timed_search = true;
-    benchmark::RegisterBenchmark(
-        (std::string(our_name) + "_" + peer.name + "/" + l.name).c_str(), BM_Conv2dPeer, l,
-        peer.impl, options, pass)
+    benchmark::RegisterBenchmark((std::string(our_name) + "_" + peer.name + "/" + l.name).c_str(),
+                                 BM_Conv2dPeer, l, peer.impl, options, pass)
         ->Unit(benchmark::kMillisecond)
         ->UseManualTime();
   }

@@ -567,11 +567,18 @@ TEST(CudaBackendVendorConv, PassesMatchOurKernels) {
     for (CudaBackend* vendor : {&cudnn, &cublas, &banded}) {
       SCOPED_TRACE(vendor->name());
       const ConvRun got = run_conv(*vendor, x, w, bias, dy, static_cast<int>(c.pad), c.bias);
-      EXPECT_TRUE(test::all_close(got.y, expected.y, kPassAtolScale * max_abs(expected.y), kPassRtol)) << "y";
-      EXPECT_TRUE(test::all_close(got.dx, expected.dx, kPassAtolScale * max_abs(expected.dx), kPassRtol)) << "dx";
-      EXPECT_TRUE(test::all_close(got.dw, expected.dw, kPassAtolScale * max_abs(expected.dw), kPassRtol)) << "dw";
+      EXPECT_TRUE(
+          test::all_close(got.y, expected.y, kPassAtolScale * max_abs(expected.y), kPassRtol))
+          << "y";
+      EXPECT_TRUE(
+          test::all_close(got.dx, expected.dx, kPassAtolScale * max_abs(expected.dx), kPassRtol))
+          << "dx";
+      EXPECT_TRUE(
+          test::all_close(got.dw, expected.dw, kPassAtolScale * max_abs(expected.dw), kPassRtol))
+          << "dw";
       if (c.bias) {
-        EXPECT_TRUE(test::all_close(got.db, expected.db, kPassAtolScale * max_abs(expected.db), kPassRtol))
+        EXPECT_TRUE(
+            test::all_close(got.db, expected.db, kPassAtolScale * max_abs(expected.db), kPassRtol))
             << "db";
       }
     }
@@ -638,8 +645,7 @@ TEST_P(CudaBackendVendorModel, MatchesOurConvolutions) {
   vendor_net.forward(data.batch, false);
   vendor.synchronize();
   EXPECT_EQ(vendor.stats().device_allocations, settled.device_allocations);
-  EXPECT_EQ(vendor.stats().vendor_conv.device_allocations,
-            settled.vendor_conv.device_allocations);
+  EXPECT_EQ(vendor.stats().vendor_conv.device_allocations, settled.vendor_conv.device_allocations);
   EXPECT_EQ(vendor.stats().vendor_conv.workspace_bytes, settled.vendor_conv.workspace_bytes);
 }
 

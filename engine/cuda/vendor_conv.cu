@@ -60,16 +60,15 @@ dim3 grid_for(std::int64_t total) {
 
 // The preconditions both engines share: non-empty, int-sized tensors.
 void check_shape(const char* engine, const Conv2dShape& s) {
-  PS_CHECK(s.batch > 0 && s.in_channels > 0 && s.out_channels > 0 && s.kernel > 0 &&
-               s.pad >= 0 && s.out_height() > 0 && s.out_width() > 0,
+  PS_CHECK(s.batch > 0 && s.in_channels > 0 && s.out_channels > 0 && s.kernel > 0 && s.pad >= 0 &&
+               s.out_height() > 0 && s.out_width() > 0,
            "{} Conv2d: every dimension must be positive, got x ({}, {}, {}, {}), w ({}, {}, {}, "
            "{}), pad {}",
            engine, s.batch, s.in_channels, s.height, s.width, s.out_channels, s.in_channels,
            s.kernel, s.kernel, s.pad);
-  const std::int64_t largest =
-      std::max({s.batch * s.in_channels * s.height * s.width,
-                s.batch * s.out_channels * s.out_height() * s.out_width(),
-                s.out_channels * s.in_channels * s.kernel * s.kernel});
+  const std::int64_t largest = std::max({s.batch * s.in_channels * s.height * s.width,
+                                         s.batch * s.out_channels * s.out_height() * s.out_width(),
+                                         s.out_channels * s.in_channels * s.kernel * s.kernel});
   PS_CHECK(largest <= INT_MAX, "{} Conv2d: tensors must have fewer than 2^31 elements, got {}",
            engine, largest);
 }
@@ -165,7 +164,8 @@ __global__ void __launch_bounds__(kThreads)
   partial[threadIdx.x] = sum;
   __syncthreads();
   for (int stride = kThreads / 2; stride > 0; stride /= 2) {
-    if (static_cast<int>(threadIdx.x) < stride) partial[threadIdx.x] += partial[threadIdx.x + stride];
+    if (static_cast<int>(threadIdx.x) < stride)
+      partial[threadIdx.x] += partial[threadIdx.x + stride];
     __syncthreads();
   }
   if (threadIdx.x == 0) db[o] = partial[0];
@@ -235,25 +235,26 @@ class CublasConv2d final : public Conv2dEngine {
     const float one = 1.0f, zero = 0.0f;
     // The bands' col2im add up: each input pixel may be reached from two bands.
     PS_CUDA_CHECK(cudaMemsetAsync(
-        dx, 0, static_cast<std::size_t>(s.batch * s.in_channels * s.height * s.width) * sizeof(float),
+        dx, 0,
+        static_cast<std::size_t>(s.batch * s.in_channels * s.height * s.width) * sizeof(float),
         stream));
     for_each_band(s, [&](const Band& band) {
       const int band_pixels = static_cast<int>(band.rows * s.out_width());
       // cols (D x Pb) = w^T (D x O) dy_band (O x Pb), i.e. column-major
       // cols^T (Pb x D, ld Pb) = dy_band^T (Pb x O, ld P) * op_T(w^T (D x O, ld D)).
-      const float* dy_band = dy + (band.image * s.out_channels * pixels + band.row0 * s.out_width());
-      PS_CUBLAS_CHECK(cublasSgemm(handle_, CUBLAS_OP_N, CUBLAS_OP_T, band_pixels, depth,
-                                  static_cast<int>(s.out_channels), &one, dy_band,
-                                  static_cast<int>(pixels), w, depth, &zero, cols_.data(),
-                                  band_pixels));
+      const float* dy_band =
+          dy + (band.image * s.out_channels * pixels + band.row0 * s.out_width());
+      PS_CUBLAS_CHECK(cublasSgemm(
+          handle_, CUBLAS_OP_N, CUBLAS_OP_T, band_pixels, depth, static_cast<int>(s.out_channels),
+          &one, dy_band, static_cast<int>(pixels), w, depth, &zero, cols_.data(), band_pixels));
       const std::int64_t reached_rows = std::min(band.rows + s.kernel - 1, s.height);
       launch_kernel(col2im_add_kernel, grid_for(s.in_channels * reached_rows * s.width),
                     dim3(kThreads), 0, stream, cols_.data(), dx, s, band);
     });
   }
 
-  void backward_weights(const float* x, const float* dy, float* dw, float* db,
-                        const Conv2dShape& s, cudaStream_t stream, bool /*capturing*/) override {
+  void backward_weights(const float* x, const float* dy, float* dw, float* db, const Conv2dShape& s,
+                        cudaStream_t stream, bool /*capturing*/) override {
     check_shape("cuBLAS", s);
     bind(stream);
     const std::int64_t pixels = s.out_height() * s.out_width();
@@ -266,10 +267,11 @@ class CublasConv2d final : public Conv2dEngine {
                     stream, x, cols_.data(), s, band);
       // dw (O x D) += dy_band (O x Pb) cols^T (Pb x D), i.e. column-major
       // dw^T (D x O, ld D) += op_T(cols^T (Pb x D, ld Pb)) dy_band^T (Pb x O, ld P).
-      const float* dy_band = dy + (band.image * s.out_channels * pixels + band.row0 * s.out_width());
+      const float* dy_band =
+          dy + (band.image * s.out_channels * pixels + band.row0 * s.out_width());
       PS_CUBLAS_CHECK(cublasSgemm(handle_, CUBLAS_OP_T, CUBLAS_OP_N, depth,
-                                  static_cast<int>(s.out_channels), band_pixels, &one,
-                                  cols_.data(), band_pixels, dy_band, static_cast<int>(pixels),
+                                  static_cast<int>(s.out_channels), band_pixels, &one, cols_.data(),
+                                  band_pixels, dy_band, static_cast<int>(pixels),
                                   first ? &zero : &one, dw, depth));
       first = false;
     });
@@ -284,7 +286,8 @@ class CublasConv2d final : public Conv2dEngine {
   void bind(cudaStream_t stream) {
     if (bound_ && stream == stream_) return;
     PS_CUBLAS_CHECK(cublasSetStream(handle_, stream));
-    PS_CUBLAS_CHECK(cublasSetWorkspace(handle_, library_workspace_.data(), library_workspace_.bytes()));
+    PS_CUBLAS_CHECK(
+        cublasSetWorkspace(handle_, library_workspace_.data(), library_workspace_.bytes()));
     stream_ = stream;
     bound_ = true;
   }
@@ -293,13 +296,13 @@ class CublasConv2d final : public Conv2dEngine {
   template <class Function>
   void for_each_band(const Conv2dShape& s, const Function& function) const {
     const std::int64_t row_floats = s.in_channels * s.kernel * s.kernel * s.out_width();
-    const std::int64_t rows_per_band =
-        std::min<std::int64_t>(static_cast<std::int64_t>(cols_.size()) / row_floats, s.out_height());
+    const std::int64_t rows_per_band = std::min<std::int64_t>(
+        static_cast<std::int64_t>(cols_.size()) / row_floats, s.out_height());
     PS_CHECK(rows_per_band >= 1,
              "cuBLAS Conv2d: one output row of im2col columns needs {} bytes ({} taps x {} "
              "pixels), the cols buffer holds {}; raise workspace_limit_bytes",
-             row_floats * static_cast<std::int64_t>(sizeof(float)), s.in_channels * s.kernel * s.kernel,
-             s.out_width(), cols_.bytes());
+             row_floats * static_cast<std::int64_t>(sizeof(float)),
+             s.in_channels * s.kernel * s.kernel, s.out_width(), cols_.bytes());
     for (std::int64_t b = 0; b < s.batch; ++b) {
       for (std::int64_t row0 = 0; row0 < s.out_height(); row0 += rows_per_band) {
         function(Band{b, row0, std::min(rows_per_band, s.out_height() - row0), s.out_width()});
@@ -381,9 +384,9 @@ class CudnnConv2d final : public Conv2dEngine {
       cudnnConvolutionFwdAlgoPerf_t results[CUDNN_CONVOLUTION_FWD_ALGO_COUNT];
       int returned = 0;
       if (options_.timed_search && !capturing) {
-        PS_CUDNN_CHECK(cudnnFindConvolutionForwardAlgorithm(handle_, plan.x, plan.w, plan.conv,
-                                                            plan.y, CUDNN_CONVOLUTION_FWD_ALGO_COUNT,
-                                                            &returned, results));
+        PS_CUDNN_CHECK(cudnnFindConvolutionForwardAlgorithm(
+            handle_, plan.x, plan.w, plan.conv, plan.y, CUDNN_CONVOLUTION_FWD_ALGO_COUNT, &returned,
+            results));
       } else {
         PS_CUDNN_CHECK(cudnnGetConvolutionForwardAlgorithm_v7(
             handle_, plan.x, plan.w, plan.conv, plan.y, CUDNN_CONVOLUTION_FWD_ALGO_COUNT, &returned,
@@ -423,12 +426,12 @@ class CudnnConv2d final : public Conv2dEngine {
     void* workspace = workspace_for(choice.workspace_bytes, stream, capturing);
     const float one = 1.0f, zero = 0.0f;
     PS_CUDNN_CHECK(cudnnConvolutionBackwardData(handle_, &one, plan.w, w, plan.y, dy, plan.conv,
-                                                choice.algorithm, workspace,
-                                                choice.workspace_bytes, &zero, plan.x, dx));
+                                                choice.algorithm, workspace, choice.workspace_bytes,
+                                                &zero, plan.x, dx));
   }
 
-  void backward_weights(const float* x, const float* dy, float* dw, float* db,
-                        const Conv2dShape& s, cudaStream_t stream, bool capturing) override {
+  void backward_weights(const float* x, const float* dy, float* dw, float* db, const Conv2dShape& s,
+                        cudaStream_t stream, bool capturing) override {
     CudnnPlan& plan = plan_for(s);
     PS_CUDNN_CHECK(cudnnSetStream(handle_, stream));
     auto& choice = plan.backward_filter[capturing ? 1 : 0];
@@ -521,7 +524,7 @@ class CudnnConv2d final : public Conv2dEngine {
     if (bytes > workspace_.bytes()) {
       PS_CHECK(!capturing, "cuDNN Conv2d: a captured call needs {} bytes of workspace", bytes);
       PS_CUDA_CHECK(cudaStreamSynchronize(stream));  // queued work may still use the old one
-      workspace_ = DeviceBuffer<float>();  // freed first: its content is scratch
+      workspace_ = DeviceBuffer<float>();            // freed first: its content is scratch
       workspace_ = DeviceBuffer<float>(ceil_div(bytes, sizeof(float)));
       ++allocations_;
     }
@@ -555,8 +558,8 @@ std::unique_ptr<Conv2dEngine> make_vendor_conv2d(ConvolutionImpl impl,
     case ConvolutionImpl::Own:
       break;
   }
-  PS_FAIL("make_vendor_conv2d: {} is not a vendor library (it is CudaBackend's own path)",
-          convolution_impl_name(impl));
+  PS_FAIL("make_vendor_conv2d: ConvolutionImpl::Own is not a vendor library (CudaBackend runs our "
+          "kernels for it)");
 }
 
 }  // namespace pillarseg::cuda

@@ -59,12 +59,14 @@ struct VendorConvOptions {
 
 // What an engine holds and has allocated (a steady state adds nothing).
 struct VendorConvStats {
-  std::size_t workspace_bytes = 0;    // device scratch held now (cuBLAS: its cols and workspace)
+  std::size_t workspace_bytes = 0;  // device scratch held now (cuBLAS: its cols and workspace)
   std::int64_t device_allocations = 0;
   std::int64_t plans = 0;  // cuDNN: descriptor sets and algorithm choices made (one per shape)
 };
 
-// One Conv2d implementation; all three passes take the shapes of kernels/conv2d.cuh.
+// One Conv2d implementation; all three passes take the shapes of kernels/conv2d.cuh. An engine's
+// scratch (cuDNN workspace, cuBLAS cols) serves one stream at a time: calls on different streams
+// must not overlap.
 class Conv2dEngine {
  public:
   virtual ~Conv2dEngine() = default;
