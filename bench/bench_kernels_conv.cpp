@@ -4,10 +4,12 @@
 // (dw + db), conv_transpose2d the same. Each pass is timed with CUDA events on its own stream
 // after one warm-up run, and reported in ms and GFLOP/s (2 multiply-add flops per weight tap and
 // output pixel: 2 B O I k k Ho Wo for every pass of conv2d, 2 B I 4O H W for conv_transpose2d).
-// Built with cuDNN (bench/bench_cudnn_conv.cu, PILLARSEG_BENCH_CUDNN), conv2d forward also runs
-// through cudnnConvolutionForward (FP32 FMA math, and cuDNN's default math, which may use TF32
-// tensor cores) and through im2col + cublasSgemmStridedBatched; those rows add
-// ours_ms/peer_ms, our forward's time over theirs (> 1: the peer is faster).
+// With CUDA, every conv2d pass also runs through the engines that CudaBackend selects with
+// --conv (engine/cuda/vendor_conv.hpp, PILLARSEG_BENCH_VENDOR_CONV): cuDNN with FP32 FMA math and
+// with cuDNN's default math (which may use TF32 tensor cores), both with the algorithms that
+// cudnnFind* times fastest (cuDNN rows only where cuDNN is installed), and im2col / col2im +
+// cuBLAS SGEMM in FP32; those rows add ours_ms/peer_ms, our pass's time over theirs (> 1: the
+// peer is faster).
 //
 // Without a CUDA device, and in the emulated build (whose times say nothing about a GPU), it
 // prints "skipped: no CUDA device" and runs nothing.
@@ -17,10 +19,14 @@
 #include <cstdio>
 #include <functional>
 #include <map>
+#include <memory>
 #include <string>
 #include <vector>
 
 #include "engine/core/rng.hpp"
+#if defined(PILLARSEG_BENCH_VENDOR_CONV)
+#include "engine/cuda/vendor_conv.hpp"
+#endif
 #include "kernels/common.cuh"
 #include "kernels/conv2d.cuh"
 #include "kernels/conv_transpose2d.cuh"
@@ -28,22 +34,6 @@
 
 using namespace pillarseg;
 using cuda::DeviceBuffer;
-
-#if defined(PILLARSEG_BENCH_CUDNN)
-namespace pillarseg::bench {
-// Defined in bench/bench_cudnn_conv.cu: conv2d forward y = conv(x, w) + bias (bias may be
-// nullptr) on device buffers of `shape`'s sizes, set up once (descriptors, algorithm choice,
-// workspace); the returned function queues one forward on a stream. allow_tensor_cores: cuDNN's
-// default math (TF32 on Ampere and later) instead of FP32 FMA only.
-std::function<void(cudaStream_t)> cudnn_conv2d_forward(const cuda::Conv2dShape& shape,
-                                                       const float* x, const float* w,
-                                                       const float* bias, float* y,
-                                                       bool allow_tensor_cores);
-std::function<void(cudaStream_t)> cublas_im2col_conv2d_forward(const cuda::Conv2dShape& shape,
-                                                               const float* x, const float* w,
-                                                               const float* bias, float* y);
-}  // namespace pillarseg::bench
-#endif
 
 namespace {
 
@@ -148,8 +138,8 @@ double time_pass(benchmark::State& state, double flops,
   return runs > 0 ? total_ms / static_cast<double>(runs) : 0.0;
 }
 
-// Our conv2d forward time per layer, for the peers' ratio.
-std::map<std::string, double>& forward_ms() {
+// Our conv2d time per pass and layer ("forward/<layer>", ...), for the peers' ratio.
+std::map<std::string, double>& our_ms() {
   static std::map<std::string, double> times;
   return times;
 }
@@ -175,37 +165,93 @@ void BM_Conv2dForward(benchmark::State& state, const ConvLayer& l) {
     cuda::conv2d_forward(b.x.data(), b.w.data(), l.bias ? b.bias.data() : nullptr, b.y.data(),
                          l.shape, stream);
   });
-  forward_ms()[l.name] = ms;
+  our_ms()[std::string("forward/") + l.name] = ms;
 }
 
 void BM_Conv2dBackwardData(benchmark::State& state, const ConvLayer& l) {
   ConvBuffers b(l.shape);
-  time_pass(state, conv_flops(l.shape), [&](cudaStream_t stream) {
-    cuda::conv2d_backward_data(b.dy.data(), b.w.data(), b.dx.data(), l.shape, stream);
-  });
+  our_ms()[std::string("backward_data/") + l.name] =
+      time_pass(state, conv_flops(l.shape), [&](cudaStream_t stream) {
+        cuda::conv2d_backward_data(b.dy.data(), b.w.data(), b.dx.data(), l.shape, stream);
+      });
 }
 
 void BM_Conv2dBackwardWeights(benchmark::State& state, const ConvLayer& l) {
   ConvBuffers b(l.shape);
-  time_pass(state, conv_flops(l.shape), [&](cudaStream_t stream) {
-    cuda::conv2d_backward_weights(b.x.data(), b.dy.data(), b.dw.data(),
-                                  l.bias ? b.db.data() : nullptr, l.shape, b.workspace.data(),
-                                  b.workspace.size(), stream);
-  });
+  our_ms()[std::string("backward_weights/") + l.name] =
+      time_pass(state, conv_flops(l.shape), [&](cudaStream_t stream) {
+        cuda::conv2d_backward_weights(b.x.data(), b.dy.data(), b.dw.data(),
+                                      l.bias ? b.db.data() : nullptr, l.shape, b.workspace.data(),
+                                      b.workspace.size(), stream);
+      });
   state.counters["workspace_MiB"] = static_cast<double>(b.workspace.bytes()) / (1 << 20);
 }
 
-#if defined(PILLARSEG_BENCH_CUDNN)
-using PeerFactory =
-    std::function<std::function<void(cudaStream_t)>(const ConvLayer&, ConvBuffers&)>;
+#if defined(PILLARSEG_BENCH_VENDOR_CONV)
+enum class Pass { Forward, BackwardData, BackwardWeights };
 
-void BM_Conv2dForwardPeer(benchmark::State& state, const ConvLayer& l,
-                          const PeerFactory& make_peer) {
+const char* pass_name(Pass pass) {
+  switch (pass) {
+    case Pass::Forward:
+      return "forward";
+    case Pass::BackwardData:
+      return "backward_data";
+    case Pass::BackwardWeights:
+      return "backward_weights";
+  }
+  return "";
+}
+
+// One pass of a vendor engine, made once (handle, descriptors, algorithm search and workspace in
+// the warm-up run), then timed like ours.
+void BM_Conv2dPeer(benchmark::State& state, const ConvLayer& l, ConvolutionImpl impl,
+                   cuda::VendorConvOptions options, Pass pass) {
   ConvBuffers b(l.shape);
-  const std::function<void(cudaStream_t)> peer = make_peer(l, b);
-  const double ms = time_pass(state, conv_flops(l.shape), peer);
-  const auto ours = forward_ms().find(l.name);
-  if (ours != forward_ms().end() && ms > 0.0) state.counters["ours_ms/peer_ms"] = ours->second / ms;
+  const std::unique_ptr<cuda::Conv2dEngine> engine = cuda::make_vendor_conv2d(impl, options);
+  const double ms = time_pass(state, conv_flops(l.shape), [&](cudaStream_t stream) {
+    switch (pass) {
+      case Pass::Forward:
+        engine->forward(b.x.data(), b.w.data(), l.bias ? b.bias.data() : nullptr, b.y.data(),
+                        l.shape, stream, /*capturing=*/false);
+        break;
+      case Pass::BackwardData:
+        engine->backward_data(b.dy.data(), b.w.data(), b.dx.data(), l.shape, stream, false);
+        break;
+      case Pass::BackwardWeights:
+        engine->backward_weights(b.x.data(), b.dy.data(), b.dw.data(),
+                                 l.bias ? b.db.data() : nullptr, l.shape, stream, false);
+        break;
+    }
+  });
+  state.counters["workspace_MiB"] =
+      static_cast<double>(engine->stats().workspace_bytes) / (1 << 20);
+  const auto ours = our_ms().find(std::string(pass_name(pass)) + "/" + l.name);
+  if (ours != our_ms().end() && ms > 0.0) state.counters["ours_ms/peer_ms"] = ours->second / ms;
+}
+
+// The peers of each pass, registered after ours.
+void register_peers(const ConvLayer& l, Pass pass, const char* our_name) {
+  struct Peer {
+    const char* name;
+    ConvolutionImpl impl;
+    bool tensor_cores;
+  };
+  const Peer peers[] = {
+#if defined(PILLARSEG_WITH_CUDNN)
+    {"cudnn_fp32", ConvolutionImpl::Cudnn, false},
+    {"cudnn_default_math", ConvolutionImpl::Cudnn, true},
+#endif
+    {"cublas_im2col", ConvolutionImpl::Cublas, false},
+  };
+  for (const Peer& peer : peers) {
+    cuda::VendorConvOptions options;
+    options.allow_tensor_cores = peer.tensor_cores;
+    options.timed_search = true;
+    benchmark::RegisterBenchmark((std::string(our_name) + "_" + peer.name + "/" + l.name).c_str(),
+                                 BM_Conv2dPeer, l, peer.impl, options, pass)
+        ->Unit(benchmark::kMillisecond)
+        ->UseManualTime();
+  }
 }
 #endif
 
@@ -258,30 +304,13 @@ void register_pass(const std::string& name, Function function, const Layer& laye
 void register_benchmarks() {
   for (const ConvLayer& l : kConvLayers) {
     register_pass(std::string("Conv2dForward/") + l.name, BM_Conv2dForward, l);
-#if defined(PILLARSEG_BENCH_CUDNN)
-    const auto with_peer = [&](const char* peer, PeerFactory make_peer) {
-      benchmark::RegisterBenchmark((std::string("Conv2dForward_") + peer + "/" + l.name).c_str(),
-                                   BM_Conv2dForwardPeer, l, std::move(make_peer))
-          ->Unit(benchmark::kMillisecond)
-          ->UseManualTime();
-    };
-    with_peer("cudnn_fp32", [](const ConvLayer& layer, ConvBuffers& b) {
-      return bench::cudnn_conv2d_forward(layer.shape, b.x.data(), b.w.data(),
-                                         layer.bias ? b.bias.data() : nullptr, b.y.data(),
-                                         /*allow_tensor_cores=*/false);
-    });
-    with_peer("cudnn_default_math", [](const ConvLayer& layer, ConvBuffers& b) {
-      return bench::cudnn_conv2d_forward(layer.shape, b.x.data(), b.w.data(),
-                                         layer.bias ? b.bias.data() : nullptr, b.y.data(),
-                                         /*allow_tensor_cores=*/true);
-    });
-    with_peer("cublas_im2col", [](const ConvLayer& layer, ConvBuffers& b) {
-      return bench::cublas_im2col_conv2d_forward(layer.shape, b.x.data(), b.w.data(),
-                                                 layer.bias ? b.bias.data() : nullptr, b.y.data());
-    });
-#endif
     register_pass(std::string("Conv2dBackwardData/") + l.name, BM_Conv2dBackwardData, l);
     register_pass(std::string("Conv2dBackwardWeights/") + l.name, BM_Conv2dBackwardWeights, l);
+#if defined(PILLARSEG_BENCH_VENDOR_CONV)
+    register_peers(l, Pass::Forward, "Conv2dForward");
+    register_peers(l, Pass::BackwardData, "Conv2dBackwardData");
+    register_peers(l, Pass::BackwardWeights, "Conv2dBackwardWeights");
+#endif
   }
   for (const ConvTransposeLayer& l : kConvTransposeLayers) {
     register_pass(std::string("ConvTranspose2dForward/") + l.name, BM_ConvTranspose2dForward, l);

@@ -5,7 +5,10 @@
 // backend has: the evaluation forward replayed as a graph matches the uncaptured forward bit for
 // bit (across pillar counts, parameter updates and re-plans), the steady-state training loop
 // allocates nothing, uploads larger than the staging buffer arrive whole, and the errors say what
-// is wrong.
+// is wrong. Last, the convolution choice (--conv): in the GPU build (test_cuda_backend_gpu) the
+// cuDNN and cuBLAS paths against our kernels, pass by pass at the U-Net's kinds of layers and as
+// the whole tiny model (training and the graph-replayed evaluation); in the emulated build, that
+// asking for them throws.
 #include <gtest/gtest.h>
 
 #include <algorithm>
@@ -427,4 +430,253 @@ TEST(CudaBackendClock, IsMonotoneAndWaitsForTheWork) {
   EXPECT_LE(t0, t1);
   EXPECT_LE(t1, t2);
   backend.deallocate(device);
+}
+
+// ---- cuDNN and cuBLAS convolutions (CudaBackendOptions::convolution) ----
+
+#if defined(PILLARSEG_CUDA_EMULATION)
+
+// The emulation has our kernels only: asking for a vendor library says so, through the options
+// and through the factory behind --conv.
+TEST(CudaBackendVendorConv, EmulatedBuildRefusesCudnnAndCublas) {
+  for (ConvolutionImpl impl : {ConvolutionImpl::Cudnn, ConvolutionImpl::Cublas}) {
+    CudaBackendOptions options;
+    options.convolution = impl;
+    try {
+      CudaBackend backend(options);
+      FAIL() << "the emulated backend must refuse --conv " << convolution_impl_name(impl);
+    } catch (const Error& e) {
+      const std::string message = e.what();
+      EXPECT_NE(message.find(std::string("--conv ") + convolution_impl_name(impl) +
+                             " needs the GPU build"),
+                std::string::npos)
+          << message;
+      EXPECT_NE(message.find("use --conv own"), std::string::npos) << message;
+    }
+  }
+  install_cuda_backend();
+  EXPECT_THROW(make_backend("cuda", "cublas"), Error);
+  EXPECT_EQ(make_backend("cuda", "own")->device(), Device::Cuda);
+  set_cuda_backend_factory(nullptr);
+}
+
+#else
+
+namespace {
+
+CudaBackendOptions with_convolution(ConvolutionImpl impl) {
+  CudaBackendOptions options;
+  options.convolution = impl;
+  return options;
+}
+
+// One Conv2d's inputs and results on one backend.
+struct ConvRun {
+  Tensor<float> y, dx, dw, db;
+};
+
+// Forward and backward of x (B, I, H, W), w (O, I, k, k), bias (O) on `backend`, from host
+// tensors; also checks that a second run gives the same bits (every implementation is
+// deterministic).
+ConvRun run_conv(CudaBackend& backend, const Tensor<float>& x, const Tensor<float>& w,
+                 const Tensor<float>& bias, const Tensor<float>& dy, int pad, bool with_bias) {
+  struct Refs {
+    Ref x, w, bias, dy, y, dx, dw, db;
+  };
+  Arena arena(backend);
+  const auto take_all = [&] {
+    arena.reset();
+    return Refs{arena.take<float>(x.shape()),    arena.take<float>(w.shape()),
+                arena.take<float>(bias.shape()), arena.take<float>(dy.shape()),
+                arena.take<float>(dy.shape()),   arena.take<float>(x.shape()),
+                arena.take<float>(w.shape()),    arena.take<float>(bias.shape())};
+  };
+  arena.begin_measure();
+  take_all();
+  arena.reserve(arena.used());
+  Refs r = take_all();
+  backend.upload(r.x.data, x.data(), x.numel() * sizeof(float));
+  backend.upload(r.w.data, w.data(), w.numel() * sizeof(float));
+  backend.upload(r.bias.data, bias.data(), bias.numel() * sizeof(float));
+  backend.upload(r.dy.data, dy.data(), dy.numel() * sizeof(float));
+  ConvRun first;
+  for (int repeat = 0; repeat < 2; ++repeat) {
+    backend.conv2d_forward(r.x, r.w, with_bias ? &r.bias : nullptr, pad, r.y);
+    backend.conv2d_backward(r.x, r.w, r.dy, pad, &r.dx, r.dw, with_bias ? &r.db : nullptr);
+    ConvRun run{Tensor<float>(dy.shape()), Tensor<float>(x.shape()), Tensor<float>(w.shape()),
+                Tensor<float>(bias.shape())};
+    backend.download(run.y.data(), r.y.data, r.y.bytes());
+    backend.download(run.dx.data(), r.dx.data, r.dx.bytes());
+    backend.download(run.dw.data(), r.dw.data, r.dw.bytes());
+    if (with_bias) backend.download(run.db.data(), r.db.data, r.db.bytes());
+    if (repeat == 0) {
+      first = std::move(run);
+    } else {
+      EXPECT_EQ(run.y, first.y) << backend.name() << ": forward not deterministic";
+      EXPECT_EQ(run.dx, first.dx) << backend.name() << ": dx not deterministic";
+      EXPECT_EQ(run.dw, first.dw) << backend.name() << ": dw not deterministic";
+      EXPECT_EQ(run.db, first.db) << backend.name() << ": db not deterministic";
+    }
+  }
+  return first;
+}
+
+struct ConvCase {
+  const char* name;
+  int64_t B, I, H, W, O, k, pad;
+  bool bias;
+};
+
+// The U-Net's kinds of layers, small: 3x3 with bias (double convs), the occupancy convolution
+// (no bias), the 1x1 head, odd sizes, and a single-row image.
+const ConvCase kConvCases[] = {
+    {"double_conv_3x3", 2, 8, 12, 20, 16, 3, 1, true},
+    {"occupancy_no_bias", 2, 20, 8, 10, 3, 3, 1, false},
+    {"head_1x1", 2, 8, 7, 9, 12, 1, 0, true},
+    {"odd_sizes", 1, 5, 9, 13, 7, 3, 1, true},
+    {"single_row", 3, 3, 1, 11, 4, 3, 1, true},
+};
+
+}  // namespace
+
+// Each vendor path against ours at every case: y, dx, dw, db. Both sum up to a few hundred FP32
+// products per output in different orders, and cuDNN may transform (Winograd, FFT), which rounds
+// differently again: differences of at most about 1e-6 of the output's scale; an indexing error
+// would be of the order of the scale.
+constexpr double kPassAtolScale = 1e-5, kPassRtol = 1e-4;
+
+TEST(CudaBackendVendorConv, PassesMatchOurKernels) {
+  CudaBackend own;
+  CudaBackend cudnn(with_convolution(ConvolutionImpl::Cudnn));
+  CudaBackend cublas(with_convolution(ConvolutionImpl::Cublas));
+  // cuBLAS with a cols buffer of two output rows of the largest case: the lowering runs in bands
+  // (and a partial last band), whose col2im contributions overlap in dx.
+  CudaBackendOptions banded_options = with_convolution(ConvolutionImpl::Cublas);
+  banded_options.vendor.workspace_limit_bytes = 2 * 20 * 9 * 10 * sizeof(float);
+  CudaBackend banded(banded_options);
+  EXPECT_NE(cudnn.name().find("cudnn convolutions"), std::string::npos) << cudnn.name();
+  Rng rng(17);
+  for (const ConvCase& c : kConvCases) {
+    SCOPED_TRACE(c.name);
+    const int64_t Ho = c.H + 2 * c.pad - c.k + 1, Wo = c.W + 2 * c.pad - c.k + 1;
+    const Tensor<float> x = test::random_tensor<float>({c.B, c.I, c.H, c.W}, rng);
+    const Tensor<float> w = test::random_tensor<float>({c.O, c.I, c.k, c.k}, rng);
+    const Tensor<float> bias = test::random_tensor<float>({c.O}, rng);
+    const Tensor<float> dy = test::random_tensor<float>({c.B, c.O, Ho, Wo}, rng);
+    const ConvRun expected = run_conv(own, x, w, bias, dy, static_cast<int>(c.pad), c.bias);
+    for (CudaBackend* vendor : {&cudnn, &cublas, &banded}) {
+      SCOPED_TRACE(vendor->name());
+      const ConvRun got = run_conv(*vendor, x, w, bias, dy, static_cast<int>(c.pad), c.bias);
+      EXPECT_TRUE(
+          test::all_close(got.y, expected.y, kPassAtolScale * max_abs(expected.y), kPassRtol))
+          << "y";
+      EXPECT_TRUE(
+          test::all_close(got.dx, expected.dx, kPassAtolScale * max_abs(expected.dx), kPassRtol))
+          << "dx";
+      EXPECT_TRUE(
+          test::all_close(got.dw, expected.dw, kPassAtolScale * max_abs(expected.dw), kPassRtol))
+          << "dw";
+      if (c.bias) {
+        EXPECT_TRUE(
+            test::all_close(got.db, expected.db, kPassAtolScale * max_abs(expected.db), kPassRtol))
+            << "db";
+      }
+    }
+  }
+  // The banded cuBLAS engine never grows its buffers; cuDNN planned each shape once.
+  EXPECT_EQ(banded.stats().vendor_conv.device_allocations, 2);
+  EXPECT_EQ(cudnn.stats().vendor_conv.plans, static_cast<int64_t>(std::size(kConvCases)));
+}
+
+// The whole tiny model on each vendor path against ours (both on the GPU): training forward,
+// loss, every gradient, then the evaluation forward, which the backend records as a graph, and
+// a steady state that allocates nothing more. Tolerances: those against the CPU backend, times
+// kVendorSlack for cuDNN's transforms (see PassesMatchOurKernels), amplified like any
+// difference by training-mode BatchNorm.
+constexpr double kVendorSlack = 10;
+class CudaBackendVendorModel : public ::testing::TestWithParam<ConvolutionImpl> {};
+
+TEST_P(CudaBackendVendorModel, MatchesOurConvolutions) {
+  const ModelConfig c = tiny_config(OccupancyInput::Observability2D, /*transposed=*/false);
+  CudaBackend own, vendor(with_convolution(GetParam()));
+  PillarSegNet own_net(c, own, 7), vendor_net(c, vendor, 7);
+  ParameterSet &own_ps = own_net.parameters(), &vendor_ps = vendor_net.parameters();
+  const TinyData data = tiny_data(c, 2, 31);
+  for (int step = 1; step <= 2; ++step) {
+    SCOPED_TRACE(step);
+    own_net.forward(data.batch, true);
+    vendor_net.forward(data.batch, true);
+    EXPECT_TRUE(test::all_close(vendor_net.download_logits(), own_net.download_logits(),
+                                kVendorSlack * kForwardAtol, kVendorSlack * kForwardRtol));
+    const double own_loss = own_net.loss(data.labels, LossKind::CrossEntropy, kCoefficients);
+    const double vendor_loss = vendor_net.loss(data.labels, LossKind::CrossEntropy, kCoefficients);
+    EXPECT_NEAR(vendor_loss, own_loss, kVendorSlack * kLossRtol * std::abs(own_loss));
+    own_net.backward();
+    vendor_net.backward();
+    for (int i = 0; i < static_cast<int>(own_ps.entries().size()); ++i) {
+      const ParamEntry& e = own_ps.entries()[static_cast<size_t>(i)];
+      if (!e.trainable) continue;
+      Tensor<float> own_grad(e.shape), vendor_grad(e.shape);
+      own.download(own_grad.data(), own_ps.grad(i).data, own_grad.numel() * sizeof(float));
+      vendor.download(vendor_grad.data(), vendor_ps.grad(i).data,
+                      vendor_grad.numel() * sizeof(float));
+      const double atol =
+          kVendorSlack * (kGradientAtolScale * max_abs(own_grad) + kGradientAtolFloor);
+      EXPECT_TRUE(test::all_close(vendor_grad, own_grad, atol, kVendorSlack * kGradientRtol))
+          << e.name;
+    }
+    // The same update on both sides (from our gradients), so step 2 starts level again.
+    vendor_ps.upload_flat(vendor_ps.grads(), own_ps.download_flat(own_ps.grads()));
+    adam(own, own_ps, step);
+    adam(vendor, vendor_ps, step);
+    own_net.forward(data.batch, false);
+    vendor_net.forward(data.batch, false);
+    EXPECT_TRUE(test::all_close(vendor_net.download_logits(), own_net.download_logits(),
+                                kVendorSlack * kForwardAtol, kVendorSlack * kForwardRtol))
+        << "evaluation (graph replay)";
+  }
+  EXPECT_EQ(vendor.stats().graphs_captured, 1);
+  EXPECT_EQ(vendor.stats().graph_replays, 2);
+  // A third step allocates nothing: algorithms, plans and workspaces were settled by the first.
+  const CudaBackendStats settled = vendor.stats();
+  vendor_net.forward(data.batch, true);
+  vendor_net.loss(data.labels, LossKind::Bce, kCoefficients);
+  vendor_net.backward();
+  vendor_net.forward(data.batch, false);
+  vendor.synchronize();
+  EXPECT_EQ(vendor.stats().device_allocations, settled.device_allocations);
+  EXPECT_EQ(vendor.stats().vendor_conv.device_allocations, settled.vendor_conv.device_allocations);
+  EXPECT_EQ(vendor.stats().vendor_conv.workspace_bytes, settled.vendor_conv.workspace_bytes);
+}
+
+INSTANTIATE_TEST_SUITE_P(Impls, CudaBackendVendorModel,
+                         ::testing::Values(ConvolutionImpl::Cudnn, ConvolutionImpl::Cublas),
+                         [](const ::testing::TestParamInfo<ConvolutionImpl>& case_info) {
+                           return std::string(convolution_impl_name(case_info.param));
+                         });
+
+#endif  // PILLARSEG_CUDA_EMULATION
+
+// The names behind --conv, in both builds.
+TEST(CudaBackendVendorConv, ConvolutionNamesParseAndRoundTrip) {
+  for (ConvolutionImpl impl :
+       {ConvolutionImpl::Own, ConvolutionImpl::Cudnn, ConvolutionImpl::Cublas}) {
+    EXPECT_EQ(parse_convolution_impl(convolution_impl_name(impl)), impl);
+  }
+  try {
+    parse_convolution_impl("mkl");
+    FAIL() << "an unknown implementation must throw";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("--conv must be own, cudnn or cublas, got 'mkl'"),
+              std::string::npos)
+        << e.what();
+  }
+  // The CPU backend has one convolution.
+  try {
+    make_backend("cpu", "cudnn");
+    FAIL() << "--conv cudnn with --device cpu must throw";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("--conv cudnn needs --device cuda"), std::string::npos)
+        << e.what();
+  }
 }

@@ -26,7 +26,7 @@ namespace pillarseg::cli {
 namespace {
 
 struct BenchArgs {
-  std::string device = "cpu", config, weights, scan;
+  std::string device = "cpu", conv = "own", config, weights, scan;
   int repeat = 5;
   bool transposed = false;
 };
@@ -45,7 +45,7 @@ void run_bench(const BenchArgs& a) {
   ModelConfig model;
   if (!a.config.empty()) model = load_run_config(a.config).model;
   model.transposed = model.transposed || a.transposed;
-  auto backend = make_backend(a.device);  // first: no device, no scratch files left behind
+  auto backend = make_backend(a.device, a.conv);  // first: no device, no scratch files left behind
   const fs::path scratch = fs::temp_directory_path() / fmt::format("pillarseg_bench_{}", ::getpid());
   fs::path scan_path = a.scan;
   if (scan_path.empty()) {
@@ -149,6 +149,7 @@ void add_bench(CLI::App& app) {
   CLI::App* cmd = app.add_subcommand("bench", "Stage timings of one inference (default: the paper's full-size model "
                                               "on a simulated 120k-point scan)");
   cmd->add_option("--device", a->device, "cpu or cuda")->check(CLI::IsMember({"cpu", "cuda"}));
+  cmd->add_option("--conv", a->conv, "Conv2d with --device cuda: own (our kernels), cudnn or cublas (for comparison)")->check(CLI::IsMember({"own", "cudnn", "cublas"}));
   cmd->add_option("--config", a->config, "run config YAML (default: the paper's settings)");
   cmd->add_flag("--transposed", a->transposed, "use the transposed-convolution U-Net");
   cmd->add_option("--weights", a->weights, "checkpoint (default: random weights; timings do not depend on them)");

@@ -17,12 +17,12 @@ namespace pillarseg::cli {
 namespace {
 
 struct InferArgs {
-  std::string weights, scan, out, config, device = "cpu";
+  std::string weights, scan, out, config, device = "cpu", conv = "own";
   bool probabilities = false, mask_unobserved = false;
 };
 
 struct RenderArgs {
-  std::string data, weights, config, out, mode = "sparse", device = "cpu", cache;
+  std::string data, weights, config, out, mode = "sparse", device = "cpu", conv = "own", cache;
   int sequence = -1, scan = -1;
   bool mask_unobserved = false;
 };
@@ -33,11 +33,12 @@ struct LoadedModel {
   RunConfig config;
 };
 
-LoadedModel load_model(const std::string& weights, const std::string& config, const std::string& device) {
+LoadedModel load_model(const std::string& weights, const std::string& config, const std::string& device,
+                       const std::string& conv) {
   const Checkpoint ckpt = read_checkpoint(weights);
   LoadedModel m;
   m.config = config_for(ckpt, config);
-  m.backend = make_backend(device);
+  m.backend = make_backend(device, conv);
   m.net = std::make_unique<PillarSegNet>(m.config.model, *m.backend);
   load_weights(ckpt, *m.net, false);
   return m;
@@ -50,7 +51,7 @@ Tensor<uint8_t> observed_mask(const Tensor<uint32_t>& observability) {
 }
 
 void run_infer(const InferArgs& a) {
-  LoadedModel m = load_model(a.weights, a.config, a.device);
+  LoadedModel m = load_model(a.weights, a.config, a.device, a.conv);
   const Scan scan = read_scan(a.scan);
   Prediction p = predict_scan(*m.net, m.config.model, scan.points, a.probabilities, a.mask_unobserved);
   if (a.mask_unobserved) {
@@ -84,7 +85,7 @@ void run_render(const RenderArgs& a) {
   GridSpec grid;
   std::optional<LoadedModel> model;
   if (!a.weights.empty()) {
-    model = load_model(a.weights, a.config, a.device);
+    model = load_model(a.weights, a.config, a.device, a.conv);
     grid = model->config.model.grid;
   }
   std::vector<ImageRgb> panels;
@@ -126,6 +127,7 @@ void add_infer(CLI::App& app) {
   cmd->add_flag("--mask-unobserved", a->mask_unobserved, "label cells no ray observed as 0 (unlabeled)");
   cmd->add_option("--config", a->config, "run config (default: the one stored in the checkpoint)");
   cmd->add_option("--device", a->device, "cpu or cuda")->check(CLI::IsMember({"cpu", "cuda"}));
+  cmd->add_option("--conv", a->conv, "Conv2d with --device cuda: own (our kernels), cudnn or cublas (for comparison)")->check(CLI::IsMember({"own", "cudnn", "cublas"}));
   cmd->callback([a] { run_infer(*a); });
 
   auto r = std::make_shared<RenderArgs>();
@@ -140,6 +142,7 @@ void add_infer(CLI::App& app) {
   rc->add_option("--mode", r->mode, "ground truth: sparse or dense")->check(CLI::IsMember({"sparse", "dense"}));
   rc->add_flag("--mask-unobserved", r->mask_unobserved, "black out cells no ray observed");
   rc->add_option("--device", r->device, "cpu or cuda")->check(CLI::IsMember({"cpu", "cuda"}));
+  rc->add_option("--conv", r->conv, "Conv2d with --device cuda: own (our kernels), cudnn or cublas (for comparison)")->check(CLI::IsMember({"own", "cudnn", "cublas"}));
   rc->add_option("--cache", r->cache, "ground-truth cache directory");
   rc->callback([r] { run_render(*r); });
 }

@@ -20,7 +20,7 @@ struct TrainArgs {
 };
 
 struct EvalArgs {
-  std::string data, weights, config, mode = "sparse", device = "cpu", cache, report;
+  std::string data, weights, config, mode = "sparse", device = "cpu", conv = "own", cache, report;
   std::vector<int> sequences;
   int stride = 0;
 };
@@ -43,7 +43,7 @@ void run_train(const TrainArgs& a) {
 void run_eval(const EvalArgs& a) {
   const Checkpoint ckpt = read_checkpoint(a.weights);
   const RunConfig config = config_for(ckpt, a.config);
-  auto backend = make_backend(a.device);
+  auto backend = make_backend(a.device, a.conv);
   PillarSegNet net(config.model, *backend);
   load_weights(ckpt, net, false);
   EvalOptions o;
@@ -89,6 +89,7 @@ void add_train(CLI::App& app) {
   ev->add_option("--sequences", e->sequences, "sequences to evaluate (default: the config's eval.sequences)");
   ev->add_option("--stride", e->stride, "every n-th scan (default: the config's eval.scan_stride)");
   ev->add_option("--device", e->device, "cpu or cuda")->check(CLI::IsMember({"cpu", "cuda"}));
+  ev->add_option("--conv", e->conv, "Conv2d with --device cuda: own (our kernels), cudnn or cublas (for comparison)")->check(CLI::IsMember({"own", "cudnn", "cublas"}));
   ev->add_option("--cache", e->cache, "ground-truth cache directory");
   ev->add_option("--report", e->report, "JSON report path (default: beside the checkpoint)");
   ev->callback([e] { run_eval(*e); });

@@ -78,6 +78,25 @@ class CudaGraph final : public CapturedGraph {
 
 }  // namespace
 
+ConvolutionImpl parse_convolution_impl(const std::string& name) {
+  if (name == "own") return ConvolutionImpl::Own;
+  if (name == "cudnn") return ConvolutionImpl::Cudnn;
+  if (name == "cublas") return ConvolutionImpl::Cublas;
+  PS_FAIL("--conv must be own, cudnn or cublas, got '{}'", name);
+}
+
+const char* convolution_impl_name(ConvolutionImpl impl) {
+  switch (impl) {
+    case ConvolutionImpl::Own:
+      return "own";
+    case ConvolutionImpl::Cudnn:
+      return "cudnn";
+    case ConvolutionImpl::Cublas:
+      return "cublas";
+  }
+  return "unknown";
+}
+
 std::string no_cuda_device_message(cudaError_t error, int device_count) {
   const std::string reason = error != cudaSuccess
                                  ? fmt::format("cudaGetDeviceCount failed with {} ({})",
@@ -90,6 +109,12 @@ CudaBackend::CudaBackend(const CudaBackendOptions& options) : options_(options) 
   PS_CHECK(options_.max_staging_bytes >= kStagingAlignment,
            "CudaBackend: max_staging_bytes must be at least {}, got {}", kStagingAlignment,
            options_.max_staging_bytes);
+#if defined(PILLARSEG_CUDA_EMULATION)
+  PS_CHECK(options_.convolution == ConvolutionImpl::Own,
+           "CudaBackend: --conv {} needs the GPU build; the emulated CUDA backend has only our own "
+           "convolutions (cuDNN and cuBLAS run on a GPU only), use --conv own",
+           convolution_impl_name(options_.convolution));
+#endif
   int devices = 0;
   const cudaError_t counted = cudaGetDeviceCount(&devices);
   if (counted != cudaSuccess || devices < 1) {
@@ -99,13 +124,22 @@ CudaBackend::CudaBackend(const CudaBackendOptions& options) : options_(options) 
   PS_CUDA_CHECK(cudaSetDevice(0));
   cudaDeviceProp properties;
   PS_CUDA_CHECK(cudaGetDeviceProperties(&properties, 0));
-  name_ = fmt::format("cuda ({})", properties.name);
+  name_ = options_.convolution == ConvolutionImpl::Own
+              ? fmt::format("cuda ({})", properties.name)
+              : fmt::format("cuda ({}, {} convolutions)", properties.name,
+                            convolution_impl_name(options_.convolution));
   PS_CUDA_CHECK(cudaStreamCreateWithFlags(&stream_, cudaStreamNonBlocking));
   try {
     for (cudaEvent_t& event : clock_events_) PS_CUDA_CHECK(cudaEventCreate(&event));
     workspace_.sum_of_squares = cuda::DeviceBuffer<double>(cuda::kSumOfSquaresPartials + 1);
     workspace_.loss_partials = cuda::DeviceBuffer<cuda::LossPartial>(cuda::kLossPartials);
     workspace_.loss_result = cuda::DeviceBuffer<cuda::LossResult>(1);
+#if !defined(PILLARSEG_CUDA_EMULATION)
+    if (options_.convolution != ConvolutionImpl::Own) {
+      vendor_conv_ = cuda::make_vendor_conv2d(options_.convolution, options_.vendor);
+      stats_.vendor_conv = vendor_conv_->stats();
+    }
+#endif
   } catch (...) {
     for (cudaEvent_t event : clock_events_)
       if (event != nullptr) static_cast<void>(cudaEventDestroy(event));
@@ -121,6 +155,7 @@ CudaBackend::~CudaBackend() {
   // Nothing may be in flight when the memory goes; a failure here leaves nothing to report to.
   static_cast<void>(cudaStreamSynchronize(stream_));
   release_staging();
+  vendor_conv_.reset();
   workspace_ = Workspace{};
   for (cudaEvent_t event : clock_events_) static_cast<void>(cudaEventDestroy(event));
   static_cast<void>(cudaStreamDestroy(stream_));
@@ -403,11 +438,23 @@ Shape conv_transpose_output(const cuda::ConvTranspose2dShape& s) {
 
 }  // namespace
 
+cuda::Conv2dEngine* CudaBackend::vendor_engine(const cuda::Conv2dShape& s) {
+  const bool empty = s.batch == 0 || s.in_channels == 0 || s.out_channels == 0 ||
+                     s.out_height() <= 0 || s.out_width() <= 0;
+  return empty ? nullptr : vendor_conv_.get();
+}
+
 void CudaBackend::conv2d_forward(const Ref& x, const Ref& w, const Ref* bias, int pad, Ref& y) {
   const char* op = "conv2d_forward";
   const cuda::Conv2dShape shape = conv_shape(op, x, w, pad);
   require_shape(op, "y", y, conv_output(shape));
   if (bias) require_shape(op, "bias", *bias, {shape.out_channels});
+  if (cuda::Conv2dEngine* vendor = vendor_engine(shape)) {
+    vendor->forward(x.data, w.data, bias ? bias->data : nullptr, y.data, shape, stream_,
+                    capturing_);
+    stats_.vendor_conv = vendor->stats();
+    return;
+  }
   cuda::conv2d_forward(x.data, w.data, bias ? bias->data : nullptr, y.data, shape, stream_);
 }
 
@@ -418,10 +465,15 @@ void CudaBackend::conv2d_backward(const Ref& x, const Ref& w, const Ref& dy, int
   require_shape(op, "dy", dy, conv_output(shape));
   require_shape(op, "dw", dw, w.shape);
   if (dbias) require_shape(op, "dbias", *dbias, {shape.out_channels});
-  if (dx) {
-    require_shape(op, "dx", *dx, x.shape);
-    cuda::conv2d_backward_data(dy.data, w.data, dx->data, shape, stream_);
+  if (dx) require_shape(op, "dx", *dx, x.shape);
+  if (cuda::Conv2dEngine* vendor = vendor_engine(shape)) {
+    if (dx) vendor->backward_data(dy.data, w.data, dx->data, shape, stream_, capturing_);
+    vendor->backward_weights(x.data, dy.data, dw.data, dbias ? dbias->data : nullptr, shape,
+                             stream_, capturing_);
+    stats_.vendor_conv = vendor->stats();
+    return;
   }
+  if (dx) cuda::conv2d_backward_data(dy.data, w.data, dx->data, shape, stream_);
   const size_t floats = cuda::conv2d_backward_weights_workspace(shape);
   float* workspace = float_workspace(floats);
   cuda::conv2d_backward_weights(x.data, dy.data, dw.data, dbias ? dbias->data : nullptr, shape,
@@ -613,8 +665,10 @@ void CudaBackend::adam_step(Ref& param, const Ref& grad, Ref& m, Ref& v, const A
 
 // ---- factory ----
 
-std::unique_ptr<Backend> make_cuda_device_backend() {
-  return std::make_unique<CudaBackend>();
+std::unique_ptr<Backend> make_cuda_device_backend(const std::string& convolution) {
+  CudaBackendOptions options;
+  options.convolution = parse_convolution_impl(convolution);
+  return std::make_unique<CudaBackend>(options);
 }
 
 void install_cuda_backend() {

@@ -13,6 +13,11 @@
 //
 // Graphs: capture() records the work queued by a callback as a CUDA graph (stream capture) and
 // returns it for replay; PillarSegNet records its evaluation forward this way.
+//
+// Convolutions: Conv2d runs our kernels (kernels/conv2d.cuh) or, for comparison, cuDNN or
+// im2col + cuBLAS (engine/cuda/vendor_conv.hpp), chosen by CudaBackendOptions::convolution; the
+// vendor libraries exist only in the GPU build (the emulated one throws if asked for them).
+// ConvTranspose2d is always ours.
 #pragma once
 
 #include <cstddef>
@@ -21,6 +26,7 @@
 #include <memory>
 #include <string>
 
+#include "engine/cuda/vendor_conv.hpp"
 #include "engine/model/backend.hpp"
 #include "kernels/device_buffer.hpp"
 #include "kernels/losses.cuh"
@@ -31,6 +37,14 @@ struct CudaBackendOptions {
   bool graphs = true;  // supports_capture(): the model replays its evaluation forward as a graph
   // Largest pinned staging buffer; a larger upload is copied in pieces of this size.
   size_t max_staging_bytes = size_t{64} << 20;
+  // Who computes Conv2d forward and backward: Own (our kernels), Cudnn (cuDNN, deterministic
+  // algorithms chosen once per shape, its workspace grown when an algorithm needs more), or
+  // Cublas (im2col / col2im kernels + cuBLAS SGEMM for all three passes, through a cols buffer of
+  // vendor.workspace_limit_bytes). Cudnn and Cublas do FP32 math without TF32 unless
+  // vendor.allow_tensor_cores; shapes with a zero dimension always run our kernels. Only in the
+  // GPU build: the emulated backend throws pillarseg::Error for anything but Own.
+  ConvolutionImpl convolution = ConvolutionImpl::Own;
+  cuda::VendorConvOptions vendor;
 };
 
 // What the backend has allocated and recorded so far (the steady state adds nothing).
@@ -41,12 +55,14 @@ struct CudaBackendStats {
   size_t staging_bytes = 0;        // pinned staging held now
   int64_t graphs_captured = 0;
   int64_t graph_replays = 0;
+  cuda::VendorConvStats vendor_conv;  // the cuDNN or cuBLAS engine's (zeros with Own)
 };
 
 class CudaBackend final : public Backend {
  public:
-  // Selects device 0 and creates the stream; throws pillarseg::Error "no CUDA device found: ..."
-  // when the runtime reports none.
+  // Selects device 0, creates the stream and, with a vendor convolution, its library handle;
+  // throws pillarseg::Error "no CUDA device found: ..." when the runtime reports none, and
+  // for options.convolution other than Own in the emulated build.
   explicit CudaBackend(const CudaBackendOptions& options = {});
   ~CudaBackend() override;
   CudaBackend(const CudaBackend&) = delete;
@@ -54,6 +70,7 @@ class CudaBackend final : public Backend {
 
   Device device() const override { return Device::Cuda; }
   std::string name() const override { return name_; }
+  ConvolutionImpl convolution() const { return options_.convolution; }
   const CudaBackendStats& stats() const { return stats_; }
   cudaStream_t stream() const { return stream_; }
 
@@ -123,6 +140,8 @@ class CudaBackend final : public Backend {
   void release_staging() noexcept;
   void wait_for_stream();  // cudaStreamSynchronize; the staging buffer is free again
   void require_not_capturing(const char* op) const;
+  // The vendor engine for `shape`, or nullptr where our kernels run it (Own, or an empty shape).
+  cuda::Conv2dEngine* vendor_engine(const cuda::Conv2dShape& shape);
 
   CudaBackendOptions options_;
   std::string name_;
@@ -135,14 +154,16 @@ class CudaBackend final : public Backend {
   void* staging_ = nullptr;
   size_t staging_capacity_ = 0, staging_used_ = 0;
   bool capturing_ = false;
+  std::unique_ptr<cuda::Conv2dEngine> vendor_conv_;  // null with ConvolutionImpl::Own
   CudaBackendStats stats_;
 };
 
 // "no CUDA device found: <reason>; use --device cpu", for the result of cudaGetDeviceCount.
 std::string no_cuda_device_message(cudaError_t error, int device_count);
 
-// A CudaBackend with default options (for make_cuda_backend()).
-std::unique_ptr<Backend> make_cuda_device_backend();
+// A CudaBackend with default options but the Conv2d implementation named by `convolution`
+// ("own", "cudnn", "cublas"; for make_cuda_backend()).
+std::unique_ptr<Backend> make_cuda_device_backend(const std::string& convolution);
 // Makes make_cuda_backend() (and so --device cuda) build a CudaBackend.
 void install_cuda_backend();
 

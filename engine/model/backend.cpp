@@ -49,17 +49,21 @@ void* Arena::take_bytes(size_t bytes) {
 
 void set_cuda_backend_factory(BackendFactory factory) { cuda_backend_factory.store(factory); }
 
-std::unique_ptr<Backend> make_cuda_backend() {
+std::unique_ptr<Backend> make_cuda_backend(const std::string& convolution) {
   const BackendFactory factory = cuda_backend_factory.load();
   PS_CHECK(factory != nullptr,
            "--device cuda: this build has no CUDA backend (configure with the CUDA toolkit installed, so that "
            "CMake finds nvcc); use --device cpu");
-  return factory();
+  return factory(convolution);
 }
 
-std::unique_ptr<Backend> make_backend(const std::string& device) {
-  if (device == "cpu") return make_cpu_backend();
-  if (device == "cuda") return make_cuda_backend();
+std::unique_ptr<Backend> make_backend(const std::string& device, const std::string& convolution) {
+  if (device == "cpu") {
+    PS_CHECK(convolution == "own", "--conv {} needs --device cuda (the CPU backend has one convolution)",
+             convolution);
+    return make_cpu_backend();
+  }
+  if (device == "cuda") return make_cuda_backend(convolution);
   PS_FAIL("--device must be cpu or cuda, got '{}'", device);
 }
 

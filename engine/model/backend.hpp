@@ -138,13 +138,15 @@ std::unique_ptr<Backend> make_cpu_backend();
 // The CPU backend on the host/ reference ops alone (no Winograd, Conv -> BN -> ReLU composed):
 // what the fast paths are tested and benchmarked against.
 std::unique_ptr<Backend> make_cpu_reference_backend();
-// The CUDA backend; throws pillarseg::Error with the reason when it is not available (a build
-// without it, or no device).
-std::unique_ptr<Backend> make_cuda_backend();
-std::unique_ptr<Backend> make_backend(const std::string& device);
+// The CUDA backend, its Conv2d by `convolution`: "own" (our kernels), "cudnn" or "cublas" (for
+// comparison; GPU build only); throws pillarseg::Error with the reason when it is not available
+// (a build without it, or no device, or the convolution).
+std::unique_ptr<Backend> make_cuda_backend(const std::string& convolution = "own");
+// `convolution` other than "own" needs device "cuda".
+std::unique_ptr<Backend> make_backend(const std::string& device, const std::string& convolution = "own");
 // What make_cuda_backend() calls. pillarseg_lib holds no CUDA code: a program linked with a CUDA
 // backend library installs its factory (engine/cuda/cuda_backend.hpp, install_cuda_backend()).
-using BackendFactory = std::unique_ptr<Backend> (*)();
+using BackendFactory = std::unique_ptr<Backend> (*)(const std::string& convolution);
 void set_cuda_backend_factory(BackendFactory factory);
 
 // Owns one allocation of a backend and hands out Refs from it in order (a bump allocator);
