@@ -28,8 +28,9 @@ def demangle(names):
 
 def short(signature):
     """pillarseg::cuda::conv2d_forward_kernel<64, 64>(...) -> conv2d_forward_kernel<64, 64>"""
-    name = signature.split("(")[0]
-    return re.sub(r"^pillarseg::cuda::(\(anonymous namespace\)::)?", "", name)
+    name = re.sub(r"^void ", "", signature.split("(")[0])
+    name = re.sub(r"^pillarseg::cuda::(\(anonymous namespace\)::)?", "", name)
+    return name.replace("pillarseg::cuda::", "")
 
 
 def main():
