@@ -14,7 +14,7 @@ namespace pillarseg::cli {
 namespace {
 
 struct TrainArgs {
-  std::string data, config, out, device = "cpu", cache;
+  std::string data, config, out, device = "cpu", conv = "own", cache;
   bool resume = false;
   int epochs_now = 0;
 };
@@ -31,6 +31,7 @@ void run_train(const TrainArgs& a) {
   o.run_dir = a.out;
   o.config = load_run_config(a.config);
   o.device = a.device;
+  o.convolution = a.conv;
   if (!a.cache.empty()) o.cache_dir = a.cache;
   o.resume = a.resume;
   o.max_epochs_this_run = a.epochs_now;
@@ -77,6 +78,8 @@ void add_train(CLI::App& app) {
   cmd->add_option("--epochs-now", a->epochs_now, "stop after this many epochs of this invocation (resume later)")
       ->check(CLI::NonNegativeNumber);
   cmd->add_option("--device", a->device, "cpu or cuda")->check(CLI::IsMember({"cpu", "cuda"}));
+  cmd->add_option("--conv", a->conv, "Conv2d with --device cuda: own (our kernels), cudnn or cublas (for comparison)")
+      ->check(CLI::IsMember({"own", "cudnn", "cublas"}));
   cmd->add_option("--cache", a->cache, "ground-truth cache directory");
   cmd->callback([a] { run_train(*a); });
 

@@ -85,7 +85,7 @@ TrainResult train(const TrainOptions& options) {
                    tc.ground_truth, options.cache_dir, augmented_dense);
   if (tc.ground_truth == GroundTruthKind::dense) data.build_cache(GroundTruthKind::dense);
 
-  auto backend = make_backend(options.device);
+  auto backend = make_backend(options.device, options.convolution);
   PillarSegNet net(cfg.model, *backend, tc.seed);
   ParameterSet& ps = net.parameters();
 

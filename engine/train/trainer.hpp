@@ -18,6 +18,7 @@ struct TrainOptions {
   std::filesystem::path run_dir;
   RunConfig config;
   std::string device = "cpu";
+  std::string convolution = "own";  // the CUDA backend's Conv2d: own, cudnn or cublas
   std::optional<std::filesystem::path> cache_dir;
   bool resume = false;
   bool progress = true;
