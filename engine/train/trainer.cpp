@@ -76,16 +76,16 @@ void recalibrate_batchnorm(PillarSegNet& net, const ScanDataset& data, const Tra
 TrainResult train(const TrainOptions& options) {
   const RunConfig& cfg = options.config;
   const TrainConfig& tc = cfg.train;
-  fs::create_directories(options.run_dir);
-  const fs::path ckpt_path = latest_checkpoint(options.run_dir);
+  // The device and the data first: a run that cannot start leaves no run directory behind.
+  auto backend = make_backend(options.device, options.convolution);
   const ClassTable classes = ClassTable::defaults();
-
   const bool augmented_dense = tc.ground_truth == GroundTruthKind::dense && tc.augment;
   ScanDataset data(options.data_root, tc.sequences, tc.scan_stride, tc.max_scans_per_sequence, cfg.model, classes,
                    tc.ground_truth, options.cache_dir, augmented_dense);
   if (tc.ground_truth == GroundTruthKind::dense) data.build_cache(GroundTruthKind::dense);
+  fs::create_directories(options.run_dir);
+  const fs::path ckpt_path = latest_checkpoint(options.run_dir);
 
-  auto backend = make_backend(options.device, options.convolution);
   PillarSegNet net(cfg.model, *backend, tc.seed);
   ParameterSet& ps = net.parameters();
 
