@@ -1,7 +1,9 @@
 // PillarSegNet on the CPU backend at tiny sizes: parameter names and shapes of the authors'
 // model, a whole-model gradient check by finite differences, training reduces the loss, and the
 // CPU fast paths (Winograd convolutions, fused eval Conv -> BN -> ReLU, the lifetime-planned
-// eval memory) against the reference backend.
+// eval memory) against the reference backend. Memory: gradients and Adam moments allocated on
+// first use only; the training step's tensors overlaid by lifetime give the same gradients
+// step after step.
 #include <gtest/gtest.h>
 
 #include <algorithm>
@@ -349,8 +351,8 @@ TEST_P(FastBackend, MatchesReferenceBackend) {
 INSTANTIATE_TEST_SUITE_P(VariantsAndBatches, FastBackend,
                          ::testing::Combine(::testing::Values(0, 1, 2, 3), ::testing::Values(1, 2)));
 
-// Eval overlays activations by lifetime: far less memory than training keeps, and the same
-// logits after switching modes back and forth.
+// Eval overlays activations by lifetime: less memory than training (which keeps what the
+// backward reads, and the gradients), and the same logits after switching modes back and forth.
 TEST(Model, EvalMemoryIsPlannedByLifetime) {
   ModelConfig c = tiny_config();
   c.depth = 3;
@@ -365,10 +367,90 @@ TEST(Model, EvalMemoryIsPlannedByLifetime) {
   const Tensor<float> first = net.download_logits();
   net.forward(data.batch, true);
   const size_t training_bytes = net.activation_bytes();
-  EXPECT_LT(2 * eval_bytes, training_bytes);
+  EXPECT_LT(eval_bytes, training_bytes);
   ps.upload_flat(ps.buffers(), running);  // undo the training forward's running-statistic update
   net.forward(data.batch, false);
   EXPECT_EQ(net.activation_bytes(), eval_bytes);
   EXPECT_EQ(first, net.download_logits());
   EXPECT_THROW(net.backward(), Error);
+}
+
+// Inference holds only the parameter values and the BatchNorm buffers: the gradients appear
+// with the first backward (zero-filled before it writes them), the Adam moments with the first
+// optimiser step (zero-filled), each once.
+TEST(Model, GradientsAndAdamMomentsAreAllocatedOnFirstUse) {
+  const ModelConfig c = tiny_config(OccupancyInput::Observability2D, /*transposed=*/true);
+  const TinyData data = tiny_data(c, 1, 12);
+  auto backend = make_cpu_backend();
+  PillarSegNet net(c, *backend, 4);
+  ParameterSet& ps = net.parameters();
+  const auto padded_bytes = [](int64_t n) { return static_cast<size_t>((n + 15) / 16 * 16) * sizeof(float); };
+  const size_t values_and_buffers = padded_bytes(ps.num_trainable()) + padded_bytes(ps.num_buffer_values());
+  const size_t one_section = padded_bytes(ps.num_trainable());
+
+  net.forward(data.batch, false);
+  net.predict_labels();
+  EXPECT_EQ(ps.allocated_bytes(), values_and_buffers);
+  EXPECT_FALSE(ps.has_gradients());
+  EXPECT_FALSE(ps.has_optimizer_state());
+  // A checkpoint's moments before any step: zeros, without allocating them.
+  EXPECT_EQ(ps.download_adam_m(), std::vector<float>(static_cast<size_t>(ps.num_trainable()), 0.0f));
+  EXPECT_EQ(ps.download_adam_v(), std::vector<float>(static_cast<size_t>(ps.num_trainable()), 0.0f));
+  EXPECT_FALSE(ps.has_optimizer_state());
+
+  const std::vector<float> zeros(static_cast<size_t>(ps.num_trainable()), 0.0f);
+  EXPECT_EQ(ps.download_flat(ps.grads()), zeros);
+  EXPECT_EQ(ps.allocated_bytes(), values_and_buffers + one_section);
+  net.forward(data.batch, true);
+  net.loss(data.labels, LossKind::CrossEntropy, kCoefficients);
+  net.backward();
+  const std::vector<float> grads = ps.download_flat(ps.grads());
+  EXPECT_NE(grads, zeros);
+  EXPECT_EQ(ps.allocated_bytes(), values_and_buffers + one_section);
+  EXPECT_FALSE(ps.has_optimizer_state());
+
+  EXPECT_EQ(ps.download_flat(ps.adam_m()), zeros);
+  EXPECT_EQ(ps.download_flat(ps.adam_v()), zeros);
+  EXPECT_TRUE(ps.has_optimizer_state());
+  EXPECT_EQ(ps.allocated_bytes(), values_and_buffers + 3 * one_section);
+  AdamHyper h;
+  Ref values = ps.values(), m = ps.adam_m(), v = ps.adam_v();
+  backend->adam_step(values, ps.grads(), m, v, h);
+  EXPECT_NE(ps.download_adam_m(), zeros);
+  EXPECT_EQ(ps.download_adam_m(), ps.download_flat(ps.adam_m()));
+  EXPECT_EQ(ps.allocated_bytes(), values_and_buffers + 3 * one_section);
+  ps.zero_grads();
+  EXPECT_EQ(ps.download_flat(ps.grads()), zeros);
+}
+
+// The training plan overlays activations and gradients by lifetime: a second step on the same
+// batch and weights (after an eval forward in between) repeats the first bit for bit, whatever
+// the earlier step left in the shared bytes; a backward without a fresh loss() is refused.
+TEST(Model, TrainingMemoryIsPlannedByLifetime) {
+  for (int variant = 0; variant < 2; ++variant) {
+    SCOPED_TRACE(variant);
+    ModelConfig c = variant == 0 ? tiny_config(OccupancyInput::Observability2D)
+                                 : tiny_config(OccupancyInput::Occupancy3D, /*transposed=*/true, /*grid_map=*/true);
+    c.grid.x_max = 2.3, c.grid.y_max = 1.5;  // 23 x 15 cells: odd sizes at every level
+    const TinyData data = tiny_data(c, 2, 70 + variant), other = tiny_data(c, 2, 80 + variant);
+    auto backend = make_cpu_backend();
+    PillarSegNet net(c, *backend, 6);
+    ParameterSet& ps = net.parameters();
+    const auto step = [&](const TinyData& d) {
+      net.forward(d.batch, true);
+      const double loss = net.loss(d.labels, LossKind::CrossEntropy, kCoefficients);
+      net.backward();
+      return std::make_tuple(loss, net.download_logits(), ps.download_flat(ps.grads()));
+    };
+    const auto first = step(data);
+    const size_t training_bytes = net.activation_bytes();
+    EXPECT_THROW(net.backward(), Error);
+    step(other);  // different values through the same bytes
+    net.forward(other.batch, false);
+    const auto again = step(data);
+    EXPECT_EQ(std::get<0>(again), std::get<0>(first));
+    EXPECT_EQ(std::get<1>(again), std::get<1>(first));
+    EXPECT_EQ(std::get<2>(again), std::get<2>(first));
+    EXPECT_EQ(net.activation_bytes(), training_bytes);
+  }
 }

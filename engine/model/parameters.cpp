@@ -1,5 +1,6 @@
 #include "engine/model/parameters.hpp"
 
+#include <algorithm>
 #include <cmath>
 
 #include "engine/core/error.hpp"
@@ -10,7 +11,8 @@ namespace pillarseg {
 ParameterSet::ParameterSet(Backend& backend) : backend_(backend) {}
 
 ParameterSet::~ParameterSet() {
-  if (block_) backend_.deallocate(block_);
+  for (void* block : {value_block_, grad_block_, moment_block_})
+    if (block) backend_.deallocate(block);
 }
 
 int ParameterSet::add_trainable(const std::string& name, Shape shape, int64_t fan_in, float init_value) {
@@ -39,18 +41,13 @@ int64_t* ParameterSet::add_counter(const std::string& name) {
 void ParameterSet::finalize(uint64_t seed) {
   PS_CHECK(!finalized_, "ParameterSet::finalize() called twice");
   finalized_ = true;
-  // 64-byte aligned sections: values, grads, m, v (trainable count each), buffers.
-  const auto padded = [](int64_t n) { return (n + 15) / 16 * 16; };
-  const int64_t t = padded(trainable_count_), b = padded(buffer_count_);
-  const size_t bytes = static_cast<size_t>(4 * t + b) * sizeof(float);
-  block_ = backend_.allocate(bytes == 0 ? 64 : bytes);
-  auto* base = static_cast<float*>(block_);
+  // 64-byte aligned sections: values, buffers. Both are uploaded whole below.
+  const int64_t t = padded_trainable(), b = (buffer_count_ + 15) / 16 * 16;
+  value_bytes_ = std::max<size_t>(static_cast<size_t>(t + b) * sizeof(float), 64);
+  value_block_ = backend_.allocate(value_bytes_);
+  auto* base = static_cast<float*>(value_block_);
   values_ = {base, {trainable_count_}};
-  grads_ = {base + t, {trainable_count_}};
-  m_ = {base + 2 * t, {trainable_count_}};
-  v_ = {base + 3 * t, {trainable_count_}};
-  buffers_ = {base + 4 * t, {buffer_count_}};
-  backend_.fill_zero(block_, bytes);
+  buffers_ = {base + t, {buffer_count_}};
 
   std::vector<float> host_values(static_cast<size_t>(trainable_count_));
   std::vector<float> host_buffers(static_cast<size_t>(buffer_count_));
@@ -80,11 +77,51 @@ Ref ParameterSet::value(int index) {
   return {(e.trainable ? values_.data : buffers_.data) + e.offset, e.shape};
 }
 
+void* ParameterSet::allocate_sections(int sections, size_t& bytes) {
+  PS_CHECK(finalized_, "ParameterSet: gradients or optimizer state asked for before finalize()");
+  bytes = std::max<size_t>(static_cast<size_t>(sections * padded_trainable()) * sizeof(float), 64);
+  void* block = backend_.allocate(bytes);
+  backend_.fill_zero(block, bytes);
+  return block;
+}
+
+void ParameterSet::ensure_gradients() {
+  if (grad_block_) return;
+  grad_block_ = allocate_sections(1, grad_bytes_);
+  grads_ = {static_cast<float*>(grad_block_), {trainable_count_}};
+}
+
+void ParameterSet::ensure_optimizer_state() {
+  if (moment_block_) return;
+  moment_block_ = allocate_sections(2, moment_bytes_);
+  auto* base = static_cast<float*>(moment_block_);
+  m_ = {base, {trainable_count_}};
+  v_ = {base + padded_trainable(), {trainable_count_}};
+}
+
 Ref ParameterSet::grad(int index) {
   const ParamEntry& e = entries_.at(static_cast<size_t>(index));
   PS_CHECK(e.trainable, "{} is a buffer and has no gradient", e.name);
+  ensure_gradients();
   return {grads_.data + e.offset, e.shape};
 }
+
+Ref ParameterSet::grads() {
+  ensure_gradients();
+  return grads_;
+}
+
+Ref ParameterSet::adam_m() {
+  ensure_optimizer_state();
+  return m_;
+}
+
+Ref ParameterSet::adam_v() {
+  ensure_optimizer_state();
+  return v_;
+}
+
+size_t ParameterSet::allocated_bytes() const { return value_bytes_ + grad_bytes_ + moment_bytes_; }
 
 Tensor<float> ParameterSet::download(int index) const {
   const ParamEntry& e = entries_.at(static_cast<size_t>(index));
@@ -108,6 +145,14 @@ std::vector<float> ParameterSet::download_flat(const Ref& r) const {
   return out;
 }
 
+std::vector<float> ParameterSet::download_adam_m() const {
+  return moment_block_ ? download_flat(m_) : std::vector<float>(static_cast<size_t>(trainable_count_), 0.0f);
+}
+
+std::vector<float> ParameterSet::download_adam_v() const {
+  return moment_block_ ? download_flat(v_) : std::vector<float>(static_cast<size_t>(trainable_count_), 0.0f);
+}
+
 void ParameterSet::upload_flat(const Ref& r, const std::vector<float>& data) {
   PS_CHECK(static_cast<int64_t>(data.size()) == r.numel(), "flat parameter array has {} values, expected {}",
            data.size(), r.numel());
@@ -115,7 +160,11 @@ void ParameterSet::upload_flat(const Ref& r, const std::vector<float>& data) {
 }
 
 void ParameterSet::zero_grads() {
-  if (grads_.numel()) backend_.fill_zero(grads_.data, grads_.bytes());
+  if (!grad_block_) {
+    ensure_gradients();  // zero-filled
+    return;
+  }
+  backend_.fill_zero(grad_block_, grad_bytes_);
 }
 
 }  // namespace pillarseg

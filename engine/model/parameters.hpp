@@ -1,8 +1,9 @@
 // ParameterSet: every tensor of the model with its PyTorch state_dict name. Trainable
-// parameters live in one flat array (values, gradients and the two Adam moments each one
-// allocation), so the optimiser, the gradient norm and checkpointing work on whole arrays.
-// BatchNorm running statistics are buffers in a second flat array; num_batches_tracked
-// counters are host integers.
+// parameters live in one flat array (values, gradients and the two Adam moments each one flat
+// array), so the optimiser, the gradient norm and checkpointing work on whole arrays. BatchNorm
+// running statistics are buffers in a second flat array; num_batches_tracked counters are host
+// integers. Values and buffers are allocated by finalize(); the gradients and the Adam moments
+// only on first use (zero-filled), so a model that only runs inference holds neither.
 #pragma once
 
 #include <cstdint>
@@ -39,12 +40,18 @@ class ParameterSet {
   void finalize(uint64_t seed);
 
   Ref value(int index);
-  Ref grad(int index);
   Ref values() const { return values_; }  // all trainable values (flat)
-  Ref grads() const { return grads_; }
-  Ref adam_m() const { return m_; }
-  Ref adam_v() const { return v_; }
   Ref buffers() const { return buffers_; }
+  // Gradients and Adam moments (flat, num_trainable()), allocated and zero-filled on the first
+  // call that asks for them.
+  Ref grad(int index);
+  Ref grads();
+  Ref adam_m();
+  Ref adam_v();
+  bool has_gradients() const { return grad_block_ != nullptr; }
+  bool has_optimizer_state() const { return moment_block_ != nullptr; }
+  // Bytes of backend memory held: values and buffers, plus gradients and moments once used.
+  size_t allocated_bytes() const;
   int64_t num_trainable() const { return trainable_count_; }
   int64_t num_buffer_values() const { return buffer_count_; }
 
@@ -59,15 +66,28 @@ class ParameterSet {
 
   // Whole-array host copies for checkpoints (values, m, v, buffers).
   std::vector<float> download_flat(const Ref& r) const;
+  // Host copies of the Adam moments without allocating them: zeros (what Adam starts from)
+  // while the model has not stepped.
+  std::vector<float> download_adam_m() const;
+  std::vector<float> download_adam_v() const;
   void upload_flat(const Ref& r, const std::vector<float>& data);
   void zero_grads();
 
  private:
+  // Elements of one trainable section, rounded up to 16 floats (64-byte aligned sections).
+  int64_t padded_trainable() const { return (trainable_count_ + 15) / 16 * 16; }
+  // A zero-filled block of `sections` trainable sections (at least 64 bytes).
+  void* allocate_sections(int sections, size_t& bytes);
+  void ensure_gradients();
+  void ensure_optimizer_state();
+
   Backend& backend_;
   std::vector<ParamEntry> entries_;
   std::map<std::string, int64_t> counters_;
   int64_t trainable_count_ = 0, buffer_count_ = 0;
-  void* block_ = nullptr;
+  // values + buffers; gradients; m + v.
+  void *value_block_ = nullptr, *grad_block_ = nullptr, *moment_block_ = nullptr;
+  size_t value_bytes_ = 0, grad_bytes_ = 0, moment_bytes_ = 0;
   Ref values_, grads_, m_, v_, buffers_;
   bool finalized_ = false;
 };

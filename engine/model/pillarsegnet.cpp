@@ -4,6 +4,8 @@
 
 #include <algorithm>
 #include <chrono>
+#include <functional>
+#include <map>
 #include <tuple>
 #include <utility>
 #include <vector>
@@ -13,193 +15,6 @@
 namespace pillarseg {
 
 namespace {
-
-// Conv2d parameters: weight (O, I, k, k), optional bias (O).
-struct ConvParams {
-  int weight = -1, bias = -1;
-  int in = 0, out = 0, k = 3, pad = 1;
-};
-
-ConvParams declare_conv(ParameterSet& ps, const std::string& prefix, int in, int out, int k, bool bias) {
-  ConvParams c;
-  c.in = in, c.out = out, c.k = k, c.pad = k / 2;
-  const int64_t fan_in = int64_t{in} * k * k;
-  c.weight = ps.add_trainable(prefix + ".weight", {out, in, k, k}, fan_in);
-  if (bias) c.bias = ps.add_trainable(prefix + ".bias", {out}, fan_in);
-  return c;
-}
-
-struct BnParams {
-  int gamma = -1, beta = -1, mean = -1, var = -1;
-  std::string counter;
-  float eps = 1e-5f, momentum = 0.1f;
-  float module_momentum = 0.1f;  // the PyTorch module's; `momentum` differs while recalibrating
-  Ref save_mean, save_invstd;  // activations arena
-};
-
-BnParams declare_bn(ParameterSet& ps, const std::string& prefix, int channels, float eps, float momentum) {
-  BnParams b;
-  b.gamma = ps.add_trainable(prefix + ".weight", {channels}, 0, 1.0f);
-  b.beta = ps.add_trainable(prefix + ".bias", {channels}, 0, 0.0f);
-  b.mean = ps.add_buffer(prefix + ".running_mean", {channels}, 0.0f);
-  b.var = ps.add_buffer(prefix + ".running_var", {channels}, 1.0f);
-  b.counter = prefix + ".num_batches_tracked";
-  ps.add_counter(b.counter);
-  b.eps = eps, b.momentum = momentum, b.module_momentum = momentum;
-  return b;
-}
-
-BatchNormRefs bn_refs(ParameterSet& ps, const BnParams& b) {
-  BatchNormRefs r;
-  r.gamma = ps.value(b.gamma);
-  r.beta = ps.value(b.beta);
-  r.running_mean = ps.value(b.mean);
-  r.running_var = ps.value(b.var);
-  r.save_mean = b.save_mean;
-  r.save_invstd = b.save_invstd;
-  r.eps = b.eps;
-  r.momentum = b.momentum;
-  return r;
-}
-
-// Conv -> BatchNorm -> ReLU with its activations.
-struct ConvBnRelu {
-  ConvParams conv;
-  BnParams bn;
-  Ref conv_out, out, d_conv_out, d_out;
-
-  void plan(Arena& a, int batch, int h, int w) {
-    const Shape s{batch, conv.out, h, w};
-    conv_out = a.take<float>(s);
-    out = a.take<float>(s);
-    d_conv_out = a.take<float>(s);
-    d_out = a.take<float>(s);
-    bn.save_mean = a.take<float>({conv.out});
-    bn.save_invstd = a.take<float>({conv.out});
-  }
-  void forward(Backend& be, ParameterSet& ps, const Ref& x, bool training) {
-    Ref bias;
-    if (conv.bias >= 0) bias = ps.value(conv.bias);
-    BatchNormRefs r = bn_refs(ps, bn);
-    if (!training) {  // running statistics: one fused pass, no conv_out kept
-      be.conv2d_bn_relu_eval(x, ps.value(conv.weight), conv.bias >= 0 ? &bias : nullptr, r, conv.pad, out);
-      return;
-    }
-    be.conv2d_forward(x, ps.value(conv.weight), conv.bias >= 0 ? &bias : nullptr, conv.pad, conv_out);
-    be.batchnorm_relu_forward(conv_out, r, training, out);
-    ps.counters()[bn.counter] += 1;
-  }
-  // Uses d_out (filled by the consumer); writes dx when given.
-  void backward(Backend& be, ParameterSet& ps, const Ref& x, Ref* dx) {
-    const BatchNormRefs r = bn_refs(ps, bn);
-    Ref dgamma = ps.grad(bn.gamma), dbeta = ps.grad(bn.beta);
-    be.batchnorm_relu_backward(conv_out, out, d_out, r, d_conv_out, dgamma, dbeta);
-    Ref dw = ps.grad(conv.weight);
-    Ref db;
-    if (conv.bias >= 0) db = ps.grad(conv.bias);
-    be.conv2d_backward(x, ps.value(conv.weight), d_conv_out, conv.pad, dx, dw, conv.bias >= 0 ? &db : nullptr);
-  }
-};
-
-// [Conv3x3 (bias) -> BN -> ReLU] x 2, PyTorch module `double_conv` (indices 0,1 and 3,4).
-struct DoubleConv {
-  ConvBnRelu first, second;
-
-  static DoubleConv declare(ParameterSet& ps, const std::string& prefix, int in, int out, int mid) {
-    DoubleConv d;
-    d.first.conv = declare_conv(ps, prefix + ".double_conv.0", in, mid, 3, true);
-    d.first.bn = declare_bn(ps, prefix + ".double_conv.1", mid, 1e-5f, 0.1f);
-    d.second.conv = declare_conv(ps, prefix + ".double_conv.3", mid, out, 3, true);
-    d.second.bn = declare_bn(ps, prefix + ".double_conv.4", out, 1e-5f, 0.1f);
-    return d;
-  }
-  void plan(Arena& a, int batch, int h, int w) {
-    first.plan(a, batch, h, w);
-    second.plan(a, batch, h, w);
-  }
-  const Ref& out() const { return second.out; }
-  Ref& d_out() { return second.d_out; }
-  void forward(Backend& be, ParameterSet& ps, const Ref& x, bool training) {
-    first.forward(be, ps, x, training);
-    second.forward(be, ps, first.out, training);
-  }
-  void backward(Backend& be, ParameterSet& ps, const Ref& x, Ref* dx) {
-    second.backward(be, ps, first.out, &first.d_out);
-    first.backward(be, ps, x, dx);
-  }
-};
-
-// MaxPool 2x2 -> DoubleConv.
-struct Down {
-  DoubleConv conv;
-  int in = 0, out = 0;
-  Ref pooled, d_pooled, d_x_part;
-  IRef argmax;
-
-  void plan(Arena& a, int batch, int h, int w) {  // h, w: input size
-    pooled = a.take<float>({batch, in, h / 2, w / 2});
-    d_pooled = a.take<float>({batch, in, h / 2, w / 2});
-    argmax = a.take<int32_t>({batch, in, h / 2, w / 2});
-    d_x_part = a.take<float>({batch, in, h, w});
-    conv.plan(a, batch, h / 2, w / 2);
-  }
-  void forward(Backend& be, ParameterSet& ps, const Ref& x, bool training) {
-    be.maxpool2x2_forward(x, pooled, argmax);
-    conv.forward(be, ps, pooled, training);
-  }
-  // d_out of conv filled by the consumer; adds this block's gradient into dx.
-  void backward(Backend& be, ParameterSet& ps, Ref& dx) {
-    conv.backward(be, ps, pooled, &d_pooled);
-    be.maxpool2x2_backward(d_pooled, argmax, d_x_part);
-    be.add_inplace(dx, d_x_part);
-  }
-};
-
-// Upsample (bilinear x2 or ConvTranspose 2x2/2) -> pad to the skip -> [skip, up] -> DoubleConv.
-struct Up {
-  DoubleConv conv;
-  bool transposed = false;
-  ConvParams up;  // transposed only: weight (in, in/2, 2, 2), bias (in/2)
-  int in = 0, up_channels = 0, skip_channels = 0;
-  Ref upsampled, d_upsampled, cat, d_cat;
-  // Eval with batch 1 and no padding: `upsampled` is the band of `cat` after the skip, so the
-  // upsampling writes its part of the concatenation in place.
-  bool upsampled_in_cat = false;
-
-  void plan(Arena& a, int batch, int h, int w, int skip_h, int skip_w) {  // h, w: input size
-    upsampled_in_cat = false;
-    upsampled = a.take<float>({batch, up_channels, 2 * h, 2 * w});
-    d_upsampled = a.take<float>({batch, up_channels, 2 * h, 2 * w});
-    cat = a.take<float>({batch, skip_channels + up_channels, skip_h, skip_w});
-    d_cat = a.take<float>({batch, skip_channels + up_channels, skip_h, skip_w});
-    conv.plan(a, batch, skip_h, skip_w);
-  }
-  void forward(Backend& be, ParameterSet& ps, const Ref& x, const Ref& skip, bool training) {
-    if (transposed) {
-      Ref bias = ps.value(up.bias);
-      be.conv_transpose2d_forward(x, ps.value(up.weight), &bias, upsampled);
-    } else {
-      be.upsample2x_forward(x, upsampled);
-    }
-    if (upsampled_in_cat) {
-      be.copy_channels(skip, 0, cat);
-    } else {
-      be.pad_concat_forward(skip, upsampled, cat);
-    }
-    conv.forward(be, ps, cat, training);
-  }
-  // Writes d_skip and dx (both overwritten).
-  void backward(Backend& be, ParameterSet& ps, const Ref& x, Ref& d_skip, Ref& dx) {
-    conv.backward(be, ps, cat, &d_cat);
-    be.pad_concat_backward(d_cat, d_skip, d_upsampled);
-    if (transposed) {
-      Ref dw = ps.grad(up.weight), db = ps.grad(up.bias);
-      be.conv_transpose2d_backward(x, ps.value(up.weight), d_upsampled, dx, dw, &db);
-    } else {
-      be.upsample2x_backward(d_upsampled, dx);
-    }
-  }
-};
 
 // Places tensors with known lifetimes (first and last step of the forward that uses them) in
 // one block so that two tensors share bytes only when their lifetimes are disjoint. Greedy by
@@ -255,6 +70,286 @@ class LifetimePlanner {
   std::vector<Item> items_;
 };
 
+// The training step's tensors in one block: each op of the forward, the loss and the backward
+// is a step, a tensor lives from the step that first writes it to the last that reads it
+// (keep(): until the next forward), and the LifetimePlanner overlays tensors whose lifetimes do
+// not meet. The modules trace their ops in the order they run them (trace_forward and
+// trace_backward beside forward and backward); bind() then points every traced Ref into the
+// block.
+class TensorPlan {
+ public:
+  static constexpr int kEnd = 1 << 30;
+
+  // A tensor first written by the current step.
+  template <class T>
+  void add(RefT<T>& r, Shape shape) {
+    r = RefT<T>{nullptr, std::move(shape)};
+    const int id = planner_.add(r.bytes(), step_, step_);
+    PS_CHECK(ids_.emplace(&r, id).second, "TensorPlan: a tensor was added twice");
+    binders_.push_back([&r, id](uint8_t* base, const LifetimePlanner& planner) {
+      r.data = reinterpret_cast<T*>(base + planner.offset(id));
+    });
+  }
+  // The current step reads (or adds to) r.
+  template <class T>
+  void use(const RefT<T>& r) {
+    planner_.use_until(id(&r), step_);
+  }
+  template <class T>
+  void keep(const RefT<T>& r) {
+    planner_.use_until(id(&r), kEnd);
+  }
+  void next() { ++step_; }
+
+  // Places the tensors; returns the bytes of the block that bind() needs.
+  size_t plan() { return planner_.plan(); }
+  void bind(uint8_t* base) const {
+    for (const auto& b : binders_) b(base, planner_);
+  }
+
+ private:
+  int id(const void* ref) const {
+    const auto it = ids_.find(ref);
+    PS_CHECK(it != ids_.end(), "TensorPlan: a tensor is used before any step writes it");
+    return it->second;
+  }
+  LifetimePlanner planner_;
+  std::map<const void*, int> ids_;
+  std::vector<std::function<void(uint8_t*, const LifetimePlanner&)>> binders_;
+  int step_ = 0;
+};
+
+// Conv2d parameters: weight (O, I, k, k), optional bias (O).
+struct ConvParams {
+  int weight = -1, bias = -1;
+  int in = 0, out = 0, k = 3, pad = 1;
+};
+
+ConvParams declare_conv(ParameterSet& ps, const std::string& prefix, int in, int out, int k, bool bias) {
+  ConvParams c;
+  c.in = in, c.out = out, c.k = k, c.pad = k / 2;
+  const int64_t fan_in = int64_t{in} * k * k;
+  c.weight = ps.add_trainable(prefix + ".weight", {out, in, k, k}, fan_in);
+  if (bias) c.bias = ps.add_trainable(prefix + ".bias", {out}, fan_in);
+  return c;
+}
+
+struct BnParams {
+  int gamma = -1, beta = -1, mean = -1, var = -1;
+  std::string counter;
+  float eps = 1e-5f, momentum = 0.1f;
+  float module_momentum = 0.1f;  // the PyTorch module's; `momentum` differs while recalibrating
+  Ref save_mean, save_invstd;  // activations arena
+};
+
+BnParams declare_bn(ParameterSet& ps, const std::string& prefix, int channels, float eps, float momentum) {
+  BnParams b;
+  b.gamma = ps.add_trainable(prefix + ".weight", {channels}, 0, 1.0f);
+  b.beta = ps.add_trainable(prefix + ".bias", {channels}, 0, 0.0f);
+  b.mean = ps.add_buffer(prefix + ".running_mean", {channels}, 0.0f);
+  b.var = ps.add_buffer(prefix + ".running_var", {channels}, 1.0f);
+  b.counter = prefix + ".num_batches_tracked";
+  ps.add_counter(b.counter);
+  b.eps = eps, b.momentum = momentum, b.module_momentum = momentum;
+  return b;
+}
+
+BatchNormRefs bn_refs(ParameterSet& ps, const BnParams& b) {
+  BatchNormRefs r;
+  r.gamma = ps.value(b.gamma);
+  r.beta = ps.value(b.beta);
+  r.running_mean = ps.value(b.mean);
+  r.running_var = ps.value(b.var);
+  r.save_mean = b.save_mean;
+  r.save_invstd = b.save_invstd;
+  r.eps = b.eps;
+  r.momentum = b.momentum;
+  return r;
+}
+
+// Conv -> BatchNorm -> ReLU with its activations.
+struct ConvBnRelu {
+  ConvParams conv;
+  BnParams bn;
+  Ref conv_out, out, d_conv_out, d_out;
+
+  // The training forward's steps: conv, then BN + ReLU (saving the batch statistics).
+  void trace_forward(TensorPlan& p, const Ref& x, int batch, int h, int w) {
+    p.use(x);
+    p.add(conv_out, {batch, conv.out, h, w});
+    p.next();
+    p.use(conv_out);
+    p.add(out, {batch, conv.out, h, w});
+    p.add(bn.save_mean, {conv.out});
+    p.add(bn.save_invstd, {conv.out});
+    p.next();
+  }
+  // The backward's steps, d_out written by an earlier step: BN + ReLU backward, then conv
+  // backward, which writes dx (a new tensor of dx_shape) when given.
+  void trace_backward(TensorPlan& p, const Ref& x, Ref* dx, Shape dx_shape) {
+    p.use(conv_out), p.use(out), p.use(d_out), p.use(bn.save_mean), p.use(bn.save_invstd);
+    p.add(d_conv_out, conv_out.shape);
+    p.next();
+    p.use(x), p.use(d_conv_out);
+    if (dx) p.add(*dx, std::move(dx_shape));
+    p.next();
+  }
+  void forward(Backend& be, ParameterSet& ps, const Ref& x, bool training) {
+    Ref bias;
+    if (conv.bias >= 0) bias = ps.value(conv.bias);
+    BatchNormRefs r = bn_refs(ps, bn);
+    if (!training) {  // running statistics: one fused pass, no conv_out kept
+      be.conv2d_bn_relu_eval(x, ps.value(conv.weight), conv.bias >= 0 ? &bias : nullptr, r, conv.pad, out);
+      return;
+    }
+    be.conv2d_forward(x, ps.value(conv.weight), conv.bias >= 0 ? &bias : nullptr, conv.pad, conv_out);
+    be.batchnorm_relu_forward(conv_out, r, training, out);
+    ps.counters()[bn.counter] += 1;
+  }
+  // Uses d_out (filled by the consumer); writes dx when given.
+  void backward(Backend& be, ParameterSet& ps, const Ref& x, Ref* dx) {
+    const BatchNormRefs r = bn_refs(ps, bn);
+    Ref dgamma = ps.grad(bn.gamma), dbeta = ps.grad(bn.beta);
+    be.batchnorm_relu_backward(conv_out, out, d_out, r, d_conv_out, dgamma, dbeta);
+    Ref dw = ps.grad(conv.weight);
+    Ref db;
+    if (conv.bias >= 0) db = ps.grad(conv.bias);
+    be.conv2d_backward(x, ps.value(conv.weight), d_conv_out, conv.pad, dx, dw, conv.bias >= 0 ? &db : nullptr);
+  }
+};
+
+// [Conv3x3 (bias) -> BN -> ReLU] x 2, PyTorch module `double_conv` (indices 0,1 and 3,4).
+struct DoubleConv {
+  ConvBnRelu first, second;
+
+  static DoubleConv declare(ParameterSet& ps, const std::string& prefix, int in, int out, int mid) {
+    DoubleConv d;
+    d.first.conv = declare_conv(ps, prefix + ".double_conv.0", in, mid, 3, true);
+    d.first.bn = declare_bn(ps, prefix + ".double_conv.1", mid, 1e-5f, 0.1f);
+    d.second.conv = declare_conv(ps, prefix + ".double_conv.3", mid, out, 3, true);
+    d.second.bn = declare_bn(ps, prefix + ".double_conv.4", out, 1e-5f, 0.1f);
+    return d;
+  }
+  void trace_forward(TensorPlan& p, const Ref& x, int batch, int h, int w) {
+    first.trace_forward(p, x, batch, h, w);
+    second.trace_forward(p, first.out, batch, h, w);
+  }
+  void trace_backward(TensorPlan& p, const Ref& x, Ref* dx) {
+    second.trace_backward(p, first.out, &first.d_out, first.out.shape);
+    first.trace_backward(p, x, dx, x.shape);
+  }
+  const Ref& out() const { return second.out; }
+  Ref& d_out() { return second.d_out; }
+  void forward(Backend& be, ParameterSet& ps, const Ref& x, bool training) {
+    first.forward(be, ps, x, training);
+    second.forward(be, ps, first.out, training);
+  }
+  void backward(Backend& be, ParameterSet& ps, const Ref& x, Ref* dx) {
+    second.backward(be, ps, first.out, &first.d_out);
+    first.backward(be, ps, x, dx);
+  }
+};
+
+// MaxPool 2x2 -> DoubleConv.
+struct Down {
+  DoubleConv conv;
+  int in = 0, out = 0;
+  Ref pooled, d_pooled, d_x_part;
+  IRef argmax;
+
+  void trace_forward(TensorPlan& p, const Ref& x) {
+    const int64_t batch = x.dim(0), h = x.dim(2) / 2, w = x.dim(3) / 2;
+    p.use(x);
+    p.add(pooled, {batch, in, h, w});
+    p.add(argmax, {batch, in, h, w});
+    p.next();
+    conv.trace_forward(p, pooled, static_cast<int>(batch), static_cast<int>(h), static_cast<int>(w));
+  }
+  // The block's output gradient written by an earlier step; dx (the input's) too.
+  void trace_backward(TensorPlan& p, const Ref& dx) {
+    conv.trace_backward(p, pooled, &d_pooled);
+    p.use(d_pooled), p.use(argmax);
+    p.add(d_x_part, dx.shape);
+    p.next();
+    p.use(dx), p.use(d_x_part);
+    p.next();
+  }
+  void forward(Backend& be, ParameterSet& ps, const Ref& x, bool training) {
+    be.maxpool2x2_forward(x, pooled, argmax);
+    conv.forward(be, ps, pooled, training);
+  }
+  // d_out of conv filled by the consumer; adds this block's gradient into dx.
+  void backward(Backend& be, ParameterSet& ps, Ref& dx) {
+    conv.backward(be, ps, pooled, &d_pooled);
+    be.maxpool2x2_backward(d_pooled, argmax, d_x_part);
+    be.add_inplace(dx, d_x_part);
+  }
+};
+
+// Upsample (bilinear x2 or ConvTranspose 2x2/2) -> pad to the skip -> [skip, up] -> DoubleConv.
+struct Up {
+  DoubleConv conv;
+  bool transposed = false;
+  ConvParams up;  // transposed only: weight (in, in/2, 2, 2), bias (in/2)
+  int in = 0, up_channels = 0, skip_channels = 0;
+  Ref upsampled, d_upsampled, cat, d_cat;
+  // Eval with batch 1 and no padding: `upsampled` is the band of `cat` after the skip, so the
+  // upsampling writes its part of the concatenation in place.
+  bool upsampled_in_cat = false;
+
+  // The training forward's steps: upsample (dead once concatenated: the backward reads only
+  // the block's input), concatenate, DoubleConv.
+  void trace_forward(TensorPlan& p, const Ref& x, const Ref& skip) {
+    const int64_t batch = x.dim(0), skip_h = skip.dim(2), skip_w = skip.dim(3);
+    upsampled_in_cat = false;
+    p.use(x);
+    p.add(upsampled, {batch, up_channels, 2 * x.dim(2), 2 * x.dim(3)});
+    p.next();
+    p.use(skip), p.use(upsampled);
+    p.add(cat, {batch, skip_channels + up_channels, skip_h, skip_w});
+    p.next();
+    conv.trace_forward(p, cat, static_cast<int>(batch), static_cast<int>(skip_h), static_cast<int>(skip_w));
+  }
+  // The backward's steps, the block's output gradient written by an earlier step; d_skip and
+  // dx (new tensors) are the skip's and the input's gradients.
+  void trace_backward(TensorPlan& p, const Ref& x, const Ref& skip, Ref& d_skip, Ref& dx) {
+    conv.trace_backward(p, cat, &d_cat);
+    p.use(d_cat);
+    p.add(d_skip, skip.shape);
+    p.add(d_upsampled, upsampled.shape);
+    p.next();
+    p.use(d_upsampled);
+    if (transposed) p.use(x);
+    p.add(dx, x.shape);
+    p.next();
+  }
+  void forward(Backend& be, ParameterSet& ps, const Ref& x, const Ref& skip, bool training) {
+    if (transposed) {
+      Ref bias = ps.value(up.bias);
+      be.conv_transpose2d_forward(x, ps.value(up.weight), &bias, upsampled);
+    } else {
+      be.upsample2x_forward(x, upsampled);
+    }
+    if (upsampled_in_cat) {
+      be.copy_channels(skip, 0, cat);
+    } else {
+      be.pad_concat_forward(skip, upsampled, cat);
+    }
+    conv.forward(be, ps, cat, training);
+  }
+  // Writes d_skip and dx (both overwritten).
+  void backward(Backend& be, ParameterSet& ps, const Ref& x, Ref& d_skip, Ref& dx) {
+    conv.backward(be, ps, cat, &d_cat);
+    be.pad_concat_backward(d_cat, d_skip, d_upsampled);
+    if (transposed) {
+      Ref dw = ps.grad(up.weight), db = ps.grad(up.bias);
+      be.conv_transpose2d_backward(x, ps.value(up.weight), d_upsampled, dx, dw, &db);
+    } else {
+      be.upsample2x_backward(d_upsampled, dx);
+    }
+  }
+};
+
 }  // namespace
 
 struct PillarSegNet::Impl {
@@ -279,8 +374,10 @@ struct PillarSegNet::Impl {
   Ref probs;
   int planned_batch = -1;
   bool planned_training = false;
-  // Training keeps every activation for the backward; eval reuses memory by lifetime.
+  // Both plans overlay tensors by lifetime; the training plan's backward overwrites d_logits, so
+  // each backward needs a loss() of its own.
   size_t training_bytes = 0, eval_bytes = 0;
+  bool loss_gradient_ready = false;
   int training_batch = -1, eval_batch = -1;
 
   std::unique_ptr<Arena> activations, eval_activations, pillars;
@@ -380,53 +477,97 @@ void PillarSegNet::plan(int batch, bool training) {
   logits_ = m.logits;
 }
 
+// The training step's tensors by lifetime (TensorPlan): a forward activation that the backward
+// reads lives until that read, one it does not read (the canvas, the upsampled tensors) until
+// its last forward reader, and a gradient from the step that writes it to the one that consumes
+// it. The outputs (logits, probabilities, labels) live until the next forward.
 void PillarSegNet::plan_training(int batch) {
   Impl& m = *impl_;
   const int H = config_.grid.height(), W = config_.grid.width(), depth = config_.depth;
+  TensorPlan p;
+  m.x.assign(static_cast<size_t>(depth) + 1, Ref{});
+  m.dx.assign(static_cast<size_t>(depth) + 1, Ref{});
+  Ref& canvas = m.x[0];
+  Ref& d_canvas = m.dx[0];
+  // The level-i output x[i] (i >= 1) is down i's block output, and its gradient dx[i] that
+  // block's output gradient: the trace names those members, the vectors get copies after bind().
+  const auto level_out = [&](int i) -> const Ref& {
+    return i == 0 ? canvas : m.downs[static_cast<size_t>(i - 1)].conv.out();
+  };
+  const auto level_grad = [&](int i) -> Ref& {
+    return i == 0 ? d_canvas : m.downs[static_cast<size_t>(i - 1)].conv.d_out();
+  };
+
+  // Forward: uploads and the pillar stream into the canvas, then the other input streams.
+  p.add(canvas, {batch, config_.input_channels(), H, W});
+  if (config_.occupancy != OccupancyInput::None)
+    p.add(m.occupancy_input, {batch, config_.occupancy_input_channels(), H, W});
+  if (config_.grid_map_input) p.add(m.grid_map_input, {batch, 6, H, W});
+  p.next();
+  if (config_.occupancy != OccupancyInput::None) {
+    m.occupancy.trace_forward(p, m.occupancy_input, batch, H, W);
+    p.use(m.occupancy.out), p.use(canvas);
+    p.next();
+  }
+  if (config_.grid_map_input) {
+    p.use(m.grid_map_input), p.use(canvas);
+    p.next();
+  }
+  for (int i = 1; i <= depth; ++i) m.downs[static_cast<size_t>(i - 1)].trace_forward(p, level_out(i - 1));
+  const Ref* current = &level_out(depth);
+  for (int j = 1; j <= depth; ++j) {
+    Up& u = m.ups[static_cast<size_t>(j - 1)];
+    u.trace_forward(p, *current, level_out(depth - j));
+    current = &u.conv.out();
+  }
+  p.use(*current);
+  p.add(m.logits, {batch, config_.num_classes, H, W});
+  p.add(m.probs, {batch, config_.num_classes, H, W});
+  p.add(m.predicted, {batch, H, W});
+  p.keep(m.logits), p.keep(m.probs), p.keep(m.predicted);
+  p.next();
+  // Loss.
+  p.use(m.logits);
+  p.add(m.labels, {batch, H, W});
+  p.add(m.coefficients, {13});
+  p.add(m.d_logits, {batch, config_.num_classes, H, W});
+  p.keep(m.labels), p.keep(m.coefficients);
+  p.next();
+  // Backward, in backward()'s order.
+  Up& last = m.ups.back();
+  p.use(last.conv.out()), p.use(m.d_logits);
+  p.add(last.conv.d_out(), last.conv.out().shape);
+  p.next();
+  for (int j = depth; j >= 1; --j) {
+    Up& u = m.ups[static_cast<size_t>(j - 1)];
+    const Ref& input = j == 1 ? level_out(depth) : m.ups[static_cast<size_t>(j - 2)].conv.out();
+    Ref& d_input = j == 1 ? level_grad(depth) : m.ups[static_cast<size_t>(j - 2)].conv.d_out();
+    u.trace_backward(p, input, level_out(depth - j), level_grad(depth - j), d_input);
+  }
+  for (int i = depth; i >= 1; --i) m.downs[static_cast<size_t>(i - 1)].trace_backward(p, level_grad(i - 1));
+  p.use(d_canvas);  // the scatter's backward
+  p.next();
+  if (config_.occupancy != OccupancyInput::None) {
+    p.use(d_canvas);
+    p.add(m.occupancy.d_out, m.occupancy.out.shape);
+    p.next();
+    m.occupancy.trace_backward(p, m.occupancy_input, nullptr, {});
+  }
+
+  const size_t bytes = p.plan();
   Arena& a = *m.activations;
-  // Two passes: measure, then take from one block of that size (kept while the batch size
-  // stays, so that switching between training and eval does not allocate).
-  for (int pass = 0; pass < 2; ++pass) {
-    if (pass == 0) {
-      if (m.training_batch != batch) a.release();
-      a.begin_measure();
-    } else {
-      a.reserve(a.used());
-      a.reset();
-    }
-    m.x.assign(static_cast<size_t>(depth) + 1, Ref{});
-    m.dx.assign(static_cast<size_t>(depth) + 1, Ref{});
-    std::vector<int> hs(static_cast<size_t>(depth) + 1), ws(static_cast<size_t>(depth) + 1);
-    hs[0] = H, ws[0] = W;
-    m.x[0] = a.take<float>({batch, config_.input_channels(), H, W});
-    m.dx[0] = a.take<float>({batch, config_.input_channels(), H, W});
-    if (config_.occupancy != OccupancyInput::None) {
-      m.occupancy_input = a.take<float>({batch, config_.occupancy_input_channels(), H, W});
-      m.occupancy.plan(a, batch, H, W);
-    }
-    if (config_.grid_map_input) m.grid_map_input = a.take<float>({batch, 6, H, W});
-    for (int i = 1; i <= depth; ++i) {
-      Down& d = m.downs[static_cast<size_t>(i - 1)];
-      d.plan(a, batch, hs[i - 1], ws[i - 1]);
-      hs[i] = hs[i - 1] / 2, ws[i] = ws[i - 1] / 2;
-      m.x[i] = d.conv.out();
-      m.dx[i] = d.conv.d_out();  // the gradient of x[i] is the block's output gradient
-    }
-    int h = hs[depth], w = ws[depth];
-    for (int j = 1; j <= depth; ++j) {
-      const int skip = depth - j;
-      m.ups[static_cast<size_t>(j - 1)].plan(a, batch, h, w, hs[skip], ws[skip]);
-      h = hs[skip], w = ws[skip];
-    }
-    m.logits = a.take<float>({batch, config_.num_classes, H, W});
-    m.d_logits = a.take<float>({batch, config_.num_classes, H, W});
-    m.probs = a.take<float>({batch, config_.num_classes, H, W});
-    m.labels = a.take<uint8_t>({batch, H, W});
-    m.predicted = a.take<uint8_t>({batch, H, W});
-    m.coefficients = a.take<float>({13});
+  // Kept while the batch size stays, so that switching between training and eval does not
+  // allocate.
+  if (m.training_batch != batch) a.release();
+  a.reserve(bytes);
+  a.reset();
+  p.bind(a.take<uint8_t>({static_cast<int64_t>(bytes)}).data);
+  for (int i = 1; i <= depth; ++i) {
+    m.x[static_cast<size_t>(i)] = level_out(i);
+    m.dx[static_cast<size_t>(i)] = level_grad(i);
   }
   m.training_batch = batch;
-  m.training_bytes = a.used();
+  m.training_bytes = bytes;
 }
 
 // The eval forward's tensors in the order it runs, each with the steps that read or write it;
@@ -601,6 +742,7 @@ void PillarSegNet::forward(const ModelBatch& batch, bool training) {
     last = now;
   };
   stage_times_ = StageTimes{};
+  m.loss_gradient_ready = false;
   plan(batch.batch, training);
   // The evaluation forward replays a recorded graph where the backend records them (and stage
   // timing, which waits between stages, is off). The graph runs the pillar stream at the pillar
@@ -701,13 +843,18 @@ double PillarSegNet::loss(const Tensor<uint8_t>& labels, LossKind kind, const st
   PS_CHECK(labels.shape() == expected, "loss: labels must be {}, got {}", shape_str(expected), shape_str(labels.shape()));
   backend_.upload(m.labels.data, labels.data(), m.labels.bytes());
   backend_.upload(m.coefficients.data, coefficients.data(), m.coefficients.bytes());
-  return backend_.loss(kind, m.logits, m.labels, m.coefficients, m.d_logits);
+  const double value = backend_.loss(kind, m.logits, m.labels, m.coefficients, m.d_logits);
+  m.loss_gradient_ready = true;
+  return value;
 }
 
 void PillarSegNet::backward() {
   Impl& m = *impl_;
   PS_CHECK(m.planned_training, "backward() needs a training-mode forward first (the eval forward keeps no "
                                "activations for it)");
+  PS_CHECK(m.loss_gradient_ready, "backward() needs loss() after the training forward (each backward consumes "
+                                  "the logits' gradient that loss() writes)");
+  m.loss_gradient_ready = false;
   Backend& be = backend_;
   ParameterSet& ps = params_;
   const int depth = config_.depth;

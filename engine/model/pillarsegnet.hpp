@@ -4,9 +4,10 @@
 // transposed-convolution upsampling); a 1x1 head to 12 classes. Forward keeps what backward
 // needs; backward writes every parameter gradient (overwriting).
 //
-// Activation memory is planned once per (batch, H, W) and mode in one arena each: training
-// keeps every activation for the backward; eval overlays tensors whose lifetimes do not meet
-// (an activation dies after its last reader, a skip tensor after its decoder's concat). Pillar
+// Activation memory is planned once per (batch, H, W) and mode in one arena each, overlaying
+// tensors whose lifetimes do not meet: eval's activation dies after its last reader (a skip
+// tensor after its decoder's concat); training keeps what the backward reads until it reads it,
+// and each gradient lives from the op that writes it to the one that consumes it. Pillar
 // buffers grow only when a batch has more pillars than any before, so the steady-state loop
 // allocates nothing, and a recorded evaluation graph stays valid until then.
 #pragma once
@@ -60,7 +61,7 @@ class PillarSegNet {
   // After forward: the mean loss over labelled cells of labels (B, H, W), and the gradient
   // of the logits, ready for backward(). coefficients: per class id 0..12.
   double loss(const Tensor<uint8_t>& labels, LossKind kind, const std::array<float, 13>& coefficients);
-  // After loss(): every parameter gradient.
+  // After loss(): every parameter gradient. Once per loss() (it consumes the logits' gradient).
   void backward();
 
   // The momentum of every BatchNorm's running statistics in training-mode forwards; 0 (or

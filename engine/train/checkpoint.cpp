@@ -31,7 +31,7 @@ void save_checkpoint(const fs::path& path, const PillarSegNet& net, const RunCon
   for (const auto& [name, count] : ps.counters()) file.add_i64(name, {}, {count});
   if (with_optimizer) {
     Tensor<float> m({ps.num_trainable()}), v({ps.num_trainable()});
-    const auto hm = ps.download_flat(ps.adam_m()), hv = ps.download_flat(ps.adam_v());
+    const auto hm = ps.download_adam_m(), hv = ps.download_adam_v();
     std::copy(hm.begin(), hm.end(), m.begin());
     std::copy(hv.begin(), hv.end(), v.begin());
     file.add_f32("optimizer.exp_avg", m);
