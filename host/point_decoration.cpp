@@ -1,6 +1,7 @@
 // Point decoration: (M points, P' pillars of N slots) -> (P', N, 10) features (see
-// point_decoration.hpp). Pillars are independent: each thread zeroes and fills the rows of its
-// own contiguous range of pillars, so the result does not depend on the thread count.
+// point_decoration.hpp). Pillars are independent: each thread fills the rows (kept points, then
+// zero padding) of its own contiguous range of pillars, so the result does not depend on the thread
+// count.
 #include "host/point_decoration.hpp"
 
 #include <algorithm>
@@ -58,10 +59,6 @@ void decorate_points(const std::vector<Point>& points, const Pillars& pillars, c
 
   const double centre_z = grid.z_min + 0.5 * (grid.z_max - grid.z_min);
   parallel_chunks(num_pillars, [&](int64_t begin, int64_t end, int) {
-    // Zero the chunk in one long fill (faster than many short ones: the lines are written
-    // without being read first), then write the rows of the kept points.
-    float* chunk = out.data() + begin * slots * kDecoratedFeatures;
-    std::fill(chunk, chunk + (end - begin) * slots * kDecoratedFeatures, 0.0f);
     for (int64_t p = begin; p < end; ++p) {
       const int32_t* index = &pillars.point_index(p, 0);
       const int32_t count = pillars.count[p];
@@ -91,6 +88,9 @@ void decorate_points(const std::vector<Point>& points, const Pillars& pillars, c
         row[8] = static_cast<float>(y - centre_y);
         row[9] = static_cast<float>(z - centre_z);
       }
+      // Padding rows right after the kept ones, so that each line of the output is written
+      // once, while it is in cache.
+      std::fill(row, row + (slots - count) * kDecoratedFeatures, 0.0f);
     }
   });
 }
