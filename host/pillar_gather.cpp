@@ -45,15 +45,6 @@ void select_positions(int64_t n, int64_t keep, SampleMode mode, Rng* rng, int32_
   }
 }
 
-namespace {
-
-// Sets `t` to `shape` filled with `value`, reusing its allocation when large enough.
-void assign(Tensor<int32_t>& t, const Shape& shape, int32_t value) {
-  t.assign(shape, value);
-}
-
-}  // namespace
-
 void pillar_gather(const std::vector<Point>& points, const GridSpec& grid, const PillarConfig& cfg,
                    SampleMode mode, Rng* rng, PillarWorkspace& workspace, Pillars& out) {
   const int max_points = cfg.max_points_per_pillar;
@@ -137,20 +128,23 @@ void pillar_gather(const std::vector<Point>& points, const GridSpec& grid, const
   ws.kept_pillars.resize(static_cast<size_t>(num_kept));
   select_positions(num_nonempty, num_kept, mode, rng, ws.kept_pillars.data());
 
-  assign(out.cell, {num_kept, 2}, 0);
-  assign(out.point_index, {num_kept, max_points}, -1);
-  assign(out.count, {num_kept}, 0);
+  // Every element of the output is written below, padding included.
+  out.cell.resize_for_overwrite({num_kept, 2});
+  out.point_index.resize_for_overwrite({num_kept, max_points});
+  out.count.resize_for_overwrite({num_kept});
   ws.positions.resize(static_cast<size_t>(max_points));
+  const auto row_cells = static_cast<int32_t>(width);
   const auto copy_out = [&](int64_t q, int32_t* positions) {
     const int32_t pillar = ws.kept_pillars[q];
     const int32_t flat_cell = ws.pillar_flat_cell[pillar];
-    out.cell(q, 0) = static_cast<int32_t>(flat_cell / width);
-    out.cell(q, 1) = static_cast<int32_t>(flat_cell % width);
+    out.cell(q, 0) = flat_cell / row_cells;  // 32-bit division: cheaper than 64-bit
+    out.cell(q, 1) = flat_cell % row_cells;
     const int32_t* pillar_points = ws.members.data() + ws.pillar_begin[pillar];
     const int32_t size = ws.pillar_size[pillar];
     int32_t* slots = &out.point_index(q, 0);
     if (size <= max_points) {
-      for (int32_t k = 0; k < size; ++k) slots[k] = pillar_points[k];
+      std::copy(pillar_points, pillar_points + size, slots);
+      std::fill(slots + size, slots + max_points, -1);
       out.count[q] = size;
     } else {
       select_positions(size, max_points, mode, rng, positions);

@@ -1,6 +1,7 @@
 // Point decoration: (M points, P' pillars of N slots) -> (P', N, 10) features (see
-// point_decoration.hpp). Pillars are independent: each thread zeroes and fills the rows of its
-// own contiguous range of pillars, so the result does not depend on the thread count.
+// point_decoration.hpp). Pillars are independent: each thread writes the rows of its own
+// contiguous range of pillars (kept points, then zero padding), so the result does not depend on
+// the thread count.
 #include "host/point_decoration.hpp"
 
 #include <algorithm>
@@ -58,39 +59,39 @@ void decorate_points(const std::vector<Point>& points, const Pillars& pillars, c
 
   const double centre_z = grid.z_min + 0.5 * (grid.z_max - grid.z_min);
   parallel_chunks(num_pillars, [&](int64_t begin, int64_t end, int) {
-    // Zero the chunk in one long fill (faster than many short ones: the lines are written
-    // without being read first), then write the rows of the kept points.
-    float* chunk = out.data() + begin * slots * kDecoratedFeatures;
-    std::fill(chunk, chunk + (end - begin) * slots * kDecoratedFeatures, 0.0f);
     for (int64_t p = begin; p < end; ++p) {
       const int32_t* index = &pillars.point_index(p, 0);
       const int32_t count = pillars.count[p];
-      double sum_x = 0, sum_y = 0, sum_z = 0;
-      for (int32_t k = 0; k < count; ++k) {
-        const Point& pt = points[static_cast<size_t>(index[k])];
-        sum_x += pt.x, sum_y += pt.y, sum_z += pt.z;
-      }
-      const double mean_x = count > 0 ? sum_x / count : 0.0;
-      const double mean_y = count > 0 ? sum_y / count : 0.0;
-      const double mean_z = count > 0 ? sum_z / count : 0.0;
       const double centre_x = grid.x_min + (pillars.cell(p, 1) + 0.5) * grid.cell;
       const double centre_y = grid.y_min + (pillars.cell(p, 0) + 0.5) * grid.cell;
-
-      float* row = &out(p, 0, 0);
+      // One gather of the points: the features that need no mean, and the sums; then the
+      // offsets from the mean, from the copies of x, y, z in the rows (floats, so exact).
+      float* rows = &out(p, 0, 0);
+      float* row = rows;
+      double sum_x = 0, sum_y = 0, sum_z = 0;
       for (int32_t k = 0; k < count; ++k, row += kDecoratedFeatures) {
         const Point& pt = points[static_cast<size_t>(index[k])];
         const double x = pt.x, y = pt.y, z = pt.z;
+        sum_x += x, sum_y += y, sum_z += z;
         row[0] = pt.x;
         row[1] = pt.y;
         row[2] = pt.z;
         row[3] = pt.r;
-        row[4] = static_cast<float>(x - mean_x);
-        row[5] = static_cast<float>(y - mean_y);
-        row[6] = static_cast<float>(z - mean_z);
         row[7] = static_cast<float>(x - centre_x);
         row[8] = static_cast<float>(y - centre_y);
         row[9] = static_cast<float>(z - centre_z);
       }
+      const double mean_x = count > 0 ? sum_x / count : 0.0;
+      const double mean_y = count > 0 ? sum_y / count : 0.0;
+      const double mean_z = count > 0 ? sum_z / count : 0.0;
+      for (float* r = rows; r < row; r += kDecoratedFeatures) {
+        r[4] = static_cast<float>(r[0] - mean_x);
+        r[5] = static_cast<float>(r[1] - mean_y);
+        r[6] = static_cast<float>(r[2] - mean_z);
+      }
+      // Padding rows right after the kept ones, so that each line of the output is written
+      // once, while it is in cache.
+      std::fill(row, row + (slots - count) * kDecoratedFeatures, 0.0f);
     }
   });
 }
