@@ -28,9 +28,10 @@ demo: build
 bench: build
 	@for b in $(BUILD)/bench/bench_*; do echo "== $$b"; $$b --benchmark_min_time=0.2; done
 
-# AddressSanitizer + UndefinedBehaviorSanitizer build of the whole test suite.
+# AddressSanitizer + UndefinedBehaviorSanitizer build of the whole test suite (the kernels on the
+# emulation; the nvcc targets are not built).
 asan: deps
-	@cmake -S . -B build-asan -DCMAKE_BUILD_TYPE=RelWithDebInfo -DPILLARSEG_SANITIZE=ON -DPILLARSEG_BENCH=OFF >/dev/null
+	@cmake -S . -B build-asan -DCMAKE_BUILD_TYPE=RelWithDebInfo -DPILLARSEG_SANITIZE=ON -DPILLARSEG_BENCH=OFF -DPILLARSEG_CUDA=OFF >/dev/null
 	@cmake --build build-asan -j $(JOBS)
 	@ctest --test-dir build-asan --output-on-failure -j $(JOBS)
 
