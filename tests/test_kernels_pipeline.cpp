@@ -32,6 +32,7 @@
 #include "kernels/point_decoration.cuh"
 #include "kernels/raywalk.cuh"
 #include "tests/kernel_test_helpers.hpp"
+#include "tests/support/raywalk_grids.hpp"
 #include "tests/support/test_support.hpp"
 
 using namespace pillarseg;
@@ -44,32 +45,8 @@ namespace {
 constexpr float kNan = std::numeric_limits<float>::quiet_NaN();
 constexpr float kInf = std::numeric_limits<float>::infinity();
 
-// 3.3 m x 2.1 m x 1 m at 0.1 m: W = 33, H = 21, Z = 5 (odd sizes).
-GridSpec small_grid() {
-  GridSpec grid;
-  grid.x_min = -1.3;
-  grid.x_max = 2.0;
-  grid.y_min = -0.9;
-  grid.y_max = 1.2;
-  grid.z_min = -0.5;
-  grid.z_max = 0.5;
-  return grid;
-}
-
-// Cell 0.25 m and voxel 0.5 m, so that points on a 1/8 m lattice have exact cell coordinates and
-// rays through cell corners and along cell borders are common: W = 19, H = 11, Z = 3.
-GridSpec dyadic_grid() {
-  GridSpec grid;
-  grid.x_min = -2.0;
-  grid.x_max = 2.75;
-  grid.y_min = -1.5;
-  grid.y_max = 1.25;
-  grid.z_min = -1.0;
-  grid.z_max = 0.5;
-  grid.cell = 0.25;
-  grid.voxel_z = 0.5;
-  return grid;
-}
+using test::dyadic_grid;
+using test::small_grid;
 
 // A scan for `grid`: most points in a few crowded cells (pillars of more than N points), the rest
 // spread over and beyond the grid (x, y or z outside), on cell borders, and some non-finite.

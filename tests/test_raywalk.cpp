@@ -18,6 +18,7 @@
 #include "engine/core/error.hpp"
 #include "engine/core/parallel.hpp"
 #include "engine/core/rng.hpp"
+#include "tests/support/raywalk_grids.hpp"
 
 namespace pillarseg::host {
 
@@ -42,32 +43,8 @@ class ThreadCountGuard {
   int saved_;
 };
 
-// 3.3 m x 2.1 m x 1 m: W = 33, H = 21, Z = 5 (odd sizes, cell 0.1, voxel 0.2).
-GridSpec small_grid() {
-  GridSpec grid;
-  grid.x_min = -1.3;
-  grid.x_max = 2.0;
-  grid.y_min = -0.9;
-  grid.y_max = 1.2;
-  grid.z_min = -0.5;
-  grid.z_max = 0.5;
-  return grid;
-}
-
-// Cell 0.25 m and voxel 0.5 m, so that points on a 1/8 m lattice have exact cell coordinates
-// and rays through cell corners and edges are common: W = 19, H = 11, Z = 3.
-GridSpec dyadic_grid() {
-  GridSpec grid;
-  grid.x_min = -2.0;
-  grid.x_max = 2.75;
-  grid.y_min = -1.5;
-  grid.y_max = 1.25;
-  grid.z_min = -1.0;
-  grid.z_max = 0.5;
-  grid.cell = 0.25;
-  grid.voxel_z = 0.5;
-  return grid;
-}
+using test::dyadic_grid;
+using test::small_grid;
 
 std::string cells_str(const std::vector<WalkCell>& cells) {
   std::string s;
