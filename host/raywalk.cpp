@@ -1,5 +1,6 @@
-// Ray walks through the top-view grid: 2D observability counts (H, W) and 3D occupancy counts
-// (Z, H, W); raywalk.hpp defines the walk exactly.
+// Ray walks through the top-view grid: single rays (ray_cells_2d, ray_voxels_3d), 3D occupancy
+// counts (Z, H, W), and the 2D observability entry point (counted by raywalk_sweep.cpp);
+// raywalk.hpp defines the walk exactly, raywalk_detail.hpp decides its crossings.
 //
 // How a ray is walked: it is cut into slabs across one axis (rows, or columns), and in each slab
 // its cells form one run along the other axis, from the cell where it crosses into the slab to
@@ -9,9 +10,9 @@
 // slab and still visit exactly the cells of the whole walk: this is what makes clipping to the
 // grid, and splitting the grid into row bands between threads, exact.
 //
-// How rays are counted: each thread owns a band of rows and walks the part of every ray inside
-// it. A run adds to a difference array at its first cell and subtracts after its last, so that it
-// costs two updates whatever its length; prefix sums at the end turn differences into counts.
+// How voxels are counted: each thread owns a band of rows and walks the part of every ray inside
+// it. A run adds to a difference array at its first voxel and subtracts after its last, so that
+// it costs two updates whatever its length; prefix sums at the end turn differences into counts.
 #include "host/raywalk.hpp"
 
 #include <algorithm>
@@ -21,156 +22,15 @@
 
 #include "engine/core/error.hpp"
 #include "engine/core/parallel.hpp"
+#include "host/raywalk_detail.hpp"
 
 namespace pillarseg::host {
 namespace {
 
-// floor(value) clamped to [-1, n]: -1 and n stand for every cell beyond the grid on that side
-// (a float point may lie 1e38 m away, where no int64 index reaches).
-int64_t clamped_floor(double value, int64_t n) {
-  if (!(value >= -1.0)) return -1;
-  if (value >= static_cast<double>(n)) return n;
-  return static_cast<int64_t>(std::floor(value));
-}
-
-// One axis of a ray in cell coordinates, from `origin` (t = 0) to `end` (t = 1), on an axis of
-// n cells.
-struct RayAxis {
-  double origin = 0.0, end = 0.0;
-  double delta = 0.0;  // end - origin, rounded
-  int step = 0;        // sign of end - origin (exact)
-  int64_t first = 0;   // the cell the ray enters from the origin, clamped to [-1, n]
-  int64_t last = 0;    // the end point's cell floor(end), clamped to [-1, n]
-
-  int64_t lo() const { return std::min(first, last); }
-  int64_t hi() const { return std::max(first, last); }
-};
-
-RayAxis make_axis(double origin, double end, int64_t n) {
-  RayAxis axis;
-  axis.origin = origin;
-  axis.end = end;
-  axis.delta = end - origin;
-  axis.step = (end > origin) - (end < origin);
-  axis.first = axis.step < 0 ? clamped_floor(std::ceil(origin) - 1.0, n) : clamped_floor(origin, n);
-  axis.last = clamped_floor(end, n);
-  return axis;
-}
-
-// sum + err == a + b exactly (Knuth's two-sum, any order of magnitudes).
-void two_sum(double a, double b, double& sum, double& err) {
-  sum = a + b;
-  const double b_virtual = sum - a;
-  const double a_virtual = sum - b_virtual;
-  err = (a - a_virtual) + (b - b_virtual);
-}
-
-// The exact sign of sum_i x[i] * y[i]. Each product is split into its rounded value and its
-// exact rounding error (fma); the terms are accumulated into a nonoverlapping expansion
-// (Shewchuk's Grow-Expansion with zero elimination), whose sign is that of its largest
-// component.
-template <size_t N>
-int exact_sign_of_dot(const std::array<double, N>& x, const std::array<double, N>& y) {
-  std::array<double, 2 * N> expansion{};
-  size_t size = 0;
-  const auto grow = [&](double term) {
-    size_t kept = 0;
-    double running = term;
-    for (size_t i = 0; i < size; ++i) {
-      double sum = 0.0, err = 0.0;
-      two_sum(running, expansion[i], sum, err);
-      if (err != 0.0) expansion[kept++] = err;
-      running = sum;
-    }
-    if (running != 0.0) expansion[kept++] = running;
-    size = kept;
-  };
-  for (size_t i = 0; i < N; ++i) {
-    const double product = x[i] * y[i];
-    grow(std::fma(x[i], y[i], -product));
-    grow(product);
-  }
-  if (size == 0) return 0;
-  return expansion[size - 1] > 0.0 ? 1 : -1;
-}
-
-// The cell along axis m that the ray occupies where it crosses a cell boundary of axis a: the
-// m-cell of the last cell before that a-step and of the first cell after it, clamped to
-// [m.lo(), m.hi()]. Where the ray crosses an m-boundary at the same t, m_steps_first says which
-// axis steps first (the walk steps x, then y, then z).
-class CrossingCell {
- public:
-  CrossingCell(const RayAxis& m, const RayAxis& a, bool m_steps_first, int64_t m_cells)
-      : m_(m), a_(a), m_steps_first_(m_steps_first), lo_(m.lo()), hi_(m.hi()) {
-    slope_ = a.delta != 0.0 ? m.delta / a.delta : 0.0;
-    // The double evaluation errs by less than 2^-48 (|value| + |m.origin|) (rounded deltas,
-    // slope, differences and fma); it decides alone outside a window far wider than that.
-    window_ = 0x1p-30 * (static_cast<double>(m_cells) + 2.0 + std::abs(m.origin));
-  }
-
-  // boundary: the a-coordinate of the crossed boundary (an integer).
-  int64_t at(double boundary) const {
-    if (m_.step == 0) return m_.first;
-    const double value = std::fma(boundary - a_.origin, slope_, m_.origin);
-    // Beyond the range the exact cell lies beyond it too, whatever the rounding.
-    if (!(value > static_cast<double>(lo_))) return lo_;
-    if (!(value < static_cast<double>(hi_ + 1))) return hi_;
-    const double nearest = std::nearbyint(value);
-    const int64_t cell = std::abs(value - nearest) > window_
-                             ? static_cast<int64_t>(std::floor(value))
-                             : exact_cell(boundary, nearest);
-    return std::clamp(cell, lo_, hi_);
-  }
-
-  // out[i] = at(first_boundary + i * boundary_step) for i < count, as doubles: one pass in
-  // double that the compiler vectorises (floor by adding and subtracting 1.5 * 2^52, which
-  // rounds to the nearest integer, as GCC does not vectorise std::floor), and the exact pass only
-  // where some value lies near a tie.
-  void fill(double first_boundary, double boundary_step, int64_t count, double* out) const {
-    const double lo = static_cast<double>(lo_), hi = static_cast<double>(hi_);
-    if (m_.step == 0) {
-      std::fill(out, out + count, static_cast<double>(m_.first));
-      return;
-    }
-    constexpr double kRoundToInteger = 0x1.8p52;
-    const double offset = first_boundary - a_.origin;
-    int64_t near_ties = 0;
-    for (int64_t i = 0; i < count; ++i) {
-      const double along = offset + static_cast<double>(i) * boundary_step;
-      // Clamped into [lo - 1/2, hi + 3/2], a value floors to the same cell, once clamped, as in
-      // at(), and stays far below 2^51, where the rounding trick holds.
-      const double value =
-          std::min(std::max(std::fma(along, slope_, m_.origin), lo - 0.5), hi + 1.5);
-      const double nearest = (value + kRoundToInteger) - kRoundToInteger;
-      const double distance = value - nearest;
-      near_ties += std::abs(distance) <= window_;
-      out[i] = std::min(std::max(distance < 0.0 ? nearest - 1.0 : nearest, lo), hi);
-    }
-    if (near_ties == 0) return;
-    for (int64_t i = 0; i < count; ++i)
-      out[i] = static_cast<double>(at(first_boundary + static_cast<double>(i) * boundary_step));
-  }
-
- private:
-  // The cell beside the integer k, from the exact sign of (m(t) - k) * (a.end - a.origin) =
-  // (m.origin - k) (a.end - a.origin) + (boundary - a.origin) (m.end - m.origin), expanded into
-  // products of the inputs.
-  int64_t exact_cell(double boundary, double k) const {
-    const int side =
-        a_.step * exact_sign_of_dot<6>({m_.origin, -k, k, boundary, -boundary, -a_.origin},
-                                       {a_.end, a_.end, a_.origin, m_.end, m_.origin, m_.end});
-    const auto cell = static_cast<int64_t>(k);
-    if (side > 0) return cell;
-    if (side < 0) return cell - 1;
-    // Tie: m crosses k at the same t; the cell after m's step if m steps first, else before.
-    return m_steps_first_ == (m_.step > 0) ? cell : cell - 1;
-  }
-
-  RayAxis m_, a_;
-  bool m_steps_first_;
-  int64_t lo_, hi_;
-  double slope_ = 0.0, window_ = 0.0;
-};
+using raywalk_detail::clamped_floor;
+using raywalk_detail::CrossingCell;
+using raywalk_detail::make_axis;
+using raywalk_detail::RayAxis;
 
 // Narrows [t0, t1] to where the ray lies within one cell of the cells [lo, hi) of this axis
 // (t0 > t1 when it never does). The one-cell margin keeps rounding from losing a cell at the
@@ -323,88 +183,47 @@ void walk_cells(const RayAxis& u, const RayAxis& v, const RayAxis& w, const Grid
   }
 }
 
-// Counts (Z, H, W) kept as differences while rays are walked, so that a run costs two updates
-// whatever its length: a run along x, columns c0..c1 of a row, adds its weight to along_x at c0
-// and takes it at c1 + 1 (where c1 + 1 < W); a run along y, rows r0..r1 of a column, adds 1 to
-// along_y at r0 and takes it at r1 + 1 (where r1 + 1 is still in the thread's band of rows
-// [band_lo, band_hi), where the sums along y stop). Sums are mod 2^32, exact while the counts fit
-// uint32. along_x becomes the counts; along_y is null when no run goes along y. kCut: the run
-// may reach beyond the grid (or band, or volume) and is cut to it; else it lies inside.
+// Counts (Z, H, W) kept as differences along x while rays are walked, so that a run costs two
+// updates whatever its length: a run of columns c0..c1 of a row adds its weight at c0 and takes
+// it at c1 + 1 (where c1 + 1 < W). Sums are mod 2^32, exact while the counts fit uint32. kCut: the
+// run may reach beyond the grid (or volume) and is cut to it; else it lies inside.
 struct RunCounts {
-  uint32_t* along_x;
-  uint32_t* along_y;
+  uint32_t* counts;
   int64_t width, height, layers;
 
-  uint32_t* line(uint32_t* counts, int64_t layer, int64_t row) const {
-    return counts + (layer * height + row) * width;
-  }
-
   template <bool kCut>
-  void add_along_x(int64_t row, int64_t layer, int64_t from, int64_t to, uint32_t weight) const {
+  void add(int64_t row, int64_t layer, int64_t from, int64_t to, uint32_t weight) const {
     int64_t lo = std::min(from, to), hi = std::max(from, to);
     if constexpr (kCut) {
       lo = std::max<int64_t>(lo, 0);
       hi = std::min(hi, width - 1);
       if (lo > hi || layer < 0 || layer >= layers) return;
     }
-    uint32_t* counts = line(along_x, layer, row);
-    counts[lo] += weight;
-    if (hi + 1 < width) counts[hi + 1] -= weight;
+    uint32_t* line = counts + (layer * height + row) * width;
+    line[lo] += weight;
+    if (hi + 1 < width) line[hi + 1] -= weight;
   }
 
-  template <bool kCut>
-  void add_along_y(int64_t column, int64_t from, int64_t to, int64_t band_lo,
-                   int64_t band_hi) const {
-    int64_t lo = std::min(from, to), hi = std::max(from, to);
-    if constexpr (kCut) {
-      lo = std::max(lo, band_lo);
-      hi = std::min(hi, band_hi - 1);
-      if (lo > hi) return;
-    }
-    ++line(along_y, 0, lo)[column];
-    if (hi + 1 < band_hi) --line(along_y, 0, hi + 1)[column];
-  }
-
-  // Turns the differences of the rows [row_lo, row_hi) of every layer into counts in along_x:
-  // sums along x of along_x plus sums along y, from row_lo, of along_y.
+  // Turns the differences of the rows [row_lo, row_hi) of every layer into counts.
   void finish(int64_t row_lo, int64_t row_hi) const {
     for (int64_t layer = 0; layer < layers; ++layer) {
       for (int64_t row = row_lo; row < row_hi; ++row) {
-        uint32_t* counts = line(along_x, layer, row);
+        uint32_t* line = counts + (layer * height + row) * width;
         uint32_t running = 0;
-        if (along_y == nullptr) {
-          for (int64_t c = 0; c < width; ++c) counts[c] = running += counts[c];
-          continue;
-        }
-        uint32_t* from_y = line(along_y, layer, row);
-        if (row > row_lo) {
-          const uint32_t* above = from_y - width;
-          for (int64_t c = 0; c < width; ++c) from_y[c] += above[c];
-        }
-        for (int64_t c = 0; c < width; ++c) {
-          running += counts[c];
-          counts[c] = running + from_y[c];
-        }
+        for (int64_t c = 0; c < width; ++c) line[c] = running += line[c];
       }
     }
   }
 };
 
-// Adds the cells of one ray's walk inside the box to the run counts, with runs along x or y.
-template <bool kRunsAlongX, bool kThreeD, bool kCut>
+// Adds the voxels of one ray's walk inside the box to the run counts, with runs along x.
+template <bool kCut>
 void count_walk(const RayAxis& u, const RayAxis& v, const RayAxis& w, const GridSize& size,
                 const CellBox& box, WalkScratch& scratch, const RunCounts& runs) {
-  if constexpr (kRunsAlongX) {
-    const auto add = [&runs](int64_t row, int64_t layer, int64_t from, int64_t to) {
-      runs.add_along_x<kCut>(row, layer, from, to, 1);
-    };
-    walk_runs<true, kThreeD>(u, v, w, size, box, scratch, add);
-  } else {
-    const auto add = [&runs, &box](int64_t column, int64_t, int64_t from, int64_t to) {
-      runs.add_along_y<kCut>(column, from, to, box.y_lo, box.y_hi);
-    };
-    walk_runs<false, kThreeD>(u, v, w, size, box, scratch, add);
-  }
+  const auto add = [&runs](int64_t row, int64_t layer, int64_t from, int64_t to) {
+    runs.add<kCut>(row, layer, from, to, 1);
+  };
+  walk_runs<true, true>(u, v, w, size, box, scratch, add);
 }
 
 void check_grid(const GridSpec& grid, bool with_layers, const char* caller) {
@@ -505,59 +324,43 @@ std::vector<int64_t> balanced_row_bands(const std::vector<Point>& points,
   return bounds;
 }
 
-// Walks every ray of the scan through the grid and counts, per cell of `passed` (Z, H, W), the
-// rays that pass it before their end cell, and per cell of `ended` the rays that end in it with
-// the point inside the grid (GridSpec::contains_xy in 2D, contains in 3D). One band of rows per
-// thread: every thread walks the part of each ray inside its band.
-template <bool kThreeD>
-void count_rays(const std::vector<Point>& points, const Eigen::Vector3d& origin,
-                const GridSpec& grid, const GridSize& size, uint32_t* passed, uint32_t* ended) {
-  const CellCoordinates o = cell_coordinates(origin.x(), origin.y(), origin.z(), grid, kThreeD);
+// Walks every ray of the scan through the volume and counts, per voxel of `passes` (Z, H, W),
+// the rays that pass it before their end voxel, and per voxel of `hits` the rays that end in it
+// with the point inside the volume (GridSpec::contains). One band of rows per thread: every
+// thread walks the part of each ray inside its band. Runs go along x (a second difference array
+// along y, as the 2D sweeps use, would cost Z times the grid), so steep rays make rows of one or
+// two voxels.
+void count_rays_3d(const std::vector<Point>& points, const Eigen::Vector3d& origin,
+                   const GridSpec& grid, const GridSize& size, uint32_t* passes, uint32_t* hits) {
+  const CellCoordinates o = cell_coordinates(origin.x(), origin.y(), origin.z(), grid, true);
   const std::vector<int64_t> bands = balanced_row_bands(points, o, grid, num_threads());
-  // The differences along x go straight into `passed`. Those along y need a second array: a 2D
-  // walk affords it (H x W), so its rays run along the axis they move most along; a 3D walk would
-  // need Z times more, so its rays all run along x (rows of one or two cells for steep rays).
-  std::vector<uint32_t> along_y(kThreeD ? 0 : static_cast<size_t>(size.height * size.width), 0);
-  const RunCounts runs{passed, kThreeD ? nullptr : along_y.data(), size.width, size.height,
-                       size.layers};
+  const RunCounts runs{passes, size.width, size.height, size.layers};
   parallel_for(static_cast<int64_t>(bands.size()) - 1, [&](int64_t band) {
     const CellBox box{
         0, size.width, bands[static_cast<size_t>(band)], bands[static_cast<size_t>(band) + 1],
         0, size.layers};
     if (box.y_lo >= box.y_hi) return;
     WalkScratch scratch(size);
-    const RayAxis flat = flat_axis();
     for (const Point& p : points) {
       if (!finite(p)) continue;
-      const CellCoordinates point = cell_coordinates(p.x, p.y, p.z, grid, kThreeD);
+      const CellCoordinates point = cell_coordinates(p.x, p.y, p.z, grid, true);
       const RayAxis v = make_axis(o.v, point.v, size.height);
       if (v.hi() < box.y_lo || v.lo() >= box.y_hi) continue;
       const RayAxis u = make_axis(o.u, point.u, size.width);
-      const RayAxis w = kThreeD ? make_axis(o.w, point.w, size.layers) : flat;
-      // Runs need cutting only where the ray's cells reach beyond the box along them.
-      if (kThreeD || std::abs(u.delta) >= std::abs(v.delta)) {
-        const bool inside =
-            u.lo() >= 0 && u.hi() < size.width && w.lo() >= 0 && w.hi() < size.layers;
-        if (inside) {
-          count_walk<true, kThreeD, false>(u, v, w, size, box, scratch, runs);
-        } else {
-          count_walk<true, kThreeD, true>(u, v, w, size, box, scratch, runs);
-        }
+      const RayAxis w = make_axis(o.w, point.w, size.layers);
+      // Runs need cutting only where the ray's voxels reach beyond the volume along them.
+      if (u.lo() >= 0 && u.hi() < size.width && w.lo() >= 0 && w.hi() < size.layers) {
+        count_walk<false>(u, v, w, size, box, scratch, runs);
       } else {
-        if (v.lo() >= box.y_lo && v.hi() < box.y_hi) {
-          count_walk<false, kThreeD, false>(u, v, w, size, box, scratch, runs);
-        } else {
-          count_walk<false, kThreeD, true>(u, v, w, size, box, scratch, runs);
-        }
+        count_walk<true>(u, v, w, size, box, scratch, runs);
       }
-      // The walk's last cell is the end cell, which counts a detection (hit), not a transmission.
+      // The walk's last voxel is the end voxel, which counts a hit, not a pass.
       const bool end_in_box = u.last >= 0 && u.last < size.width && v.last >= box.y_lo &&
                               v.last < box.y_hi && w.last >= 0 && w.last < size.layers;
       if (!end_in_box) continue;
-      runs.add_along_x<false>(v.last, w.last, u.last, u.last, static_cast<uint32_t>(-1));
-      const bool ends_inside =
-          kThreeD ? contains(p, grid, size, u, v, w) : contains_xy(p, grid, size, u, v);
-      if (ends_inside) ++ended[(w.last * size.height + v.last) * size.width + u.last];
+      runs.add<false>(v.last, w.last, u.last, u.last, static_cast<uint32_t>(-1));
+      if (contains(p, grid, size, u, v, w))
+        ++hits[(w.last * size.height + v.last) * size.width + u.last];
     }
     runs.finish(box.y_lo, box.y_hi);
   });
@@ -581,8 +384,9 @@ ObservabilityCounts observability_2d(const std::vector<Point>& points,
   const GridSize size(grid, false);
   ObservabilityCounts counts{Tensor<uint32_t>::zeros({size.height, size.width}),
                              Tensor<uint32_t>::zeros({size.height, size.width})};
-  count_rays<false>(points, origin, grid, size, counts.transmissions.data(),
-                    counts.detections.data());
+  const CellCoordinates o = cell_coordinates(origin.x(), origin.y(), origin.z(), grid, false);
+  raywalk_detail::count_observability_2d(points, o.u, o.v, grid, counts.transmissions.data(),
+                                         counts.detections.data());
   return counts;
 }
 
@@ -605,7 +409,7 @@ OccupancyCounts occupancy_counts_3d(const std::vector<Point>& points, const Eige
   const GridSize size(grid, true);
   OccupancyCounts counts{Tensor<uint32_t>::zeros({size.layers, size.height, size.width}),
                          Tensor<uint32_t>::zeros({size.layers, size.height, size.width})};
-  count_rays<true>(points, origin, grid, size, counts.passes.data(), counts.hits.data());
+  count_rays_3d(points, origin, grid, size, counts.passes.data(), counts.hits.data());
   return counts;
 }
 

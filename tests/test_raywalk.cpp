@@ -468,6 +468,65 @@ TEST(Observability2D, MatchesSingleRayWalksForEveryThreadCount) {
   }
 }
 
+// Rays the 2D counts treat specially (observability_2d sorts rays into row and column sweeps by
+// direction): a point at the origin, rays along the origin's row and column, exact diagonals
+// through cell corners, rays ending on a cell border, rays that leave the grid; from origins on
+// a cell corner, inside a cell, on a cell border, and outside the grid on each side (so that a
+// sweep starts beyond the grid).
+TEST(Observability2D, MatchesSingleRayWalksForCraftedRaysAndOrigins) {
+  ThreadCountGuard guard;
+  const GridSpec grid = test::dyadic_grid();  // x in [-2, 2.75), y in [-1.5, 1.25), 0.25 m cells
+  for (const Vec3& origin :
+       {Vec3(0.0, 0.0, 0.0), Vec3(0.1, -0.3, 0.0), Vec3(0.25, 0.6, 0.0), Vec3(-3.0, 0.1, 0.0),
+        Vec3(4.0, -0.2, 0.0), Vec3(0.3, -2.5, 0.0), Vec3(-0.4, 2.0, 0.0), Vec3(-3.0, -2.5, 0.0)}) {
+    std::vector<Point> points;
+    const auto add = [&](double x, double y) {
+      points.push_back({static_cast<float>(x), static_cast<float>(y), 0.0f, 0.0f});
+    };
+    add(origin.x(), origin.y());
+    for (double d : {-5.0, -1.0, -0.25, 0.125, 0.5, 2.0, 6.0}) {
+      add(origin.x() + d, origin.y());  // along the origin's row
+      add(origin.x(), origin.y() + d);  // along its column
+      add(origin.x() + d, origin.y() + d);
+      add(origin.x() + d, origin.y() - d);
+    }
+    for (double x = -2.5; x <= 3.0; x += 0.25)  // every cell border, and beyond the grid
+      for (double y : {-1.75, -1.5, -0.5, 0.0, 0.625, 1.25, 1.5}) add(x, y);
+    Tensor<uint32_t> transmissions, detections;
+    expected_counts(points, origin, grid, false, transmissions, detections);
+    for (int threads : {1, 2, 4}) {
+      set_num_threads(threads);
+      const ObservabilityCounts counts = observability_2d(points, origin, grid);
+      EXPECT_TRUE(same_counts(counts.transmissions, transmissions))
+          << "origin (" << origin.x() << ", " << origin.y() << "), " << threads << " threads";
+      EXPECT_TRUE(same_counts(counts.detections, detections))
+          << "origin (" << origin.x() << ", " << origin.y() << "), " << threads << " threads";
+    }
+  }
+}
+
+// The default grid (origin on a cell corner) against single-ray walks, for a spread of ranges.
+TEST(Observability2D, MatchesSingleRayWalksOnDefaultGrid) {
+  ThreadCountGuard guard;
+  const GridSpec grid;
+  Rng rng(8);
+  std::vector<Point> points;
+  for (int i = 0; i < 1500; ++i) {
+    const double range = rng.uniform(0.0, 70.0), angle = rng.uniform(0.0, 6.283185307179586);
+    points.push_back({static_cast<float>(range * std::cos(angle)),
+                      static_cast<float>(range * std::sin(angle)), 0.0f, 0.0f});
+  }
+  const Vec3 origin(0.0, 0.0, 0.0);
+  Tensor<uint32_t> transmissions, detections;
+  expected_counts(points, origin, grid, false, transmissions, detections);
+  for (int threads : {1, 2}) {
+    set_num_threads(threads);
+    const ObservabilityCounts counts = observability_2d(points, origin, grid);
+    EXPECT_TRUE(same_counts(counts.transmissions, transmissions)) << threads << " threads";
+    EXPECT_TRUE(same_counts(counts.detections, detections)) << threads << " threads";
+  }
+}
+
 TEST(Observability2D, IdenticalForOneAndTwoThreadsOnDefaultGrid) {
   ThreadCountGuard guard;
   const GridSpec grid;

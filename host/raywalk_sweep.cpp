@@ -1,0 +1,438 @@
+// 2D observability counts (H, W) by slab sweeps; raywalk.hpp defines the walk, and these counts
+// are those of single-ray walks (tests/test_raywalk.cpp checks them against ray_cells_2d).
+//
+// All rays of a scan leave one origin. A ray that moves at least as far along x as along y is
+// counted row by row (a "row ray"), any other column by column. In one row, a row ray's cells form
+// one run along x, from the cell where it enters the row to the cell where it leaves it; each
+// crossing is decided exactly by CrossingCell, a pure function of the ray and the boundary, and
+// the run costs two updates of a difference array of that row, small enough to stay in the L1
+// cache. The row rays that leave the origin's row upwards are sorted by their last row, highest
+// first, so that the rays reaching any row are a prefix of them and a row's crossings are one
+// vectorised pass over that prefix; likewise downwards, and for column rays rightwards and
+// leftwards. Rows are dealt out in bands, one per thread, each holding about the same number of
+// (ray, row) pairs; then columns likewise. Every cell's count is a sum of integers made by the one
+// thread that owns its row (then column), so the counts are the same for every thread count.
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <cstring>
+
+#include "engine/core/parallel.hpp"
+#include "host/raywalk_detail.hpp"
+
+namespace pillarseg::host::raywalk_detail {
+namespace {
+
+// How one family of sweeps lies on the grid: slabs are rows (runs along x) or columns (runs
+// along y); the run axis is the other one.
+struct Orientation {
+  int64_t slabs = 0;         // slab count: H for rows, W for columns
+  int64_t cells = 0;         // cells along the run axis: W for rows, H for columns
+  double slab_origin = 0.0;  // the origin in cell coordinates, across and along the slabs
+  double run_origin = 0.0;
+  bool run_steps_first = false;  // at a tie the run axis steps first (x steps before y)
+  double window = 0.0;           // CrossingCell's tie window for the run axis
+};
+
+// The rays that leave the origin's slab in one direction across the slabs, in structure-of-arrays
+// form, those that reach the farthest slab first.
+struct Sweep {
+  int step = 1;       // +1 or -1 across the slabs
+  int64_t first = 0;  // the slab all its rays start in, clamped to [-1, slabs]
+  // Per ray, in sweep order:
+  std::vector<double> slope;              // run-axis change per unit across the slabs
+  std::vector<int32_t> lo, hi;            // run-axis cells the ray spans, clamped to [-1, cells]
+  std::vector<int32_t> first_cell;        // run-axis cell where the ray leaves the origin
+  std::vector<int32_t> last_cell;         // run-axis cell of the end point, clamped to [-1, cells]
+  std::vector<int32_t> detected_cell;     // last_cell where the point lies in the grid, else -1
+  std::vector<double> end_run, end_slab;  // the end point in cell coordinates (exact ties)
+  // reaching[d]: the rays that reach slab first + d * step, d = 0 .. slabs + 1 (a prefix).
+  std::vector<int64_t> reaching;
+
+  void resize(int64_t rays) {
+    const auto n = static_cast<size_t>(rays);
+    slope.resize(n);
+    lo.resize(n);
+    hi.resize(n);
+    first_cell.resize(n);
+    last_cell.resize(n);
+    detected_cell.resize(n);
+    end_run.resize(n);
+    end_slab.resize(n);
+  }
+
+  // Slabs a ray of the sweep ending in slab `last` crosses after the first: its depth.
+  int64_t depth(int64_t last) const { return (last - first) * step; }
+
+  // Rays that reach `slab` (0 for slabs the sweep never reaches).
+  int64_t reaching_slab(int64_t slab) const {
+    const int64_t d = depth(slab);
+    return d >= 0 && d < static_cast<int64_t>(reaching.size()) ? reaching[static_cast<size_t>(d)]
+                                                               : 0;
+  }
+};
+
+// The four sweeps: rows upwards (and rays within the origin's row), rows downwards, columns
+// rightwards (and rays within the origin's column), columns leftwards.
+enum SweepIndex { kRowsUp = 0, kRowsDown = 1, kColumnsRight = 2, kColumnsLeft = 3, kSweeps = 4 };
+
+bool finite(const Point& p) {
+  return std::isfinite(p.x) && std::isfinite(p.y) && std::isfinite(p.z);
+}
+
+// Calls ray(i, sweep, across, along) for each finite point i in [begin, end): the sweep its ray
+// belongs to, and the ray's axes across and along the slabs of that sweep.
+template <class Ray>
+void for_each_ray(const std::vector<Point>& points, int64_t begin, int64_t end,
+                  const GridSpec& grid, const std::array<Orientation, 2>& orientation, Ray&& ray) {
+  const Orientation& rows = orientation[0];
+  for (int64_t i = begin; i < end; ++i) {
+    const Point& p = points[static_cast<size_t>(i)];
+    if (!finite(p)) continue;
+    const RayAxis u = make_axis(rows.run_origin, (p.x - grid.x_min) / grid.cell, rows.cells);
+    const RayAxis v = make_axis(rows.slab_origin, (p.y - grid.y_min) / grid.cell, rows.slabs);
+    if (std::abs(u.delta) >= std::abs(v.delta)) {
+      ray(i, v.step >= 0 ? kRowsUp : kRowsDown, v, u);
+    } else {
+      ray(i, u.step >= 0 ? kColumnsRight : kColumnsLeft, u, v);
+    }
+  }
+}
+
+// Sorts the finite points' rays into the four sweeps. Each thread classifies a contiguous chunk
+// of the points twice: once to count rays per (sweep, depth), once to place them; a ray's place
+// depends on the counts only, so the order is the same for every thread count.
+std::array<Sweep, kSweeps> build_sweeps(const std::vector<Point>& points, const GridSpec& grid,
+                                        const std::array<Orientation, 2>& orientation) {
+  std::array<Sweep, kSweeps> sweeps;
+  for (int s = 0; s < kSweeps; ++s) {
+    Sweep& sweep = sweeps[static_cast<size_t>(s)];
+    const Orientation& o = orientation[s < kColumnsRight ? 0 : 1];
+    sweep.step = (s == kRowsUp || s == kColumnsRight) ? 1 : -1;
+    sweep.first = sweep.step > 0 ? clamped_floor(o.slab_origin, o.slabs)
+                                 : clamped_floor(std::ceil(o.slab_origin) - 1.0, o.slabs);
+    sweep.reaching.assign(static_cast<size_t>(o.slabs) + 2, 0);
+  }
+  const int threads = num_threads();
+  // counts[t][s][depth]: the rays of thread t's chunk in sweep s with that depth.
+  std::vector<std::array<std::vector<int64_t>, kSweeps>> counts(static_cast<size_t>(threads));
+  for (auto& per_thread : counts)
+    for (int s = 0; s < kSweeps; ++s)
+      per_thread[static_cast<size_t>(s)].assign(sweeps[static_cast<size_t>(s)].reaching.size(), 0);
+  const auto n = static_cast<int64_t>(points.size());
+  parallel_chunks(n, [&](int64_t begin, int64_t end, int t) {
+    auto& mine = counts[static_cast<size_t>(t)];
+    for_each_ray(points, begin, end, grid, orientation,
+                 [&](int64_t, int s, const RayAxis& across, const RayAxis&) {
+                   const Sweep& sweep = sweeps[static_cast<size_t>(s)];
+                   ++mine[static_cast<size_t>(s)][static_cast<size_t>(sweep.depth(across.last))];
+                 });
+  });
+  // Places: the deepest rays first, and within one depth, thread chunks in order.
+  for (int s = 0; s < kSweeps; ++s) {
+    Sweep& sweep = sweeps[static_cast<size_t>(s)];
+    const auto depths = static_cast<int64_t>(sweep.reaching.size());
+    int64_t placed = 0;
+    for (int64_t d = depths - 1; d >= 0; --d) {
+      for (auto& per_thread : counts) {
+        int64_t& slot = per_thread[static_cast<size_t>(s)][static_cast<size_t>(d)];
+        const int64_t rays = slot;
+        slot = placed;
+        placed += rays;
+      }
+      sweep.reaching[static_cast<size_t>(d)] = placed;
+    }
+    sweep.resize(placed);
+  }
+  const int64_t along_cells[kSweeps] = {orientation[0].cells, orientation[0].cells,
+                                        orientation[1].cells, orientation[1].cells};
+  const int64_t across_cells[kSweeps] = {orientation[0].slabs, orientation[0].slabs,
+                                         orientation[1].slabs, orientation[1].slabs};
+  parallel_chunks(n, [&](int64_t begin, int64_t end, int t) {
+    auto& next = counts[static_cast<size_t>(t)];
+    for_each_ray(
+        points, begin, end, grid, orientation,
+        [&](int64_t i, int s, const RayAxis& across, const RayAxis& along) {
+          Sweep& sweep = sweeps[static_cast<size_t>(s)];
+          const auto k = static_cast<size_t>(
+              next[static_cast<size_t>(s)][static_cast<size_t>(sweep.depth(across.last))]++);
+          const Point& p = points[static_cast<size_t>(i)];
+          sweep.slope[k] = CrossingCell::slope(along, across);
+          sweep.lo[k] = static_cast<int32_t>(along.lo());
+          sweep.hi[k] = static_cast<int32_t>(along.hi());
+          sweep.first_cell[k] = static_cast<int32_t>(along.first);
+          sweep.last_cell[k] = static_cast<int32_t>(along.last);
+          // GridSpec::contains_xy, with the point's cells at hand
+          const bool inside = p.x >= grid.x_min && p.x < grid.x_max && p.y >= grid.y_min &&
+                              p.y < grid.y_max && along.last >= 0 && along.last < along_cells[s] &&
+                              across.last >= 0 && across.last < across_cells[s];
+          sweep.detected_cell[k] = inside ? static_cast<int32_t>(along.last) : -1;
+          sweep.end_run[k] = along.end;
+          sweep.end_slab[k] = across.end;
+        });
+  });
+  return sweeps;
+}
+
+// Bands [bounds[t], bounds[t + 1]) of the indices of `work`, one per thread, each holding about
+// the same share of the total work.
+std::vector<int64_t> balanced_bands(const std::vector<int64_t>& work, int threads) {
+  const auto n = static_cast<int64_t>(work.size());
+  std::vector<int64_t> bounds(static_cast<size_t>(threads) + 1, n);
+  bounds[0] = 0;
+  int64_t total = 0;
+  for (int64_t w : work) total += w;
+  int64_t done = 0, i = 0;
+  for (int t = 1; t < threads; ++t) {
+    while (i < n && (done + work[static_cast<size_t>(i)]) * threads <= total * t)
+      done += work[static_cast<size_t>(i++)];
+    bounds[static_cast<size_t>(t)] = std::max(bounds[static_cast<size_t>(t) - 1], i);
+  }
+  return bounds;
+}
+
+// Per-thread buffers of a band's sweep, sized for the largest sweep of the orientation.
+struct SweepScratch {
+  static constexpr int64_t kCopies = 8;  // difference arrays, so that consecutive rays' updates
+                                         // never wait on one another's (rays often share cells)
+  SweepScratch(int64_t rays, int64_t cells)
+      : cells_in(static_cast<size_t>(rays)),
+        cells_out(static_cast<size_t>(rays)),
+        adds(static_cast<size_t>(rays)),
+        takes(static_cast<size_t>(rays)),
+        stride(cells + 2),
+        differences(static_cast<size_t>(kCopies * stride), 0),
+        counts(static_cast<size_t>(cells), 0) {}
+  std::vector<int32_t> cells_in, cells_out;  // run-axis cells where each ray enters / leaves
+  std::vector<int32_t> adds, takes;          // where each ray's run adds 1 and takes it back
+  int64_t stride;                            // one copy: cells + 1 and a slot for empty runs
+  std::vector<uint32_t> differences;
+  std::vector<uint32_t> counts;  // one slab's counts along the run axis
+};
+
+// out[k] = the run-axis cell where ray k of the sweep crosses the slab boundary `boundary`,
+// for k < rays: CrossingCell::at, in one pass in double that the compiler vectorises (as
+// CrossingCell::fill), and the exact evaluation for the values that lie near a tie.
+void crossings(const Sweep& sweep, const Orientation& o, double boundary, int64_t rays,
+               int32_t* out) {
+  constexpr double kRoundToInteger = 0x1.8p52;
+  const double offset = boundary - o.slab_origin, origin = o.run_origin, window = o.window;
+  const double* slope = sweep.slope.data();
+  const int32_t* lo = sweep.lo.data();
+  const int32_t* hi = sweep.hi.data();
+  int64_t near_ties = 0;
+  for (int64_t k = 0; k < rays; ++k) {
+    const double lo_k = lo[k], hi_k = hi[k];
+    const double value =
+        std::min(std::max(std::fma(offset, slope[k], origin), lo_k - 0.5), hi_k + 1.5);
+    const double nearest = (value + kRoundToInteger) - kRoundToInteger;
+    const double distance = value - nearest;
+    near_ties += std::abs(distance) <= window;
+    out[k] = static_cast<int32_t>(
+        std::min(std::max(distance < 0.0 ? nearest - 1.0 : nearest, lo_k), hi_k));
+  }
+  if (near_ties == 0) return;
+  for (int64_t k = 0; k < rays; ++k) {
+    const double value =
+        std::min(std::max(std::fma(offset, slope[k], origin), lo[k] - 0.5), hi[k] + 1.5);
+    if (std::abs(value - std::nearbyint(value)) > window) continue;
+    const RayAxis along = make_axis(o.run_origin, sweep.end_run[static_cast<size_t>(k)], o.cells);
+    const RayAxis across =
+        make_axis(o.slab_origin, sweep.end_slab[static_cast<size_t>(k)], o.slabs);
+    out[k] =
+        static_cast<int32_t>(CrossingCell(along, across, o.run_steps_first, o.cells).at(boundary));
+  }
+}
+
+// Walks the sweep's rays through the slabs [slab_lo, slab_hi), in sweep order. For each slab
+// some ray reaches, hands flush(slab, counts, from, to) the transmissions along the run axis made
+// in that slab (counts[c] for c in [from, to); zero elsewhere), and calls detect(slab, cell) for
+// each ray whose point lies in the grid there.
+template <class Flush, class Detect>
+void sweep_band(const Sweep& sweep, const Orientation& o, int64_t slab_lo, int64_t slab_hi,
+                SweepScratch& scratch, Flush&& flush, Detect&& detect) {
+  const int64_t s = sweep.step;
+  const int64_t start = s > 0 ? std::max(slab_lo, sweep.first) : std::min(slab_hi - 1, sweep.first);
+  const int64_t stop = s > 0 ? slab_hi : slab_lo - 1;  // one past the last slab, in sweep order
+  if ((stop - start) * s <= 0) return;
+  int64_t d = sweep.depth(start);
+  if (sweep.reaching[static_cast<size_t>(d)] == 0) return;
+  int32_t* in = scratch.cells_in.data();
+  int32_t* out = scratch.cells_out.data();
+  // Where the rays enter the first slab: from the origin, or across its entry boundary.
+  const int64_t reaching_start = sweep.reaching[static_cast<size_t>(d)];
+  if (d == 0) {
+    std::copy_n(sweep.first_cell.data(), reaching_start, in);
+  } else {
+    crossings(sweep, o, static_cast<double>(s > 0 ? start : start + 1), reaching_start, in);
+  }
+  const int64_t cells = o.cells, stride = scratch.stride, empty = cells + 1;
+  uint32_t* differences = scratch.differences.data();
+  for (int64_t slab = start; slab != stop; slab += s, ++d) {
+    const int64_t rays = sweep.reaching[static_cast<size_t>(d)];
+    if (rays == 0) break;
+    // Where they leave it: across its exit boundary, or at their end points.
+    const int64_t continuing = sweep.reaching[static_cast<size_t>(d) + 1];
+    crossings(sweep, o, static_cast<double>(s > 0 ? slab + 1 : slab), continuing, out);
+    std::copy(sweep.last_cell.data() + continuing, sweep.last_cell.data() + rays, out + continuing);
+    // Each ray's run, cut to the grid: +1 at its first cell, -1 after its last, in the copy k % 4
+    // of the differences; runs outside the grid go to the slot `empty`. The places are worked out
+    // in one vectorised pass, with the range [from, to) of cells they touch.
+    int32_t* adds = scratch.adds.data();
+    int32_t* takes = scratch.takes.data();
+    const auto last = static_cast<int32_t>(cells - 1), nowhere = static_cast<int32_t>(empty);
+    const auto copy_stride = static_cast<int32_t>(stride);
+    int32_t touched_lo = last + 1, touched_hi = 0;
+    for (int64_t k = 0; k < rays; ++k) {
+      const int32_t a = in[k], b = out[k];
+      const int32_t lo = std::max(std::min(a, b), 0);
+      const int32_t hi = std::min(std::max(a, b), last);
+      const bool any = lo <= hi;
+      const int32_t copy = static_cast<int32_t>(k & (SweepScratch::kCopies - 1)) * copy_stride;
+      adds[k] = copy + (any ? lo : nowhere);
+      takes[k] = copy + (any ? hi + 1 : nowhere);
+      // (a run outside the grid only widens the range, within [0, cells])
+      touched_lo = std::min(touched_lo, lo);
+      touched_hi = std::max(touched_hi, hi + 1);
+    }
+    int64_t from = touched_lo, to = touched_hi;
+    for (int64_t k = 0; k < rays; ++k) {
+      ++differences[adds[k]];
+      --differences[takes[k]];
+    }
+    // The rays ending here: their end cell counts a detection, not a transmission.
+    for (int64_t k = continuing; k < rays; ++k) {
+      const int64_t end = sweep.last_cell[static_cast<size_t>(k)];
+      if (end < 0 || end >= cells) continue;
+      --differences[end];
+      ++differences[end + 1];
+      const int32_t detected = sweep.detected_cell[static_cast<size_t>(k)];
+      if (detected >= 0) detect(slab, detected);
+    }
+    // Counts are zero outside [from, to): every run and correction there adds and takes back.
+    to = std::min(to, cells);
+    if (from >= to) {
+      std::fill(differences, differences + SweepScratch::kCopies * stride, 0u);
+      std::swap(in, out);
+      continue;
+    }
+    uint32_t* counts = scratch.counts.data();
+    uint32_t running = 0;
+    for (int64_t c = from; c < to; ++c) {
+      uint32_t change = 0;
+      for (int64_t copy = 0; copy < SweepScratch::kCopies; ++copy)
+        change += differences[copy * stride + c];
+      counts[c] = running += change;
+    }
+    for (int64_t copy = 0; copy < SweepScratch::kCopies; ++copy)
+      std::fill(differences + copy * stride + from, differences + (copy + 1) * stride, 0u);
+    flush(slab, static_cast<const uint32_t*>(counts), from, to);
+    std::swap(in, out);
+  }
+}
+
+// Up to kWidth consecutive columns of counts, gathered a column at a time and added to the (H, W)
+// output a row segment at a time; only columns [lo, hi) (the thread's band) are written.
+class ColumnStrip {
+ public:
+  static constexpr int64_t kWidth = 16;
+  ColumnStrip(uint32_t* out, int64_t width, int64_t height, int64_t lo, int64_t hi)
+      : out_(out),
+        width_(width),
+        height_(height),
+        lo_(lo),
+        hi_(hi),
+        strip_(static_cast<size_t>(height * kWidth), 0) {}
+  ~ColumnStrip() = default;
+  ColumnStrip(const ColumnStrip&) = delete;
+  ColumnStrip& operator=(const ColumnStrip&) = delete;
+
+  // counts[r] for rows r in [from, to), zero elsewhere.
+  void put(int64_t column, const uint32_t* counts, int64_t from, int64_t to) {
+    const int64_t begin = column - column % kWidth;
+    if (begin != begin_) {
+      flush();
+      begin_ = begin;
+    }
+    const int64_t j = column - begin_;
+    for (int64_t r = from; r < to; ++r) strip_[static_cast<size_t>(r * kWidth + j)] = counts[r];
+  }
+
+  // Adds the gathered columns to the output and clears the strip.
+  void flush() {
+    if (begin_ < 0) return;
+    const int64_t from = std::max(begin_, lo_), to = std::min(begin_ + kWidth, hi_);
+    for (int64_t r = 0; r < height_; ++r) {
+      uint32_t* row = out_ + r * width_;
+      const uint32_t* gathered = strip_.data() + r * kWidth - begin_;
+      for (int64_t c = from; c < to; ++c) row[c] += gathered[c];
+    }
+    std::fill(strip_.begin(), strip_.end(), 0u);
+    begin_ = -1;
+  }
+
+ private:
+  uint32_t* out_;
+  int64_t width_, height_, lo_, hi_;
+  int64_t begin_ = -1;
+  std::vector<uint32_t> strip_;  // (H, kWidth)
+};
+
+}  // namespace
+
+void count_observability_2d(const std::vector<Point>& points, double origin_u, double origin_v,
+                            const GridSpec& grid, uint32_t* transmissions, uint32_t* detections) {
+  const int64_t width = grid.width(), height = grid.height();
+  const std::array<Orientation, 2> orientation = {
+      Orientation{height, width, origin_v, origin_u, true,
+                  CrossingCell::tie_window(width, origin_u)},
+      Orientation{width, height, origin_u, origin_v, false,
+                  CrossingCell::tie_window(height, origin_v)}};
+  const std::array<Sweep, kSweeps> sweeps = build_sweeps(points, grid, orientation);
+  const int threads = num_threads();
+  for (int family = 0; family < 2; ++family) {
+    const Orientation& o = orientation[static_cast<size_t>(family)];
+    const Sweep& forward = sweeps[static_cast<size_t>(2 * family)];
+    const Sweep& backward = sweeps[static_cast<size_t>(2 * family + 1)];
+    std::vector<int64_t> work(static_cast<size_t>(o.slabs));
+    for (int64_t slab = 0; slab < o.slabs; ++slab)
+      work[static_cast<size_t>(slab)] = forward.reaching_slab(slab) + backward.reaching_slab(slab);
+    const std::vector<int64_t> bands = balanced_bands(work, threads);
+    const int64_t most_rays = std::max(forward.reaching[0], backward.reaching[0]);
+    parallel_chunks(threads, [&](int64_t begin, int64_t end, int) {
+      for (int64_t band = begin; band < end; ++band) {
+        const int64_t lo = bands[static_cast<size_t>(band)],
+                      hi = bands[static_cast<size_t>(band) + 1];
+        if (lo >= hi) continue;
+        SweepScratch scratch(most_rays, o.cells);
+        if (family == 0) {
+          const auto add_row = [&](int64_t row, const uint32_t* counts, int64_t from, int64_t to) {
+            uint32_t* out = transmissions + row * width;
+            for (int64_t c = from; c < to; ++c) out[c] += counts[c];
+          };
+          const auto detect = [&](int64_t row, int64_t column) {
+            ++detections[row * width + column];
+          };
+          sweep_band(forward, o, lo, hi, scratch, add_row, detect);
+          sweep_band(backward, o, lo, hi, scratch, add_row, detect);
+        } else {
+          const auto detect = [&](int64_t column, int64_t row) {
+            ++detections[row * width + column];
+          };
+          for (const Sweep* sweep : {&forward, &backward}) {
+            ColumnStrip strip(transmissions, width, height, lo, hi);
+            sweep_band(
+                *sweep, o, lo, hi, scratch,
+                [&](int64_t column, const uint32_t* counts, int64_t from, int64_t to) {
+                  strip.put(column, counts, from, to);
+                },
+                detect);
+            strip.flush();
+          }
+        }
+      }
+    });
+  }
+}
+
+}  // namespace pillarseg::host::raywalk_detail
