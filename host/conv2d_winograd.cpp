@@ -1,5 +1,6 @@
 // Conv2d 3x3 / pad 1 by Winograd F(4x4, 3x3): weight, input and output transforms around 36
-// Eigen GEMMs per block of tiles. x (B, I, H, W), w (O, I, 3, 3) -> y (B, O, H, W).
+// Eigen GEMMs per block of tiles. x (B, I, H, W), w (O, I, 3, 3) -> y (B, O, H, W); and the
+// weight gradient, the same transforms transposed: dw = G^T [sum over tiles (A e A^T) . V] G.
 //
 // Layout. The output is cut into 4x4 tiles, th = ceil(H / 4) rows of tw = ceil(W / 4) tiles; a
 // block is a run of whole tile rows of one image, or a run of tiles within one tile row, T
@@ -100,6 +101,25 @@ inline void output_transform_rows(const float* __restrict m0, const float* __res
     o1[t] = diff12 + 2.0f * diff34;
     o2[t] = sum12 + 4.0f * sum34;
     o3[t] = diff12 + 8.0f * diff34 + m5[t];
+  }
+}
+
+// out[k][n] = (A d)[k] for the four rows d[0..3] of length n, A = the transpose of A^T above:
+//   [1 0 0 0; 1 1 1 1; 1 -1 1 -1; 1 2 4 8; 1 -2 4 -8; 0 0 0 1].
+inline void gradient_transform_rows(const float* __restrict d0, const float* __restrict d1,
+                                    const float* __restrict d2, const float* __restrict d3,
+                                    float* __restrict o0, float* __restrict o1,
+                                    float* __restrict o2, float* __restrict o3,
+                                    float* __restrict o4, float* __restrict o5, int64_t n) {
+  for (int64_t m = 0; m < n; ++m) {
+    const float even = d0[m] + d2[m], odd = d1[m] + d3[m];
+    const float even4 = d0[m] + 4.0f * d2[m], odd8 = 2.0f * d1[m] + 8.0f * d3[m];
+    o0[m] = d0[m];
+    o1[m] = even + odd;
+    o2[m] = even - odd;
+    o3[m] = even4 + odd8;
+    o4[m] = even4 - odd8;
+    o5[m] = d3[m];
   }
 }
 
@@ -287,6 +307,52 @@ void transform_output_channel(const float* m, const WinogradShape& s, const Bloc
   }
 }
 
+// G[p][o][t] = (A e A^T)[p] for the 4x4 tile e of output-gradient channel o of one image plane
+// (H, W) over the block's tiles (zero beyond the image), t as in V: the transform that the
+// weight gradient pairs with V (the transpose of the output transform). Scratch: band (4 rows)
+// and vert (6 rows) of 4 cols values, padded_row (4 cols).
+void transform_gradient_channel(const float* plane, const WinogradShape& s, const Block& blk,
+                                int64_t o, float* g, std::vector<float>& band,
+                                std::vector<float>& vert, std::vector<float>& padded_row) {
+  const int64_t H = s.height, W = s.width, O = s.out_channels, cols = blk.cols;
+  const int64_t row_len = kTile * cols, tiles = blk.tiles();
+  // The band's column q is output column x0 + q; the valid ones are q < q1.
+  const int64_t x0 = kTile * blk.tx0, q1 = std::min(row_len, W - x0);
+  band.resize(static_cast<size_t>(kTile * row_len));
+  vert.resize(static_cast<size_t>(kInputTile * row_len));
+  padded_row.assign(static_cast<size_t>(row_len), 0.0f);
+  for (int64_t r_t = 0; r_t < blk.rows; ++r_t) {
+    const int64_t ty = blk.ty0 + r_t;
+    // band[r][ph * cols + m] = e(4 ty + r, x0 + 4 m + ph), zero outside the image.
+    for (int r = 0; r < kTile; ++r) {
+      float* dst = band.data() + r * row_len;
+      const int64_t iy = kTile * ty + r;
+      if (iy >= H) {
+        std::fill(dst, dst + row_len, 0.0f);
+        continue;
+      }
+      std::copy(plane + iy * W + x0, plane + iy * W + x0 + q1, padded_row.begin());
+      for (int64_t m = 0; m < cols; ++m)
+        for (int ph = 0; ph < kTile; ++ph)
+          dst[ph * cols + m] = padded_row[static_cast<size_t>(kTile * m + ph)];
+    }
+    const float* b = band.data();
+    float* z = vert.data();
+    gradient_transform_rows(b, b + row_len, b + 2 * row_len, b + 3 * row_len, z, z + row_len,
+                            z + 2 * row_len, z + 3 * row_len, z + 4 * row_len, z + 5 * row_len,
+                            row_len);
+    // Columns: tile tx's column c is phase c, entry tx.
+    for (int k = 0; k < kInputTile; ++k) {
+      const float* zk = vert.data() + k * row_len;
+      float* out[kInputTile];
+      for (int j = 0; j < kInputTile; ++j)
+        out[j] = g + ((k * kInputTile + j) * O + o) * tiles + r_t * cols;
+      gradient_transform_rows(zk, zk + cols, zk + 2 * cols, zk + 3 * cols, out[0], out[1], out[2],
+                              out[3], out[4], out[5], cols);
+    }
+  }
+}
+
 // Scratch of one thread for one block: the transforms' rows.
 struct TransformScratch {
   std::vector<float> a, b, c;
@@ -427,6 +493,87 @@ void conv3x3_winograd_input_gradient(const Tensor<float>& dy, const Tensor<float
     return static_cast<double>(weights[((in_c * I + out_c) * 3 + (2 - ky)) * 3 + (2 - kx)]);
   };
   winograd_convolution(dy.data(), s, weight_at, ConvEpilogue{}, dx.data(), workspace);
+}
+
+void conv3x3_winograd_weight_gradient(const Tensor<float>& x, const Tensor<float>& dy,
+                                      Tensor<float>& dw, WinogradWorkspace& workspace) {
+  constexpr const char* kOp = "conv3x3_winograd_weight_gradient";
+  PS_CHECK(x.rank() == 4, "{}: x must be (B, I, H, W), got shape {}", kOp, shape_str(x.shape()));
+  PS_CHECK(
+      dy.rank() == 4 && dy.dim(0) == x.dim(0) && dy.dim(2) == x.dim(2) && dy.dim(3) == x.dim(3),
+      "{}: dy must be (B, O, H, W) with x's B, H, W {}, got shape {}", kOp, shape_str(x.shape()),
+      shape_str(dy.shape()));
+  PS_CHECK(&dw != &x && &dw != &dy, "{}: dw must be a different tensor from x and dy", kOp);
+  WinogradShape s;
+  s.batch = x.dim(0);
+  s.in_channels = x.dim(1);
+  s.height = x.dim(2);
+  s.width = x.dim(3);
+  s.out_channels = dy.dim(1);
+  PS_CHECK(s.height >= 1 && s.width >= 1, "{}: the image must be at least 1x1, got {}x{}", kOp,
+           s.height, s.width);
+  const int64_t I = s.in_channels, O = s.out_channels, plane = s.height * s.width;
+  dw.resize({O, I, 3, 3});
+  if (dw.numel() == 0) return;
+  // dU (36, O, I) = sum over blocks of G[p] (O, T) V[p]^T (T, I), each position's sum in block
+  // order: the blocks run one after the other, each in three parallel phases (input transform
+  // by channel, gradient transform by channel, the 36 GEMMs), so every sum is the same for any
+  // thread count.
+  const std::vector<Block> blocks = plan_blocks(s);
+  int64_t max_tiles = 0;
+  for (const Block& blk : blocks) max_tiles = std::max(max_tiles, blk.tiles());
+  const auto grow = [](std::vector<float>& buffer, int64_t n) {
+    buffer.resize(std::max(buffer.size(), static_cast<size_t>(n)));
+  };
+  grow(workspace.weights, kPositions * O * I);
+  grow(workspace.inputs, kPositions * I * max_tiles);
+  grow(workspace.products, kPositions * O * max_tiles);
+  float* du = workspace.weights.data();
+  float* v = workspace.inputs.data();
+  float* g = workspace.products.data();
+  std::fill(du, du + kPositions * O * I, 0.0f);
+  const int threads = num_threads();
+  const bool parallel =
+      threads > 1 &&
+      kPositions * O * I * s.batch * s.tile_rows() * s.tile_cols() >= kMinParallelWork;
+  for (const Block& blk : blocks) {
+    const int64_t tiles = blk.tiles();
+#pragma omp parallel num_threads(threads) if (parallel)
+    {
+      TransformScratch scratch;
+      for_each_item(I, [&](int64_t i) {
+        transform_input_channel(x.data() + (blk.b * I + i) * plane, s, blk, i, v, scratch.a,
+                                scratch.b, scratch.c);
+      });
+      for_each_item(O, [&](int64_t o) {
+        transform_gradient_channel(dy.data() + (blk.b * O + o) * plane, s, blk, o, g, scratch.a,
+                                   scratch.b, scratch.c);
+      });
+      for_each_item(kPositions, [&](int64_t p) {
+        const ConstMatrixView g_p(g + p * O * tiles, O, tiles, Eigen::OuterStride<>(tiles));
+        const ConstMatrixView v_p(v + p * I * tiles, I, tiles, Eigen::OuterStride<>(tiles));
+        MatrixView du_p(du + p * O * I, O, I, Eigen::OuterStride<>(I));
+        du_p.noalias() += g_p * v_p.transpose();
+      });
+    }
+  }
+  // dw[o][i] = G^T dU[.][o][i] G (3 x 3 from 6 x 6), in double.
+  float* out = dw.data();
+  parallel_for(O, [&](int64_t o) {
+    for (int64_t i = 0; i < I; ++i) {
+      std::array<std::array<double, kInputTile>, 3> gt_du{};  // G^T dU
+      for (int ky = 0; ky < 3; ++ky)
+        for (int k = 0; k < kInputTile; ++k)
+          for (int j = 0; j < kInputTile; ++j)
+            gt_du[ky][j] += kG[k][ky] * du[((k * kInputTile + j) * O + o) * I + i];
+      for (int ky = 0; ky < 3; ++ky)
+        for (int kx = 0; kx < 3; ++kx) {
+          double sum = 0.0;
+          for (int j = 0; j < kInputTile; ++j) sum += gt_du[ky][j] * kG[j][kx];
+          out[((o * I + i) * 3 + ky) * 3 + kx] = static_cast<float>(sum);
+        }
+    }
+  });
 }
 
 }  // namespace pillarseg::host

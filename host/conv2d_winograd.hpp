@@ -33,7 +33,8 @@ struct ConvEpilogue {
 
 // Scratch reused across calls so that the steady state allocates nothing: the transformed
 // weights U (36, O, I) and, per block of tiles, the transformed inputs V (36, I, tiles) and the
-// products M (36, O, tiles). It grows to the largest layer and keeps that size.
+// products M (36, O, tiles) (for the weight gradient: dU, V and the transformed output
+// gradient). It grows to the largest layer and keeps that size.
 struct WinogradWorkspace {
   std::vector<float> weights, inputs, products;
   size_t bytes() const {
@@ -52,5 +53,13 @@ void conv3x3_winograd_forward(const Tensor<float>& x, const Tensor<float>& w,
 // swapped (pad 1 again). dx is resized and overwritten.
 void conv3x3_winograd_input_gradient(const Tensor<float>& dy, const Tensor<float>& w,
                                      Tensor<float>& dx, WinogradWorkspace& workspace);
+
+// The weight gradient of that convolution: x (B, I, H, W), dy (B, O, H, W) -> dw (O, I, 3, 3),
+// dw[o, i, ky, kx] = sum_{b, y, x} dy[b, o, y, x] x[b, i, y + ky - 1, x + kx - 1]. By linearity
+// of the forward map, dw_oi = G^T [sum over tiles (A e_o A^T) . (B^T d_i B)] G, e_o the 4x4 tile
+// of dy (zero beyond the image): 36 GEMMs (O, tiles) x (tiles, I) per block of tiles, summed
+// over blocks in order. dw is resized and overwritten.
+void conv3x3_winograd_weight_gradient(const Tensor<float>& x, const Tensor<float>& dy,
+                                      Tensor<float>& dw, WinogradWorkspace& workspace);
 
 }  // namespace pillarseg::host

@@ -1,6 +1,6 @@
 // The CPU fast paths against the host/ reference they replace: the Winograd F(4x4, 3x3)
-// convolution (forward with its epilogue, input gradient) against host::conv2d at odd shapes,
-// and the same bits for any thread count.
+// convolution (forward with its epilogue, input and weight gradients) against host::conv2d at
+// odd shapes, and the same bits for any thread count.
 #include <gtest/gtest.h>
 
 #include <algorithm>
@@ -79,6 +79,21 @@ TEST_P(WinogradConv, InputGradientMatchesReference) {
   EXPECT_TRUE(test::all_close(actual, expected, winograd_atol(O), kRtol));
 }
 
+// dw sums B H W products per weight, in float in both paths.
+TEST_P(WinogradConv, WeightGradientMatchesReference) {
+  const auto [B, I, H, W, O] = GetParam();
+  Rng rng(static_cast<uint64_t>(57 + B + I + H + W + O));
+  const Tensor<float> x = random_tensor<float>({B, I, H, W}, rng);
+  const Tensor<float> w = random_tensor<float>({O, I, 3, 3}, rng);
+  const Tensor<float> dy = random_tensor<float>({B, O, H, W}, rng);
+  Tensor<float> expected, actual;
+  host::conv2d_backward(x, w, dy, 1, nullptr, &expected, nullptr);
+  host::WinogradWorkspace ws;
+  host::conv3x3_winograd_weight_gradient(x, dy, actual, ws);
+  EXPECT_TRUE(
+      test::all_close(actual, expected, 2e-5 * std::sqrt(static_cast<double>(B * H * W)), kRtol));
+}
+
 INSTANTIATE_TEST_SUITE_P(Shapes, WinogradConv,
                          ::testing::Values(ConvCase{1, 1, 1, 1, 1}, ConvCase{2, 3, 7, 9, 5},
                                            ConvCase{1, 4, 1, 13, 3}, ConvCase{1, 5, 13, 1, 2},
@@ -97,17 +112,20 @@ TEST_P(WinogradThreads, SameBitsForAnyThreadCount) {
   const Tensor<float> w = random_tensor<float>({O, I, 3, 3}, rng);
   const Tensor<float> shift = random_tensor<float>({O}, rng);
   const int saved = num_threads();
-  Tensor<float> one, two, dx_one, dx_two;
+  Tensor<float> one, two, dx_one, dx_two, dw_one, dw_two;
   host::WinogradWorkspace ws;
   set_num_threads(1);
   host::conv3x3_winograd_forward(x, w, {nullptr, shift.data(), true}, one, ws);
   host::conv3x3_winograd_input_gradient(one, w, dx_one, ws);
+  host::conv3x3_winograd_weight_gradient(x, one, dw_one, ws);
   set_num_threads(2);
   host::conv3x3_winograd_forward(x, w, {nullptr, shift.data(), true}, two, ws);
   host::conv3x3_winograd_input_gradient(two, w, dx_two, ws);
+  host::conv3x3_winograd_weight_gradient(x, two, dw_two, ws);
   set_num_threads(saved);
   EXPECT_EQ(one, two);
   EXPECT_EQ(dx_one, dx_two);
+  EXPECT_EQ(dw_one, dw_two);
 }
 
 INSTANTIATE_TEST_SUITE_P(Schedules, WinogradThreads,
@@ -125,6 +143,13 @@ TEST(WinogradConv, RejectsWrongShapes) {
                Error);
   EXPECT_THROW(host::conv3x3_winograd_input_gradient(Tensor<float>({1, 3, 4, 4}),
                                                      Tensor<float>({2, 3, 3, 3}), y, ws),
+               Error);
+  // dy must match x in batch and image size.
+  EXPECT_THROW(host::conv3x3_winograd_weight_gradient(Tensor<float>({1, 3, 4, 4}),
+                                                      Tensor<float>({1, 2, 4, 5}), y, ws),
+               Error);
+  EXPECT_THROW(host::conv3x3_winograd_weight_gradient(Tensor<float>({2, 3, 4, 4}),
+                                                      Tensor<float>({1, 2, 4, 4}), y, ws),
                Error);
 }
 

@@ -1,8 +1,8 @@
 // CpuBackend: the Backend interface on the host/ reference ops (Eigen, OpenMP). Refs are
 // host pointers; each op wraps them as Tensor views (no copies) and calls host/. The 3x3 / pad 1
-// convolutions (forward, input gradient, and eval-mode Conv -> BatchNorm -> ReLU in one pass)
-// run on the Winograd fast path host/conv2d_winograd, which is tested against host/conv2d; the
-// eval PFN runs fused per block of pillars. make_cpu_reference_backend() has neither.
+// convolutions (forward, input and weight gradients, and eval-mode Conv -> BatchNorm -> ReLU in
+// one pass) run on the Winograd fast path host/conv2d_winograd, which is tested against
+// host/conv2d; the eval PFN runs fused per block of pillars. make_cpu_reference_backend() has neither.
 #include <algorithm>
 #include <cmath>
 #include <cstdlib>
@@ -133,11 +133,14 @@ class CpuBackend final : public Backend {
   void conv2d_backward(const Ref& x, const Ref& w, const Ref& dy, int pad, Ref* dx, Ref& dw, Ref* dbias) override {
     Tensor<float> gx, gw = view(dw), gb;
     if (dbias) gb = view(*dbias);
-    const bool fast_dx = dx && winograd_applies(w, pad);
     if (dx) gx = view(*dx);
-    host::conv2d_backward(view(x), view(w), view(dy), pad, dx && !fast_dx ? &gx : nullptr, &gw,
-                          dbias ? &gb : nullptr);
-    if (fast_dx) host::conv3x3_winograd_input_gradient(view(dy), view(w), gx, winograd_);
+    if (!winograd_applies(w, pad)) {
+      host::conv2d_backward(view(x), view(w), view(dy), pad, dx ? &gx : nullptr, &gw, dbias ? &gb : nullptr);
+      return;
+    }
+    if (dbias) host::conv2d_backward(view(x), view(w), view(dy), pad, nullptr, nullptr, &gb);
+    host::conv3x3_winograd_weight_gradient(view(x), view(dy), gw, winograd_);
+    if (dx) host::conv3x3_winograd_input_gradient(view(dy), view(w), gx, winograd_);
   }
   // BatchNorm with running statistics folded into the epilogue of the convolution:
   //   y = relu(conv(x, w) * s + (bias - mean) * s + beta),  s = gamma / sqrt(var + eps),
