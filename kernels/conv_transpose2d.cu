@@ -66,26 +66,38 @@ Shuffle make_shuffle(const ConvTranspose2dShape& s) {
 }
 
 // B = dy~ (4 O x B H W), the unshuffled output gradient: dy~[q][p] = dy at sub-pixel q of pixel
-// p. Each thread gathers the sub-pixel channels of one pixel.
+// p. Each thread gathers the sub-pixel channels of one pixel, rows q = k0 + first_row + kRowStep j
+// of the slice at k0. sub_pixel(q) reads q's bits (sx, sy, then o), so it splits into a sum over
+// parts of q that share no bits: first_row (< kRowStep, a power of 2) and kRowStep j (< kBlockK)
+// are two such parts, and k0, a multiple of 4, adds k0 / 4 planes. first_row's share is folded into
+// the pointer once, k0's once per slice, and j's is a constant per value.
 template <class Tile>
 struct UnshuffleLoaderB {
   using Layout = gemm::ColumnLayoutB<Tile>;
-  const float* corner;  // dy at this thread's pixel, channel 0
-  Shuffle g;
-  bool in_range;
+  static_assert(Tile::kBlockK % kSubPixels == 0, "a slice must start at sub-pixel 0 of a channel");
+  static_assert((Layout::kRowStep & (Layout::kRowStep - 1)) == 0, "kRowStep must be a power of 2");
+  const float* rows;  // dy at this thread's pixel, at sub-pixel row first_row
+  int out_plane;      // 2H 2W
+  int out_width;      // 2W
+  int rows_end;       // 4 O - first_row, or 0 when the pixel is past the end
   float values[Layout::kPerThread];
 
-  __device__ UnshuffleLoaderB(const float* dy, const Shuffle& g_, int n0) : g(g_) {
-    const int p = n0 + Layout::column(static_cast<int>(threadIdx.x));
-    in_range = p < g.input.total;
-    corner = dy + g.corner(in_range ? p : 0);
+  __device__ UnshuffleLoaderB(const float* dy, const Shuffle& g, int n0)
+      : out_plane(g.out_plane), out_width(g.out_width) {
+    const int thread = static_cast<int>(threadIdx.x);
+    const int p = n0 + Layout::column(thread);
+    const int first_row = Layout::first_row(thread);
+    const bool in_range = p < g.input.total;
+    rows = dy + g.corner(in_range ? p : 0) + g.sub_pixel(first_row);
+    rows_end = in_range ? kSubPixels * g.out_channels - first_row : 0;
   }
   __device__ __forceinline__ void fetch(int k0) {
-    const int first_row = Layout::first_row(static_cast<int>(threadIdx.x));
+    const float* channels = rows + k0 / kSubPixels * out_plane;
 #pragma unroll
     for (int j = 0; j < Layout::kPerThread; ++j) {
-      const int q = k0 + first_row + Layout::kRowStep * j;
-      values[j] = in_range && q < kSubPixels * g.out_channels ? corner[g.sub_pixel(q)] : 0.0f;
+      const int r = Layout::kRowStep * j;  // offset = sub_pixel(r), with constant factors
+      const int offset = r / kSubPixels * out_plane + r % kSubPixels / 2 * out_width + r % 2;
+      values[j] = k0 + r < rows_end ? channels[offset] : 0.0f;
     }
   }
   __device__ __forceinline__ void store(gemm::SliceB<Tile>& slice) const {

@@ -4,11 +4,12 @@
 // 3D a run splits where the ray crosses a layer boundary); the cell at each crossing is decided
 // exactly (a double evaluation, and near a tie the exact sign of an orientation from error-free
 // products and expansion sums). The device functions below are that code, line for line, so that
-// both visit the same cells. A run adds 1 to a difference array at its first cell and takes it
-// after its last (two atomics whatever its length); runs along x go to the counts themselves,
-// runs along y (2D rays that move more along y) to the workspace. Then, per line of the grid, a
-// block turns the differences into counts with a prefix sum (the y differences first summed down
-// the columns, one thread per column).
+// both visit the same cells; only the expansion sum is laid out in fixed slots, to stay in
+// registers (the same two-sums on the same components, see exact_sign_of_dot6). A run adds 1 to a
+// difference array at its first cell and takes it after its last (two atomics whatever its length);
+// runs along x go to the counts themselves, runs along y (2D rays that move more along y) to the
+// workspace. Then, per line of the grid, a block turns the differences into counts with a prefix
+// sum (the y differences first summed down the columns, one thread per column).
 #include "kernels/raywalk.cuh"
 
 #include <cmath>
@@ -90,30 +91,48 @@ static __device__ __forceinline__ void two_sum(double a, double b, double& sum, 
   err = (a - a_virtual) + (b - b_virtual);
 }
 
-// The exact sign of sum_i x[i] * y[i] over 6 terms: products split by fma into value and error,
-// accumulated into a nonoverlapping expansion (Shewchuk's Grow-Expansion, zero elimination).
-static __device__ int exact_sign_of_dot6(const double (&x)[6], const double (&y)[6]) {
-  double expansion[12];
-  int size = 0;
-  const auto grow = [&](double term) {
-    int kept = 0;
-    double running = term;
-    for (int i = 0; i < size; ++i) {
+// x * y rounded to double, never contracted with a later add into an fma: the expansion below
+// needs the product as rounded, whose error the fma beside it computes.
+static __device__ __forceinline__ double rounded_product(double x, double y) {
+#if defined(__CUDA_ARCH__)
+  return __dmul_rn(x, y);
+#else
+  return x * y;
+#endif
+}
+
+// The exact sign of sum_i x[i] * y[i] over 6 terms, as the host's exact_sign_of_dot: products
+// split by fma into value and error, accumulated into a nonoverlapping expansion (Shewchuk's
+// Grow-Expansion with zero elimination). Here the expansion keeps one slot per grow (grow g
+// fills slot g): a component the host eliminates stays as a zero in its slot and later grows
+// skip it, so the nonzero slots, in order, are the host's expansion, built by the same two-sums.
+// Unrolled, every slot index is a constant and the expansion lives in registers, not in local
+// memory.
+static __device__ __forceinline__ int exact_sign_of_dot6(const double (&x)[6],
+                                                         const double (&y)[6]) {
+  constexpr int kSlots = 12;
+  double slot[kSlots];
+#pragma unroll
+  for (int g = 0; g < kSlots; ++g) {
+    const double product = rounded_product(x[g / 2], y[g / 2]);
+    double running = g % 2 == 0 ? fma(x[g / 2], y[g / 2], -product) : product;
+#pragma unroll
+    for (int i = 0; i < g; ++i) {
+      if (slot[i] == 0.0) continue;
       double sum = 0.0, err = 0.0;
-      two_sum(running, expansion[i], sum, err);
-      if (err != 0.0) expansion[kept++] = err;
+      two_sum(running, slot[i], sum, err);
+      slot[i] = err;
       running = sum;
     }
-    if (running != 0.0) expansion[kept++] = running;
-    size = kept;
-  };
-  for (int i = 0; i < 6; ++i) {
-    const double product = x[i] * y[i];
-    grow(fma(x[i], y[i], -product));
-    grow(product);
+    slot[g] = running;
   }
-  if (size == 0) return 0;
-  return expansion[size - 1] > 0.0 ? 1 : -1;
+  // The sign of the largest component: the last nonzero slot, searched from the top (GCC 12.2's
+  // vectorizer miscompiles the forward "last nonzero wins" loop, and the emulation builds this).
+#pragma unroll
+  for (int i = kSlots - 1; i >= 0; --i) {
+    if (slot[i] != 0.0) return slot[i] > 0.0 ? 1 : -1;
+  }
+  return 0;
 }
 
 namespace {
