@@ -17,6 +17,7 @@ ENTRY = re.compile(r"Compiling entry function '([^']+)' for '(sm_\d+)'")
 FRAME = re.compile(r"(\d+) bytes stack frame, (\d+) bytes spill stores, (\d+) bytes spill loads")
 USED = re.compile(r"Used (\d+) registers")
 SMEM = re.compile(r"(\d+) bytes smem")
+PROPERTIES = re.compile(r"Function properties for (\S+)")
 
 
 def demangle(names):
@@ -37,19 +38,34 @@ def main():
     if len(sys.argv) < 2:
         sys.exit(__doc__)
     kernels = defaultdict(dict)  # mangled name -> arch -> (regs, smem, stack, spill_st, spill_ld)
+    # Spills of non-inlined device functions: (function, arch) -> (stack, spill_st, spill_ld).
+    functions = {}
     current = None
+    properties_of = None  # the function whose "Function properties" block is being read
     with open(sys.argv[1], errors="replace") as log:
         for line in log:
             m = ENTRY.search(line)
             if m:
                 current = [m.group(1), m.group(2), 0, 0, 0, 0, 0]
                 kernels[current[0]][current[1]] = current
+                properties_of = None
                 continue
             if current is None:
                 continue
+            m = PROPERTIES.search(line)
+            if m:
+                properties_of = m.group(1)
+                continue
             m = FRAME.search(line)
             if m:
-                current[4], current[5], current[6] = (int(g) for g in m.groups())
+                frame = tuple(int(g) for g in m.groups())
+                # ptxas lists a called function's frame after the kernel's: it must not
+                # overwrite the kernel's numbers, and its spills are spills too.
+                if properties_of in (None, current[0]):
+                    current[4], current[5], current[6] = frame
+                else:
+                    functions[(properties_of, current[1])] = frame
+                continue
             m = USED.search(line)
             if m:
                 current[2] = int(m.group(1))
@@ -80,8 +96,12 @@ def main():
     if len(sys.argv) > 2 and shutil.which("cuobjdump"):
         print("\ncuobjdump --dump-resource-usage:")
         subprocess.run(["cuobjdump", "--dump-resource-usage", sys.argv[2]], check=False)
+    function_names = demangle(sorted({f for f, _ in functions}))
+    for (function, arch), (stack, st, ld) in sorted(functions.items()):
+        if st or ld:
+            spilled.append(f"{short(function_names[function])} ({arch}, called function)")
     if spilled:
-        print(f"\n{len(spilled)} kernels spill registers: {', '.join(spilled)}")
+        print(f"\n{len(spilled)} kernels or called functions spill registers: {', '.join(spilled)}")
         return 1
     print("\nno kernel spills registers")
     return 0
