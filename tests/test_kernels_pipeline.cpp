@@ -483,6 +483,7 @@ std::vector<RayCase> ray_cases() {
       {"lattice, origin on a corner", dyadic, {0.0, 0.0, 0.0}, lattice_rays(1500, 5300)});
   cases.push_back(
       {"lattice, origin on an edge", dyadic, {0.125, -0.25, 0.0}, lattice_rays(1200, 5400)});
+  cases.push_back({"near ties", test::near_tie_grid(), {0.0, 0.0, 0.0}, test::near_tie_rays()});
   return cases;
 }
 

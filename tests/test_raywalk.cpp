@@ -505,6 +505,23 @@ TEST(Observability2D, MatchesSingleRayWalksForCraftedRaysAndOrigins) {
   }
 }
 
+// Rays passing within about 1e-7 cells of cell corners (inside the tie window, rarely exactly
+// through): crossings decided by the exact orientation sign, in the sweeps' fallback path.
+TEST(Observability2D, MatchesSingleRayWalksForRaysNearCorners) {
+  ThreadCountGuard guard;
+  const GridSpec grid = test::near_tie_grid();
+  const std::vector<Point> points = test::near_tie_rays();
+  const Vec3 origin(0.0, 0.0, 0.0);
+  Tensor<uint32_t> transmissions, detections;
+  expected_counts(points, origin, grid, false, transmissions, detections);
+  for (int threads : {1, 2}) {
+    set_num_threads(threads);
+    const ObservabilityCounts counts = observability_2d(points, origin, grid);
+    EXPECT_TRUE(same_counts(counts.transmissions, transmissions)) << threads << " threads";
+    EXPECT_TRUE(same_counts(counts.detections, detections)) << threads << " threads";
+  }
+}
+
 // The default grid (origin on a cell corner) against single-ray walks, for a spread of ranges.
 TEST(Observability2D, MatchesSingleRayWalksOnDefaultGrid) {
   ThreadCountGuard guard;
