@@ -178,29 +178,47 @@ void for_each_item(int64_t count, const Body& body) {
   for (int64_t item = 0; item < count; ++item) body(item);
 }
 
-// U (36, O, I): U[p][o][i] = (G g G^T)[p] of the 3x3 kernel weight_at(o, i, ky, kx). Each
-// output channel's 36 x I values are built in a local buffer and copied out as 36 contiguous
-// runs, rather than written 36 planes apart one value at a time.
-template <class WeightAt>
-void transform_weights(const WinogradShape& s, const WeightAt& weight_at, float* u) {
+// Where the 3x3 kernel of the convolution's (o, i) lies in the weight array:
+// kernel(o, i)[ky][kx] = w[o * o_stride + i * i_stride + tap], tap = 3 ky + kx, or 8 - tap when
+// flipped (the input gradient's kernel is w flipped in y and x, its channel axes swapped).
+struct WeightLayout {
+  const float* w = nullptr;
+  int64_t o_stride = 0, i_stride = 0;
+  bool flipped = false;
+};
+
+// U (36, O, I): U[p][o][i] = (G g G^T)[p] of the kernel g = kernel(o, i), in double, rounded
+// once. Per output channel, vectorised over i: the nine taps of every i, then G g (6 x 3), then
+// the 36 rows U[p][o][.], each written as one contiguous run.
+void transform_weights(const WinogradShape& s, const WeightLayout& layout, float* u) {
   const int64_t O = s.out_channels, I = s.in_channels;
   parallel_chunks(O, [&](int64_t o_begin, int64_t o_end, int) {
-    std::vector<float> local(static_cast<size_t>(kPositions * I));
+    std::vector<double> taps(static_cast<size_t>(9 * I));
+    std::vector<double> gg(static_cast<size_t>(kInputTile * 3 * I));  // (G g)[k][kx][i]
     for (int64_t o = o_begin; o < o_end; ++o) {
-      for (int64_t i = 0; i < I; ++i) {
-        std::array<std::array<double, 3>, kInputTile> gg{};  // G g
-        for (int k = 0; k < kInputTile; ++k)
-          for (int kx = 0; kx < 3; ++kx)
-            for (int ky = 0; ky < 3; ++ky) gg[k][kx] += kG[k][ky] * weight_at(o, i, ky, kx);
-        for (int k = 0; k < kInputTile; ++k)
-          for (int j = 0; j < kInputTile; ++j) {
-            double v = 0;
-            for (int kx = 0; kx < 3; ++kx) v += gg[k][kx] * kG[j][kx];
-            local[static_cast<size_t>((k * kInputTile + j) * I + i)] = static_cast<float>(v);
-          }
-      }
-      for (int p = 0; p < kPositions; ++p)
-        std::copy(local.begin() + p * I, local.begin() + (p + 1) * I, u + (p * O + o) * I);
+      const float* kernels = layout.w + o * layout.o_stride;
+      for (int64_t i = 0; i < I; ++i)
+        for (int tap = 0; tap < 9; ++tap)
+          taps[static_cast<size_t>(tap * I + i)] =
+              kernels[i * layout.i_stride + (layout.flipped ? 8 - tap : tap)];
+      for (int k = 0; k < kInputTile; ++k)
+        for (int kx = 0; kx < 3; ++kx) {
+          double* row = gg.data() + (k * 3 + kx) * I;
+          const double* t0 = taps.data() + kx * I;
+          const double* t1 = taps.data() + (3 + kx) * I;
+          const double* t2 = taps.data() + (6 + kx) * I;
+          for (int64_t i = 0; i < I; ++i)
+            row[i] = kG[k][0] * t0[i] + kG[k][1] * t1[i] + kG[k][2] * t2[i];
+        }
+      for (int k = 0; k < kInputTile; ++k)
+        for (int j = 0; j < kInputTile; ++j) {
+          const double* g0 = gg.data() + (k * 3) * I;
+          const double* g1 = g0 + I;
+          const double* g2 = g1 + I;
+          float* row = u + ((k * kInputTile + j) * O + o) * I;
+          for (int64_t i = 0; i < I; ++i)
+            row[i] = static_cast<float>(g0[i] * kG[j][0] + g1[i] * kG[j][1] + g2[i] * kG[j][2]);
+        }
     }
   });
 }
@@ -377,10 +395,9 @@ void run_block(const float* x, const WinogradShape& s, const Block& blk, const f
                              scratch.c);
 }
 
-// The convolution of x (B, I, H, W) with the kernel weight_at(o, i, ky, kx) (O, I, 3, 3), pad 1,
-// through the epilogue, into y (B, O, H, W).
-template <class WeightAt>
-void winograd_convolution(const float* x, const WinogradShape& s, const WeightAt& weight_at,
+// The convolution of x (B, I, H, W) with the kernels kernel(o, i) of the layout (O, I, 3, 3), pad
+// 1, through the epilogue, into y (B, O, H, W).
+void winograd_convolution(const float* x, const WinogradShape& s, const WeightLayout& layout,
                           const ConvEpilogue& e, float* y, WinogradWorkspace& ws) {
   const int64_t I = s.in_channels, O = s.out_channels, plane = s.height * s.width;
   const std::vector<Block> blocks = plan_blocks(s);
@@ -395,7 +412,7 @@ void winograd_convolution(const float* x, const WinogradShape& s, const WeightAt
   grow(ws.weights, kPositions * O * I);
   grow(ws.inputs, copies * kPositions * I * max_tiles);
   grow(ws.products, copies * kPositions * O * max_tiles);
-  transform_weights(s, weight_at, ws.weights.data());
+  transform_weights(s, layout, ws.weights.data());
   const float* u = ws.weights.data();
   const int64_t count = static_cast<int64_t>(blocks.size());
   const bool parallel =
@@ -470,12 +487,8 @@ void conv3x3_winograd_forward(const Tensor<float>& x, const Tensor<float>& w,
            "conv3x3_winograd_forward: the output y must be a different tensor from x and w");
   y.resize({s.batch, s.out_channels, s.height, s.width});
   if (y.numel() == 0) return;
-  const float* weights = w.data();
-  const int64_t I = s.in_channels;
-  const auto weight_at = [weights, I](int64_t o, int64_t i, int ky, int kx) {
-    return static_cast<double>(weights[((o * I + i) * 3 + ky) * 3 + kx]);
-  };
-  winograd_convolution(x.data(), s, weight_at, epilogue, y.data(), workspace);
+  const WeightLayout layout{w.data(), s.in_channels * 9, 9, false};
+  winograd_convolution(x.data(), s, layout, epilogue, y.data(), workspace);
 }
 
 void conv3x3_winograd_input_gradient(const Tensor<float>& dy, const Tensor<float>& w,
@@ -486,13 +499,9 @@ void conv3x3_winograd_input_gradient(const Tensor<float>& dy, const Tensor<float
            "conv3x3_winograd_input_gradient: dx must be a different tensor from dy and w");
   dx.resize({s.batch, s.out_channels, s.height, s.width});
   if (dx.numel() == 0) return;
-  const float* weights = w.data();
-  const int64_t I = w.dim(1);
-  // flipped[i][o][ky][kx] = w[o][i][2 - ky][2 - kx]: here "o" indexes dx's channels (w's I).
-  const auto weight_at = [weights, I](int64_t out_c, int64_t in_c, int ky, int kx) {
-    return static_cast<double>(weights[((in_c * I + out_c) * 3 + (2 - ky)) * 3 + (2 - kx)]);
-  };
-  winograd_convolution(dy.data(), s, weight_at, ConvEpilogue{}, dx.data(), workspace);
+  // The correlation's kernel(c, o) = w[o][c] flipped: c indexes dx's channels (w's I), o dy's.
+  const WeightLayout layout{w.data(), 9, w.dim(1) * 9, true};
+  winograd_convolution(dy.data(), s, layout, ConvEpilogue{}, dx.data(), workspace);
 }
 
 void conv3x3_winograd_weight_gradient(const Tensor<float>& x, const Tensor<float>& dy,
@@ -557,21 +566,33 @@ void conv3x3_winograd_weight_gradient(const Tensor<float>& x, const Tensor<float
       });
     }
   }
-  // dw[o][i] = G^T dU[.][o][i] G (3 x 3 from 6 x 6), in double.
+  // dw[o][i] = G^T dU[.][o][i] G (3 x 3 from 6 x 6), in double, vectorised over i.
   float* out = dw.data();
-  parallel_for(O, [&](int64_t o) {
-    for (int64_t i = 0; i < I; ++i) {
-      std::array<std::array<double, kInputTile>, 3> gt_du{};  // G^T dU
+  parallel_chunks(O, [&](int64_t o_begin, int64_t o_end, int) {
+    std::vector<double> gt_du(static_cast<size_t>(3 * kInputTile * I));  // (G^T dU)[ky][j][i]
+    std::vector<double> taps(static_cast<size_t>(9 * I));
+    for (int64_t o = o_begin; o < o_end; ++o) {
       for (int ky = 0; ky < 3; ++ky)
-        for (int k = 0; k < kInputTile; ++k)
-          for (int j = 0; j < kInputTile; ++j)
-            gt_du[ky][j] += kG[k][ky] * du[((k * kInputTile + j) * O + o) * I + i];
+        for (int j = 0; j < kInputTile; ++j) {
+          double* row = gt_du.data() + (ky * kInputTile + j) * I;
+          std::fill(row, row + I, 0.0);
+          for (int k = 0; k < kInputTile; ++k) {
+            const float* du_row = du + ((k * kInputTile + j) * O + o) * I;
+            for (int64_t i = 0; i < I; ++i) row[i] += kG[k][ky] * du_row[i];
+          }
+        }
       for (int ky = 0; ky < 3; ++ky)
         for (int kx = 0; kx < 3; ++kx) {
-          double sum = 0.0;
-          for (int j = 0; j < kInputTile; ++j) sum += gt_du[ky][j] * kG[j][kx];
-          out[((o * I + i) * 3 + ky) * 3 + kx] = static_cast<float>(sum);
+          double* tap = taps.data() + (ky * 3 + kx) * I;
+          std::fill(tap, tap + I, 0.0);
+          for (int j = 0; j < kInputTile; ++j) {
+            const double* row = gt_du.data() + (ky * kInputTile + j) * I;
+            for (int64_t i = 0; i < I; ++i) tap[i] += row[i] * kG[j][kx];
+          }
         }
+      for (int64_t i = 0; i < I; ++i)
+        for (int tap = 0; tap < 9; ++tap)
+          out[(o * I + i) * 9 + tap] = static_cast<float>(taps[static_cast<size_t>(tap * I + i)]);
     }
   });
 }
