@@ -10,6 +10,8 @@
 #include <Eigen/Core>
 #pragma GCC diagnostic pop
 
+#include "engine/core/parallel.hpp"
+
 namespace pillarseg::host {
 
 namespace {
@@ -28,8 +30,31 @@ struct ChannelBlocks {
   int64_t channels = 0;
   int64_t per_block = 0;
   bool channels_last = false;
+  int64_t block_stride = 0;  // values from one block to the next (channels * per_block, or more
+                             // for a range of the channels)
   int64_t values_per_channel() const { return count * per_block; }
 };
+
+// Below this many values a parallel region costs more than it saves.
+constexpr int64_t kMinParallelValues = int64_t{1} << 15;
+
+// Calls fn(part, c0) for ranges of channels [c0, c0 + part.channels), in parallel, part the
+// blocks of those channels (their data starts c0 * per_block values in). Each channel is
+// computed whole by one thread, as it is serially, so the results do not depend on the thread
+// count. A channels-last (M, C) tensor, whose channels interleave in memory, runs whole.
+template <class Fn>
+void for_channel_ranges(const ChannelBlocks& blocks, Fn&& fn) {
+  if (blocks.channels_last || blocks.channels < 2 ||
+      blocks.channels * blocks.values_per_channel() < kMinParallelValues) {
+    fn(blocks, int64_t{0});
+    return;
+  }
+  parallel_chunks(blocks.channels, [&](int64_t c0, int64_t c1, int) {
+    ChannelBlocks part = blocks;
+    part.channels = c1 - c0;
+    fn(part, c0);
+  });
+}
 
 template <int Order, class T>
 using ConstBlock = Eigen::Map<const Eigen::Array<T, Dynamic, Dynamic, Order>>;
@@ -38,21 +63,21 @@ using MutableBlock = Eigen::Map<Eigen::Array<T, Dynamic, Dynamic, Order>>;
 
 template <int Order, class T>
 ConstBlock<Order, T> block(const T* data, const ChannelBlocks& blocks, int64_t b) {
-  return {data + b * blocks.channels * blocks.per_block, blocks.channels, blocks.per_block};
+  return {data + b * blocks.block_stride, blocks.channels, blocks.per_block};
 }
 
 template <int Order, class T>
 MutableBlock<Order, T> block(T* data, const ChannelBlocks& blocks, int64_t b) {
-  return {data + b * blocks.channels * blocks.per_block, blocks.channels, blocks.per_block};
+  return {data + b * blocks.block_stride, blocks.channels, blocks.per_block};
 }
 
 template <class T>
 ChannelBlocks channel_blocks(const Tensor<T>& x, const char* op) {
   const Shape& s = x.shape();
-  if (s.size() == 2) return {1, s[1], s[0], true};
+  if (s.size() == 2) return {1, s[1], s[0], true, s[0] * s[1]};
   PS_CHECK(s.size() == 4, "{}: expected x of shape (B, C, H, W) or (M, C), given {}", op,
            shape_str(s));
-  return {s[0], s[1], s[2] * s[3], false};
+  return {s[0], s[1], s[2] * s[3], false, s[1] * s[2] * s[3]};
 }
 
 template <class T>
@@ -97,7 +122,7 @@ void add_channel_sums(const BlockExpr& values, ArrayXd& sums) {
 
 // Per-channel mean and biased variance over all values of each channel, in double, two-pass.
 template <int Order, class T>
-void batch_statistics(const T* x, const ChannelBlocks& blocks, ArrayXd& mean, ArrayXd& variance) {
+void channel_statistics(const T* x, const ChannelBlocks& blocks, ArrayXd& mean, ArrayXd& variance) {
   const auto count = static_cast<double>(blocks.values_per_channel());
   ArrayXd sum = ArrayXd::Zero(blocks.channels);
   for (int64_t b = 0; b < blocks.count; ++b) {
@@ -112,20 +137,34 @@ void batch_statistics(const T* x, const ChannelBlocks& blocks, ArrayXd& mean, Ar
   variance = squares / count;
 }
 
+template <int Order, class T>
+void batch_statistics(const T* x, const ChannelBlocks& blocks, ArrayXd& mean, ArrayXd& variance) {
+  for_channel_ranges(blocks, [&](const ChannelBlocks& part, int64_t c0) {
+    ArrayXd part_mean, part_variance;
+    channel_statistics<Order>(x + c0 * part.per_block, part, part_mean, part_variance);
+    mean.segment(c0, part.channels) = part_mean;
+    variance.segment(c0, part.channels) = part_variance;
+  });
+}
+
 // y = (x - center) * scale + shift per channel, then y = max(y, 0) when relu (written so that
 // NaN passes). Centring first keeps float precision when |mean| is large against the spread.
 template <int Order, class T>
 void normalize_per_channel(const T* x, const ChannelBlocks& blocks, const ArrayXd& center,
                            const ArrayXd& scale, const ArrayXd& shift, bool relu, T* y) {
-  const ChannelVector<T> center_t = center.cast<T>();
-  const ChannelVector<T> scale_t = scale.cast<T>();
-  const ChannelVector<T> shift_t = shift.cast<T>();
-  for (int64_t b = 0; b < blocks.count; ++b) {
-    auto yb = block<Order>(y, blocks, b);
-    yb =
-        ((block<Order>(x, blocks, b).colwise() - center_t).colwise() * scale_t).colwise() + shift_t;
-    if (relu) yb = (yb < T(0)).select(T(0), yb);
-  }
+  for_channel_ranges(blocks, [&](const ChannelBlocks& part, int64_t c0) {
+    const int64_t n = part.channels, offset = c0 * part.per_block;
+    const ChannelVector<T> center_t = center.segment(c0, n).cast<T>();
+    const ChannelVector<T> scale_t = scale.segment(c0, n).cast<T>();
+    const ChannelVector<T> shift_t = shift.segment(c0, n).cast<T>();
+    for (int64_t b = 0; b < part.count; ++b) {
+      auto yb = block<Order>(y + offset, part, b);
+      yb =
+          ((block<Order>(x + offset, part, b).colwise() - center_t).colwise() * scale_t).colwise() +
+          shift_t;
+      if (relu) yb = (yb < T(0)).select(T(0), yb);
+    }
+  });
 }
 
 template <class T>
@@ -134,8 +173,8 @@ void normalize_per_channel(const Tensor<T>& x, const ChannelBlocks& blocks, cons
   // In place (y is x, or a view of x's memory): every value is read before it is written; a
   // resize would zero x first.
   if (y.data() == x.data() && y.numel() > 0) {
-    PS_CHECK(y.shape() == x.shape(), "batchnorm in place: y {} must have the shape of x {}", shape_str(y.shape()),
-             shape_str(x.shape()));
+    PS_CHECK(y.shape() == x.shape(), "batchnorm in place: y {} must have the shape of x {}",
+             shape_str(y.shape()), shape_str(x.shape()));
   } else {
     y.resize_for_overwrite(x.shape());
   }
@@ -204,9 +243,9 @@ void forward_eval(const char* op, const Tensor<T>& x, const Tensor<T>& gamma, co
 //   dx = gamma * inv_std * (g - dbeta / n - xhat * dgamma / n).
 // dx first holds g, then is turned into the gradient in place.
 template <int Order, class T>
-void backward_blocks(const T* dy, const T* x, const T* relu_output, const ChannelBlocks& blocks,
-                     const ArrayXd& gamma, const ArrayXd& mean, const ArrayXd& inv_std, T* dx,
-                     ArrayXd& dgamma, ArrayXd& dbeta) {
+void channel_backward(const T* dy, const T* x, const T* relu_output, const ChannelBlocks& blocks,
+                      const ArrayXd& gamma, const ArrayXd& mean, const ArrayXd& inv_std, T* dx,
+                      ArrayXd& dgamma, ArrayXd& dbeta) {
   const ChannelVector<T> mean_t = mean.cast<T>();
   const ChannelVector<T> inv_std_t = inv_std.cast<T>();
   ArrayXd sum_g = ArrayXd::Zero(blocks.channels);
@@ -236,6 +275,21 @@ void backward_blocks(const T* dy, const T* x, const T* relu_output, const Channe
     const auto xhat = (xb.colwise() - mean_t).colwise() * inv_std_t;
     g = ((g.colwise() - mean_g) - xhat.colwise() * mean_g_xhat).colwise() * scale;
   }
+}
+
+template <int Order, class T>
+void backward_blocks(const T* dy, const T* x, const T* relu_output, const ChannelBlocks& blocks,
+                     const ArrayXd& gamma, const ArrayXd& mean, const ArrayXd& inv_std, T* dx,
+                     ArrayXd& dgamma, ArrayXd& dbeta) {
+  for_channel_ranges(blocks, [&](const ChannelBlocks& part, int64_t c0) {
+    const int64_t n = part.channels, offset = c0 * part.per_block;
+    ArrayXd part_dgamma, part_dbeta;
+    channel_backward<Order>(dy + offset, x + offset, relu_output ? relu_output + offset : nullptr,
+                            part, gamma.segment(c0, n), mean.segment(c0, n), inv_std.segment(c0, n),
+                            dx + offset, part_dgamma, part_dbeta);
+    dgamma.segment(c0, n) = part_dgamma;
+    dbeta.segment(c0, n) = part_dbeta;
+  });
 }
 
 template <class T>

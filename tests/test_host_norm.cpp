@@ -9,6 +9,7 @@
 #include <string>
 #include <vector>
 
+#include "engine/core/parallel.hpp"
 #include "engine/core/rng.hpp"
 #include "host/batchnorm.hpp"
 #include "host/pfn.hpp"
@@ -149,6 +150,36 @@ TEST(HostBatchNorm, InPlaceMatchesOutOfPlace) {
     batchnorm_backward(dy, x, gamma, saved1, dx, dgamma, dbeta);
     batchnorm_backward(dy, x, gamma, saved1, dy, dgamma, dbeta);
     EXPECT_TRUE(test::all_close(dy, dx, 0, 0));
+  }
+}
+
+// Large enough (>= 2^15 values) that ranges of channels run in parallel; every channel is
+// computed whole by one thread, as with one thread: the same bits for any thread count.
+TEST(HostBatchNorm, SameBitsForEveryThreadCount) {
+  const int saved_threads = num_threads();
+  Rng rng(12);
+  const Shape shape{2, 7, 41, 59};
+  const Tensor<float> x = random_tensor<float>(shape, rng, -2, 3);
+  const Tensor<float> dy = random_tensor<float>(shape, rng);
+  const Tensor<float> gamma = random_tensor<float>({7}, rng, 0.5, 1.5);
+  const Tensor<float> beta = random_tensor<float>({7}, rng);
+  std::vector<Tensor<float>> results;
+  for (int threads : {1, 2, 3}) {
+    set_num_threads(threads);
+    Tensor<float> mean({7}, 0.0f), var({7}, 1.0f), y, dx, dgamma, dbeta, eval;
+    int64_t batches = 0;
+    BatchNormSaved<float> saved;
+    batchnorm_relu_forward_train(x, gamma, beta, {}, mean, var, batches, y, saved);
+    batchnorm_relu_backward(dy, x, y, gamma, saved, dx, dgamma, dbeta);
+    batchnorm_relu_forward_eval(x, gamma, beta, mean, var, {}, eval);
+    for (const Tensor<float>* t : {&y, &mean, &var, &saved.inv_std, &dx, &dgamma, &dbeta, &eval})
+      results.push_back(*t);
+  }
+  set_num_threads(saved_threads);
+  const size_t per_run = results.size() / 3;
+  for (size_t i = 0; i < per_run; ++i) {
+    EXPECT_EQ(results[i], results[per_run + i]) << "result " << i << ", 2 threads";
+    EXPECT_EQ(results[i], results[2 * per_run + i]) << "result " << i << ", 3 threads";
   }
 }
 
