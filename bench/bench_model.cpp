@@ -314,15 +314,16 @@ class TimedBackend final : public Backend {
   }
 
   void pfn_forward(const Ref& points, const Ref& weight, BatchNormRefs& bn, bool training,
-                   IRef& argmax, Ref& out) override {
+                   IRef& argmax, Ref& out, const Ref& scratch) override {
     timed("pfn forward", linear_flops(points, weight),
-          [&] { inner_->pfn_forward(points, weight, bn, training, argmax, out); });
+          [&] { inner_->pfn_forward(points, weight, bn, training, argmax, out, scratch); });
   }
   void pfn_backward(const Ref& points, const Ref& weight, const BatchNormRefs& bn,
                     const IRef& argmax, const Ref& dout, Ref& d_points, Ref& dweight, Ref& dgamma,
-                    Ref& dbeta) override {
+                    Ref& dbeta, const Ref& scratch) override {
     timed("pfn backward", 2 * linear_flops(points, weight), [&] {
-      inner_->pfn_backward(points, weight, bn, argmax, dout, d_points, dweight, dgamma, dbeta);
+      inner_->pfn_backward(points, weight, bn, argmax, dout, d_points, dweight, dgamma, dbeta,
+                           scratch);
     });
   }
   void scatter_forward(const Ref& features, const IRef& cells, int channel0, Ref& canvas) override {

@@ -6,10 +6,14 @@
 // from I to 4 O channels, channel o * 4 + dy * 2 + dx holding sub-pixel (dy, dx) of output
 // channel o, followed by a pixel shuffle that moves each sub-pixel channel to its place; its
 // backward is the inverse shuffle followed by the 1x1 convolution's backward (host/conv2d).
+// Sub-pixel channels o * 4 .. o * 4 + 3 fill exactly the bytes of output channel o, so both
+// shuffles run in place, one channel at a time: the sub-pixel tensor is y's (or dy's) memory.
 #include "host/conv_transpose2d.hpp"
 
+#include <algorithm>
 #include <cstdint>
 #include <type_traits>
+#include <vector>
 
 #include "engine/core/error.hpp"
 #include "engine/core/parallel.hpp"
@@ -53,6 +57,37 @@ Tensor<T> pointwise_weight(const Tensor<T>& w) {
   return pointwise;
 }
 
+// Rearranges each of the `planes` chunks of 4 H W values of `data` in place through a copy of
+// one chunk: to_output (the forward's shuffle, adding offset(plane) to every value)
+//   chunk[(2 h + s / 2) * 2 W + 2 w + s % 2] = copy[s * H W + h * W + w] + offset(plane),
+// or back (the backward's inverse shuffle, no offset)
+//   chunk[s * H W + h * W + w] = copy[(2 h + s / 2) * 2 W + 2 w + s % 2].
+template <class T, class Offset>
+void shuffle_in_place(T* data, int64_t planes, int64_t height, int64_t width, bool to_output,
+                      const Offset& offset) {
+  const int64_t sub_plane = height * width;
+  const int64_t chunk_size = kSubPixels * sub_plane;
+  parallel_chunks(planes, [&](int64_t begin, int64_t end, int) {
+    std::vector<T> copy(static_cast<size_t>(chunk_size));
+    for (int64_t plane = begin; plane < end; ++plane) {
+      T* chunk = data + plane * chunk_size;
+      std::copy(chunk, chunk + chunk_size, copy.begin());
+      const T add = to_output ? offset(plane) : T{0};
+      for (int64_t s = 0; s < kSubPixels; ++s)
+        for (int64_t h = 0; h < height; ++h)
+          for (int64_t c = 0; c < width; ++c) {
+            const int64_t sub = s * sub_plane + h * width + c;
+            const int64_t out = (2 * h + s / 2) * 2 * width + 2 * c + s % 2;
+            if (to_output) {
+              chunk[out] = copy[static_cast<size_t>(sub)] + add;
+            } else {
+              chunk[sub] = copy[static_cast<size_t>(out)];
+            }
+          }
+    }
+  });
+}
+
 }  // namespace
 
 template <class T>
@@ -66,19 +101,13 @@ void conv_transpose2d_forward(const Tensor<T>& x, const Tensor<T>& w,
   const int64_t width = x.dim(3);
   const int64_t out_channels = w.dim(1);
 
-  Tensor<T> sub_pixels;  // (B, 4 O, H, W)
-  conv2d_forward(x, pointwise_weight(w), nullptr, 0, sub_pixels);
-
   y.resize({batch, out_channels, 2 * height, 2 * width});
-  parallel_for(batch * out_channels, [&](int64_t plane) {
-    const int64_t b = plane / out_channels;
-    const int64_t o = plane % out_channels;
-    const T offset = bias != nullptr ? (*bias)[o] : T{0};
-    for (int64_t s = 0; s < kSubPixels; ++s)
-      for (int64_t h = 0; h < height; ++h)
-        for (int64_t c = 0; c < width; ++c)
-          y(b, o, 2 * h + s / 2, 2 * c + s % 2) = sub_pixels(b, o * kSubPixels + s, h, c) + offset;
-  });
+  Tensor<T> sub_pixels =
+      Tensor<T>::view(y.data(), {batch, out_channels * kSubPixels, height, width});
+  conv2d_forward(x, pointwise_weight(w), nullptr, 0, sub_pixels);
+  shuffle_in_place(
+      y.data(), batch * out_channels, height, width, /*to_output=*/true,
+      [&](int64_t plane) { return bias != nullptr ? (*bias)[plane % out_channels] : T{0}; });
 }
 
 template <class T>
@@ -86,6 +115,16 @@ void conv_transpose2d_backward(const Tensor<T>& x, const Tensor<T>& w, const Ten
                                std::type_identity_t<Tensor<T>>* dx,
                                std::type_identity_t<Tensor<T>>* dw,
                                std::type_identity_t<Tensor<T>>* db) {
+  Tensor<T> scratch = dy;
+  conv_transpose2d_backward_overwriting_dy(x, w, scratch, dx, dw, db);
+}
+
+template <class T>
+void conv_transpose2d_backward_overwriting_dy(const Tensor<T>& x, const Tensor<T>& w,
+                                              std::type_identity_t<Tensor<T>>& dy,
+                                              std::type_identity_t<Tensor<T>>* dx,
+                                              std::type_identity_t<Tensor<T>>* dw,
+                                              std::type_identity_t<Tensor<T>>* db) {
   check_args("conv_transpose2d_backward", x, w, nullptr);
   const int64_t batch = x.dim(0);
   const int64_t height = x.dim(2);
@@ -112,15 +151,10 @@ void conv_transpose2d_backward(const Tensor<T>& x, const Tensor<T>& w, const Ten
   if (dx == nullptr && dw == nullptr) return;
 
   // Inverse pixel shuffle: d_sub_pixels[b, o * 4 + s, h, w] = dy[b, o, 2 h + s / 2, 2 w + s % 2].
-  Tensor<T> d_sub_pixels({batch, out_channels * kSubPixels, height, width});
-  parallel_for(batch * out_channels, [&](int64_t plane) {
-    const int64_t b = plane / out_channels;
-    const int64_t o = plane % out_channels;
-    for (int64_t s = 0; s < kSubPixels; ++s)
-      for (int64_t h = 0; h < height; ++h)
-        for (int64_t c = 0; c < width; ++c)
-          d_sub_pixels(b, o * kSubPixels + s, h, c) = dy(b, o, 2 * h + s / 2, 2 * c + s % 2);
-  });
+  shuffle_in_place(dy.data(), batch * out_channels, height, width, /*to_output=*/false,
+                   [](int64_t) { return T{0}; });
+  const Tensor<T> d_sub_pixels =
+      Tensor<T>::view(dy.data(), {batch, out_channels * kSubPixels, height, width});
 
   Tensor<T> d_pointwise;  // (4 O, I, 1, 1)
   conv2d_backward(x, pointwise_weight(w), d_sub_pixels, 0, dx,
@@ -144,5 +178,13 @@ template void conv_transpose2d_backward<float>(const Tensor<float>&, const Tenso
 template void conv_transpose2d_backward<double>(const Tensor<double>&, const Tensor<double>&,
                                                 const Tensor<double>&, Tensor<double>*,
                                                 Tensor<double>*, Tensor<double>*);
+template void conv_transpose2d_backward_overwriting_dy<float>(const Tensor<float>&,
+                                                              const Tensor<float>&, Tensor<float>&,
+                                                              Tensor<float>*, Tensor<float>*,
+                                                              Tensor<float>*);
+template void conv_transpose2d_backward_overwriting_dy<double>(const Tensor<double>&,
+                                                               const Tensor<double>&,
+                                                               Tensor<double>&, Tensor<double>*,
+                                                               Tensor<double>*, Tensor<double>*);
 
 }  // namespace pillarseg::host

@@ -25,4 +25,13 @@ void conv_transpose2d_backward(const Tensor<T>& x, const Tensor<T>& w, const Ten
                                std::type_identity_t<Tensor<T>>* dw,
                                std::type_identity_t<Tensor<T>>* db);
 
+// The same gradients, using dy's memory as scratch: dy is overwritten (with its sub-pixel
+// rearrangement), so that no second tensor of its size is allocated.
+template <class T>
+void conv_transpose2d_backward_overwriting_dy(const Tensor<T>& x, const Tensor<T>& w,
+                                              std::type_identity_t<Tensor<T>>& dy,
+                                              std::type_identity_t<Tensor<T>>* dx,
+                                              std::type_identity_t<Tensor<T>>* dw,
+                                              std::type_identity_t<Tensor<T>>* db);
+
 }  // namespace pillarseg::host

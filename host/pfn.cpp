@@ -80,9 +80,11 @@ template <class T>
 void pfn_forward_train(const Tensor<T>& input, const Tensor<T>& weight, const Tensor<T>& gamma,
                        const Tensor<T>& beta, const BatchNormOptions& options,
                        Tensor<T>& running_mean, Tensor<T>& running_var,
-                       int64_t& num_batches_tracked, Tensor<T>& out, PfnSaved<T>& saved) {
+                       int64_t& num_batches_tracked, Tensor<T>& out, PfnSaved<T>& saved,
+                       T* scratch) {
   const PfnShape s = check_input_and_weight("pfn_forward_train", input, weight);
-  Tensor<T> activations;  // z, then BatchNorm + ReLU in place
+  // z, then BatchNorm + ReLU in place
+  Tensor<T> activations = scratch ? Tensor<T>::view(scratch, {s.rows(), s.channels}) : Tensor<T>();
   linear(input, weight, s, activations);
   batchnorm_relu_forward_train(activations, gamma, beta, options, running_mean, running_var,
                                num_batches_tracked, activations, saved.norm);
@@ -106,7 +108,7 @@ void pfn_forward_eval(const Tensor<T>& input, const Tensor<T>& weight, const Ten
 template <class T>
 void pfn_backward(const Tensor<T>& d_out, const Tensor<T>& input, const Tensor<T>& weight,
                   const Tensor<T>& gamma, const PfnSaved<T>& saved, Tensor<T>& d_input,
-                  Tensor<T>& d_weight, Tensor<T>& d_gamma, Tensor<T>& d_beta) {
+                  Tensor<T>& d_weight, Tensor<T>& d_gamma, Tensor<T>& d_beta, T* scratch) {
   const char* op = "pfn_backward";
   const PfnShape s = check_input_and_weight(op, input, weight);
   const Shape out_shape{s.pillars, s.channels};
@@ -118,7 +120,9 @@ void pfn_backward(const Tensor<T>& d_out, const Tensor<T>& input, const Tensor<T
 
   // The max and the ReLU route d_out(p, c) to one row of dL/d(BatchNorm output), or nowhere.
   // BatchNorm's backward then turns it into dL/dz in place.
-  Tensor<T> dz({s.rows(), s.channels});
+  const Shape rows_shape{s.rows(), s.channels};
+  Tensor<T> dz = scratch ? Tensor<T>::view(scratch, rows_shape) : Tensor<T>();
+  dz.resize(rows_shape);  // zero
   for (int64_t p = 0; p < s.pillars; ++p) {
     for (int64_t c = 0; c < s.channels; ++c) {
       const int32_t slot = saved.max_slot(p, c);
@@ -129,7 +133,8 @@ void pfn_backward(const Tensor<T>& d_out, const Tensor<T>& input, const Tensor<T
     }
   }
 
-  Tensor<T> z;
+  Tensor<T> z =
+      scratch ? Tensor<T>::view(scratch + s.rows() * s.channels, rows_shape) : Tensor<T>();
   linear(input, weight, s, z);
   batchnorm_backward(dz, z, gamma, saved.norm, dz, d_gamma, d_beta);
 
@@ -146,13 +151,13 @@ void pfn_backward(const Tensor<T>& d_out, const Tensor<T>& input, const Tensor<T
 #define PILLARSEG_INSTANTIATE_PFN(T)                                                          \
   template void pfn_forward_train<T>(const Tensor<T>&, const Tensor<T>&, const Tensor<T>&,    \
                                      const Tensor<T>&, const BatchNormOptions&, Tensor<T>&,   \
-                                     Tensor<T>&, int64_t&, Tensor<T>&, PfnSaved<T>&);         \
+                                     Tensor<T>&, int64_t&, Tensor<T>&, PfnSaved<T>&, T*);     \
   template void pfn_forward_eval<T>(const Tensor<T>&, const Tensor<T>&, const Tensor<T>&,     \
                                     const Tensor<T>&, const Tensor<T>&, const Tensor<T>&,     \
                                     const BatchNormOptions&, Tensor<T>&);                     \
   template void pfn_backward<T>(const Tensor<T>&, const Tensor<T>&, const Tensor<T>&,         \
                                 const Tensor<T>&, const PfnSaved<T>&, Tensor<T>&, Tensor<T>&, \
-                                Tensor<T>&, Tensor<T>&);
+                                Tensor<T>&, Tensor<T>&, T*);
 
 PILLARSEG_INSTANTIATE_PFN(float)
 PILLARSEG_INSTANTIATE_PFN(double)

@@ -28,11 +28,13 @@ struct PfnSaved {
 // Training forward. input (P, N, D); weight (C, D); gamma, beta (C); running_mean, running_var
 // (C) and num_batches_tracked updated in place as BatchNorm does. Writes out (P, C) and saved.
 // P = 0 gives an empty out and leaves the running statistics as they are (no batch to measure).
+// scratch: room for P * N * C values (the activations before the max), or null to allocate it.
 template <class T>
 void pfn_forward_train(const Tensor<T>& input, const Tensor<T>& weight, const Tensor<T>& gamma,
                        const Tensor<T>& beta, const BatchNormOptions& options,
                        Tensor<T>& running_mean, Tensor<T>& running_var,
-                       int64_t& num_batches_tracked, Tensor<T>& out, PfnSaved<T>& saved);
+                       int64_t& num_batches_tracked, Tensor<T>& out, PfnSaved<T>& saved,
+                       T* scratch = nullptr);
 
 // Evaluation forward with the running statistics. Shapes as pfn_forward_train.
 template <class T>
@@ -43,9 +45,11 @@ void pfn_forward_eval(const Tensor<T>& input, const Tensor<T>& weight, const Ten
 
 // Backward of the training forward. d_out (P, C); input, weight, gamma and saved as given to and
 // written by the forward. Writes d_input (P, N, D), d_weight (C, D), d_gamma and d_beta (C).
+// scratch: room for 2 P * N * C values (the recomputed linear output and its gradient), or null
+// to allocate them.
 template <class T>
 void pfn_backward(const Tensor<T>& d_out, const Tensor<T>& input, const Tensor<T>& weight,
                   const Tensor<T>& gamma, const PfnSaved<T>& saved, Tensor<T>& d_input,
-                  Tensor<T>& d_weight, Tensor<T>& d_gamma, Tensor<T>& d_beta);
+                  Tensor<T>& d_weight, Tensor<T>& d_gamma, Tensor<T>& d_beta, T* scratch = nullptr);
 
 }  // namespace pillarseg::host

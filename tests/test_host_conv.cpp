@@ -378,6 +378,25 @@ TEST_P(ConvTranspose2dCases, BackwardMatchesFiniteDifferences) {
   EXPECT_TRUE(test::all_close(tensor_cast<double>(dbf), db, 1e-5, 1e-5));
 }
 
+// The dy-consuming backward rearranges dy in place; its gradients are the copying backward's,
+// bit for bit (the same products in the same order).
+TEST_P(ConvTranspose2dCases, BackwardOverwritingDyIsBitIdentical) {
+  const TransposeCase c = GetParam();
+  Rng rng(11);
+  const TensorF x = tensor_cast<float>(random_tensor({c.batch, c.in_ch, c.height, c.width}, rng));
+  const TensorF w = tensor_cast<float>(random_tensor({c.in_ch, c.out_ch, 2, 2}, rng));
+  const TensorF dy =
+      tensor_cast<float>(random_tensor({c.batch, c.out_ch, 2 * c.height, 2 * c.width}, rng));
+  TensorF dx, dw, db;
+  conv_transpose2d_backward(x, w, dy, &dx, &dw, &db);
+  TensorF scratch = dy, dx2 = stale_output<float>(), dw2 = stale_output<float>(),
+          db2 = stale_output<float>();
+  conv_transpose2d_backward_overwriting_dy(x, w, scratch, &dx2, &dw2, &db2);
+  EXPECT_TRUE(test::all_close(dx2, dx, 0, 0)) << "dx";
+  EXPECT_TRUE(test::all_close(dw2, dw, 0, 0)) << "dw";
+  EXPECT_TRUE(test::all_close(db2, db, 0, 0)) << "db";
+}
+
 INSTANTIATE_TEST_SUITE_P(OddSizes, ConvTranspose2dCases,
                          ::testing::Values(TransposeCase{2, 3, 5, 5, 7, true},
                                            TransposeCase{2, 3, 5, 3, 1, true},

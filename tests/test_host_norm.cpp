@@ -569,6 +569,42 @@ TEST(HostPfn, TiesGoToTheFirstSlotAndZeroMaxesPassNoGradient) {
   }
 }
 
+// With the caller's scratch (stale values in it), forward and backward give what they give
+// allocating their own, bit for bit.
+TEST(HostPfn, ScratchGivesTheSameResults) {
+  Rng rng(5);
+  const int64_t P = 7, N = 4, C = 6;
+  const TensorF input = tensor_cast<float>(random_tensor({P, N, 10}, rng));
+  const TensorF weight = tensor_cast<float>(random_tensor({C, 10}, rng));
+  const TensorF gamma = tensor_cast<float>(random_tensor({C}, rng, 0.5, 1.5));
+  const TensorF beta = tensor_cast<float>(random_tensor({C}, rng));
+  const TensorF d_out = tensor_cast<float>(random_tensor({P, C}, rng));
+  struct Run {
+    TensorF out, d_input, d_weight, d_gamma, d_beta, mean, var;
+  };
+  const auto run = [&](float* scratch) {
+    Run r;
+    r.mean = TensorF({C}, 0.0f), r.var = TensorF({C}, 1.0f);
+    int64_t batches = 0;
+    PfnSaved<float> saved;
+    pfn_forward_train(input, weight, gamma, beta, kPfnNormOptions, r.mean, r.var, batches, r.out,
+                      saved, scratch);
+    pfn_backward(d_out, input, weight, gamma, saved, r.d_input, r.d_weight, r.d_gamma, r.d_beta,
+                 scratch);
+    return r;
+  };
+  const Run own = run(nullptr);
+  std::vector<float> scratch(static_cast<size_t>(2 * P * N * C), 123.0f);
+  const Run given = run(scratch.data());
+  EXPECT_TRUE(test::all_close(given.out, own.out, 0, 0));
+  EXPECT_TRUE(test::all_close(given.mean, own.mean, 0, 0));
+  EXPECT_TRUE(test::all_close(given.var, own.var, 0, 0));
+  EXPECT_TRUE(test::all_close(given.d_input, own.d_input, 0, 0));
+  EXPECT_TRUE(test::all_close(given.d_weight, own.d_weight, 0, 0));
+  EXPECT_TRUE(test::all_close(given.d_gamma, own.d_gamma, 0, 0));
+  EXPECT_TRUE(test::all_close(given.d_beta, own.d_beta, 0, 0));
+}
+
 TEST(HostPfn, NoPillars) {
   const TensorD input({0, 4, 10}), weight({3, 10}, 0.5), gamma({3}, 1.0), beta({3}, 0.0);
   TensorD running_mean({3}, 0.25), running_var({3}, 2.0), out;

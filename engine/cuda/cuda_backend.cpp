@@ -319,8 +319,10 @@ std::unique_ptr<CapturedGraph> CudaBackend::capture(const std::function<void()>&
 
 // ---- pillar feature net and scatter ----
 
+// The PFN kernels keep no (P N, C) tensor whole (they recompute the linear output per block of
+// pillars), so they use no scratch.
 void CudaBackend::pfn_forward(const Ref& points, const Ref& weight, BatchNormRefs& bn,
-                              bool training, IRef& argmax, Ref& out) {
+                              bool training, IRef& argmax, Ref& out, const Ref& /*scratch*/) {
   const char* op = "pfn_forward";
   require_rank(op, "points", points, 3);
   require_rank(op, "weight", weight, 2);
@@ -344,7 +346,7 @@ void CudaBackend::pfn_forward(const Ref& points, const Ref& weight, BatchNormRef
 
 void CudaBackend::pfn_backward(const Ref& points, const Ref& weight, const BatchNormRefs& bn,
                                const IRef& argmax, const Ref& dout, Ref& d_points, Ref& dweight,
-                               Ref& dgamma, Ref& dbeta) {
+                               Ref& dgamma, Ref& dbeta, const Ref& /*scratch*/) {
   const char* op = "pfn_backward";
   require_rank(op, "points", points, 3);
   require_rank(op, "weight", weight, 2);

@@ -85,10 +85,10 @@ class CudaBackend final : public Backend {
   std::unique_ptr<CapturedGraph> capture(const std::function<void()>& work) override;
 
   void pfn_forward(const Ref& points, const Ref& weight, BatchNormRefs& bn, bool training,
-                   IRef& argmax, Ref& out) override;
+                   IRef& argmax, Ref& out, const Ref& scratch) override;
   void pfn_backward(const Ref& points, const Ref& weight, const BatchNormRefs& bn,
                     const IRef& argmax, const Ref& dout, Ref& d_points, Ref& dweight, Ref& dgamma,
-                    Ref& dbeta) override;
+                    Ref& dbeta, const Ref& scratch) override;
   void scatter_forward(const Ref& features, const IRef& cells, int channel0, Ref& canvas) override;
   void scatter_backward(const Ref& dcanvas, const IRef& cells, int channel0,
                         Ref& dfeatures) override;

@@ -80,10 +80,15 @@ class Backend {
   // -> (P, C). Training uses batch statistics over all P*N rows and saves what backward needs
   // (the batch statistics in bn.save_*, the arg-max slot (P, C) in `argmax`, -1 where the
   // output is 0). Backward recomputes the linear output; d_points (P, N, 10) is scratch.
-  virtual void pfn_forward(const Ref& points, const Ref& weight, BatchNormRefs& bn, bool training, IRef& argmax,
-                           Ref& out) = 0;
-  virtual void pfn_backward(const Ref& points, const Ref& weight, const BatchNormRefs& bn, const IRef& argmax,
-                            const Ref& dout, Ref& d_points, Ref& dweight, Ref& dgamma, Ref& dbeta) = 0;
+  // `scratch` is memory the caller plans for what a backend keeps whole during the op: room for
+  // P N C floats in the training forward (the activations before the max) and 2 P N C in the
+  // backward (the linear output and its gradient); a null scratch makes such a backend allocate
+  // them itself, and a backend that works in smaller blocks ignores it.
+  virtual void pfn_forward(const Ref& points, const Ref& weight, BatchNormRefs& bn, bool training,
+                           IRef& argmax, Ref& out, const Ref& scratch) = 0;
+  virtual void pfn_backward(const Ref& points, const Ref& weight, const BatchNormRefs& bn,
+                            const IRef& argmax, const Ref& dout, Ref& d_points, Ref& dweight,
+                            Ref& dgamma, Ref& dbeta, const Ref& scratch) = 0;
   // Pillar features (P, C) + cells (P, 3: batch, iy, ix) -> canvas (B, C, H, W) at channel
   // offset `channel0` of a canvas with more channels (the other channels are untouched).
   virtual void scatter_forward(const Ref& features, const IRef& cells, int channel0, Ref& canvas) = 0;
@@ -95,7 +100,8 @@ class Backend {
   // Stride-1 convolution, weight (O, I, k, k), zero padding `pad`.
   virtual void conv2d_forward(const Ref& x, const Ref& w, const Ref* bias, int pad, Ref& y) = 0;
   virtual void conv2d_backward(const Ref& x, const Ref& w, const Ref& dy, int pad, Ref* dx, Ref& dw, Ref* dbias) = 0;
-  // ConvTranspose2d kernel 2 stride 2, weight (I, O, 2, 2).
+  // ConvTranspose2d kernel 2 stride 2, weight (I, O, 2, 2). The backward may overwrite dy (the
+  // CPU backend rearranges it in place instead of keeping a second tensor of its size).
   virtual void conv_transpose2d_forward(const Ref& x, const Ref& w, const Ref* bias, Ref& y) = 0;
   virtual void conv_transpose2d_backward(const Ref& x, const Ref& w, const Ref& dy, Ref& dx, Ref& dw, Ref* dbias) = 0;
   // Eval-mode Conv2d -> BatchNorm (running statistics) -> ReLU, y = relu(bn(conv(x, w) + bias)),
@@ -107,7 +113,8 @@ class Backend {
     BatchNormRefs running = bn;
     batchnorm_relu_forward(y, running, /*training=*/false, y);
   }
-  // BatchNorm over channels (axis 1) followed by ReLU; y = relu(bn(x)).
+  // BatchNorm over channels (axis 1) followed by ReLU; y = relu(bn(x)). The backward's dx may
+  // be dy (in place).
   virtual void batchnorm_relu_forward(const Ref& x, BatchNormRefs& bn, bool training, Ref& y) = 0;
   virtual void batchnorm_relu_backward(const Ref& x, const Ref& y, const Ref& dy, const BatchNormRefs& bn, Ref& dx,
                                        Ref& dgamma, Ref& dbeta) = 0;

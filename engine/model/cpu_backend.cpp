@@ -65,25 +65,28 @@ class CpuBackend final : public Backend {
   void download(void* dst, const void* src, size_t bytes) override { std::memcpy(dst, src, bytes); }
   void fill_zero(void* dst, size_t bytes) override { std::memset(dst, 0, bytes); }
 
-  void pfn_forward(const Ref& points, const Ref& weight, BatchNormRefs& bn, bool training, IRef& argmax,
-                   Ref& out) override {
+  void pfn_forward(const Ref& points, const Ref& weight, BatchNormRefs& bn, bool training,
+                   IRef& argmax, Ref& out, const Ref& scratch) override {
     Tensor<float> y = view(out), mean = view(bn.running_mean), var = view(bn.running_var);
     if (training) {
       host::PfnSaved<float> saved{bn_saved(bn), view(argmax)};
       int64_t counted = 0;  // the model keeps num_batches_tracked
-      host::pfn_forward_train(view(points), view(weight), view(bn.gamma), view(bn.beta), bn_options(bn), mean, var,
-                              counted, y, saved);
+      host::pfn_forward_train(view(points), view(weight), view(bn.gamma), view(bn.beta),
+                              bn_options(bn), mean, var, counted, y, saved,
+                              pfn_scratch(scratch, 1, points, weight));
     } else if (fast_paths_) {
       pfn_forward_eval_blocked(points, weight, bn, out);
     } else {
       host::pfn_forward_eval(view(points), view(weight), view(bn.gamma), view(bn.beta), mean, var, bn_options(bn), y);
     }
   }
-  void pfn_backward(const Ref& points, const Ref& weight, const BatchNormRefs& bn, const IRef& argmax,
-                    const Ref& dout, Ref& d_points, Ref& dweight, Ref& dgamma, Ref& dbeta) override {
+  void pfn_backward(const Ref& points, const Ref& weight, const BatchNormRefs& bn,
+                    const IRef& argmax, const Ref& dout, Ref& d_points, Ref& dweight, Ref& dgamma,
+                    Ref& dbeta, const Ref& scratch) override {
     const host::PfnSaved<float> saved{bn_saved(bn), view(argmax)};
     Tensor<float> dp = view(d_points), dw = view(dweight), dg = view(dgamma), db = view(dbeta);
-    host::pfn_backward(view(dout), view(points), view(weight), view(bn.gamma), saved, dp, dw, dg, db);
+    host::pfn_backward(view(dout), view(points), view(weight), view(bn.gamma), saved, dp, dw, dg,
+                       db, pfn_scratch(scratch, 2, points, weight));
   }
 
   void scatter_forward(const Ref& features, const IRef& cells, int channel0, Ref& canvas) override {
@@ -173,9 +176,10 @@ class CpuBackend final : public Backend {
     host::conv_transpose2d_forward(view(x), view(w), bias ? &b : nullptr, out);
   }
   void conv_transpose2d_backward(const Ref& x, const Ref& w, const Ref& dy, Ref& dx, Ref& dw, Ref* dbias) override {
-    Tensor<float> gx = view(dx), gw = view(dw), gb;
+    Tensor<float> gx = view(dx), gw = view(dw), gb, scratch_dy = view(dy);
     if (dbias) gb = view(*dbias);
-    host::conv_transpose2d_backward(view(x), view(w), view(dy), &gx, &gw, dbias ? &gb : nullptr);
+    host::conv_transpose2d_backward_overwriting_dy(view(x), view(w), scratch_dy, &gx, &gw,
+                                                   dbias ? &gb : nullptr);
   }
   void batchnorm_relu_forward(const Ref& x, BatchNormRefs& bn, bool training, Ref& y) override {
     Tensor<float> out = view(y), mean = view(bn.running_mean), var = view(bn.running_var);
@@ -190,8 +194,10 @@ class CpuBackend final : public Backend {
   }
   void batchnorm_relu_backward(const Ref& x, const Ref& y, const Ref& dy, const BatchNormRefs& bn, Ref& dx,
                                Ref& dgamma, Ref& dbeta) override {
-    Tensor<float> gx = view(dx), gg = view(dgamma), gb = view(dbeta);
-    host::batchnorm_relu_backward(view(dy), view(x), view(y), view(bn.gamma), bn_saved(bn), gx, gg, gb);
+    // dx may be dy (in place): host/ tells that case by the tensor object, so both are one view.
+    Tensor<float> gy = view(dy), separate_gx = view(dx), gg = view(dgamma), gb = view(dbeta);
+    Tensor<float>& gx = dx.data == dy.data ? gy : separate_gx;
+    host::batchnorm_relu_backward(gy, view(x), view(y), view(bn.gamma), bn_saved(bn), gx, gg, gb);
   }
   void maxpool2x2_forward(const Ref& x, Ref& y, IRef& argmax) override {
     Tensor<float> out = view(y);
@@ -262,6 +268,18 @@ class CpuBackend final : public Backend {
   }
 
  private:
+  // The caller's scratch for `copies` (P N, C) tensors of the PFN, points (P, N, 10) and weight
+  // (C, 10), or null (host/ allocates them) when none is given.
+  static float* pfn_scratch(const Ref& scratch, int64_t copies, const Ref& points,
+                            const Ref& weight) {
+    if (!scratch.data) return nullptr;
+    const int64_t needed = copies * points.dim(0) * points.dim(1) * weight.dim(0);
+    PS_CHECK(scratch.numel() >= needed,
+             "pfn: scratch of {} floats given, {} needed for points {} and weight {}",
+             scratch.numel(), needed, shape_str(points.shape), shape_str(weight.shape));
+    return scratch.data;
+  }
+
   // The Winograd fast path covers the U-Net's 3x3 / pad 1 convolutions.
   bool winograd_applies(const Ref& w, int pad) const {
     return fast_paths_ && w.shape.size() == 4 && w.dim(2) == 3 && w.dim(3) == 3 && pad == 1;

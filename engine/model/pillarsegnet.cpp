@@ -90,6 +90,15 @@ class TensorPlan {
       r.data = reinterpret_cast<T*>(base + planner.offset(id));
     });
   }
+  // r is the leading part of `whole` (an earlier add()), of its own shape: the two share one
+  // lifetime, and a step that uses r uses `whole`.
+  template <class T>
+  void view(RefT<T>& r, const RefT<T>& whole, Shape shape) {
+    r = RefT<T>{nullptr, std::move(shape)};
+    PS_CHECK(r.bytes() <= whole.bytes(), "TensorPlan: a view is larger than its tensor");
+    PS_CHECK(ids_.emplace(&r, id(&whole)).second, "TensorPlan: a tensor was added twice");
+    binders_.push_back([&r, &whole](uint8_t*, const LifetimePlanner&) { r.data = whole.data; });
+  }
   // The current step reads (or adds to) r.
   template <class T>
   void use(const RefT<T>& r) {
@@ -173,22 +182,31 @@ struct ConvBnRelu {
   BnParams bn;
   Ref conv_out, out, d_conv_out, d_out;
 
-  // The training forward's steps: conv, then BN + ReLU (saving the batch statistics).
-  void trace_forward(TensorPlan& p, const Ref& x, int batch, int h, int w) {
+  // The training forward's steps: conv, then BN + ReLU (saving the batch statistics). With
+  // `container`, out is its leading channels: the container (of container_shape) is added with
+  // it, so that a consumer that would copy out to the front of a larger tensor finds it there.
+  void trace_forward(TensorPlan& p, const Ref& x, int batch, int h, int w, Ref* container = nullptr,
+                     Shape container_shape = {}) {
     p.use(x);
     p.add(conv_out, {batch, conv.out, h, w});
     p.next();
     p.use(conv_out);
-    p.add(out, {batch, conv.out, h, w});
+    if (container) {
+      p.add(*container, std::move(container_shape));
+      p.view(out, *container, {batch, conv.out, h, w});
+    } else {
+      p.add(out, {batch, conv.out, h, w});
+    }
     p.add(bn.save_mean, {conv.out});
     p.add(bn.save_invstd, {conv.out});
     p.next();
   }
-  // The backward's steps, d_out written by an earlier step: BN + ReLU backward, then conv
-  // backward, which writes dx (a new tensor of dx_shape) when given.
+  // The backward's steps, d_out written by an earlier step: BN + ReLU backward, in place over
+  // d_out (dead once read), then conv backward, which writes dx (a new tensor of dx_shape) when
+  // given.
   void trace_backward(TensorPlan& p, const Ref& x, Ref* dx, Shape dx_shape) {
     p.use(conv_out), p.use(out), p.use(d_out), p.use(bn.save_mean), p.use(bn.save_invstd);
-    p.add(d_conv_out, conv_out.shape);
+    p.view(d_conv_out, d_out, conv_out.shape);
     p.next();
     p.use(x), p.use(d_conv_out);
     if (dx) p.add(*dx, std::move(dx_shape));
@@ -230,9 +248,11 @@ struct DoubleConv {
     d.second.bn = declare_bn(ps, prefix + ".double_conv.4", out, 1e-5f, 0.1f);
     return d;
   }
-  void trace_forward(TensorPlan& p, const Ref& x, int batch, int h, int w) {
+  // container: see ConvBnRelu::trace_forward (for the block's output).
+  void trace_forward(TensorPlan& p, const Ref& x, int batch, int h, int w, Ref* container = nullptr,
+                     Shape container_shape = {}) {
     first.trace_forward(p, x, batch, h, w);
-    second.trace_forward(p, first.out, batch, h, w);
+    second.trace_forward(p, first.out, batch, h, w, container, std::move(container_shape));
   }
   void trace_backward(TensorPlan& p, const Ref& x, Ref* dx) {
     second.trace_backward(p, first.out, &first.d_out, first.out.shape);
@@ -257,13 +277,16 @@ struct Down {
   Ref pooled, d_pooled, d_x_part;
   IRef argmax;
 
-  void trace_forward(TensorPlan& p, const Ref& x) {
+  // container: see ConvBnRelu::trace_forward (for the block's output).
+  void trace_forward(TensorPlan& p, const Ref& x, Ref* container = nullptr,
+                     Shape container_shape = {}) {
     const int64_t batch = x.dim(0), h = x.dim(2) / 2, w = x.dim(3) / 2;
     p.use(x);
     p.add(pooled, {batch, in, h, w});
     p.add(argmax, {batch, in, h, w});
     p.next();
-    conv.trace_forward(p, pooled, static_cast<int>(batch), static_cast<int>(h), static_cast<int>(w));
+    conv.trace_forward(p, pooled, static_cast<int>(batch), static_cast<int>(h), static_cast<int>(w),
+                       container, std::move(container_shape));
   }
   // The block's output gradient written by an earlier step; dx (the input's) too.
   void trace_backward(TensorPlan& p, const Ref& dx) {
@@ -296,6 +319,10 @@ struct Up {
   // Eval with batch 1 and no padding: `upsampled` is the band of `cat` after the skip, so the
   // upsampling writes its part of the concatenation in place.
   bool upsampled_in_cat = false;
+  // Training with batch 1 and no padding: the skip (the encoder block's output) is the leading
+  // band of `cat`, written there by that block (`cat` added by its trace), so the concatenation
+  // copies only the upsampled part and the skip is not kept twice.
+  bool skip_in_cat = false;
 
   // The training forward's steps: upsample (dead once concatenated: the backward reads only
   // the block's input), concatenate, DoubleConv.
@@ -306,7 +333,11 @@ struct Up {
     p.add(upsampled, {batch, up_channels, 2 * x.dim(2), 2 * x.dim(3)});
     p.next();
     p.use(skip), p.use(upsampled);
-    p.add(cat, {batch, skip_channels + up_channels, skip_h, skip_w});
+    if (skip_in_cat) {
+      p.use(cat);
+    } else {
+      p.add(cat, {batch, skip_channels + up_channels, skip_h, skip_w});
+    }
     p.next();
     conv.trace_forward(p, cat, static_cast<int>(batch), static_cast<int>(skip_h), static_cast<int>(skip_w));
   }
@@ -332,6 +363,8 @@ struct Up {
     }
     if (upsampled_in_cat) {
       be.copy_channels(skip, 0, cat);
+    } else if (skip_in_cat) {
+      be.copy_channels(upsampled, skip_channels, cat);
     } else {
       be.pad_concat_forward(skip, upsampled, cat);
     }
@@ -359,6 +392,10 @@ struct PillarSegNet::Impl {
   Ref pillar_points, pfn_dpoints, pfn_out, pfn_dout;
   IRef pillar_cells, pfn_argmax;
   int64_t pillar_capacity = -1, num_pillars = 0;
+  // The PFN's training scratch (Backend::pfn_forward), (capacity, N, C) and (2, capacity, N, C),
+  // in the training plan where little else is alive; planned for this pillar capacity.
+  Ref pfn_forward_scratch, pfn_backward_scratch;
+  int64_t training_pillar_capacity = -1;
   // Occupancy stream.
   ConvBnRelu occupancy;
   Ref occupancy_input;
@@ -466,7 +503,10 @@ void PillarSegNet::set_batchnorm_momentum(float momentum) {
 
 void PillarSegNet::plan(int batch, bool training) {
   Impl& m = *impl_;
-  if (m.planned_batch == batch && m.planned_training == training) return;
+  // The training plan holds the PFN's scratch, sized by the pillar capacity.
+  const bool same_capacity =
+      !training || !config_.pillar_input || m.training_pillar_capacity == m.pillar_capacity;
+  if (m.planned_batch == batch && m.planned_training == training && same_capacity) return;
   if (training) {
     plan_training(batch);
   } else {
@@ -499,7 +539,9 @@ void PillarSegNet::plan_training(int batch) {
   };
 
   // Forward: uploads and the pillar stream into the canvas, then the other input streams.
+  const int64_t N = config_.max_points_per_pillar, C = config_.pillar_channels;
   p.add(canvas, {batch, config_.input_channels(), H, W});
+  if (config_.pillar_input) p.add(m.pfn_forward_scratch, {m.pillar_capacity, N, C});
   if (config_.occupancy != OccupancyInput::None)
     p.add(m.occupancy_input, {batch, config_.occupancy_input_channels(), H, W});
   if (config_.grid_map_input) p.add(m.grid_map_input, {batch, 6, H, W});
@@ -513,7 +555,29 @@ void PillarSegNet::plan_training(int batch) {
     p.use(m.grid_map_input), p.use(canvas);
     p.next();
   }
-  for (int i = 1; i <= depth; ++i) m.downs[static_cast<size_t>(i - 1)].trace_forward(p, level_out(i - 1));
+  // Level i's size; with batch 1, an Up whose upsampled input has its skip's size (no padding)
+  // takes the skip in its concatenation buffer (Up::skip_in_cat). The canvas (level 0) stays
+  // apart: it is dead before the backward, where the concatenation would have to outlive it.
+  std::vector<int64_t> hs(static_cast<size_t>(depth) + 1, H), ws(static_cast<size_t>(depth) + 1, W);
+  for (int i = 1; i <= depth; ++i) hs[static_cast<size_t>(i)] = hs[static_cast<size_t>(i - 1)] / 2;
+  for (int i = 1; i <= depth; ++i) ws[static_cast<size_t>(i)] = ws[static_cast<size_t>(i - 1)] / 2;
+  for (Up& u : m.ups) u.skip_in_cat = false;
+  for (int i = 1; i <= depth; ++i) {
+    const size_t level = static_cast<size_t>(i);
+    Ref* container = nullptr;
+    Shape container_shape;
+    if (i < depth && batch == 1 && 2 * hs[level + 1] == hs[level] &&
+        2 * ws[level + 1] == ws[level]) {
+      // Up depth - i takes level i's skip.
+      Up& consumer = m.ups[static_cast<size_t>(depth - i - 1)];
+      consumer.skip_in_cat = true;
+      container = &consumer.cat;
+      container_shape = {batch, consumer.skip_channels + consumer.up_channels, hs[level],
+                         ws[level]};
+    }
+    m.downs[static_cast<size_t>(i - 1)].trace_forward(p, level_out(i - 1), container,
+                                                      std::move(container_shape));
+  }
   const Ref* current = &level_out(depth);
   for (int j = 1; j <= depth; ++j) {
     Up& u = m.ups[static_cast<size_t>(j - 1)];
@@ -545,7 +609,8 @@ void PillarSegNet::plan_training(int batch) {
     u.trace_backward(p, input, level_out(depth - j), level_grad(depth - j), d_input);
   }
   for (int i = depth; i >= 1; --i) m.downs[static_cast<size_t>(i - 1)].trace_backward(p, level_grad(i - 1));
-  p.use(d_canvas);  // the scatter's backward
+  p.use(d_canvas);  // the scatter's backward, then the PFN's
+  if (config_.pillar_input) p.add(m.pfn_backward_scratch, {2, m.pillar_capacity, N, C});
   p.next();
   if (config_.occupancy != OccupancyInput::None) {
     p.use(d_canvas);
@@ -568,6 +633,7 @@ void PillarSegNet::plan_training(int batch) {
   }
   m.training_batch = batch;
   m.training_bytes = bytes;
+  m.training_pillar_capacity = m.pillar_capacity;
 }
 
 // The eval forward's tensors in the order it runs, each with the steps that read or write it;
@@ -589,7 +655,10 @@ void PillarSegNet::plan_eval(int batch) {
     return id;
   };
   for (Down& d : m.downs) d.conv.first.conv_out = d.conv.second.conv_out = Ref{};
-  for (Up& u : m.ups) u.conv.first.conv_out = u.conv.second.conv_out = Ref{};
+  for (Up& u : m.ups) {
+    u.conv.first.conv_out = u.conv.second.conv_out = Ref{};
+    u.skip_in_cat = false;
+  }
   m.occupancy.conv_out = Ref{};
   m.dx.assign(static_cast<size_t>(depth) + 1, Ref{});
   m.x.assign(static_cast<size_t>(depth) + 1, Ref{});
@@ -743,7 +812,6 @@ void PillarSegNet::forward(const ModelBatch& batch, bool training) {
   };
   stage_times_ = StageTimes{};
   m.loss_gradient_ready = false;
-  plan(batch.batch, training);
   // The evaluation forward replays a recorded graph where the backend records them (and stage
   // timing, which waits between stages, is off). The graph runs the pillar stream at the pillar
   // capacity: rows past this batch's P hold zero points and cells (-1, -1, -1), which the scatter
@@ -778,6 +846,7 @@ void PillarSegNet::forward(const ModelBatch& batch, bool training) {
                 m.pillar_cells.bytes() - cell_bytes);
     }
   }
+  plan(batch.batch, training);  // after plan_pillars: the training plan needs the pillar capacity
   if (config_.occupancy != OccupancyInput::None) {
     const Shape expected{batch.batch, config_.occupancy_input_channels(), H, W};
     PS_CHECK(batch.occupancy.shape() == expected, "forward: occupancy input must be {}, got {}", shape_str(expected),
@@ -800,7 +869,8 @@ void PillarSegNet::forward(const ModelBatch& batch, bool training) {
     if (config_.pillar_input) {
       if (m.pillar_points.dim(0) > 0) {
         BatchNormRefs r = bn_refs(ps, m.pfn_bn);
-        be.pfn_forward(m.pillar_points, ps.value(m.pfn_weight), r, train, m.pfn_argmax, m.pfn_out);
+        be.pfn_forward(m.pillar_points, ps.value(m.pfn_weight), r, train, m.pfn_argmax, m.pfn_out,
+                       train ? m.pfn_forward_scratch : Ref{});
         if (train) ps.counters()[m.pfn_bn.counter] += 1;
         lap(stage_times_.pfn);
         be.scatter_forward(m.pfn_out, m.pillar_cells, 0, canvas);
@@ -877,8 +947,8 @@ void PillarSegNet::backward() {
       be.scatter_backward(m.dx[0], m.pillar_cells, 0, m.pfn_dout);
       const BatchNormRefs r = bn_refs(ps, m.pfn_bn);
       Ref dweight = ps.grad(m.pfn_weight), dgamma = ps.grad(m.pfn_bn.gamma), dbeta = ps.grad(m.pfn_bn.beta);
-      be.pfn_backward(m.pillar_points, ps.value(m.pfn_weight), r, m.pfn_argmax, m.pfn_dout, m.pfn_dpoints, dweight,
-                      dgamma, dbeta);
+      be.pfn_backward(m.pillar_points, ps.value(m.pfn_weight), r, m.pfn_argmax, m.pfn_dout,
+                      m.pfn_dpoints, dweight, dgamma, dbeta, m.pfn_backward_scratch);
     } else {
       for (int idx : {m.pfn_weight, m.pfn_bn.gamma, m.pfn_bn.beta}) {
         Ref g = ps.grad(idx);
