@@ -147,7 +147,8 @@ def elf_sections(image):
         raise FormatError(f"expected ELF64 little-endian, got class {image[4]} data {image[5]}")
     shoff = struct.unpack_from("<Q", image, 0x28)[0]
     shentsize, shnum, shstrndx = struct.unpack_from("<HHH", image, 0x3A)
-    headers = [struct.unpack_from("<IIQQQQIIQQ", image, shoff + i * shentsize) for i in range(shnum)]
+    headers = [struct.unpack_from("<IIQQQQIIQQ", image, shoff + i * shentsize)
+               for i in range(shnum)]
     names = headers[shstrndx]
     sections = []
     for name_off, kind, _flags, _addr, off, size, link, info, _align, _entsize in headers:
@@ -189,7 +190,7 @@ def fatbin_entries(blob):
 
 
 def cubin_arch(image):
-    """The sm_XX number of a cubin, from e_flags (its layout depends on the CUDA ELF ABI version)."""
+    """The sm_XX number of a cubin from its e_flags, whose layout depends on the ELF ABI version."""
     abi_version = image[8]
     machine = struct.unpack_from("<H", image, 0x12)[0]
     if machine != ELF_MACHINE_CUDA:

@@ -43,10 +43,15 @@ def check_binary(library, kernels, names):
     """Lists the kernels of `library` (the static library the log was built with) per architecture
     from its cubins and compares them with the ptxas log's `kernels` (mangled -> arch -> row).
     Returns the number of mismatches (kernel missing on one side, registers or frame differ)."""
-    with open(library, "rb") as f:
-        listing = cubin_list.list_library(f.read())
+    try:
+        with open(library, "rb") as f:
+            listing = cubin_list.list_library(f.read())
+    except (OSError, cubin_list.FormatError) as error:
+        print(f"\ncannot list the kernels of {library}: {error}")
+        return 1
     print(f"\nkernels in {library} (read from its cubins; cuobjdump is not installed):")
-    ptx_storage = sorted({compression or "uncompressed" for _, _, compression in listing.ptx_entries})
+    ptx_storage = sorted({compression or "uncompressed"
+                          for _, _, compression in listing.ptx_entries})
     if ptx_storage:
         print(f"  {len(listing.ptx_entries)} PTX entries ({', '.join(ptx_storage)}), not read: "
               "the cubins carry the compiled kernels")
