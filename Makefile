@@ -36,11 +36,16 @@ asan: deps
 	@ctest --test-dir build-asan --output-on-failure -j $(JOBS)
 
 # Every CUDA kernel with its registers, shared memory, stack and spills per architecture, from
-# ptxas (a separate build of the kernel library; needs nvcc). Fails if a kernel spills.
+# ptxas (a separate build of the kernel library; needs nvcc). Fails if a kernel spills. Without
+# cuobjdump (the CUDA 13 toolkit here has none) it then lists every kernel of every architecture
+# from the library's own cubins (scripts/cubin_list.py, unit-tested first) and fails if those
+# differ from ptxas's kernels, registers or stack frames.
 kernel-report: deps
 	@cmake -S . -B build-kernels -DCMAKE_BUILD_TYPE=Release -DPILLARSEG_CUDA_RESOURCE_USAGE=ON >/dev/null
 	@cmake --build build-kernels --target pillarseg_kernels_cuda --clean-first -j $(JOBS) > build-kernels/resource-usage.log 2>&1 \
 	  || { tail -20 build-kernels/resource-usage.log; exit 1; }
+	@PILLARSEG_KERNEL_LIBRARY=build-kernels/kernels/libpillarseg_kernels_cuda.a python3 scripts/test_cubin_list.py \
+	  > build-kernels/cubin-list-test.log 2>&1 || { cat build-kernels/cubin-list-test.log; exit 1; }
 	@python3 scripts/kernel_report.py build-kernels/resource-usage.log build-kernels/kernels/libpillarseg_kernels_cuda.a
 
 clean:
