@@ -32,6 +32,22 @@ struct Orientation {
   double run_origin = 0.0;
   bool run_steps_first = false;  // at a tie the run axis steps first (x steps before y)
   double window = 0.0;           // CrossingCell's tie window for the run axis
+  bool runs_along_x = false;     // slabs are rows
+  const GridSpec* grid = nullptr;
+  const Point* points = nullptr;  // the scan, which the sweeps' rays index
+
+  // A point in cell coordinates along the run axis and across the slabs, as the walk computes
+  // them ((x - x_min) / cell etc.).
+  double run_end(const Point& p) const {
+    return runs_along_x ? (p.x - grid->x_min) / grid->cell : (p.y - grid->y_min) / grid->cell;
+  }
+  double slab_end(const Point& p) const {
+    return runs_along_x ? (p.y - grid->y_min) / grid->cell : (p.x - grid->x_min) / grid->cell;
+  }
+  // GridSpec::contains_xy for a point whose cell is known to lie in the grid.
+  bool in_range(const Point& p) const {
+    return p.x >= grid->x_min && p.x < grid->x_max && p.y >= grid->y_min && p.y < grid->y_max;
+  }
 };
 
 // The rays that leave the origin's slab in one direction across the slabs, in structure-of-arrays
@@ -40,25 +56,19 @@ struct Sweep {
   int step = 1;       // +1 or -1 across the slabs
   int64_t first = 0;  // the slab all its rays start in, clamped to [-1, slabs]
   // Per ray, in sweep order:
-  std::vector<double> slope;              // run-axis change per unit across the slabs
-  std::vector<int32_t> lo, hi;            // run-axis cells the ray spans, clamped to [-1, cells]
-  std::vector<int32_t> first_cell;        // run-axis cell where the ray leaves the origin
-  std::vector<int32_t> last_cell;         // run-axis cell of the end point, clamped to [-1, cells]
-  std::vector<int32_t> detected_cell;     // last_cell where the point lies in the grid, else -1
-  std::vector<double> end_run, end_slab;  // the end point in cell coordinates (exact ties)
+  std::vector<double> slope;        // run-axis change per unit across the slabs
+  std::vector<int32_t> first_cell;  // run-axis cell where the ray leaves the origin
+  std::vector<int32_t> last_cell;   // run-axis cell of the end point, clamped to [-1, cells]
+  std::vector<uint32_t> point;      // the ray's point (for the rare exact tie and its detection)
   // reaching[d]: the rays that reach slab first + d * step, d = 0 .. slabs + 1 (a prefix).
   std::vector<int64_t> reaching;
 
   void resize(int64_t rays) {
     const auto n = static_cast<size_t>(rays);
     slope.resize(n);
-    lo.resize(n);
-    hi.resize(n);
     first_cell.resize(n);
     last_cell.resize(n);
-    detected_cell.resize(n);
-    end_run.resize(n);
-    end_slab.resize(n);
+    point.resize(n);
   }
 
   // Slabs a ray of the sweep ending in slab `last` crosses after the first: its depth.
@@ -144,10 +154,6 @@ std::array<Sweep, kSweeps> build_sweeps(const std::vector<Point>& points, const 
     }
     sweep.resize(placed);
   }
-  const int64_t along_cells[kSweeps] = {orientation[0].cells, orientation[0].cells,
-                                        orientation[1].cells, orientation[1].cells};
-  const int64_t across_cells[kSweeps] = {orientation[0].slabs, orientation[0].slabs,
-                                         orientation[1].slabs, orientation[1].slabs};
   parallel_chunks(n, [&](int64_t begin, int64_t end, int t) {
     auto& next = counts[static_cast<size_t>(t)];
     for_each_ray(
@@ -156,19 +162,10 @@ std::array<Sweep, kSweeps> build_sweeps(const std::vector<Point>& points, const 
           Sweep& sweep = sweeps[static_cast<size_t>(s)];
           const auto k = static_cast<size_t>(
               next[static_cast<size_t>(s)][static_cast<size_t>(sweep.depth(across.last))]++);
-          const Point& p = points[static_cast<size_t>(i)];
           sweep.slope[k] = CrossingCell::slope(along, across);
-          sweep.lo[k] = static_cast<int32_t>(along.lo());
-          sweep.hi[k] = static_cast<int32_t>(along.hi());
           sweep.first_cell[k] = static_cast<int32_t>(along.first);
           sweep.last_cell[k] = static_cast<int32_t>(along.last);
-          // GridSpec::contains_xy, with the point's cells at hand
-          const bool inside = p.x >= grid.x_min && p.x < grid.x_max && p.y >= grid.y_min &&
-                              p.y < grid.y_max && along.last >= 0 && along.last < along_cells[s] &&
-                              across.last >= 0 && across.last < across_cells[s];
-          sweep.detected_cell[k] = inside ? static_cast<int32_t>(along.last) : -1;
-          sweep.end_run[k] = along.end;
-          sweep.end_slab[k] = across.end;
+          sweep.point[k] = static_cast<uint32_t>(i);
         });
   });
   return sweeps;
@@ -193,36 +190,39 @@ std::vector<int64_t> balanced_bands(const std::vector<int64_t>& work, int thread
 
 // Per-thread buffers of a band's sweep, sized for the largest sweep of the orientation.
 struct SweepScratch {
-  static constexpr int64_t kCopies = 8;  // difference arrays, so that consecutive rays' updates
-                                         // never wait on one another's (rays often share cells)
+  static constexpr int64_t kCopies = 8;   // difference arrays, so that consecutive rays' updates
+                                          // never wait on one another's (rays often share cells)
+  static constexpr int64_t kChunk = 512;  // rays whose runs are worked out together
   SweepScratch(int64_t rays, int64_t cells)
       : cells_in(static_cast<size_t>(rays)),
-        cells_out(static_cast<size_t>(rays)),
-        adds(static_cast<size_t>(rays)),
-        takes(static_cast<size_t>(rays)),
+        cells_out(static_cast<size_t>(kChunk)),
+        adds(static_cast<size_t>(kChunk)),
+        takes(static_cast<size_t>(kChunk)),
         stride(cells + 2),
         differences(static_cast<size_t>(kCopies * stride), 0),
         counts(static_cast<size_t>(cells), 0) {}
-  std::vector<int32_t> cells_in, cells_out;  // run-axis cells where each ray enters / leaves
-  std::vector<int32_t> adds, takes;          // where each ray's run adds 1 and takes it back
-  int64_t stride;                            // one copy: cells + 1 and a slot for empty runs
+  std::vector<int32_t> cells_in;     // run-axis cell where each ray enters the current slab
+  std::vector<int32_t> cells_out;    // where each ray of a chunk leaves it
+  std::vector<int32_t> adds, takes;  // where each run of a chunk adds 1 and takes it back
+  int64_t stride;                    // one copy: cells + 1 and a slot for empty runs
   std::vector<uint32_t> differences;
   std::vector<uint32_t> counts;  // one slab's counts along the run axis
 };
 
-// out[k] = the run-axis cell where ray k of the sweep crosses the slab boundary `boundary`,
-// for k < rays: CrossingCell::at, in one pass in double that the compiler vectorises (as
-// CrossingCell::fill), and the exact evaluation for the values that lie near a tie.
-void crossings(const Sweep& sweep, const Orientation& o, double boundary, int64_t rays,
-               int32_t* out) {
+// out[k] = the run-axis cell where ray first_ray + k of the sweep crosses the slab boundary
+// `boundary`, for k < rays: CrossingCell::at, in one pass in double that the compiler vectorises
+// (as CrossingCell::fill), and the exact evaluation for the values that lie near a tie.
+void crossings(const Sweep& sweep, const Orientation& o, double boundary, int64_t first_ray,
+               int64_t rays, int32_t* out) {
   constexpr double kRoundToInteger = 0x1.8p52;
   const double offset = boundary - o.slab_origin, origin = o.run_origin, window = o.window;
-  const double* slope = sweep.slope.data();
-  const int32_t* lo = sweep.lo.data();
-  const int32_t* hi = sweep.hi.data();
+  const double* slope = sweep.slope.data() + first_ray;
+  const int32_t* first = sweep.first_cell.data() + first_ray;
+  const int32_t* last = sweep.last_cell.data() + first_ray;
   int64_t near_ties = 0;
   for (int64_t k = 0; k < rays; ++k) {
-    const double lo_k = lo[k], hi_k = hi[k];
+    const double first_k = first[k], last_k = last[k];
+    const double lo_k = std::min(first_k, last_k), hi_k = std::max(first_k, last_k);
     const double value =
         std::min(std::max(std::fma(offset, slope[k], origin), lo_k - 0.5), hi_k + 1.5);
     const double nearest = (value + kRoundToInteger) - kRoundToInteger;
@@ -233,12 +233,14 @@ void crossings(const Sweep& sweep, const Orientation& o, double boundary, int64_
   }
   if (near_ties == 0) return;
   for (int64_t k = 0; k < rays; ++k) {
+    const double first_k = first[k], last_k = last[k];
+    const double lo_k = std::min(first_k, last_k), hi_k = std::max(first_k, last_k);
     const double value =
-        std::min(std::max(std::fma(offset, slope[k], origin), lo[k] - 0.5), hi[k] + 1.5);
+        std::min(std::max(std::fma(offset, slope[k], origin), lo_k - 0.5), hi_k + 1.5);
     if (std::abs(value - std::nearbyint(value)) > window) continue;
-    const RayAxis along = make_axis(o.run_origin, sweep.end_run[static_cast<size_t>(k)], o.cells);
-    const RayAxis across =
-        make_axis(o.slab_origin, sweep.end_slab[static_cast<size_t>(k)], o.slabs);
+    const Point& p = o.points[sweep.point[static_cast<size_t>(first_ray + k)]];
+    const RayAxis along = make_axis(o.run_origin, o.run_end(p), o.cells);
+    const RayAxis across = make_axis(o.slab_origin, o.slab_end(p), o.slabs);
     out[k] =
         static_cast<int32_t>(CrossingCell(along, across, o.run_steps_first, o.cells).at(boundary));
   }
@@ -258,47 +260,55 @@ void sweep_band(const Sweep& sweep, const Orientation& o, int64_t slab_lo, int64
   int64_t d = sweep.depth(start);
   if (sweep.reaching[static_cast<size_t>(d)] == 0) return;
   int32_t* in = scratch.cells_in.data();
-  int32_t* out = scratch.cells_out.data();
   // Where the rays enter the first slab: from the origin, or across its entry boundary.
   const int64_t reaching_start = sweep.reaching[static_cast<size_t>(d)];
   if (d == 0) {
     std::copy_n(sweep.first_cell.data(), reaching_start, in);
   } else {
-    crossings(sweep, o, static_cast<double>(s > 0 ? start : start + 1), reaching_start, in);
+    crossings(sweep, o, static_cast<double>(s > 0 ? start : start + 1), 0, reaching_start, in);
   }
-  const int64_t cells = o.cells, stride = scratch.stride, empty = cells + 1;
+  const int64_t cells = o.cells, stride = scratch.stride;
+  const auto last = static_cast<int32_t>(cells - 1), nowhere = static_cast<int32_t>(cells + 1);
+  const auto copy_stride = static_cast<int32_t>(stride);
   uint32_t* differences = scratch.differences.data();
+  int32_t* out = scratch.cells_out.data();
+  int32_t* adds = scratch.adds.data();
+  int32_t* takes = scratch.takes.data();
   for (int64_t slab = start; slab != stop; slab += s, ++d) {
     const int64_t rays = sweep.reaching[static_cast<size_t>(d)];
     if (rays == 0) break;
-    // Where they leave it: across its exit boundary, or at their end points.
     const int64_t continuing = sweep.reaching[static_cast<size_t>(d) + 1];
-    crossings(sweep, o, static_cast<double>(s > 0 ? slab + 1 : slab), continuing, out);
-    std::copy(sweep.last_cell.data() + continuing, sweep.last_cell.data() + rays, out + continuing);
-    // Each ray's run, cut to the grid: +1 at its first cell, -1 after its last, in the copy k % 4
-    // of the differences; runs outside the grid go to the slot `empty`. The places are worked out
-    // in one vectorised pass, with the range [from, to) of cells they touch.
-    int32_t* adds = scratch.adds.data();
-    int32_t* takes = scratch.takes.data();
-    const auto last = static_cast<int32_t>(cells - 1), nowhere = static_cast<int32_t>(empty);
-    const auto copy_stride = static_cast<int32_t>(stride);
+    const double exit = static_cast<double>(s > 0 ? slab + 1 : slab);
     int32_t touched_lo = last + 1, touched_hi = 0;
-    for (int64_t k = 0; k < rays; ++k) {
-      const int32_t a = in[k], b = out[k];
-      const int32_t lo = std::max(std::min(a, b), 0);
-      const int32_t hi = std::min(std::max(a, b), last);
-      const bool any = lo <= hi;
-      const int32_t copy = static_cast<int32_t>(k & (SweepScratch::kCopies - 1)) * copy_stride;
-      adds[k] = copy + (any ? lo : nowhere);
-      takes[k] = copy + (any ? hi + 1 : nowhere);
-      // (a run outside the grid only widens the range, within [0, cells])
-      touched_lo = std::min(touched_lo, lo);
-      touched_hi = std::max(touched_hi, hi + 1);
-    }
-    int64_t from = touched_lo, to = touched_hi;
-    for (int64_t k = 0; k < rays; ++k) {
-      ++differences[adds[k]];
-      --differences[takes[k]];
+    // A chunk of rays at a time, so that what a ray's run needs stays in the L1 cache.
+    for (int64_t chunk = 0; chunk < rays; chunk += SweepScratch::kChunk) {
+      const int64_t n = std::min(SweepScratch::kChunk, rays - chunk);
+      // Where they leave the slab: across its exit boundary, or at their end points.
+      const int64_t crossing = std::clamp<int64_t>(continuing - chunk, 0, n);
+      crossings(sweep, o, exit, chunk, crossing, out);
+      std::copy(sweep.last_cell.data() + chunk + crossing, sweep.last_cell.data() + chunk + n,
+                out + crossing);
+      // Each ray's run, cut to the grid: +1 at its first cell, -1 after its last, in the copy
+      // k % kCopies of the differences; runs outside the grid go to the slot `nowhere`. The
+      // places are worked out in one vectorised pass, with the range of cells they touch.
+      const int32_t* entered = in + chunk;
+      for (int64_t k = 0; k < n; ++k) {
+        const int32_t a = entered[k], b = out[k];
+        const int32_t lo = std::max(std::min(a, b), 0);
+        const int32_t hi = std::min(std::max(a, b), last);
+        const bool any = lo <= hi;
+        const int32_t copy = static_cast<int32_t>(k & (SweepScratch::kCopies - 1)) * copy_stride;
+        adds[k] = copy + (any ? lo : nowhere);
+        takes[k] = copy + (any ? hi + 1 : nowhere);
+        // (a run outside the grid only widens the range, within [0, cells])
+        touched_lo = std::min(touched_lo, lo);
+        touched_hi = std::max(touched_hi, hi + 1);
+      }
+      for (int64_t k = 0; k < n; ++k) {
+        ++differences[adds[k]];
+        --differences[takes[k]];
+      }
+      std::copy_n(out, n, in + chunk);
     }
     // The rays ending here: their end cell counts a detection, not a transmission.
     for (int64_t k = continuing; k < rays; ++k) {
@@ -306,14 +316,12 @@ void sweep_band(const Sweep& sweep, const Orientation& o, int64_t slab_lo, int64
       if (end < 0 || end >= cells) continue;
       --differences[end];
       ++differences[end + 1];
-      const int32_t detected = sweep.detected_cell[static_cast<size_t>(k)];
-      if (detected >= 0) detect(slab, detected);
+      if (o.in_range(o.points[sweep.point[static_cast<size_t>(k)]])) detect(slab, end);
     }
     // Counts are zero outside [from, to): every run and correction there adds and takes back.
-    to = std::min(to, cells);
+    const int64_t from = touched_lo, to = std::min<int64_t>(touched_hi, cells);
     if (from >= to) {
       std::fill(differences, differences + SweepScratch::kCopies * stride, 0u);
-      std::swap(in, out);
       continue;
     }
     uint32_t* counts = scratch.counts.data();
@@ -327,7 +335,6 @@ void sweep_band(const Sweep& sweep, const Orientation& o, int64_t slab_lo, int64
     for (int64_t copy = 0; copy < SweepScratch::kCopies; ++copy)
       std::fill(differences + copy * stride + from, differences + (copy + 1) * stride, 0u);
     flush(slab, static_cast<const uint32_t*>(counts), from, to);
-    std::swap(in, out);
   }
 }
 
@@ -385,9 +392,9 @@ void count_observability_2d(const std::vector<Point>& points, double origin_u, d
   const int64_t width = grid.width(), height = grid.height();
   const std::array<Orientation, 2> orientation = {
       Orientation{height, width, origin_v, origin_u, true,
-                  CrossingCell::tie_window(width, origin_u)},
+                  CrossingCell::tie_window(width, origin_u), true, &grid, points.data()},
       Orientation{width, height, origin_u, origin_v, false,
-                  CrossingCell::tie_window(height, origin_v)}};
+                  CrossingCell::tie_window(height, origin_v), false, &grid, points.data()}};
   const std::array<Sweep, kSweeps> sweeps = build_sweeps(points, grid, orientation);
   const int threads = num_threads();
   for (int family = 0; family < 2; ++family) {
