@@ -15,7 +15,6 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
-#include <cstring>
 
 #include "engine/core/parallel.hpp"
 #include "host/raywalk_detail.hpp"

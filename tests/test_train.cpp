@@ -8,9 +8,11 @@
 
 #include "engine/core/io.hpp"
 #include "engine/core/parallel.hpp"
+#include "engine/data/semantickitti.hpp"
 #include "engine/eval/evaluate.hpp"
 #include "engine/sim/simulate.hpp"
 #include "engine/train/checkpoint.hpp"
+#include "engine/train/features.hpp"
 #include "engine/train/trainer.hpp"
 #include "tests/support/test_support.hpp"
 
@@ -22,7 +24,8 @@ namespace {
 // 3 scans of sequence 00 and 2 of sequence 08, written once per process.
 const fs::path& tiny_data() {
   static const fs::path root = [] {
-    const fs::path dir = fs::path(PILLARSEG_BINARY_DIR) / "test_tmp" / ("TrainData." + std::to_string(::getpid()));
+    const fs::path dir =
+        fs::path(PILLARSEG_BINARY_DIR) / "test_tmp" / ("TrainData." + std::to_string(::getpid()));
     fs::remove_all(dir);
     sim::SimulateOptions o;
     o.out = dir;
@@ -48,7 +51,8 @@ train:
   seed: 3
   sequences: [0]
   optimizer: {lr: 0.01}
-)" + extra_train + "eval: {sequences: [8]}\n";
+)" + extra_train +
+         "eval: {sequences: [8]}\n";
 }
 
 TrainOptions options_for(const fs::path& run_dir, const std::string& config_text) {
@@ -73,6 +77,30 @@ std::vector<float> checkpoint_values(const fs::path& path) {
 }
 
 }  // namespace
+
+// Taking one scan's tensors gives the batch that copying them does; the scan keeps its
+// observability.
+TEST(Collate, OneScanTakenEqualsOneScanCopied) {
+  ModelConfig model = parse_run_config(tiny_config_text(), "test config").model;
+  model.grid_map_input = true;
+  const Scan scan = read_scan(tiny_data() / "sequences" / "00" / "velodyne" / "000001.bin");
+  const ScanInputs inputs = compute_scan_inputs(scan.points, Eigen::Vector3d::Zero(), model,
+                                                host::SampleMode::Inference, nullptr, true);
+  ASSERT_GT(inputs.pillar_cells.dim(0), 0);
+  const ModelBatch copied = collate({&inputs}, model);
+  ScanInputs moved = inputs;
+  const ModelBatch taken = collate(std::move(moved), model);
+  EXPECT_EQ(taken.batch, 1);
+  EXPECT_EQ(taken.pillar_points, copied.pillar_points);
+  EXPECT_EQ(taken.pillar_cells, copied.pillar_cells);
+  EXPECT_EQ(taken.occupancy, copied.occupancy);
+  EXPECT_EQ(taken.grid_map, copied.grid_map);
+  EXPECT_EQ(moved.observability, inputs.observability);
+  // A map of the wrong size is refused, naming what was expected.
+  ScanInputs bad = inputs;
+  bad.grid_map = Tensor<float>({3, 2, 2});
+  EXPECT_THROW(collate(std::move(bad), model), Error);
+}
 
 TEST(Train, WritesCheckpointAndLogAndIsBitwiseReproducible) {
   const fs::path dir = test::temp_dir();
@@ -119,7 +147,8 @@ TEST(Train, ResumeIsExact) {
   }
   // Recalibration changes the running statistics, and only them.
   const Checkpoint plain = read_checkpoint(dir / "straight" / "checkpoint.safetensors");
-  const Checkpoint precise = read_checkpoint(dir / "straight_precise_bn" / "checkpoint.safetensors");
+  const Checkpoint precise =
+      read_checkpoint(dir / "straight_precise_bn" / "checkpoint.safetensors");
   EXPECT_EQ(plain.file.get_f32("segmentation_head.outc.conv.weight"),
             precise.file.get_f32("segmentation_head.outc.conv.weight"));
   EXPECT_FALSE(plain.file.get_f32("vfe.pfn_layers.0.norm.running_mean") ==
@@ -138,7 +167,8 @@ TEST(Train, NonFiniteLossStopsAndKeepsTheLastGoodCheckpoint) {
   // One scan, batch 1: one step an epoch. A huge constant rate makes the weights overflow in
   // the first step, so epoch 2's loss is not finite.
   std::string text = tiny_config_text();
-  text.replace(text.find("optimizer: {lr: 0.01}"), 21, "optimizer: {lr: 1.0e+30, schedule: constant, grad_clip: 0}");
+  text.replace(text.find("optimizer: {lr: 0.01}"), 21,
+               "optimizer: {lr: 1.0e+30, schedule: constant, grad_clip: 0}");
   text.replace(text.find("batch_size: 2"), 13, "batch_size: 1");
   text.replace(text.find("sequences: [0]"), 14, "sequences: [0]\n  max_scans_per_sequence: 1");
   try {

@@ -97,7 +97,7 @@ void run_bench(const BenchArgs& a) {
       inputs.grid_map = std::move(maps.grid_map);
     }
     t[2] = ms_since(t0);
-    const ModelBatch batch = collate({&inputs}, model);
+    const ModelBatch batch = collate(std::move(inputs), model);
     net.forward(batch, false);
     const auto& st = net.stage_times();
     t[3] = st.upload, t[4] = st.pfn, t[5] = st.scatter, t[6] = st.occupancy, t[7] = st.unet, t[8] = st.head;

@@ -9,7 +9,7 @@ Prediction predict_scan(PillarSegNet& net, const ModelConfig& model, const std::
                         bool with_probabilities, bool with_observability) {
   ScanInputs inputs =
       compute_scan_inputs(points, Eigen::Vector3d::Zero(), model, host::SampleMode::Inference, nullptr, with_observability);
-  net.forward(collate({&inputs}, model), /*training=*/false);
+  net.forward(collate(std::move(inputs), model), /*training=*/false);
   Prediction p;
   p.labels = net.predict_labels();
   p.labels.reshape({model.grid.height(), model.grid.width()});
@@ -31,8 +31,8 @@ SegmentationMetrics evaluate(PillarSegNet& net, const RunConfig& config, const E
   SegmentationMetrics metrics;
   Progress progress(dense ? "dense eval" : "sparse eval", static_cast<int64_t>(data.size()), "scans");
   for (size_t i = 0; i < data.size(); ++i) {
-    const Sample s = data.eval_sample(i, options.mode, dense);
-    net.forward(collate({&s.inputs}, config.model), /*training=*/false);
+    Sample s = data.eval_sample(i, options.mode, dense);
+    net.forward(collate(std::move(s.inputs), config.model), /*training=*/false);
     Tensor<uint8_t> predicted = net.predict_labels();
     predicted.reshape(s.labels.shape());
     metrics.add(s.labels, predicted, dense ? &s.mask : nullptr);

@@ -11,7 +11,8 @@
 namespace pillarseg {
 
 ScanInputs compute_scan_inputs(const std::vector<Point>& points, const Eigen::Vector3d& origin,
-                               const ModelConfig& config, host::SampleMode mode, Rng* rng, bool want_observability) {
+                               const ModelConfig& config, host::SampleMode mode, Rng* rng,
+                               bool want_observability) {
   ScanInputs in;
   const GridSpec& grid = config.grid;
   if (config.pillar_input) {
@@ -20,11 +21,13 @@ ScanInputs compute_scan_inputs(const std::vector<Point>& points, const Eigen::Ve
     in.pillar_points = host::decorate_points(points, pillars, grid);
     in.pillar_cells = pillars.cell;
   }
-  const bool need_2d = config.occupancy == OccupancyInput::Observability2D || config.grid_map_input || want_observability;
+  const bool need_2d = config.occupancy == OccupancyInput::Observability2D ||
+                       config.grid_map_input || want_observability;
   if (need_2d) {
     const host::ObservabilityCounts counts = host::observability_2d(points, origin, grid);
     in.observability = host::observability_map(counts);
-    if (config.occupancy == OccupancyInput::Observability2D) in.occupancy = observability_input(in.observability);
+    if (config.occupancy == OccupancyInput::Observability2D)
+      in.occupancy = observability_input(in.observability);
     if (config.grid_map_input)
       in.grid_map = host::grid_map_features(points, counts.detections, counts.transmissions, grid);
   }
@@ -34,7 +37,8 @@ ScanInputs compute_scan_inputs(const std::vector<Point>& points, const Eigen::Ve
 }
 
 Tensor<float> observability_input(const Tensor<uint32_t>& observability) {
-  PS_CHECK(observability.rank() == 2, "observability_input: expected (H, W), got {}", shape_str(observability.shape()));
+  PS_CHECK(observability.rank() == 2, "observability_input: expected (H, W), got {}",
+           shape_str(observability.shape()));
   Tensor<float> out({1, observability.dim(0), observability.dim(1)});
   for (int64_t i = 0; i < observability.numel(); ++i)
     out[i] = static_cast<float>(std::log1p(static_cast<double>(observability[i])));
@@ -49,7 +53,8 @@ ModelBatch collate(const std::vector<const ScanInputs*>& scans, const ModelConfi
   const int64_t H = config.grid.height(), W = config.grid.width(), N = config.max_points_per_pillar;
   if (config.pillar_input) {
     int64_t total = 0;
-    for (const ScanInputs* s : scans) total += s->pillar_cells.rank() == 2 ? s->pillar_cells.dim(0) : 0;
+    for (const ScanInputs* s : scans)
+      total += s->pillar_cells.rank() == 2 ? s->pillar_cells.dim(0) : 0;
     batch.pillar_points = Tensor<float>({total, N, 10});
     batch.pillar_cells = Tensor<int32_t>({total, 3});
     int64_t offset = 0;
@@ -72,7 +77,8 @@ ModelBatch collate(const std::vector<const ScanInputs*>& scans, const ModelConfi
     const int64_t per = channels * H * W;
     for (int64_t b = 0; b < B; ++b) {
       const Tensor<float>& t = scans[static_cast<size_t>(b)]->*member;
-      PS_CHECK(t.numel() == per, "collate: sample {} has an input map of shape {}, expected ({}, {}, {})", b,
+      PS_CHECK(t.numel() == per,
+               "collate: sample {} has an input map of shape {}, expected ({}, {}, {})", b,
                shape_str(t.shape()), channels, H, W);
       std::memcpy(out.data() + b * per, t.data(), static_cast<size_t>(per) * sizeof(float));
     }
@@ -81,6 +87,38 @@ ModelBatch collate(const std::vector<const ScanInputs*>& scans, const ModelConfi
   if (config.occupancy != OccupancyInput::None)
     batch.occupancy = stack(&ScanInputs::occupancy, config.occupancy_input_channels());
   if (config.grid_map_input) batch.grid_map = stack(&ScanInputs::grid_map, host::kGridMapLayers);
+  return batch;
+}
+
+ModelBatch collate(ScanInputs&& scan, const ModelConfig& config) {
+  ModelBatch batch;
+  const int64_t H = config.grid.height(), W = config.grid.width(), N = config.max_points_per_pillar;
+  if (config.pillar_input) {
+    const int64_t P = scan.pillar_cells.rank() == 2 ? scan.pillar_cells.dim(0) : 0;
+    PS_CHECK(
+        scan.pillar_points.numel() == P * N * 10,
+        "collate: the scan has {} pillars but pillar points of shape {}, expected ({}, {}, 10)", P,
+        shape_str(scan.pillar_points.shape()), P, N);
+    batch.pillar_points = std::move(scan.pillar_points);
+    batch.pillar_points.reshape({P, N, 10});
+    batch.pillar_cells = Tensor<int32_t>({P, 3});
+    for (int64_t p = 0; p < P; ++p) {
+      batch.pillar_cells(p, 0) = 0;
+      batch.pillar_cells(p, 1) = scan.pillar_cells(p, 0);
+      batch.pillar_cells(p, 2) = scan.pillar_cells(p, 1);
+    }
+  }
+  const auto take = [&](Tensor<float>& t, int64_t channels) {
+    PS_CHECK(t.numel() == channels * H * W,
+             "collate: the scan has an input map of shape {}, expected ({}, {}, {})",
+             shape_str(t.shape()), channels, H, W);
+    Tensor<float> out = std::move(t);
+    out.reshape({1, channels, H, W});
+    return out;
+  };
+  if (config.occupancy != OccupancyInput::None)
+    batch.occupancy = take(scan.occupancy, config.occupancy_input_channels());
+  if (config.grid_map_input) batch.grid_map = take(scan.grid_map, host::kGridMapLayers);
   return batch;
 }
 

@@ -20,7 +20,8 @@ struct ScanInputs {
   Tensor<int32_t> pillar_cells;  // (P, 2): iy, ix
   Tensor<float> occupancy;       // (1 or Z, H, W) when the model has an occupancy stream
   Tensor<float> grid_map;        // (6, H, W) when the model has the grid-map input
-  Tensor<uint32_t> observability;  // (H, W) ray counts, when computed (occupancy or grid map, or asked for)
+  Tensor<uint32_t>
+      observability;  // (H, W) ray counts, when computed (occupancy or grid map, or asked for)
 };
 
 // Points and origin in the scan's (possibly augmented) frame. Training mode samples pillar
@@ -34,5 +35,8 @@ Tensor<float> observability_input(const Tensor<uint32_t>& observability);
 
 // Concatenates the scans' pillars (cells get their sample index) and stacks the maps.
 ModelBatch collate(const std::vector<const ScanInputs*>& scans, const ModelConfig& config);
+// The batch of one scan, taking its pillar points and input maps instead of copying them (the
+// scan keeps its observability); the same batch as collate({&scan}, config).
+ModelBatch collate(ScanInputs&& scan, const ModelConfig& config);
 
 }  // namespace pillarseg
