@@ -458,7 +458,7 @@ TEST(Observability2D, MatchesSingleRayWalksForEveryThreadCount) {
       const std::vector<Point> points = random_scan(3000, 5);
       Tensor<uint32_t> transmissions, detections;
       expected_counts(points, origin, grid, false, transmissions, detections);
-      for (int threads : {1, 2, 3, 5}) {
+      for (int threads : {1, 2, 3, 5, 24}) {  // 24: more threads than rows or columns
         set_num_threads(threads);
         const ObservabilityCounts counts = observability_2d(points, origin, grid);
         EXPECT_TRUE(same_counts(counts.transmissions, transmissions)) << threads << " threads";
