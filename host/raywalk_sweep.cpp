@@ -58,7 +58,8 @@ struct Sweep {
   std::vector<double> slope;        // run-axis change per unit across the slabs
   std::vector<int32_t> first_cell;  // run-axis cell where the ray leaves the origin
   std::vector<int32_t> last_cell;   // run-axis cell of the end point, clamped to [-1, cells]
-  std::vector<uint32_t> point;      // the ray's point (for the rare exact tie and its detection)
+  std::vector<uint32_t> point;      // the ray's point (for the rare exact tie)
+  std::vector<uint8_t> in_range;    // the point lies in the grid's x and y range (a detection)
   // reaching[d]: the rays that reach slab first + d * step, d = 0 .. slabs + 1 (a prefix).
   std::vector<int64_t> reaching;
 
@@ -68,6 +69,7 @@ struct Sweep {
     first_cell.resize(n);
     last_cell.resize(n);
     point.resize(n);
+    in_range.resize(n);
   }
 
   // Slabs a ray of the sweep ending in slab `last` crosses after the first: its depth.
@@ -165,6 +167,7 @@ std::array<Sweep, kSweeps> build_sweeps(const std::vector<Point>& points, const 
           sweep.first_cell[k] = static_cast<int32_t>(along.first);
           sweep.last_cell[k] = static_cast<int32_t>(along.last);
           sweep.point[k] = static_cast<uint32_t>(i);
+          sweep.in_range[k] = orientation[0].in_range(points[static_cast<size_t>(i)]);
         });
   });
   return sweeps;
@@ -315,7 +318,7 @@ void sweep_band(const Sweep& sweep, const Orientation& o, int64_t slab_lo, int64
       if (end < 0 || end >= cells) continue;
       --differences[end];
       ++differences[end + 1];
-      if (o.in_range(o.points[sweep.point[static_cast<size_t>(k)]])) detect(slab, end);
+      if (sweep.in_range[static_cast<size_t>(k)]) detect(slab, end);
     }
     // Counts are zero outside [from, to): every run and correction there adds and takes back.
     const int64_t from = touched_lo, to = std::min<int64_t>(touched_hi, cells);
