@@ -10,6 +10,7 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <initializer_list>
 #include <limits>
 #include <ostream>
 #include <string>
@@ -451,19 +452,28 @@ void expected_counts(const std::vector<Point>& points, const Vec3& origin, const
   return ::testing::AssertionSuccess();
 }
 
+// observability_2d against the sum of single-ray walks, for each thread count (the caller
+// restores the thread count).
+void expect_observability_matches_walks(const std::vector<Point>& points, const Vec3& origin,
+                                        const GridSpec& grid, std::initializer_list<int> threads) {
+  Tensor<uint32_t> transmissions, detections;
+  expected_counts(points, origin, grid, false, transmissions, detections);
+  for (int t : threads) {
+    set_num_threads(t);
+    const ObservabilityCounts counts = observability_2d(points, origin, grid);
+    EXPECT_TRUE(same_counts(counts.transmissions, transmissions))
+        << "origin (" << origin.x() << ", " << origin.y() << "), " << t << " threads";
+    EXPECT_TRUE(same_counts(counts.detections, detections))
+        << "origin (" << origin.x() << ", " << origin.y() << "), " << t << " threads";
+  }
+}
+
 TEST(Observability2D, MatchesSingleRayWalksForEveryThreadCount) {
   ThreadCountGuard guard;
   for (const GridSpec& grid : {small_grid(), dyadic_grid()}) {
     for (const Vec3& origin : {Vec3(0.0, 0.0, 0.0), Vec3(0.37, -0.21, 0.1), Vec3(-2.6, 1.9, 0.0)}) {
-      const std::vector<Point> points = random_scan(3000, 5);
-      Tensor<uint32_t> transmissions, detections;
-      expected_counts(points, origin, grid, false, transmissions, detections);
-      for (int threads : {1, 2, 3, 5, 24}) {  // 24: more threads than rows or columns
-        set_num_threads(threads);
-        const ObservabilityCounts counts = observability_2d(points, origin, grid);
-        EXPECT_TRUE(same_counts(counts.transmissions, transmissions)) << threads << " threads";
-        EXPECT_TRUE(same_counts(counts.detections, detections)) << threads << " threads";
-      }
+      // 24: more threads than rows or columns
+      expect_observability_matches_walks(random_scan(3000, 5), origin, grid, {1, 2, 3, 5, 24});
     }
   }
 }
@@ -492,16 +502,7 @@ TEST(Observability2D, MatchesSingleRayWalksForCraftedRaysAndOrigins) {
     }
     for (double x = -2.5; x <= 3.0; x += 0.25)  // every cell border, and beyond the grid
       for (double y : {-1.75, -1.5, -0.5, 0.0, 0.625, 1.25, 1.5}) add(x, y);
-    Tensor<uint32_t> transmissions, detections;
-    expected_counts(points, origin, grid, false, transmissions, detections);
-    for (int threads : {1, 2, 4}) {
-      set_num_threads(threads);
-      const ObservabilityCounts counts = observability_2d(points, origin, grid);
-      EXPECT_TRUE(same_counts(counts.transmissions, transmissions))
-          << "origin (" << origin.x() << ", " << origin.y() << "), " << threads << " threads";
-      EXPECT_TRUE(same_counts(counts.detections, detections))
-          << "origin (" << origin.x() << ", " << origin.y() << "), " << threads << " threads";
-    }
+    expect_observability_matches_walks(points, origin, grid, {1, 2, 4});
   }
 }
 
@@ -510,16 +511,7 @@ TEST(Observability2D, MatchesSingleRayWalksForCraftedRaysAndOrigins) {
 TEST(Observability2D, MatchesSingleRayWalksForRaysNearCorners) {
   ThreadCountGuard guard;
   const GridSpec grid = test::near_tie_grid();
-  const std::vector<Point> points = test::near_tie_rays();
-  const Vec3 origin(0.0, 0.0, 0.0);
-  Tensor<uint32_t> transmissions, detections;
-  expected_counts(points, origin, grid, false, transmissions, detections);
-  for (int threads : {1, 2}) {
-    set_num_threads(threads);
-    const ObservabilityCounts counts = observability_2d(points, origin, grid);
-    EXPECT_TRUE(same_counts(counts.transmissions, transmissions)) << threads << " threads";
-    EXPECT_TRUE(same_counts(counts.detections, detections)) << threads << " threads";
-  }
+  expect_observability_matches_walks(test::near_tie_rays(), Vec3(0.0, 0.0, 0.0), grid, {1, 2});
 }
 
 // The default grid (origin on a cell corner) against single-ray walks, for a spread of ranges.
@@ -533,15 +525,7 @@ TEST(Observability2D, MatchesSingleRayWalksOnDefaultGrid) {
     points.push_back({static_cast<float>(range * std::cos(angle)),
                       static_cast<float>(range * std::sin(angle)), 0.0f, 0.0f});
   }
-  const Vec3 origin(0.0, 0.0, 0.0);
-  Tensor<uint32_t> transmissions, detections;
-  expected_counts(points, origin, grid, false, transmissions, detections);
-  for (int threads : {1, 2}) {
-    set_num_threads(threads);
-    const ObservabilityCounts counts = observability_2d(points, origin, grid);
-    EXPECT_TRUE(same_counts(counts.transmissions, transmissions)) << threads << " threads";
-    EXPECT_TRUE(same_counts(counts.detections, detections)) << threads << " threads";
-  }
+  expect_observability_matches_walks(points, Vec3(0.0, 0.0, 0.0), grid, {1, 2});
 }
 
 TEST(Observability2D, IdenticalForOneAndTwoThreadsOnDefaultGrid) {
