@@ -223,6 +223,24 @@ void transform_weights(const WinogradShape& s, const WeightLayout& layout, float
   });
 }
 
+// dst[ph * entries + m] = plane(iy, x0 + 4 m + ph) for m < entries, ph < 4: row iy of the (H, W)
+// plane from column x0 on, split by column phase, zero outside the image. padded_row (4 entries
+// values, zero on first use) keeps zeros outside the image's columns from call to call.
+void split_row_by_phase(const float* plane, int64_t H, int64_t W, int64_t iy, int64_t x0,
+                        int64_t entries, std::vector<float>& padded_row, float* dst) {
+  const int64_t row_len = kTile * entries;
+  if (iy < 0 || iy >= H) {
+    std::fill(dst, dst + row_len, 0.0f);
+    return;
+  }
+  // padded_row[q] = plane(iy, x0 + q) for q in [q0, q1); the rest stays zero.
+  const int64_t q0 = std::max<int64_t>(0, -x0), q1 = std::min(row_len, W - x0);
+  std::copy(plane + iy * W + x0 + q0, plane + iy * W + x0 + q1, padded_row.begin() + q0);
+  for (int64_t m = 0; m < entries; ++m)
+    for (int ph = 0; ph < kTile; ++ph)
+      dst[ph * entries + m] = padded_row[static_cast<size_t>(kTile * m + ph)];
+}
+
 // V[p][i][t] for input channel i of one image plane (H, W) over the block's tiles, t = tile
 // row in the block * cols + tile column in the block. Scratch: band and vert (6 rows of
 // 4 (cols + 1) values), padded_row (4 (cols + 1)).
@@ -233,28 +251,16 @@ void transform_input_channel(const float* plane, const WinogradShape& s, const B
   const int64_t phase_len = cols + 1;  // tile tx reads phase entries tx and tx + 1
   const int64_t row_len = kTile * phase_len;
   const int64_t tiles = blk.tiles();
-  // The band's column q is input column x0 + q; the valid ones are q in [q0, q1).
-  const int64_t x0 = kTile * blk.tx0 - 1;
-  const int64_t q0 = std::max<int64_t>(0, -x0), q1 = std::min(row_len, W - x0);
+  const int64_t x0 = kTile * blk.tx0 - 1;  // the band's first column (pad 1)
   band.resize(static_cast<size_t>(kInputTile * row_len));
   vert.resize(static_cast<size_t>(kInputTile * row_len));
   padded_row.assign(static_cast<size_t>(row_len), 0.0f);
   for (int64_t r_t = 0; r_t < blk.rows; ++r_t) {
     const int64_t ty = blk.ty0 + r_t;
     // band[r][ph * phase_len + m] = x(4 ty - 1 + r, x0 + 4 m + ph), zero outside the image.
-    for (int r = 0; r < kInputTile; ++r) {
-      float* dst = band.data() + r * row_len;
-      const int64_t iy = kTile * ty - 1 + r;
-      if (iy < 0 || iy >= H) {
-        std::fill(dst, dst + row_len, 0.0f);
-        continue;
-      }
-      // padded_row[q] = x(iy, x0 + q) for q in [q0, q1); the rest stays zero.
-      std::copy(plane + iy * W + x0 + q0, plane + iy * W + x0 + q1, padded_row.begin() + q0);
-      for (int64_t m = 0; m < phase_len; ++m)
-        for (int ph = 0; ph < kTile; ++ph)
-          dst[ph * phase_len + m] = padded_row[static_cast<size_t>(kTile * m + ph)];
-    }
+    for (int r = 0; r < kInputTile; ++r)
+      split_row_by_phase(plane, H, W, kTile * ty - 1 + r, x0, phase_len, padded_row,
+                         band.data() + r * row_len);
     const float* b = band.data();
     float* t = vert.data();
     input_transform_rows(b, b + row_len, b + 2 * row_len, b + 3 * row_len, b + 4 * row_len,
@@ -334,26 +340,16 @@ void transform_gradient_channel(const float* plane, const WinogradShape& s, cons
                                 std::vector<float>& vert, std::vector<float>& padded_row) {
   const int64_t H = s.height, W = s.width, O = s.out_channels, cols = blk.cols;
   const int64_t row_len = kTile * cols, tiles = blk.tiles();
-  // The band's column q is output column x0 + q; the valid ones are q < q1.
-  const int64_t x0 = kTile * blk.tx0, q1 = std::min(row_len, W - x0);
+  const int64_t x0 = kTile * blk.tx0;  // the band's first column
   band.resize(static_cast<size_t>(kTile * row_len));
   vert.resize(static_cast<size_t>(kInputTile * row_len));
   padded_row.assign(static_cast<size_t>(row_len), 0.0f);
   for (int64_t r_t = 0; r_t < blk.rows; ++r_t) {
     const int64_t ty = blk.ty0 + r_t;
     // band[r][ph * cols + m] = e(4 ty + r, x0 + 4 m + ph), zero outside the image.
-    for (int r = 0; r < kTile; ++r) {
-      float* dst = band.data() + r * row_len;
-      const int64_t iy = kTile * ty + r;
-      if (iy >= H) {
-        std::fill(dst, dst + row_len, 0.0f);
-        continue;
-      }
-      std::copy(plane + iy * W + x0, plane + iy * W + x0 + q1, padded_row.begin());
-      for (int64_t m = 0; m < cols; ++m)
-        for (int ph = 0; ph < kTile; ++ph)
-          dst[ph * cols + m] = padded_row[static_cast<size_t>(kTile * m + ph)];
-    }
+    for (int r = 0; r < kTile; ++r)
+      split_row_by_phase(plane, H, W, kTile * ty + r, x0, cols, padded_row,
+                         band.data() + r * row_len);
     const float* b = band.data();
     float* z = vert.data();
     gradient_transform_rows(b, b + row_len, b + 2 * row_len, b + 3 * row_len, z, z + row_len,
