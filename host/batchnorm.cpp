@@ -1,5 +1,7 @@
 // BatchNorm over channel axis 1 of (B, C, H, W) or (M, C), optionally fused with ReLU: training
-// and evaluation forward, training backward. See batchnorm.hpp for the semantics.
+// and evaluation forward, training backward. See batchnorm.hpp for the semantics. (B, C, H, W)
+// runs ranges of channels on the threads, each channel whole on one thread, so the results are
+// the same for any thread count.
 #include "host/batchnorm.hpp"
 
 // GCC 12 reports false (maybe-)uninitialized values inside its own AVX-512 intrinsics
