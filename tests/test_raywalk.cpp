@@ -528,6 +528,25 @@ TEST(Observability2D, MatchesSingleRayWalksOnDefaultGrid) {
   expect_observability_matches_walks(points, Vec3(0.0, 0.0, 0.0), grid, {1, 2});
 }
 
+// Degenerate grids (one row, one column, one cell) and far origins: sweeps that start beyond
+// the grid, slabs of one cell, rays that only graze the grid.
+TEST(Observability2D, MatchesSingleRayWalksOnThinGridsAndFarOrigins) {
+  ThreadCountGuard guard;
+  const auto thin = [](double x_max, double y_max) {
+    GridSpec grid = test::dyadic_grid();  // cells of 0.25 m from (-2, -1.5)
+    grid.x_max = x_max;
+    grid.y_max = y_max;
+    return grid;
+  };
+  const std::vector<Point> points = random_scan(1500, 9);
+  for (const GridSpec& grid : {thin(2.75, -1.25), thin(-1.75, 1.25), thin(-1.75, -1.25)}) {
+    for (const Vec3& origin : {Vec3(0.0, 0.0, 0.0), Vec3(-1.9, -1.4, 0.0), Vec3(40.0, -3.0, 0.0),
+                               Vec3(-2.5, 1e6, 0.0)}) {
+      expect_observability_matches_walks(points, origin, grid, {1, 2, 3});
+    }
+  }
+}
+
 TEST(Observability2D, IdenticalForOneAndTwoThreadsOnDefaultGrid) {
   ThreadCountGuard guard;
   const GridSpec grid;
