@@ -23,6 +23,7 @@
 #include <unordered_map>
 #include <vector>
 
+#include "bench/support/cuda_device.hpp"
 #include "engine/core/grid.hpp"
 #include "engine/core/rng.hpp"
 #include "engine/core/tensor.hpp"
@@ -319,26 +320,10 @@ void register_benchmarks() {
   pass("Confusion", BM_Confusion);
 }
 
-// Empty when a CUDA device can run the kernels, else why not.
-std::string missing_device() {
-#if defined(PILLARSEG_CUDA_EMULATION)
-  return "this build runs the kernels on the CPU emulation";
-#else
-  int devices = 0;
-  const cudaError_t error = cudaGetDeviceCount(&devices);
-  if (error != cudaSuccess) {
-    static_cast<void>(cudaGetLastError());
-    return std::string(cudaGetErrorName(error)) + ": " + cudaGetErrorString(error);
-  }
-  if (devices == 0) return "cudaGetDeviceCount found none";
-  return "";
-#endif
-}
-
 }  // namespace
 
 int main(int argc, char** argv) {
-  const std::string missing = missing_device();
+  const std::string missing = pillarseg::bench::missing_cuda_device();
   if (!missing.empty()) {
     std::printf("bench_kernels_pipeline skipped: no CUDA device (%s)\n", missing.c_str());
     return 0;
