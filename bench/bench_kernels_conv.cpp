@@ -23,7 +23,7 @@
 #include <string>
 #include <vector>
 
-#include "bench/support/cuda_device.hpp"
+#include "bench/support/cuda_bench.hpp"
 #include "engine/core/rng.hpp"
 #if defined(PILLARSEG_BENCH_VENDOR_CONV)
 #include "engine/cuda/vendor_conv.hpp"
@@ -85,58 +85,13 @@ DeviceBuffer<float> random_buffer(std::int64_t n, std::uint64_t seed) {
   return DeviceBuffer<float>::from_host(values);
 }
 
-// A stream and two events: times what `run` queues on the stream.
-class EventTimer {
- public:
-  EventTimer() {
-    PS_CUDA_CHECK(cudaStreamCreateWithFlags(&stream_, cudaStreamNonBlocking));
-    PS_CUDA_CHECK(cudaEventCreate(&start_));
-    PS_CUDA_CHECK(cudaEventCreate(&stop_));
-  }
-  ~EventTimer() {
-    static_cast<void>(cudaEventDestroy(stop_));
-    static_cast<void>(cudaEventDestroy(start_));
-    static_cast<void>(cudaStreamDestroy(stream_));
-  }
-  EventTimer(const EventTimer&) = delete;
-  EventTimer& operator=(const EventTimer&) = delete;
-
-  cudaStream_t stream() const { return stream_; }
-
-  // Milliseconds between the events recorded around run(stream).
-  double milliseconds(const std::function<void(cudaStream_t)>& run) {
-    PS_CUDA_CHECK(cudaEventRecord(start_, stream_));
-    run(stream_);
-    PS_CUDA_CHECK(cudaEventRecord(stop_, stream_));
-    PS_CUDA_CHECK(cudaEventSynchronize(stop_));
-    float ms = 0.0f;
-    PS_CUDA_CHECK(cudaEventElapsedTime(&ms, start_, stop_));
-    return ms;
-  }
-
- private:
-  cudaStream_t stream_ = nullptr;
-  cudaEvent_t start_ = nullptr;
-  cudaEvent_t stop_ = nullptr;
-};
-
-// One warm-up run, then each iteration's event time; sets the GFLOP/s counter. Returns the mean
-// time in ms.
+// bench::time_iterations, and the GFLOP/s counter. Returns the mean time in ms.
 double time_pass(benchmark::State& state, double flops,
                  const std::function<void(cudaStream_t)>& run) {
-  EventTimer timer;
-  timer.milliseconds(run);
-  double total_ms = 0.0;
-  std::int64_t runs = 0;
-  for (auto _ : state) {
-    const double ms = timer.milliseconds(run);
-    state.SetIterationTime(ms * 1e-3);
-    total_ms += ms;
-    ++runs;
-  }
+  const double mean_ms = bench::time_iterations(state, run);
   state.counters["GFLOP/s"] =
       benchmark::Counter(flops * 1e-9, benchmark::Counter::kIsIterationInvariantRate);
-  return runs > 0 ? total_ms / static_cast<double>(runs) : 0.0;
+  return mean_ms;
 }
 
 // Our conv2d time per pass and layer ("forward/<layer>", ...), for the peers' ratio.

@@ -23,7 +23,7 @@
 #include <unordered_map>
 #include <vector>
 
-#include "bench/support/cuda_device.hpp"
+#include "bench/support/cuda_bench.hpp"
 #include "engine/core/grid.hpp"
 #include "engine/core/rng.hpp"
 #include "engine/core/tensor.hpp"
@@ -96,39 +96,6 @@ double host_ms(const std::function<void()>& run) {
   return times[1];
 }
 
-// A stream and two events: times what `run` queues on the stream.
-class EventTimer {
- public:
-  EventTimer() {
-    PS_CUDA_CHECK(cudaStreamCreateWithFlags(&stream_, cudaStreamNonBlocking));
-    PS_CUDA_CHECK(cudaEventCreate(&start_));
-    PS_CUDA_CHECK(cudaEventCreate(&stop_));
-  }
-  ~EventTimer() {
-    static_cast<void>(cudaEventDestroy(stop_));
-    static_cast<void>(cudaEventDestroy(start_));
-    static_cast<void>(cudaStreamDestroy(stream_));
-  }
-  EventTimer(const EventTimer&) = delete;
-  EventTimer& operator=(const EventTimer&) = delete;
-
-  // Milliseconds between the events recorded around run(stream).
-  double milliseconds(const std::function<void(cudaStream_t)>& run) {
-    PS_CUDA_CHECK(cudaEventRecord(start_, stream_));
-    run(stream_);
-    PS_CUDA_CHECK(cudaEventRecord(stop_, stream_));
-    PS_CUDA_CHECK(cudaEventSynchronize(stop_));
-    float ms = 0.0f;
-    PS_CUDA_CHECK(cudaEventElapsedTime(&ms, start_, stop_));
-    return ms;
-  }
-
- private:
-  cudaStream_t stream_ = nullptr;
-  cudaEvent_t start_ = nullptr;
-  cudaEvent_t stop_ = nullptr;
-};
-
 // What one pass processes per run, for its rates.
 struct Work {
   double items = 0.0;  // points or cells
@@ -137,26 +104,15 @@ struct Work {
   double reference_ms = 0.0;
 };
 
-// One warm-up run, then each iteration's event time; sets the rate counters.
+// bench::time_iterations, and the rate counters.
 void time_pass(benchmark::State& state, const Work& work,
                const std::function<void(cudaStream_t)>& run) {
-  EventTimer timer;
-  timer.milliseconds(run);
-  double total_ms = 0.0;
-  std::int64_t runs = 0;
-  for (auto _ : state) {
-    const double ms = timer.milliseconds(run);
-    state.SetIterationTime(ms * 1e-3);
-    total_ms += ms;
-    ++runs;
-  }
+  const double mean_ms = bench::time_iterations(state, run);
   state.counters[work.item_name] =
       benchmark::Counter(work.items, benchmark::Counter::kIsIterationInvariantRate);
   state.counters["GB/s"] =
       benchmark::Counter(work.bytes * 1e-9, benchmark::Counter::kIsIterationInvariantRate);
-  if (runs > 0 && total_ms > 0.0) {
-    state.counters["host_ms/gpu_ms"] = work.reference_ms / (total_ms / static_cast<double>(runs));
-  }
+  if (mean_ms > 0.0) state.counters["host_ms/gpu_ms"] = work.reference_ms / mean_ms;
 }
 
 DeviceBuffer<float> device_points() {
