@@ -45,6 +45,53 @@ void select_positions(int64_t n, int64_t keep, SampleMode mode, Rng* rng, int32_
   }
 }
 
+namespace {
+
+// The per-pillar lists of pass 1 and 2 (see PillarWorkspace), read by copy_out.
+struct PillarLists {
+  const int32_t* kept;       // (P'): pillar id of each kept pillar
+  const int32_t* flat_cell;  // per pillar id: iy * W + ix
+  const int32_t* begin;      // per pillar id: its first entry in members
+  const int32_t* size;       // per pillar id: its number of points
+  const int32_t* members;    // point indices grouped by pillar, N entries of slack at the end
+};
+
+// Writes kept pillars [begin, end) of `lists` into cell (P', 2), slots (P', N) and count (P').
+// A pillar of at most N points is copied as one block of N (members[0 .. N) are readable thanks
+// to the slack) with the slots past its size set to -1 by a mask, not a branch, so the copy
+// stays one vector loop; a larger one keeps the members at select_positions (`positions`: N
+// entries of scratch).
+void copy_out(const PillarLists& lists, int64_t begin, int64_t end, int32_t slots_per_pillar,
+              int32_t row_cells, SampleMode mode, Rng* rng, int32_t* positions, int32_t* cell,
+              int32_t* slots, int32_t* count) {
+  // iy = flat / W in doubles: the quotient of two integers below 2^31 is rounded correctly and
+  // is never within rounding of the next integer, so truncating it is exact (and vectorises).
+  const double row = row_cells;
+  for (int64_t q = begin; q < end; ++q) {
+    const int32_t flat_cell = lists.flat_cell[lists.kept[q]];
+    const auto iy = static_cast<int32_t>(static_cast<double>(flat_cell) / row);
+    cell[2 * q] = iy;
+    cell[2 * q + 1] = flat_cell - iy * row_cells;
+  }
+  const int32_t n = slots_per_pillar;
+  for (int64_t q = begin; q < end; ++q) {
+    const int32_t pillar = lists.kept[q];
+    const int32_t* members = lists.members + lists.begin[pillar];
+    const int32_t size = lists.size[pillar];
+    int32_t* row_slots = slots + q * n;
+    if (size <= n) {
+      for (int32_t k = 0; k < n; ++k) row_slots[k] = members[k] | -static_cast<int32_t>(k >= size);
+      count[q] = size;
+    } else {
+      select_positions(size, n, mode, rng, positions);
+      for (int32_t k = 0; k < n; ++k) row_slots[k] = members[positions[k]];
+      count[q] = n;
+    }
+  }
+}
+
+}  // namespace
+
 void pillar_gather(const std::vector<Point>& points, const GridSpec& grid, const PillarConfig& cfg,
                    SampleMode mode, Rng* rng, PillarWorkspace& workspace, Pillars& out) {
   const int max_points = cfg.max_points_per_pillar;
@@ -66,46 +113,65 @@ void pillar_gather(const std::vector<Point>& points, const GridSpec& grid, const
   const auto num_points = static_cast<int32_t>(points.size());
 
   // Pass 1a: flat cell iy * W + ix of each point, -1 outside the volume. The test is
-  // grid.contains() with W and H hoisted out of the loop; the floors are compared as doubles,
-  // so a far or non-finite point is never converted to an integer.
-  const double cells_x = static_cast<double>(width), cells_y = static_cast<double>(height);
+  // grid.contains() with the grid's numbers in locals and no branches, so the loop vectorises;
+  // the floors are compared as doubles and only an inside point's floors are converted, so a
+  // far or non-finite point is never converted to an integer.
+  const auto row_cells = static_cast<int32_t>(width);
   ws.pillar_of_point.resize(points.size());
-  parallel_for(num_points, [&](int64_t i) {
-    const double x = points[i].x, y = points[i].y, z = points[i].z;
-    const double fx = std::floor((x - grid.x_min) / grid.cell);
-    const double fy = std::floor((y - grid.y_min) / grid.cell);
-    const bool inside = x >= grid.x_min && x < grid.x_max && y >= grid.y_min && y < grid.y_max &&
-                        z >= grid.z_min && z < grid.z_max && fx >= 0.0 && fx < cells_x &&
-                        fy >= 0.0 && fy < cells_y;
-    ws.pillar_of_point[i] =
-        inside ? static_cast<int32_t>(fy) * static_cast<int32_t>(width) + static_cast<int32_t>(fx)
-               : -1;
+  parallel_chunks(num_points, [&](int64_t begin, int64_t end, int) {
+    // Locals, not captures: a store to the int32 output could otherwise alias row_cells.
+    const Point* point = points.data();
+    int32_t* cell_of_point = ws.pillar_of_point.data();
+    const double x_min = grid.x_min, x_max = grid.x_max, y_min = grid.y_min, y_max = grid.y_max;
+    const double z_min = grid.z_min, z_max = grid.z_max, cell = grid.cell;
+    const double cells_x = static_cast<double>(width), cells_y = static_cast<double>(height);
+    const int32_t row = row_cells;
+    for (int64_t i = begin; i < end; ++i) {
+      const double x = point[i].x, y = point[i].y, z = point[i].z;
+      const double fx = std::floor((x - x_min) / cell);
+      const double fy = std::floor((y - y_min) / cell);
+      const bool inside = (x >= x_min) & (x < x_max) & (y >= y_min) & (y < y_max) & (z >= z_min) &
+                          (z < z_max) & (fx >= 0.0) & (fx < cells_x) & (fy >= 0.0) &
+                          (fy < cells_y);
+      const int32_t flat = static_cast<int32_t>(inside ? fy : 0.0) * row +
+                           static_cast<int32_t>(inside ? fx : 0.0);
+      cell_of_point[i] = inside ? flat : -1;
+    }
   });
 
   // Pass 1b: replace each cell by its pillar id, numbered by first appearance. The map is
   // marked dirty while in use, so a call interrupted by an exception makes the next one refill
-  // it.
+  // it. There are at most min(M, W * H) pillars, so the per-pillar lists are sized once.
   const auto num_cells = static_cast<size_t>(width * height);
   if (!ws.cell_map_clean || ws.pillar_of_cell.size() != num_cells) {
     ws.pillar_of_cell.assign(num_cells, -1);
   }
   ws.cell_map_clean = false;
-  ws.pillar_flat_cell.clear();
-  ws.pillar_size.clear();
-  for (int32_t& entry : ws.pillar_of_point) {
-    if (entry < 0) continue;
-    int32_t& pillar = ws.pillar_of_cell[static_cast<size_t>(entry)];
-    if (pillar < 0) {
-      pillar = static_cast<int32_t>(ws.pillar_flat_cell.size());
-      ws.pillar_flat_cell.push_back(entry);
-      ws.pillar_size.push_back(0);
+  const size_t max_pillars = std::min(points.size(), num_cells);
+  if (ws.pillar_flat_cell.size() < max_pillars) ws.pillar_flat_cell.resize(max_pillars);
+  if (ws.pillar_size.size() < max_pillars) ws.pillar_size.resize(max_pillars);
+  int32_t num_found = 0;
+  {
+    int32_t* pillar_of_cell = ws.pillar_of_cell.data();
+    int32_t* flat_cell = ws.pillar_flat_cell.data();
+    int32_t* size = ws.pillar_size.data();
+    int32_t* entry = ws.pillar_of_point.data();
+    for (int32_t i = 0; i < num_points; ++i) {
+      if (entry[i] < 0) continue;
+      int32_t pillar = pillar_of_cell[entry[i]];
+      if (pillar < 0) {
+        pillar = num_found++;
+        pillar_of_cell[entry[i]] = pillar;
+        flat_cell[pillar] = entry[i];
+        size[pillar] = 0;
+      }
+      ++size[pillar];
+      entry[i] = pillar;
     }
-    ++ws.pillar_size[static_cast<size_t>(pillar)];
-    entry = pillar;
+    for (int32_t p = 0; p < num_found; ++p) pillar_of_cell[flat_cell[p]] = -1;
   }
-  for (const int32_t flat_cell : ws.pillar_flat_cell) ws.pillar_of_cell[flat_cell] = -1;
   ws.cell_map_clean = true;
-  const auto num_nonempty = static_cast<int64_t>(ws.pillar_flat_cell.size());
+  const int64_t num_nonempty = num_found;
 
   // Pass 2: the points of each pillar in file order (counting sort), pillar p at
   // members[pillar_begin[p] .. pillar_begin[p + 1]).
@@ -115,7 +181,8 @@ void pillar_gather(const std::vector<Point>& points, const GridSpec& grid, const
     ws.pillar_begin[p + 1] = ws.pillar_begin[p] + ws.pillar_size[p];
   }
   ws.cursor.assign(ws.pillar_begin.begin(), ws.pillar_begin.end() - 1);
-  ws.members.resize(static_cast<size_t>(ws.pillar_begin.back()));
+  // N entries of slack at the end: a pillar's first N members can be read as one block.
+  ws.members.resize(static_cast<size_t>(ws.pillar_begin.back()) + static_cast<size_t>(max_points));
   for (int32_t i = 0; i < num_points; ++i) {
     const int32_t pillar = ws.pillar_of_point[i];
     if (pillar >= 0) ws.members[ws.cursor[pillar]++] = i;
@@ -133,34 +200,19 @@ void pillar_gather(const std::vector<Point>& points, const GridSpec& grid, const
   out.point_index.resize_for_overwrite({num_kept, max_points});
   out.count.resize_for_overwrite({num_kept});
   ws.positions.resize(static_cast<size_t>(max_points));
-  const auto row_cells = static_cast<int32_t>(width);
-  const auto copy_out = [&](int64_t q, int32_t* positions) {
-    const int32_t pillar = ws.kept_pillars[q];
-    const int32_t flat_cell = ws.pillar_flat_cell[pillar];
-    out.cell(q, 0) = flat_cell / row_cells;  // 32-bit division: cheaper than 64-bit
-    out.cell(q, 1) = flat_cell % row_cells;
-    const int32_t* pillar_points = ws.members.data() + ws.pillar_begin[pillar];
-    const int32_t size = ws.pillar_size[pillar];
-    int32_t* slots = &out.point_index(q, 0);
-    if (size <= max_points) {
-      std::copy(pillar_points, pillar_points + size, slots);
-      std::fill(slots + size, slots + max_points, -1);
-      out.count[q] = size;
-    } else {
-      select_positions(size, max_points, mode, rng, positions);
-      for (int k = 0; k < max_points; ++k) slots[k] = pillar_points[positions[k]];
-      out.count[q] = max_points;
-    }
-  };
+  const PillarLists lists{ws.kept_pillars.data(), ws.pillar_flat_cell.data(),
+                          ws.pillar_begin.data(), ws.pillar_size.data(), ws.members.data()};
   if (mode == SampleMode::Inference) {
     // Evenly spaced positions draw nothing from rng: the pillars are independent.
     parallel_chunks(num_kept, [&](int64_t begin, int64_t end, int) {
       std::vector<int32_t> positions(static_cast<size_t>(max_points));
-      for (int64_t q = begin; q < end; ++q) copy_out(q, positions.data());
+      copy_out(lists, begin, end, max_points, row_cells, mode, rng, positions.data(),
+               out.cell.data(), out.point_index.data(), out.count.data());
     });
   } else {
     // Training draws each pillar's subset from rng in pillar order.
-    for (int64_t q = 0; q < num_kept; ++q) copy_out(q, ws.positions.data());
+    copy_out(lists, 0, num_kept, max_points, row_cells, mode, rng, ws.positions.data(),
+             out.cell.data(), out.point_index.data(), out.count.data());
   }
 }
 

@@ -46,8 +46,8 @@ struct PillarWorkspace {
   std::vector<int32_t> pillar_of_cell;    // (W * H): pillar of a cell or -1
   bool cell_map_clean = false;            // pillar_of_cell is all -1 and sized for the grid
   std::vector<int32_t> pillar_of_point;   // (M): pillar of a point or -1 outside the volume
-  std::vector<int32_t> pillar_flat_cell;  // (#non-empty): iy * W + ix
-  std::vector<int32_t> pillar_size;       // (#non-empty): points before subsampling
+  std::vector<int32_t> pillar_flat_cell;  // (>= #non-empty): iy * W + ix, per pillar id
+  std::vector<int32_t> pillar_size;       // (>= #non-empty): points before subsampling
   std::vector<int32_t> pillar_begin;      // (#non-empty + 1): CSR offsets into members
   std::vector<int32_t> cursor;            // (#non-empty): fill position while sorting
   std::vector<int32_t> members;           // (#inside): point indices grouped by pillar

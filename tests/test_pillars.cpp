@@ -141,6 +141,13 @@ GridSpec odd_grid() {  // 13 x 7 cells, cell 0.3, off-centre
   return g;
 }
 
+GridSpec wide_grid() {  // 7919 x 3 cells: a prime row length for the cell = iy * W + ix split
+  GridSpec g;
+  g.x_min = -1979.75, g.x_max = 1979.75, g.y_min = -0.75, g.y_max = 0.75, g.z_min = -1.0;
+  g.z_max = 1.0, g.cell = 0.5;
+  return g;
+}
+
 // A point in the middle of cell (iy, ix).
 Point point_in_cell(const GridSpec& g, int64_t iy, int64_t ix, float r = 0.5f) {
   return Point{static_cast<float>(g.x_min + (ix + 0.5) * g.cell),
@@ -229,7 +236,8 @@ INSTANTIATE_TEST_SUITE_P(Cases, PillarsVsReference,
                                            GatherCase{"odd_N1_all", odd_grid(), 500, 1, 0},
                                            GatherCase{"odd_N5_P80", odd_grid(), 900, 5, 80},
                                            GatherCase{"default_N20_P3000", GridSpec{}, 30000, 20,
-                                                      3000}),
+                                                      3000},
+                                           GatherCase{"wide_N20_all", wide_grid(), 20000, 20, 0}),
                          [](const ::testing::TestParamInfo<GatherCase>& param_info) {
                            return std::string(param_info.param.name);
                          });
