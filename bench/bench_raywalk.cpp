@@ -1,9 +1,9 @@
 // Benchmarks of the ray walks (host/raywalk) on a realistic scan built here: a 64-beam spinning
 // LiDAR (elevations -24.9 .. +2 degrees, 1900 azimuth steps, about 120k points, ranges up to
 // 80 m) ray-cast against a ground plane at z = -1.73 m, building facades, far walls, parked cars
-// and poles, with seeded range noise. Times observability_2d, and occupancy_counts_3d with
-// occupancy_probability, on 1 and 2 threads on the default grid; reports ms, points/s and
-// walked cells/s.
+// and poles, with seeded range noise. Times observability_2d (fresh, and in steady state with its
+// workspace and output kept), and occupancy_counts_3d with occupancy_probability, on 1 and 2
+// threads on the default grid; reports ms, points/s and walked cells/s.
 #include <benchmark/benchmark.h>
 
 #include <algorithm>
@@ -123,6 +123,23 @@ void BM_Observability2D(benchmark::State& state) {
   set_num_threads(saved);
 }
 
+void BM_Observability2DReused(benchmark::State& state) {  // steady state: workspace and output kept
+  const int saved = num_threads();
+  set_num_threads(static_cast<int>(state.range(0)));
+  const GridSpec grid;
+  const Eigen::Vector3d origin = Eigen::Vector3d::Zero();
+  ObservabilityWorkspace workspace;
+  ObservabilityCounts counts;
+  observability_2d(scan(), origin, grid, workspace, counts);
+  const uint64_t cells = sum(counts.transmissions) + sum(counts.detections);
+  for (auto _ : state) {
+    observability_2d(scan(), origin, grid, workspace, counts);
+    benchmark::DoNotOptimize(counts.transmissions.data());
+  }
+  set_rates(state, cells);
+  set_num_threads(saved);
+}
+
 void BM_Occupancy3D(benchmark::State& state) {
   const int saved = num_threads();
   set_num_threads(static_cast<int>(state.range(0)));
@@ -175,6 +192,7 @@ void thread_counts(benchmark::internal::Benchmark* b) {
 }
 
 BENCHMARK(BM_Observability2D)->Apply(thread_counts);
+BENCHMARK(BM_Observability2DReused)->Apply(thread_counts);
 BENCHMARK(BM_Occupancy3D)->Apply(thread_counts);
 BENCHMARK(BM_OccupancyCounts3D)->Apply(thread_counts);
 BENCHMARK(BM_OccupancyProbability)->Apply(thread_counts);

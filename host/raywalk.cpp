@@ -377,17 +377,25 @@ float probability_of(uint32_t hits, uint32_t passes) {
 
 ObservabilityCounts observability_2d(const std::vector<Point>& points,
                                      const Eigen::Vector3d& origin, const GridSpec& grid) {
+  ObservabilityWorkspace workspace;
+  ObservabilityCounts counts;
+  observability_2d(points, origin, grid, workspace, counts);
+  return counts;
+}
+
+void observability_2d(const std::vector<Point>& points, const Eigen::Vector3d& origin,
+                      const GridSpec& grid, ObservabilityWorkspace& workspace,
+                      ObservabilityCounts& out) {
   constexpr const char* kCaller = "observability_2d";
   check_grid(grid, false, kCaller);
   check_origin(origin, kCaller);
   check_point_count(points.size(), kCaller);
   const GridSize size(grid, false);
-  ObservabilityCounts counts{Tensor<uint32_t>::zeros({size.height, size.width}),
-                             Tensor<uint32_t>::zeros({size.height, size.width})};
+  out.transmissions.resize({size.height, size.width});
+  out.detections.resize({size.height, size.width});
   const CellCoordinates o = cell_coordinates(origin.x(), origin.y(), origin.z(), grid, false);
-  raywalk_detail::count_observability_2d(points, o.u, o.v, grid, counts.transmissions.data(),
-                                         counts.detections.data());
-  return counts;
+  raywalk_detail::count_observability_2d(points, o.u, o.v, grid, workspace.buffers(),
+                                         out.transmissions.data(), out.detections.data());
 }
 
 Tensor<uint32_t> observability_map(const ObservabilityCounts& counts) {

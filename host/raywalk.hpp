@@ -35,6 +35,7 @@
 
 #include <Eigen/Core>
 #include <cstdint>
+#include <memory>
 #include <vector>
 
 #include "engine/core/grid.hpp"
@@ -53,6 +54,34 @@ struct ObservabilityCounts {
 // in the same frame, anywhere (inside the grid or not). z plays no part.
 ObservabilityCounts observability_2d(const std::vector<Point>& points,
                                      const Eigen::Vector3d& origin, const GridSpec& grid);
+
+namespace raywalk_detail {
+struct SweepBuffers;
+}
+
+// Scratch memory of observability_2d, reusable across scans: the rays sorted into sweeps (about
+// 21 bytes per point) and each thread's working arrays. One workspace per calling thread; a
+// steady-state loop that keeps it (and the output) allocates nothing once the buffers have grown.
+class ObservabilityWorkspace {
+ public:
+  ObservabilityWorkspace();
+  ~ObservabilityWorkspace();
+  ObservabilityWorkspace(ObservabilityWorkspace&&) noexcept;
+  ObservabilityWorkspace& operator=(ObservabilityWorkspace&&) noexcept;
+  ObservabilityWorkspace(const ObservabilityWorkspace&) = delete;
+  ObservabilityWorkspace& operator=(const ObservabilityWorkspace&) = delete;
+
+  raywalk_detail::SweepBuffers& buffers();  // (made again after a move)
+
+ private:
+  std::unique_ptr<raywalk_detail::SweepBuffers> buffers_;
+};
+
+// Same, with caller-owned scratch and output: `out` is overwritten (its tensors keep their
+// allocations) with the same counts.
+void observability_2d(const std::vector<Point>& points, const Eigen::Vector3d& origin,
+                      const GridSpec& grid, ObservabilityWorkspace& workspace,
+                      ObservabilityCounts& out);
 
 // (H, W): transmissions + detections per cell, the number of rays that touched the cell.
 Tensor<uint32_t> observability_map(const ObservabilityCounts& counts);

@@ -174,8 +174,11 @@ class CrossingCell {
 
 // The 2D observability counts of raywalk.hpp (raywalk_sweep.cpp). origin_u, origin_v: the sensor
 // origin in cell coordinates; transmissions, detections: (H, W) of the grid, zero on entry; the
-// grid and origin are checked by the caller; non-finite points are skipped.
+// grid and origin are checked by the caller; non-finite points are skipped. `buffers`: the
+// sweeps and per-thread scratch (ObservabilityWorkspace), grown as needed.
+struct SweepBuffers;
 void count_observability_2d(const std::vector<Point>& points, double origin_u, double origin_v,
-                            const GridSpec& grid, uint32_t* transmissions, uint32_t* detections);
+                            const GridSpec& grid, SweepBuffers& buffers, uint32_t* transmissions,
+                            uint32_t* detections);
 
 }  // namespace pillarseg::host::raywalk_detail

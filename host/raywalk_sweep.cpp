@@ -15,8 +15,10 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <memory>
 
 #include "engine/core/parallel.hpp"
+#include "host/raywalk.hpp"
 #include "host/raywalk_detail.hpp"
 
 namespace pillarseg::host::raywalk_detail {
@@ -113,9 +115,10 @@ void for_each_ray(const std::vector<Point>& points, int64_t begin, int64_t end,
 // Sorts the finite points' rays into the four sweeps. Each thread classifies a contiguous chunk
 // of the points twice: once to count rays per (sweep, depth), once to place them; a ray's place
 // depends on the counts only, so the order is the same for every thread count.
-std::array<Sweep, kSweeps> build_sweeps(const std::vector<Point>& points, const GridSpec& grid,
-                                        const std::array<Orientation, 2>& orientation) {
-  std::array<Sweep, kSweeps> sweeps;
+// counts: per-thread scratch, kept between calls. The sweeps' arrays keep their allocations.
+void build_sweeps(const std::vector<Point>& points, const GridSpec& grid,
+                  const std::array<Orientation, 2>& orientation, std::array<Sweep, kSweeps>& sweeps,
+                  std::vector<std::array<std::vector<int64_t>, kSweeps>>& counts) {
   for (int s = 0; s < kSweeps; ++s) {
     Sweep& sweep = sweeps[static_cast<size_t>(s)];
     const Orientation& o = orientation[s < kColumnsRight ? 0 : 1];
@@ -126,7 +129,7 @@ std::array<Sweep, kSweeps> build_sweeps(const std::vector<Point>& points, const 
   }
   const int threads = num_threads();
   // counts[t][s][depth]: the rays of thread t's chunk in sweep s with that depth.
-  std::vector<std::array<std::vector<int64_t>, kSweeps>> counts(static_cast<size_t>(threads));
+  counts.resize(static_cast<size_t>(threads));
   for (auto& per_thread : counts)
     for (int s = 0; s < kSweeps; ++s)
       per_thread[static_cast<size_t>(s)].assign(sweeps[static_cast<size_t>(s)].reaching.size(), 0);
@@ -170,7 +173,6 @@ std::array<Sweep, kSweeps> build_sweeps(const std::vector<Point>& points, const 
           sweep.in_range[k] = orientation[0].in_range(points[static_cast<size_t>(i)]);
         });
   });
-  return sweeps;
 }
 
 // Bands [bounds[t], bounds[t + 1]) of the indices of `work`, one per thread, each holding about
@@ -190,23 +192,29 @@ std::vector<int64_t> balanced_bands(const std::vector<int64_t>& work, int thread
   return bounds;
 }
 
-// Per-thread buffers of a band's sweep, sized for the largest sweep of the orientation.
+// Per-thread buffers of a band's sweep, sized for the largest sweep of the orientation. The
+// difference arrays are all zero between slabs (sweep_band clears what it used), so a scratch
+// can be kept from one call to the next.
 struct SweepScratch {
   static constexpr int64_t kCopies = 8;   // difference arrays, so that consecutive rays' updates
                                           // never wait on one another's (rays often share cells)
   static constexpr int64_t kChunk = 512;  // rays whose runs are worked out together
-  SweepScratch(int64_t rays, int64_t cells)
-      : cells_in(static_cast<size_t>(rays)),
-        cells_out(static_cast<size_t>(kChunk)),
-        adds(static_cast<size_t>(kChunk)),
-        takes(static_cast<size_t>(kChunk)),
-        stride(cells + 2),
-        differences(static_cast<size_t>(kCopies * stride), 0),
-        counts(static_cast<size_t>(cells), 0) {}
+  // Ready for `rays` rays on a run axis of `cells` cells, keeping the memory where it can.
+  void prepare(int64_t rays, int64_t cells) {
+    if (cells_in.size() < static_cast<size_t>(rays)) cells_in.resize(static_cast<size_t>(rays));
+    cells_out.resize(static_cast<size_t>(kChunk));
+    adds.resize(static_cast<size_t>(kChunk));
+    takes.resize(static_cast<size_t>(kChunk));
+    if (stride != cells + 2) {
+      stride = cells + 2;
+      differences.assign(static_cast<size_t>(kCopies * stride), 0);
+      counts.resize(static_cast<size_t>(cells));
+    }
+  }
   std::vector<int32_t> cells_in;     // run-axis cell where each ray enters the current slab
   std::vector<int32_t> cells_out;    // where each ray of a chunk leaves it
   std::vector<int32_t> adds, takes;  // where each run of a chunk adds 1 and takes it back
-  int64_t stride;                    // one copy: cells + 1 and a slot for empty runs
+  int64_t stride = 0;                // one copy: cells + 1 and a slot for empty runs
   std::vector<uint32_t> differences;
   std::vector<uint32_t> counts;  // one slab's counts along the run axis
 };
@@ -389,15 +397,24 @@ class ColumnStrip {
 
 }  // namespace
 
+// What ObservabilityWorkspace keeps between calls.
+struct SweepBuffers {
+  std::array<Sweep, kSweeps> sweeps;
+  std::vector<std::array<std::vector<int64_t>, kSweeps>> counts;  // build_sweeps' per thread
+  std::array<std::vector<SweepScratch>, 2> scratch;               // per family, per band
+};
+
 void count_observability_2d(const std::vector<Point>& points, double origin_u, double origin_v,
-                            const GridSpec& grid, uint32_t* transmissions, uint32_t* detections) {
+                            const GridSpec& grid, SweepBuffers& buffers, uint32_t* transmissions,
+                            uint32_t* detections) {
   const int64_t width = grid.width(), height = grid.height();
   const std::array<Orientation, 2> orientation = {
       Orientation{height, width, origin_v, origin_u, true,
                   CrossingCell::tie_window(width, origin_u), true, &grid, points.data()},
       Orientation{width, height, origin_u, origin_v, false,
                   CrossingCell::tie_window(height, origin_v), false, &grid, points.data()}};
-  const std::array<Sweep, kSweeps> sweeps = build_sweeps(points, grid, orientation);
+  std::array<Sweep, kSweeps>& sweeps = buffers.sweeps;
+  build_sweeps(points, grid, orientation, sweeps, buffers.counts);
   const int threads = num_threads();
   for (int family = 0; family < 2; ++family) {
     const Orientation& o = orientation[static_cast<size_t>(family)];
@@ -408,12 +425,15 @@ void count_observability_2d(const std::vector<Point>& points, double origin_u, d
       work[static_cast<size_t>(slab)] = forward.reaching_slab(slab) + backward.reaching_slab(slab);
     const std::vector<int64_t> bands = balanced_bands(work, threads);
     const int64_t most_rays = std::max(forward.reaching[0], backward.reaching[0]);
+    std::vector<SweepScratch>& scratches = buffers.scratch[static_cast<size_t>(family)];
+    if (scratches.size() < static_cast<size_t>(threads)) scratches.resize(static_cast<size_t>(threads));
     parallel_chunks(threads, [&](int64_t begin, int64_t end, int) {
       for (int64_t band = begin; band < end; ++band) {
         const int64_t lo = bands[static_cast<size_t>(band)],
                       hi = bands[static_cast<size_t>(band) + 1];
         if (lo >= hi) continue;
-        SweepScratch scratch(most_rays, o.cells);
+        SweepScratch& scratch = scratches[static_cast<size_t>(band)];
+        scratch.prepare(most_rays, o.cells);
         if (family == 0) {
           const auto add_row = [&](int64_t row, const uint32_t* counts, int64_t from, int64_t to) {
             uint32_t* out = transmissions + row * width;
@@ -445,3 +465,19 @@ void count_observability_2d(const std::vector<Point>& points, double origin_u, d
 }
 
 }  // namespace pillarseg::host::raywalk_detail
+
+namespace pillarseg::host {
+
+ObservabilityWorkspace::ObservabilityWorkspace()
+    : buffers_(std::make_unique<raywalk_detail::SweepBuffers>()) {}
+ObservabilityWorkspace::~ObservabilityWorkspace() = default;
+ObservabilityWorkspace::ObservabilityWorkspace(ObservabilityWorkspace&&) noexcept = default;
+ObservabilityWorkspace& ObservabilityWorkspace::operator=(ObservabilityWorkspace&&) noexcept =
+    default;
+
+raywalk_detail::SweepBuffers& ObservabilityWorkspace::buffers() {
+  if (!buffers_) buffers_ = std::make_unique<raywalk_detail::SweepBuffers>();
+  return *buffers_;
+}
+
+}  // namespace pillarseg::host

@@ -570,6 +570,41 @@ TEST(Observability2D, IdenticalForOneAndTwoThreadsOnDefaultGrid) {
   EXPECT_EQ(detected, inside);
 }
 
+// One workspace and one output kept across calls that change the scan size, the grid (so the
+// run axes change length), the origin and the thread count (so the bands change): every call
+// gives the counts of a fresh one.
+TEST(Observability2D, ReusedWorkspaceAndOutputGiveTheFreshCounts) {
+  ThreadCountGuard guard;
+  GridSpec wide = test::dyadic_grid();
+  wide.x_max = 3.5;
+  const std::vector<GridSpec> grids = {test::dyadic_grid(), wide, GridSpec{}};
+  ObservabilityWorkspace workspace;
+  ObservabilityCounts reused;
+  int round = 0;
+  for (const int threads : {1, 3, 2}) {
+    for (const int count : {1500, 40, 3000}) {
+      const GridSpec& grid = grids[static_cast<size_t>(round % 3)];
+      const Vec3 origin = round % 2 == 0 ? Vec3(0.0, 0.0, 0.0) : Vec3(-1.9, 0.7, 0.0);
+      const std::vector<Point> points = random_scan(count, 100 + static_cast<uint64_t>(round));
+      set_num_threads(threads);
+      observability_2d(points, origin, grid, workspace, reused);
+      const ObservabilityCounts fresh = observability_2d(points, origin, grid);
+      EXPECT_TRUE(same_counts(reused.transmissions, fresh.transmissions)) << "round " << round;
+      EXPECT_TRUE(same_counts(reused.detections, fresh.detections)) << "round " << round;
+      ++round;
+    }
+  }
+  // A moved-to workspace goes on; a moved-from one makes its buffers again.
+  const std::vector<Point> points = random_scan(500, 7);
+  const ObservabilityCounts fresh = observability_2d(points, Vec3(0.0, 0.0, 0.0), grids[0]);
+  ObservabilityWorkspace moved = std::move(workspace);
+  for (ObservabilityWorkspace* kept : {&moved, &workspace}) {
+    observability_2d(points, Vec3(0.0, 0.0, 0.0), grids[0], *kept, reused);
+    EXPECT_TRUE(same_counts(reused.transmissions, fresh.transmissions));
+    EXPECT_TRUE(same_counts(reused.detections, fresh.detections));
+  }
+}
+
 TEST(Observability2D, HandComputedCounts) {
   const GridSpec grid;
   const Vec3 zero(0.0, 0.0, 0.0);
