@@ -131,10 +131,9 @@ void pillar_gather(const std::vector<Point>& points, const GridSpec& grid, const
       const double fx = std::floor((x - x_min) / cell);
       const double fy = std::floor((y - y_min) / cell);
       const bool inside = (x >= x_min) & (x < x_max) & (y >= y_min) & (y < y_max) & (z >= z_min) &
-                          (z < z_max) & (fx >= 0.0) & (fx < cells_x) & (fy >= 0.0) &
-                          (fy < cells_y);
-      const int32_t flat = static_cast<int32_t>(inside ? fy : 0.0) * row +
-                           static_cast<int32_t>(inside ? fx : 0.0);
+                          (z < z_max) & (fx >= 0.0) & (fx < cells_x) & (fy >= 0.0) & (fy < cells_y);
+      const int32_t flat =
+          static_cast<int32_t>(inside ? fy : 0.0) * row + static_cast<int32_t>(inside ? fx : 0.0);
       cell_of_point[i] = inside ? flat : -1;
     }
   });

@@ -426,7 +426,8 @@ void count_observability_2d(const std::vector<Point>& points, double origin_u, d
     const std::vector<int64_t> bands = balanced_bands(work, threads);
     const int64_t most_rays = std::max(forward.reaching[0], backward.reaching[0]);
     std::vector<SweepScratch>& scratches = buffers.scratch[static_cast<size_t>(family)];
-    if (scratches.size() < static_cast<size_t>(threads)) scratches.resize(static_cast<size_t>(threads));
+    if (scratches.size() < static_cast<size_t>(threads))
+      scratches.resize(static_cast<size_t>(threads));
     parallel_chunks(threads, [&](int64_t begin, int64_t end, int) {
       for (int64_t band = begin; band < end; ++band) {
         const int64_t lo = bands[static_cast<size_t>(band)],

@@ -1,6 +1,7 @@
 // Pillar gather and point decoration: checked against a std::map based reference written here
 // (obviously correct, slow), hand-computed cases (evenly spaced subsampling, range borders, a
 // 3-point pillar), training-mode sampling properties, and thread-count independence.
+#include <fmt/format.h>
 #include <gtest/gtest.h>
 
 #include <algorithm>
@@ -9,6 +10,7 @@
 #include <map>
 #include <ostream>
 #include <set>
+#include <string>
 #include <utility>
 #include <vector>
 
@@ -559,4 +561,49 @@ TEST(PillarGather, RejectsBadArguments) {
   Pillars wrong_shape = pillars;
   wrong_shape.cell = Tensor<int32_t>({2, 2});
   EXPECT_THROW(decorate_points(points, wrong_shape, grid), Error);
+}
+
+// The values are checked while the pillars are decorated, on every thread, for N = 20 (the
+// compiled-in case) and any other N: the error names the first pillar at fault.
+TEST(PointDecoration, NamesTheFirstPillarAtFault) {
+  ThreadCountGuard guard;
+  const GridSpec grid = small_grid();
+  const std::vector<Point> points = random_scan(grid, 3000, 0.0, 5);
+  for (const int slots : {20, 7}) {
+    const Pillars pillars = pillar_gather(points, grid, {slots, 0}, SampleMode::Inference, nullptr);
+    const int64_t last = pillars.num_pillars() - 1;
+    ASSERT_GT(last, 10);
+    const auto message = [&](const Pillars& bad) {
+      try {
+        decorate_points(points, bad, grid);
+      } catch (const Error& e) {
+        return std::string(e.what());
+      }
+      return std::string("no error");
+    };
+    for (const int threads : {1, 2}) {
+      set_num_threads(threads);
+      Pillars negative_index = pillars;
+      negative_index.point_index(last, 0) = -3;
+      EXPECT_NE(message(negative_index).find(fmt::format("pillar {} slot 0 points at -3", last)),
+                std::string::npos)
+          << message(negative_index);
+      Pillars far_index = pillars;
+      far_index.point_index(last, 0) = 3000;
+      far_index.point_index(last - 1, 0) = 5000;
+      EXPECT_NE(message(far_index).find(fmt::format("pillar {} slot 0 points at 5000", last - 1)),
+                std::string::npos)
+          << message(far_index);
+      Pillars negative_count = pillars;
+      negative_count.count[last] = -1;
+      EXPECT_NE(message(negative_count).find(fmt::format("pillar {} has count -1", last)),
+                std::string::npos)
+          << message(negative_count);
+      Pillars outside = pillars;
+      outside.cell(last, 0) = -1;
+      EXPECT_NE(message(outside).find(fmt::format("pillar {} has cell (iy -1", last)),
+                std::string::npos)
+          << message(outside);
+    }
+  }
 }
