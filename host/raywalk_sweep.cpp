@@ -15,6 +15,7 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <limits>
 #include <memory>
 
 #include "engine/core/parallel.hpp"
@@ -89,36 +90,95 @@ struct Sweep {
 // rightwards (and rays within the origin's column), columns leftwards.
 enum SweepIndex { kRowsUp = 0, kRowsDown = 1, kColumnsRight = 2, kColumnsLeft = 3, kSweeps = 4 };
 
-bool finite(const Point& p) {
-  return std::isfinite(p.x) && std::isfinite(p.y) && std::isfinite(p.z);
-}
+// Each point's ray, classified: its sweep (kSweeps for a point that is not finite) and depth,
+// and what its sweep keeps of it. Point order.
+struct RayClasses {
+  std::vector<uint8_t> sweep;
+  std::vector<int32_t> depth;
+  std::vector<double> slope;        // run-axis change per unit across the slabs
+  std::vector<int32_t> first_cell;  // run-axis cell where the ray leaves the origin
+  std::vector<int32_t> last_cell;   // run-axis cell of the end point, clamped to [-1, cells]
+  std::vector<uint8_t> in_range;    // the point lies in the grid's x and y range
 
-// Calls ray(i, sweep, across, along) for each finite point i in [begin, end): the sweep its ray
-// belongs to, and the ray's axes across and along the slabs of that sweep.
-template <class Ray>
-void for_each_ray(const std::vector<Point>& points, int64_t begin, int64_t end,
-                  const GridSpec& grid, const std::array<Orientation, 2>& orientation, Ray&& ray) {
-  const Orientation& rows = orientation[0];
+  void resize(size_t n) {
+    sweep.resize(n);
+    depth.resize(n);
+    slope.resize(n);
+    first_cell.resize(n);
+    last_cell.resize(n);
+    in_range.resize(n);
+  }
+};
+
+// Classifies points [begin, end): a ray that moves at least as far along x as along y is a row
+// ray (rows upwards when it does not move down, else downwards), any other a column ray
+// (rightwards when it does not move left). The values are those of make_axis and
+// CrossingCell::slope, computed without branches (selects, and floors clamped in double) so that
+// the loop vectorises (the outputs are declared not to alias, else the compiler gives up on the
+// number of overlap checks).
+void classify_rays(const Point* __restrict point, int64_t begin, int64_t end, const GridSpec& grid,
+                   const std::array<Orientation, 2>& orientation,
+                   const std::array<Sweep, kSweeps>& sweeps, uint8_t* __restrict sweep_of,
+                   int32_t* __restrict depth_of, double* __restrict slope,
+                   int32_t* __restrict first_cell, int32_t* __restrict last_cell,
+                   uint8_t* __restrict in_range) {
+  const double x_min = grid.x_min, x_max = grid.x_max, y_min = grid.y_min, y_max = grid.y_max;
+  const double cell = grid.cell;
+  const double origin_u = orientation[0].run_origin, origin_v = orientation[0].slab_origin;
+  const auto width = static_cast<double>(orientation[0].cells);
+  const auto height = static_cast<double>(orientation[0].slabs);
+  // make_axis's first cell per axis and direction, and each sweep's first slab and step.
+  const auto first_u_up = static_cast<double>(clamped_floor(origin_u, orientation[0].cells));
+  const auto first_u_down =
+      static_cast<double>(clamped_floor(std::ceil(origin_u) - 1.0, orientation[0].cells));
+  const auto first_v_up = static_cast<double>(clamped_floor(origin_v, orientation[0].slabs));
+  const auto first_v_down =
+      static_cast<double>(clamped_floor(std::ceil(origin_v) - 1.0, orientation[0].slabs));
+  std::array<double, kSweeps> sweep_first{};
+  for (int sw = 0; sw < kSweeps; ++sw)
+    sweep_first[static_cast<size_t>(sw)] =
+        static_cast<double>(sweeps[static_cast<size_t>(sw)].first);
+  constexpr double kLargest = std::numeric_limits<float>::max();
   for (int64_t i = begin; i < end; ++i) {
-    const Point& p = points[static_cast<size_t>(i)];
-    if (!finite(p)) continue;
-    const RayAxis u = make_axis(rows.run_origin, (p.x - grid.x_min) / grid.cell, rows.cells);
-    const RayAxis v = make_axis(rows.slab_origin, (p.y - grid.y_min) / grid.cell, rows.slabs);
-    if (std::abs(u.delta) >= std::abs(v.delta)) {
-      ray(i, v.step >= 0 ? kRowsUp : kRowsDown, v, u);
-    } else {
-      ray(i, u.step >= 0 ? kColumnsRight : kColumnsLeft, u, v);
-    }
+    const double px = point[i].x, py = point[i].y, pz = point[i].z;
+    const bool finite =
+        (std::abs(px) <= kLargest) & (std::abs(py) <= kLargest) & (std::abs(pz) <= kLargest);
+    const double u_end = (px - x_min) / cell, v_end = (py - y_min) / cell;
+    const double du = u_end - origin_u, dv = v_end - origin_v;
+    const bool row = std::abs(du) >= std::abs(dv);
+    // Across the slabs (a) and along the runs (m).
+    const double a_end = row ? v_end : u_end, a_origin = row ? origin_v : origin_u;
+    const double a_delta = row ? dv : du, a_cells = row ? height : width;
+    const double m_end = row ? u_end : v_end, m_origin = row ? origin_u : origin_v;
+    const double m_delta = row ? du : dv, m_cells = row ? width : height;
+    const bool a_forward = a_end >= a_origin;  // step >= 0
+    const int sweep =
+        row ? (a_forward ? kRowsUp : kRowsDown) : (a_forward ? kColumnsRight : kColumnsLeft);
+    const double a_last = std::min(std::max(std::floor(a_end), -1.0), a_cells);
+    const double first_slab =
+        row ? (a_forward ? sweep_first[kRowsUp] : sweep_first[kRowsDown])
+            : (a_forward ? sweep_first[kColumnsRight] : sweep_first[kColumnsLeft]);
+    const double depth = (a_last - first_slab) * (a_forward ? 1.0 : -1.0);
+    const bool m_backward = m_end < m_origin;  // step < 0
+    const double m_first =
+        row ? (m_backward ? first_u_down : first_u_up) : (m_backward ? first_v_down : first_v_up);
+    const double m_last = std::min(std::max(std::floor(m_end), -1.0), m_cells);
+    sweep_of[i] = static_cast<uint8_t>(finite ? sweep : kSweeps);
+    depth_of[i] = static_cast<int32_t>(finite ? depth : 0.0);
+    slope[i] = a_delta != 0.0 ? m_delta / a_delta : 0.0;
+    first_cell[i] = static_cast<int32_t>(m_first);
+    last_cell[i] = static_cast<int32_t>(finite ? m_last : 0.0);
+    in_range[i] = (px >= x_min) & (px < x_max) & (py >= y_min) & (py < y_max);
   }
 }
 
 // Sorts the finite points' rays into the four sweeps. Each thread classifies a contiguous chunk
-// of the points twice: once to count rays per (sweep, depth), once to place them; a ray's place
-// depends on the counts only, so the order is the same for every thread count.
-// counts: per-thread scratch, kept between calls. The sweeps' arrays keep their allocations.
+// of the points and counts its rays per (sweep, depth); a ray's place depends on the counts only,
+// so the order is the same for every thread count.
 void build_sweeps(const std::vector<Point>& points, const GridSpec& grid,
                   const std::array<Orientation, 2>& orientation, std::array<Sweep, kSweeps>& sweeps,
-                  std::vector<std::array<std::vector<int64_t>, kSweeps>>& counts) {
+                  std::vector<std::array<std::vector<int64_t>, kSweeps>>& counts,
+                  RayClasses& classes) {
   for (int s = 0; s < kSweeps; ++s) {
     Sweep& sweep = sweeps[static_cast<size_t>(s)];
     const Orientation& o = orientation[s < kColumnsRight ? 0 : 1];
@@ -134,13 +194,17 @@ void build_sweeps(const std::vector<Point>& points, const GridSpec& grid,
     for (int s = 0; s < kSweeps; ++s)
       per_thread[static_cast<size_t>(s)].assign(sweeps[static_cast<size_t>(s)].reaching.size(), 0);
   const auto n = static_cast<int64_t>(points.size());
+  classes.resize(points.size());
   parallel_chunks(n, [&](int64_t begin, int64_t end, int t) {
+    classify_rays(points.data(), begin, end, grid, orientation, sweeps, classes.sweep.data(),
+                  classes.depth.data(), classes.slope.data(), classes.first_cell.data(),
+                  classes.last_cell.data(), classes.in_range.data());
     auto& mine = counts[static_cast<size_t>(t)];
-    for_each_ray(points, begin, end, grid, orientation,
-                 [&](int64_t, int s, const RayAxis& across, const RayAxis&) {
-                   const Sweep& sweep = sweeps[static_cast<size_t>(s)];
-                   ++mine[static_cast<size_t>(s)][static_cast<size_t>(sweep.depth(across.last))];
-                 });
+    for (int64_t i = begin; i < end; ++i) {
+      const uint8_t sweep = classes.sweep[static_cast<size_t>(i)];
+      if (sweep < kSweeps)
+        ++mine[sweep][static_cast<size_t>(classes.depth[static_cast<size_t>(i)])];
+    }
   });
   // Places: the deepest rays first, and within one depth, thread chunks in order.
   for (int s = 0; s < kSweeps; ++s) {
@@ -158,20 +222,43 @@ void build_sweeps(const std::vector<Point>& points, const GridSpec& grid,
     }
     sweep.resize(placed);
   }
+  // Raw pointers in locals: the byte stores (in_range) may alias anything, so through the
+  // vectors every store would make the compiler load every data pointer again.
+  struct Arrays {
+    double* slope;
+    int32_t *first_cell, *last_cell;
+    uint32_t* point;
+    uint8_t* in_range;
+  };
+  std::array<Arrays, kSweeps> to{};
+  for (int s = 0; s < kSweeps; ++s) {
+    Sweep& sweep = sweeps[static_cast<size_t>(s)];
+    to[static_cast<size_t>(s)] = {sweep.slope.data(), sweep.first_cell.data(),
+                                  sweep.last_cell.data(), sweep.point.data(),
+                                  sweep.in_range.data()};
+  }
   parallel_chunks(n, [&](int64_t begin, int64_t end, int t) {
-    auto& next = counts[static_cast<size_t>(t)];
-    for_each_ray(
-        points, begin, end, grid, orientation,
-        [&](int64_t i, int s, const RayAxis& across, const RayAxis& along) {
-          Sweep& sweep = sweeps[static_cast<size_t>(s)];
-          const auto k = static_cast<size_t>(
-              next[static_cast<size_t>(s)][static_cast<size_t>(sweep.depth(across.last))]++);
-          sweep.slope[k] = CrossingCell::slope(along, across);
-          sweep.first_cell[k] = static_cast<int32_t>(along.first);
-          sweep.last_cell[k] = static_cast<int32_t>(along.last);
-          sweep.point[k] = static_cast<uint32_t>(i);
-          sweep.in_range[k] = orientation[0].in_range(points[static_cast<size_t>(i)]);
-        });
+    std::array<int64_t*, kSweeps> next{};
+    for (int s = 0; s < kSweeps; ++s)
+      next[static_cast<size_t>(s)] = counts[static_cast<size_t>(t)][static_cast<size_t>(s)].data();
+    const std::array<Arrays, kSweeps> sweep_arrays = to;
+    const uint8_t* sweep_of = classes.sweep.data();
+    const int32_t* depth = classes.depth.data();
+    const double* slope = classes.slope.data();
+    const int32_t* first_cell = classes.first_cell.data();
+    const int32_t* last_cell = classes.last_cell.data();
+    const uint8_t* in_range = classes.in_range.data();
+    for (int64_t i = begin; i < end; ++i) {
+      const uint8_t s = sweep_of[i];
+      if (s == kSweeps) continue;
+      const Arrays& out = sweep_arrays[s];
+      const int64_t k = next[s][depth[i]]++;
+      out.slope[k] = slope[i];
+      out.first_cell[k] = first_cell[i];
+      out.last_cell[k] = last_cell[i];
+      out.point[k] = static_cast<uint32_t>(i);
+      out.in_range[k] = in_range[i];
+    }
   });
 }
 
@@ -401,6 +488,7 @@ class ColumnStrip {
 struct SweepBuffers {
   std::array<Sweep, kSweeps> sweeps;
   std::vector<std::array<std::vector<int64_t>, kSweeps>> counts;  // build_sweeps' per thread
+  RayClasses classes;                                             // build_sweeps' per point
   std::array<std::vector<SweepScratch>, 2> scratch;               // per family, per band
 };
 
@@ -414,7 +502,7 @@ void count_observability_2d(const std::vector<Point>& points, double origin_u, d
       Orientation{width, height, origin_u, origin_v, false,
                   CrossingCell::tie_window(height, origin_v), false, &grid, points.data()}};
   std::array<Sweep, kSweeps>& sweeps = buffers.sweeps;
-  build_sweeps(points, grid, orientation, sweeps, buffers.counts);
+  build_sweeps(points, grid, orientation, sweeps, buffers.counts, buffers.classes);
   const int threads = num_threads();
   for (int family = 0; family < 2; ++family) {
     const Orientation& o = orientation[static_cast<size_t>(family)];
