@@ -4,12 +4,14 @@
 // All rays of a scan leave one origin. A ray that moves at least as far along x as along y is
 // counted row by row (a "row ray"), any other column by column. In one row, a row ray's cells form
 // one run along x, from the cell where it enters the row to the cell where it leaves it; each
-// crossing is decided exactly by CrossingCell, a pure function of the ray and the boundary, and
-// the run costs two updates of a difference array of that row, small enough to stay in the L1
-// cache. The row rays that leave the origin's row upwards are sorted by their last row, highest
-// first, so that the rays reaching any row are a prefix of them and a row's crossings are one
-// vectorised pass over that prefix; likewise downwards, and for column rays rightwards and
-// leftwards. Rows are dealt out in bands, one per thread, each holding about the same number of
+// crossing is decided exactly by CrossingCell, a pure function of the ray and the boundary. The
+// crossing where a ray leaves a row is the one where it enters the next, so each is counted once,
+// per cell and direction, in rows small enough to stay in the L1 cache, and a row's runs follow
+// from the counts at its two boundaries (SweepScratch). The row rays that leave the origin's row
+// upwards are sorted by their last row, highest first, so that the rays reaching any row are a
+// prefix of them and a row's crossings are one vectorised pass over that prefix; likewise
+// downwards, and for column rays rightwards and leftwards. A pass per point, also vectorised,
+// sorts the rays into these four sweeps. Rows are dealt out in bands, one per thread, each holding about the same number of
 // (ray, row) pairs; then columns likewise. Every cell's count is a sum of integers made by the one
 // thread that owns its row (then column), so the counts are the same for every thread count.
 #include <algorithm>
@@ -279,31 +281,42 @@ std::vector<int64_t> balanced_bands(const std::vector<int64_t>& work, int thread
   return bounds;
 }
 
-// Per-thread buffers of a band's sweep, sized for the largest sweep of the orientation. The
-// difference arrays are all zero between slabs (sweep_band clears what it used), so a scratch
-// can be kept from one call to the next.
+// Per-thread buffers of a band's sweep. A ray's run in a slab goes from the cell where it enters
+// the slab to the cell where it leaves it: both are crossings of slab boundaries ("events"), and
+// the event where a ray leaves one slab is the one where it enters the next. So each ray costs
+// one event per slab boundary, counted per cell and per direction of the run (towards higher
+// cells, or not moving along the run axis: "rightwards"; else "leftwards"), and a slab's changes
+// along the run axis follow from the events at its two boundaries: a rightwards run adds 1 at its
+// entry cell and takes it back after its exit cell, a leftwards one adds 1 at its exit cell and
+// takes it back after its entry cell. Rows are indexed by cell + 2: cells -1 .. cells + 1 after a
+// slot that stays zero. Between calls every row is all zero (sweep_band clears what it used), so
+// a scratch can be kept from one call to the next.
 struct SweepScratch {
-  static constexpr int64_t kCopies = 8;   // difference arrays, so that consecutive rays' updates
-                                          // never wait on one another's (rays often share cells)
-  static constexpr int64_t kChunk = 512;  // rays whose runs are worked out together
-  // Ready for `rays` rays on a run axis of `cells` cells, keeping the memory where it can.
-  void prepare(int64_t rays, int64_t cells) {
-    if (cells_in.size() < static_cast<size_t>(rays)) cells_in.resize(static_cast<size_t>(rays));
-    cells_out.resize(static_cast<size_t>(kChunk));
-    adds.resize(static_cast<size_t>(kChunk));
-    takes.resize(static_cast<size_t>(kChunk));
-    if (stride != cells + 2) {
-      stride = cells + 2;
-      differences.assign(static_cast<size_t>(kCopies * stride), 0);
+  static constexpr int64_t kCopies = 4;   // event rows per direction, so that consecutive rays'
+                                          // counts never wait on one another's (rays often share
+                                          // cells)
+  static constexpr int64_t kChunk = 512;  // rays whose events are worked out together
+  // Ready for a run axis of `cells` cells, keeping the memory where it can.
+  void prepare(int64_t cells) {
+    crossing.resize(static_cast<size_t>(kChunk));
+    places.resize(static_cast<size_t>(kChunk));
+    if (stride != cells + 4) {
+      stride = cells + 4;
+      copies.assign(static_cast<size_t>(2 * kCopies * stride), 0);
+      entering.assign(static_cast<size_t>(2 * stride), 0);
+      leaving.assign(static_cast<size_t>(2 * stride), 0);
+      changes.assign(static_cast<size_t>(stride), 0);
       counts.resize(static_cast<size_t>(cells));
     }
   }
-  std::vector<int32_t> cells_in;     // run-axis cell where each ray enters the current slab
-  std::vector<int32_t> cells_out;    // where each ray of a chunk leaves it
-  std::vector<int32_t> adds, takes;  // where each run of a chunk adds 1 and takes it back
-  int64_t stride = 0;                // one copy: cells + 1 and a slot for empty runs
-  std::vector<uint32_t> differences;
-  std::vector<uint32_t> counts;  // one slab's counts along the run axis
+  std::vector<int32_t> crossing;   // the cells where a chunk's rays cross a boundary
+  std::vector<int32_t> places;     // where in `copies` each of them is counted
+  int64_t stride = 0;              // one row: cells + 4
+  std::vector<uint32_t> copies;    // (2 directions x kCopies, stride): events being counted
+  std::vector<uint32_t> entering;  // (2 directions, stride): events at the slab's entry boundary
+  std::vector<uint32_t> leaving;   // (2 directions, stride): events at its exit boundary
+  std::vector<int32_t> changes;    // (stride): the slab's changes along the run axis
+  std::vector<uint32_t> counts;    // one slab's counts along the run axis
 };
 
 // out[k] = the run-axis cell where ray first_ray + k of the sweep crosses the slab boundary
@@ -343,6 +356,56 @@ void crossings(const Sweep& sweep, const Orientation& o, double boundary, int64_
   }
 }
 
+// Counts the events of rays [0, rays) of the sweep at one boundary into the rows of `copies`
+// (direction and copy), cells given by crossing[k] for ray first_ray + k; widens [lo, hi] (row
+// indices) to the places counted.
+void count_events(const Sweep& sweep, int64_t first_ray, int64_t rays, SweepScratch& scratch,
+                  int64_t& lo, int64_t& hi) {
+  const int32_t* crossing = scratch.crossing.data();
+  int32_t* places = scratch.places.data();
+  const int32_t* first = sweep.first_cell.data() + first_ray;
+  const int32_t* last = sweep.last_cell.data() + first_ray;
+  const auto stride = static_cast<int32_t>(scratch.stride);
+  constexpr auto kCopies = static_cast<int32_t>(SweepScratch::kCopies);
+  int32_t lowest = std::numeric_limits<int32_t>::max(), highest = -1;
+  for (int64_t k = 0; k < rays; ++k) {
+    const int32_t leftwards = last[k] < first[k];
+    const int32_t row = leftwards * kCopies + static_cast<int32_t>(k & (kCopies - 1));
+    const int32_t column = crossing[k] + 2;
+    places[k] = row * stride + column;
+    lowest = std::min(lowest, column);
+    highest = std::max(highest, column);
+  }
+  uint32_t* copies = scratch.copies.data();
+  for (int64_t k = 0; k < rays; ++k) ++copies[places[k]];
+  if (rays > 0) {
+    lo = std::min<int64_t>(lo, lowest);
+    hi = std::max<int64_t>(hi, highest);
+  }
+}
+
+// Sums the rows of `copies` over row indices [lo, hi] into target (2 directions, stride), which
+// is zero there on entry, and clears them.
+void gather_events(SweepScratch& scratch, int64_t lo, int64_t hi, uint32_t* target) {
+  if (lo > hi) return;
+  const int64_t stride = scratch.stride;
+  for (int64_t direction = 0; direction < 2; ++direction) {
+    uint32_t* sum = target + direction * stride;
+    for (int64_t copy = 0; copy < SweepScratch::kCopies; ++copy) {
+      uint32_t* row = scratch.copies.data() + (direction * SweepScratch::kCopies + copy) * stride;
+      for (int64_t j = lo; j <= hi; ++j) sum[j] += row[j];
+      std::fill(row + lo, row + hi + 1, 0u);
+    }
+  }
+}
+
+// Zeroes row indices [lo, hi] of both directions' rows of `events` (2 directions, stride).
+void clear_events(uint32_t* events, int64_t stride, int64_t lo, int64_t hi) {
+  if (lo > hi) return;
+  std::fill(events + lo, events + hi + 1, 0u);
+  std::fill(events + stride + lo, events + stride + hi + 1, 0u);
+}
+
 // Walks the sweep's rays through the slabs [slab_lo, slab_hi), in sweep order. For each slab
 // some ray reaches, hands flush(slab, counts, from, to) the transmissions along the run axis made
 // in that slab (counts[c] for c in [from, to); zero elsewhere), and calls detect(slab, cell) for
@@ -356,83 +419,88 @@ void sweep_band(const Sweep& sweep, const Orientation& o, int64_t slab_lo, int64
   if ((stop - start) * s <= 0) return;
   int64_t d = sweep.depth(start);
   if (sweep.reaching[static_cast<size_t>(d)] == 0) return;
-  int32_t* in = scratch.cells_in.data();
-  // Where the rays enter the first slab: from the origin, or across its entry boundary.
-  const int64_t reaching_start = sweep.reaching[static_cast<size_t>(d)];
-  if (d == 0) {
-    std::copy_n(sweep.first_cell.data(), reaching_start, in);
-  } else {
-    crossings(sweep, o, static_cast<double>(s > 0 ? start : start + 1), 0, reaching_start, in);
-  }
   const int64_t cells = o.cells, stride = scratch.stride;
-  const auto last = static_cast<int32_t>(cells - 1), nowhere = static_cast<int32_t>(cells + 1);
-  const auto copy_stride = static_cast<int32_t>(stride);
-  uint32_t* differences = scratch.differences.data();
-  int32_t* out = scratch.cells_out.data();
-  int32_t* adds = scratch.adds.data();
-  int32_t* takes = scratch.takes.data();
+  const int32_t* first = sweep.first_cell.data();
+  const int32_t* last = sweep.last_cell.data();
+  uint32_t* entering = scratch.entering.data();
+  uint32_t* leaving = scratch.leaving.data();
+  int32_t* changes = scratch.changes.data();
+  // The events where the rays enter the first slab: their cells along the run axis as they leave
+  // the origin, or their crossings of its entry boundary; [entry_lo, entry_hi]: the row indices
+  // holding them.
+  int64_t entry_lo = stride, entry_hi = -1;
+  const int64_t entering_rays = sweep.reaching[static_cast<size_t>(d)];
+  for (int64_t chunk = 0; chunk < entering_rays; chunk += SweepScratch::kChunk) {
+    const int64_t n = std::min(SweepScratch::kChunk, entering_rays - chunk);
+    if (d == 0) {
+      std::copy_n(first + chunk, n, scratch.crossing.data());
+    } else {
+      crossings(sweep, o, static_cast<double>(s > 0 ? start : start + 1), chunk, n,
+                scratch.crossing.data());
+    }
+    count_events(sweep, chunk, n, scratch, entry_lo, entry_hi);
+  }
+  gather_events(scratch, entry_lo, entry_hi, entering);
   for (int64_t slab = start; slab != stop; slab += s, ++d) {
     const int64_t rays = sweep.reaching[static_cast<size_t>(d)];
     if (rays == 0) break;
     const int64_t continuing = sweep.reaching[static_cast<size_t>(d) + 1];
     const double exit = static_cast<double>(s > 0 ? slab + 1 : slab);
-    int32_t touched_lo = last + 1, touched_hi = 0;
-    // A chunk of rays at a time, so that what a ray's run needs stays in the L1 cache.
-    for (int64_t chunk = 0; chunk < rays; chunk += SweepScratch::kChunk) {
-      const int64_t n = std::min(SweepScratch::kChunk, rays - chunk);
-      // Where they leave the slab: across its exit boundary, or at their end points.
-      const int64_t crossing = std::clamp<int64_t>(continuing - chunk, 0, n);
-      crossings(sweep, o, exit, chunk, crossing, out);
-      std::copy(sweep.last_cell.data() + chunk + crossing, sweep.last_cell.data() + chunk + n,
-                out + crossing);
-      // Each ray's run, cut to the grid: +1 at its first cell, -1 after its last, in the copy
-      // k % kCopies of the differences; runs outside the grid go to the slot `nowhere`. The
-      // places are worked out in one vectorised pass, with the range of cells they touch.
-      const int32_t* entered = in + chunk;
-      for (int64_t k = 0; k < n; ++k) {
-        const int32_t a = entered[k], b = out[k];
-        const int32_t lo = std::max(std::min(a, b), 0);
-        const int32_t hi = std::min(std::max(a, b), last);
-        const bool any = lo <= hi;
-        const int32_t copy = static_cast<int32_t>(k & (SweepScratch::kCopies - 1)) * copy_stride;
-        adds[k] = copy + (any ? lo : nowhere);
-        takes[k] = copy + (any ? hi + 1 : nowhere);
-        // (a run outside the grid only widens the range, within [0, cells])
-        touched_lo = std::min(touched_lo, lo);
-        touched_hi = std::max(touched_hi, hi + 1);
-      }
-      for (int64_t k = 0; k < n; ++k) {
-        ++differences[adds[k]];
-        --differences[takes[k]];
-      }
-      std::copy_n(out, n, in + chunk);
+    // The events at the exit boundary, of the rays that go on.
+    int64_t exit_lo = stride, exit_hi = -1;
+    for (int64_t chunk = 0; chunk < continuing; chunk += SweepScratch::kChunk) {
+      const int64_t n = std::min(SweepScratch::kChunk, continuing - chunk);
+      crossings(sweep, o, exit, chunk, n, scratch.crossing.data());
+      count_events(sweep, chunk, n, scratch, exit_lo, exit_hi);
     }
-    // The rays ending here: their end cell counts a detection, not a transmission.
+    gather_events(scratch, exit_lo, exit_hi, leaving);
+    // Rightwards: +1 at the entry cell, -1 after the exit cell; leftwards: +1 at the exit cell,
+    // -1 after the entry cell. [lo, hi]: the row indices where the changes may be non-zero.
+    int64_t lo = std::min(entry_lo, exit_lo), hi = std::max(entry_hi, exit_hi) + 1;
+    const uint32_t* entering_right = entering;
+    const uint32_t* entering_left = entering + stride;
+    const uint32_t* leaving_right = leaving;
+    const uint32_t* leaving_left = leaving + stride;
+    for (int64_t j = lo; j <= hi; ++j) {
+      changes[j] += static_cast<int32_t>(entering_right[j] - leaving_right[j - 1] +
+                                         leaving_left[j] - entering_left[j - 1]);
+    }
+    // The rays ending here: their run stops at their end cell, which counts a detection, not a
+    // transmission.
     for (int64_t k = continuing; k < rays; ++k) {
-      const int64_t end = sweep.last_cell[static_cast<size_t>(k)];
+      const int64_t end = last[k];
+      const int64_t j = end + 2;
+      if (end >= first[k]) {
+        --changes[j + 1];
+      } else {
+        ++changes[j];
+      }
+      lo = std::min(lo, j), hi = std::max(hi, j + 1);
       if (end < 0 || end >= cells) continue;
-      --differences[end];
-      ++differences[end + 1];
+      --changes[j];
+      ++changes[j + 1];
       if (sweep.in_range[static_cast<size_t>(k)]) detect(slab, end);
     }
-    // Counts are zero outside [from, to): every run and correction there adds and takes back.
-    const int64_t from = touched_lo, to = std::min<int64_t>(touched_hi, cells);
-    if (from >= to) {
-      std::fill(differences, differences + SweepScratch::kCopies * stride, 0u);
-      continue;
-    }
+    // Counts: running sums of the changes (cell c at row index c + 2).
     uint32_t* counts = scratch.counts.data();
-    uint32_t running = 0;
-    for (int64_t c = from; c < to; ++c) {
-      uint32_t change = 0;
-      for (int64_t copy = 0; copy < SweepScratch::kCopies; ++copy)
-        change += differences[copy * stride + c];
-      counts[c] = running += change;
+    int32_t running = 0;
+    int64_t from = cells, to = 0;
+    for (int64_t j = lo; j <= hi; ++j) {
+      running += changes[j];
+      changes[j] = 0;
+      const int64_t c = j - 2;
+      if (c >= 0 && c < cells) {
+        counts[c] = static_cast<uint32_t>(running);
+        from = std::min(from, c), to = c + 1;
+      }
     }
-    for (int64_t copy = 0; copy < SweepScratch::kCopies; ++copy)
-      std::fill(differences + copy * stride + from, differences + (copy + 1) * stride, 0u);
-    flush(slab, static_cast<const uint32_t*>(counts), from, to);
+    // The exit events become the next slab's entry events.
+    clear_events(entering, stride, entry_lo, entry_hi);
+    std::swap(entering, leaving);
+    entry_lo = exit_lo, entry_hi = exit_hi;
+    if (from < to) flush(slab, static_cast<const uint32_t*>(counts), from, to);
   }
+  clear_events(entering, stride, entry_lo, entry_hi);
 }
 
 // Up to kWidth consecutive columns of counts, gathered a column at a time and added to the (H, W)
@@ -512,7 +580,6 @@ void count_observability_2d(const std::vector<Point>& points, double origin_u, d
     for (int64_t slab = 0; slab < o.slabs; ++slab)
       work[static_cast<size_t>(slab)] = forward.reaching_slab(slab) + backward.reaching_slab(slab);
     const std::vector<int64_t> bands = balanced_bands(work, threads);
-    const int64_t most_rays = std::max(forward.reaching[0], backward.reaching[0]);
     std::vector<SweepScratch>& scratches = buffers.scratch[static_cast<size_t>(family)];
     if (scratches.size() < static_cast<size_t>(threads))
       scratches.resize(static_cast<size_t>(threads));
@@ -522,7 +589,7 @@ void count_observability_2d(const std::vector<Point>& points, double origin_u, d
                       hi = bands[static_cast<size_t>(band) + 1];
         if (lo >= hi) continue;
         SweepScratch& scratch = scratches[static_cast<size_t>(band)];
-        scratch.prepare(most_rays, o.cells);
+        scratch.prepare(o.cells);
         if (family == 0) {
           const auto add_row = [&](int64_t row, const uint32_t* counts, int64_t from, int64_t to) {
             uint32_t* out = transmissions + row * width;
