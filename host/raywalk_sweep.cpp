@@ -11,9 +11,10 @@
 // upwards are sorted by their last row, highest first, so that the rays reaching any row are a
 // prefix of them and a row's crossings are one vectorised pass over that prefix; likewise
 // downwards, and for column rays rightwards and leftwards. A pass per point, also vectorised,
-// sorts the rays into these four sweeps. Rows are dealt out in bands, one per thread, each holding about the same number of
-// (ray, row) pairs; then columns likewise. Every cell's count is a sum of integers made by the one
-// thread that owns its row (then column), so the counts are the same for every thread count.
+// sorts the rays into these four sweeps. Rows are dealt out in bands, one per thread, each
+// holding about the same number of (ray, row) pairs; then columns likewise. Every cell's count is
+// a sum of integers made by the one thread that owns its row (then column), so the counts are the
+// same for every thread count.
 #include <algorithm>
 #include <array>
 #include <cmath>
