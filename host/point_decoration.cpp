@@ -1,7 +1,7 @@
 // Point decoration: (M points, P' pillars of N slots) -> (P', N, 10) features (see
 // point_decoration.hpp). Pillars are independent: each thread writes the rows of its own
-// contiguous range of pillars (kept points, then zero padding), so the result does not depend on
-// the thread count.
+// contiguous range of pillars (kept points and zero padding), checking each pillar as it reads
+// it, so the result does not depend on the thread count.
 #include "host/point_decoration.hpp"
 
 #include <Eigen/Core>

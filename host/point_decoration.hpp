@@ -26,6 +26,8 @@ Tensor<float> decorate_points(const std::vector<Point>& points, const Pillars& p
 
 // Same, written into `out`, which is reshaped to (P', N, 10) and keeps its allocation when it
 // already holds at least P' * N * 10 floats (no allocation in a steady-state inference loop).
+// Both throw pillarseg::Error naming the first pillar with a count outside [0, N], a kept index
+// outside the scan or a cell outside the grid; `out` then holds no result.
 void decorate_points(const std::vector<Point>& points, const Pillars& pillars, const GridSpec& grid,
                      Tensor<float>& out);
 
