@@ -59,8 +59,8 @@ namespace raywalk_detail {
 struct SweepBuffers;
 }
 
-// Scratch memory of observability_2d, reusable across scans: the rays sorted into sweeps (about
-// 21 bytes per point) and each thread's working arrays. One workspace per calling thread; a
+// Scratch memory of observability_2d, reusable across scans: each point's ray classified, then
+// sorted into sweeps (about 43 bytes per point in all), and each thread's working rows. One workspace per calling thread; a
 // steady-state loop that keeps it (and the output) allocates nothing once the buffers have grown.
 class ObservabilityWorkspace {
  public:
