@@ -49,10 +49,6 @@ struct Orientation {
   double slab_end(const Point& p) const {
     return runs_along_x ? (p.y - grid->y_min) / grid->cell : (p.x - grid->x_min) / grid->cell;
   }
-  // GridSpec::contains_xy for a point whose cell is known to lie in the grid.
-  bool in_range(const Point& p) const {
-    return p.x >= grid->x_min && p.x < grid->x_max && p.y >= grid->y_min && p.y < grid->y_max;
-  }
 };
 
 // The rays that leave the origin's slab in one direction across the slabs, in structure-of-arrays
@@ -120,8 +116,7 @@ struct RayClasses {
 // the loop vectorises (the outputs are declared not to alias, else the compiler gives up on the
 // number of overlap checks).
 void classify_rays(const Point* __restrict point, int64_t begin, int64_t end, const GridSpec& grid,
-                   const std::array<Orientation, 2>& orientation,
-                   const std::array<Sweep, kSweeps>& sweeps, uint8_t* __restrict sweep_of,
+                   const std::array<Orientation, 2>& orientation, uint8_t* __restrict sweep_of,
                    int32_t* __restrict depth_of, double* __restrict slope,
                    int32_t* __restrict first_cell, int32_t* __restrict last_cell,
                    uint8_t* __restrict in_range) {
@@ -130,17 +125,14 @@ void classify_rays(const Point* __restrict point, int64_t begin, int64_t end, co
   const double origin_u = orientation[0].run_origin, origin_v = orientation[0].slab_origin;
   const auto width = static_cast<double>(orientation[0].cells);
   const auto height = static_cast<double>(orientation[0].slabs);
-  // make_axis's first cell per axis and direction, and each sweep's first slab and step.
+  // make_axis's first cell per axis and direction; across the slabs, that is the sweep's first
+  // slab (build_sweeps).
   const auto first_u_up = static_cast<double>(clamped_floor(origin_u, orientation[0].cells));
   const auto first_u_down =
       static_cast<double>(clamped_floor(std::ceil(origin_u) - 1.0, orientation[0].cells));
   const auto first_v_up = static_cast<double>(clamped_floor(origin_v, orientation[0].slabs));
   const auto first_v_down =
       static_cast<double>(clamped_floor(std::ceil(origin_v) - 1.0, orientation[0].slabs));
-  std::array<double, kSweeps> sweep_first{};
-  for (int sw = 0; sw < kSweeps; ++sw)
-    sweep_first[static_cast<size_t>(sw)] =
-        static_cast<double>(sweeps[static_cast<size_t>(sw)].first);
   constexpr double kLargest = std::numeric_limits<float>::max();
   for (int64_t i = begin; i < end; ++i) {
     const double px = point[i].x, py = point[i].y, pz = point[i].z;
@@ -159,8 +151,7 @@ void classify_rays(const Point* __restrict point, int64_t begin, int64_t end, co
         row ? (a_forward ? kRowsUp : kRowsDown) : (a_forward ? kColumnsRight : kColumnsLeft);
     const double a_last = std::min(std::max(std::floor(a_end), -1.0), a_cells);
     const double first_slab =
-        row ? (a_forward ? sweep_first[kRowsUp] : sweep_first[kRowsDown])
-            : (a_forward ? sweep_first[kColumnsRight] : sweep_first[kColumnsLeft]);
+        row ? (a_forward ? first_v_up : first_v_down) : (a_forward ? first_u_up : first_u_down);
     const double depth = (a_last - first_slab) * (a_forward ? 1.0 : -1.0);
     const bool m_backward = m_end < m_origin;  // step < 0
     const double m_first =
@@ -199,7 +190,7 @@ void build_sweeps(const std::vector<Point>& points, const GridSpec& grid,
   const auto n = static_cast<int64_t>(points.size());
   classes.resize(points.size());
   parallel_chunks(n, [&](int64_t begin, int64_t end, int t) {
-    classify_rays(points.data(), begin, end, grid, orientation, sweeps, classes.sweep.data(),
+    classify_rays(points.data(), begin, end, grid, orientation, classes.sweep.data(),
                   classes.depth.data(), classes.slope.data(), classes.first_cell.data(),
                   classes.last_cell.data(), classes.in_range.data());
     auto& mine = counts[static_cast<size_t>(t)];
