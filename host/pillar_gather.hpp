@@ -50,7 +50,7 @@ struct PillarWorkspace {
   std::vector<int32_t> pillar_size;       // (>= #non-empty): points before subsampling
   std::vector<int32_t> pillar_begin;      // (#non-empty + 1): CSR offsets into members
   std::vector<int32_t> cursor;            // (#non-empty): fill position while sorting
-  std::vector<int32_t> members;           // (#inside): point indices grouped by pillar
+  std::vector<int32_t> members;           // (#inside + N): point indices grouped by pillar
   std::vector<int32_t> kept_pillars;      // (P')
   std::vector<int32_t> positions;         // (N)
 };
