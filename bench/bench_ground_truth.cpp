@@ -10,18 +10,18 @@
 #include <benchmark/benchmark.h>
 #include <unistd.h>
 
-#include <Eigen/LU>
 #include <algorithm>
 #include <cmath>
 #include <filesystem>
 #include <numbers>
 #include <vector>
 
-#include "engine/core/grid.hpp"
-#include "engine/core/parallel.hpp"
-#include "engine/core/rng.hpp"
+#include "core/classes.hpp"
+#include "core/eigen.hpp"
+#include "core/grid.hpp"
+#include "core/parallel.hpp"
+#include "core/rng.hpp"
 #include "engine/data/cache.hpp"
-#include "engine/data/classes.hpp"
 #include "engine/data/ground_truth.hpp"
 #include "engine/data/semantickitti.hpp"
 #include "host/rasterize_labels.hpp"

@@ -8,16 +8,9 @@
 #include <cstdint>
 #include <string>
 
-// GCC 12 flags its own AVX-512 intrinsics, inlined into Eigen's GEMM packing, as reading an
-// uninitialised value (GCC bug 105593, fixed in GCC 13); the warnings are silenced for Eigen only.
-#pragma GCC diagnostic push
-#pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
-#pragma GCC diagnostic ignored "-Wuninitialized"
-#include <Eigen/Core>
-#pragma GCC diagnostic pop
-
-#include "engine/core/parallel.hpp"
-#include "engine/core/rng.hpp"
+#include "core/eigen.hpp"
+#include "core/parallel.hpp"
+#include "core/rng.hpp"
 #include "host/conv2d.hpp"
 
 using namespace pillarseg;

@@ -24,7 +24,7 @@
 #include <vector>
 
 #include "bench/support/cuda_bench.hpp"
-#include "engine/core/rng.hpp"
+#include "core/rng.hpp"
 #if defined(PILLARSEG_BENCH_VENDOR_CONV)
 #include "engine/cuda/vendor_conv.hpp"
 #endif

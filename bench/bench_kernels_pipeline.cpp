@@ -13,7 +13,6 @@
 // prints "skipped: no CUDA device" and runs nothing.
 #include <benchmark/benchmark.h>
 
-#include <Eigen/Core>
 #include <algorithm>
 #include <chrono>
 #include <cstdint>
@@ -24,11 +23,12 @@
 #include <vector>
 
 #include "bench/support/cuda_bench.hpp"
-#include "engine/core/grid.hpp"
-#include "engine/core/rng.hpp"
-#include "engine/core/tensor.hpp"
-#include "engine/data/classes.hpp"
-#include "engine/data/scan.hpp"
+#include "core/classes.hpp"
+#include "core/eigen.hpp"
+#include "core/grid.hpp"
+#include "core/point.hpp"
+#include "core/rng.hpp"
+#include "core/tensor.hpp"
 #include "engine/sim/simulate.hpp"
 #include "host/confusion.hpp"
 #include "host/pillar_gather.hpp"

@@ -6,16 +6,16 @@
 // of 0.1 m, N = 20, P = 0) for 1 and 2 threads; reports ms per scan and input points/s.
 #include <benchmark/benchmark.h>
 
-#include <Eigen/Core>
 #include <cmath>
 #include <limits>
 #include <numbers>
 #include <vector>
 
-#include "engine/core/grid.hpp"
-#include "engine/core/parallel.hpp"
-#include "engine/core/rng.hpp"
-#include "engine/data/scan.hpp"
+#include "core/eigen.hpp"
+#include "core/grid.hpp"
+#include "core/parallel.hpp"
+#include "core/point.hpp"
+#include "core/rng.hpp"
 #include "host/pillar_gather.hpp"
 #include "host/point_decoration.hpp"
 

@@ -12,9 +12,9 @@
 #include <numbers>
 #include <vector>
 
-#include "engine/core/grid.hpp"
-#include "engine/core/parallel.hpp"
-#include "engine/core/rng.hpp"
+#include "core/grid.hpp"
+#include "core/parallel.hpp"
+#include "core/rng.hpp"
 #include "host/raywalk.hpp"
 
 namespace pillarseg::host {

@@ -7,8 +7,8 @@
 
 #include <cmath>
 
-#include "engine/core/parallel.hpp"
-#include "engine/core/rng.hpp"
+#include "core/parallel.hpp"
+#include "core/rng.hpp"
 #include "engine/sim/simulate.hpp"
 
 namespace {

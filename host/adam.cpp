@@ -3,15 +3,8 @@
 
 #include <cmath>
 
-// GCC 12 reports false (maybe-)uninitialized values inside its own AVX-512 intrinsics
-// (_mm512_undefined_ps) when Eigen vectorises for AVX-512 (GCC bug 105593).
-#pragma GCC diagnostic push
-#pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
-#pragma GCC diagnostic ignored "-Wuninitialized"
-#include <Eigen/Core>
-#pragma GCC diagnostic pop
-
-#include "engine/core/error.hpp"
+#include "core/eigen.hpp"
+#include "core/error.hpp"
 
 namespace pillarseg::host {
 

@@ -1,7 +1,7 @@
 #include "host/confusion.hpp"
 
-#include "engine/core/error.hpp"
-#include "engine/data/classes.hpp"
+#include "core/classes.hpp"
+#include "core/error.hpp"
 
 namespace pillarseg::host {
 

@@ -5,7 +5,7 @@
 
 #include <cstdint>
 
-#include "engine/core/tensor.hpp"
+#include "core/tensor.hpp"
 
 namespace pillarseg::host {
 

@@ -19,7 +19,7 @@
 #include <cstdint>
 #include <vector>
 
-#include "engine/core/tensor.hpp"
+#include "core/tensor.hpp"
 
 namespace pillarseg::host {
 

@@ -15,8 +15,8 @@
 #include <type_traits>
 #include <vector>
 
-#include "engine/core/error.hpp"
-#include "engine/core/parallel.hpp"
+#include "core/error.hpp"
+#include "core/parallel.hpp"
 #include "host/conv2d.hpp"
 
 namespace pillarseg::host {

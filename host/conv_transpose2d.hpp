@@ -6,7 +6,7 @@
 
 #include <type_traits>
 
-#include "engine/core/tensor.hpp"
+#include "core/tensor.hpp"
 
 namespace pillarseg::host {
 

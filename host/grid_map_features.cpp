@@ -3,7 +3,7 @@
 #include <cmath>
 #include <limits>
 
-#include "engine/core/error.hpp"
+#include "core/error.hpp"
 
 namespace pillarseg::host {
 

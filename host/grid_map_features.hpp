@@ -7,9 +7,9 @@
 
 #include <vector>
 
-#include "engine/core/grid.hpp"
-#include "engine/core/tensor.hpp"
-#include "engine/data/scan.hpp"
+#include "core/grid.hpp"
+#include "core/point.hpp"
+#include "core/tensor.hpp"
 
 namespace pillarseg::host {
 

@@ -11,7 +11,7 @@
 #include <span>
 #include <type_traits>
 
-#include "engine/core/tensor.hpp"
+#include "core/tensor.hpp"
 
 namespace pillarseg::host {
 

@@ -5,8 +5,8 @@
 #include <cmath>
 #include <limits>
 
-#include "engine/core/error.hpp"
-#include "engine/core/parallel.hpp"
+#include "core/error.hpp"
+#include "core/parallel.hpp"
 
 namespace pillarseg::host {
 

@@ -6,8 +6,8 @@
 #include <algorithm>
 #include <cstdint>
 
-#include "engine/core/error.hpp"
-#include "engine/core/parallel.hpp"
+#include "core/error.hpp"
+#include "core/parallel.hpp"
 
 namespace pillarseg::host {
 namespace {

@@ -9,7 +9,7 @@
 
 #include <cstdint>
 
-#include "engine/core/tensor.hpp"
+#include "core/tensor.hpp"
 #include "host/batchnorm.hpp"
 
 namespace pillarseg::host {

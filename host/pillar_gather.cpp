@@ -12,8 +12,8 @@
 #include <numeric>
 #include <vector>
 
-#include "engine/core/error.hpp"
-#include "engine/core/parallel.hpp"
+#include "core/error.hpp"
+#include "core/parallel.hpp"
 
 namespace pillarseg::host {
 

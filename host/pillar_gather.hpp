@@ -8,10 +8,10 @@
 #include <cstdint>
 #include <vector>
 
-#include "engine/core/grid.hpp"
-#include "engine/core/rng.hpp"
-#include "engine/core/tensor.hpp"
-#include "engine/data/scan.hpp"
+#include "core/grid.hpp"
+#include "core/point.hpp"
+#include "core/rng.hpp"
+#include "core/tensor.hpp"
 
 namespace pillarseg::host {
 

@@ -4,13 +4,13 @@
 // it, so the result does not depend on the thread count.
 #include "host/point_decoration.hpp"
 
-#include <Eigen/Core>
 #include <algorithm>
 #include <cstdint>
 #include <vector>
 
-#include "engine/core/error.hpp"
-#include "engine/core/parallel.hpp"
+#include "core/eigen.hpp"
+#include "core/error.hpp"
+#include "core/parallel.hpp"
 
 namespace pillarseg::host {
 

@@ -9,9 +9,9 @@
 
 #include <vector>
 
-#include "engine/core/grid.hpp"
-#include "engine/core/tensor.hpp"
-#include "engine/data/scan.hpp"
+#include "core/grid.hpp"
+#include "core/point.hpp"
+#include "core/tensor.hpp"
 #include "host/pillar_gather.hpp"
 
 namespace pillarseg::host {

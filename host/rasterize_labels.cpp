@@ -4,7 +4,7 @@
 #include <array>
 #include <vector>
 
-#include "engine/core/error.hpp"
+#include "core/error.hpp"
 
 namespace pillarseg {
 

@@ -9,10 +9,10 @@
 #include <cstdint>
 #include <span>
 
-#include "engine/core/grid.hpp"
-#include "engine/core/tensor.hpp"
-#include "engine/data/classes.hpp"
-#include "engine/data/scan.hpp"
+#include "core/classes.hpp"
+#include "core/grid.hpp"
+#include "core/point.hpp"
+#include "core/tensor.hpp"
 
 namespace pillarseg {
 

@@ -20,8 +20,8 @@
 #include <cmath>
 #include <limits>
 
-#include "engine/core/error.hpp"
-#include "engine/core/parallel.hpp"
+#include "core/error.hpp"
+#include "core/parallel.hpp"
 #include "host/raywalk_detail.hpp"
 
 namespace pillarseg::host {

@@ -33,14 +33,14 @@
 // the part of every ray inside it, so the counts are identical for every thread count.
 #pragma once
 
-#include <Eigen/Core>
 #include <cstdint>
 #include <memory>
 #include <vector>
 
-#include "engine/core/grid.hpp"
-#include "engine/core/tensor.hpp"
-#include "engine/data/scan.hpp"
+#include "core/eigen.hpp"
+#include "core/grid.hpp"
+#include "core/point.hpp"
+#include "core/tensor.hpp"
 
 namespace pillarseg::host {
 

@@ -11,8 +11,8 @@
 #include <cstdint>
 #include <vector>
 
-#include "engine/core/grid.hpp"
-#include "engine/data/scan.hpp"
+#include "core/grid.hpp"
+#include "core/point.hpp"
 
 namespace pillarseg::host::raywalk_detail {
 

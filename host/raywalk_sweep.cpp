@@ -21,7 +21,7 @@
 #include <limits>
 #include <memory>
 
-#include "engine/core/parallel.hpp"
+#include "core/parallel.hpp"
 #include "host/raywalk.hpp"
 #include "host/raywalk_detail.hpp"
 

@@ -2,7 +2,7 @@
 // PyTorch's relu); backward dx = dy where y > 0, else 0.
 #pragma once
 
-#include "engine/core/tensor.hpp"
+#include "core/tensor.hpp"
 
 namespace pillarseg::host {
 

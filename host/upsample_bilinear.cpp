@@ -9,8 +9,8 @@
 #include <cstdint>
 #include <vector>
 
-#include "engine/core/error.hpp"
-#include "engine/core/parallel.hpp"
+#include "core/error.hpp"
+#include "core/parallel.hpp"
 
 namespace pillarseg::host {
 namespace {

@@ -6,7 +6,7 @@
 //   l = s - i, the sample is (1 - l) x[i] + l x[min(i + 1, in - 1)], in y and then in x.
 #pragma once
 
-#include "engine/core/tensor.hpp"
+#include "core/tensor.hpp"
 
 namespace pillarseg::host {
 

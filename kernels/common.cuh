@@ -18,7 +18,7 @@
 
 #include <fmt/format.h>
 
-#include "engine/core/error.hpp"
+#include "core/error.hpp"
 #include "kernels/emu/cuda_compat.cuh"
 
 namespace pillarseg::cuda {

@@ -7,7 +7,7 @@
 #include <algorithm>
 #include <cstdint>
 
-#include "engine/data/classes.hpp"
+#include "core/classes.hpp"
 #include "kernels/common.cuh"
 
 namespace pillarseg::cuda {

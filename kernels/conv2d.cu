@@ -18,7 +18,7 @@
 #include <cstddef>
 #include <cstdint>
 
-#include "engine/core/error.hpp"
+#include "core/error.hpp"
 #include "kernels/common.cuh"
 #include "kernels/gemm_tile.cuh"
 

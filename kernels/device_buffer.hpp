@@ -10,7 +10,7 @@
 #include <utility>
 #include <vector>
 
-#include "engine/core/error.hpp"
+#include "core/error.hpp"
 #include "kernels/common.cuh"
 
 namespace pillarseg::cuda {

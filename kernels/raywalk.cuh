@@ -14,7 +14,7 @@
 
 #include <cstdint>
 
-#include "engine/core/grid.hpp"
+#include "core/grid.hpp"
 #include "kernels/emu/cuda_compat.cuh"
 
 namespace pillarseg::cuda {

@@ -13,9 +13,9 @@
 #include <string>
 #include <vector>
 
-#include "engine/core/error.hpp"
-#include "engine/core/rng.hpp"
-#include "engine/core/tensor.hpp"
+#include "core/error.hpp"
+#include "core/rng.hpp"
+#include "core/tensor.hpp"
 #include "kernels/common.cuh"
 #include "kernels/device_buffer.hpp"
 

@@ -3,12 +3,12 @@
 // points, seeds reproduce, switches turn stages off, flips happen half of the time.
 #include <gtest/gtest.h>
 
-#include <Eigen/Geometry>
 #include <cmath>
 #include <numbers>
 #include <vector>
 
-#include "engine/core/error.hpp"
+#include "core/eigen.hpp"
+#include "core/error.hpp"
 #include "engine/data/augment.hpp"
 
 using namespace pillarseg;

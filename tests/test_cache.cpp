@@ -12,8 +12,8 @@
 #include <optional>
 #include <string>
 
-#include "engine/core/hash.hpp"
-#include "engine/core/io.hpp"
+#include "core/hash.hpp"
+#include "core/io.hpp"
 #include "engine/data/cache.hpp"
 #include "tests/support/test_support.hpp"
 

@@ -4,7 +4,7 @@
 
 #include <filesystem>
 
-#include "engine/core/error.hpp"
+#include "core/error.hpp"
 #include "engine/train/run_config.hpp"
 
 using namespace pillarseg;

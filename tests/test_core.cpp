@@ -4,11 +4,12 @@
 #include <cmath>
 #include <fstream>
 
-#include "engine/core/grid.hpp"
-#include "engine/core/image.hpp"
-#include "engine/core/io.hpp"
-#include "engine/core/rng.hpp"
-#include "engine/data/classes.hpp"
+#include "core/classes.hpp"
+#include "core/grid.hpp"
+#include "core/io.hpp"
+#include "core/rng.hpp"
+#include "engine/data/class_table_yaml.hpp"
+#include "engine/util/image.hpp"
 #include "tests/support/test_support.hpp"
 
 using namespace pillarseg;
@@ -101,7 +102,7 @@ TEST(ClassTable, YamlOverrideMovesRawIdsAndChangesFingerprint) {
     std::ofstream f(dir / "classes.yaml");
     f << "classes:\n  - {id: 9, raw: [51, 80, 81, 52]}\n  - {id: 2, gt_weight: 7, color: [1, 2, 3]}\n";
   }
-  const ClassTable t = ClassTable::from_yaml((dir / "classes.yaml").string());
+  const ClassTable t = load_class_table((dir / "classes.yaml").string());
   EXPECT_EQ(t.class_of(52), 9);
   EXPECT_EQ(t.gt_weight(2), 7);
   EXPECT_EQ(t.color(2), (Rgb{1, 2, 3}));
@@ -111,7 +112,7 @@ TEST(ClassTable, YamlOverrideMovesRawIdsAndChangesFingerprint) {
     f << "classes:\n  - {id: 40}\n";
   }
   try {
-    ClassTable::from_yaml((dir / "bad.yaml").string());
+    load_class_table((dir / "bad.yaml").string());
     FAIL() << "expected an error";
   } catch (const Error& e) {
     EXPECT_NE(std::string(e.what()).find("bad.yaml"), std::string::npos);

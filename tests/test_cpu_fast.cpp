@@ -7,9 +7,9 @@
 #include <cmath>
 #include <tuple>
 
-#include "engine/core/error.hpp"
-#include "engine/core/parallel.hpp"
-#include "engine/core/rng.hpp"
+#include "core/error.hpp"
+#include "core/parallel.hpp"
+#include "core/rng.hpp"
 #include "host/conv2d.hpp"
 #include "host/conv2d_winograd.hpp"
 #include "tests/support/test_support.hpp"

@@ -17,7 +17,7 @@
 #include <string>
 #include <vector>
 
-#include "engine/core/rng.hpp"
+#include "core/rng.hpp"
 #include "engine/cuda/cuda_backend.hpp"
 #include "engine/model/pillarsegnet.hpp"
 #include "tests/support/test_support.hpp"

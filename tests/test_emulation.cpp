@@ -14,7 +14,7 @@
 #include <type_traits>
 #include <vector>
 
-#include "engine/core/error.hpp"
+#include "core/error.hpp"
 #include "kernels/common.cuh"
 #include "kernels/device_buffer.hpp"
 

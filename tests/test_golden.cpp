@@ -22,7 +22,7 @@
 #include <string>
 #include <vector>
 
-#include "engine/core/error.hpp"
+#include "core/error.hpp"
 #include "engine/model/pillarsegnet.hpp"
 #include "tests/support/test_support.hpp"
 #include "weights_io/safetensors.hpp"

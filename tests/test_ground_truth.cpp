@@ -5,8 +5,6 @@
 // `pillarseg gt` command end to end.
 #include <gtest/gtest.h>
 
-#include <Eigen/Geometry>
-#include <Eigen/LU>
 #include <algorithm>
 #include <array>
 #include <chrono>
@@ -15,15 +13,18 @@
 #include <map>
 #include <numbers>
 
-#include "engine/core/grid.hpp"
-#include "engine/core/image.hpp"
-#include "engine/core/io.hpp"
-#include "engine/core/parallel.hpp"
-#include "engine/core/rng.hpp"
+#include "core/classes.hpp"
+#include "core/eigen.hpp"
+#include "core/grid.hpp"
+#include "core/io.hpp"
+#include "core/parallel.hpp"
+#include "core/rng.hpp"
+#include "engine/cli/gt_command.hpp"
 #include "engine/data/cache.hpp"
-#include "engine/data/classes.hpp"
+#include "engine/data/class_table_yaml.hpp"
 #include "engine/data/ground_truth.hpp"
 #include "engine/data/semantickitti.hpp"
+#include "engine/util/image.hpp"
 #include "host/rasterize_labels.hpp"
 #include "tests/support/test_support.hpp"
 
@@ -339,7 +340,7 @@ TEST(SparseRule, UsesTheTableWeights) {
     std::ofstream yaml(dir / "classes.yaml");
     yaml << "classes:\n  - id: 5\n    gt_weight: 10\n";
   }
-  const ClassTable table = ClassTable::from_yaml((dir / "classes.yaml").string());
+  const ClassTable table = load_class_table((dir / "classes.yaml").string());
   const GridSpec grid = small_grid();
   PointSet s;
   s.add(1, centre(grid, 0, 0), kCar);
@@ -749,7 +750,7 @@ TEST_F(DenseTwoScans, KeysChangeWithEverythingTheMapDependsOn) {
     yaml << "classes:\n  - id: 8\n    gt_weight: 2\n";
   }
   const GroundTruthBuilder other_table(
-      Sequence(root_, 3), ClassTable::from_yaml((root_ / "classes.yaml").string()), {}, cache);
+      Sequence(root_, 3), load_class_table((root_ / "classes.yaml").string()), {}, cache);
   EXPECT_NE(other_table.key(0, GroundTruthKind::sparse).settings, sparse.settings);
 
   // Rewriting a neighbour's labels changes scan 0's dense key but not its sparse key.

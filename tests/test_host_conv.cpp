@@ -10,9 +10,9 @@
 #include <string>
 #include <vector>
 
-#include "engine/core/error.hpp"
-#include "engine/core/parallel.hpp"
-#include "engine/core/rng.hpp"
+#include "core/error.hpp"
+#include "core/parallel.hpp"
+#include "core/rng.hpp"
 #include "host/conv2d.hpp"
 #include "host/conv_transpose2d.hpp"
 #include "tests/support/test_support.hpp"

@@ -10,8 +10,8 @@
 #include <string>
 #include <vector>
 
-#include "engine/core/error.hpp"
-#include "engine/core/rng.hpp"
+#include "core/error.hpp"
+#include "core/rng.hpp"
 #include "host/maxpool2d.hpp"
 #include "host/pad_concat.hpp"
 #include "host/relu.hpp"

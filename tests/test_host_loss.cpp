@@ -11,7 +11,7 @@
 #include <string>
 #include <vector>
 
-#include "engine/core/rng.hpp"
+#include "core/rng.hpp"
 #include "host/losses.hpp"
 #include "host/softmax.hpp"
 #include "tests/support/test_support.hpp"

@@ -9,8 +9,8 @@
 #include <string>
 #include <vector>
 
-#include "engine/core/parallel.hpp"
-#include "engine/core/rng.hpp"
+#include "core/parallel.hpp"
+#include "core/rng.hpp"
 #include "host/batchnorm.hpp"
 #include "host/pfn.hpp"
 #include "host/scatter.hpp"

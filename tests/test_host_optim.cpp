@@ -11,7 +11,7 @@
 #include <type_traits>
 #include <vector>
 
-#include "engine/core/error.hpp"
+#include "core/error.hpp"
 #include "host/adam.hpp"
 #include "host/lr_schedule.hpp"
 

@@ -28,9 +28,9 @@
 
 #include <fmt/format.h>
 
-#include "engine/core/error.hpp"
-#include "engine/core/rng.hpp"
-#include "engine/core/tensor.hpp"
+#include "core/error.hpp"
+#include "core/rng.hpp"
+#include "core/tensor.hpp"
 #include "host/conv2d.hpp"
 #include "host/conv_transpose2d.hpp"
 #include "kernels/common.cuh"

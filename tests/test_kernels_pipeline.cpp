@@ -10,7 +10,6 @@
 #include <gtest/gtest.h>
 #include <omp.h>
 
-#include <Eigen/Core>
 #include <bit>
 #include <cmath>
 #include <cstdint>
@@ -19,10 +18,11 @@
 #include <utility>
 #include <vector>
 
-#include "engine/core/grid.hpp"
-#include "engine/core/rng.hpp"
-#include "engine/data/classes.hpp"
-#include "engine/data/scan.hpp"
+#include "core/classes.hpp"
+#include "core/eigen.hpp"
+#include "core/grid.hpp"
+#include "core/point.hpp"
+#include "core/rng.hpp"
 #include "host/confusion.hpp"
 #include "host/pillar_gather.hpp"
 #include "host/point_decoration.hpp"

@@ -15,8 +15,8 @@
 #include <string>
 #include <vector>
 
-#include "engine/core/error.hpp"
-#include "engine/core/rng.hpp"
+#include "core/error.hpp"
+#include "core/rng.hpp"
 #include "kernels/common.cuh"
 #include "kernels/device_buffer.hpp"
 #include "kernels/reduce.cuh"

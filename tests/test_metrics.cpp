@@ -3,7 +3,7 @@
 
 #include <cmath>
 
-#include "engine/core/error.hpp"
+#include "core/error.hpp"
 #include "engine/eval/metrics.hpp"
 
 using namespace pillarseg;

@@ -12,8 +12,8 @@
 #include <set>
 #include <tuple>
 
-#include "engine/core/error.hpp"
-#include "engine/core/rng.hpp"
+#include "core/error.hpp"
+#include "core/rng.hpp"
 #include "engine/model/pillarsegnet.hpp"
 #include "tests/support/test_support.hpp"
 #include "tests/support/tiny_model.hpp"

@@ -14,8 +14,8 @@
 #include <utility>
 #include <vector>
 
-#include "engine/core/error.hpp"
-#include "engine/core/parallel.hpp"
+#include "core/error.hpp"
+#include "core/parallel.hpp"
 #include "host/pillar_gather.hpp"
 #include "host/point_decoration.hpp"
 #include "tests/support/test_support.hpp"

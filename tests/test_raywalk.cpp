@@ -16,9 +16,9 @@
 #include <string>
 #include <vector>
 
-#include "engine/core/error.hpp"
-#include "engine/core/parallel.hpp"
-#include "engine/core/rng.hpp"
+#include "core/error.hpp"
+#include "core/parallel.hpp"
+#include "core/rng.hpp"
 #include "tests/support/raywalk_grids.hpp"
 
 namespace pillarseg::host {

@@ -15,9 +15,9 @@
 #include <typeinfo>
 #include <vector>
 
-#include "engine/core/error.hpp"
-#include "engine/core/io.hpp"
-#include "engine/core/rng.hpp"
+#include "core/error.hpp"
+#include "core/io.hpp"
+#include "core/rng.hpp"
 #include "tests/support/test_support.hpp"
 #include "weights_io/half.hpp"
 #include "weights_io/json.hpp"

@@ -1,15 +1,14 @@
 // SemanticKITTI files: round trips of every format, the real scan, and bad input.
 #include <gtest/gtest.h>
 
-#include <Eigen/Geometry>
-#include <Eigen/LU>
 #include <cmath>
 #include <fstream>
 #include <limits>
 
-#include "engine/core/grid.hpp"
-#include "engine/core/io.hpp"
-#include "engine/data/classes.hpp"
+#include "core/classes.hpp"
+#include "core/eigen.hpp"
+#include "core/grid.hpp"
+#include "core/io.hpp"
 #include "engine/data/semantickitti.hpp"
 #include "tests/support/test_support.hpp"
 

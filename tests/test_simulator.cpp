@@ -6,8 +6,6 @@
 #include <unistd.h>
 
 #include <Eigen/Eigenvalues>
-#include <Eigen/Geometry>
-#include <Eigen/LU>
 #include <algorithm>
 #include <cmath>
 #include <map>
@@ -15,10 +13,11 @@
 #include <numbers>
 #include <unordered_map>
 
-#include "engine/core/error.hpp"
-#include "engine/core/io.hpp"
-#include "engine/core/parallel.hpp"
-#include "engine/data/classes.hpp"
+#include "core/classes.hpp"
+#include "core/eigen.hpp"
+#include "core/error.hpp"
+#include "core/io.hpp"
+#include "core/parallel.hpp"
 #include "engine/data/semantickitti.hpp"
 #include "engine/sim/simulate.hpp"
 #include "tests/support/test_support.hpp"

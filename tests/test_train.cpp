@@ -6,13 +6,13 @@
 
 #include <fstream>
 
-#include "engine/core/io.hpp"
-#include "engine/core/parallel.hpp"
+#include "core/io.hpp"
+#include "core/parallel.hpp"
 #include "engine/data/semantickitti.hpp"
 #include "engine/eval/evaluate.hpp"
+#include "engine/pipeline/scan_inputs.hpp"
 #include "engine/sim/simulate.hpp"
 #include "engine/train/checkpoint.hpp"
-#include "engine/train/features.hpp"
 #include "engine/train/trainer.hpp"
 #include "tests/support/test_support.hpp"
 

@@ -7,7 +7,7 @@
 #include <limits>
 #include <set>
 
-#include "engine/core/error.hpp"
+#include "core/error.hpp"
 
 namespace pillarseg::json {
 

@@ -15,8 +15,8 @@
 #include <string_view>
 #include <tuple>
 
-#include "engine/core/error.hpp"
-#include "engine/core/io.hpp"
+#include "core/error.hpp"
+#include "core/io.hpp"
 #include "weights_io/half.hpp"
 #include "weights_io/json.hpp"
 

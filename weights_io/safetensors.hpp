@@ -17,7 +17,7 @@
 #include <string>
 #include <vector>
 
-#include "engine/core/tensor.hpp"
+#include "core/tensor.hpp"
 
 namespace pillarseg::weights {
 

@@ -4,7 +4,7 @@
 #include <filesystem>
 #include <string>
 
-#include "engine/core/error.hpp"
+#include "core/error.hpp"
 #include "engine/data/semantickitti.hpp"
 
 namespace pillarseg::cli {

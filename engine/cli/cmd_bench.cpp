@@ -12,14 +12,15 @@
 #include <chrono>
 #include <filesystem>
 
+#include "core/parallel.hpp"
 #include "engine/cli/commands.hpp"
-#include "engine/core/parallel.hpp"
 #include "engine/data/ground_truth.hpp"
 #include "engine/data/semantickitti.hpp"
 #include "engine/model/pillarsegnet.hpp"
+#include "engine/pipeline/scan_inputs.hpp"
+#include "engine/render/label_map.hpp"
 #include "engine/sim/simulate.hpp"
 #include "engine/train/checkpoint.hpp"
-#include "engine/train/features.hpp"
 
 namespace pillarseg::cli {
 

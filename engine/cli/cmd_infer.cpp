@@ -3,13 +3,14 @@
 // truth) for a scan of a sequence.
 #include <fmt/format.h>
 
+#include "core/io.hpp"
 #include "engine/cli/cli_util.hpp"
 #include "engine/cli/commands.hpp"
-#include "engine/core/io.hpp"
 #include "engine/eval/evaluate.hpp"
-#include "engine/eval/render.hpp"
-#include "host/raywalk.hpp"
+#include "engine/render/label_map.hpp"
+#include "engine/render/render.hpp"
 #include "engine/train/checkpoint.hpp"
+#include "host/raywalk.hpp"
 #include "weights_io/half.hpp"
 
 namespace pillarseg::cli {

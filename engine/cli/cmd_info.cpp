@@ -4,10 +4,11 @@
 
 #include <filesystem>
 
+#include "core/classes.hpp"
+#include "core/error.hpp"
+#include "core/grid.hpp"
 #include "engine/cli/commands.hpp"
-#include "engine/core/error.hpp"
-#include "engine/core/grid.hpp"
-#include "engine/data/classes.hpp"
+#include "engine/data/class_table_yaml.hpp"
 #include "engine/data/semantickitti.hpp"
 
 namespace pillarseg::cli {
@@ -68,7 +69,7 @@ void print_scan(const Sequence& seq, size_t index, const ClassTable& classes) {
 
 void run_info(const InfoArgs& args) {
   const std::filesystem::path root(args.data);
-  const ClassTable classes = args.classes.empty() ? ClassTable::defaults() : ClassTable::from_yaml(args.classes);
+  const ClassTable classes = args.classes.empty() ? ClassTable::defaults() : load_class_table(args.classes);
   if (args.sequence < 0) {
     PS_CHECK(args.scan < 0, "--scan needs --sequence");
     print_root(root);

@@ -4,12 +4,12 @@
 
 #include <cmath>
 
+#include "core/io.hpp"
 #include "engine/cli/cli_util.hpp"
 #include "engine/cli/commands.hpp"
-#include "engine/core/image.hpp"
-#include "engine/core/io.hpp"
-#include "engine/eval/render.hpp"
 #include "engine/data/ground_truth.hpp"
+#include "engine/render/render.hpp"
+#include "engine/util/image.hpp"
 
 namespace pillarseg::cli {
 

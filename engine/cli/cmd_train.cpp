@@ -3,8 +3,8 @@
 #include <fmt/format.h>
 #include <spdlog/spdlog.h>
 
+#include "core/io.hpp"
 #include "engine/cli/commands.hpp"
-#include "engine/core/io.hpp"
 #include "engine/eval/evaluate.hpp"
 #include "engine/train/checkpoint.hpp"
 #include "engine/train/trainer.hpp"

@@ -6,9 +6,9 @@
 #include <cstdio>
 #include <exception>
 
+#include "core/error.hpp"
+#include "core/parallel.hpp"
 #include "engine/cli/commands.hpp"
-#include "engine/core/error.hpp"
-#include "engine/core/parallel.hpp"
 #if defined(PILLARSEG_WITH_CUDA_BACKEND)
 #include "engine/cuda/cuda_backend.hpp"
 #endif

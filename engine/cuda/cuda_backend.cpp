@@ -10,7 +10,7 @@
 #include <cstring>
 #include <type_traits>
 
-#include "engine/core/error.hpp"
+#include "core/error.hpp"
 #include "kernels/adam.cuh"
 #include "kernels/batchnorm.cuh"
 #include "kernels/common.cuh"

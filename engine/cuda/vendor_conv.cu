@@ -19,7 +19,7 @@
 #include <memory>
 #include <string>
 
-#include "engine/core/error.hpp"
+#include "core/error.hpp"
 #include "engine/cuda/vendor_conv.hpp"
 #include "kernels/common.cuh"
 #include "kernels/device_buffer.hpp"

@@ -11,12 +11,12 @@
 // as_matrix() * relative_pose, so every map is built from the same augmented data.
 #pragma once
 
-#include <Eigen/Core>
 #include <numbers>
 #include <vector>
 
-#include "engine/core/rng.hpp"
-#include "engine/data/scan.hpp"
+#include "core/eigen.hpp"
+#include "core/point.hpp"
+#include "core/rng.hpp"
 
 namespace pillarseg {
 

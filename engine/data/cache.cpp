@@ -8,8 +8,8 @@
 #include <cstdlib>
 #include <ostream>
 
-#include "engine/core/error.hpp"
-#include "engine/core/io.hpp"
+#include "core/error.hpp"
+#include "core/io.hpp"
 
 namespace pillarseg {
 

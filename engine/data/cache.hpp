@@ -26,8 +26,8 @@
 #include <type_traits>
 #include <vector>
 
-#include "engine/core/hash.hpp"
-#include "engine/core/tensor.hpp"
+#include "core/hash.hpp"
+#include "core/tensor.hpp"
 
 namespace pillarseg {
 

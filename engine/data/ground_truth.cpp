@@ -8,11 +8,11 @@
 #include <exception>
 #include <utility>
 
-#include "engine/core/error.hpp"
-#include "engine/core/hash.hpp"
-#include "engine/core/io.hpp"
-#include "engine/core/parallel.hpp"
-#include "engine/core/progress.hpp"
+#include "core/error.hpp"
+#include "core/hash.hpp"
+#include "core/io.hpp"
+#include "core/parallel.hpp"
+#include "engine/util/progress.hpp"
 #include "host/rasterize_labels.hpp"
 #include "host/raywalk.hpp"
 
@@ -452,105 +452,6 @@ GroundTruthBuilder::BuildCounts GroundTruthBuilder::build_all(GroundTruthKind ki
   }
   if (progress) progress->finish();
   return counts;
-}
-
-ImageRgb render_label_map(const Tensor<uint8_t>& map, const ClassTable& table) {
-  PS_CHECK(map.rank() == 2, "render_label_map: expected an (H, W) map, got shape {}",
-           shape_str(map.shape()));
-  const int height = static_cast<int>(map.dim(0)), width = static_cast<int>(map.dim(1));
-  ImageRgb image(width, height);
-  for (int iy = 0; iy < height; ++iy) {
-    for (int ix = 0; ix < width; ++ix) {
-      const uint8_t k = map(iy, ix);
-      PS_CHECK(k < kNumClassIds,
-               "render_label_map: cell (iy {}, ix {}) has class id {}, expected 0..{}", iy, ix, k,
-               kNumClassIds - 1);
-      const Rgb color = table.color(k);
-      uint8_t* pixel = image.at(ix, height - 1 - iy);
-      pixel[0] = color.r;
-      pixel[1] = color.g;
-      pixel[2] = color.b;
-    }
-  }
-  return image;
-}
-
-void write_label_map(const fs::path& path, const Tensor<uint8_t>& map, const ClassTable& table) {
-  const std::string extension = lower_extension(path);
-  if (extension == ".png") {
-    write_png_rgb(path, render_label_map(map, table));
-  } else if (extension == ".u8") {
-    PS_CHECK(map.rank() == 2, "{}: expected an (H, W) map, got shape {}", path.string(),
-             shape_str(map.shape()));
-    write_file_atomic(path, map.data(), static_cast<size_t>(map.numel()));
-  } else {
-    PS_FAIL("{}: unknown extension '{}', expected .png (color map) or .u8 (raw class ids)",
-            path.string(), extension);
-  }
-}
-
-std::string run_gt_command(const GtCommandOptions& options) {
-  if (options.scan) {
-    PS_CHECK(!options.out.empty(), "--out: required with --scan (a .png or .u8 path)");
-    const std::string extension = lower_extension(options.out);
-    PS_CHECK(extension == ".png" || extension == ".u8",
-             "--out {}: unknown extension '{}', expected .png (color map) or .u8 (raw class ids)",
-             options.out.string(), extension);
-  } else {
-    PS_CHECK(options.out.empty(),
-             "--out {}: needs --scan (without --scan, gt fills the cache for the whole sequence)",
-             options.out.string());
-  }
-  PS_CHECK(fs::is_directory(options.data_root / "sequences"),
-           "--data {}: no directory {} (expected a SemanticKITTI ROOT with sequences/SS/velodyne)",
-           options.data_root.string(), (options.data_root / "sequences").string());
-  PS_CHECK(options.sequence >= 0 && options.sequence <= 99, "--sequence {}: expected 0..99",
-           options.sequence);
-  const fs::path sequence_dir = options.data_root / "sequences" / sequence_name(options.sequence);
-  PS_CHECK(fs::is_directory(sequence_dir / "velodyne"), "--sequence {}: no directory {}",
-           sequence_name(options.sequence), (sequence_dir / "velodyne").string());
-
-  ClassTable table = options.classes_yaml.empty()
-                         ? ClassTable::defaults()
-                         : ClassTable::from_yaml(options.classes_yaml.string());
-  const fs::path cache_dir =
-      options.cache_dir.empty() ? default_cache_dir(options.data_root) : options.cache_dir;
-  Sequence sequence(options.data_root, options.sequence);
-  GroundTruthSettings settings;
-  settings.grid = options.grid;
-
-  if (!options.scan) {
-    const size_t count = sequence.size();
-    const GroundTruthBuilder builder(std::move(sequence), std::move(table), settings,
-                                     Cache(cache_dir));
-    const GroundTruthBuilder::BuildCounts counts =
-        builder.build_all(options.kind, options.show_progress);
-    return fmt::format(
-        "sequence {}: {} ground truth of {} scans in {} (computed {}, already cached {})",
-        sequence_name(options.sequence), to_string(options.kind), count, cache_dir.string(),
-        counts.computed, counts.cached);
-  }
-
-  const int frame = *options.scan;
-  size_t index = sequence.size();
-  for (size_t i = 0; i < sequence.size(); ++i)
-    if (sequence.frame(i) == frame) index = i;
-  PS_CHECK(index < sequence.size(), "--scan {}: out of range, sequence {} has {}", frame,
-           sequence_name(options.sequence),
-           sequence.size() == 0
-               ? std::string("no scans")
-               : fmt::format("scans {:06}..{:06} ({} files)", sequence.frame(0),
-                             sequence.frame(sequence.size() - 1), sequence.size()));
-  const GroundTruthBuilder builder(std::move(sequence), table, settings, Cache(cache_dir));
-  bool from_cache = false;
-  const Tensor<uint8_t> map = builder.map(index, options.kind, &from_cache);
-  write_label_map(options.out, map, table);
-  const int64_t labelled = std::count_if(map.data(), map.data() + map.numel(),
-                                         [](uint8_t k) { return k != kUnlabeled; });
-  return fmt::format(
-      "wrote {}: {} ground truth of sequence {} scan {:06}, {} x {} cells, {} labelled ({})",
-      options.out.string(), to_string(options.kind), sequence_name(options.sequence), frame,
-      map.dim(1), map.dim(0), labelled, from_cache ? "from the cache" : "computed");
 }
 
 }  // namespace pillarseg

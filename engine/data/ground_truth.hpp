@@ -9,10 +9,9 @@
 // the augmentation and rasterise it again: a 4x4 affine `transform` (AugmentTransform::
 // as_matrix()) composes on the left of every relative pose, p -> transform * inv(T_t) T_j p,
 // for scan t itself as for its neighbours. GroundTruthBuilder serves the maps through the
-// on-disk cache (engine/data/cache.hpp), and run_gt_command is `pillarseg gt`.
+// on-disk cache (engine/data/cache.hpp); `pillarseg gt` is engine/cli/cmd_gt.cpp.
 #pragma once
 
-#include <Eigen/Core>
 #include <cstdint>
 #include <filesystem>
 #include <optional>
@@ -21,12 +20,12 @@
 #include <string_view>
 #include <vector>
 
-#include "engine/core/grid.hpp"
-#include "engine/core/image.hpp"
-#include "engine/core/tensor.hpp"
+#include "core/classes.hpp"
+#include "core/eigen.hpp"
+#include "core/grid.hpp"
+#include "core/point.hpp"
+#include "core/tensor.hpp"
 #include "engine/data/cache.hpp"
-#include "engine/data/classes.hpp"
-#include "engine/data/scan.hpp"
 #include "engine/data/semantickitti.hpp"
 
 namespace pillarseg {
@@ -170,29 +169,5 @@ class GroundTruthBuilder {
   std::optional<Cache> cache_;
   std::string sequence_path_;  // canonical, for cache keys
 };
-
-// Top-view picture of a map (H, W): image width W, height H, pixel (column ix, row H-1-iy),
-// so +x (forward) points right and +y (left of the car) up; colors from ClassTable::color.
-ImageRgb render_label_map(const Tensor<uint8_t>& map, const ClassTable& table);
-// By extension: ".png" the rendered picture, ".u8" the raw class ids, H rows of W bytes
-// (row iy, column ix, not flipped). Written atomically.
-void write_label_map(const std::filesystem::path& path, const Tensor<uint8_t>& map,
-                     const ClassTable& table);
-
-// `pillarseg gt`.
-struct GtCommandOptions {
-  std::filesystem::path data_root;  // --data ROOT
-  int sequence = -1;                // --sequence SS
-  std::optional<int> scan;          // --scan N: frame number; none = the whole sequence
-  GroundTruthKind kind = GroundTruthKind::sparse;  // --mode
-  std::filesystem::path out;                       // --out PATH (.png or .u8), with --scan only
-  std::filesystem::path cache_dir;     // --cache DIR; empty = default_cache_dir(data_root)
-  std::filesystem::path classes_yaml;  // --classes FILE.yaml; empty = the default table
-  GridSpec grid;
-  bool show_progress = true;
-};
-// Writes one scan's map (--scan) or fills the cache for the whole sequence; returns the
-// one-line report. Errors name the command-line argument at fault.
-std::string run_gt_command(const GtCommandOptions& options);
 
 }  // namespace pillarseg

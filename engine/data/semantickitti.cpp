@@ -2,7 +2,6 @@
 
 #include <spdlog/spdlog.h>
 
-#include <Eigen/LU>
 #include <algorithm>
 #include <charconv>
 #include <cmath>
@@ -10,8 +9,9 @@
 #include <ostream>
 #include <sstream>
 
-#include "engine/core/error.hpp"
-#include "engine/core/io.hpp"
+#include "core/eigen.hpp"
+#include "core/error.hpp"
+#include "core/io.hpp"
 
 namespace pillarseg {
 

@@ -4,14 +4,14 @@
 // writers are atomic.
 #pragma once
 
-#include <Eigen/Core>
 #include <array>
 #include <filesystem>
 #include <optional>
 #include <string>
 #include <vector>
 
-#include "engine/data/scan.hpp"
+#include "core/eigen.hpp"
+#include "core/point.hpp"
 
 namespace pillarseg {
 

@@ -1,7 +1,7 @@
 #include "engine/eval/evaluate.hpp"
 
-#include "engine/core/progress.hpp"
 #include "engine/train/dataset.hpp"
+#include "engine/util/progress.hpp"
 
 namespace pillarseg {
 

@@ -7,8 +7,8 @@
 #include <cstdint>
 #include <string>
 
-#include "engine/core/tensor.hpp"
-#include "engine/data/classes.hpp"
+#include "core/classes.hpp"
+#include "core/tensor.hpp"
 
 namespace pillarseg {
 

@@ -3,7 +3,7 @@
 #include <atomic>
 #include <chrono>
 
-#include "engine/core/error.hpp"
+#include "core/error.hpp"
 
 namespace pillarseg {
 

@@ -10,7 +10,7 @@
 #include <memory>
 #include <string>
 
-#include "engine/core/tensor.hpp"
+#include "core/tensor.hpp"
 
 namespace pillarseg {
 

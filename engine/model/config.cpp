@@ -4,7 +4,7 @@
 
 #include <cmath>
 
-#include "engine/core/error.hpp"
+#include "core/error.hpp"
 
 namespace pillarseg {
 

@@ -6,7 +6,7 @@
 
 #include <string>
 
-#include "engine/core/grid.hpp"
+#include "core/grid.hpp"
 
 namespace YAML {
 class Node;

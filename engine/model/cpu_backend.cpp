@@ -10,16 +10,9 @@
 #include <span>
 #include <vector>
 
-// GCC 12 flags its own AVX-512 intrinsics, inlined into Eigen's GEMM packing, as reading an
-// uninitialised value (GCC bug 105593, fixed in GCC 13); the warnings are silenced for Eigen only.
-#pragma GCC diagnostic push
-#pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
-#pragma GCC diagnostic ignored "-Wuninitialized"
-#include <Eigen/Core>
-#pragma GCC diagnostic pop
-
-#include "engine/core/error.hpp"
-#include "engine/core/parallel.hpp"
+#include "core/eigen.hpp"
+#include "core/error.hpp"
+#include "core/parallel.hpp"
 #include "engine/model/backend.hpp"
 #include "host/adam.hpp"
 #include "host/batchnorm.hpp"

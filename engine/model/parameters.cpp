@@ -3,8 +3,8 @@
 #include <algorithm>
 #include <cmath>
 
-#include "engine/core/error.hpp"
-#include "engine/core/rng.hpp"
+#include "core/error.hpp"
+#include "core/rng.hpp"
 
 namespace pillarseg {
 

@@ -17,7 +17,7 @@
 #include <memory>
 #include <vector>
 
-#include "engine/core/tensor.hpp"
+#include "core/tensor.hpp"
 #include "engine/model/backend.hpp"
 #include "engine/model/config.hpp"
 #include "engine/model/parameters.hpp"

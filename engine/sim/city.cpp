@@ -1,6 +1,5 @@
 #include "engine/sim/city.hpp"
 
-#include <Eigen/Geometry>
 #include <algorithm>
 #include <cmath>
 #include <limits>
@@ -8,7 +7,8 @@
 #include <tuple>
 #include <unordered_map>
 
-#include "engine/core/error.hpp"
+#include "core/eigen.hpp"
+#include "core/error.hpp"
 
 namespace pillarseg::sim {
 

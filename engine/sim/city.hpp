@@ -12,12 +12,12 @@
 // World frame: x, y horizontal, z up, road surface at z = 0. Units: metres, seconds.
 #pragma once
 
-#include <Eigen/Core>
 #include <array>
 #include <cstdint>
 #include <utility>
 #include <vector>
 
+#include "core/eigen.hpp"
 #include "engine/sim/objects.hpp"
 #include "engine/sim/scene.hpp"
 

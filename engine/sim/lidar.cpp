@@ -4,9 +4,9 @@
 #include <cmath>
 #include <numbers>
 
-#include "engine/core/error.hpp"
-#include "engine/core/parallel.hpp"
-#include "engine/core/rng.hpp"
+#include "core/error.hpp"
+#include "core/parallel.hpp"
+#include "core/rng.hpp"
 
 namespace pillarseg::sim {
 

@@ -9,11 +9,11 @@
 // Motion within a sweep is ignored.
 #pragma once
 
-#include <Eigen/Core>
 #include <cstdint>
 #include <vector>
 
-#include "engine/data/scan.hpp"
+#include "core/eigen.hpp"
+#include "core/point.hpp"
 #include "engine/sim/city.hpp"
 #include "engine/sim/scene.hpp"
 

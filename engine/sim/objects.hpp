@@ -8,7 +8,7 @@
 #include <cstdint>
 #include <vector>
 
-#include "engine/core/rng.hpp"
+#include "core/rng.hpp"
 #include "engine/sim/scene.hpp"
 
 namespace pillarseg::sim {

@@ -6,9 +6,10 @@
 // Units are metres; the world frame has z up.
 #pragma once
 
-#include <Eigen/Core>
 #include <cstdint>
 #include <vector>
+
+#include "core/eigen.hpp"
 
 namespace pillarseg::sim {
 

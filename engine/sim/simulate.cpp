@@ -3,13 +3,12 @@
 #include <fmt/format.h>
 #include <spdlog/spdlog.h>
 
-#include <Eigen/Geometry>
-#include <Eigen/LU>
 #include <cmath>
 #include <numbers>
 
-#include "engine/core/error.hpp"
-#include "engine/core/rng.hpp"
+#include "core/eigen.hpp"
+#include "core/error.hpp"
+#include "core/rng.hpp"
 
 namespace pillarseg::sim {
 

@@ -11,10 +11,10 @@
 #include <filesystem>
 #include <vector>
 
-#include "engine/core/progress.hpp"
 #include "engine/data/semantickitti.hpp"
 #include "engine/sim/city.hpp"
 #include "engine/sim/lidar.hpp"
+#include "engine/util/progress.hpp"
 
 namespace pillarseg::sim {
 

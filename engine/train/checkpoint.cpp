@@ -5,7 +5,7 @@
 #include <charconv>
 #include <set>
 
-#include "engine/core/error.hpp"
+#include "core/error.hpp"
 
 namespace pillarseg {
 

@@ -2,7 +2,7 @@
 
 #include <fmt/format.h>
 
-#include "engine/core/error.hpp"
+#include "core/error.hpp"
 #include "host/rasterize_labels.hpp"
 
 namespace pillarseg {

@@ -11,7 +11,7 @@
 #include <vector>
 
 #include "engine/data/ground_truth.hpp"
-#include "engine/train/features.hpp"
+#include "engine/pipeline/scan_inputs.hpp"
 #include "engine/train/run_config.hpp"
 
 namespace pillarseg {

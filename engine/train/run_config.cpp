@@ -2,8 +2,8 @@
 
 #include <yaml-cpp/yaml.h>
 
-#include "engine/core/error.hpp"
-#include "engine/core/io.hpp"
+#include "core/error.hpp"
+#include "core/io.hpp"
 
 namespace pillarseg {
 

@@ -9,8 +9,8 @@
 #include <string>
 #include <vector>
 
+#include "core/classes.hpp"
 #include "engine/data/augment.hpp"
-#include "engine/data/classes.hpp"
 #include "engine/data/ground_truth.hpp"
 #include "engine/model/backend.hpp"
 #include "engine/model/config.hpp"

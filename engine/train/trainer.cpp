@@ -10,12 +10,12 @@
 #include <fstream>
 #include <numeric>
 
-#include "engine/core/error.hpp"
-#include "engine/core/io.hpp"
-#include "engine/core/parallel.hpp"
-#include "engine/core/progress.hpp"
+#include "core/error.hpp"
+#include "core/io.hpp"
+#include "core/parallel.hpp"
 #include "engine/train/checkpoint.hpp"
 #include "engine/train/dataset.hpp"
+#include "engine/util/progress.hpp"
 #include "host/lr_schedule.hpp"
 
 namespace pillarseg {

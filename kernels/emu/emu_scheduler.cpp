@@ -26,7 +26,7 @@
 #include <string>
 #include <vector>
 
-#include "engine/core/error.hpp"
+#include "core/error.hpp"
 #include "kernels/emu/emu_device.hpp"
 
 #if defined(__SANITIZE_ADDRESS__)

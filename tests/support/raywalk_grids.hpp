@@ -6,8 +6,8 @@
 #include <cstdlib>
 #include <vector>
 
-#include "engine/core/grid.hpp"
-#include "engine/data/scan.hpp"
+#include "core/grid.hpp"
+#include "core/point.hpp"
 
 namespace pillarseg::test {
 

@@ -8,8 +8,8 @@
 #include <functional>
 #include <string>
 
-#include "engine/core/rng.hpp"
-#include "engine/core/tensor.hpp"
+#include "core/rng.hpp"
+#include "core/tensor.hpp"
 
 namespace pillarseg::test {
 

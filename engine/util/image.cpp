@@ -1,12 +1,12 @@
-#include "engine/core/image.hpp"
+#include "engine/util/image.hpp"
 
 #include <png.h>
 
 #include <cstdio>
 #include <ostream>
 
-#include "engine/core/error.hpp"
-#include "engine/core/io.hpp"
+#include "core/error.hpp"
+#include "core/io.hpp"
 
 namespace pillarseg {
 

@@ -1,9 +1,9 @@
-#include "engine/eval/render.hpp"
+#include "engine/render/render.hpp"
 
 #include <algorithm>
 #include <cmath>
 
-#include "engine/core/error.hpp"
+#include "core/error.hpp"
 
 namespace pillarseg {
 

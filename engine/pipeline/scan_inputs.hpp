@@ -3,12 +3,12 @@
 // and the grid-map layers; and the batching of several scans into one ModelBatch.
 #pragma once
 
-#include <Eigen/Core>
 #include <vector>
 
-#include "engine/core/rng.hpp"
-#include "engine/core/tensor.hpp"
-#include "engine/data/scan.hpp"
+#include "core/eigen.hpp"
+#include "core/point.hpp"
+#include "core/rng.hpp"
+#include "core/tensor.hpp"
 #include "engine/model/config.hpp"
 #include "engine/model/pillarsegnet.hpp"
 #include "host/pillar_gather.hpp"

@@ -6,11 +6,11 @@
 
 #include <vector>
 
-#include "engine/core/grid.hpp"
-#include "engine/core/image.hpp"
-#include "engine/core/tensor.hpp"
-#include "engine/data/classes.hpp"
-#include "engine/data/scan.hpp"
+#include "core/classes.hpp"
+#include "core/grid.hpp"
+#include "core/point.hpp"
+#include "core/tensor.hpp"
+#include "engine/util/image.hpp"
 
 namespace pillarseg {
 

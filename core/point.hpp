@@ -2,9 +2,10 @@
 // SemanticKITTI .bin file: x y z reflectance, float32, in the LiDAR frame.
 #pragma once
 
-#include <Eigen/Core>
 #include <cstdint>
 #include <vector>
+
+#include "core/eigen.hpp"
 
 namespace pillarseg {
 

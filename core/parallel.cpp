@@ -1,4 +1,4 @@
-#include "engine/core/parallel.hpp"
+#include "core/parallel.hpp"
 
 #include <omp.h>
 

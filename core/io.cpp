@@ -1,4 +1,4 @@
-#include "engine/core/io.hpp"
+#include "core/io.hpp"
 
 #include <algorithm>
 #include <atomic>
@@ -9,7 +9,7 @@
 
 #include <unistd.h>
 
-#include "engine/core/error.hpp"
+#include "core/error.hpp"
 
 namespace pillarseg {
 

@@ -1,9 +1,9 @@
-#include "engine/train/features.hpp"
+#include "engine/pipeline/scan_inputs.hpp"
 
 #include <cmath>
 #include <cstring>
 
-#include "engine/core/error.hpp"
+#include "core/error.hpp"
 #include "host/grid_map_features.hpp"
 #include "host/point_decoration.hpp"
 #include "host/raywalk.hpp"

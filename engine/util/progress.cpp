@@ -1,4 +1,4 @@
-#include "engine/core/progress.hpp"
+#include "engine/util/progress.hpp"
 
 #include <fmt/format.h>
 #include <unistd.h>

@@ -14,7 +14,7 @@
 #include <string>
 #include <vector>
 
-#include "engine/core/error.hpp"
+#include "core/error.hpp"
 
 namespace pillarseg {
 

@@ -1,11 +1,13 @@
 // ClassTable: raw SemanticKITTI label -> one of the 12 classes (0 = unlabeled), the moving
 // flag (raw ids 252-259), the ground-truth weights w_k and the render colors. The table is
-// data: defaults() is DESIGN.md's table, from_yaml() reads an override (configs/classes.yaml).
+// data: defaults() is DESIGN.md's table; an override file (configs/classes.yaml) is read by
+// load_class_table() (engine/data/class_table_yaml.hpp) through the edits below.
 #pragma once
 
 #include <array>
 #include <cstdint>
 #include <string>
+#include <utility>
 #include <vector>
 
 namespace pillarseg {
@@ -22,9 +24,15 @@ struct Rgb {
 class ClassTable {
  public:
   static ClassTable defaults();
-  // YAML: {classes: [{id, name, raw: [...], color: [r,g,b], gt_weight}], moving: [...]}.
-  // Classes not listed keep their defaults; raw ids of a listed class replace its defaults.
-  static ClassTable from_yaml(const std::string& path);
+
+  // Edits; each keeps the table consistent. id in 0..12 (checked by the caller).
+  void set_name(int id, std::string name) { names_.at(static_cast<size_t>(id)) = std::move(name); }
+  // The raw ids (each <= 65535) of class id, replacing its own; they are taken away from every
+  // other class, as a raw id belongs to one class.
+  void set_raw_ids(int id, std::vector<uint32_t> raw);
+  void set_color(int id, Rgb color) { colors_.at(static_cast<size_t>(id)) = color; }
+  void set_gt_weight(int id, int weight) { gt_weights_.at(static_cast<size_t>(id)) = weight; }
+  void set_moving_ids(std::vector<uint32_t> raw);
 
   // Class id 0..12 of a raw .label word (semantic id = v & 0xFFFF).
   uint8_t class_of(uint32_t label) const { return lut_[label & 0xFFFFu]; }
