@@ -7,8 +7,24 @@
 
 namespace pillarseg {
 
+// The threads of the calling thread's parallel loops: its ScopedThreads setting if one is alive,
+// else the process's (set_num_threads; by default all hardware threads).
 int num_threads();
 void set_num_threads(int n);  // n <= 0: all hardware threads
+
+// While alive, num_threads() on the calling thread returns n (n <= 0: the process's setting), so
+// that work done on behalf of one caller (a segmenter of the library) uses its own count without
+// changing other threads'. Nests; restores the previous setting when destroyed.
+class ScopedThreads {
+ public:
+  explicit ScopedThreads(int n);
+  ~ScopedThreads();
+  ScopedThreads(const ScopedThreads&) = delete;
+  ScopedThreads& operator=(const ScopedThreads&) = delete;
+
+ private:
+  int previous_;
+};
 
 // Calls fn(begin, end, t) on contiguous chunks of [0, n), one chunk per thread t, in
 // parallel. Chunk t is [n * t / T, n * (t + 1) / T) for T = num_threads(), so fn may fill

@@ -7,7 +7,7 @@
 
 namespace pillarseg::host {
 
-Tensor<float> grid_map_features(const std::vector<Point>& points, const Tensor<uint32_t>& detections,
+Tensor<float> grid_map_features(std::span<const Point> points, const Tensor<uint32_t>& detections,
                                 const Tensor<uint32_t>& transmissions, const GridSpec& grid) {
   const int64_t H = grid.height(), W = grid.width(), cells = H * W;
   PS_CHECK(detections.shape() == (Shape{H, W}) && transmissions.shape() == (Shape{H, W}),

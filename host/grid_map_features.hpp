@@ -5,6 +5,7 @@
 // heights; cells no ray touched have ratio 0. Output (6, H, W) float.
 #pragma once
 
+#include <span>
 #include <vector>
 
 #include "core/grid.hpp"
@@ -15,7 +16,7 @@ namespace pillarseg::host {
 
 inline constexpr int kGridMapLayers = 6;
 
-Tensor<float> grid_map_features(const std::vector<Point>& points, const Tensor<uint32_t>& detections,
+Tensor<float> grid_map_features(std::span<const Point> points, const Tensor<uint32_t>& detections,
                                 const Tensor<uint32_t>& transmissions, const GridSpec& grid);
 
 }  // namespace pillarseg::host

@@ -90,10 +90,11 @@ void copy_out(const PillarLists& lists, int64_t begin, int64_t end, int32_t slot
   }
 }
 
-}  // namespace
-
-void pillar_gather(const std::vector<Point>& points, const GridSpec& grid, const PillarConfig& cfg,
-                   SampleMode mode, Rng* rng, PillarWorkspace& workspace, Pillars& out) {
+// Passes 1 and 2 and the choice of pillars: ws.kept_pillars (P') and the per-pillar lists that
+// write_pillars reads. Returns P'.
+int64_t group_and_select(std::span<const Point> points, const GridSpec& grid,
+                         const PillarConfig& cfg, SampleMode mode, Rng* rng,
+                         PillarWorkspace& workspace) {
   const int max_points = cfg.max_points_per_pillar;
   PS_CHECK(max_points >= 1, "pillar_gather: max_points_per_pillar (N) must be >= 1, given {}",
            max_points);
@@ -193,11 +194,15 @@ void pillar_gather(const std::vector<Point>& points, const GridSpec& grid, const
       cfg.max_pillars > 0 ? std::min<int64_t>(num_nonempty, cfg.max_pillars) : num_nonempty;
   ws.kept_pillars.resize(static_cast<size_t>(num_kept));
   select_positions(num_nonempty, num_kept, mode, rng, ws.kept_pillars.data());
+  return num_kept;
+}
 
-  // Every element of the output is written below, padding included.
-  out.cell.resize_for_overwrite({num_kept, 2});
-  out.point_index.resize_for_overwrite({num_kept, max_points});
-  out.count.resize_for_overwrite({num_kept});
+// The kept pillars of group_and_select into cell (P', 2), point_index (P', N), count (P').
+void write_pillars(const GridSpec& grid, const PillarConfig& cfg, SampleMode mode, Rng* rng,
+                   PillarWorkspace& ws, int64_t num_kept, int32_t* cell, int32_t* point_index,
+                   int32_t* count) {
+  const int max_points = cfg.max_points_per_pillar;
+  const auto row_cells = static_cast<int32_t>(grid.width());
   ws.positions.resize(static_cast<size_t>(max_points));
   const PillarLists lists{ws.kept_pillars.data(), ws.pillar_flat_cell.data(),
                           ws.pillar_begin.data(), ws.pillar_size.data(), ws.members.data()};
@@ -205,17 +210,44 @@ void pillar_gather(const std::vector<Point>& points, const GridSpec& grid, const
     // Evenly spaced positions draw nothing from rng: the pillars are independent.
     parallel_chunks(num_kept, [&](int64_t begin, int64_t end, int) {
       std::vector<int32_t> positions(static_cast<size_t>(max_points));
-      copy_out(lists, begin, end, max_points, row_cells, mode, rng, positions.data(),
-               out.cell.data(), out.point_index.data(), out.count.data());
+      copy_out(lists, begin, end, max_points, row_cells, mode, rng, positions.data(), cell,
+               point_index, count);
     });
   } else {
     // Training draws each pillar's subset from rng in pillar order.
-    copy_out(lists, 0, num_kept, max_points, row_cells, mode, rng, ws.positions.data(),
-             out.cell.data(), out.point_index.data(), out.count.data());
+    copy_out(lists, 0, num_kept, max_points, row_cells, mode, rng, ws.positions.data(), cell,
+             point_index, count);
   }
 }
 
-Pillars pillar_gather(const std::vector<Point>& points, const GridSpec& grid,
+}  // namespace
+
+void pillar_gather(std::span<const Point> points, const GridSpec& grid, const PillarConfig& cfg,
+                   SampleMode mode, Rng* rng, PillarWorkspace& workspace, Pillars& out) {
+  const int64_t num_kept = group_and_select(points, grid, cfg, mode, rng, workspace);
+  // Every element of the output is written, padding included.
+  out.cell.resize_for_overwrite({num_kept, 2});
+  out.point_index.resize_for_overwrite({num_kept, cfg.max_points_per_pillar});
+  out.count.resize_for_overwrite({num_kept});
+  write_pillars(grid, cfg, mode, rng, workspace, num_kept, out.cell.data(), out.point_index.data(),
+                out.count.data());
+}
+
+int64_t pillar_gather(std::span<const Point> points, const GridSpec& grid, const PillarConfig& cfg,
+                      SampleMode mode, Rng* rng, PillarWorkspace& workspace,
+                      const PillarRows& out) {
+  PS_CHECK(out.capacity >= 0 && (out.capacity == 0 || (out.cell && out.point_index && out.count)),
+           "pillar_gather: the output rows need cell, point_index and count memory for {} rows",
+           out.capacity);
+  const int64_t num_kept = group_and_select(points, grid, cfg, mode, rng, workspace);
+  PS_CHECK(num_kept <= out.capacity,
+           "pillar_gather: {} pillars do not fit the {} output rows given (P = {}, {} points)",
+           num_kept, out.capacity, cfg.max_pillars, points.size());
+  write_pillars(grid, cfg, mode, rng, workspace, num_kept, out.cell, out.point_index, out.count);
+  return num_kept;
+}
+
+Pillars pillar_gather(std::span<const Point> points, const GridSpec& grid,
                       const PillarConfig& cfg, SampleMode mode, Rng* rng) {
   PillarWorkspace workspace;
   Pillars out;

@@ -6,6 +6,7 @@
 #pragma once
 
 #include <cstdint>
+#include <span>
 #include <vector>
 
 #include "core/grid.hpp"
@@ -60,12 +61,27 @@ struct PillarWorkspace {
 // order; a pillar with n > N points keeps N of them, chosen by select_positions. In Training
 // the pillar subset is drawn first, then the point subsets pillar by pillar, all from `rng`
 // (required in Training, unused in Inference). O(M) time with a warm workspace.
-Pillars pillar_gather(const std::vector<Point>& points, const GridSpec& grid,
+Pillars pillar_gather(std::span<const Point> points, const GridSpec& grid,
                       const PillarConfig& cfg, SampleMode mode, Rng* rng);
 
 // Same, with caller-owned scratch and output: `out` is overwritten and its tensors keep their
 // allocations when large enough.
-void pillar_gather(const std::vector<Point>& points, const GridSpec& grid, const PillarConfig& cfg,
+void pillar_gather(std::span<const Point> points, const GridSpec& grid, const PillarConfig& cfg,
                    SampleMode mode, Rng* rng, PillarWorkspace& workspace, Pillars& out);
+
+// Caller memory for up to `capacity` pillars: cell (capacity, 2), point_index (capacity, N),
+// count (capacity).
+struct PillarRows {
+  int32_t* cell = nullptr;
+  int32_t* point_index = nullptr;
+  int32_t* count = nullptr;
+  int64_t capacity = 0;
+};
+
+// Same, into `out`: rows 0..P'-1 as above (rows past P' are not written); returns P'. More than
+// `capacity` pillars is an error naming both counts.
+int64_t pillar_gather(std::span<const Point> points, const GridSpec& grid, const PillarConfig& cfg,
+                      SampleMode mode, Rng* rng, PillarWorkspace& workspace,
+                      const PillarRows& out);
 
 }  // namespace pillarseg::host

@@ -34,7 +34,7 @@ void check_shapes(const Pillars& pillars) {
 
 // Throws for the first pillar with a count outside [0, N], a kept index outside the scan or a
 // cell outside the grid (decorate_range found one and skipped it).
-void throw_first_fault(const std::vector<Point>& points, const Pillars& pillars,
+void throw_first_fault(std::span<const Point> points, const Pillars& pillars,
                        const GridSpec& grid) {
   const int64_t slots = pillars.point_index.dim(1);
   const auto num_points = static_cast<int64_t>(points.size());
@@ -64,7 +64,7 @@ void throw_first_fault(const std::vector<Point>& points, const Pillars& pillars,
 // that are never taken on valid input cost next to nothing); returns false, having skipped the
 // pillar at fault, if one is not valid.
 template <int64_t kSlots>
-bool decorate_range(const std::vector<Point>& points, const Pillars& pillars, const GridSpec& grid,
+bool decorate_range(std::span<const Point> points, const Pillars& pillars, const GridSpec& grid,
                     int64_t begin, int64_t end, float* out) {
   const int64_t slots = kSlots > 0 ? kSlots : pillars.point_index.dim(1);
   const int64_t pillar_floats = slots * kDecoratedFeatures;
@@ -129,7 +129,7 @@ bool decorate_range(const std::vector<Point>& points, const Pillars& pillars, co
 
 }  // namespace
 
-void decorate_points(const std::vector<Point>& points, const Pillars& pillars, const GridSpec& grid,
+void decorate_points(std::span<const Point> points, const Pillars& pillars, const GridSpec& grid,
                      Tensor<float>& out) {
   check_shapes(pillars);
   const int64_t num_pillars = pillars.num_pillars();
@@ -148,7 +148,7 @@ void decorate_points(const std::vector<Point>& points, const Pillars& pillars, c
     throw_first_fault(points, pillars, grid);
 }
 
-Tensor<float> decorate_points(const std::vector<Point>& points, const Pillars& pillars,
+Tensor<float> decorate_points(std::span<const Point> points, const Pillars& pillars,
                               const GridSpec& grid) {
   Tensor<float> out;
   decorate_points(points, pillars, grid, out);

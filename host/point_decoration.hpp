@@ -7,6 +7,7 @@
 // and padding slots (slot >= count) are all-zero rows.
 #pragma once
 
+#include <span>
 #include <vector>
 
 #include "core/grid.hpp"
@@ -21,14 +22,14 @@ inline constexpr int kDecoratedFeatures = 10;  // D
 // points: the M points the pillars index into; pillars: from pillar_gather on the same grid.
 // Returns (P', N, 10). Pillars are independent, so they are split over num_threads() threads
 // and the result is the same for any thread count.
-Tensor<float> decorate_points(const std::vector<Point>& points, const Pillars& pillars,
+Tensor<float> decorate_points(std::span<const Point> points, const Pillars& pillars,
                               const GridSpec& grid);
 
 // Same, written into `out`, which is reshaped to (P', N, 10) and keeps its allocation when it
 // already holds at least P' * N * 10 floats (no allocation in a steady-state inference loop).
 // Both throw pillarseg::Error naming the first pillar with a count outside [0, N], a kept index
 // outside the scan or a cell outside the grid; `out` then holds no result.
-void decorate_points(const std::vector<Point>& points, const Pillars& pillars, const GridSpec& grid,
+void decorate_points(std::span<const Point> points, const Pillars& pillars, const GridSpec& grid,
                      Tensor<float>& out);
 
 }  // namespace pillarseg::host

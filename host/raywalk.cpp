@@ -286,7 +286,7 @@ bool contains(const Point& p, const GridSpec& grid, const GridSize& size, const 
 // Row bands [bounds[t], bounds[t + 1]) of the grid, one per thread, cut so that each holds about
 // the same number of (ray, row) pairs, the unit of walk work. The counts do not depend on the
 // cut, only the balance does.
-std::vector<int64_t> balanced_row_bands(const std::vector<Point>& points,
+std::vector<int64_t> balanced_row_bands(std::span<const Point> points,
                                         const CellCoordinates& origin, const GridSpec& grid,
                                         int threads) {
   const int64_t height = grid.height();
@@ -330,7 +330,7 @@ std::vector<int64_t> balanced_row_bands(const std::vector<Point>& points,
 // thread walks the part of each ray inside its band. Runs go along x (a second difference array
 // along y, as the 2D sweeps use, would cost Z times the grid), so steep rays make rows of one or
 // two voxels.
-void count_rays_3d(const std::vector<Point>& points, const Eigen::Vector3d& origin,
+void count_rays_3d(std::span<const Point> points, const Eigen::Vector3d& origin,
                    const GridSpec& grid, const GridSize& size, uint32_t* passes, uint32_t* hits) {
   const CellCoordinates o = cell_coordinates(origin.x(), origin.y(), origin.z(), grid, true);
   const std::vector<int64_t> bands = balanced_row_bands(points, o, grid, num_threads());
@@ -375,7 +375,7 @@ float probability_of(uint32_t hits, uint32_t passes) {
 
 }  // namespace
 
-ObservabilityCounts observability_2d(const std::vector<Point>& points,
+ObservabilityCounts observability_2d(std::span<const Point> points,
                                      const Eigen::Vector3d& origin, const GridSpec& grid) {
   ObservabilityWorkspace workspace;
   ObservabilityCounts counts;
@@ -383,7 +383,7 @@ ObservabilityCounts observability_2d(const std::vector<Point>& points,
   return counts;
 }
 
-void observability_2d(const std::vector<Point>& points, const Eigen::Vector3d& origin,
+void observability_2d(std::span<const Point> points, const Eigen::Vector3d& origin,
                       const GridSpec& grid, ObservabilityWorkspace& workspace,
                       ObservabilityCounts& out) {
   constexpr const char* kCaller = "observability_2d";
@@ -408,7 +408,7 @@ Tensor<uint32_t> observability_map(const ObservabilityCounts& counts) {
   return map;
 }
 
-OccupancyCounts occupancy_counts_3d(const std::vector<Point>& points, const Eigen::Vector3d& origin,
+OccupancyCounts occupancy_counts_3d(std::span<const Point> points, const Eigen::Vector3d& origin,
                                     const GridSpec& grid) {
   constexpr const char* kCaller = "occupancy_counts_3d";
   check_grid(grid, true, kCaller);

@@ -35,6 +35,7 @@
 
 #include <cstdint>
 #include <memory>
+#include <span>
 #include <vector>
 
 #include "core/eigen.hpp"
@@ -52,7 +53,7 @@ struct ObservabilityCounts {
 
 // points: M points in the LiDAR frame (non-finite ones are skipped); origin: the sensor origin
 // in the same frame, anywhere (inside the grid or not). z plays no part.
-ObservabilityCounts observability_2d(const std::vector<Point>& points,
+ObservabilityCounts observability_2d(std::span<const Point> points,
                                      const Eigen::Vector3d& origin, const GridSpec& grid);
 
 namespace raywalk_detail {
@@ -79,7 +80,7 @@ class ObservabilityWorkspace {
 
 // Same, with caller-owned scratch and output: `out` is overwritten (its tensors keep their
 // allocations) with the same counts.
-void observability_2d(const std::vector<Point>& points, const Eigen::Vector3d& origin,
+void observability_2d(std::span<const Point> points, const Eigen::Vector3d& origin,
                       const GridSpec& grid, ObservabilityWorkspace& workspace,
                       ObservabilityCounts& out);
 
@@ -93,7 +94,7 @@ struct OccupancyCounts {
 };
 
 // points: M points in the LiDAR frame (non-finite ones are skipped); origin: the sensor origin.
-OccupancyCounts occupancy_counts_3d(const std::vector<Point>& points, const Eigen::Vector3d& origin,
+OccupancyCounts occupancy_counts_3d(std::span<const Point> points, const Eigen::Vector3d& origin,
                                     const GridSpec& grid);
 
 // (Z, H, W): occupancy probability 1 / (1 + exp(-l)), l = hits * log(0.7 / 0.3) +

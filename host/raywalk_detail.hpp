@@ -9,6 +9,7 @@
 #include <array>
 #include <cmath>
 #include <cstdint>
+#include <span>
 #include <vector>
 
 #include "core/grid.hpp"
@@ -177,7 +178,7 @@ class CrossingCell {
 // grid and origin are checked by the caller; non-finite points are skipped. `buffers`: the
 // sweeps and per-thread scratch (ObservabilityWorkspace), grown as needed.
 struct SweepBuffers;
-void count_observability_2d(const std::vector<Point>& points, double origin_u, double origin_v,
+void count_observability_2d(std::span<const Point> points, double origin_u, double origin_v,
                             const GridSpec& grid, SweepBuffers& buffers, uint32_t* transmissions,
                             uint32_t* detections);
 

@@ -169,7 +169,7 @@ void classify_rays(const Point* __restrict point, int64_t begin, int64_t end, co
 // Sorts the finite points' rays into the four sweeps. Each thread classifies a contiguous chunk
 // of the points and counts its rays per (sweep, depth); a ray's place depends on the counts only,
 // so the order is the same for every thread count.
-void build_sweeps(const std::vector<Point>& points, const GridSpec& grid,
+void build_sweeps(std::span<const Point> points, const GridSpec& grid,
                   const std::array<Orientation, 2>& orientation, std::array<Sweep, kSweeps>& sweeps,
                   std::vector<std::array<std::vector<int64_t>, kSweeps>>& counts,
                   RayClasses& classes) {
@@ -552,7 +552,7 @@ struct SweepBuffers {
   std::array<std::vector<SweepScratch>, 2> scratch;               // per family, per band
 };
 
-void count_observability_2d(const std::vector<Point>& points, double origin_u, double origin_v,
+void count_observability_2d(std::span<const Point> points, double origin_u, double origin_v,
                             const GridSpec& grid, SweepBuffers& buffers, uint32_t* transmissions,
                             uint32_t* detections) {
   const int64_t width = grid.width(), height = grid.height();

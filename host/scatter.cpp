@@ -81,4 +81,17 @@ template void scatter_backward<float>(const Tensor<float>&, const Tensor<int32_t
 template void scatter_backward<double>(const Tensor<double>&, const Tensor<int32_t>&,
                                        Tensor<double>&);
 
+void batch_cells(const Tensor<int32_t>& cell, int sample, Tensor<int32_t>& cells) {
+  PS_CHECK(cell.rank() == 2 && cell.dim(1) == 2 && cells.shape() == (Shape{cell.dim(0), 3}),
+           "batch_cells: expected cell (R, 2) and cells (R, 3), given {} and {}",
+           shape_str(cell.shape()), shape_str(cells.shape()));
+  PS_CHECK(sample >= 0, "batch_cells: the sample index must be >= 0, given {}", sample);
+  for (int64_t r = 0; r < cell.dim(0); ++r) {
+    const bool used = cell(r, 0) >= 0;
+    cells(r, 0) = used ? sample : -1;
+    cells(r, 1) = used ? cell(r, 0) : -1;
+    cells(r, 2) = used ? cell(r, 1) : -1;
+  }
+}
+
 }  // namespace pillarseg::host

@@ -17,7 +17,7 @@
 
 #include "kernels/emu/cuda_compat.cuh"
 
-namespace pillarseg::cuda {
+namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 
 // x viewed as (B, C, S): `batch` items of `channels` planes of `inner` = H * W values each.
 struct PlanarShape {

@@ -8,7 +8,7 @@
 
 #include "kernels/common.cuh"
 
-namespace pillarseg::cuda {
+namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 
 inline constexpr int kWarpSize = 32;
 

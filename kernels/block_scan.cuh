@@ -8,7 +8,7 @@
 #include "kernels/block_reduce.cuh"
 #include "kernels/common.cuh"
 
-namespace pillarseg::cuda {
+namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 
 // Inclusive prefix sum of v over the lanes of a full warp: lane l gets v(0) + ... + v(l).
 template <class T>

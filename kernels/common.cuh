@@ -21,7 +21,7 @@
 #include "core/error.hpp"
 #include "kernels/emu/cuda_compat.cuh"
 
-namespace pillarseg::cuda {
+namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 
 // Throws pillarseg::Error for a failed CUDA call, as
 //   "CUDA call `<call>` failed at <file>:<line>: cudaErrorName (error string)[: what the emulation
@@ -58,7 +58,7 @@ __host__ __device__ constexpr std::common_type_t<A, B> ceil_div(A numerator, B d
   } while (0)
 
 #if defined(__CUDACC__) || defined(PILLARSEG_CUDA_EMULATION)
-namespace pillarseg::cuda {
+namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 
 // launch_kernel's work: kernel<<<grid, block, shared_bytes, stream>>>(args...) on a GPU, the
 // emulated launch otherwise; a failed launch throws with the caller's file and line.

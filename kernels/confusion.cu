@@ -10,7 +10,7 @@
 #include "core/classes.hpp"
 #include "kernels/common.cuh"
 
-namespace pillarseg::cuda {
+namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 namespace {
 
 constexpr int kBlockSize = 256;

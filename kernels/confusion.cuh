@@ -13,7 +13,7 @@
 
 #include "kernels/emu/cuda_compat.cuh"
 
-namespace pillarseg::cuda {
+namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 
 // truth, predicted, mask (n; mask may be nullptr) -> confusion (12, 12) += counts,
 // *invalid_cells += the counted cells with ids outside the classes.

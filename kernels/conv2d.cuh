@@ -19,7 +19,7 @@
 
 #include "kernels/emu/cuda_compat.cuh"
 
-namespace pillarseg::cuda {
+namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 
 // The sizes of one convolution; batch, in_channels and out_channels may be 0 (nothing to
 // compute, or, for dw and db, all zeros).

@@ -21,7 +21,7 @@
 #include "kernels/common.cuh"
 #include "kernels/gemm_tile.cuh"
 
-namespace pillarseg::cuda {
+namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 namespace {
 
 using gemm::FastDivmod;

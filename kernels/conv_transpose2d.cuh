@@ -18,7 +18,7 @@
 
 #include "kernels/emu/cuda_compat.cuh"
 
-namespace pillarseg::cuda {
+namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 
 // The sizes of one transposed convolution; batch and the channel counts may be 0.
 struct ConvTranspose2dShape {

@@ -13,7 +13,7 @@
 #include "core/error.hpp"
 #include "kernels/common.cuh"
 
-namespace pillarseg::cuda {
+namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 
 template <class T>
 class DeviceBuffer {

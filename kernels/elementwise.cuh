@@ -12,7 +12,7 @@
 
 #include "kernels/emu/cuda_compat.cuh"
 
-namespace pillarseg::cuda {
+namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 
 // a (n) += b (n). a and b do not overlap, or are the same array.
 void add_inplace(float* a, const float* b, std::int64_t n, cudaStream_t stream);

@@ -23,7 +23,7 @@
 
 #include "kernels/common.cuh"
 
-namespace pillarseg::cuda::gemm {
+namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE::gemm {
 
 // ---- tile shapes ----
 

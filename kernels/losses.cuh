@@ -19,7 +19,7 @@
 
 #include "kernels/emu/cuda_compat.cuh"
 
-namespace pillarseg::cuda {
+namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 
 // What a loss leaves in device memory.
 struct LossResult {

@@ -14,7 +14,7 @@
 
 #include "kernels/emu/cuda_compat.cuh"
 
-namespace pillarseg::cuda {
+namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 
 // x (planes, height, width) -> y, argmax (planes, height / 2, width / 2); argmax may be nullptr
 // (inference). y must not overlap x.

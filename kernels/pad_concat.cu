@@ -12,7 +12,7 @@
 #include "kernels/common.cuh"
 #include "kernels/elementwise.cuh"
 
-namespace pillarseg::cuda {
+namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 namespace {
 
 constexpr int kTileX = 32;

@@ -15,7 +15,7 @@
 
 #include "kernels/emu/cuda_compat.cuh"
 
-namespace pillarseg::cuda {
+namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 
 // The decorated point's features (x, y, z, r, 3 offsets from the pillar mean, 3 from its centre).
 inline constexpr std::int64_t kPfnFeatures = 10;

@@ -30,7 +30,7 @@
 #include "kernels/block_scan.cuh"
 #include "kernels/common.cuh"
 
-namespace pillarseg::cuda {
+namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 namespace {
 
 constexpr int kPointThreads = 256;  // per-point and per-output kernels
@@ -306,42 +306,38 @@ std::int64_t pillar_gather_workspace_size(std::int64_t num_points, const GridSpe
   return workspace_size(num_points, grid.cells());
 }
 
-void pillar_gather(const float* points, std::int64_t num_points, const GridSpec& grid,
-                   int max_points_per_pillar, int max_pillars, std::int32_t* cell,
-                   std::int32_t* point_index, std::int32_t* count, std::int32_t* num_pillars,
-                   std::int32_t* workspace, std::int64_t workspace_size_given,
-                   cudaStream_t stream) {
-  constexpr const char* kOp = "pillar_gather";
-  constexpr std::int64_t kMaxIndex = std::numeric_limits<std::int32_t>::max();
-  PS_CHECK(max_points_per_pillar >= 1, "{}: max_points_per_pillar (N) must be >= 1, given {}", kOp,
-           max_points_per_pillar);
-  PS_CHECK(max_pillars >= 0, "{}: max_pillars (P) must be >= 0 (0 keeps every pillar), given {}",
-           kOp, max_pillars);
+namespace {
+
+constexpr std::int64_t kMaxIndex = std::numeric_limits<std::int32_t>::max();
+
+void check_points_and_grid(const char* op, const float* points, std::int64_t num_points,
+                           const GridSpec& grid) {
   PS_CHECK(num_points >= 0 && num_points < kMaxIndex,
-           "{}: point indices are int32, so 0 to {} points, given {}", kOp, kMaxIndex - 1,
+           "{}: point indices are int32, so 0 to {} points, given {}", op, kMaxIndex - 1,
            num_points);
   const std::int64_t width = grid.width(), height = grid.height();
   PS_CHECK(std::isfinite(grid.cell) && grid.cell > 0.0 && width >= 1 && height >= 1 &&
                width * height <= kMaxIndex,
            "{}: the grid needs a positive cell size and between 1 and 2^31 - 1 cells, given cell "
            "{} and {} x {}",
-           kOp, grid.cell, width, height);
-  const std::int64_t rows = pillar_gather_capacity(num_points, grid, max_pillars);
-  PS_CHECK(ceil_div(rows * max_points_per_pillar, std::int64_t{kPointThreads}) <= kMaxIndex,
-           "{}: R = {} rows of N = {} slots exceed the grid", kOp, rows, max_points_per_pillar);
-  const std::int64_t needed = workspace_size(num_points, width * height);
+           op, grid.cell, width, height);
+  PS_CHECK(num_points == 0 || points != nullptr,
+           "{}: points must point to {} floats (M x 4) of device memory", op, 4 * num_points);
+}
+
+void check_workspace(const char* op, std::int64_t num_points, const GridSpec& grid,
+                     const std::int32_t* workspace, std::int64_t workspace_size_given) {
+  const std::int64_t needed = workspace_size(num_points, grid.cells());
   PS_CHECK(workspace != nullptr && workspace_size_given >= needed,
            "{}: the workspace must hold pillar_gather_workspace_size(M, grid) = {} int32, given {} "
            "at {}",
-           kOp, needed, workspace_size_given, fmt::ptr(workspace));
-  PS_CHECK(num_pillars != nullptr &&
-               (rows == 0 || (cell != nullptr && point_index != nullptr && count != nullptr)),
-           "{}: cell ({} int32), point_index ({} int32), count ({} int32) and num_pillars (1 "
-           "int32) must be device memory",
-           kOp, 2 * rows, rows * max_points_per_pillar, rows);
-  PS_CHECK(num_points == 0 || points != nullptr,
-           "{}: points must point to {} floats (M x 4) of device memory", kOp, 4 * num_points);
+           op, needed, workspace_size_given, fmt::ptr(workspace));
+}
 
+// The grouping steps, [cells] to [rank]; arguments checked by the caller.
+PointGroups group(const float* points, std::int64_t num_points, const GridSpec& grid,
+                  std::int32_t* workspace, cudaStream_t stream) {
+  const std::int64_t width = grid.width(), height = grid.height();
   const std::int64_t cells = width * height;
   const std::int64_t rn = max_nonempty(num_points, cells);
   const Workspace w = carve(workspace, num_points, cells);
@@ -382,14 +378,51 @@ void pillar_gather(const float* points, std::int64_t num_points, const GridSpec&
     launch_kernel(rank_kernel, dim3(point_blocks), dim3(kPointThreads), 0, stream, w.point_pillar,
                   num_points, w.pillar_begin, w.pillar_size, w.members, w.sorted);
   }
+  return PointGroups{w.sorted, w.pillar_begin, w.pillar_size, w.pillar_cell, w.totals, rn};
+}
+
+}  // namespace
+
+PointGroups group_points(const float* points, std::int64_t num_points, const GridSpec& grid,
+                         std::int32_t* workspace, std::int64_t workspace_size_given,
+                         cudaStream_t stream) {
+  constexpr const char* kOp = "group_points";
+  check_points_and_grid(kOp, points, num_points, grid);
+  check_workspace(kOp, num_points, grid, workspace, workspace_size_given);
+  return group(points, num_points, grid, workspace, stream);
+}
+
+void pillar_gather(const float* points, std::int64_t num_points, const GridSpec& grid,
+                   int max_points_per_pillar, int max_pillars, std::int32_t* cell,
+                   std::int32_t* point_index, std::int32_t* count, std::int32_t* num_pillars,
+                   std::int32_t* workspace, std::int64_t workspace_size_given,
+                   cudaStream_t stream) {
+  constexpr const char* kOp = "pillar_gather";
+  PS_CHECK(max_points_per_pillar >= 1, "{}: max_points_per_pillar (N) must be >= 1, given {}", kOp,
+           max_points_per_pillar);
+  PS_CHECK(max_pillars >= 0, "{}: max_pillars (P) must be >= 0 (0 keeps every pillar), given {}",
+           kOp, max_pillars);
+  check_points_and_grid(kOp, points, num_points, grid);
+  const std::int64_t rows = pillar_gather_capacity(num_points, grid, max_pillars);
+  PS_CHECK(ceil_div(rows * max_points_per_pillar, std::int64_t{kPointThreads}) <= kMaxIndex,
+           "{}: R = {} rows of N = {} slots exceed the grid", kOp, rows, max_points_per_pillar);
+  check_workspace(kOp, num_points, grid, workspace, workspace_size_given);
+  PS_CHECK(num_pillars != nullptr &&
+               (rows == 0 || (cell != nullptr && point_index != nullptr && count != nullptr)),
+           "{}: cell ({} int32), point_index ({} int32), count ({} int32) and num_pillars (1 "
+           "int32) must be device memory",
+           kOp, 2 * rows, rows * max_points_per_pillar, rows);
+
+  const PointGroups groups = group(points, num_points, grid, workspace, stream);
   if (rows == 0) {
     PS_CUDA_CHECK(cudaMemsetAsync(num_pillars, 0, sizeof(std::int32_t), stream));
     return;
   }
   launch_kernel(output_kernel, dim3(blocks_for(rows * max_points_per_pillar, kPointThreads)),
-                dim3(kPointThreads), 0, stream, w.totals, max_pillars, rows, max_points_per_pillar,
-                static_cast<int>(width), w.pillar_cell, w.pillar_begin, w.pillar_size, w.sorted,
-                cell, point_index, count, num_pillars);
+                dim3(kPointThreads), 0, stream, groups.num_pillars, max_pillars, rows,
+                max_points_per_pillar, static_cast<int>(grid.width()), groups.pillar_cell,
+                groups.pillar_begin, groups.pillar_size, groups.sorted, cell, point_index, count,
+                num_pillars);
 }
 
 }  // namespace pillarseg::cuda

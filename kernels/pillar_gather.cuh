@@ -19,7 +19,7 @@
 #include "core/grid.hpp"
 #include "kernels/emu/cuda_compat.cuh"
 
-namespace pillarseg::cuda {
+namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 
 // R, the rows of the outputs: P when max_pillars P > 0, else min(M, W H), room for every
 // non-empty pillar.
@@ -27,6 +27,23 @@ std::int64_t pillar_gather_capacity(std::int64_t num_points, const GridSpec& gri
 
 // The int32 scratch pillar_gather needs for M points on `grid` (about 2 W H + 8 M).
 std::int64_t pillar_gather_workspace_size(std::int64_t num_points, const GridSpec& grid);
+
+// The inside points grouped by cell, pillars numbered by first appearance: what the gather's first
+// steps leave in its workspace (valid until the workspace is used again), read by the grid-map
+// layers (kernels/grid_map_features.cu). Device pointers.
+struct PointGroups {
+  const std::int32_t* sorted = nullptr;        // (M): the points of pillar 0, then 1, ..., each
+                                               // pillar's in input order
+  const std::int32_t* pillar_begin = nullptr;  // (Rn): pillar p's first entry in sorted
+  const std::int32_t* pillar_size = nullptr;   // (Rn): its number of points
+  const std::int32_t* pillar_cell = nullptr;   // (Rn): its flat cell iy W + ix
+  const std::int32_t* num_pillars = nullptr;   // (1): n, the non-empty pillars (p < n are valid)
+  std::int64_t capacity = 0;                   // Rn = min(M, W H)
+};
+
+// points (M, 4) -> the groups, in workspace (pillar_gather_workspace_size(M, grid) int32).
+PointGroups group_points(const float* points, std::int64_t num_points, const GridSpec& grid,
+                         std::int32_t* workspace, std::int64_t workspace_size, cudaStream_t stream);
 
 // points (M, 4) -> cell (R, 2), point_index (R, N), count (R), num_pillars (1), with
 // N = max_points_per_pillar >= 1, P = max_pillars >= 0 (0 keeps every non-empty pillar) and R

@@ -20,7 +20,7 @@
 #include "core/grid.hpp"
 #include "kernels/emu/cuda_compat.cuh"
 
-namespace pillarseg::cuda {
+namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 
 // D, the features of a decorated point.
 inline constexpr std::int64_t kDecoratedFeatures = 10;

@@ -19,7 +19,7 @@
 #include "kernels/block_scan.cuh"
 #include "kernels/common.cuh"
 
-namespace pillarseg::cuda {
+namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 namespace {
 
 constexpr int kRayThreads = 128;

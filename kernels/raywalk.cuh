@@ -17,7 +17,7 @@
 #include "core/grid.hpp"
 #include "kernels/emu/cuda_compat.cuh"
 
-namespace pillarseg::cuda {
+namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 
 // Where the rays start, in the frame of the points.
 struct SensorOrigin {

@@ -9,7 +9,7 @@
 
 #include "kernels/common.cuh"
 
-namespace pillarseg::cuda {
+namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 namespace {
 
 constexpr int kBlockSize = 256;

@@ -8,7 +8,7 @@
 
 #include "kernels/emu/cuda_compat.cuh"
 
-namespace pillarseg::cuda {
+namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 
 // The size, in doubles, of the scratch buffer sum_of_squares needs.
 inline constexpr int kSumOfSquaresPartials = 1024;

@@ -8,7 +8,7 @@
 
 #include "kernels/emu/cuda_compat.cuh"
 
-namespace pillarseg::cuda {
+namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 
 // x (n) -> y (n).
 void relu_forward(const float* x, float* y, std::int64_t n, cudaStream_t stream);

@@ -11,7 +11,7 @@
 
 #include "kernels/common.cuh"
 
-namespace pillarseg::cuda {
+namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 namespace {
 
 constexpr int kTile = 32;     // pillars and channels per tile
@@ -146,6 +146,32 @@ void scatter_backward(const float* d_canvas, const ScatterCanvas& canvas_shape,
                      static_cast<unsigned>(ceil_div(channels, kTile))),
                 dim3(kTile, kTileRows), 0, stream, d_canvas, canvas_shape, cells, pillars, channels,
                 d_features);
+}
+
+static __global__ void __launch_bounds__(kBlockSize)
+    batch_cells_kernel(const std::int32_t* __restrict__ cell, std::int64_t rows, int sample,
+                       std::int32_t* __restrict__ cells) {
+  const std::int64_t r = std::int64_t{blockIdx.x} * kBlockSize + threadIdx.x;
+  if (r >= rows) return;
+  const bool used = cell[2 * r] >= 0;
+  cells[3 * r] = used ? sample : -1;
+  cells[3 * r + 1] = used ? cell[2 * r] : -1;
+  cells[3 * r + 2] = used ? cell[2 * r + 1] : -1;
+}
+
+void batch_cells(const std::int32_t* cell, std::int64_t rows, int sample, std::int32_t* cells,
+                 cudaStream_t stream) {
+  PS_CHECK(rows >= 0 && sample >= 0,
+           "batch_cells: expected R >= 0 rows and a sample index >= 0, given R = {}, sample = {}",
+           rows, sample);
+  PS_CHECK(rows == 0 || (cell != nullptr && cells != nullptr),
+           "batch_cells: cell ({} int32) and cells ({} int32) must be device memory", 2 * rows,
+           3 * rows);
+  PS_CHECK(ceil_div(rows, std::int64_t{kBlockSize}) <= std::numeric_limits<int>::max(),
+           "batch_cells: R = {} rows exceed the grid", rows);
+  if (rows == 0) return;
+  launch_kernel(batch_cells_kernel, dim3(static_cast<unsigned>(ceil_div(rows, std::int64_t{kBlockSize}))),
+                dim3(kBlockSize), 0, stream, cell, rows, sample, cells);
 }
 
 }  // namespace pillarseg::cuda

@@ -8,6 +8,8 @@
 // Cells come from the pillar gather: inside the canvas and unique within a batch item (checked
 // there; a kernel cannot throw). A cell outside the canvas is skipped (forward) or reads 0
 // (backward) rather than touching memory outside it. Every output has one writer: deterministic.
+// batch_cells: the gather's cell (R, 2) rows (iy, ix) of one sample -> (R, 3) rows (sample, iy,
+// ix), (-1, -1, -1) for an unused row (iy < 0), which the scatter skips (host/scatter.hpp).
 // Pointers are device memory; the work is queued on `stream`.
 #pragma once
 
@@ -15,7 +17,7 @@
 
 #include "kernels/emu/cuda_compat.cuh"
 
-namespace pillarseg::cuda {
+namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 
 // The canvas (B, Cc, H, W) and the band [channel0, channel0 + C) that the pillars fill.
 struct ScatterCanvas {
@@ -35,5 +37,9 @@ void scatter_forward(const float* features, const std::int32_t* cells, std::int6
 void scatter_backward(const float* d_canvas, const ScatterCanvas& canvas_shape,
                       const std::int32_t* cells, std::int64_t pillars, std::int64_t channels,
                       float* d_features, cudaStream_t stream);
+
+// cell (R, 2) -> cells (R, 3); sample >= 0.
+void batch_cells(const std::int32_t* cell, std::int64_t rows, int sample, std::int32_t* cells,
+                 cudaStream_t stream);
 
 }  // namespace pillarseg::cuda

@@ -13,7 +13,7 @@
 
 #include "kernels/emu/cuda_compat.cuh"
 
-namespace pillarseg::cuda {
+namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 
 // logits (batch, classes, inner) -> probabilities (same shape), classes >= 1. Not in place.
 void softmax_channels(const float* logits, std::int64_t batch, std::int64_t classes,

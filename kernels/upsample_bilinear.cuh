@@ -14,7 +14,7 @@
 
 #include "kernels/emu/cuda_compat.cuh"
 
-namespace pillarseg::cuda {
+namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 
 // x (planes, height, width), height, width >= 1 -> y (planes, 2 height, 2 width); y must not
 // overlap x.

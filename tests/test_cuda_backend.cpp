@@ -309,6 +309,9 @@ TEST(CudaBackendMemory, UploadsLargerThanTheStagingBufferArriveWhole) {
   backend.download(back.data(), device, back.size() * sizeof(float));
   EXPECT_EQ(back, host);
   EXPECT_EQ(backend.stats().staging_bytes, 1024u);
+  EXPECT_EQ(backend.stats().readback_bytes, 1024u);
+  EXPECT_EQ(backend.stats().bytes_uploaded, 40028);
+  EXPECT_EQ(backend.stats().bytes_downloaded, 40028);
   backend.deallocate(device);
 
   // The whole model through the small staging buffer: the same bits as through a large one.
@@ -332,14 +335,25 @@ TEST(CudaBackendErrors, SayWhatIsWrong) {
     }
     return std::string("(no error)");
   };
-  // A program that did not install the CUDA backend (pillarseg_lib alone).
+  // A program that did not install the CUDA backends (the engine alone).
   EXPECT_NE(message_of([] { make_backend("cuda"); }).find("this build has no CUDA backend"),
             std::string::npos);
-  install_cuda_backend();
-  const auto backend = make_backend("cuda");
+  EXPECT_NE(message_of([] { make_backend("emu"); }).find("no emulated CUDA backend"),
+            std::string::npos);
+  EXPECT_NE(message_of([] { make_backend("tpu"); }).find("--device must be cpu, cuda or emu"),
+            std::string::npos);
+  EXPECT_EQ(available_devices(), "cpu");
+  install_this_cuda_backend();
+  EXPECT_EQ(available_devices(), std::string("cpu, ") + kCudaBackendDevice);
+  const auto backend = make_backend(kCudaBackendDevice);
   EXPECT_EQ(backend->device(), Device::Cuda);
-  EXPECT_EQ(backend->name().rfind("cuda (", 0), 0u) << backend->name();
-  set_cuda_backend_factory(nullptr);
+  EXPECT_EQ(backend->name().rfind(std::string(kCudaBackendDevice) + ":0 (", 0), 0u) << backend->name();
+  BackendOptions missing_device;
+  missing_device.cuda_device = 7;
+  EXPECT_NE(message_of([&] { make_backend(kCudaBackendDevice, missing_device); })
+                .find("CUDA device 7 does not exist"),
+            std::string::npos);
+  set_backend_factory(kCudaBackendDevice, nullptr);
 
   // What CudaBackend throws on a machine whose runtime finds no GPU.
   const std::string no_device = no_cuda_device_message(cudaErrorNoDevice, 0);
@@ -401,10 +415,10 @@ TEST(CudaBackendVendorConv, EmulatedBuildRefusesCudnnAndCublas) {
       EXPECT_NE(message.find("use --conv own"), std::string::npos) << message;
     }
   }
-  install_cuda_backend();
-  EXPECT_THROW(make_backend("cuda", "cublas"), Error);
-  EXPECT_EQ(make_backend("cuda", "own")->device(), Device::Cuda);
-  set_cuda_backend_factory(nullptr);
+  install_this_cuda_backend();
+  EXPECT_THROW(make_backend("emu", {"cublas", 0}), Error);
+  EXPECT_EQ(make_backend("emu", {"own", 0})->device(), Device::Cuda);
+  set_backend_factory("emu", nullptr);
 }
 
 #else
@@ -620,7 +634,7 @@ TEST(CudaBackendVendorConv, ConvolutionNamesParseAndRoundTrip) {
   }
   // The CPU backend has one convolution.
   try {
-    make_backend("cpu", "cudnn");
+    make_backend("cpu", {"cudnn", 0});
     FAIL() << "--conv cudnn with --device cpu must throw";
   } catch (const Error& e) {
     EXPECT_NE(std::string(e.what()).find("--conv cudnn needs --device cuda"), std::string::npos)

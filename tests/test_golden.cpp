@@ -23,7 +23,9 @@
 #include <vector>
 
 #include "core/error.hpp"
+#include "engine/model/architecture.hpp"
 #include "engine/model/pillarsegnet.hpp"
+#include "engine/train/checkpoint.hpp"
 #include "tests/support/test_support.hpp"
 #include "weights_io/safetensors.hpp"
 
@@ -315,6 +317,105 @@ constexpr std::array<const char*, 4> kFiles = {"pillars_bilinear_ce", "pillars_o
                                                "gridmap_bilinear_bce"};
 
 INSTANTIATE_TEST_SUITE_P(Variants, GoldenTest, ::testing::ValuesIn(kFiles));
+
+// The weights-only file beside each golden file, as a PyTorch user exports a model (the
+// state_dict, no metadata; make_golden.py writes it), opens without a config: the architecture
+// comes from its tensor shapes (engine/model/architecture.hpp), on the paper's grid unless its
+// occupancy stream reads a number of layers that grid does not have, and its weights are the
+// golden file's: the same eval logits, bit for bit, on the golden file's grid.
+TEST_P(GoldenTest, WeightsOnlyFileOpensWithoutAConfig) {
+  const Golden g = load_golden(GetParam());
+  const std::filesystem::path path = golden_path(std::string("weights_only_") + GetParam());
+  const Checkpoint checkpoint = read_checkpoint(path);
+  EXPECT_FALSE(checkpoint.config.has_value());
+  EXPECT_TRUE(checkpoint.file.metadata.empty());
+  ModelConfig inferred;
+  if (g.config.occupancy == OccupancyInput::Occupancy3D) {
+    try {
+      config_for(checkpoint, "");
+      FAIL() << "a stream of " << g.config.grid.layers() << " layers fits the paper's grid of 20";
+    } catch (const Error& e) {
+      EXPECT_NE(std::string(e.what()).find("occupancy.conv.weight has 4 input channels"), std::string::npos)
+          << e.what();
+    }
+    inferred = model_config_from_tensors(checkpoint.file, g.config.grid);
+  } else {
+    inferred = config_for(checkpoint, "").model;
+    EXPECT_EQ(inferred.grid, GridSpec{});
+  }
+  EXPECT_EQ(inferred.pillar_input, g.config.pillar_input);
+  if (g.config.pillar_input) {
+    EXPECT_EQ(inferred.pillar_channels, g.config.pillar_channels);
+  }
+  EXPECT_EQ(inferred.occupancy, g.config.occupancy);
+  if (g.config.occupancy != OccupancyInput::None) {
+    EXPECT_EQ(inferred.occupancy_channels, g.config.occupancy_channels);
+  }
+  EXPECT_EQ(inferred.grid_map_input, g.config.grid_map_input);
+  EXPECT_EQ(inferred.base_width, g.config.base_width);
+  EXPECT_EQ(inferred.depth, g.config.depth);
+  EXPECT_EQ(inferred.transposed, g.config.transposed);
+
+  ModelConfig on_golden_grid = inferred;
+  on_golden_grid.grid = g.config.grid;
+  on_golden_grid.max_points_per_pillar = g.config.max_points_per_pillar;  // no tensor holds N
+  auto backend = make_cpu_reference_backend();
+  PillarSegNet loaded(on_golden_grid, *backend);
+  load_weights(checkpoint, loaded, /*with_optimizer=*/false);
+  auto reference = build(g, *backend);
+  loaded.forward(g.batch, false);
+  reference->forward(g.batch, false);
+  EXPECT_EQ(loaded.download_logits(), reference->download_logits());
+}
+
+// A file whose shapes fit no PillarSegNet gets an error naming the tensor that does not fit.
+TEST(Golden, ShapesThatFitNoArchitectureNameTheTensor) {
+  const Checkpoint good = read_checkpoint(golden_path("weights_only_pillars_bilinear_ce"));
+  const auto message_without = [&](const std::string& dropped, const std::string& replaced = "",
+                                    Shape replacement = {}) {
+    SafeTensors file;
+    for (const std::string& name : good.file.names()) {
+      if (name == dropped) continue;
+      weights::TensorRecord record = good.file.at(name);
+      if (name == replaced) {
+        record.shape = replacement;
+        record.bytes.assign(static_cast<size_t>(shape_numel(replacement)) * 4, 0);
+      }
+      file.add(std::move(record));
+    }
+    try {
+      model_config_from_tensors(file);
+    } catch (const Error& e) {
+      return std::string(e.what());
+    }
+    return std::string("(no error)");
+  };
+  EXPECT_NE(message_without("segmentation_head.outc.conv.weight").find("no tensor segmentation_head.outc.conv.weight"),
+            std::string::npos);
+  EXPECT_NE(message_without("", "vfe.pfn_layers.0.linear.weight", {4, 9}).find("expected (C, 10)"),
+            std::string::npos);
+  EXPECT_NE(message_without("", "segmentation_head.down1.maxpool_conv.1.double_conv.0.weight", {8, 5, 3, 3})
+                .find("reads 5 input channels, but the streams give 4"),
+            std::string::npos);
+  EXPECT_NE(message_without("", "segmentation_head.outc.conv.weight", {11, 4, 1, 1}).find("expected (12, b, 1, 1)"),
+            std::string::npos);
+  // A tensor the inferred model does not have: load_weights names it.
+  SafeTensors extra = good.file;
+  extra.add_f32("segmentation_head.extra.weight", Tensor<float>({2}));
+  const ModelConfig c = model_config_from_tensors(extra);
+  auto backend = make_cpu_reference_backend();
+  PillarSegNet net(c, *backend);
+  Checkpoint with_extra;
+  with_extra.file = extra;
+  try {
+    load_weights(with_extra, net, false);
+    FAIL() << "an extra tensor must be reported";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("segmentation_head.extra.weight"), std::string::npos) << e.what();
+  }
+}
+
+
 
 // The files cover every input stream, both upsamplings and both losses, on grids whose sides
 // pooling does not halve evenly (so that some Up pads), with unlabelled cells in the labels.

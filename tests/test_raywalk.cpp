@@ -608,7 +608,7 @@ TEST(Observability2D, ReusedWorkspaceAndOutputGiveTheFreshCounts) {
 TEST(Observability2D, HandComputedCounts) {
   const GridSpec grid;
   const Vec3 zero(0.0, 0.0, 0.0);
-  const ObservabilityCounts counts = observability_2d({{0.25f, 0.05f, 0.0f, 0.0f}}, zero, grid);
+  const ObservabilityCounts counts = observability_2d(std::vector<Point>{{0.25f, 0.05f, 0.0f, 0.0f}}, zero, grid);
   EXPECT_EQ(counts.transmissions(250, 500), 1u);
   EXPECT_EQ(counts.transmissions(250, 501), 1u);
   EXPECT_EQ(counts.transmissions(250, 502), 0u);
@@ -624,21 +624,21 @@ TEST(Observability2D, HandComputedCounts) {
   EXPECT_EQ(map(250, 503), 0u);
 
   // A point outside the grid: transmissions up to the border, no detection.
-  const ObservabilityCounts outside = observability_2d({{60.0f, 0.05f, 0.0f, 0.0f}}, zero, grid);
+  const ObservabilityCounts outside = observability_2d(std::vector<Point>{{60.0f, 0.05f, 0.0f, 0.0f}}, zero, grid);
   for (int64_t ix = 500; ix < 1000; ++ix) EXPECT_EQ(outside.transmissions(250, ix), 1u) << ix;
   EXPECT_EQ(outside.transmissions(250, 499), 0u);
   for (int64_t i = 0; i < outside.detections.numel(); ++i) ASSERT_EQ(outside.detections[i], 0u);
 
   // Points outside the z range count in 2D as any other point.
   const ObservabilityCounts high =
-      observability_2d({{-0.25f, 0.05f, 5.0f, 0.0f}, {-0.25f, 0.05f, -9.0f, 0.0f}}, zero, grid);
+      observability_2d(std::vector<Point>{{-0.25f, 0.05f, 5.0f, 0.0f}, {-0.25f, 0.05f, -9.0f, 0.0f}}, zero, grid);
   EXPECT_EQ(high.transmissions(250, 499), 2u);
   EXPECT_EQ(high.transmissions(250, 498), 2u);
   EXPECT_EQ(high.detections(250, 497), 2u);
 
   // Non-finite points are skipped.
   const ObservabilityCounts with_nan = observability_2d(
-      {{std::numeric_limits<float>::quiet_NaN(), 1.0f, 0.0f, 0.0f}, {0.25f, 0.05f, 0.0f, 0.0f}},
+      std::vector<Point>{{std::numeric_limits<float>::quiet_NaN(), 1.0f, 0.0f, 0.0f}, {0.25f, 0.05f, 0.0f, 0.0f}},
       zero, grid);
   EXPECT_TRUE(same_counts(with_nan.transmissions, counts.transmissions));
   EXPECT_TRUE(same_counts(with_nan.detections, counts.detections));
@@ -701,7 +701,7 @@ TEST(Occupancy3D, IdenticalForOneAndTwoThreadsOnDefaultGrid) {
 TEST(Occupancy3D, HandComputedCountsAndZClipping) {
   const GridSpec grid;
   const Vec3 zero(0.0, 0.0, 0.0);
-  const OccupancyCounts counts = occupancy_counts_3d({{0.25f, 0.05f, -0.25f, 0.0f}}, zero, grid);
+  const OccupancyCounts counts = occupancy_counts_3d(std::vector<Point>{{0.25f, 0.05f, -0.25f, 0.0f}}, zero, grid);
   EXPECT_EQ(counts.hits.shape(), (Shape{20, 500, 1000}));
   EXPECT_EQ(counts.passes(12, 250, 500), 1u);
   EXPECT_EQ(counts.passes(12, 250, 501), 1u);

@@ -10,6 +10,7 @@
 #include <string>
 
 #include "kernels/common.cuh"
+#include "kernels/cuda_handles.hpp"
 
 namespace pillarseg::bench {
 
@@ -32,34 +33,20 @@ inline std::string missing_cuda_device() {
 // A stream and two events: times what `run` queues on the stream.
 class EventTimer {
  public:
-  EventTimer() {
-    PS_CUDA_CHECK(cudaStreamCreateWithFlags(&stream_, cudaStreamNonBlocking));
-    PS_CUDA_CHECK(cudaEventCreate(&start_));
-    PS_CUDA_CHECK(cudaEventCreate(&stop_));
-  }
-  ~EventTimer() {
-    static_cast<void>(cudaEventDestroy(stop_));
-    static_cast<void>(cudaEventDestroy(start_));
-    static_cast<void>(cudaStreamDestroy(stream_));
-  }
-  EventTimer(const EventTimer&) = delete;
-  EventTimer& operator=(const EventTimer&) = delete;
-
   // Milliseconds between the events recorded around run(stream).
   double milliseconds(const std::function<void(cudaStream_t)>& run) {
-    PS_CUDA_CHECK(cudaEventRecord(start_, stream_));
-    run(stream_);
-    PS_CUDA_CHECK(cudaEventRecord(stop_, stream_));
-    PS_CUDA_CHECK(cudaEventSynchronize(stop_));
+    PS_CUDA_CHECK(cudaEventRecord(start_.get(), stream_.get()));
+    run(stream_.get());
+    PS_CUDA_CHECK(cudaEventRecord(stop_.get(), stream_.get()));
+    PS_CUDA_CHECK(cudaEventSynchronize(stop_.get()));
     float ms = 0.0f;
-    PS_CUDA_CHECK(cudaEventElapsedTime(&ms, start_, stop_));
+    PS_CUDA_CHECK(cudaEventElapsedTime(&ms, start_.get(), stop_.get()));
     return ms;
   }
 
  private:
-  cudaStream_t stream_ = nullptr;
-  cudaEvent_t start_ = nullptr;
-  cudaEvent_t stop_ = nullptr;
+  cuda::Stream stream_;
+  cuda::Event start_, stop_;
 };
 
 // One warm-up run, then each iteration's event time as the benchmark's (manual) time. Returns

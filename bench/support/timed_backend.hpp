@@ -43,6 +43,53 @@ class TimedBackend final : public Backend {
     timed("memory: upload, fill", 0, [&] { inner_->fill_zero(dst, bytes); });
   }
 
+  void make_current() override { inner_->make_current(); }
+  Counters counters() const override { return inner_->counters(); }
+
+  void pad_points(const IRef& num_points, Ref& points) override {
+    timed("input: points, pillars", 0, [&] { inner_->pad_points(num_points, points); });
+  }
+  int64_t pillar_gather(const Ref& points, const GridSpec& grid, int max_pillars, IRef& cell,
+                        IRef& point_index, IRef& count, IRef& num_pillars) override {
+    return timed("input: points, pillars", 0, [&] {
+      return inner_->pillar_gather(points, grid, max_pillars, cell, point_index, count,
+                                   num_pillars);
+    });
+  }
+  void decorate_points(const Ref& points, const GridSpec& grid, const IRef& cell,
+                       const IRef& point_index, const IRef& count, Ref& out) override {
+    timed("input: points, pillars", 0,
+          [&] { inner_->decorate_points(points, grid, cell, point_index, count, out); });
+  }
+  void batch_cells(const IRef& cell, int sample, IRef& cells) override {
+    timed("input: points, pillars", 0, [&] { inner_->batch_cells(cell, sample, cells); });
+  }
+  void observability_2d(const Ref& points, const Eigen::Vector3d& origin, const GridSpec& grid,
+                        URef& transmissions, URef& detections) override {
+    timed("input: ray walks, maps", 0, [&] {
+      inner_->observability_2d(points, origin, grid, transmissions, detections);
+    });
+  }
+  void observability_input(const URef& transmissions, const URef& detections, Ref& out) override {
+    timed("input: ray walks, maps", 0,
+          [&] { inner_->observability_input(transmissions, detections, out); });
+  }
+  void occupancy_3d(const Ref& points, const Eigen::Vector3d& origin, const GridSpec& grid,
+                    Ref& probability) override {
+    timed("input: ray walks, maps", 0,
+          [&] { inner_->occupancy_3d(points, origin, grid, probability); });
+  }
+  void grid_map_features(const Ref& points, const GridSpec& grid, const URef& detections,
+                         const URef& transmissions, Ref& out) override {
+    timed("input: ray walks, maps", 0,
+          [&] { inner_->grid_map_features(points, grid, detections, transmissions, out); });
+  }
+  void mask_unobserved(const URef& transmissions, const URef& detections, LRef& labels,
+                       Ref* probabilities) override {
+    timed("softmax, argmax", 0,
+          [&] { inner_->mask_unobserved(transmissions, detections, labels, probabilities); });
+  }
+
   void pfn_forward(const Ref& points, const Ref& weight, BatchNormRefs& bn, bool training,
                    IRef& argmax, Ref& out, const Ref& scratch) override {
     timed("pfn forward", linear_flops(points, weight),

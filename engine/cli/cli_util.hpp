@@ -1,6 +1,7 @@
 // Small helpers shared by the subcommands.
 #pragma once
 
+#include <CLI/CLI.hpp>
 #include <filesystem>
 #include <string>
 
@@ -26,6 +27,24 @@ inline void require_extension(const std::filesystem::path& path, std::initialize
   std::string list;
   for (const char* a : allowed) list += (list.empty() ? "" : ", ") + std::string(a);
   PS_FAIL("{} {}: unsupported extension '{}' (expected {})", option, path.string(), ext, list);
+}
+
+// --device and --conv, the same on every command that runs the network (infer, render, eval,
+// bench, train).
+struct DeviceArgs {
+  std::string device = "cpu", conv = "own";
+  int cuda_device = 0;
+};
+inline void add_device_options(CLI::App* cmd, DeviceArgs& args) {
+  cmd->add_option("--device", args.device,
+                  "cpu; cuda (a GPU); emu (the CUDA backend on the CPU emulation: every kernel run "
+                  "on the CPU, slow, for verification)")
+      ->check(CLI::IsMember({"cpu", "cuda", "emu"}));
+  cmd->add_option("--conv", args.conv,
+                  "Conv2d with --device cuda: own (our kernels), cudnn or cublas (for comparison)")
+      ->check(CLI::IsMember({"own", "cudnn", "cublas"}));
+  cmd->add_option("--cuda-device", args.cuda_device, "the CUDA device ordinal with --device cuda")
+      ->check(CLI::NonNegativeNumber);
 }
 
 }  // namespace pillarseg::cli

@@ -1,10 +1,13 @@
-// pillarseg bench: the stage breakdown of one inference on a real-size scan (read, pillarize,
-// input maps, upload, PFN, scatter, occupancy stream, U-Net, head, write: argmax + label map),
-// median over repetitions, the total, and the process's peak resident memory. Stages the config
-// does not have (input maps, occupancy stream) are not listed. Network stages are timed on the
-// backend's clock (CUDA events with --device cuda); where the backend records graphs, the
-// forward is also timed as one graph replay (stage timing waits between stages, so the
-// breakdown itself runs uncaptured).
+// pillarseg bench: the stage breakdown of one inference on a real-size scan through the whole
+// pipeline on the chosen device (engine/pipeline/segmenter.hpp): read, upload (the raw points),
+// pillars (gather, decoration, cells), input maps (ray walks, occupancy or grid-map layers), PFN,
+// scatter, occupancy stream, U-Net, head, predict (arg-max, masking), download (the label map),
+// write; median over repetitions, the total, and the process's peak resident memory. Stages the
+// config does not have are not listed. Device stages are timed on the backend's clock (CUDA events
+// on a CUDA backend), which waits between stages; where the backend records graphs, the whole
+// pipeline is also timed as the steady state runs it (upload, one graph replay, download). On a
+// CUDA backend the bytes that cross the bus per scan are counted, and compared with inputs
+// prepared on the host and uploaded (the network's decorated pillars and maps).
 #include <fmt/format.h>
 #include <sys/resource.h>
 
@@ -13,11 +16,12 @@
 #include <filesystem>
 
 #include "core/parallel.hpp"
+#include "engine/cli/cli_util.hpp"
 #include "engine/cli/commands.hpp"
-#include "engine/data/ground_truth.hpp"
 #include "engine/data/semantickitti.hpp"
 #include "engine/model/pillarsegnet.hpp"
 #include "engine/pipeline/scan_inputs.hpp"
+#include "engine/pipeline/segmenter.hpp"
 #include "engine/render/label_map.hpp"
 #include "engine/sim/simulate.hpp"
 #include "engine/train/checkpoint.hpp"
@@ -27,9 +31,10 @@ namespace pillarseg::cli {
 namespace {
 
 struct BenchArgs {
-  std::string device = "cpu", conv = "own", config, weights, scan;
+  std::string config, weights, scan;
+  DeviceArgs device;
   int repeat = 5;
-  bool transposed = false;
+  bool transposed = false, mask_unobserved = false;
 };
 
 double ms_since(std::chrono::steady_clock::time_point t0) {
@@ -41,12 +46,31 @@ double median(std::vector<double> v) {
   return v.empty() ? 0.0 : v[v.size() / 2];
 }
 
+// Bytes over the bus for one scan whose inputs are prepared on the host (compute_scan_inputs)
+// and uploaded, and whose labels come back: what --device cuda did before the device pipeline.
+int64_t host_inputs_bytes(ScanSegmenter& segmenter, const Scan& scan) {
+  Backend& backend = segmenter.backend();
+  const ModelConfig& model = segmenter.model();
+  const Backend::Counters before = backend.counters();
+  ScanInputs inputs = compute_scan_inputs(scan.points, Eigen::Vector3d::Zero(), model, host::SampleMode::Inference,
+                                          nullptr);
+  segmenter.net().forward(collate(std::move(inputs), model), false);
+  segmenter.net().predict_labels();
+  const Backend::Counters after = backend.counters();
+  return (after.bytes_uploaded - before.bytes_uploaded) + (after.bytes_downloaded - before.bytes_downloaded);
+}
+
 void run_bench(const BenchArgs& a) {
   namespace fs = std::filesystem;
   ModelConfig model;
+  if (!a.weights.empty() && a.config.empty()) model = config_for(read_checkpoint(a.weights), "").model;
   if (!a.config.empty()) model = load_run_config(a.config).model;
   model.transposed = model.transposed || a.transposed;
-  auto backend = make_backend(a.device, a.conv);  // first: no device, no scratch files left behind
+  SegmenterOptions options;
+  options.mask_unobserved = a.mask_unobserved;
+  // The device first: no device, no scratch files left behind.
+  ScanSegmenter segmenter(model, make_backend(a.device.device, {a.device.conv, a.device.cuda_device}), options);
+  Backend& backend = segmenter.backend();
   const fs::path scratch = fs::temp_directory_path() / fmt::format("pillarseg_bench_{}", ::getpid());
   fs::path scan_path = a.scan;
   if (scan_path.empty()) {
@@ -55,104 +79,99 @@ void run_bench(const BenchArgs& a) {
     scan_path = scratch / "scan.bin";
     write_bin(scan_path, simulator.scan(0).points);
   }
-  PillarSegNet net(model, *backend);
-  if (!a.weights.empty()) load_weights(read_checkpoint(a.weights), net, false);
-  net.set_stage_timing(true);
+  if (!a.weights.empty()) load_weights(read_checkpoint(a.weights), segmenter.net(), false);
   const ClassTable classes = ClassTable::defaults();
 
-  std::vector<std::string> names = {"read", "pillarize", "input maps", "upload", "PFN", "scatter", "occupancy",
-                                    "U-Net", "head", "write", "total"};
-  const bool has_maps = model.occupancy != OccupancyInput::None || model.grid_map_input;
-  const auto listed = [&](size_t stage) {
-    return (names[stage] != "input maps" || has_maps) &&
-           (names[stage] != "occupancy" || model.occupancy != OccupancyInput::None);
+  const std::vector<std::string> names = {"read",   "upload", "pillars", "input maps", "PFN",   "scatter", "occupancy",
+                                          "U-Net",  "head",   "predict", "download",   "write", "total"};
+  const bool has_maps = model.occupancy != OccupancyInput::None || model.grid_map_input || a.mask_unobserved;
+  const auto listed = [&](const std::string& name) {
+    if (name == "pillars" || name == "PFN" || name == "scatter") return model.pillar_input;
+    if (name == "input maps") return has_maps;
+    if (name == "occupancy") return model.occupancy != OccupancyInput::None;
+    return true;
   };
   std::vector<std::vector<double>> times(names.size());
-  std::vector<double> graph_forward;  // upload + replay of the recorded forward
+  std::vector<double> steady;  // upload + graph replay + download
+  int64_t steady_bytes = 0;
+  Tensor<uint8_t> labels({model.grid.height(), model.grid.width()});
   size_t points = 0;
   for (int r = 0; r < a.repeat + 1; ++r) {  // the first run plans memory and warms up
     std::vector<double> t(names.size(), 0.0);
     const auto start = std::chrono::steady_clock::now();
-    auto t0 = start;
     const Scan scan = read_scan(scan_path);
     points = scan.points.size();
-    t[0] = ms_since(t0);
-    t0 = std::chrono::steady_clock::now();
-    ModelConfig pillars_only = model;
-    pillars_only.occupancy = OccupancyInput::None;
-    pillars_only.grid_map_input = false;
-    ScanInputs inputs = compute_scan_inputs(scan.points, Eigen::Vector3d::Zero(), pillars_only,
-                                            host::SampleMode::Inference, nullptr);
-    t[1] = ms_since(t0);
-    t0 = std::chrono::steady_clock::now();
-    if (model.occupancy != OccupancyInput::None || model.grid_map_input) {
-      ScanInputs maps = compute_scan_inputs(scan.points, Eigen::Vector3d::Zero(),
-                                            [&] {
-                                              ModelConfig m = model;
-                                              m.pillar_input = false;
-                                              m.pillar_channels = 1;
-                                              return m;
-                                            }(),
-                                            host::SampleMode::Inference, nullptr);
-      inputs.occupancy = std::move(maps.occupancy);
-      inputs.grid_map = std::move(maps.grid_map);
-    }
-    t[2] = ms_since(t0);
-    const ModelBatch batch = collate(std::move(inputs), model);
-    net.forward(batch, false);
-    const auto& st = net.stage_times();
-    t[3] = st.upload, t[4] = st.pfn, t[5] = st.scatter, t[6] = st.occupancy, t[7] = st.unet, t[8] = st.head;
-    t0 = std::chrono::steady_clock::now();
-    Tensor<uint8_t> labels = net.predict_labels();
-    labels.reshape({model.grid.height(), model.grid.width()});
+    t[0] = ms_since(start);
+    segmenter.set_stage_timing(true);
+    segmenter.segment(scan.points, labels.data());
+    segmenter.set_stage_timing(false);
+    const ScanSegmenter::StageTimes& st = segmenter.stage_times();
+    const double stages[] = {st.upload, st.pillars, st.maps,    st.pfn,     st.scatter,
+                             st.occupancy, st.unet, st.head, st.predict, st.download};
+    std::copy(std::begin(stages), std::end(stages), t.begin() + 1);
+    const auto t0 = std::chrono::steady_clock::now();
     write_label_map(scratch / "prediction.u8", labels, classes);
     write_label_map(scratch / "prediction.png", labels, classes);
-    t[9] = ms_since(t0);
-    t[10] = ms_since(start);
+    t[11] = ms_since(t0);
+    t[12] = ms_since(start);
     if (r > 0)
       for (size_t i = 0; i < names.size(); ++i) times[i].push_back(t[i]);
-    if (backend->supports_capture()) {  // the first run records the graph
-      net.set_stage_timing(false);
-      const double before = backend->clock_ms();
-      net.forward(batch, false);
-      const double replay_ms = backend->clock_ms() - before;
-      net.set_stage_timing(true);
-      if (r > 0) graph_forward.push_back(replay_ms);
+    if (backend.supports_capture()) {  // the first run records the graph
+      const Backend::Counters before = backend.counters();
+      const double begin = backend.clock_ms();
+      segmenter.segment(scan.points, labels.data());
+      const double replay_ms = backend.clock_ms() - begin;
+      const Backend::Counters after = backend.counters();
+      steady_bytes = (after.bytes_uploaded - before.bytes_uploaded) + (after.bytes_downloaded - before.bytes_downloaded);
+      if (r > 0) steady.push_back(replay_ms);
     }
   }
+  int64_t host_bytes = 0;
+  if (backend.device() != Device::Cpu) host_bytes = host_inputs_bytes(segmenter, read_scan(scan_path));
   std::error_code ec;
   fs::remove_all(scratch, ec);
-  fmt::print("pillarseg bench: device {}, {} threads, grid {} x {}, C {}, b {}, {} upsampling, occupancy {}\n",
-             backend->name(), num_threads(), model.grid.width(), model.grid.height(), model.pillar_channels,
-             model.base_width, model.transposed ? "transposed" : "bilinear", occupancy_name(model.occupancy));
-  fmt::print("scan: {} ({} points); median of {} runs after one warm-up\n", scan_path.string(), points, a.repeat);
+  fmt::print("pillarseg bench: device {}, {} threads, grid {} x {}, C {}, b {}, {} upsampling, occupancy {}{}\n",
+             backend.name(), num_threads(), model.grid.width(), model.grid.height(), model.pillar_channels,
+             model.base_width, model.transposed ? "transposed" : "bilinear", occupancy_name(model.occupancy),
+             model.grid_map_input ? ", grid-map input" : "");
+  fmt::print("scan: {} ({} points); median of {} runs after one warm-up, each stage timed on the backend's "
+             "clock\n",
+             scan_path.string(), points, a.repeat);
   fmt::print("{:<14} {:>10}\n", "stage", "ms");
   for (size_t i = 0; i < names.size(); ++i)
-    if (listed(i)) fmt::print("{:<14} {:>10.2f}\n", names[i], median(times[i]));
+    if (listed(names[i])) fmt::print("{:<14} {:>10.2f}\n", names[i], median(times[i]));
   fmt::print("throughput: {:.2f} scans/s, {:.2f} M points/s\n", 1000.0 / median(times.back()),
              static_cast<double>(points) / median(times.back()) / 1000.0);
-  if (!graph_forward.empty()) {
+  if (!steady.empty()) {
     double staged = 0;
-    for (size_t i = 3; i <= 8; ++i) staged += median(times[i]);
-    fmt::print("forward as a graph replay (upload included): {:.2f} ms; stage by stage above: {:.2f} ms ({:.2f}x)\n",
-               median(graph_forward), staged, staged / std::max(median(graph_forward), 1e-9));
+    for (size_t i = 1; i <= 10; ++i) staged += median(times[i]);
+    fmt::print("steady state (upload, one graph replay, download): {:.2f} ms; stage by stage above: {:.2f} ms "
+               "({:.2f}x)\n",
+               median(steady), staged, staged / std::max(median(steady), 1e-9));
+  }
+  if (backend.device() != Device::Cpu) {
+    fmt::print("bytes over the bus per scan: {:.2f} MB (the raw points up, the label map down); with the inputs "
+               "prepared on the host and uploaded: {:.2f} MB ({:.1f}x)\n",
+               static_cast<double>(steady_bytes) / 1e6, static_cast<double>(host_bytes) / 1e6,
+               static_cast<double>(host_bytes) / std::max<double>(static_cast<double>(steady_bytes), 1.0));
   }
   rusage usage{};
   getrusage(RUSAGE_SELF, &usage);
   fmt::print("peak resident memory: {:.0f} MiB (host; activations planned: {:.0f} MiB)\n",
-             static_cast<double>(usage.ru_maxrss) / 1024.0, static_cast<double>(net.activation_bytes()) / (1 << 20));
+             static_cast<double>(usage.ru_maxrss) / 1024.0,
+             static_cast<double>(segmenter.net().activation_bytes()) / (1 << 20));
 }
 
 }  // namespace
 
 void add_bench(CLI::App& app) {
   auto a = std::make_shared<BenchArgs>();
-  CLI::App* cmd = app.add_subcommand("bench", "Stage timings of one inference (default: the paper's full-size model "
-                                              "on a simulated 120k-point scan)");
-  cmd->add_option("--device", a->device, "cpu or cuda")->check(CLI::IsMember({"cpu", "cuda"}));
-  cmd->add_option("--conv", a->conv, "Conv2d with --device cuda: own (our kernels), cudnn or cublas (for comparison)")->check(CLI::IsMember({"own", "cudnn", "cublas"}));
-  cmd->add_option("--config", a->config, "run config YAML (default: the paper's settings)");
+  CLI::App* cmd = app.add_subcommand("bench", "Stage timings of one inference, raw points to label map (default: the "
+                                              "paper's full-size model on a simulated 120k-point scan)");
+  add_device_options(cmd, a->device);
+  cmd->add_option("--config", a->config, "run config YAML (default: the paper's settings, or the checkpoint's)");
   cmd->add_flag("--transposed", a->transposed, "use the transposed-convolution U-Net");
+  cmd->add_flag("--mask-unobserved", a->mask_unobserved, "mask cells no ray observed (ray walks for every model)");
   cmd->add_option("--weights", a->weights, "checkpoint (default: random weights; timings do not depend on them)");
   cmd->add_option("--scan", a->scan, "scan file (.bin); default: a simulated scan");
   cmd->add_option("--repeat", a->repeat, "timed repetitions")->check(CLI::PositiveNumber);

@@ -1,15 +1,26 @@
-// pillarseg infer / render: one scan through a trained model (label map PNG, class ids,
+// pillarseg infer / render: scans through a trained model (label map PNG, class ids,
 // probabilities), and the paper's Fig. 3 panels (points, observability, prediction, ground
-// truth) for a scan of a sequence.
+// truth) for a scan of a sequence. Both run the whole pipeline on the chosen device
+// (engine/pipeline/segmenter.hpp). Over several scans, infer reads the next scan and writes the
+// last result while the current one runs.
 #include <fmt/format.h>
+
+#include <algorithm>
+#include <chrono>
+#include <filesystem>
+#include <future>
+#include <optional>
+#include <vector>
 
 #include "core/io.hpp"
 #include "engine/cli/cli_util.hpp"
 #include "engine/cli/commands.hpp"
-#include "engine/eval/evaluate.hpp"
+#include "engine/data/ground_truth.hpp"
+#include "engine/data/semantickitti.hpp"
+#include "engine/pipeline/segmenter.hpp"
 #include "engine/render/label_map.hpp"
 #include "engine/render/render.hpp"
-#include "engine/train/checkpoint.hpp"
+#include "engine/util/progress.hpp"
 #include "host/raywalk.hpp"
 #include "weights_io/half.hpp"
 
@@ -17,64 +28,128 @@ namespace pillarseg::cli {
 
 namespace {
 
+namespace fs = std::filesystem;
+
 struct InferArgs {
-  std::string weights, scan, out, config, device = "cpu", conv = "own";
-  bool probabilities = false, mask_unobserved = false;
+  std::string weights, out, config;
+  std::vector<std::string> scans;
+  DeviceArgs device;
+  bool probabilities = false, mask_unobserved = false, no_png = false;
 };
 
 struct RenderArgs {
-  std::string data, weights, config, out, mode = "sparse", device = "cpu", conv = "own", cache;
+  std::string data, weights, config, out, mode = "sparse", cache;
+  DeviceArgs device;
   int sequence = -1, scan = -1;
   bool mask_unobserved = false;
 };
 
-struct LoadedModel {
-  std::unique_ptr<Backend> backend;
-  std::unique_ptr<PillarSegNet> net;
-  RunConfig config;
-};
-
-LoadedModel load_model(const std::string& weights, const std::string& config, const std::string& device,
-                       const std::string& conv) {
-  const Checkpoint ckpt = read_checkpoint(weights);
-  LoadedModel m;
-  m.config = config_for(ckpt, config);
-  m.backend = make_backend(device, conv);
-  m.net = std::make_unique<PillarSegNet>(m.config.model, *m.backend);
-  load_weights(ckpt, *m.net, false);
-  return m;
+std::unique_ptr<ScanSegmenter> open_for(const std::string& weights, const std::string& config,
+                                        const DeviceArgs& device, bool mask_unobserved) {
+  SegmenterOptions options;
+  options.device = device.device;
+  options.backend = {device.conv, device.cuda_device};
+  options.mask_unobserved = mask_unobserved;
+  return open_segmenter(weights, config, options);
 }
 
-Tensor<uint8_t> observed_mask(const Tensor<uint32_t>& observability) {
-  Tensor<uint8_t> mask(observability.shape());
-  for (int64_t i = 0; i < mask.numel(); ++i) mask[i] = observability[i] > 0;
-  return mask;
+// The .bin files named on the command line: files as given, directories by their *.bin (or, for
+// a SemanticKITTI sequence directory, its velodyne/*.bin), sorted.
+std::vector<fs::path> scan_files(const std::vector<std::string>& arguments) {
+  std::vector<fs::path> files;
+  for (const std::string& argument : arguments) {
+    const fs::path path = argument;
+    if (!fs::is_directory(path)) {
+      PS_CHECK(fs::is_regular_file(path), "--scan {}: no such file or directory", argument);
+      files.push_back(path);
+      continue;
+    }
+    const fs::path dir = fs::is_directory(path / "velodyne") ? path / "velodyne" : path;
+    std::vector<fs::path> found;
+    for (const fs::directory_entry& e : fs::directory_iterator(dir))
+      if (e.is_regular_file() && lower_extension(e.path()) == ".bin") found.push_back(e.path());
+    PS_CHECK(!found.empty(), "--scan {}: no .bin files in {}", argument, dir.string());
+    std::sort(found.begin(), found.end());
+    files.insert(files.end(), found.begin(), found.end());
+  }
+  return files;
+}
+
+// One scan's results, written as PREFIX.u8, PREFIX.png and (with probabilities) PREFIX.f16.
+struct Result {
+  Tensor<uint8_t> labels;
+  Tensor<float> probabilities;
+};
+
+void write_result(const std::string& prefix, const Result& r, bool png) {
+  const ClassTable classes = ClassTable::defaults();
+  write_label_map(prefix + ".u8", r.labels, classes);
+  if (png) write_label_map(prefix + ".png", r.labels, classes);
+  if (r.probabilities.numel() > 0) {
+    std::vector<uint16_t> half(static_cast<size_t>(r.probabilities.numel()));
+    for (size_t i = 0; i < half.size(); ++i)
+      half[i] = weights::float_to_f16_bits(r.probabilities[static_cast<int64_t>(i)]);
+    write_file_atomic(prefix + ".f16", half.data(), half.size() * sizeof(uint16_t));
+  }
 }
 
 void run_infer(const InferArgs& a) {
-  LoadedModel m = load_model(a.weights, a.config, a.device, a.conv);
-  const Scan scan = read_scan(a.scan);
-  Prediction p = predict_scan(*m.net, m.config.model, scan.points, a.probabilities, a.mask_unobserved);
-  if (a.mask_unobserved) {
-    for (int64_t i = 0; i < p.labels.numel(); ++i)
-      if (p.observability[i] == 0) p.labels[i] = 0;
+  const std::vector<fs::path> files = scan_files(a.scans);
+  const bool single = files.size() == 1 && !fs::is_directory(a.scans.front());
+  if (!single) {
+    PS_CHECK(!fs::exists(a.out) || fs::is_directory(a.out),
+             "--out {}: several scans are written into a directory, and this is a file", a.out);
+    fs::create_directories(a.out);
   }
-  const ClassTable classes = ClassTable::defaults();
-  const std::string prefix = a.out;
-  write_label_map(prefix + ".png", p.labels, classes);
-  write_label_map(prefix + ".u8", p.labels, classes);
-  std::string written = prefix + ".png, " + prefix + ".u8";
-  if (a.probabilities) {
-    std::vector<uint16_t> half(static_cast<size_t>(p.probabilities.numel()));
-    const int64_t plane = p.labels.numel();
-    for (int64_t i = 0; i < p.probabilities.numel(); ++i) {
-      const bool masked = a.mask_unobserved && p.observability[i % plane] == 0;
-      half[static_cast<size_t>(i)] = weights::float_to_f16_bits(masked ? 0.0f : p.probabilities[i]);
+  auto segmenter = open_for(a.weights, a.config, a.device, a.mask_unobserved);
+  const GridSpec& grid = segmenter->model().grid;
+  const auto prefix_of = [&](const fs::path& file) {
+    return single ? a.out : (fs::path(a.out) / file.stem()).string();
+  };
+  const auto make_result = [&] {
+    Result r{Tensor<uint8_t>({grid.height(), grid.width()}), {}};
+    if (a.probabilities) r.probabilities = Tensor<float>({12, grid.height(), grid.width()});
+    return r;
+  };
+  // Two result slots: one being written while the next scan runs into the other.
+  Result slots[2] = {make_result(), make_result()};
+  Progress progress("infer", static_cast<int64_t>(files.size()), "scans");
+  const auto started = std::chrono::steady_clock::now();
+  double segment_seconds = 0;
+  int64_t points = 0;
+  std::future<Scan> next = std::async(std::launch::async, [&] { return read_scan(files[0]); });
+  std::future<void> writing;
+  for (size_t i = 0; i < files.size(); ++i) {
+    const Scan scan = next.get();
+    if (i + 1 < files.size()) next = std::async(std::launch::async, [&, i] { return read_scan(files[i + 1]); });
+    Result& result = slots[i % 2];
+    const auto t0 = std::chrono::steady_clock::now();
+    segmenter->segment(scan.points, result.labels.data(),
+                       a.probabilities ? result.probabilities.data() : nullptr);
+    segment_seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    points += static_cast<int64_t>(scan.points.size());
+    if (writing.valid()) writing.get();  // the other slot is free again
+    writing = std::async(std::launch::async,
+                         [&, i, prefix = prefix_of(files[i])] { write_result(prefix, slots[i % 2], !a.no_png); });
+    if (single) {
+      writing.get();
+      fmt::print("{}: {} points -> {}.u8{}{}\n", files[i].string(), scan.points.size(), a.out,
+                 a.no_png ? "" : fmt::format(", {}.png", a.out),
+                 a.probabilities ? fmt::format(", {}.f16 (12 x H x W float16)", a.out) : "");
+      return;
     }
-    write_file_atomic(prefix + ".f16", half.data(), half.size() * sizeof(uint16_t));
-    written += ", " + prefix + ".f16 (12 x H x W float16)";
+    progress.update(static_cast<int64_t>(i) + 1, fmt::format("{:.1f} ms a scan on {}",
+                                                              1e3 * segment_seconds / static_cast<double>(i + 1),
+                                                              segmenter->backend().name()));
   }
-  fmt::print("{}: {} points -> {}\n", a.scan, scan.points.size(), written);
+  writing.get();
+  progress.finish();
+  const double wall = std::chrono::duration<double>(std::chrono::steady_clock::now() - started).count();
+  const double n = static_cast<double>(files.size());
+  fmt::print("{} scans ({:.0f} points each on average) -> {}: {:.2f} scans/s end to end ({:.1f} s), segment "
+             "{:.1f} ms a scan on {} (reading and writing overlap it)\n",
+             files.size(), static_cast<double>(points) / n, a.out, n / wall, wall, 1e3 * segment_seconds / n,
+             segmenter->backend().name());
 }
 
 void run_render(const RenderArgs& a) {
@@ -84,20 +159,22 @@ void run_render(const RenderArgs& a) {
   const Scan scan = seq.load(index);
   const ClassTable classes = ClassTable::defaults();
   GridSpec grid;
-  std::optional<LoadedModel> model;
+  std::unique_ptr<ScanSegmenter> segmenter;
   if (!a.weights.empty()) {
-    model = load_model(a.weights, a.config, a.device, a.conv);
-    grid = model->config.model.grid;
+    segmenter = open_for(a.weights, a.config, a.device, false);
+    grid = segmenter->model().grid;
   }
   std::vector<ImageRgb> panels;
   panels.push_back(render_points(scan.points, scan.labels, classes, grid));
   const Tensor<uint32_t> observability =
       host::observability_map(host::observability_2d(scan.points, Eigen::Vector3d::Zero(), grid));
   panels.push_back(render_observability(observability));
-  const Tensor<uint8_t> mask = observed_mask(observability);
-  if (model) {
-    const Prediction p = predict_scan(*model->net, model->config.model, scan.points, false, false);
-    ImageRgb prediction = render_label_map(p.labels, classes);
+  Tensor<uint8_t> mask(observability.shape());
+  for (int64_t i = 0; i < mask.numel(); ++i) mask[i] = observability[i] > 0;
+  if (segmenter) {
+    Tensor<uint8_t> labels({grid.height(), grid.width()});
+    segmenter->segment(scan.points, labels.data());
+    ImageRgb prediction = render_label_map(labels, classes);
     if (a.mask_unobserved) apply_mask(prediction, mask);
     panels.push_back(std::move(prediction));
   }
@@ -113,22 +190,29 @@ void run_render(const RenderArgs& a) {
   }
   write_png_rgb(a.out, stack_panels(panels));
   fmt::print("{}: panels (top to bottom) points, observability{}{} -> {}\n", seq.bin_path(index).string(),
-             model ? ", prediction" : "", seq.has_labels(index) ? ", " + a.mode + " ground truth" : "", a.out);
+             segmenter ? ", prediction" : "", seq.has_labels(index) ? ", " + a.mode + " ground truth" : "", a.out);
 }
 
 }  // namespace
 
 void add_infer(CLI::App& app) {
   auto a = std::make_shared<InferArgs>();
-  CLI::App* cmd = app.add_subcommand("infer", "One scan -> PREFIX.png (colors), PREFIX.u8 (class ids, H x W)");
-  cmd->add_option("--weights", a->weights, "checkpoint (.safetensors)")->required();
-  cmd->add_option("--scan", a->scan, "scan file (.bin)")->required();
-  cmd->add_option("--out", a->out, "output prefix")->required();
-  cmd->add_flag("--probabilities", a->probabilities, "also PREFIX.f16: softmax probabilities, 12 x H x W float16");
+  CLI::App* cmd = app.add_subcommand(
+      "infer",
+      "Scans -> label maps: one scan -> PREFIX.u8 (class ids, H x W), PREFIX.png (colors); several "
+      "files or directories -> OUT/NNNNNN.u8, .png, with progress and throughput");
+  cmd->add_option("--weights", a->weights, "checkpoint (.safetensors); a weights-only one too")->required();
+  cmd->add_option("--scan", a->scans,
+                  "scan file(s) (.bin), or directories of them (a sequence directory: its velodyne/)")
+      ->required();
+  cmd->add_option("--out", a->out, "output prefix (one scan) or directory (several)")->required();
+  cmd->add_flag("--probabilities", a->probabilities, "also .f16: softmax probabilities, 12 x H x W float16");
   cmd->add_flag("--mask-unobserved", a->mask_unobserved, "label cells no ray observed as 0 (unlabeled)");
-  cmd->add_option("--config", a->config, "run config (default: the one stored in the checkpoint)");
-  cmd->add_option("--device", a->device, "cpu or cuda")->check(CLI::IsMember({"cpu", "cuda"}));
-  cmd->add_option("--conv", a->conv, "Conv2d with --device cuda: own (our kernels), cudnn or cublas (for comparison)")->check(CLI::IsMember({"own", "cudnn", "cublas"}));
+  cmd->add_flag("--no-png", a->no_png, "write no .png pictures (the class ids alone)");
+  cmd->add_option("--config", a->config,
+                  "run config (default: the one stored in the checkpoint; for a weights-only file its "
+                  "tensor shapes on the paper's grid)");
+  add_device_options(cmd, a->device);
   cmd->callback([a] { run_infer(*a); });
 
   auto r = std::make_shared<RenderArgs>();
@@ -142,8 +226,7 @@ void add_infer(CLI::App& app) {
   rc->add_option("--config", r->config, "run config (default: the one stored in the checkpoint)");
   rc->add_option("--mode", r->mode, "ground truth: sparse or dense")->check(CLI::IsMember({"sparse", "dense"}));
   rc->add_flag("--mask-unobserved", r->mask_unobserved, "black out cells no ray observed");
-  rc->add_option("--device", r->device, "cpu or cuda")->check(CLI::IsMember({"cpu", "cuda"}));
-  rc->add_option("--conv", r->conv, "Conv2d with --device cuda: own (our kernels), cudnn or cublas (for comparison)")->check(CLI::IsMember({"own", "cudnn", "cublas"}));
+  add_device_options(rc, r->device);
   rc->add_option("--cache", r->cache, "ground-truth cache directory");
   rc->callback([r] { run_render(*r); });
 }

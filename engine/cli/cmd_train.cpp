@@ -4,6 +4,7 @@
 #include <spdlog/spdlog.h>
 
 #include "core/io.hpp"
+#include "engine/cli/cli_util.hpp"
 #include "engine/cli/commands.hpp"
 #include "engine/eval/evaluate.hpp"
 #include "engine/train/checkpoint.hpp"
@@ -14,13 +15,15 @@ namespace pillarseg::cli {
 namespace {
 
 struct TrainArgs {
-  std::string data, config, out, device = "cpu", conv = "own", cache;
+  std::string data, config, out, cache;
+  DeviceArgs device;
   bool resume = false;
   int epochs_now = 0;
 };
 
 struct EvalArgs {
-  std::string data, weights, config, mode = "sparse", device = "cpu", conv = "own", cache, report;
+  std::string data, weights, config, mode = "sparse", cache, report;
+  DeviceArgs device;
   std::vector<int> sequences;
   int stride = 0;
 };
@@ -30,8 +33,8 @@ void run_train(const TrainArgs& a) {
   o.data_root = a.data;
   o.run_dir = a.out;
   o.config = load_run_config(a.config);
-  o.device = a.device;
-  o.convolution = a.conv;
+  o.device = a.device.device;
+  o.backend = {a.device.conv, a.device.cuda_device};
   if (!a.cache.empty()) o.cache_dir = a.cache;
   o.resume = a.resume;
   o.max_epochs_this_run = a.epochs_now;
@@ -44,16 +47,15 @@ void run_train(const TrainArgs& a) {
 void run_eval(const EvalArgs& a) {
   const Checkpoint ckpt = read_checkpoint(a.weights);
   const RunConfig config = config_for(ckpt, a.config);
-  auto backend = make_backend(a.device, a.conv);
-  PillarSegNet net(config.model, *backend);
-  load_weights(ckpt, net, false);
+  ScanSegmenter segmenter(config.model, make_backend(a.device.device, {a.device.conv, a.device.cuda_device}));
+  load_weights(ckpt, segmenter.net(), false);
   EvalOptions o;
   o.data_root = a.data;
   o.mode = parse_ground_truth_kind(a.mode);
   o.sequences = a.sequences;
   o.scan_stride = a.stride;
   if (!a.cache.empty()) o.cache_dir = a.cache;
-  const SegmentationMetrics m = evaluate(net, config, o);
+  const SegmentationMetrics m = evaluate(segmenter, config, o);
   const ClassTable classes = ClassTable::defaults();
   const std::string mode = eval_mode_label(config.train.ground_truth, o.mode), method = method_label(config.model);
   fmt::print("\n{}\n", m.markdown_table(classes, mode, method));
@@ -77,9 +79,7 @@ void add_train(CLI::App& app) {
   cmd->add_flag("--resume", a->resume, "continue the run in --out from its checkpoint");
   cmd->add_option("--epochs-now", a->epochs_now, "stop after this many epochs of this invocation (resume later)")
       ->check(CLI::NonNegativeNumber);
-  cmd->add_option("--device", a->device, "cpu or cuda")->check(CLI::IsMember({"cpu", "cuda"}));
-  cmd->add_option("--conv", a->conv, "Conv2d with --device cuda: own (our kernels), cudnn or cublas (for comparison)")
-      ->check(CLI::IsMember({"own", "cudnn", "cublas"}));
+  add_device_options(cmd, a->device);
   cmd->add_option("--cache", a->cache, "ground-truth cache directory");
   cmd->callback([a] { run_train(*a); });
 
@@ -91,8 +91,7 @@ void add_train(CLI::App& app) {
   ev->add_option("--config", e->config, "run config (default: the one stored in the checkpoint)");
   ev->add_option("--sequences", e->sequences, "sequences to evaluate (default: the config's eval.sequences)");
   ev->add_option("--stride", e->stride, "every n-th scan (default: the config's eval.scan_stride)");
-  ev->add_option("--device", e->device, "cpu or cuda")->check(CLI::IsMember({"cpu", "cuda"}));
-  ev->add_option("--conv", e->conv, "Conv2d with --device cuda: own (our kernels), cudnn or cublas (for comparison)")->check(CLI::IsMember({"own", "cudnn", "cublas"}));
+  add_device_options(ev, e->device);
   ev->add_option("--cache", e->cache, "ground-truth cache directory");
   ev->add_option("--report", e->report, "JSON report path (default: beside the checkpoint)");
   ev->callback([e] { run_eval(*e); });

@@ -9,14 +9,14 @@
 #include "core/error.hpp"
 #include "core/parallel.hpp"
 #include "engine/cli/commands.hpp"
-#if defined(PILLARSEG_WITH_CUDA_BACKEND)
-#include "engine/cuda/cuda_backend.hpp"
-#endif
+#include "engine/cuda/install.hpp"
 
 int main(int argc, char** argv) {
+  // --device cuda runs the kernels on a GPU, --device emu on the CUDA emulation (engine/cuda/).
 #if defined(PILLARSEG_WITH_CUDA_BACKEND)
-  pillarseg::install_cuda_backend();  // --device cuda runs the kernels (engine/cuda/)
+  pillarseg::install_cuda_backend();
 #endif
+  pillarseg::install_emulated_cuda_backend();
   CLI::App app{"pillarseg: dense top-view semantic grid maps from one LiDAR sweep (PillarSegNet)"};
   app.require_subcommand(1);
   int threads = 0;

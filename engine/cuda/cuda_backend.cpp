@@ -8,7 +8,6 @@
 
 #include <algorithm>
 #include <cstring>
-#include <type_traits>
 
 #include "core/error.hpp"
 #include "kernels/adam.cuh"
@@ -17,15 +16,22 @@
 #include "kernels/conv2d.cuh"
 #include "kernels/conv_transpose2d.cuh"
 #include "kernels/elementwise.cuh"
+#include "kernels/grid_map_features.cuh"
+#include "kernels/label_mask.cuh"
 #include "kernels/maxpool2d.cuh"
+#include "kernels/observability_input.cuh"
 #include "kernels/pad_concat.cuh"
 #include "kernels/pfn.cuh"
+#include "kernels/pillar_gather.cuh"
+#include "kernels/point_decoration.cuh"
+#include "kernels/point_padding.cuh"
+#include "kernels/raywalk.cuh"
 #include "kernels/reduce.cuh"
 #include "kernels/scatter.cuh"
 #include "kernels/softmax.cuh"
 #include "kernels/upsample_bilinear.cuh"
 
-namespace pillarseg {
+namespace pillarseg::inline PILLARSEG_CUDA_NAMESPACE {
 
 namespace {
 
@@ -52,29 +58,45 @@ cuda::PlanarShape planar(const Ref& x) {
   return {x.dim(0), x.dim(1), x.dim(2) * x.dim(3)};
 }
 
-// A CUDA graph instance, replayed on its backend's stream.
+// A CUDA graph instance, replayed on its backend's stream; valid while the backend's workspaces
+// stay where they were at the capture.
 class CudaGraph final : public CapturedGraph {
  public:
-  CudaGraph(cudaGraphExec_t executable, cudaStream_t stream, int64_t& replays)
-      : executable_(executable), stream_(stream), replays_(replays) {}
-  ~CudaGraph() override {
-    // A destructor cannot throw; this fails only for a context that is already broken, which the
-    // next checked call reports.
-    static_cast<void>(cudaGraphExecDestroy(executable_));
-  }
-  CudaGraph(const CudaGraph&) = delete;
-  CudaGraph& operator=(const CudaGraph&) = delete;
+  CudaGraph(cuda::GraphExec executable, cudaStream_t stream, int64_t& replays,
+            const int64_t& generation)
+      : executable_(std::move(executable)),
+        stream_(stream),
+        replays_(replays),
+        generation_(generation),
+        captured_generation_(generation) {}
 
   void replay() override {
-    PS_CUDA_CHECK(cudaGraphLaunch(executable_, stream_));
+    PS_CHECK(valid(),
+             "CudaBackend: a graph was replayed after a workspace it names moved; record it again");
+    executable_.launch(stream_);
     ++replays_;
   }
+  bool valid() const override { return generation_ == captured_generation_; }
 
  private:
-  cudaGraphExec_t executable_;
+  cuda::GraphExec executable_;
   cudaStream_t stream_;
   int64_t& replays_;
+  const int64_t& generation_;
+  int64_t captured_generation_;
 };
+
+// points (M, 4) as the kernels see them.
+int64_t point_count(const char* op, const Ref& points) {
+  require_rank(op, "points", points, 2);
+  PS_CHECK(points.dim(1) == 4, "{}: points must be (M, 4) rows x y z r, got {}", op,
+           shape_str(points.shape));
+  return points.dim(0);
+}
+
+cuda::SensorOrigin sensor_origin(const Eigen::Vector3d& origin) {
+  return {origin.x(), origin.y(), origin.z()};
+}
 
 }  // namespace
 
@@ -105,15 +127,18 @@ std::string no_cuda_device_message(cudaError_t error, int device_count) {
   return fmt::format("no CUDA device found: {}; use --device cpu", reason);
 }
 
-CudaBackend::CudaBackend(const CudaBackendOptions& options) : options_(options) {
-  PS_CHECK(options_.max_staging_bytes >= kStagingAlignment,
+namespace {
+
+// Checks the options and selects the device (before any other runtime object is made on it).
+const CudaBackendOptions& selected(const CudaBackendOptions& options) {
+  PS_CHECK(options.max_staging_bytes >= kStagingAlignment,
            "CudaBackend: max_staging_bytes must be at least {}, got {}", kStagingAlignment,
-           options_.max_staging_bytes);
+           options.max_staging_bytes);
 #if defined(PILLARSEG_CUDA_EMULATION)
-  PS_CHECK(options_.convolution == ConvolutionImpl::Own,
+  PS_CHECK(options.convolution == ConvolutionImpl::Own,
            "CudaBackend: --conv {} needs the GPU build; the emulated CUDA backend has only our own "
            "convolutions (cuDNN and cuBLAS run on a GPU only), use --conv own",
-           convolution_impl_name(options_.convolution));
+           convolution_impl_name(options.convolution));
 #endif
   int devices = 0;
   const cudaError_t counted = cudaGetDeviceCount(&devices);
@@ -121,31 +146,32 @@ CudaBackend::CudaBackend(const CudaBackendOptions& options) : options_(options) 
     static_cast<void>(cudaGetLastError());  // later checks start clean
     PS_FAIL("{}", no_cuda_device_message(counted, devices));
   }
-  PS_CUDA_CHECK(cudaSetDevice(0));
+  PS_CHECK(options.device >= 0 && options.device < devices,
+           "CudaBackend: CUDA device {} does not exist; the runtime reports {} device(s), 0..{}",
+           options.device, devices, devices - 1);
+  PS_CUDA_CHECK(cudaSetDevice(options.device));
+  return options;
+}
+
+}  // namespace
+
+CudaBackend::CudaBackend(const CudaBackendOptions& options) : options_(selected(options)) {
   cudaDeviceProp properties;
-  PS_CUDA_CHECK(cudaGetDeviceProperties(&properties, 0));
-  name_ = options_.convolution == ConvolutionImpl::Own
-              ? fmt::format("cuda ({})", properties.name)
-              : fmt::format("cuda ({}, {} convolutions)", properties.name,
-                            convolution_impl_name(options_.convolution));
-  PS_CUDA_CHECK(cudaStreamCreateWithFlags(&stream_, cudaStreamNonBlocking));
-  try {
-    for (cudaEvent_t& event : clock_events_) PS_CUDA_CHECK(cudaEventCreate(&event));
-    workspace_.sum_of_squares = cuda::DeviceBuffer<double>(cuda::kSumOfSquaresPartials + 1);
-    workspace_.loss_partials = cuda::DeviceBuffer<cuda::LossPartial>(cuda::kLossPartials);
-    workspace_.loss_result = cuda::DeviceBuffer<cuda::LossResult>(1);
+  PS_CUDA_CHECK(cudaGetDeviceProperties(&properties, options_.device));
+  name_ = fmt::format("{}:{} ({}{})", kCudaBackendDevice, options_.device, properties.name,
+                      options_.convolution == ConvolutionImpl::Own
+                          ? std::string()
+                          : fmt::format(", {} convolutions",
+                                        convolution_impl_name(options_.convolution)));
+  workspace_.sum_of_squares = cuda::DeviceBuffer<double>(cuda::kSumOfSquaresPartials + 1);
+  workspace_.loss_partials = cuda::DeviceBuffer<cuda::LossPartial>(cuda::kLossPartials);
+  workspace_.loss_result = cuda::DeviceBuffer<cuda::LossResult>(1);
 #if !defined(PILLARSEG_CUDA_EMULATION)
-    if (options_.convolution != ConvolutionImpl::Own) {
-      vendor_conv_ = cuda::make_vendor_conv2d(options_.convolution, options_.vendor);
-      stats_.vendor_conv = vendor_conv_->stats();
-    }
-#endif
-  } catch (...) {
-    for (cudaEvent_t event : clock_events_)
-      if (event != nullptr) static_cast<void>(cudaEventDestroy(event));
-    static_cast<void>(cudaStreamDestroy(stream_));
-    throw;
+  if (options_.convolution != ConvolutionImpl::Own) {
+    vendor_conv_ = cuda::make_vendor_conv2d(options_.convolution, options_.vendor);
+    stats_.vendor_conv = vendor_conv_->stats();
   }
+#endif
   stats_.device_allocations += 3;
   stats_.workspace_bytes = workspace_.sum_of_squares.bytes() + workspace_.loss_partials.bytes() +
                            workspace_.loss_result.bytes();
@@ -153,12 +179,19 @@ CudaBackend::CudaBackend(const CudaBackendOptions& options) : options_(options) 
 
 CudaBackend::~CudaBackend() {
   // Nothing may be in flight when the memory goes; a failure here leaves nothing to report to.
-  static_cast<void>(cudaStreamSynchronize(stream_));
-  release_staging();
-  vendor_conv_.reset();
-  workspace_ = Workspace{};
-  for (cudaEvent_t event : clock_events_) static_cast<void>(cudaEventDestroy(event));
-  static_cast<void>(cudaStreamDestroy(stream_));
+  static_cast<void>(cudaStreamSynchronize(stream_.get()));
+}
+
+void CudaBackend::make_current() { PS_CUDA_CHECK(cudaSetDevice(options_.device)); }
+
+Backend::Counters CudaBackend::counters() const {
+  Counters c;
+  c.allocations = stats_.device_allocations + stats_.pinned_allocations;
+  c.bytes_uploaded = stats_.bytes_uploaded;
+  c.bytes_downloaded = stats_.bytes_downloaded;
+  c.graphs_captured = stats_.graphs_captured;
+  c.graph_replays = stats_.graph_replays;
+  return c;
 }
 
 // ---- memory ----
@@ -178,13 +211,14 @@ void CudaBackend::deallocate(void* p) noexcept {
 
 void CudaBackend::upload(void* dst, const void* host_src, size_t bytes) {
   require_not_capturing("upload");
+  stats_.bytes_uploaded += static_cast<int64_t>(bytes);
   const auto* src = static_cast<const char*>(host_src);
   auto* out = static_cast<char*>(dst);
   while (bytes > 0) {
     const size_t piece = std::min(bytes, options_.max_staging_bytes);
     void* slot = staging_slot(piece);
     std::memcpy(slot, src, piece);
-    PS_CUDA_CHECK(cudaMemcpyAsync(out, slot, piece, cudaMemcpyHostToDevice, stream_));
+    PS_CUDA_CHECK(cudaMemcpyAsync(out, slot, piece, cudaMemcpyHostToDevice, stream_.get()));
     src += piece, out += piece, bytes -= piece;
   }
 }
@@ -192,13 +226,22 @@ void CudaBackend::upload(void* dst, const void* host_src, size_t bytes) {
 void CudaBackend::download(void* host_dst, const void* src, size_t bytes) {
   require_not_capturing("download");
   if (bytes == 0) return;
-  PS_CUDA_CHECK(cudaMemcpyAsync(host_dst, src, bytes, cudaMemcpyDeviceToHost, stream_));
-  wait_for_stream();
+  stats_.bytes_downloaded += static_cast<int64_t>(bytes);
+  const auto* from = static_cast<const char*>(src);
+  auto* out = static_cast<char*>(host_dst);
+  while (bytes > 0) {
+    const size_t piece = std::min(bytes, options_.max_staging_bytes);
+    void* pinned = readback_buffer(piece);
+    PS_CUDA_CHECK(cudaMemcpyAsync(pinned, from, piece, cudaMemcpyDeviceToHost, stream_.get()));
+    wait_for_stream();
+    std::memcpy(out, pinned, piece);
+    from += piece, out += piece, bytes -= piece;
+  }
 }
 
 void CudaBackend::fill_zero(void* dst, size_t bytes) {
   if (bytes == 0) return;
-  PS_CUDA_CHECK(cudaMemsetAsync(dst, 0, bytes, stream_));
+  PS_CUDA_CHECK(cudaMemsetAsync(dst, 0, bytes, stream_.get()));
 }
 
 void CudaBackend::synchronize() {
@@ -207,7 +250,7 @@ void CudaBackend::synchronize() {
 }
 
 void CudaBackend::wait_for_stream() {
-  PS_CUDA_CHECK(cudaStreamSynchronize(stream_));
+  PS_CUDA_CHECK(cudaStreamSynchronize(stream_.get()));
   staging_used_ = 0;
 }
 
@@ -220,30 +263,33 @@ void CudaBackend::require_not_capturing(const char* op) const {
 
 void* CudaBackend::staging_slot(size_t bytes) {
   const size_t needed = align_staging(bytes);
-  if (staging_used_ + needed > staging_capacity_) {
+  if (staging_used_ + needed > staging_.bytes()) {
     const size_t interval_bytes = staging_used_ + needed;
     wait_for_stream();  // the copies out of the staging buffer are done: all of it is free
     const size_t limit = align_staging(options_.max_staging_bytes);
-    if (staging_capacity_ < limit) {
+    if (staging_.bytes() < limit) {
       // Doubling at least: a run of growing uploads reallocates only a few times.
-      const size_t capacity = std::min(std::max(interval_bytes, 2 * staging_capacity_), limit);
-      release_staging();
-      PS_CUDA_CHECK(cudaMallocHost(&staging_, capacity));
-      staging_capacity_ = capacity;
-      stats_.staging_bytes = capacity;
+      const size_t capacity = std::min(std::max(interval_bytes, 2 * staging_.bytes()), limit);
+      stats_.staging_bytes -= staging_.bytes();
+      staging_ = cuda::PinnedBuffer();
+      staging_ = cuda::PinnedBuffer(capacity);
+      stats_.staging_bytes += capacity;
       ++stats_.pinned_allocations;
     }
   }
-  void* slot = static_cast<char*>(staging_) + staging_used_;
+  void* slot = static_cast<char*>(staging_.data()) + staging_used_;
   staging_used_ += needed;
   return slot;
 }
 
-void CudaBackend::release_staging() noexcept {
-  if (staging_ != nullptr) static_cast<void>(cudaFreeHost(staging_));
-  staging_ = nullptr;
-  staging_capacity_ = staging_used_ = 0;
-  stats_.staging_bytes = 0;
+void* CudaBackend::readback_buffer(size_t bytes) {
+  if (bytes > readback_.bytes()) {
+    readback_ = cuda::PinnedBuffer();
+    readback_ = cuda::PinnedBuffer(bytes);
+    stats_.readback_bytes = bytes;
+    ++stats_.pinned_allocations;
+  }
+  return readback_.data();
 }
 
 template <class T>
@@ -259,6 +305,7 @@ T* CudaBackend::grow(cuda::DeviceBuffer<T>& buffer, size_t count) {
   buffer = cuda::DeviceBuffer<T>(count);
   stats_.workspace_bytes += buffer.bytes();
   ++stats_.device_allocations;
+  ++workspace_generation_;
   return buffer.data();
 }
 
@@ -270,17 +317,25 @@ double* CudaBackend::double_workspace(int64_t count) {
   return grow(workspace_.doubles, static_cast<size_t>(std::max<int64_t>(count, 1)));
 }
 
+std::int32_t* CudaBackend::gather_workspace(int64_t count) {
+  return grow(workspace_.gather, static_cast<size_t>(std::max<int64_t>(count, 1)));
+}
+
+std::uint32_t* CudaBackend::ray_workspace(int64_t count) {
+  return grow(workspace_.rays, static_cast<size_t>(std::max<int64_t>(count, 1)));
+}
+
 // ---- clock and graphs ----
 
 double CudaBackend::clock_ms() {
   require_not_capturing("clock_ms");
-  cudaEvent_t now = clock_events_[clock_next_];
-  PS_CUDA_CHECK(cudaEventRecord(now, stream_));
+  cudaEvent_t now = clock_events_[clock_next_].get();
+  PS_CUDA_CHECK(cudaEventRecord(now, stream_.get()));
   PS_CUDA_CHECK(cudaEventSynchronize(now));
   staging_used_ = 0;  // the stream has drained
   if (clock_started_) {
     float elapsed = 0;
-    PS_CUDA_CHECK(cudaEventElapsedTime(&elapsed, clock_events_[1 - clock_next_], now));
+    PS_CUDA_CHECK(cudaEventElapsedTime(&elapsed, clock_events_[1 - clock_next_].get(), now));
     clock_total_ms_ += elapsed;  // summed per interval: float event times stay precise
   }
   clock_started_ = true;
@@ -291,14 +346,14 @@ double CudaBackend::clock_ms() {
 std::unique_ptr<CapturedGraph> CudaBackend::capture(const std::function<void()>& work) {
   PS_CHECK(options_.graphs, "CudaBackend::capture: this backend was made with graphs off");
   require_not_capturing("capture");
-  PS_CUDA_CHECK(cudaStreamBeginCapture(stream_, cudaStreamCaptureModeGlobal));
+  PS_CUDA_CHECK(cudaStreamBeginCapture(stream_.get(), cudaStreamCaptureModeGlobal));
   capturing_ = true;
   try {
     work();
   } catch (...) {
     capturing_ = false;
     cudaGraph_t partial = nullptr;
-    if (cudaStreamEndCapture(stream_, &partial) == cudaSuccess && partial != nullptr) {
+    if (cudaStreamEndCapture(stream_.get(), &partial) == cudaSuccess && partial != nullptr) {
       static_cast<void>(cudaGraphDestroy(partial));
     }
     static_cast<void>(cudaGetLastError());
@@ -306,15 +361,127 @@ std::unique_ptr<CapturedGraph> CudaBackend::capture(const std::function<void()>&
   }
   capturing_ = false;
   cudaGraph_t graph = nullptr;
-  PS_CUDA_CHECK(cudaStreamEndCapture(stream_, &graph));
-  // The recorded graph is needed only to make the executable one.
-  const auto destroy = [](cudaGraph_t g) { static_cast<void>(cudaGraphDestroy(g)); };
-  const std::unique_ptr<std::remove_pointer_t<cudaGraph_t>, decltype(destroy)> recorded(graph,
-                                                                                        destroy);
-  cudaGraphExec_t executable = nullptr;
-  PS_CUDA_CHECK(cudaGraphInstantiate(&executable, graph, 0));
+  PS_CUDA_CHECK(cudaStreamEndCapture(stream_.get(), &graph));
+  cuda::GraphExec executable(graph);
   ++stats_.graphs_captured;
-  return std::make_unique<CudaGraph>(executable, stream_, stats_.graph_replays);
+  return std::make_unique<CudaGraph>(std::move(executable), stream_.get(), stats_.graph_replays,
+                                     workspace_generation_);
+}
+
+// ---- input preparation ----
+
+void CudaBackend::pad_points(const IRef& num_points, Ref& points) {
+  const int64_t capacity = point_count("pad_points", points);
+  require_shape("pad_points", "num_points", num_points, {1});
+  cuda::pad_points(num_points.data, capacity, points.data, stream_.get());
+}
+
+int64_t CudaBackend::pillar_gather(const Ref& points, const GridSpec& grid, int max_pillars,
+                                   IRef& cell, IRef& point_index, IRef& count,
+                                   IRef& num_pillars) {
+  const char* op = "pillar_gather";
+  const int64_t M = point_count(op, points);
+  require_rank(op, "point_index", point_index, 2);
+  const int64_t rows = cuda::pillar_gather_capacity(M, grid, max_pillars);
+  const int64_t N = point_index.dim(1);
+  require_shape(op, "cell", cell, {rows, 2});
+  require_shape(op, "point_index", point_index, {rows, N});
+  require_shape(op, "count", count, {rows});
+  require_shape(op, "num_pillars", num_pillars, {1});
+  const int64_t size = cuda::pillar_gather_workspace_size(M, grid);
+  std::int32_t* workspace = gather_workspace(size);
+  cuda::pillar_gather(points.data, M, grid, static_cast<int>(N), max_pillars, cell.data,
+                      point_index.data, count.data, num_pillars.data, workspace, size,
+                      stream_.get());
+  return rows;
+}
+
+void CudaBackend::decorate_points(const Ref& points, const GridSpec& grid, const IRef& cell,
+                                  const IRef& point_index, const IRef& count, Ref& out) {
+  const char* op = "decorate_points";
+  const int64_t M = point_count(op, points);
+  require_rank(op, "point_index", point_index, 2);
+  const int64_t rows = point_index.dim(0), N = point_index.dim(1);
+  require_shape(op, "cell", cell, {rows, 2});
+  require_shape(op, "count", count, {rows});
+  require_shape(op, "out", out, {rows, N, cuda::kDecoratedFeatures});
+  cuda::decorate_points(points.data, M, cell.data, point_index.data, count.data, rows, N, grid,
+                        out.data, stream_.get());
+}
+
+void CudaBackend::batch_cells(const IRef& cell, int sample, IRef& cells) {
+  require_rank("batch_cells", "cell", cell, 2);
+  require_shape("batch_cells", "cell", cell, {cell.dim(0), 2});
+  require_shape("batch_cells", "cells", cells, {cell.dim(0), 3});
+  cuda::batch_cells(cell.data, cell.dim(0), sample, cells.data, stream_.get());
+}
+
+void CudaBackend::observability_2d(const Ref& points, const Eigen::Vector3d& origin,
+                                   const GridSpec& grid, URef& transmissions, URef& detections) {
+  const char* op = "observability_2d";
+  const int64_t M = point_count(op, points);
+  require_shape(op, "transmissions", transmissions, {grid.height(), grid.width()});
+  require_shape(op, "detections", detections, {grid.height(), grid.width()});
+  const int64_t size = cuda::observability_2d_workspace_size(grid);
+  std::uint32_t* workspace = ray_workspace(size);
+  cuda::observability_2d(points.data, M, sensor_origin(origin), grid, transmissions.data,
+                         detections.data, workspace, size, stream_.get());
+}
+
+void CudaBackend::observability_input(const URef& transmissions, const URef& detections,
+                                      Ref& out) {
+  const char* op = "observability_input";
+  require_rank(op, "transmissions", transmissions, 2);
+  require_shape(op, "detections", detections, transmissions.shape);
+  PS_CHECK(out.numel() == transmissions.numel(), "{}: out must hold H * W = {} values, got {}", op,
+           transmissions.numel(), shape_str(out.shape));
+  cuda::observability_input(transmissions.data, detections.data, transmissions.numel(), out.data,
+                            stream_.get());
+}
+
+void CudaBackend::occupancy_3d(const Ref& points, const Eigen::Vector3d& origin,
+                               const GridSpec& grid, Ref& probability) {
+  const char* op = "occupancy_3d";
+  const int64_t M = point_count(op, points);
+  const Shape voxels{grid.layers(), grid.height(), grid.width()};
+  require_shape(op, "probability", probability, voxels);
+  const int64_t n = shape_numel(voxels);
+  std::uint32_t* counts = ray_workspace(2 * n);
+  cuda::occupancy_counts_3d(points.data, M, sensor_origin(origin), grid, counts, counts + n,
+                            stream_.get());
+  cuda::occupancy_probability(counts, counts + n, n, probability.data, stream_.get());
+}
+
+void CudaBackend::grid_map_features(const Ref& points, const GridSpec& grid,
+                                    const URef& detections, const URef& transmissions, Ref& out) {
+  const char* op = "grid_map_features";
+  const int64_t M = point_count(op, points);
+  require_shape(op, "detections", detections, {grid.height(), grid.width()});
+  require_shape(op, "transmissions", transmissions, {grid.height(), grid.width()});
+  require_shape(op, "out", out, {cuda::kGridMapLayers, grid.height(), grid.width()});
+  const int64_t size = cuda::pillar_gather_workspace_size(M, grid);
+  std::int32_t* workspace = gather_workspace(size);
+  cuda::grid_map_features(points.data, M, grid, detections.data, transmissions.data, out.data,
+                          workspace, size, stream_.get());
+}
+
+void CudaBackend::mask_unobserved(const URef& transmissions, const URef& detections,
+                                  LRef& labels, Ref* probabilities) {
+  const char* op = "mask_unobserved";
+  require_rank(op, "transmissions", transmissions, 2);
+  require_shape(op, "detections", detections, transmissions.shape);
+  const int64_t n = transmissions.numel();
+  PS_CHECK(labels.numel() == n, "{}: labels must hold H * W = {} values, got {}", op, n,
+           shape_str(labels.shape));
+  int64_t planes = 0;
+  if (probabilities != nullptr) {
+    PS_CHECK(n > 0 && probabilities->numel() % n == 0,
+             "{}: probabilities {} are not whole planes of H * W = {} cells", op,
+             shape_str(probabilities->shape), n);
+    planes = probabilities->numel() / n;
+  }
+  cuda::mask_unobserved(transmissions.data, detections.data, n, labels.data,
+                        probabilities ? probabilities->data : nullptr, planes, stream_.get());
 }
 
 // ---- pillar feature net and scatter ----
@@ -334,14 +501,14 @@ void CudaBackend::pfn_forward(const Ref& points, const Ref& weight, BatchNormRef
     // Evaluation needs no arg-max slots (nothing flows back).
     cuda::pfn_forward_eval(points.data, weight.data, shape, bn.gamma.data, bn.beta.data,
                            bn.running_mean.data, bn.running_var.data, bn.eps, out.data, nullptr,
-                           stream_);
+                           stream_.get());
     return;
   }
   require_shape(op, "argmax", argmax, {shape.pillars, shape.channels});
   double* workspace = double_workspace(cuda::pfn_workspace_doubles(shape));
   cuda::pfn_forward_train(points.data, weight.data, shape, bn.gamma.data, bn.beta.data, bn.eps,
                           bn.momentum, bn.running_mean.data, bn.running_var.data, out.data,
-                          argmax.data, bn.save_mean.data, bn.save_invstd.data, workspace, stream_);
+                          argmax.data, bn.save_mean.data, bn.save_invstd.data, workspace, stream_.get());
 }
 
 void CudaBackend::pfn_backward(const Ref& points, const Ref& weight, const BatchNormRefs& bn,
@@ -359,7 +526,7 @@ void CudaBackend::pfn_backward(const Ref& points, const Ref& weight, const Batch
   // The points are inputs: their gradient (d_points, scratch by the interface) is not computed.
   cuda::pfn_backward(dout.data, points.data, weight.data, shape, bn.gamma.data, bn.save_mean.data,
                      bn.save_invstd.data, argmax.data, nullptr, dweight.data, dgamma.data,
-                     dbeta.data, workspace, stream_);
+                     dbeta.data, workspace, stream_.get());
 }
 
 void CudaBackend::scatter_forward(const Ref& features, const IRef& cells, int channel0,
@@ -371,7 +538,7 @@ void CudaBackend::scatter_forward(const Ref& features, const IRef& cells, int ch
   const cuda::ScatterCanvas shape{canvas.dim(0), canvas.dim(1), canvas.dim(2), canvas.dim(3),
                                   channel0};
   cuda::scatter_forward(features.data, cells.data, features.dim(0), features.dim(1), shape,
-                        canvas.data, stream_);
+                        canvas.data, stream_.get());
 }
 
 void CudaBackend::scatter_backward(const Ref& dcanvas, const IRef& cells, int channel0,
@@ -383,7 +550,7 @@ void CudaBackend::scatter_backward(const Ref& dcanvas, const IRef& cells, int ch
   const cuda::ScatterCanvas shape{dcanvas.dim(0), dcanvas.dim(1), dcanvas.dim(2), dcanvas.dim(3),
                                   channel0};
   cuda::scatter_backward(dcanvas.data, shape, cells.data, dfeatures.dim(0), dfeatures.dim(1),
-                         dfeatures.data, stream_);
+                         dfeatures.data, stream_.get());
 }
 
 namespace {
@@ -402,11 +569,11 @@ cuda::ChannelBand channel_band(const char* op, const Ref& x, int channel0, const
 }  // namespace
 
 void CudaBackend::copy_channels(const Ref& x, int channel0, Ref& y) {
-  cuda::copy_channels(x.data, channel_band("copy_channels", x, channel0, y), y.data, stream_);
+  cuda::copy_channels(x.data, channel_band("copy_channels", x, channel0, y), y.data, stream_.get());
 }
 
 void CudaBackend::extract_channels(const Ref& y, int channel0, Ref& x) {
-  cuda::extract_channels(y.data, channel_band("extract_channels", x, channel0, y), x.data, stream_);
+  cuda::extract_channels(y.data, channel_band("extract_channels", x, channel0, y), x.data, stream_.get());
 }
 
 // ---- convolutions ----
@@ -452,12 +619,12 @@ void CudaBackend::conv2d_forward(const Ref& x, const Ref& w, const Ref* bias, in
   require_shape(op, "y", y, conv_output(shape));
   if (bias) require_shape(op, "bias", *bias, {shape.out_channels});
   if (cuda::Conv2dEngine* vendor = vendor_engine(shape)) {
-    vendor->forward(x.data, w.data, bias ? bias->data : nullptr, y.data, shape, stream_,
+    vendor->forward(x.data, w.data, bias ? bias->data : nullptr, y.data, shape, stream_.get(),
                     capturing_);
     stats_.vendor_conv = vendor->stats();
     return;
   }
-  cuda::conv2d_forward(x.data, w.data, bias ? bias->data : nullptr, y.data, shape, stream_);
+  cuda::conv2d_forward(x.data, w.data, bias ? bias->data : nullptr, y.data, shape, stream_.get());
 }
 
 void CudaBackend::conv2d_backward(const Ref& x, const Ref& w, const Ref& dy, int pad, Ref* dx,
@@ -469,17 +636,17 @@ void CudaBackend::conv2d_backward(const Ref& x, const Ref& w, const Ref& dy, int
   if (dbias) require_shape(op, "dbias", *dbias, {shape.out_channels});
   if (dx) require_shape(op, "dx", *dx, x.shape);
   if (cuda::Conv2dEngine* vendor = vendor_engine(shape)) {
-    if (dx) vendor->backward_data(dy.data, w.data, dx->data, shape, stream_, capturing_);
+    if (dx) vendor->backward_data(dy.data, w.data, dx->data, shape, stream_.get(), capturing_);
     vendor->backward_weights(x.data, dy.data, dw.data, dbias ? dbias->data : nullptr, shape,
-                             stream_, capturing_);
+                             stream_.get(), capturing_);
     stats_.vendor_conv = vendor->stats();
     return;
   }
-  if (dx) cuda::conv2d_backward_data(dy.data, w.data, dx->data, shape, stream_);
+  if (dx) cuda::conv2d_backward_data(dy.data, w.data, dx->data, shape, stream_.get());
   const size_t floats = cuda::conv2d_backward_weights_workspace(shape);
   float* workspace = float_workspace(floats);
   cuda::conv2d_backward_weights(x.data, dy.data, dw.data, dbias ? dbias->data : nullptr, shape,
-                                workspace, workspace_.floats.size(), stream_);
+                                workspace, workspace_.floats.size(), stream_.get());
 }
 
 void CudaBackend::conv_transpose2d_forward(const Ref& x, const Ref& w, const Ref* bias, Ref& y) {
@@ -488,7 +655,7 @@ void CudaBackend::conv_transpose2d_forward(const Ref& x, const Ref& w, const Ref
   require_shape(op, "y", y, conv_transpose_output(shape));
   if (bias) require_shape(op, "bias", *bias, {shape.out_channels});
   cuda::conv_transpose2d_forward(x.data, w.data, bias ? bias->data : nullptr, y.data, shape,
-                                 stream_);
+                                 stream_.get());
 }
 
 void CudaBackend::conv_transpose2d_backward(const Ref& x, const Ref& w, const Ref& dy, Ref& dx,
@@ -499,11 +666,11 @@ void CudaBackend::conv_transpose2d_backward(const Ref& x, const Ref& w, const Re
   require_shape(op, "dx", dx, x.shape);
   require_shape(op, "dw", dw, w.shape);
   if (dbias) require_shape(op, "dbias", *dbias, {shape.out_channels});
-  cuda::conv_transpose2d_backward_data(dy.data, w.data, dx.data, shape, stream_);
+  cuda::conv_transpose2d_backward_data(dy.data, w.data, dx.data, shape, stream_.get());
   const size_t floats = cuda::conv_transpose2d_backward_weights_workspace(shape);
   float* workspace = float_workspace(floats);
   cuda::conv_transpose2d_backward_weights(x.data, dy.data, dw.data, dbias ? dbias->data : nullptr,
-                                          shape, workspace, workspace_.floats.size(), stream_);
+                                          shape, workspace, workspace_.floats.size(), stream_.get());
 }
 
 // ---- BatchNorm + ReLU, pooling, upsampling, joins ----
@@ -516,13 +683,13 @@ void CudaBackend::batchnorm_relu_forward(const Ref& x, BatchNormRefs& bn, bool t
   const cuda::PlanarShape shape = planar(x);
   if (!training) {
     cuda::batchnorm_forward_eval(x.data, shape, bn.gamma.data, bn.beta.data, bn.running_mean.data,
-                                 bn.running_var.data, bn.eps, /*relu=*/true, y.data, stream_);
+                                 bn.running_var.data, bn.eps, /*relu=*/true, y.data, stream_.get());
     return;
   }
   double* workspace = double_workspace(cuda::batchnorm_workspace_doubles(shape));
   cuda::batchnorm_forward_train(x.data, shape, bn.gamma.data, bn.beta.data, bn.eps, bn.momentum,
                                 bn.running_mean.data, bn.running_var.data, /*relu=*/true, y.data,
-                                bn.save_mean.data, bn.save_invstd.data, workspace, stream_);
+                                bn.save_mean.data, bn.save_invstd.data, workspace, stream_.get());
 }
 
 void CudaBackend::batchnorm_relu_backward(const Ref& x, const Ref& y, const Ref& dy,
@@ -539,7 +706,7 @@ void CudaBackend::batchnorm_relu_backward(const Ref& x, const Ref& y, const Ref&
   double* workspace = double_workspace(cuda::batchnorm_workspace_doubles(shape));
   cuda::batchnorm_backward(dy.data, x.data, y.data, shape, bn.gamma.data, bn.save_mean.data,
                            bn.save_invstd.data, dx.data, dgamma.data, dbeta.data, workspace,
-                           stream_);
+                           stream_.get());
 }
 
 void CudaBackend::maxpool2x2_forward(const Ref& x, Ref& y, IRef& argmax) {
@@ -549,7 +716,7 @@ void CudaBackend::maxpool2x2_forward(const Ref& x, Ref& y, IRef& argmax) {
   require_shape(op, "y", y, pooled);
   require_shape(op, "argmax", argmax, pooled);
   cuda::maxpool2d_forward(x.data, x.dim(0) * x.dim(1), x.dim(2), x.dim(3), y.data, argmax.data,
-                          stream_);
+                          stream_.get());
 }
 
 void CudaBackend::maxpool2x2_backward(const Ref& dy, const IRef& argmax, Ref& dx) {
@@ -559,13 +726,13 @@ void CudaBackend::maxpool2x2_backward(const Ref& dy, const IRef& argmax, Ref& dx
   require_shape(op, "dy", dy, pooled);
   require_shape(op, "argmax", argmax, pooled);
   cuda::maxpool2d_backward(dy.data, argmax.data, dx.dim(0) * dx.dim(1), dx.dim(2), dx.dim(3),
-                           dx.data, stream_);
+                           dx.data, stream_.get());
 }
 
 void CudaBackend::upsample2x_forward(const Ref& x, Ref& y) {
   require_rank("upsample2x_forward", "x", x, 4);
   require_shape("upsample2x_forward", "y", y, {x.dim(0), x.dim(1), 2 * x.dim(2), 2 * x.dim(3)});
-  cuda::upsample_bilinear_forward(x.data, x.dim(0) * x.dim(1), x.dim(2), x.dim(3), y.data, stream_);
+  cuda::upsample_bilinear_forward(x.data, x.dim(0) * x.dim(1), x.dim(2), x.dim(3), y.data, stream_.get());
 }
 
 void CudaBackend::upsample2x_backward(const Ref& dy, Ref& dx) {
@@ -573,7 +740,7 @@ void CudaBackend::upsample2x_backward(const Ref& dy, Ref& dx) {
   require_shape("upsample2x_backward", "dy", dy,
                 {dx.dim(0), dx.dim(1), 2 * dx.dim(2), 2 * dx.dim(3)});
   cuda::upsample_bilinear_backward(dy.data, dx.dim(0) * dx.dim(1), dx.dim(2), dx.dim(3), dx.data,
-                                   stream_);
+                                   stream_.get());
 }
 
 namespace {
@@ -593,17 +760,17 @@ cuda::PadConcatShape pad_concat_shape(const char* op, const Ref& skip, const Ref
 
 void CudaBackend::pad_concat_forward(const Ref& skip, const Ref& up, Ref& y) {
   cuda::pad_concat_forward(skip.data, up.data, pad_concat_shape("pad_concat_forward", skip, up, y),
-                           y.data, stream_);
+                           y.data, stream_.get());
 }
 
 void CudaBackend::pad_concat_backward(const Ref& dy, Ref& dskip, Ref& dup) {
   cuda::pad_concat_backward(dy.data, pad_concat_shape("pad_concat_backward", dskip, dup, dy),
-                            dskip.data, dup.data, stream_);
+                            dskip.data, dup.data, stream_.get());
 }
 
 void CudaBackend::add_inplace(Ref& a, const Ref& b) {
   require_shape("add_inplace", "b", b, a.shape);
-  cuda::add_inplace(a.data, b.data, a.numel(), stream_);
+  cuda::add_inplace(a.data, b.data, a.numel(), stream_.get());
 }
 
 // ---- head, loss, optimiser ----
@@ -612,14 +779,14 @@ void CudaBackend::softmax(const Ref& logits, Ref& probs) {
   require_rank("softmax", "logits", logits, 4);
   require_shape("softmax", "probs", probs, logits.shape);
   cuda::softmax_channels(logits.data, logits.dim(0), logits.dim(1), logits.dim(2) * logits.dim(3),
-                         probs.data, stream_);
+                         probs.data, stream_.get());
 }
 
 void CudaBackend::argmax(const Ref& logits, LRef& labels) {
   require_rank("argmax", "logits", logits, 4);
   require_shape("argmax", "labels", labels, {logits.dim(0), logits.dim(2), logits.dim(3)});
   cuda::argmax_class_ids(logits.data, logits.dim(0), logits.dim(1), logits.dim(2) * logits.dim(3),
-                         labels.data, stream_);
+                         labels.data, stream_.get());
 }
 
 double CudaBackend::loss(LossKind kind, const Ref& logits, const LRef& labels,
@@ -633,8 +800,8 @@ double CudaBackend::loss(LossKind kind, const Ref& logits, const LRef& labels,
   require_shape(op, "dlogits", dlogits, logits.shape);
   const auto run = kind == LossKind::CrossEntropy ? &cuda::cross_entropy_loss : &cuda::bce_loss;
   run(logits.data, labels.data, B, K, S, coefficients.data, dlogits.data,
-      workspace_.loss_partials.data(), workspace_.loss_result.data(), stream_);
-  const double value = cuda::loss_value(workspace_.loss_result.data(), stream_);
+      workspace_.loss_partials.data(), workspace_.loss_result.data(), stream_.get());
+  const double value = cuda::loss_value(workspace_.loss_result.data(), stream_.get());
   staging_used_ = 0;  // loss_value waited for the stream
   return value;
 }
@@ -643,14 +810,14 @@ double CudaBackend::sum_of_squares(const Ref& x) {
   require_not_capturing("sum_of_squares");
   double* partials = workspace_.sum_of_squares.data();
   double* result = partials + cuda::kSumOfSquaresPartials;
-  cuda::sum_of_squares(x.data, x.numel(), partials, result, stream_);
+  cuda::sum_of_squares(x.data, x.numel(), partials, result, stream_.get());
   double host = 0;
   download(&host, result, sizeof(double));
   return host;
 }
 
 void CudaBackend::scale(Ref& x, float factor) {
-  cuda::scale(x.data, factor, x.numel(), stream_);
+  cuda::scale(x.data, factor, x.numel(), stream_.get());
 }
 
 void CudaBackend::adam_step(Ref& param, const Ref& grad, Ref& m, Ref& v, const AdamHyper& hyper) {
@@ -662,19 +829,26 @@ void CudaBackend::adam_step(Ref& param, const Ref& grad, Ref& m, Ref& v, const A
   options.lr = hyper.lr, options.beta1 = hyper.beta1, options.beta2 = hyper.beta2;
   options.eps = hyper.eps, options.weight_decay = hyper.weight_decay;
   cuda::adam_step(param.data, grad.data, m.data, v.data, param.numel(), hyper.step, options,
-                  stream_);
+                  stream_.get());
 }
 
 // ---- factory ----
 
-std::unique_ptr<Backend> make_cuda_device_backend(const std::string& convolution) {
-  CudaBackendOptions options;
-  options.convolution = parse_convolution_impl(convolution);
-  return std::make_unique<CudaBackend>(options);
+std::unique_ptr<Backend> make_cuda_device_backend(const BackendOptions& options) {
+  CudaBackendOptions cuda_options;
+  cuda_options.convolution = parse_convolution_impl(options.convolution);
+  cuda_options.device = options.cuda_device;
+  return std::make_unique<CudaBackend>(cuda_options);
 }
 
-void install_cuda_backend() {
-  set_cuda_backend_factory(&make_cuda_device_backend);
-}
+}  // namespace pillarseg::inline PILLARSEG_CUDA_NAMESPACE
+
+namespace pillarseg {
+
+#if defined(PILLARSEG_CUDA_EMULATION)
+void install_emulated_cuda_backend() { set_backend_factory("emu", &make_cuda_device_backend); }
+#else
+void install_cuda_backend() { set_backend_factory("cuda", &make_cuda_device_backend); }
+#endif
 
 }  // namespace pillarseg

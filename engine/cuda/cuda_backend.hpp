@@ -5,14 +5,21 @@
 // tests run); a program links one of them.
 //
 // Memory: activations, parameters and gradients come from allocate() (cudaMalloc; the model's
-// arenas plan them once). The kernels' scratch (convolution weight-gradient partials, BatchNorm and
-// PFN statistics, loss and reduction partials) lives in the backend's Workspace, grown only when
-// an op needs more than any before, so a training loop allocates nothing after its first step.
-// Uploads go through a pinned staging buffer (cudaMallocHost) and cudaMemcpyAsync; only
-// download(), synchronize(), loss() and sum_of_squares() wait for the device.
+// arenas plan them once). The kernels' scratch (the pillar gather's and ray walks' working arrays,
+// convolution weight-gradient partials, BatchNorm and PFN statistics, loss and reduction partials)
+// lives in the backend's Workspace, grown only when an op needs more than any before, so a
+// training or inference loop allocates nothing after its first steps. Uploads go through a pinned
+// staging buffer and downloads through a pinned readback buffer (cudaMallocHost) with
+// cudaMemcpyAsync; only download(), synchronize(), loss() and sum_of_squares() wait for the
+// device. The stats count the allocations and the bytes that cross the bus each way.
 //
 // Graphs: capture() records the work queued by a callback as a CUDA graph (stream capture) and
-// returns it for replay; PillarSegNet records its evaluation forward this way.
+// returns it for replay; the scan pipeline (engine/pipeline/) records everything after the
+// upload this way, PillarSegNet its evaluation forward. A graph is valid() until a workspace it
+// names grows.
+//
+// Devices: options.device selects the GPU; make_current() makes it the calling thread's current
+// device (the runtime keeps one per thread), and the constructor calls it.
 //
 // Convolutions: Conv2d runs our kernels (kernels/conv2d.cuh) or, for comparison, cuDNN or
 // im2col + cuBLAS (engine/cuda/vendor_conv.hpp), chosen by CudaBackendOptions::convolution; the
@@ -26,16 +33,20 @@
 #include <memory>
 #include <string>
 
+#include "engine/cuda/install.hpp"
 #include "engine/cuda/vendor_conv.hpp"
 #include "engine/model/backend.hpp"
+#include "kernels/cuda_handles.hpp"
 #include "kernels/device_buffer.hpp"
 #include "kernels/losses.cuh"
 
-namespace pillarseg {
+namespace pillarseg::inline PILLARSEG_CUDA_NAMESPACE {
 
 struct CudaBackendOptions {
-  bool graphs = true;  // supports_capture(): the model replays its evaluation forward as a graph
-  // Largest pinned staging buffer; a larger upload is copied in pieces of this size.
+  int device = 0;      // the CUDA device ordinal
+  bool graphs = true;  // supports_capture(): the pipeline and the model replay graphs
+  // Largest pinned staging (and readback) buffer; a larger upload (download) is copied in pieces
+  // of this size.
   size_t max_staging_bytes = size_t{64} << 20;
   // Who computes Conv2d forward and backward: Own (our kernels), Cudnn (cuDNN, deterministic
   // algorithms chosen once per shape, its workspace grown when an algorithm needs more), or
@@ -50,9 +61,12 @@ struct CudaBackendOptions {
 // What the backend has allocated and recorded so far (the steady state adds nothing).
 struct CudaBackendStats {
   int64_t device_allocations = 0;  // cudaMalloc calls: allocate() and workspace growth
-  int64_t pinned_allocations = 0;  // cudaMallocHost calls: staging growth
+  int64_t pinned_allocations = 0;  // cudaMallocHost calls: staging and readback growth
   size_t workspace_bytes = 0;      // device scratch held now
-  size_t staging_bytes = 0;        // pinned staging held now
+  size_t staging_bytes = 0;        // pinned staging held now (uploads)
+  size_t readback_bytes = 0;       // pinned readback held now (downloads)
+  int64_t bytes_uploaded = 0;      // host -> device, by upload()
+  int64_t bytes_downloaded = 0;    // device -> host, by download()
   int64_t graphs_captured = 0;
   int64_t graph_replays = 0;
   cuda::VendorConvStats vendor_conv;  // the cuDNN or cuBLAS engine's (zeros with Own)
@@ -72,7 +86,7 @@ class CudaBackend final : public Backend {
   std::string name() const override { return name_; }
   ConvolutionImpl convolution() const { return options_.convolution; }
   const CudaBackendStats& stats() const { return stats_; }
-  cudaStream_t stream() const { return stream_; }
+  cudaStream_t stream() const { return stream_.get(); }
 
   void* allocate(size_t bytes) override;
   void deallocate(void* p) noexcept override;
@@ -83,6 +97,24 @@ class CudaBackend final : public Backend {
   double clock_ms() override;
   bool supports_capture() const override { return options_.graphs; }
   std::unique_ptr<CapturedGraph> capture(const std::function<void()>& work) override;
+  void make_current() override;
+  Counters counters() const override;
+
+  void pad_points(const IRef& num_points, Ref& points) override;
+  int64_t pillar_gather(const Ref& points, const GridSpec& grid, int max_pillars, IRef& cell,
+                        IRef& point_index, IRef& count, IRef& num_pillars) override;
+  void decorate_points(const Ref& points, const GridSpec& grid, const IRef& cell,
+                       const IRef& point_index, const IRef& count, Ref& out) override;
+  void batch_cells(const IRef& cell, int sample, IRef& cells) override;
+  void observability_2d(const Ref& points, const Eigen::Vector3d& origin, const GridSpec& grid,
+                        URef& transmissions, URef& detections) override;
+  void observability_input(const URef& transmissions, const URef& detections, Ref& out) override;
+  void occupancy_3d(const Ref& points, const Eigen::Vector3d& origin, const GridSpec& grid,
+                    Ref& probability) override;
+  void grid_map_features(const Ref& points, const GridSpec& grid, const URef& detections,
+                         const URef& transmissions, Ref& out) override;
+  void mask_unobserved(const URef& transmissions, const URef& detections, LRef& labels,
+                       Ref* probabilities) override;
 
   void pfn_forward(const Ref& points, const Ref& weight, BatchNormRefs& bn, bool training,
                    IRef& argmax, Ref& out, const Ref& scratch) override;
@@ -119,17 +151,21 @@ class CudaBackend final : public Backend {
   void adam_step(Ref& param, const Ref& grad, Ref& m, Ref& v, const AdamHyper& hyper) override;
 
  private:
-  // The kernels' scratch, in one place. `floats` and `doubles` grow to the largest request so
-  // far; the loss and reduction buffers have fixed sizes.
+  // The kernels' scratch, in one place. `floats`, `doubles`, `gather` and `rays` grow to the
+  // largest request so far; the loss and reduction buffers have fixed sizes.
   struct Workspace {
     cuda::DeviceBuffer<float> floats;           // convolution weight-gradient partials
     cuda::DeviceBuffer<double> doubles;         // BatchNorm and PFN statistics
+    cuda::DeviceBuffer<std::int32_t> gather;    // the pillar gather's (and grid map's) arrays
+    cuda::DeviceBuffer<std::uint32_t> rays;     // the ray walks' counts
     cuda::DeviceBuffer<double> sum_of_squares;  // kSumOfSquaresPartials partials, then the result
     cuda::DeviceBuffer<cuda::LossPartial> loss_partials;
     cuda::DeviceBuffer<cuda::LossResult> loss_result;
   };
   float* float_workspace(size_t count);
   double* double_workspace(int64_t count);
+  std::int32_t* gather_workspace(int64_t count);
+  std::uint32_t* ray_workspace(int64_t count);
   template <class T>
   T* grow(cuda::DeviceBuffer<T>& buffer, size_t count);
 
@@ -137,7 +173,8 @@ class CudaBackend final : public Backend {
   // buffer is full it waits for the stream (earlier copies out of it are then done) and, the
   // first times, grows to hold everything uploaded between two waits.
   void* staging_slot(size_t bytes);
-  void release_staging() noexcept;
+  // Pinned memory for a download of `bytes` (grown, never shrunk).
+  void* readback_buffer(size_t bytes);
   void wait_for_stream();  // cudaStreamSynchronize; the staging buffer is free again
   void require_not_capturing(const char* op) const;
   // The vendor engine for `shape`, or nullptr where our kernels run it (Own, or an empty shape).
@@ -145,14 +182,16 @@ class CudaBackend final : public Backend {
 
   CudaBackendOptions options_;
   std::string name_;
-  cudaStream_t stream_ = nullptr;
-  cudaEvent_t clock_events_[2] = {nullptr, nullptr};  // clock_ms(): the last two marks
+  cuda::Stream stream_;
+  cuda::Event clock_events_[2];  // clock_ms(): the last two marks
   int clock_next_ = 0;
   bool clock_started_ = false;
   double clock_total_ms_ = 0;
   Workspace workspace_;
-  void* staging_ = nullptr;
-  size_t staging_capacity_ = 0, staging_used_ = 0;
+  // Incremented whenever a workspace moves: graphs recorded before name the old memory.
+  int64_t workspace_generation_ = 0;
+  cuda::PinnedBuffer staging_, readback_;
+  size_t staging_used_ = 0;
   bool capturing_ = false;
   std::unique_ptr<cuda::Conv2dEngine> vendor_conv_;  // null with ConvolutionImpl::Own
   CudaBackendStats stats_;
@@ -161,10 +200,18 @@ class CudaBackend final : public Backend {
 // "no CUDA device found: <reason>; use --device cpu", for the result of cudaGetDeviceCount.
 std::string no_cuda_device_message(cudaError_t error, int device_count);
 
-// A CudaBackend with default options but the Conv2d implementation named by `convolution`
-// ("own", "cudnn", "cublas"; for make_cuda_backend()).
-std::unique_ptr<Backend> make_cuda_device_backend(const std::string& convolution);
-// Makes make_cuda_backend() (and so --device cuda) build a CudaBackend.
-void install_cuda_backend();
+// A CudaBackend with default options but the Conv2d implementation and device of `options` (what
+// make_backend() calls).
+std::unique_ptr<Backend> make_cuda_device_backend(const BackendOptions& options);
 
-}  // namespace pillarseg
+// This build's device name for make_backend() ("cuda" on the GPU build, "emu" on the emulation)
+// and its installer (install_cuda_backend or install_emulated_cuda_backend, engine/cuda/install.hpp).
+#if defined(PILLARSEG_CUDA_EMULATION)
+inline constexpr const char* kCudaBackendDevice = "emu";
+inline void install_this_cuda_backend() { install_emulated_cuda_backend(); }
+#else
+inline constexpr const char* kCudaBackendDevice = "cuda";
+inline void install_this_cuda_backend() { install_cuda_backend(); }
+#endif
+
+}  // namespace pillarseg::inline PILLARSEG_CUDA_NAMESPACE

@@ -44,7 +44,7 @@
   } while (0)
 #endif
 
-namespace pillarseg::cuda {
+namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 
 namespace {
 

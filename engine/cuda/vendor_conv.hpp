@@ -28,7 +28,7 @@
 
 #include "kernels/conv2d.cuh"
 
-namespace pillarseg {
+namespace pillarseg::inline PILLARSEG_CUDA_NAMESPACE {
 
 // Which implementation runs CudaBackend's Conv2d (ConvTranspose2d is always ours).
 enum class ConvolutionImpl {
@@ -42,7 +42,9 @@ enum class ConvolutionImpl {
 ConvolutionImpl parse_convolution_impl(const std::string& name);
 const char* convolution_impl_name(ConvolutionImpl impl);
 
-namespace cuda {
+}  // namespace pillarseg::inline PILLARSEG_CUDA_NAMESPACE
+
+namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 
 struct VendorConvOptions {
   // cuDNN's and cuBLAS's default math (TF32 tensor cores on Ampere and later, about 10 mantissa
@@ -90,5 +92,4 @@ class Conv2dEngine {
 std::unique_ptr<Conv2dEngine> make_vendor_conv2d(ConvolutionImpl impl,
                                                  const VendorConvOptions& options = {});
 
-}  // namespace cuda
-}  // namespace pillarseg
+}  // namespace pillarseg::cuda

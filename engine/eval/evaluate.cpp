@@ -5,23 +5,9 @@
 
 namespace pillarseg {
 
-Prediction predict_scan(PillarSegNet& net, const ModelConfig& model, const std::vector<Point>& points,
-                        bool with_probabilities, bool with_observability) {
-  ScanInputs inputs =
-      compute_scan_inputs(points, Eigen::Vector3d::Zero(), model, host::SampleMode::Inference, nullptr, with_observability);
-  net.forward(collate(std::move(inputs), model), /*training=*/false);
-  Prediction p;
-  p.labels = net.predict_labels();
-  p.labels.reshape({model.grid.height(), model.grid.width()});
-  if (with_probabilities) {
-    p.probabilities = net.probabilities();
-    p.probabilities.reshape({model.num_classes, model.grid.height(), model.grid.width()});
-  }
-  p.observability = std::move(inputs.observability);
-  return p;
-}
-
-SegmentationMetrics evaluate(PillarSegNet& net, const RunConfig& config, const EvalOptions& options) {
+SegmentationMetrics evaluate(ScanSegmenter& segmenter, const RunConfig& config, const EvalOptions& options) {
+  PillarSegNet& net = segmenter.net();
+  const bool on_host = segmenter.backend().device() == Device::Cpu;
   const std::vector<int>& sequences = options.sequences.empty() ? config.eval.sequences : options.sequences;
   const int stride = options.scan_stride > 0 ? options.scan_stride : config.eval.scan_stride;
   const ClassTable classes = ClassTable::defaults();
@@ -30,11 +16,18 @@ SegmentationMetrics evaluate(PillarSegNet& net, const RunConfig& config, const E
   const bool dense = options.mode == GroundTruthKind::dense;
   SegmentationMetrics metrics;
   Progress progress(dense ? "dense eval" : "sparse eval", static_cast<int64_t>(data.size()), "scans");
+  Tensor<uint8_t> predicted({config.model.grid.height(), config.model.grid.width()});
   for (size_t i = 0; i < data.size(); ++i) {
-    Sample s = data.eval_sample(i, options.mode, dense);
-    net.forward(collate(std::move(s.inputs), config.model), /*training=*/false);
-    Tensor<uint8_t> predicted = net.predict_labels();
-    predicted.reshape(s.labels.shape());
+    Sample s;
+    if (on_host) {
+      s = data.eval_sample(i, options.mode, dense);
+      net.forward(collate(std::move(s.inputs), config.model), /*training=*/false);
+      predicted = net.predict_labels();
+      predicted.reshape(s.labels.shape());
+    } else {
+      s = data.eval_targets(i, options.mode, dense);
+      segmenter.segment(data.scan(i).points, predicted.data());
+    }
     metrics.add(s.labels, predicted, dense ? &s.mask : nullptr);
     if (options.progress) progress.update(static_cast<int64_t>(i) + 1);
   }

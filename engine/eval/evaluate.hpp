@@ -11,6 +11,7 @@
 #include "engine/data/ground_truth.hpp"
 #include "engine/eval/metrics.hpp"
 #include "engine/model/pillarsegnet.hpp"
+#include "engine/pipeline/segmenter.hpp"
 #include "engine/train/run_config.hpp"
 
 namespace pillarseg {
@@ -24,17 +25,10 @@ struct EvalOptions {
   bool progress = true;
 };
 
-// One scan through the network (eval mode): class ids (H, W), optionally the softmax
-// probabilities (12, H, W) and the observability counts (H, W).
-struct Prediction {
-  Tensor<uint8_t> labels;
-  Tensor<float> probabilities;
-  Tensor<uint32_t> observability;
-};
-Prediction predict_scan(PillarSegNet& net, const ModelConfig& model, const std::vector<Point>& points,
-                        bool with_probabilities, bool with_observability);
-
-SegmentationMetrics evaluate(PillarSegNet& net, const RunConfig& config, const EvalOptions& options);
+// The segmenter's model over the split. On the CPU backend the inputs come from the host pipeline
+// with the cached maps (as training reads them); on a CUDA backend each scan's raw points go
+// through the device pipeline (ScanSegmenter::segment).
+SegmentationMetrics evaluate(ScanSegmenter& segmenter, const RunConfig& config, const EvalOptions& options);
 
 // Table I row labels: "Sparse Train / Dense Eval" and "Pillar + 2D Occupancy".
 std::string eval_mode_label(GroundTruthKind train, GroundTruthKind eval);

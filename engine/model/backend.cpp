@@ -1,5 +1,7 @@
 #include "engine/model/backend.hpp"
 
+#include <algorithm>
+#include <array>
 #include <atomic>
 #include <chrono>
 
@@ -10,7 +12,15 @@ namespace pillarseg {
 namespace {
 constexpr size_t kAlignment = 64;
 size_t align_up(size_t n) { return (n + kAlignment - 1) / kAlignment * kAlignment; }
-std::atomic<BackendFactory> cuda_backend_factory{nullptr};
+// The factories of "cuda" and "emu", in this order.
+constexpr std::array<const char*, 2> kFactoryDevices = {"cuda", "emu"};
+std::array<std::atomic<BackendFactory>, 2> backend_factories{};
+
+std::atomic<BackendFactory>& factory_slot(const std::string& device) {
+  for (size_t i = 0; i < kFactoryDevices.size(); ++i)
+    if (device == kFactoryDevices[i]) return backend_factories[i];
+  PS_FAIL("set_backend_factory: device must be cuda or emu, got '{}'", device);
+}
 }  // namespace
 
 double Backend::clock_ms() {
@@ -47,24 +57,45 @@ void* Arena::take_bytes(size_t bytes) {
   return static_cast<char*>(base_) + offset;
 }
 
-void set_cuda_backend_factory(BackendFactory factory) { cuda_backend_factory.store(factory); }
-
-std::unique_ptr<Backend> make_cuda_backend(const std::string& convolution) {
-  const BackendFactory factory = cuda_backend_factory.load();
-  PS_CHECK(factory != nullptr,
-           "--device cuda: this build has no CUDA backend (configure with the CUDA toolkit installed, so that "
-           "CMake finds nvcc); use --device cpu");
-  return factory(convolution);
+void set_backend_factory(const std::string& device, BackendFactory factory) {
+  factory_slot(device).store(factory);
 }
 
-std::unique_ptr<Backend> make_backend(const std::string& device, const std::string& convolution) {
+std::string available_devices() {
+  std::string devices = "cpu";
+  for (size_t i = 0; i < kFactoryDevices.size(); ++i)
+    if (backend_factories[i].load() != nullptr) devices += std::string(", ") + kFactoryDevices[i];
+  return devices;
+}
+
+std::unique_ptr<Backend> make_backend(const std::string& device, const BackendOptions& options) {
   if (device == "cpu") {
-    PS_CHECK(convolution == "own", "--conv {} needs --device cuda (the CPU backend has one convolution)",
-             convolution);
+    PS_CHECK(options.convolution == "own",
+             "--conv {} needs --device cuda (the CPU backend has one convolution)", options.convolution);
     return make_cpu_backend();
   }
-  if (device == "cuda") return make_cuda_backend(convolution);
-  PS_FAIL("--device must be cpu or cuda, got '{}'", device);
+  if (device == "cuda") {
+    const BackendFactory factory = factory_slot(device).load();
+    PS_CHECK(factory != nullptr,
+             "--device cuda: this build has no CUDA backend (configure with the CUDA toolkit installed, so that "
+             "CMake finds nvcc); use --device cpu, or --device emu for the CUDA backend on the CPU emulation");
+    return factory(options);
+  }
+  if (device == "emu") {
+    const BackendFactory factory = factory_slot(device).load();
+    PS_CHECK(factory != nullptr,
+             "--device emu: this program has no emulated CUDA backend (link pillarseg_cuda_backend_emu); use "
+             "--device cpu");
+    return factory(options);
+  }
+  PS_FAIL("--device must be cpu, cuda or emu, got '{}'", device);
+}
+
+int64_t pillar_rows(int64_t num_points, const GridSpec& grid, int max_pillars) {
+  PS_CHECK(num_points >= 0 && max_pillars >= 0,
+           "pillar_rows: expected M >= 0 points and P >= 0 pillars, given M = {}, P = {}", num_points,
+           max_pillars);
+  return max_pillars > 0 ? int64_t{max_pillars} : std::min(num_points, grid.cells());
 }
 
 }  // namespace pillarseg

@@ -1,8 +1,9 @@
-// Backend: the ops of PillarSegNet on one device. The model (engine/model/pillarsegnet.*) is
-// written once against this interface; CpuBackend runs the host/ reference ops, CudaBackend
-// the kernels/ (on a GPU, or on the CPU through the CUDA emulation layer). Tensors are Refs:
-// a pointer into the backend's memory (host or device) and a shape; a backend never
-// allocates inside an op.
+// Backend: the ops of PillarSegNet on one device, from a scan's raw points to the label map. The
+// input pipeline (engine/pipeline/) and the model (engine/model/pillarsegnet.*) are written once
+// against this interface; CpuBackend runs the host/ reference ops, CudaBackend the kernels/ (on a
+// GPU, or on the CPU through the CUDA emulation layer). Tensors are Refs: a pointer into the
+// backend's memory (host or device) and a shape; a backend never allocates inside an op except
+// its own scratch, which grows to the largest request and then stays.
 #pragma once
 
 #include <cstdint>
@@ -10,13 +11,15 @@
 #include <memory>
 #include <string>
 
+#include "core/eigen.hpp"
+#include "core/grid.hpp"
 #include "core/tensor.hpp"
 
 namespace pillarseg {
 
 enum class Device { Cpu, Cuda };
 
-// A tensor in a backend's memory; T is float, int32_t or uint8_t.
+// A tensor in a backend's memory; T is float, int32_t, uint32_t or uint8_t.
 template <class T>
 struct RefT {
   T* data = nullptr;
@@ -28,6 +31,7 @@ struct RefT {
 using Ref = RefT<float>;
 using IRef = RefT<int32_t>;
 using LRef = RefT<uint8_t>;
+using URef = RefT<uint32_t>;  // ray counts
 
 // BatchNorm parameters, running statistics and the per-channel statistics a training forward
 // saves for the backward. All (C).
@@ -46,6 +50,9 @@ class CapturedGraph {
  public:
   virtual ~CapturedGraph() = default;
   virtual void replay() = 0;
+  // False once the backend has moved memory the recorded ops name (its scratch grew since the
+  // capture): the graph must be recorded again before the next replay.
+  virtual bool valid() const { return true; }
 };
 
 struct AdamHyper {
@@ -75,6 +82,57 @@ class Backend {
   // or wait (the model records only the evaluation forward's device work).
   virtual bool supports_capture() const { return false; }
   virtual std::unique_ptr<CapturedGraph> capture(const std::function<void()>& work);
+  // What the backend has done so far: the allocations a steady state must not add to, the bytes
+  // it moved between the host and the device, the graphs it recorded and replayed. The CPU
+  // backend counts nothing (its memory is the host's).
+  struct Counters {
+    int64_t allocations = 0;  // device and pinned allocations, scratch growth included
+    int64_t bytes_uploaded = 0, bytes_downloaded = 0;
+    int64_t graphs_captured = 0, graph_replays = 0;
+  };
+  virtual Counters counters() const { return {}; }
+  // Makes this backend's device the calling thread's current one (the CUDA runtime keeps it per
+  // thread); a program that runs a backend from another thread than the one that made it calls
+  // this first.
+  virtual void make_current() {}
+
+  // ---- input preparation: a scan's points -> the network's inputs (DESIGN.md section 6) ----
+  // points (M, 4) rows x, y, z, reflectance in the backend's memory. A row with a non-finite
+  // coordinate belongs to no pillar and casts no ray.
+
+  // Rows [num_points[0], M) of points (M, 4) = NaN; num_points (1) in the backend's memory. A scan
+  // of any size up to M then runs in the buffers (and the graph) planned for M.
+  virtual void pad_points(const IRef& num_points, Ref& points) = 0;
+  // Pillar gather, inference sampling (host/pillar_gather.hpp): points (M, 4) -> cell (R, 2) rows
+  // (iy, ix), point_index (R, N), count (R) and num_pillars (1) = P', for R >= pillar_rows(M,
+  // grid, max_pillars). Returns the leading rows the next ops must read: P' where the backend
+  // knows it without waiting for the device (the CPU backend), else R (rows past P' are inert:
+  // cell (-1, -1), count 0, point_index -1).
+  virtual int64_t pillar_gather(const Ref& points, const GridSpec& grid, int max_pillars, IRef& cell,
+                                IRef& point_index, IRef& count, IRef& num_pillars) = 0;
+  // The decorated points (rows, N, 10) of the pillars (host/point_decoration.hpp): cell (rows, 2),
+  // point_index (rows, N), count (rows) from pillar_gather.
+  virtual void decorate_points(const Ref& points, const GridSpec& grid, const IRef& cell,
+                               const IRef& point_index, const IRef& count, Ref& out) = 0;
+  // cell (rows, 2) -> cells (rows, 3) = (sample, iy, ix), (-1, -1, -1) for an inert row.
+  virtual void batch_cells(const IRef& cell, int sample, IRef& cells) = 0;
+  // 2D ray counts (host/raywalk.hpp): points (M, 4), the sensor origin in their frame ->
+  // transmissions, detections (H, W).
+  virtual void observability_2d(const Ref& points, const Eigen::Vector3d& origin,
+                                const GridSpec& grid, URef& transmissions, URef& detections) = 0;
+  // The 2D occupancy input (host/observability_input.hpp): (H W values) = log(1 + t + d).
+  virtual void observability_input(const URef& transmissions, const URef& detections,
+                                   Ref& out) = 0;
+  // 3D occupancy probability (Z, H, W) (host/raywalk.hpp).
+  virtual void occupancy_3d(const Ref& points, const Eigen::Vector3d& origin, const GridSpec& grid,
+                            Ref& probability) = 0;
+  // The six grid-map layers (6, H, W) (host/grid_map_features.hpp).
+  virtual void grid_map_features(const Ref& points, const GridSpec& grid, const URef& detections,
+                                 const URef& transmissions, Ref& out) = 0;
+  // labels (H W values) = 0, and probabilities (K planes of H W) = 0 when given, where no ray
+  // touched the cell (host/label_mask.hpp).
+  virtual void mask_unobserved(const URef& transmissions, const URef& detections, LRef& labels,
+                               Ref* probabilities) = 0;
 
   // Pillar feature net: decorated points (P, N, 10), W (C, 10) -> BN -> ReLU -> max over N
   // -> (P, C). Training uses batch statistics over all P*N rows and saves what backward needs
@@ -145,16 +203,28 @@ std::unique_ptr<Backend> make_cpu_backend();
 // The CPU backend on the host/ reference ops alone (no Winograd, Conv -> BN -> ReLU composed):
 // what the fast paths are tested and benchmarked against.
 std::unique_ptr<Backend> make_cpu_reference_backend();
-// The CUDA backend, its Conv2d by `convolution`: "own" (our kernels), "cudnn" or "cublas" (for
-// comparison; GPU build only); throws pillarseg::Error with the reason when it is not available
-// (a build without it, or no device, or the convolution).
-std::unique_ptr<Backend> make_cuda_backend(const std::string& convolution = "own");
-// `convolution` other than "own" needs device "cuda".
-std::unique_ptr<Backend> make_backend(const std::string& device, const std::string& convolution = "own");
-// What make_cuda_backend() calls. pillarseg_lib holds no CUDA code: a program linked with a CUDA
-// backend library installs its factory (engine/cuda/cuda_backend.hpp, install_cuda_backend()).
-using BackendFactory = std::unique_ptr<Backend> (*)(const std::string& convolution);
-void set_cuda_backend_factory(BackendFactory factory);
+
+// How make_backend() makes a backend.
+struct BackendOptions {
+  std::string convolution = "own";  // Conv2d: own (our kernels), cudnn or cublas (--device cuda)
+  int cuda_device = 0;              // the CUDA device ordinal (--device cuda)
+};
+// device: "cpu", "cuda" (the CUDA backend on a GPU) or "emu" (the CUDA backend on the CPU
+// emulation, for verification). Throws pillarseg::Error with the reason when it is not available
+// (a build without it, no device, a convolution other than "own" off the GPU).
+std::unique_ptr<Backend> make_backend(const std::string& device, const BackendOptions& options = {});
+// The devices make_backend() takes in this program, for messages: "cpu", "cpu, emu", ...
+std::string available_devices();
+
+// What make_backend("cuda") and make_backend("emu") call. The engine holds no CUDA code: a
+// program linked with a CUDA backend library installs its factory (engine/cuda/install.hpp).
+using BackendFactory = std::unique_ptr<Backend> (*)(const BackendOptions& options);
+// device "cuda" or "emu"; a null factory uninstalls.
+void set_backend_factory(const std::string& device, BackendFactory factory);
+
+// R, the rows of pillar_gather's outputs for M points: P when max_pillars P > 0, else min(M,
+// W H), room for every non-empty pillar.
+int64_t pillar_rows(int64_t num_points, const GridSpec& grid, int max_pillars);
 
 // Owns one allocation of a backend and hands out Refs from it in order (a bump allocator);
 // `reset()` forgets them, `reserve()` grows the block (invalidating earlier Refs). Planning

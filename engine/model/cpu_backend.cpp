@@ -19,10 +19,17 @@
 #include "host/conv2d.hpp"
 #include "host/conv2d_winograd.hpp"
 #include "host/conv_transpose2d.hpp"
+#include "host/grid_map_features.hpp"
+#include "host/label_mask.hpp"
 #include "host/losses.hpp"
 #include "host/maxpool2d.hpp"
+#include "host/observability_input.hpp"
 #include "host/pad_concat.hpp"
 #include "host/pfn.hpp"
+#include "host/pillar_gather.hpp"
+#include "host/point_decoration.hpp"
+#include "host/point_padding.hpp"
+#include "host/raywalk.hpp"
 #include "host/scatter.hpp"
 #include "host/softmax.hpp"
 #include "host/upsample_bilinear.hpp"
@@ -34,6 +41,13 @@ namespace {
 template <class T>
 Tensor<T> view(const RefT<T>& r) {
   return Tensor<T>::view(r.data, r.shape);
+}
+
+// points (M, 4) in host memory as the M points they hold.
+std::span<const Point> as_points(const Ref& points) {
+  PS_CHECK(points.shape.size() == 2 && points.dim(1) == 4,
+           "points must be (M, 4) rows x y z r, got {}", shape_str(points.shape));
+  return {reinterpret_cast<const Point*>(points.data), static_cast<size_t>(points.dim(0))};
 }
 
 host::BatchNormOptions bn_options(const BatchNormRefs& bn) { return {bn.eps, bn.momentum}; }
@@ -260,6 +274,74 @@ class CpuBackend final : public Backend {
                            std::span<float>(m.data, n), std::span<float>(v.data, n), h.step, o);
   }
 
+  // ---- input preparation ----
+
+  void pad_points(const IRef& num_points, Ref& points) override {
+    PS_CHECK(num_points.numel() == 1, "pad_points: num_points must be (1), got {}", shape_str(num_points.shape));
+    Tensor<float> rows = view(points);
+    host::pad_points(num_points.data[0], rows);
+  }
+  int64_t pillar_gather(const Ref& points, const GridSpec& grid, int max_pillars, IRef& cell, IRef& point_index,
+                        IRef& count, IRef& num_pillars) override {
+    const int64_t rows = cell.shape.size() == 2 ? cell.dim(0) : -1;
+    PS_CHECK(rows >= 0 && cell.shape == (Shape{rows, 2}) && point_index.shape.size() == 2 &&
+                 point_index.dim(0) == rows && count.shape == (Shape{rows}) && num_pillars.numel() == 1,
+             "pillar_gather: expected cell (R, 2), point_index (R, N), count (R) and num_pillars (1), got {}, {}, "
+             "{} and {}",
+             shape_str(cell.shape), shape_str(point_index.shape), shape_str(count.shape),
+             shape_str(num_pillars.shape));
+    const host::PillarConfig config{static_cast<int>(point_index.dim(1)), max_pillars};
+    const int64_t kept = host::pillar_gather(as_points(points), grid, config, host::SampleMode::Inference, nullptr,
+                                             pillar_workspace_,
+                                             host::PillarRows{cell.data, point_index.data, count.data, rows});
+    num_pillars.data[0] = static_cast<int32_t>(kept);
+    return kept;
+  }
+  void decorate_points(const Ref& points, const GridSpec& grid, const IRef& cell, const IRef& point_index,
+                       const IRef& count, Ref& out) override {
+    host::Pillars pillars{view(cell), view(point_index), view(count)};
+    Tensor<float> decorated = view(out);
+    host::decorate_points(as_points(points), pillars, grid, decorated);
+  }
+  void batch_cells(const IRef& cell, int sample, IRef& cells) override {
+    Tensor<int32_t> out = view(cells);
+    host::batch_cells(view(cell), sample, out);
+  }
+  void observability_2d(const Ref& points, const Eigen::Vector3d& origin, const GridSpec& grid, URef& transmissions,
+                        URef& detections) override {
+    host::ObservabilityCounts counts{view(transmissions), view(detections)};
+    host::observability_2d(as_points(points), origin, grid, observability_workspace_, counts);
+  }
+  void observability_input(const URef& transmissions, const URef& detections, Ref& out) override {
+    Tensor<float> input = view(out);
+    host::observability_input(view(transmissions), view(detections), input);
+  }
+  void occupancy_3d(const Ref& points, const Eigen::Vector3d& origin, const GridSpec& grid,
+                    Ref& probability) override {
+    const Shape expected{grid.layers(), grid.height(), grid.width()};
+    PS_CHECK(probability.shape == expected, "occupancy_3d: probability must be {}, got {}", shape_str(expected),
+             shape_str(probability.shape));
+    Tensor<float> out = view(probability);
+    out = host::occupancy_probability(host::occupancy_counts_3d(as_points(points), origin, grid));
+  }
+  void grid_map_features(const Ref& points, const GridSpec& grid, const URef& detections, const URef& transmissions,
+                         Ref& out) override {
+    const Shape expected{host::kGridMapLayers, grid.height(), grid.width()};
+    PS_CHECK(out.shape == expected, "grid_map_features: out must be {}, got {}", shape_str(expected),
+             shape_str(out.shape));
+    Tensor<float> layers = view(out);
+    layers = host::grid_map_features(as_points(points), view(detections), view(transmissions), grid);
+  }
+  void mask_unobserved(const URef& transmissions, const URef& detections, LRef& labels, Ref* probabilities) override {
+    Tensor<uint8_t> masked = view(labels);
+    if (probabilities == nullptr) {
+      host::mask_unobserved(view(transmissions), view(detections), masked, nullptr);
+      return;
+    }
+    Tensor<float> probs = view(*probabilities);
+    host::mask_unobserved(view(transmissions), view(detections), masked, &probs);
+  }
+
  private:
   // The caller's scratch for `copies` (P N, C) tensors of the PFN, points (P, N, 10) and weight
   // (C, 10), or null (host/ allocates them) when none is given.
@@ -320,6 +402,8 @@ class CpuBackend final : public Backend {
   bool fast_paths_;
   host::WinogradWorkspace winograd_;
   std::vector<float> epilogue_scale_, epilogue_shift_;
+  host::PillarWorkspace pillar_workspace_;
+  host::ObservabilityWorkspace observability_workspace_;
 
   // Copies x (B, Cx, H, W) to or from channels [channel0, channel0 + Cx) of y (B, Cy, H, W).
   static void move_channels(const Ref& x, int channel0, const Ref& y, bool into_y) {

@@ -418,6 +418,7 @@ struct PillarSegNet::Impl {
   int training_batch = -1, eval_batch = -1;
 
   std::unique_ptr<Arena> activations, eval_activations, pillars;
+  int64_t memory_generation = 0;  // incremented whenever an arena is (re)allocated
 
   // Every BatchNorm of the network (pointers into the members above, fixed after construction).
   std::vector<BnParams*> batchnorms() {
@@ -627,6 +628,7 @@ void PillarSegNet::plan_training(int batch) {
   a.reserve(bytes);
   a.reset();
   p.bind(a.take<uint8_t>({static_cast<int64_t>(bytes)}).data);
+  ++m.memory_generation;  // every Ref of the plan may have moved
   for (int i = 1; i <= depth; ++i) {
     m.x[static_cast<size_t>(i)] = level_out(i);
     m.dx[static_cast<size_t>(i)] = level_grad(i);
@@ -731,6 +733,7 @@ void PillarSegNet::plan_eval(int batch) {
     m.eval_graph.reset();
   }
   a.reserve(bytes);
+  ++m.memory_generation;  // every Ref of the plan may have moved
   a.reset();
   uint8_t* base = a.take<uint8_t>({static_cast<int64_t>(bytes)}).data;
   for (auto& [ptr, id] : float_slots) *ptr = reinterpret_cast<float*>(base + planner.offset(id));
@@ -769,6 +772,7 @@ void PillarSegNet::plan_pillars(int64_t pillars, bool at_capacity) {
     }
     m.pillar_capacity = capacity;
     m.padding_cells.assign(static_cast<size_t>(capacity) * 3, -1);
+    ++m.memory_generation;
   }
   // Views of the current size (or of the whole capacity) at the start of each buffer.
   Arena& a = *m.pillars;
@@ -796,22 +800,33 @@ size_t PillarSegNet::activation_bytes() const {
   return (m.planned_training ? m.training_bytes : m.eval_bytes) + m.pillars->used();
 }
 
+PillarSegNet::Inputs PillarSegNet::prepare(int batch, int64_t pillar_rows, bool training) {
+  Impl& m = *impl_;
+  PS_CHECK(batch >= 1, "prepare: batch size must be >= 1, got {}", batch);
+  PS_CHECK(pillar_rows >= 0, "prepare: pillar rows must be >= 0, got {}", pillar_rows);
+  if (config_.pillar_input) plan_pillars(pillar_rows, /*at_capacity=*/false);
+  plan(batch, training);  // after plan_pillars: the training plan needs the pillar capacity
+  Inputs in;
+  if (config_.pillar_input) {
+    in.pillar_points = m.pillar_points;
+    in.pillar_cells = m.pillar_cells;
+  }
+  in.occupancy = m.occupancy_input;
+  in.grid_map = m.grid_map_input;
+  return in;
+}
+
+int64_t PillarSegNet::memory_generation() const { return impl_->memory_generation; }
+
 void PillarSegNet::forward(const ModelBatch& batch, bool training) {
   Impl& m = *impl_;
   Backend& be = backend_;
-  ParameterSet& ps = params_;
   const int H = config_.grid.height(), W = config_.grid.width();
   PS_CHECK(batch.batch >= 1, "forward: batch size must be >= 1, got {}", batch.batch);
-  // Stage clock: with timing on, each call closes the stage that ran since the previous one.
-  double last = time_stages_ ? be.clock_ms() : 0.0;
-  const auto lap = [&](double& stage) {
-    if (!time_stages_) return;
-    const double now = be.clock_ms();
-    stage = now - last;
-    last = now;
-  };
   stage_times_ = StageTimes{};
   m.loss_gradient_ready = false;
+  // Stage clock: the upload's time; run() times the stages after it.
+  const double start = time_stages_ ? be.clock_ms() : 0.0;
   // The evaluation forward replays a recorded graph where the backend records them (and stage
   // timing, which waits between stages, is off). The graph runs the pillar stream at the pillar
   // capacity: rows past this batch's P hold zero points and cells (-1, -1, -1), which the scatter
@@ -859,52 +874,83 @@ void PillarSegNet::forward(const ModelBatch& batch, bool training) {
              shape_str(batch.grid_map.shape()));
     be.upload(m.grid_map_input.data, batch.grid_map.data(), m.grid_map_input.bytes());
   }
-  lap(stage_times_.upload);
-
-  // The device work: canvas, U-Net, head.
-  const auto run = [&](bool train) {
-    Ref& canvas = m.x[0];
-    be.fill_zero(canvas.data, canvas.bytes());
-    int channel = 0;
-    if (config_.pillar_input) {
-      if (m.pillar_points.dim(0) > 0) {
-        BatchNormRefs r = bn_refs(ps, m.pfn_bn);
-        be.pfn_forward(m.pillar_points, ps.value(m.pfn_weight), r, train, m.pfn_argmax, m.pfn_out,
-                       train ? m.pfn_forward_scratch : Ref{});
-        if (train) ps.counters()[m.pfn_bn.counter] += 1;
-        lap(stage_times_.pfn);
-        be.scatter_forward(m.pfn_out, m.pillar_cells, 0, canvas);
-        lap(stage_times_.scatter);
-      }
-      channel += config_.pillar_channels;
-    }
-    if (config_.occupancy != OccupancyInput::None) {
-      m.occupancy.forward(be, ps, m.occupancy_input, train);
-      be.copy_channels(m.occupancy.out, channel, canvas);
-      channel += config_.occupancy_channels;
-      lap(stage_times_.occupancy);
-    }
-    if (config_.grid_map_input) be.copy_channels(m.grid_map_input, channel, canvas);
-    const int depth = config_.depth;
-    for (int i = 1; i <= depth; ++i) m.downs[static_cast<size_t>(i - 1)].forward(be, ps, m.x[i - 1], train);
-    Ref current = m.x[depth];
-    for (int j = 1; j <= depth; ++j) {
-      Up& u = m.ups[static_cast<size_t>(j - 1)];
-      u.forward(be, ps, current, m.x[depth - j], train);
-      current = u.conv.out();
-    }
-    lap(stage_times_.unet);
-    Ref head_bias = ps.value(m.head.bias);
-    be.conv2d_forward(current, ps.value(m.head.weight), &head_bias, 0, m.logits);
-    lap(stage_times_.head);
-  };
+  if (time_stages_) {
+    run(training);
+    stage_times_.upload = run_started_ms_ - start;
+    return;
+  }
   if (!replay) {
     run(training);
     return;
   }
-  if (!m.eval_graph) m.eval_graph = be.capture([&] { run(false); });
+  if (!m.eval_graph || !m.eval_graph->valid()) m.eval_graph = be.capture([&] { run(false); });
   m.eval_graph->replay();
 }
+
+// The device work of a forward: canvas, input streams, U-Net, head.
+void PillarSegNet::run(bool training) {
+  Impl& m = *impl_;
+  Backend& be = backend_;
+  ParameterSet& ps = params_;
+  PS_CHECK(m.planned_batch > 0 && m.planned_training == training,
+           "PillarSegNet::run({}): plan the inputs first (prepare() or forward())",
+           training ? "training" : "eval");
+  // Stage clock: with timing on, each call closes the stage that ran since the previous one.
+  stage_times_ = StageTimes{};
+  m.loss_gradient_ready = false;
+  double last = time_stages_ ? be.clock_ms() : 0.0;
+  run_started_ms_ = last;
+  const auto lap = [&](double& stage) {
+    if (!time_stages_) return;
+    const double now = be.clock_ms();
+    stage = now - last;
+    last = now;
+  };
+  Ref& canvas = m.x[0];
+  be.fill_zero(canvas.data, canvas.bytes());
+  int channel = 0;
+  if (config_.pillar_input) {
+    if (m.pillar_points.dim(0) > 0) {
+      BatchNormRefs r = bn_refs(ps, m.pfn_bn);
+      be.pfn_forward(m.pillar_points, ps.value(m.pfn_weight), r, training, m.pfn_argmax, m.pfn_out,
+                     training ? m.pfn_forward_scratch : Ref{});
+      if (training) ps.counters()[m.pfn_bn.counter] += 1;
+      lap(stage_times_.pfn);
+      be.scatter_forward(m.pfn_out, m.pillar_cells, 0, canvas);
+      lap(stage_times_.scatter);
+    }
+    channel += config_.pillar_channels;
+  }
+  if (config_.occupancy != OccupancyInput::None) {
+    m.occupancy.forward(be, ps, m.occupancy_input, training);
+    be.copy_channels(m.occupancy.out, channel, canvas);
+    channel += config_.occupancy_channels;
+    lap(stage_times_.occupancy);
+  }
+  if (config_.grid_map_input) be.copy_channels(m.grid_map_input, channel, canvas);
+  const int depth = config_.depth;
+  for (int i = 1; i <= depth; ++i) m.downs[static_cast<size_t>(i - 1)].forward(be, ps, m.x[i - 1], training);
+  Ref current = m.x[depth];
+  for (int j = 1; j <= depth; ++j) {
+    Up& u = m.ups[static_cast<size_t>(j - 1)];
+    u.forward(be, ps, current, m.x[depth - j], training);
+    current = u.conv.out();
+  }
+  lap(stage_times_.unet);
+  Ref head_bias = ps.value(m.head.bias);
+  be.conv2d_forward(current, ps.value(m.head.weight), &head_bias, 0, m.logits);
+  lap(stage_times_.head);
+}
+
+void PillarSegNet::queue_predictions(bool probabilities) {
+  Impl& m = *impl_;
+  PS_CHECK(m.planned_batch > 0, "queue_predictions() before a forward");
+  backend_.argmax(m.logits, m.predicted);
+  if (probabilities) backend_.softmax(m.logits, m.probs);
+}
+
+const LRef& PillarSegNet::predicted() const { return impl_->predicted; }
+const Ref& PillarSegNet::probs() const { return impl_->probs; }
 
 double PillarSegNet::loss(const Tensor<uint8_t>& labels, LossKind kind, const std::array<float, 13>& coefficients) {
   Impl& m = *impl_;

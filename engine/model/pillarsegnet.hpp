@@ -54,10 +54,35 @@ class PillarSegNet {
   void set_stage_timing(bool on) { time_stages_ = on; }
   const StageTimes& stage_times() const { return stage_times_; }
 
-  // Runs the network; training: batch statistics (and running-statistic updates). Evaluation
-  // on a backend that captures graphs (and with stage timing off) records its device work once
-  // per planned shape and replays it (see forward() in the .cpp).
+  // Runs the network on host inputs (uploaded first); training: batch statistics (and
+  // running-statistic updates). Evaluation on a backend that captures graphs (and with stage
+  // timing off) records its device work once per planned shape and replays it (see forward() in
+  // the .cpp).
   void forward(const ModelBatch& batch, bool training);
+
+  // The network's inputs in the backend's memory, for an input pipeline that prepares them there
+  // (engine/pipeline/): pillar_points (rows, N, 10), pillar_cells (rows, 3) (sample, iy, ix; rows
+  // of -1 are skipped), occupancy (B, 1 or Z, H, W), grid_map (B, 6, H, W); the streams the
+  // config lacks are empty. prepare() plans memory for `batch` samples, `pillar_rows` rows and
+  // the mode (allocating only when they need more than before); run() then runs the network on
+  // whatever the inputs hold, queueing device work only (no upload, download or wait), so that a
+  // graph capture may record it. The Refs stay valid while memory_generation() is unchanged.
+  struct Inputs {
+    Ref pillar_points;
+    IRef pillar_cells;
+    Ref occupancy;
+    Ref grid_map;
+  };
+  Inputs prepare(int batch, int64_t pillar_rows, bool training);
+  void run(bool training);
+  // Changes whenever the model moves memory that its Refs (inputs, activations, outputs) name.
+  int64_t memory_generation() const;
+
+  // After a forward: queues the arg-max class ids (B, H, W) into predicted() and, with
+  // `probabilities`, the softmax into probs(), without waiting (device work only).
+  void queue_predictions(bool probabilities);
+  const LRef& predicted() const;
+  const Ref& probs() const;
   // After forward: the mean loss over labelled cells of labels (B, H, W), and the gradient
   // of the logits, ready for backward(). coefficients: per class id 0..12.
   double loss(const Tensor<uint8_t>& labels, LossKind kind, const std::array<float, 13>& coefficients);
@@ -92,6 +117,7 @@ class PillarSegNet {
   Ref logits_;
   bool time_stages_ = false;
   StageTimes stage_times_;
+  double run_started_ms_ = 0;  // the backend clock when run() started (stage timing)
 };
 
 }  // namespace pillarseg

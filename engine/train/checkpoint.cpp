@@ -6,6 +6,7 @@
 #include <set>
 
 #include "core/error.hpp"
+#include "engine/model/architecture.hpp"
 
 namespace pillarseg {
 
@@ -88,10 +89,11 @@ void load_weights(const Checkpoint& checkpoint, PillarSegNet& net, bool with_opt
 
 RunConfig config_for(const Checkpoint& checkpoint, const fs::path& config_override) {
   if (!config_override.empty()) return load_run_config(config_override);
-  PS_CHECK(checkpoint.config.has_value(),
-           "{}: the file carries no run config (a weights-only file); pass --config with the model's settings",
-           checkpoint.file.source());
-  return *checkpoint.config;
+  if (checkpoint.config) return *checkpoint.config;
+  RunConfig config;
+  config.model = model_config_from_tensors(checkpoint.file);
+  config.source = checkpoint.file.source() + " (architecture from its tensor shapes, the paper's grid)";
+  return config;
 }
 
 }  // namespace pillarseg

@@ -37,7 +37,9 @@ Checkpoint read_checkpoint(const std::filesystem::path& path);
 // names them all. with_optimizer: the Adam moments too (required then).
 void load_weights(const Checkpoint& checkpoint, PillarSegNet& net, bool with_optimizer);
 
-// The run config of a checkpoint, or of --config when given (which wins).
+// The run config of --config when given (which wins), else the checkpoint's; a weights-only file
+// without --config gets the architecture of its tensor shapes (engine/model/architecture.hpp) on
+// the paper's grid, and the default training and evaluation settings.
 RunConfig config_for(const Checkpoint& checkpoint, const std::filesystem::path& config_override);
 
 }  // namespace pillarseg

@@ -46,6 +46,22 @@ std::string ScanDataset::describe(size_t i) const {
   return fmt::format("{}/{:06}", sequence_name(seq.id()), seq.frame(it.scan));
 }
 
+namespace {
+
+// The labels of an augmented scan: its sparse ground truth, or the dense one of its aggregated
+// neighbours moved by the same transform.
+Tensor<uint8_t> training_labels(const Scan& scan, const GroundTruthBuilder& builder, size_t index,
+                                GroundTruthKind kind, const AugmentTransform& transform,
+                                const ClassTable& classes, const GridSpec& grid) {
+  if (kind == GroundTruthKind::sparse) return rasterize_labels(scan.points, scan.labels, classes, grid);
+  if (transform.is_identity()) return builder.map(index, GroundTruthKind::dense);
+  LabelledPoints aggregated = builder.dense_points(index);
+  aggregated.transform(transform.as_matrix());
+  return rasterize_classes(aggregated.points, aggregated.classes, classes, grid);
+}
+
+}  // namespace
+
 Sample ScanDataset::training_sample(size_t i, uint64_t epoch, const TrainConfig& train) const {
   const Item& it = item(i);
   const GroundTruthBuilder& builder = *builders_[it.sequence_slot];
@@ -53,20 +69,30 @@ Sample ScanDataset::training_sample(size_t i, uint64_t epoch, const TrainConfig&
   Rng rng = Rng::derive(train.seed, epoch, i);
   AugmentTransform transform;
   if (train.augment) transform = sample_augmentation(train.augmentation, rng);
-  const bool augmented = !transform.is_identity();
-  if (augmented) transform.apply(scan.points);
+  if (!transform.is_identity()) transform.apply(scan.points);
   const Eigen::Vector3d origin = transform.apply(Eigen::Vector3d::Zero());
   Sample s;
   s.inputs = compute_scan_inputs(scan.points, origin, model_, host::SampleMode::Training, &rng);
-  if (kind_ == GroundTruthKind::sparse) {
-    s.labels = rasterize_labels(scan.points, scan.labels, classes_, model_.grid);
-  } else if (!augmented) {
-    s.labels = builder.map(it.scan, GroundTruthKind::dense);
-  } else {
-    LabelledPoints aggregated = builder.dense_points(it.scan);
-    aggregated.transform(transform.as_matrix());
-    s.labels = rasterize_classes(aggregated.points, aggregated.classes, classes_, model_.grid);
+  s.labels = training_labels(scan, builder, it.scan, kind_, transform, classes_, model_.grid);
+  return s;
+}
+
+TrainingScan ScanDataset::training_scan(size_t i, uint64_t epoch, const TrainConfig& train) const {
+  const Item& it = item(i);
+  const GroundTruthBuilder& builder = *builders_[it.sequence_slot];
+  Scan scan = builder.sequence().load(it.scan);
+  Rng rng = Rng::derive(train.seed, epoch, i);
+  AugmentTransform transform;
+  if (train.augment) transform = sample_augmentation(train.augmentation, rng);
+  if (!transform.is_identity()) transform.apply(scan.points);
+  TrainingScan s;
+  s.origin = transform.apply(Eigen::Vector3d::Zero());
+  if (model_.pillar_input) {
+    const host::PillarConfig pc{model_.max_points_per_pillar, model_.max_pillars};
+    s.pillars = host::pillar_gather(scan.points, model_.grid, pc, host::SampleMode::Training, &rng);
   }
+  s.labels = training_labels(scan, builder, it.scan, kind_, transform, classes_, model_.grid);
+  s.points = std::move(scan.points);
   return s;
 }
 
@@ -91,6 +117,24 @@ Sample ScanDataset::eval_sample(size_t i, GroundTruthKind kind, bool with_mask) 
     for (int64_t c = 0; c < s.mask.numel(); ++c) s.mask[c] = s.inputs.observability[c] > 0;
   }
   return s;
+}
+
+Sample ScanDataset::eval_targets(size_t i, GroundTruthKind kind, bool with_mask) const {
+  const Item& it = item(i);
+  const GroundTruthBuilder& builder = *builders_[it.sequence_slot];
+  Sample s;
+  s.labels = builder.map(it.scan, kind);
+  if (with_mask) {
+    const Tensor<uint32_t> observability = builder.observability(it.scan);
+    s.mask = Tensor<uint8_t>(observability.shape());
+    for (int64_t c = 0; c < s.mask.numel(); ++c) s.mask[c] = observability[c] > 0;
+  }
+  return s;
+}
+
+Scan ScanDataset::scan(size_t i) const {
+  const Item& it = item(i);
+  return builders_[it.sequence_slot]->sequence().load(it.scan);
 }
 
 void ScanDataset::build_cache(GroundTruthKind kind) const {

@@ -22,6 +22,16 @@ struct Sample {
   Tensor<uint8_t> mask;    // (H, W) 1 where observed (observability > 0); empty unless asked for
 };
 
+// A training sample for a device pipeline (engine/pipeline/scan_pipeline.hpp): the augmented
+// points and sensor origin and the pillars gathered from them on the host (whose seeded subsets
+// are one sequence of draws), the maps left to the device.
+struct TrainingScan {
+  std::vector<Point> points;
+  Eigen::Vector3d origin = Eigen::Vector3d::Zero();
+  host::Pillars pillars;
+  Tensor<uint8_t> labels;  // (H, W)
+};
+
 class ScanDataset {
  public:
   struct Item {
@@ -41,8 +51,15 @@ class ScanDataset {
 
   // Augmented (when train.augment) training sample i of `epoch`.
   Sample training_sample(size_t i, uint64_t epoch, const TrainConfig& train) const;
+  // The same sample (the same draws, so the same pillars and labels) with its points instead of
+  // its network inputs.
+  TrainingScan training_scan(size_t i, uint64_t epoch, const TrainConfig& train) const;
   // Unaugmented sample with ground truth of `kind`; with_mask: the observability mask too.
   Sample eval_sample(size_t i, GroundTruthKind kind, bool with_mask) const;
+  // The same sample's targets alone (labels, and the mask with with_mask; no network inputs), for
+  // a pipeline that prepares the inputs from the scan itself, and the scan.
+  Sample eval_targets(size_t i, GroundTruthKind kind, bool with_mask) const;
+  Scan scan(size_t i) const;
   // Builds the ground-truth cache of every scan (progress on stderr).
   void build_cache(GroundTruthKind kind) const;
 

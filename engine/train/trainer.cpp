@@ -13,6 +13,7 @@
 #include "core/error.hpp"
 #include "core/io.hpp"
 #include "core/parallel.hpp"
+#include "engine/pipeline/scan_pipeline.hpp"
 #include "engine/train/checkpoint.hpp"
 #include "engine/train/dataset.hpp"
 #include "engine/util/progress.hpp"
@@ -77,7 +78,7 @@ TrainResult train(const TrainOptions& options) {
   const RunConfig& cfg = options.config;
   const TrainConfig& tc = cfg.train;
   // The device and the data first: a run that cannot start leaves no run directory behind.
-  auto backend = make_backend(options.device, options.convolution);
+  auto backend = make_backend(options.device, options.backend);
   const ClassTable classes = ClassTable::defaults();
   const bool augmented_dense = tc.ground_truth == GroundTruthKind::dense && tc.augment;
   ScanDataset data(options.data_root, tc.sequences, tc.scan_stride, tc.max_scans_per_sequence, cfg.model, classes,
@@ -88,6 +89,10 @@ TrainResult train(const TrainOptions& options) {
 
   PillarSegNet net(cfg.model, *backend, tc.seed);
   ParameterSet& ps = net.parameters();
+  // On a CUDA backend the decoration and the maps of each augmented scan are computed there
+  // (engine/pipeline/scan_pipeline.hpp); the CPU backend's inputs come from the host pipeline.
+  const bool on_device = backend->device() != Device::Cpu;
+  ScanPipeline pipeline(cfg.model, *backend);
 
   TrainState state;
   if (options.resume) {
@@ -138,19 +143,41 @@ TrainResult train(const TrainOptions& options) {
     double loss_sum = 0;
     for (int64_t s = 0; s < steps_per_epoch; ++s) {
       const size_t begin = static_cast<size_t>(s) * B, end = std::min(n, begin + B);
-      std::vector<Sample> samples(end - begin);
-      parallel_for(static_cast<int64_t>(samples.size()), [&](int64_t k) {
-        samples[static_cast<size_t>(k)] =
-            data.training_sample(order[begin + static_cast<size_t>(k)], static_cast<uint64_t>(epoch), tc);
-      });
-      std::vector<const ScanInputs*> inputs;
-      Tensor<uint8_t> labels({static_cast<int64_t>(samples.size()), cfg.model.grid.height(), cfg.model.grid.width()});
+      Tensor<uint8_t> labels({static_cast<int64_t>(end - begin), cfg.model.grid.height(), cfg.model.grid.width()});
       const int64_t plane = cfg.model.grid.cells();
-      for (size_t k = 0; k < samples.size(); ++k) {
-        inputs.push_back(&samples[k].inputs);
-        std::copy(samples[k].labels.begin(), samples[k].labels.end(), labels.data() + static_cast<int64_t>(k) * plane);
+      if (on_device) {
+        std::vector<TrainingScan> scans(end - begin);
+        parallel_for(static_cast<int64_t>(scans.size()), [&](int64_t k) {
+          scans[static_cast<size_t>(k)] =
+              data.training_scan(order[begin + static_cast<size_t>(k)], static_cast<uint64_t>(epoch), tc);
+        });
+        int64_t rows = 0;
+        for (const TrainingScan& scan : scans) rows += scan.pillars.num_pillars();
+        const PillarSegNet::Inputs inputs = net.prepare(static_cast<int>(scans.size()), rows, /*training=*/true);
+        int64_t offset = 0;
+        for (size_t k = 0; k < scans.size(); ++k) {
+          const TrainingScan& scan = scans[k];
+          const Ref points = pipeline.load_points(scan.points);
+          const int64_t pillars = pipeline.upload_pillars(scan.pillars);
+          pipeline.fill_pillars(points, pillars, static_cast<int>(k), offset, inputs);
+          pipeline.fill_maps(points, scan.origin, static_cast<int>(k), inputs);
+          offset += pillars;
+          std::copy(scan.labels.begin(), scan.labels.end(), labels.data() + static_cast<int64_t>(k) * plane);
+        }
+        net.run(/*training=*/true);
+      } else {
+        std::vector<Sample> samples(end - begin);
+        parallel_for(static_cast<int64_t>(samples.size()), [&](int64_t k) {
+          samples[static_cast<size_t>(k)] =
+              data.training_sample(order[begin + static_cast<size_t>(k)], static_cast<uint64_t>(epoch), tc);
+        });
+        std::vector<const ScanInputs*> inputs;
+        for (size_t k = 0; k < samples.size(); ++k) {
+          inputs.push_back(&samples[k].inputs);
+          std::copy(samples[k].labels.begin(), samples[k].labels.end(), labels.data() + static_cast<int64_t>(k) * plane);
+        }
+        net.forward(collate(inputs, cfg.model), /*training=*/true);
       }
-      net.forward(collate(inputs, cfg.model), /*training=*/true);
       const double loss = net.loss(labels, tc.loss, tc.coefficients);
       if (!std::isfinite(loss)) {
         PS_FAIL("non-finite loss ({}) at epoch {}, step {} (scans {}); stopping. {}", loss, epoch + 1, state.step + 1,

@@ -9,6 +9,7 @@
 #include <optional>
 #include <string>
 
+#include "engine/model/backend.hpp"
 #include "engine/train/run_config.hpp"
 
 namespace pillarseg {
@@ -17,8 +18,8 @@ struct TrainOptions {
   std::filesystem::path data_root;
   std::filesystem::path run_dir;
   RunConfig config;
-  std::string device = "cpu";
-  std::string convolution = "own";  // the CUDA backend's Conv2d: own, cudnn or cublas
+  std::string device = "cpu";  // cpu, cuda or emu (make_backend)
+  BackendOptions backend;      // the CUDA backends' Conv2d and device
   std::optional<std::filesystem::path> cache_dir;
   bool resume = false;
   bool progress = true;

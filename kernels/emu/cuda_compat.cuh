@@ -4,6 +4,17 @@
 // vocabulary (qualifiers, threadIdx..., __syncthreads, shuffles, votes, atomics) and the types.
 #pragma once
 
+// Everything built on CUDA lives in an inline namespace named for the build: pillarseg::cuda::gpu
+// (nvcc, a GPU) or pillarseg::cuda::emulated (the host compiler on the emulation), and likewise
+// the CUDA backend in pillarseg::gpu or pillarseg::emulated. Code names them as pillarseg::cuda::X
+// and pillarseg::CudaBackend; a program can link both builds (the command line and the library
+// run --device cuda and --device emu) and each keeps its own launchers, buffers and backend.
+#if defined(PILLARSEG_CUDA_EMULATION)
+#define PILLARSEG_CUDA_NAMESPACE emulated
+#else
+#define PILLARSEG_CUDA_NAMESPACE gpu
+#endif
+
 #if defined(PILLARSEG_CUDA_EMULATION)
 #if defined(__CUDACC__)
 #error "PILLARSEG_CUDA_EMULATION is for the host compiler; nvcc builds use the real CUDA runtime"

@@ -12,8 +12,10 @@ float32 values it saves, so that the references carry no float32 rounding of the
   two AdamW steps (the gradient recomputed by a second training forward before step 2)
   -> parameters, Adam moments, running statistics and counters.
 
-It writes one safetensors file per variant beside itself, by hand (8-byte little-endian
-header length, JSON header, raw little-endian data; no extra packages). Keys:
+It writes two safetensors files per variant beside itself, by hand (8-byte little-endian
+header length, JSON header, raw little-endian data; no extra packages): the golden file, and
+weights_only_<variant>.safetensors, the initial state_dict alone with no metadata, as a PyTorch
+user exports a model. The golden file's keys:
 
   param.<name>        the initial state_dict (F32; num_batches_tracked I64, shape ())
   input.pillar_points (P, N, 10) F32, padding slots zero
@@ -307,7 +309,7 @@ def write_safetensors(path, tensors, metadata):
     first, then F32, by name within a dtype, so every tensor is aligned to its element size."""
     dtype_names = {np.dtype(np.float32): "F32", np.dtype(np.int64): "I64"}
     order = sorted(tensors, key=lambda name: (tensors[name].dtype != np.int64, name))
-    header = {"__metadata__": metadata}
+    header = {"__metadata__": metadata} if metadata else {}
     chunks, offset = [], 0
     for name in order:
         array = np.asarray(tensors[name])  # keeps shape () (ascontiguousarray would make it (1))
@@ -349,13 +351,17 @@ def config_yaml(v):
             f"base_width: {v['b']}, depth: {v['depth']}, upsampling: {v['upsampling']}}}\n")
 
 
-def make(v, seed, path):
+def make(v, seed, path, weights_only_path):
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     model = PillarSegNet(v)
     randomise_weights(model, rng)
     inputs = random_inputs(v, rng)
     tensors = state_arrays(model, "param.")
+    # The same weights as a PyTorch user exports them: the state_dict alone, no metadata (what
+    # safetensors.torch.save_file(model.state_dict(), path) writes), which the engine opens
+    # without a config (the architecture from the tensor shapes).
+    write_safetensors(weights_only_path, state_arrays(model, ""), None)
     for key, value in inputs.items():
         tensors["input." + key] = value
 
@@ -426,7 +432,8 @@ def main():
     torch.set_num_threads(1)  # one summation order: the files do not depend on the machine
     here = pathlib.Path(__file__).resolve().parent
     for seed, (name, variant) in enumerate(VARIANTS.items(), start=1):
-        make({**COMMON, **variant}, seed, here / f"{name}.safetensors")
+        make({**COMMON, **variant}, seed, here / f"{name}.safetensors",
+             here / f"weights_only_{name}.safetensors")
 
 
 if __name__ == "__main__":

@@ -1,0 +1,118 @@
+#include "engine/pipeline/segmenter.hpp"
+
+#include "core/error.hpp"
+#include "core/parallel.hpp"
+#include "engine/train/checkpoint.hpp"
+
+namespace pillarseg {
+
+ScanSegmenter::ScanSegmenter(const ModelConfig& model, std::unique_ptr<Backend> backend,
+                             const SegmenterOptions& options, uint64_t seed)
+    : model_(model),
+      options_(options),
+      backend_(std::move(backend)),
+      net_(std::make_unique<PillarSegNet>(model, *backend_, seed)),
+      pipeline_(model, *backend_, options.mask_unobserved) {}
+
+void ScanSegmenter::queue_predictions(bool probabilities) {
+  net_->queue_predictions(probabilities);
+  if (!options_.mask_unobserved) return;
+  LRef labels = net_->predicted();
+  Ref probs = net_->probs();
+  backend_->mask_unobserved(pipeline_.transmissions(), pipeline_.detections(), labels,
+                            probabilities ? &probs : nullptr);
+}
+
+void ScanSegmenter::queue_recordable(bool probabilities) {
+  pipeline_.pad_points();
+  const Ref points = pipeline_.point_buffer();
+  const int64_t rows = pipeline_.gather_pillars(points);
+  const PillarSegNet::Inputs inputs = net_->prepare(1, rows, /*training=*/false);
+  pipeline_.fill_pillars(points, rows, 0, 0, inputs);
+  pipeline_.fill_maps(points, Eigen::Vector3d::Zero(), 0, inputs);
+  net_->run(/*training=*/false);
+  queue_predictions(probabilities);
+}
+
+void ScanSegmenter::queue_direct(const Ref& points, bool probabilities) {
+  Backend& be = *backend_;
+  double last = time_stages_ ? be.clock_ms() : 0.0;
+  const auto lap = [&](double& stage) {
+    if (!time_stages_) return;
+    const double now = be.clock_ms();
+    stage = now - last;
+    last = now;
+  };
+  const int64_t rows = pipeline_.gather_pillars(points);
+  const PillarSegNet::Inputs inputs = net_->prepare(1, rows, /*training=*/false);
+  pipeline_.fill_pillars(points, rows, 0, 0, inputs);
+  lap(times_.pillars);
+  pipeline_.fill_maps(points, Eigen::Vector3d::Zero(), 0, inputs);
+  lap(times_.maps);
+  net_->set_stage_timing(time_stages_);
+  net_->run(/*training=*/false);
+  net_->set_stage_timing(false);
+  if (time_stages_) {
+    const PillarSegNet::StageTimes& net = net_->stage_times();
+    times_.pfn = net.pfn, times_.scatter = net.scatter, times_.occupancy = net.occupancy;
+    times_.unet = net.unet, times_.head = net.head;
+    last = be.clock_ms();
+  }
+  queue_predictions(probabilities);
+  lap(times_.predict);
+}
+
+void ScanSegmenter::segment(std::span<const Point> points, uint8_t* labels, float* probabilities) {
+  PS_CHECK(labels != nullptr, "segment: labels must point to H x W = {} bytes", model_.grid.cells());
+  Backend& be = *backend_;
+  be.make_current();
+  const ScopedThreads threads(options_.threads);
+  const bool with_probabilities = probabilities != nullptr;
+  times_ = StageTimes{};
+  double last = time_stages_ ? be.clock_ms() : 0.0;
+  const Ref loaded = pipeline_.load_points(points);
+  if (time_stages_) {
+    const double now = be.clock_ms();
+    times_.upload = now - last;
+  }
+
+  if (be.supports_capture() && !time_stages_) {
+    Recording& r = recordings_[with_probabilities ? 1 : 0];
+    const bool current = r.graph && r.graph->valid() && r.capacity == pipeline_.capacity() &&
+                         r.model_generation == net_->memory_generation();
+    if (current) {
+      r.graph->replay();
+    } else {
+      // Once uncaptured: every buffer and workspace grows to this capacity (and this scan's
+      // result is computed); then the same work is recorded, without running it.
+      r.graph.reset();
+      queue_recordable(with_probabilities);
+      r.graph = be.capture([&] { queue_recordable(with_probabilities); });
+      r.capacity = pipeline_.capacity();
+      r.model_generation = net_->memory_generation();
+    }
+  } else {
+    queue_direct(loaded, with_probabilities);
+  }
+
+  last = time_stages_ ? be.clock_ms() : 0.0;
+  const int64_t cells = model_.grid.cells();
+  be.download(labels, net_->predicted().data, static_cast<size_t>(cells));
+  if (with_probabilities)
+    be.download(probabilities, net_->probs().data,
+                static_cast<size_t>(cells) * static_cast<size_t>(model_.num_classes) * sizeof(float));
+  if (time_stages_) times_.download = be.clock_ms() - last;
+}
+
+std::unique_ptr<ScanSegmenter> open_segmenter(const std::filesystem::path& weights,
+                                              const std::filesystem::path& config_path,
+                                              const SegmenterOptions& options) {
+  const Checkpoint checkpoint = read_checkpoint(weights);
+  const RunConfig config = config_for(checkpoint, config_path);
+  auto segmenter = std::make_unique<ScanSegmenter>(config.model, make_backend(options.device, options.backend),
+                                                   options);
+  load_weights(checkpoint, segmenter->net(), /*with_optimizer=*/false);
+  return segmenter;
+}
+
+}  // namespace pillarseg

@@ -1,0 +1,93 @@
+// ScanSegmenter: one sweep's points -> the label map (and the probabilities), the whole pipeline
+// on one backend (DESIGN.md section 6): what `pillarseg infer`, eval, render and bench run, and
+// what the library's C API wraps.
+//
+// The steady state on a backend that records graphs (CUDA): the points go up through pinned
+// staging (16 bytes a point) with their count, one recorded graph runs everything after the
+// upload (NaN padding to the recorded point capacity, the pillar gather, decoration, ray walks and
+// input maps, the network, the arg-max, the masking of unobserved cells, and the softmax only when
+// the probabilities are asked for), and the label map comes down (H x W bytes); nothing is
+// allocated and nothing waits but the final download. The first scan, and a scan with more points
+// than the capacity, runs once without the graph (growing every buffer to the new capacity, and
+// giving this scan's result) and then records. On the CPU backend the same ops run directly on
+// the caller's points, for exactly the scan's pillars.
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <filesystem>
+#include <memory>
+#include <span>
+#include <string>
+
+#include "core/point.hpp"
+#include "engine/model/backend.hpp"
+#include "engine/model/config.hpp"
+#include "engine/model/pillarsegnet.hpp"
+#include "engine/pipeline/scan_pipeline.hpp"
+
+namespace pillarseg {
+
+struct SegmenterOptions {
+  std::string device = "cpu";  // cpu, cuda or emu (make_backend)
+  BackendOptions backend;      // the CUDA backends' convolution and device
+  bool mask_unobserved = false;  // cells no ray observed: class 0, probabilities 0
+  int threads = 0;               // CPU threads of this segmenter's work, 0: the process's setting
+};
+
+class ScanSegmenter {
+ public:
+  ScanSegmenter(const ModelConfig& model, std::unique_ptr<Backend> backend,
+                const SegmenterOptions& options = {}, uint64_t seed = 0);
+  ScanSegmenter(const ScanSegmenter&) = delete;
+  ScanSegmenter& operator=(const ScanSegmenter&) = delete;
+
+  const ModelConfig& model() const { return model_; }
+  Backend& backend() { return *backend_; }
+  PillarSegNet& net() { return *net_; }
+  const SegmenterOptions& options() const { return options_; }
+
+  // points: the sweep in the sensor frame (non-finite ones are ignored). labels: H x W class ids
+  // (row iy, column ix); probabilities: 12 x H x W softmax values, or null.
+  void segment(std::span<const Point> points, uint8_t* labels, float* probabilities = nullptr);
+
+  // Stage timing (for pillarseg bench): each segment() then runs without the graph and reads the
+  // backend's clock (CUDA events) between stages, in ms.
+  struct StageTimes {
+    double upload = 0, pillars = 0, maps = 0, pfn = 0, scatter = 0, occupancy = 0, unet = 0,
+           head = 0, predict = 0, download = 0;
+  };
+  void set_stage_timing(bool on) { time_stages_ = on; }
+  const StageTimes& stage_times() const { return times_; }
+
+ private:
+  // Everything after the upload on the whole point buffer, shaped by the capacity: what a graph
+  // records (and, once, runs uncaptured to grow every buffer first).
+  void queue_recordable(bool probabilities);
+  // The same on exactly the scan's points, with stage timing where it is on.
+  void queue_direct(const Ref& points, bool probabilities);
+  void queue_predictions(bool probabilities);
+
+  ModelConfig model_;
+  SegmenterOptions options_;
+  std::unique_ptr<Backend> backend_;
+  std::unique_ptr<PillarSegNet> net_;
+  ScanPipeline pipeline_;
+  bool time_stages_ = false;
+  StageTimes times_;
+  // The recorded pipelines, without and with the probabilities, and what they were recorded on.
+  struct Recording {
+    std::unique_ptr<CapturedGraph> graph;
+    int64_t capacity = -1, model_generation = -1;
+  };
+  std::array<Recording, 2> recordings_;
+};
+
+// A segmenter for a checkpoint: the run config of config_path when given (its grid and model
+// win), else the checkpoint's, else (a weights-only file) the architecture of its tensor shapes on
+// the paper's grid; the weights loaded and checked. Errors name the file and what is wrong.
+std::unique_ptr<ScanSegmenter> open_segmenter(const std::filesystem::path& weights,
+                                              const std::filesystem::path& config_path,
+                                              const SegmenterOptions& options);
+
+}  // namespace pillarseg
