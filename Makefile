@@ -6,7 +6,7 @@ JOBS ?= $(shell nproc)
 CMAKE_FLAGS ?=
 DEMO_OUT ?= demo_out
 
-.PHONY: all deps configure build test demo bench asan kernel-report clean
+.PHONY: all deps configure build test demo bench asan kernel-report gpu-bundle clean
 
 all: build
 
@@ -48,5 +48,17 @@ kernel-report: deps
 	  > build-kernels/cubin-list-test.log 2>&1 || { cat build-kernels/cubin-list-test.log; exit 1; }
 	@python3 scripts/kernel_report.py build-kernels/resource-usage.log build-kernels/kernels/libpillarseg_kernels_cuda.a
 
+# The GPU check in one call: build-gpu/bundle (at most 60 MiB) holds pillarseg, every *_gpu test,
+# the kernel benchmarks and the libraries a bare CUDA machine lacks, built here for GPU_ARCH only,
+# and run.sh, which runs all of it there in at most 8 minutes (README: "On a GPU machine").
+GPU_ARCH ?= 90
+gpu-bundle: deps
+	@cmake -S . -B build-gpu -DCMAKE_BUILD_TYPE=Release -DCMAKE_CUDA_ARCHITECTURES=$(GPU_ARCH) \
+	  -DPILLARSEG_ARCH=x86-64-v3 -DPILLARSEG_BENCH=ON -DPILLARSEG_TESTS=ON >/dev/null
+	@cmake --build build-gpu -j $(JOBS) --target pillarseg bench_kernels_conv bench_kernels_pipeline \
+	  $$(cmake --build build-gpu --target help | sed -n 's/^\.\.\. \(test_.*_gpu\)$$/\1/p')
+	@scripts/gpu_bundle.sh pack build-gpu build-gpu/bundle
+	@scripts/gpu_bundle.sh check build-gpu/bundle
+
 clean:
-	rm -rf $(BUILD) build-asan build-kernels
+	rm -rf $(BUILD) build-asan build-kernels build-gpu

@@ -10,6 +10,13 @@ if(PILLARSEG_CUDA AND CMAKE_CUDA_COMPILER)
     set(CMAKE_CUDA_ARCHITECTURES 75 80 86 87 89 90)
   endif()
   enable_language(CUDA)
+  # CMake before 3.26 knows no C++20 flag for nvcc and then refuses CUDA_STANDARD 20 (for the
+  # kernel libraries and for every target holding their objects, such as libpillarseg.a); nvcc 12
+  # and later take -std=c++20.
+  if(NOT DEFINED CMAKE_CUDA20_STANDARD_COMPILE_OPTION OR CMAKE_CUDA20_STANDARD_COMPILE_OPTION STREQUAL "")
+    set(CMAKE_CUDA20_STANDARD_COMPILE_OPTION "-std=c++20")
+    set(CMAKE_CUDA20_EXTENSION_COMPILE_OPTION "-std=c++20")
+  endif()
   set(CMAKE_CUDA_STANDARD 20)
   set(CMAKE_CUDA_STANDARD_REQUIRED ON)
   set(PILLARSEG_HAVE_CUDA ON)

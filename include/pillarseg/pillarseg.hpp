@@ -1,0 +1,106 @@
+// pillarseg for C++: RAII over the C API of pillarseg.h (same engine, same ABI, same thread
+// rules): one Segmenter per model and device, move-only, closed by its destructor; failures are
+// pillarseg::Error exceptions carrying the C API's message.
+//
+//   pillarseg::Options options;
+//   options.device = "cuda";
+//   pillarseg::Segmenter segmenter("model.safetensors", options);
+//   std::vector<uint8_t> labels = segmenter.segment(points);  // points: x y z r per point
+//   // labels[iy * segmenter.width() + ix]: class id of cell (ix, iy)
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+#include <stdexcept>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include "pillarseg/pillarseg.h"
+
+namespace pillarseg {
+
+class Error : public std::runtime_error {
+ public:
+  using std::runtime_error::runtime_error;
+};
+
+struct Options {
+  std::string device = "cpu";  // "cpu", "cuda" or "emu" (the CUDA backend on the CPU emulation)
+  int threads = 0;             // CPU threads, 0 = all
+  int cuda_device = 0;
+  bool mask_unobserved = false;  // cells no ray observed: class 0, probabilities 0
+  std::string convolution = "own";  // with "cuda": "own", "cudnn" or "cublas"
+};
+
+class Segmenter {
+ public:
+  // weights: a safetensors checkpoint (a weights-only one too); config: a run config YAML
+  // whose grid and model settings win, or empty.
+  explicit Segmenter(const std::string& weights, const Options& options = {},
+                     const std::string& config = {}) {
+    pillarseg_options o;
+    pillarseg_default_options(&o);
+    o.device = options.device.c_str();
+    o.threads = options.threads;
+    o.cuda_device = options.cuda_device;
+    o.mask_unobserved = options.mask_unobserved ? 1 : 0;
+    o.convolution = options.convolution.c_str();
+    char error[1024];
+    handle_ = pillarseg_open(weights.c_str(), config.empty() ? nullptr : config.c_str(), &o, error,
+                             sizeof error);
+    if (handle_ == nullptr) throw Error(error);
+    pillarseg_grid(handle_, &width_, &height_);
+  }
+  ~Segmenter() { pillarseg_close(handle_); }
+  Segmenter(Segmenter&& other) noexcept
+      : handle_(std::exchange(other.handle_, nullptr)), width_(other.width_), height_(other.height_) {}
+  Segmenter& operator=(Segmenter&& other) noexcept {
+    if (this != &other) {
+      pillarseg_close(handle_);
+      handle_ = std::exchange(other.handle_, nullptr);
+      width_ = other.width_;
+      height_ = other.height_;
+    }
+    return *this;
+  }
+  Segmenter(const Segmenter&) = delete;
+  Segmenter& operator=(const Segmenter&) = delete;
+
+  int width() const { return width_; }    // cells along x (columns)
+  int height() const { return height_; }  // cells along y (rows)
+  std::size_t cells() const { return static_cast<std::size_t>(width_) * static_cast<std::size_t>(height_); }
+  std::string device() const { return pillarseg_device_name(handle_); }
+  pillarseg_segmenter* handle() const { return handle_; }
+
+  // xyzr: 4 floats per point. labels: cells() bytes; probabilities: 12 * cells() floats or null.
+  void segment(const float* xyzr, std::size_t num_points, std::uint8_t* labels,
+               float* probabilities = nullptr) {
+    char error[1024];
+    if (pillarseg_segment(handle_, xyzr, num_points, labels, probabilities, error, sizeof error) != 0)
+      throw Error(error);
+  }
+  // xyzr.size() must be a multiple of 4; returns the label map (height rows of width ids).
+  std::vector<std::uint8_t> segment(const std::vector<float>& xyzr) {
+    if (xyzr.size() % 4 != 0)
+      throw Error("pillarseg::Segmenter::segment: " + std::to_string(xyzr.size()) +
+                  " floats are not whole points (4 floats each: x, y, z, reflectance)");
+    std::vector<std::uint8_t> labels(cells());
+    segment(xyzr.data(), xyzr.size() / 4, labels.data());
+    return labels;
+  }
+
+ private:
+  pillarseg_segmenter* handle_ = nullptr;
+  int width_ = 0, height_ = 0;
+};
+
+// "vehicle" .. "terrain" for 1..12, "unlabeled" for 0; empty for any other id.
+inline std::string class_name(int class_id) {
+  const char* name = pillarseg_class_name(class_id);
+  return name ? name : "";
+}
+
+inline std::string version() { return pillarseg_version(); }
+
+}  // namespace pillarseg

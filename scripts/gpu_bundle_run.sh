@@ -1,0 +1,226 @@
+#!/usr/bin/env bash
+# run.sh of the GPU bundle (scripts/gpu_bundle.sh packs it): the whole GPU check on a bare CUDA
+# machine in one call of at most 8 minutes, writing report.md and its logs into $OUT (8 files):
+#   nvidia-smi.txt   the device, driver and clocks
+#   tests.log        every *_gpu test (kernels, CUDA backend, device pipeline against the CPU)
+#   sanitizer.log    compute-sanitizer memcheck, racecheck and synccheck over the kernel tests
+#   kernels.log      the kernel benchmarks: ours against cuDNN and cuBLAS
+#   bench.log        pillarseg bench --device cuda at full size (bilinear, transposed, 2D and 3D
+#                    occupancy; --conv own, cudnn, cublas)
+#   train.log        100 steps of the small config on cuda and on cpu, their loss curves
+#   environment.txt  the libraries found, the bundle's commit
+#   report.md        the figures of all of them, and what failed
+# Usage: [OUT=dir] ./run.sh [SECONDS]   (SECONDS: the time budget, default 470)
+set -uo pipefail
+here=$(cd "$(dirname "$0")" && pwd)
+out=${OUT:-$here/out}
+budget=${1:-470}
+mkdir -p "$out"
+start=$(date +%s)
+left() { echo $((budget - ($(date +%s) - start))); }
+report=$out/report.md
+env_log=$out/environment.txt
+failures=()
+note() { echo "$*" >> "$report"; }
+
+# ---- the machine's CUDA libraries ----
+cuda_dirs=()
+for d in /usr/local/cuda/lib64 /usr/local/cuda/targets/x86_64-linux/lib /usr/local/nvidia/lib64 \
+         /usr/lib/x86_64-linux-gnu; do
+  [[ -d $d ]] && cuda_dirs+=("$d")
+done
+# pip wheels (nvidia-cudnn-cu13, nvidia-cublas, ...) hold the libraries in site-packages/nvidia/*/lib.
+while read -r d; do cuda_dirs+=("$d"); done < <(find / -xdev -type d -path '*site-packages/nvidia/*/lib' 2>/dev/null | sort -u)
+library_path=$here/lib
+for d in "${cuda_dirs[@]}"; do library_path+=":$d"; done
+export LD_LIBRARY_PATH=$library_path${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}
+export PATH=$PATH:/usr/local/cuda/bin
+{
+  echo "bundle commit: $(cat "$here/commit" 2>/dev/null)"
+  echo "date: $(date -u +%FT%TZ)"
+  echo "host: $(uname -a)"
+  echo "cpu: $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2-) ($(nproc) threads)"
+  ldd --version 2>&1 | head -1
+  echo "LD_LIBRARY_PATH=$LD_LIBRARY_PATH"
+  for lib in libcuda.so.1 libcudart.so.13 libcublas.so.13 libcublasLt.so.13 libcudnn.so.9; do
+    found=$(for d in ${LD_LIBRARY_PATH//:/ }; do ls "$d/$lib" 2>/dev/null; done | head -1)
+    echo "$lib: ${found:-NOT FOUND}"
+  done
+  echo "ldd bin/pillarseg:"
+  ldd "$here/bin/pillarseg"
+} > "$env_log" 2>&1
+
+nvidia-smi > "$out/nvidia-smi.txt" 2>&1 || echo "nvidia-smi failed" >> "$out/nvidia-smi.txt"
+nvidia-smi --query-gpu=name,driver_version,memory.total,clocks.max.sm --format=csv >> "$out/nvidia-smi.txt" 2>&1
+gpu=$(nvidia-smi --query-gpu=name --format=csv,noheader 2>/dev/null | head -1)
+
+{
+  echo "# GPU check of pillarseg $(cat "$here/commit" 2>/dev/null)"
+  echo
+  echo "Machine: ${gpu:-no GPU reported}; $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2- | xargs), $(nproc) CPU threads; $(date -u +%F)."
+  echo
+} > "$report"
+
+# ---- 1. the GPU tests ----
+tests_log=$out/tests.log
+: > "$tests_log"
+note "## Tests (every *_gpu test)"
+note
+note "| test | passed | failed | skipped | seconds |"
+note "|---|---:|---:|---:|---:|"
+for t in "$here"/bin/test_*_gpu; do
+  name=$(basename "$t")
+  t0=$(date +%s)
+  timeout 150 "$t" --gtest_color=no > "$out/.one.log" 2>&1
+  rc=$?
+  cat "$out/.one.log" >> "$tests_log"
+  passed=$(grep -c '^\[       OK \]' "$out/.one.log")
+  failed=$(grep -c '^\[  FAILED  \] .*(' "$out/.one.log")
+  skipped=$(grep -c '^\[  SKIPPED \]' "$out/.one.log")
+  note "| $name | $passed | $failed | $skipped | $(( $(date +%s) - t0 )) |"
+  if ((rc != 0)); then failures+=("$name exit $rc"); fi
+done
+rm -f "$out/.one.log"
+note
+
+# ---- 2. compute-sanitizer over the kernel tests ----
+sanitizer_log=$out/sanitizer.log
+: > "$sanitizer_log"
+note "## compute-sanitizer"
+note
+if command -v compute-sanitizer > /dev/null; then
+  note "| tool | test | result |"
+  note "|---|---|---|"
+  for tool in memcheck racecheck synccheck; do
+    for t in "$here"/bin/test_kernels_*_gpu; do
+      (( $(left) > 240 )) || { note "| $tool | $(basename "$t") | not run: time budget |"; continue; }
+      echo "=== $tool $(basename "$t")" >> "$sanitizer_log"
+      timeout 60 compute-sanitizer --tool "$tool" --error-exitcode 99 "$t" --gtest_color=no \
+        --gtest_filter='-*LauncherChecks*:*Argument*' >> "$sanitizer_log" 2>&1
+      rc=$?
+      if grep -q 'Device not supported\|not supported on this' "$sanitizer_log"; then
+        result="refused the device"
+      elif ((rc == 0)); then
+        result="clean"
+      elif ((rc == 124)); then
+        result="time limit (60 s)"
+      else
+        result="errors (exit $rc)"
+        failures+=("compute-sanitizer $tool $(basename "$t")")
+      fi
+      note "| $tool | $(basename "$t") | $result |"
+    done
+  done
+else
+  note "compute-sanitizer not found on PATH."
+fi
+note
+
+# ---- 3. kernel benchmarks: ours, cuDNN, cuBLAS ----
+kernels_log=$out/kernels.log
+: > "$kernels_log"
+for b in "$here"/bin/bench_kernels_*; do
+  (( $(left) > 200 )) || break
+  echo "=== $(basename "$b")" >> "$kernels_log"
+  timeout 90 "$b" --benchmark_min_time=0.05s --benchmark_counters_tabular=true >> "$kernels_log" 2>&1 ||
+    failures+=("$(basename "$b")")
+done
+note "## Kernel benchmarks"
+note
+note "See kernels.log (ours against cuDNN and cuBLAS per convolution pass and layer)."
+note
+
+# ---- 4. pillarseg bench --device cuda at full size ----
+bench_log=$out/bench.log
+: > "$bench_log"
+scan=$here/data/sequences/99/velodyne/000000.bin
+[[ -f $scan ]] || scan=""
+note "## pillarseg bench --device cuda (full size, the real scan)"
+note
+note "| model | conv | steady state ms | stage sum ms | U-Net ms | MB over the bus (host inputs) |"
+note "|---|---|---:|---:|---:|---|"
+run_bench() {
+  local label=$1 conv=$2
+  shift 2
+  (( $(left) > 120 )) || { note "| $label | $conv | not run: time budget | | | |"; return; }
+  echo "=== $label --conv $conv" >> "$bench_log"
+  timeout 60 "$here/bin/pillarseg" bench --device cuda --conv "$conv" --repeat 5 ${scan:+--scan "$scan"} "$@" \
+    > "$out/.bench" 2>&1
+  local rc=$?
+  cat "$out/.bench" >> "$bench_log"
+  if ((rc != 0)); then
+    failures+=("bench $label $conv")
+    note "| $label | $conv | failed (exit $rc) | | | |"
+    return
+  fi
+  local steady staged unet bytes
+  steady=$(sed -n 's/^steady state.*: \([0-9.]*\) ms; stage by stage above: \([0-9.]*\) ms.*/\1/p' "$out/.bench")
+  staged=$(sed -n 's/^steady state.*stage by stage above: \([0-9.]*\) ms.*/\1/p' "$out/.bench")
+  unet=$(awk '$1 == "U-Net" {print $2}' "$out/.bench")
+  bytes=$(sed -n 's/^bytes over the bus per scan: \([0-9.]*\) MB.*: \([0-9.]*\) MB.*/\1 (\2)/p' "$out/.bench")
+  note "| $label | $conv | $steady | $staged | $unet | $bytes |"
+}
+run_bench "bilinear" own
+run_bench "bilinear" cudnn
+run_bench "bilinear" cublas
+run_bench "transposed" own --transposed
+run_bench "pillar + 2D occupancy" own --config "$here/configs/pillar_2d_sparse.yaml"
+run_bench "pillar + 3D occupancy" own --config "$here/configs/pillar_3d_sparse.yaml"
+rm -f "$out/.bench"
+note
+
+# ---- 5. 100 training steps on cuda and on cpu ----
+train_log=$out/train.log
+: > "$train_log"
+note "## Training: 100 steps of configs/small_cpu.yaml on cuda and on cpu"
+note
+work=$(mktemp -d)
+if (( $(left) > 60 )); then
+  "$here/bin/pillarseg" simulate --out "$work/data" --sequences 1 --scans 200 --seed 3 >> "$train_log" 2>&1
+  sed -e 's/epochs: 16/epochs: 1/' -e 's/precise_bn_batches: 8/precise_bn_batches: 0/' \
+      -e 's/sequences: \[0, 1, 2, 3, 4, 5, 6, 7\]/sequences: [0]/' "$here/configs/small_cpu.yaml" > "$work/check.yaml"
+  for device in cuda cpu; do
+    timeout $(( $(left) > 30 ? $(left) - 20 : 10 )) "$here/bin/pillarseg" train --data "$work/data" \
+      --config "$work/check.yaml" --out "$work/run_$device" --device "$device" >> "$train_log" 2>&1 ||
+      failures+=("train on $device")
+  done
+  python3 - "$work" >> "$report" 2>> "$train_log" <<'PY' || note "(loss comparison failed: see train.log)"
+import json, sys
+work = sys.argv[1]
+def steps(device):
+    out = []
+    for line in open(f"{work}/run_{device}/metrics.jsonl"):
+        r = json.loads(line)
+        if r.get("type") == "step":
+            out.append(r)
+    return out
+gpu, cpu = steps("cuda"), steps("cpu")
+n = min(len(gpu), len(cpu))
+d = [abs(g["loss"] - c["loss"]) / max(abs(c["loss"]), 1e-9) for g, c in zip(gpu, cpu)]
+print(f"{n} steps compared. Loss: step 1 cuda {gpu[0]['loss']:.5f} / cpu {cpu[0]['loss']:.5f}; "
+      f"step {n} cuda {gpu[n-1]['loss']:.5f} / cpu {cpu[n-1]['loss']:.5f}.")
+print(f"Relative loss difference: first 10 steps at most {max(d[:10]):.2e}, all {n} at most {max(d):.2e}; "
+      f"mean of the last 10: cuda {sum(g['loss'] for g in gpu[n-10:n])/10:.4f}, cpu {sum(c['loss'] for c in cpu[n-10:n])/10:.4f}.")
+tg = gpu[n-1]["elapsed_s"] / n
+tc = cpu[n-1]["elapsed_s"] / n
+print(f"Time per step (elapsed / steps, data preparation included): cuda {1e3*tg:.1f} ms, cpu {1e3*tc:.1f} ms.")
+print()
+PY
+else
+  note "not run: time budget"
+fi
+rm -rf "$work"
+note
+
+# ---- summary ----
+{
+  echo "## Summary"
+  echo
+  echo "Total time: $(( $(date +%s) - start )) s."
+  if ((${#failures[@]} == 0)); then
+    echo "Nothing failed."
+  else
+    echo "Failed: ${failures[*]}."
+  fi
+} >> "$report"
+cat "$report"

@@ -1,0 +1,285 @@
+// The C API (include/pillarseg/pillarseg.h) through the shared library, as a C program or a
+// Python ctypes user calls it: the same labels and probabilities as the engine's segmenter; every
+// bad argument and bad file an error message in the caller's buffer, never a crash or an
+// exception; several segmenters at once on several threads; a weights-only checkpoint written by
+// PyTorch opened without a config.
+#include <gtest/gtest.h>
+
+#include <cstring>
+#include <filesystem>
+#include <fstream>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "core/point.hpp"
+#include "core/rng.hpp"
+#include "engine/cuda/install.hpp"
+#include "engine/pipeline/segmenter.hpp"
+#include "engine/train/checkpoint.hpp"
+#include "engine/train/run_config.hpp"
+#include "pillarseg/pillarseg.h"
+#include "tests/library/fixtures.hpp"
+#include "tests/support/scans.hpp"
+#include "tests/support/test_support.hpp"
+
+namespace fs = std::filesystem;
+
+namespace pillarseg_test {
+
+namespace {
+
+const char* kTinyConfig =
+    "grid: {x: [-6.4, 6.4], y: [-3.2, 3.2], z: [-2.5, 1.5], cell: 0.2, voxel_z: 0.5}\n"
+    "model: {max_points_per_pillar: 8, pillar_channels: 4, occupancy: 2d, occupancy_channels: 2, "
+    "base_width: 4, depth: 2}\n";
+
+}  // namespace
+
+const std::string& tiny_checkpoint() {
+  static const std::string path = [] {
+    const fs::path file = fs::path(PILLARSEG_BINARY_DIR) / "tests" / "library_tiny.safetensors";
+    const pillarseg::RunConfig config = pillarseg::parse_run_config(kTinyConfig, "tiny");
+    auto backend = pillarseg::make_cpu_backend();
+    pillarseg::PillarSegNet net(config.model, *backend, /*seed=*/11);
+    pillarseg::save_checkpoint(file, net, config, {}, /*with_optimizer=*/false);
+    return file.string();
+  }();
+  return path;
+}
+
+std::vector<float> tiny_scan(int points, unsigned seed) {
+  const pillarseg::RunConfig config = pillarseg::parse_run_config(kTinyConfig, "tiny");
+  std::vector<float> xyzr;
+  for (const pillarseg::Point& p : pillarseg::test::random_scan(points, config.model.grid, seed))
+    xyzr.insert(xyzr.end(), {p.x, p.y, p.z, p.r});
+  return xyzr;
+}
+
+}  // namespace pillarseg_test
+
+using pillarseg_test::tiny_checkpoint;
+using pillarseg_test::tiny_scan;
+
+namespace {
+
+// A segmenter with default options but `device` and `mask`; fails the test with the message.
+pillarseg_segmenter* open_tiny(const char* device = "cpu", int mask = 0) {
+  pillarseg_options options;
+  pillarseg_default_options(&options);
+  options.device = device;
+  options.mask_unobserved = mask;
+  char error[512];
+  pillarseg_segmenter* s = pillarseg_open(tiny_checkpoint().c_str(), nullptr, &options, error, sizeof error);
+  EXPECT_NE(s, nullptr) << error;
+  return s;
+}
+
+std::string open_error(const char* weights, const char* config, const pillarseg_options* options) {
+  char error[512] = "untouched";
+  pillarseg_segmenter* s = pillarseg_open(weights, config, options, error, sizeof error);
+  EXPECT_EQ(s, nullptr);
+  pillarseg_close(s);
+  return error;
+}
+
+struct Output {
+  std::vector<uint8_t> labels;
+  std::vector<float> probabilities;
+};
+
+Output segment(pillarseg_segmenter* s, const std::vector<float>& xyzr) {
+  int width = 0, height = 0;
+  pillarseg_grid(s, &width, &height);
+  const size_t cells = static_cast<size_t>(width) * static_cast<size_t>(height);
+  Output out{std::vector<uint8_t>(cells), std::vector<float>(12 * cells)};
+  char error[512];
+  EXPECT_EQ(pillarseg_segment(s, xyzr.data(), xyzr.size() / 4, out.labels.data(), out.probabilities.data(),
+                              error, sizeof error),
+            0)
+      << error;
+  return out;
+}
+
+}  // namespace
+
+TEST(CApi, VersionDefaultsAndClassNames) {
+  EXPECT_EQ(std::string(pillarseg_version()),
+            std::to_string(PILLARSEG_VERSION_MAJOR) + "." + std::to_string(PILLARSEG_VERSION_MINOR) + "." +
+                std::to_string(PILLARSEG_VERSION_PATCH));
+  pillarseg_options o;
+  std::memset(&o, 0x5a, sizeof o);
+  pillarseg_default_options(&o);
+  EXPECT_EQ(o.struct_size, sizeof(pillarseg_options));
+  EXPECT_STREQ(o.device, "cpu");
+  EXPECT_EQ(o.threads, 0);
+  EXPECT_EQ(o.cuda_device, 0);
+  EXPECT_EQ(o.mask_unobserved, 0);
+  EXPECT_STREQ(o.convolution, "own");
+  pillarseg_default_options(nullptr);  // ignored
+  EXPECT_STREQ(pillarseg_class_name(0), "unlabeled");
+  EXPECT_STREQ(pillarseg_class_name(1), "vehicle");
+  EXPECT_STREQ(pillarseg_class_name(12), "terrain");
+  EXPECT_EQ(pillarseg_class_name(13), nullptr);
+  EXPECT_EQ(pillarseg_class_name(-1), nullptr);
+}
+
+TEST(CApi, LabelsAndProbabilitiesAreTheEngines) {
+  pillarseg::install_emulated_cuda_backend();  // this program's own engine (the library has its own)
+  const std::vector<float> xyzr = tiny_scan(3000, 5);
+  std::vector<pillarseg::Point> points;
+  for (size_t i = 0; i + 3 < xyzr.size(); i += 4) points.push_back({xyzr[i], xyzr[i + 1], xyzr[i + 2], xyzr[i + 3]});
+  for (const char* device : {"cpu", "emu"}) {
+    for (const int mask : {0, 1}) {
+      SCOPED_TRACE(::testing::Message() << device << (mask ? ", masked" : ""));
+      pillarseg_segmenter* s = open_tiny(device, mask);
+      ASSERT_NE(s, nullptr);
+      int width = 0, height = 0;
+      pillarseg_grid(s, &width, &height);
+      EXPECT_EQ(width, 64);
+      EXPECT_EQ(height, 32);
+      double x_min = 0, y_min = 0, cell = 0;
+      pillarseg_grid_geometry(s, &x_min, &y_min, &cell);
+      EXPECT_DOUBLE_EQ(x_min, -6.4);
+      EXPECT_DOUBLE_EQ(y_min, -3.2);
+      EXPECT_DOUBLE_EQ(cell, 0.2);
+      EXPECT_EQ(std::string(pillarseg_device_name(s)).rfind(std::string(device) == "cpu" ? "cpu" : "emu:0 (", 0),
+                0u)
+          << pillarseg_device_name(s);
+      const Output got = segment(s, xyzr), again = segment(s, xyzr);
+      EXPECT_EQ(again.labels, got.labels);
+      pillarseg::SegmenterOptions options;
+      options.device = device;
+      options.mask_unobserved = mask != 0;
+      auto engine = pillarseg::open_segmenter(tiny_checkpoint(), "", options);
+      std::vector<uint8_t> labels(got.labels.size());
+      std::vector<float> probabilities(got.probabilities.size());
+      engine->segment(points, labels.data(), probabilities.data());
+      EXPECT_EQ(got.labels, labels);
+      EXPECT_EQ(got.probabilities, probabilities);
+      pillarseg_close(s);
+    }
+  }
+}
+
+TEST(CApi, BadFilesAndOptionsAreMessages) {
+  const std::string missing = (pillarseg::test::temp_dir() / "nope.safetensors").string();
+  EXPECT_NE(open_error(missing.c_str(), nullptr, nullptr).find("nope.safetensors: no such file"), std::string::npos);
+  EXPECT_NE(open_error(nullptr, nullptr, nullptr).find("weights_path is NULL"), std::string::npos);
+  // A truncated checkpoint names the file.
+  const fs::path truncated = pillarseg::test::temp_dir() / "truncated.safetensors";
+  {
+    std::ifstream in(tiny_checkpoint(), std::ios::binary);
+    std::vector<char> bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+    std::ofstream(truncated, std::ios::binary).write(bytes.data(), static_cast<std::streamsize>(bytes.size() / 2));
+  }
+  EXPECT_NE(open_error(truncated.string().c_str(), nullptr, nullptr).find("truncated.safetensors"), std::string::npos);
+  // A config that names a missing file, a device that does not exist, fields out of range.
+  EXPECT_NE(open_error(tiny_checkpoint().c_str(), "/no/such/config.yaml", nullptr).find("config.yaml"),
+            std::string::npos);
+  pillarseg_options o;
+  pillarseg_default_options(&o);
+  o.device = "tpu";
+  EXPECT_NE(open_error(tiny_checkpoint().c_str(), nullptr, &o).find("\"cpu\", \"cuda\" or \"emu\", got \"tpu\""),
+            std::string::npos);
+  pillarseg_default_options(&o);
+  o.threads = -2;
+  EXPECT_NE(open_error(tiny_checkpoint().c_str(), nullptr, &o).find("threads must be >= 0"), std::string::npos);
+  pillarseg_default_options(&o);
+  o.struct_size = 0;
+  EXPECT_NE(open_error(tiny_checkpoint().c_str(), nullptr, &o).find("struct_size"), std::string::npos);
+  pillarseg_default_options(&o);
+  o.device = "cpu";
+  o.convolution = "cudnn";
+  EXPECT_NE(open_error(tiny_checkpoint().c_str(), nullptr, &o).find("--conv cudnn needs --device cuda"),
+            std::string::npos);
+  // The error buffer: truncated and terminated, or absent.
+  char small[8];
+  std::memset(small, 'x', sizeof small);
+  EXPECT_EQ(pillarseg_open(missing.c_str(), nullptr, nullptr, small, sizeof small), nullptr);
+  EXPECT_EQ(std::strlen(small), 7u);
+  EXPECT_EQ(pillarseg_open(missing.c_str(), nullptr, nullptr, nullptr, 0), nullptr);
+  EXPECT_EQ(pillarseg_open(missing.c_str(), nullptr, nullptr, small, 0), nullptr);
+}
+
+TEST(CApi, BadSegmentArgumentsAreMessages) {
+  pillarseg_segmenter* s = open_tiny();
+  ASSERT_NE(s, nullptr);
+  std::vector<uint8_t> labels(64 * 32);
+  const std::vector<float> xyzr = tiny_scan(10, 6);
+  char error[512];
+  EXPECT_NE(pillarseg_segment(nullptr, xyzr.data(), 10, labels.data(), nullptr, error, sizeof error), 0);
+  EXPECT_NE(std::string(error).find("the segmenter is NULL"), std::string::npos) << error;
+  EXPECT_NE(pillarseg_segment(s, xyzr.data(), 10, nullptr, nullptr, error, sizeof error), 0);
+  EXPECT_NE(std::string(error).find("labels is NULL: it must hold width x height = 2048 bytes"), std::string::npos)
+      << error;
+  EXPECT_NE(pillarseg_segment(s, nullptr, 10, labels.data(), nullptr, error, sizeof error), 0);
+  EXPECT_NE(std::string(error).find("points_xyzr is NULL for 10 points"), std::string::npos) << error;
+  EXPECT_NE(pillarseg_segment(s, xyzr.data(), size_t{1} << 40, labels.data(), nullptr, error, sizeof error), 0);
+  EXPECT_NE(std::string(error).find("at most 2147483646 a scan"), std::string::npos) << error;
+  // An empty scan, and points that are all non-finite, are valid scans.
+  EXPECT_EQ(pillarseg_segment(s, nullptr, 0, labels.data(), nullptr, error, sizeof error), 0) << error;
+  EXPECT_STREQ(error, "");
+  const std::vector<float> nan(40, std::numeric_limits<float>::quiet_NaN());
+  EXPECT_EQ(pillarseg_segment(s, nan.data(), 10, labels.data(), nullptr, error, sizeof error), 0) << error;
+  pillarseg_close(s);
+  pillarseg_close(nullptr);
+  // Queries on a NULL segmenter answer zeros.
+  int width = 7, height = 7;
+  pillarseg_grid(nullptr, &width, &height);
+  EXPECT_EQ(width, 0);
+  EXPECT_EQ(height, 0);
+  EXPECT_STREQ(pillarseg_device_name(nullptr), "");
+}
+
+TEST(CApi, SegmentersOnSeveralThreadsGiveTheirSingleThreadResults) {
+  struct Job {
+    const char* device;
+    int threads;
+    std::vector<float> scan;
+    Output expected, got;
+    pillarseg_segmenter* segmenter = nullptr;
+  };
+  std::vector<Job> jobs = {{"cpu", 1, tiny_scan(2500, 7), {}, {}}, {"cpu", 2, tiny_scan(1800, 8), {}, {}},
+                           {"emu", 1, tiny_scan(900, 9), {}, {}}};
+  for (Job& job : jobs) {
+    pillarseg_options o;
+    pillarseg_default_options(&o);
+    o.device = job.device;
+    o.threads = job.threads;
+    char error[512];
+    job.segmenter = pillarseg_open(tiny_checkpoint().c_str(), nullptr, &o, error, sizeof error);
+    ASSERT_NE(job.segmenter, nullptr) << error;
+    job.expected = segment(job.segmenter, job.scan);
+  }
+  std::vector<std::thread> threads;
+  for (Job& job : jobs) {
+    threads.emplace_back([&job] {
+      for (int round = 0; round < 3; ++round) job.got = segment(job.segmenter, job.scan);
+    });
+  }
+  for (std::thread& t : threads) t.join();
+  for (Job& job : jobs) {
+    EXPECT_EQ(job.got.labels, job.expected.labels) << job.device;
+    EXPECT_EQ(job.got.probabilities, job.expected.probabilities) << job.device;
+    pillarseg_close(job.segmenter);
+  }
+}
+
+TEST(CApi, WeightsOnlyPyTorchCheckpointOpensWithoutAConfig) {
+  const fs::path file = fs::path(PILLARSEG_SOURCE_DIR) / "tests/golden/weights_only_pillars_occ2d_bilinear_bce.safetensors";
+  char error[512];
+  pillarseg_segmenter* s = pillarseg_open(file.string().c_str(), nullptr, nullptr, error, sizeof error);
+  ASSERT_NE(s, nullptr) << error;
+  int width = 0, height = 0;
+  pillarseg_grid(s, &width, &height);
+  EXPECT_EQ(width, 1000);  // the paper's grid
+  EXPECT_EQ(height, 500);
+  const Output out = segment(s, tiny_scan(4000, 10));
+  for (uint8_t k : out.labels) ASSERT_TRUE(k >= 1 && k <= 12);
+  pillarseg_close(s);
+  // The 3D-occupancy file's stream reads 4 layers, which the paper's grid (20) does not have.
+  const fs::path occupancy_3d = fs::path(PILLARSEG_SOURCE_DIR) / "tests/golden/weights_only_pillars_occ3d_transposed_ce.safetensors";
+  EXPECT_NE(open_error(occupancy_3d.string().c_str(), nullptr, nullptr).find("occupancy.conv.weight has 4 input channels"),
+            std::string::npos);
+}
