@@ -15,8 +15,6 @@
 
 #include <algorithm>
 #include <cmath>
-#include <csignal>
-#include <cstdio>
 #include <map>
 #include <numeric>
 #include <optional>
@@ -244,21 +242,10 @@ void register_benchmarks() {
 }  // namespace
 
 int main(int argc, char** argv) {
-  // A peer that dies while we write to it must show up as an error, not kill this process.
-  std::signal(SIGPIPE, SIG_IGN);
-  try {
-    options() = parse_options(argc, argv);
-    set_num_threads(options().threads);
-    benchmark::Initialize(&argc, argv);
-    if (benchmark::ReportUnrecognizedArguments(argc, argv)) return 1;
-    register_benchmarks();
-    benchmark::RunSpecifiedBenchmarks();
+  const auto report = [] {
     finish_conv_peer();
     print_gemm_and_layers();
-    benchmark::Shutdown();
-  } catch (const std::exception& e) {
-    std::fprintf(stderr, "bench_conv_layers: %s\n", e.what());
-    return 1;
-  }
-  return 0;
+  };
+  return model_benchmark_main(argc, argv, "bench_conv_layers", register_benchmarks, report,
+                              finish_conv_peer);
 }

@@ -31,8 +31,6 @@
 
 #include <algorithm>
 #include <cmath>
-#include <csignal>
-#include <cstdio>
 #include <map>
 #include <numeric>
 #include <optional>
@@ -268,22 +266,6 @@ void register_benchmarks() {
 }  // namespace
 
 int main(int argc, char** argv) {
-  // A peer that dies while we write to it must show up as an error, not kill this process.
-  std::signal(SIGPIPE, SIG_IGN);
-  try {
-    options() = parse_options(argc, argv);
-    set_num_threads(options().threads);
-    benchmark::Initialize(&argc, argv);
-    if (benchmark::ReportUnrecognizedArguments(argc, argv)) return 1;
-    register_benchmarks();
-    benchmark::RunSpecifiedBenchmarks();
-    print_cases();
-    remove_peer_inputs();
-    benchmark::Shutdown();
-  } catch (const std::exception& e) {
-    remove_peer_inputs();
-    std::fprintf(stderr, "bench_model: %s\n", e.what());
-    return 1;
-  }
-  return 0;
+  return model_benchmark_main(argc, argv, "bench_model", register_benchmarks, print_cases,
+                              remove_peer_inputs);
 }

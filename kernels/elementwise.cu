@@ -12,10 +12,6 @@
 namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 namespace {
 
-constexpr int kBlockSize = 256;
-// A grid-stride loop covers the rest; 4096 blocks of 256 threads fill any current GPU.
-constexpr std::int64_t kMaxBlocks = 4096;
-
 // `runs` runs of `run_length` floats: run r starts at source + r * source_stride and goes to
 // destination + r * destination_stride. Lengths and strides count floats, or float4s when
 // `vectorized`.
@@ -56,7 +52,7 @@ void check_band(const ChannelBand& band, const char* op) {
 
 }  // namespace
 
-static __global__ void __launch_bounds__(kBlockSize)
+static __global__ void __launch_bounds__(kElementwiseBlock)
     add_inplace_kernel(float* a, const float* b, Float4Split split) {
   const std::int64_t items = split.items();
   const std::int64_t stride = std::int64_t{gridDim.x} * blockDim.x;
@@ -78,7 +74,7 @@ static __global__ void __launch_bounds__(kBlockSize)
   }
 }
 
-static __global__ void __launch_bounds__(kBlockSize)
+static __global__ void __launch_bounds__(kElementwiseBlock)
     scale_kernel(float* x, float factor, Float4Split split) {
   const std::int64_t items = split.items();
   const std::int64_t stride = std::int64_t{gridDim.x} * blockDim.x;
@@ -99,7 +95,7 @@ static __global__ void __launch_bounds__(kBlockSize)
 }
 
 // Run blockIdx.y of `runs`, walked by the blocks along x.
-static __global__ void __launch_bounds__(kBlockSize)
+static __global__ void __launch_bounds__(kElementwiseBlock)
     copy_runs_kernel(const float* source, float* destination, StridedRuns runs) {
   const std::int64_t run = blockIdx.y;
   const std::int64_t stride = std::int64_t{gridDim.x} * blockDim.x;
@@ -120,9 +116,9 @@ namespace {
 void copy_runs(const float* source, float* destination, const StridedRuns& runs,
                cudaStream_t stream) {
   if (runs.runs == 0 || runs.run_length == 0) return;
-  const dim3 grid(grid_stride_blocks(runs.run_length, kBlockSize, kMaxBlocks).x,
+  const dim3 grid(elementwise_grid(runs.run_length).x,
                   static_cast<unsigned>(runs.runs));
-  launch_kernel(copy_runs_kernel, grid, dim3(kBlockSize), 0, stream, source, destination, runs);
+  launch_kernel(copy_runs_kernel, grid, dim3(kElementwiseBlock), 0, stream, source, destination, runs);
 }
 
 }  // namespace
@@ -134,8 +130,8 @@ void add_inplace(float* a, const float* b, std::int64_t n, cudaStream_t stream) 
            "add_inplace: a and b must point to {} floats of device memory, got a = {}, b = {}", n,
            fmt::ptr(a), fmt::ptr(b));
   const Float4Split split = split_for_float4(n, {a, b});
-  launch_kernel(add_inplace_kernel, grid_stride_blocks(split.items(), kBlockSize, kMaxBlocks),
-                dim3(kBlockSize), 0, stream, a, b, split);
+  launch_kernel(add_inplace_kernel, elementwise_grid(split.items()),
+                dim3(kElementwiseBlock), 0, stream, a, b, split);
 }
 
 void scale(float* x, float factor, std::int64_t n, cudaStream_t stream) {
@@ -143,8 +139,8 @@ void scale(float* x, float factor, std::int64_t n, cudaStream_t stream) {
   if (n == 0) return;
   PS_CHECK(x != nullptr, "scale: x must point to {} floats of device memory, got null", n);
   const Float4Split split = split_for_float4(n, {x});
-  launch_kernel(scale_kernel, grid_stride_blocks(split.items(), kBlockSize, kMaxBlocks),
-                dim3(kBlockSize), 0, stream, x, factor, split);
+  launch_kernel(scale_kernel, elementwise_grid(split.items()),
+                dim3(kElementwiseBlock), 0, stream, x, factor, split);
 }
 
 void copy_channels(const float* x, const ChannelBand& band, float* y, cudaStream_t stream) {

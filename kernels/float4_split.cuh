@@ -46,4 +46,12 @@ inline dim3 grid_stride_blocks(std::int64_t items, int block_size, std::int64_t 
       std::clamp<std::int64_t>(ceil_div(items, std::int64_t{block_size}), 1, max_blocks)));
 }
 
+// The memory-bound elementwise kernels' grid-stride loops: blocks of kElementwiseBlock threads,
+// at most kElementwiseMaxBlocks of them (4096 blocks of 256 threads fill any current GPU).
+inline constexpr int kElementwiseBlock = 256;
+inline constexpr std::int64_t kElementwiseMaxBlocks = 4096;
+inline dim3 elementwise_grid(std::int64_t items) {
+  return grid_stride_blocks(items, kElementwiseBlock, kElementwiseMaxBlocks);
+}
+
 }  // namespace pillarseg::cuda

@@ -11,15 +11,8 @@
 #include "kernels/pillar_gather.cuh"
 
 namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
-namespace {
-
-constexpr int kBlockSize = 256;
-constexpr std::int64_t kMaxBlocks = 4096;
-
-}  // namespace
-
 // Layers 0, 1 and 5 from the ray counts; 2, 3 and 4 zero (cells without points).
-static __global__ void __launch_bounds__(kBlockSize)
+static __global__ void __launch_bounds__(kElementwiseBlock)
     ray_layers_kernel(const std::uint32_t* __restrict__ detections,
                       const std::uint32_t* __restrict__ transmissions, std::int64_t cells,
                       float* __restrict__ out) {
@@ -37,7 +30,7 @@ static __global__ void __launch_bounds__(kBlockSize)
 }
 
 // Layers 2, 3 and 4 of the cell of each group p < n.
-static __global__ void __launch_bounds__(kBlockSize)
+static __global__ void __launch_bounds__(kElementwiseBlock)
     point_layers_kernel(const float* __restrict__ points, PointGroups groups, std::int64_t cells,
                         float* __restrict__ out) {
   const std::int64_t n = groups.num_pillars[0];
@@ -71,11 +64,11 @@ void grid_map_features(const float* points, std::int64_t num_points, const GridS
            cells, cells);
   const PointGroups groups =
       group_points(points, num_points, grid, workspace, workspace_size, stream);
-  launch_kernel(ray_layers_kernel, grid_stride_blocks(cells, kBlockSize, kMaxBlocks),
-                dim3(kBlockSize), 0, stream, detections, transmissions, cells, out);
+  launch_kernel(ray_layers_kernel, elementwise_grid(cells),
+                dim3(kElementwiseBlock), 0, stream, detections, transmissions, cells, out);
   if (groups.capacity == 0) return;
-  launch_kernel(point_layers_kernel, grid_stride_blocks(groups.capacity, kBlockSize, kMaxBlocks),
-                dim3(kBlockSize), 0, stream, points, groups, cells, out);
+  launch_kernel(point_layers_kernel, elementwise_grid(groups.capacity),
+                dim3(kElementwiseBlock), 0, stream, points, groups, cells, out);
 }
 
 }  // namespace pillarseg::cuda

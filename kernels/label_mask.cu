@@ -8,14 +8,7 @@
 #include "kernels/float4_split.cuh"
 
 namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
-namespace {
-
-constexpr int kBlockSize = 256;
-constexpr std::int64_t kMaxBlocks = 4096;
-
-}  // namespace
-
-static __global__ void __launch_bounds__(kBlockSize)
+static __global__ void __launch_bounds__(kElementwiseBlock)
     mask_unobserved_kernel(const std::uint32_t* __restrict__ transmissions,
                            const std::uint32_t* __restrict__ detections, std::int64_t n,
                            std::uint8_t* __restrict__ labels, float* __restrict__ probabilities,
@@ -40,8 +33,8 @@ void mask_unobserved(const std::uint32_t* transmissions, const std::uint32_t* de
            "{} probability planes must be device memory",
            n, n, planes);
   if (n == 0) return;
-  launch_kernel(mask_unobserved_kernel, grid_stride_blocks(n, kBlockSize, kMaxBlocks),
-                dim3(kBlockSize), 0, stream, transmissions, detections, n, labels,
+  launch_kernel(mask_unobserved_kernel, elementwise_grid(n),
+                dim3(kElementwiseBlock), 0, stream, transmissions, detections, n, labels,
                 planes > 0 ? probabilities : nullptr, planes);
 }
 

@@ -8,14 +8,7 @@
 #include "kernels/float4_split.cuh"
 
 namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
-namespace {
-
-constexpr int kBlockSize = 256;
-constexpr std::int64_t kMaxBlocks = 4096;
-
-}  // namespace
-
-static __global__ void __launch_bounds__(kBlockSize)
+static __global__ void __launch_bounds__(kElementwiseBlock)
     observability_input_kernel(const std::uint32_t* __restrict__ transmissions,
                                const std::uint32_t* __restrict__ detections, std::int64_t n,
                                float* __restrict__ out) {
@@ -34,8 +27,8 @@ void observability_input(const std::uint32_t* transmissions, const std::uint32_t
            "must be device memory",
            n, n);
   if (n == 0) return;
-  launch_kernel(observability_input_kernel, grid_stride_blocks(n, kBlockSize, kMaxBlocks),
-                dim3(kBlockSize), 0, stream, transmissions, detections, n, out);
+  launch_kernel(observability_input_kernel, elementwise_grid(n),
+                dim3(kElementwiseBlock), 0, stream, transmissions, detections, n, out);
 }
 
 }  // namespace pillarseg::cuda

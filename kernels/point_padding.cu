@@ -8,14 +8,7 @@
 #include "kernels/float4_split.cuh"
 
 namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
-namespace {
-
-constexpr int kBlockSize = 256;
-constexpr std::int64_t kMaxBlocks = 4096;
-
-}  // namespace
-
-static __global__ void __launch_bounds__(kBlockSize)
+static __global__ void __launch_bounds__(kElementwiseBlock)
     pad_points_kernel(const std::int32_t* __restrict__ num_points, std::int64_t capacity,
                       float4* __restrict__ points) {
   const std::int64_t valid = num_points[0] < 0 ? 0 : num_points[0];
@@ -37,8 +30,8 @@ void pad_points(const std::int32_t* num_points, std::int64_t capacity, float* po
            "pad_points: points must be 16-byte aligned (rows of 4 floats), given {}",
            fmt::ptr(points));
   if (capacity == 0) return;
-  launch_kernel(pad_points_kernel, grid_stride_blocks(capacity, kBlockSize, kMaxBlocks),
-                dim3(kBlockSize), 0, stream, num_points, capacity,
+  launch_kernel(pad_points_kernel, elementwise_grid(capacity),
+                dim3(kElementwiseBlock), 0, stream, num_points, capacity,
                 reinterpret_cast<float4*>(points));
 }
 

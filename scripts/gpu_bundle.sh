@@ -44,17 +44,20 @@ pack() {
   ls "$build"/tests/test_*_gpu > /dev/null 2>&1 ||
     { echo "gpu_bundle: $build has no *_gpu tests (a build without nvcc?)"; exit 1; }
   rm -rf "$bundle"
-  mkdir -p "$bundle/bin" "$bundle/lib" "$bundle/data" "$bundle/configs"
+  mkdir -p "$bundle/bin" "$bundle/lib/cxx" "$bundle/data" "$bundle/configs"
   for b in $(binaries_of "$build"); do
     cp "$b" "$bundle/bin/"
     strip --strip-unneeded "$bundle/bin/$(basename "$b")"
   done
-  # The shared libraries they load that the machine lacks (and libstdc++ and libgcc_s, which it
-  # has but perhaps older than these binaries need).
+  # The shared libraries they load that the machine lacks, in lib/; libstdc++ and libgcc_s, which
+  # it has, perhaps older than these binaries need, in lib/cxx/ (run.sh uses them only then: they
+  # need this machine's glibc or newer).
   for b in "$bundle"/bin/*; do
     ldd "$b" | awk '/=> \// {print $1, $3}'
   done | sort -u | while read -r name path; do
-    if ! provided "$name" || [[ $name == libstdc++.so.* || $name == libgcc_s.so.* ]]; then
+    if [[ $name == libstdc++.so.* || $name == libgcc_s.so.* ]]; then
+      cp -L "$path" "$bundle/lib/cxx/$name"
+    elif ! provided "$name"; then
       cp -L "$path" "$bundle/lib/$name"
     fi
   done
@@ -97,7 +100,7 @@ check() {
   fi
   [[ -x $bundle/run.sh ]] || { echo "gpu_bundle check: no run.sh"; failed=1; }
   if ((failed == 0)); then
-    echo "gpu_bundle check: $(ls "$bundle"/bin | wc -l) binaries, $(ls "$bundle"/lib | wc -l) bundled libraries, $((kib / 1024)) MiB: every library is bundled, CUDA's or the C/C++ runtime's"
+    echo "gpu_bundle check: $(ls "$bundle"/bin | wc -l) binaries, $(find "$bundle"/lib -type f | wc -l) bundled libraries, $((kib / 1024)) MiB: every library is bundled, CUDA's or the C/C++ runtime's"
   fi
   return $failed
 }

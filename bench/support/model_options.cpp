@@ -1,8 +1,13 @@
 #include "bench/support/model_options.hpp"
 
+#include <benchmark/benchmark.h>
+
+#include <csignal>
+#include <cstdio>
 #include <exception>
 
 #include "core/error.hpp"
+#include "core/parallel.hpp"
 
 namespace pillarseg::bench {
 
@@ -54,6 +59,27 @@ Options parse_options(int& argc, char** argv) {
   }
   argc = kept;
   return o;
+}
+
+int model_benchmark_main(int argc, char** argv, const char* name, const std::function<void()>& registration,
+                         const std::function<void()>& report, const std::function<void()>& cleanup) {
+  std::signal(SIGPIPE, SIG_IGN);
+  try {
+    options() = parse_options(argc, argv);
+    set_num_threads(options().threads);
+    benchmark::Initialize(&argc, argv);
+    if (benchmark::ReportUnrecognizedArguments(argc, argv)) return 1;
+    registration();
+    benchmark::RunSpecifiedBenchmarks();
+    report();
+    cleanup();
+    benchmark::Shutdown();
+  } catch (const std::exception& e) {
+    cleanup();
+    std::fprintf(stderr, "%s: %s\n", name, e.what());
+    return 1;
+  }
+  return 0;
 }
 
 }  // namespace pillarseg::bench

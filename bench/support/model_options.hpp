@@ -9,6 +9,7 @@
 #pragma once
 
 #include <filesystem>
+#include <functional>
 #include <string>
 
 namespace pillarseg::bench {
@@ -31,5 +32,12 @@ Options& options();
 
 // Takes this benchmark's own flags out of argv (Google Benchmark rejects flags it does not know).
 Options parse_options(int& argc, char** argv);
+
+// The main of a model benchmark named `name`: its own flags parsed into options(), the threads
+// set, Google Benchmark's flags, `registration` registering the benchmarks, the runs, `report`
+// printing the tables, and `cleanup` (also after an error, which is printed). A peer process that
+// dies while written to is an error, not a SIGPIPE. Returns the exit status.
+int model_benchmark_main(int argc, char** argv, const char* name, const std::function<void()>& registration,
+                         const std::function<void()>& report, const std::function<void()>& cleanup);
 
 }  // namespace pillarseg::bench

@@ -74,21 +74,15 @@ std::unique_ptr<Backend> make_backend(const std::string& device, const BackendOp
              "--conv {} needs --device cuda (the CPU backend has one convolution)", options.convolution);
     return make_cpu_backend();
   }
-  if (device == "cuda") {
-    const BackendFactory factory = factory_slot(device).load();
-    PS_CHECK(factory != nullptr,
-             "--device cuda: this build has no CUDA backend (configure with the CUDA toolkit installed, so that "
-             "CMake finds nvcc); use --device cpu, or --device emu for the CUDA backend on the CPU emulation");
-    return factory(options);
-  }
-  if (device == "emu") {
-    const BackendFactory factory = factory_slot(device).load();
-    PS_CHECK(factory != nullptr,
-             "--device emu: this program has no emulated CUDA backend (link pillarseg_cuda_backend_emu); use "
-             "--device cpu");
-    return factory(options);
-  }
-  PS_FAIL("--device must be cpu, cuda or emu, got '{}'", device);
+  PS_CHECK(device == "cuda" || device == "emu", "--device must be cpu, cuda or emu, got '{}'", device);
+  const BackendFactory factory = factory_slot(device).load();
+  PS_CHECK(factory != nullptr, "--device {}: {}", device,
+           device == "cuda" ? "this build has no CUDA backend (configure with the CUDA toolkit installed, so that "
+                              "CMake finds nvcc); use --device cpu, or --device emu for the CUDA backend on the "
+                              "CPU emulation"
+                            : "this program has no emulated CUDA backend (link pillarseg_cuda_backend_emu); use "
+                              "--device cpu");
+  return factory(options);
 }
 
 int64_t pillar_rows(int64_t num_points, const GridSpec& grid, int max_pillars) {

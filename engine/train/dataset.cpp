@@ -62,37 +62,35 @@ Tensor<uint8_t> training_labels(const Scan& scan, const GroundTruthBuilder& buil
 
 }  // namespace
 
-Sample ScanDataset::training_sample(size_t i, uint64_t epoch, const TrainConfig& train) const {
+ScanDataset::AugmentedScan ScanDataset::augmented_scan(size_t i, uint64_t epoch, const TrainConfig& train) const {
   const Item& it = item(i);
   const GroundTruthBuilder& builder = *builders_[it.sequence_slot];
-  Scan scan = builder.sequence().load(it.scan);
-  Rng rng = Rng::derive(train.seed, epoch, i);
-  AugmentTransform transform;
-  if (train.augment) transform = sample_augmentation(train.augmentation, rng);
-  if (!transform.is_identity()) transform.apply(scan.points);
-  const Eigen::Vector3d origin = transform.apply(Eigen::Vector3d::Zero());
+  AugmentedScan a{builder.sequence().load(it.scan), Rng::derive(train.seed, epoch, i), {}, Eigen::Vector3d::Zero(), {}};
+  if (train.augment) a.transform = sample_augmentation(train.augmentation, a.rng);
+  if (!a.transform.is_identity()) a.transform.apply(a.scan.points);
+  a.origin = a.transform.apply(Eigen::Vector3d::Zero());
+  a.labels = training_labels(a.scan, builder, it.scan, kind_, a.transform, classes_, model_.grid);
+  return a;
+}
+
+Sample ScanDataset::training_sample(size_t i, uint64_t epoch, const TrainConfig& train) const {
+  AugmentedScan a = augmented_scan(i, epoch, train);
   Sample s;
-  s.inputs = compute_scan_inputs(scan.points, origin, model_, host::SampleMode::Training, &rng);
-  s.labels = training_labels(scan, builder, it.scan, kind_, transform, classes_, model_.grid);
+  s.inputs = compute_scan_inputs(a.scan.points, a.origin, model_, host::SampleMode::Training, &a.rng);
+  s.labels = std::move(a.labels);
   return s;
 }
 
 TrainingScan ScanDataset::training_scan(size_t i, uint64_t epoch, const TrainConfig& train) const {
-  const Item& it = item(i);
-  const GroundTruthBuilder& builder = *builders_[it.sequence_slot];
-  Scan scan = builder.sequence().load(it.scan);
-  Rng rng = Rng::derive(train.seed, epoch, i);
-  AugmentTransform transform;
-  if (train.augment) transform = sample_augmentation(train.augmentation, rng);
-  if (!transform.is_identity()) transform.apply(scan.points);
+  AugmentedScan a = augmented_scan(i, epoch, train);
   TrainingScan s;
-  s.origin = transform.apply(Eigen::Vector3d::Zero());
+  s.origin = a.origin;
   if (model_.pillar_input) {
     const host::PillarConfig pc{model_.max_points_per_pillar, model_.max_pillars};
-    s.pillars = host::pillar_gather(scan.points, model_.grid, pc, host::SampleMode::Training, &rng);
+    s.pillars = host::pillar_gather(a.scan.points, model_.grid, pc, host::SampleMode::Training, &a.rng);
   }
-  s.labels = training_labels(scan, builder, it.scan, kind_, transform, classes_, model_.grid);
-  s.points = std::move(scan.points);
+  s.labels = std::move(a.labels);
+  s.points = std::move(a.scan.points);
   return s;
 }
 

@@ -64,6 +64,17 @@ class ScanDataset {
   void build_cache(GroundTruthKind kind) const;
 
  private:
+  // Scan i of `epoch` moved by its augmentation (drawn first from its stream), and its labels; the
+  // stream goes on to the pillars' draws.
+  struct AugmentedScan {
+    Scan scan;
+    Rng rng;
+    AugmentTransform transform;
+    Eigen::Vector3d origin = Eigen::Vector3d::Zero();
+    Tensor<uint8_t> labels;
+  };
+  AugmentedScan augmented_scan(size_t i, uint64_t epoch, const TrainConfig& train) const;
+
   ModelConfig model_;
   ClassTable classes_;
   GroundTruthKind kind_;
