@@ -4,17 +4,21 @@
 // transposed-convolution upsampling); a 1x1 head to 12 classes. Forward keeps what backward
 // needs; backward writes every parameter gradient (overwriting).
 //
-// Activation memory is planned once per (batch, H, W) and mode in one arena each, overlaying
-// tensors whose lifetimes do not meet: eval's activation dies after its last reader (a skip
-// tensor after its decoder's concat); training keeps what the backward reads until it reads it,
-// and each gradient lives from the op that writes it to the one that consumes it. Pillar
-// buffers grow only when a batch has more pillars than any before, so the steady-state loop
-// allocates nothing, and a recorded evaluation graph stays valid until then.
+// The model is two explicit op graphs (engine/model/graph.hpp), built per batch size, pillar
+// capacity and mode: the evaluation forward, and the training step (forward, loss, backward).
+// One lifetime planner places each graph's tensors in one block, overlaying those whose
+// lifetimes do not meet: eval's activation dies after its last reader (a skip tensor after its
+// decoder's concat); training keeps what the backward reads until it reads it, and each
+// gradient lives from the op that writes it to the one that consumes it. The pillar buffers are
+// planned for a capacity that grows only when a batch has more pillars than any before, so the
+// steady-state loop allocates nothing, and a recorded evaluation graph stays valid until then.
+// FLOP counts, the per-stage timing and the memory report read the same graphs.
 #pragma once
 
 #include <array>
 #include <cstdint>
 #include <memory>
+#include <string>
 #include <vector>
 
 #include "core/tensor.hpp"
@@ -23,6 +27,10 @@
 #include "engine/model/parameters.hpp"
 
 namespace pillarseg {
+
+class Graph;
+struct GraphNode;
+struct GraphPlan;
 
 // One batch of network inputs, on the host.
 struct ModelBatch {
@@ -99,16 +107,24 @@ class PillarSegNet {
   Tensor<float> download_logits() const;           // (B, 12, H, W)
   Tensor<float> probabilities();                   // softmax, (B, 12, H, W)
   Tensor<uint8_t> predict_labels();                // argmax class ids 1..12, (B, H, W)
-  // Bytes of activation memory planned for the current batch shape and mode.
+  // Bytes of activation memory planned for the current batch shape and mode (the pillar
+  // buffers included).
   size_t activation_bytes() const;
+  // The op graph of the evaluation forward or of the training step as last planned (empty
+  // before the first forward or prepare() of that mode), and its memory report.
+  const Graph& graph(bool training) const;
+  std::string memory_report(bool training) const;
 
   struct Impl;
 
  private:
   void plan(int batch, bool training);
-  void plan_training(int batch);
-  void plan_eval(int batch);
-  void plan_pillars(int64_t pillars, bool at_capacity);
+  void plan_pillars(int64_t pillars);
+  void build_graph(GraphPlan& p, int batch, bool training);
+  template <class T>
+  RefT<T> bind(const GraphPlan& p, int id);
+  BatchNormRefs batchnorm_refs(const GraphPlan& p, const GraphNode& n, int save_mean, int save_invstd);
+  double execute(const GraphPlan& p, size_t begin, size_t end);
 
   ModelConfig config_;
   Backend& backend_;

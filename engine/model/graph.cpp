@@ -1,0 +1,196 @@
+#include "engine/model/graph.hpp"
+
+#include <fmt/format.h>
+
+#include <algorithm>
+#include <limits>
+#include <numeric>
+
+#include "core/error.hpp"
+
+namespace pillarseg {
+
+namespace {
+constexpr size_t kAlignment = 64;
+constexpr int kAlive = std::numeric_limits<int>::max();  // an output's last node
+size_t aligned(size_t bytes) { return (bytes + kAlignment - 1) / kAlignment * kAlignment; }
+}  // namespace
+
+size_t dtype_bytes(DType dtype) {
+  switch (dtype) {
+    case DType::F32:
+    case DType::I32:
+      return 4;
+    case DType::U8:
+      return 1;
+  }
+  return 4;
+}
+
+const char* dtype_name(DType dtype) {
+  switch (dtype) {
+    case DType::F32: return "f32";
+    case DType::I32: return "i32";
+    case DType::U8: return "u8";
+  }
+  return "?";
+}
+
+const char* op_name(OpKind op) {
+  switch (op) {
+    case OpKind::FillZero: return "fill zero";
+    case OpKind::PfnForward: return "pfn forward";
+    case OpKind::PfnBackward: return "pfn backward";
+    case OpKind::Scatter: return "scatter forward";
+    case OpKind::ScatterBackward: return "scatter backward";
+    case OpKind::CopyChannels: return "channel copies";
+    case OpKind::ExtractChannels: return "channel copies";
+    case OpKind::Conv2d: return "conv forward";
+    case OpKind::Conv2dBnReluEval: return "conv+BN+ReLU eval";
+    case OpKind::Conv2dBackward: return "conv backward";
+    case OpKind::ConvTranspose2x2: return "convT 2x2 forward";
+    case OpKind::ConvTranspose2x2Backward: return "convT 2x2 backward";
+    case OpKind::BatchNormRelu: return "batchnorm+relu forward";
+    case OpKind::BatchNormReluBackward: return "batchnorm+relu backward";
+    case OpKind::MaxPool2x2: return "maxpool forward";
+    case OpKind::MaxPool2x2Backward: return "maxpool backward";
+    case OpKind::Upsample2x: return "upsample forward";
+    case OpKind::Upsample2xBackward: return "upsample backward";
+    case OpKind::PadConcat: return "pad+concat forward";
+    case OpKind::PadConcatBackward: return "pad+concat backward";
+    case OpKind::AddInplace: return "add (skip gradients)";
+    case OpKind::Loss: return "loss";
+  }
+  return "?";
+}
+
+int Graph::tensor(std::string name, Shape shape, DType dtype) {
+  GraphTensor t;
+  t.name = std::move(name);
+  t.shape = std::move(shape);
+  t.dtype = dtype;
+  tensors_.push_back(std::move(t));
+  return static_cast<int>(tensors_.size()) - 1;
+}
+
+int Graph::view(std::string name, int of, Shape shape, size_t byte_offset) {
+  const GraphTensor& base = at(of);
+  GraphTensor t;
+  t.name = std::move(name);
+  t.shape = std::move(shape);
+  t.dtype = base.dtype;
+  t.view_of = of;
+  t.view_offset = byte_offset;
+  PS_CHECK(byte_offset + t.bytes() <= base.bytes(), "graph: view {} ({} bytes at {}) outside {} ({} bytes)", t.name,
+           t.bytes(), byte_offset, base.name, base.bytes());
+  tensors_.push_back(std::move(t));
+  return static_cast<int>(tensors_.size()) - 1;
+}
+
+int Graph::parameter(int index, Shape shape, bool gradient) {
+  GraphTensor t;
+  t.name = gradient ? "grad" : "param";
+  t.shape = std::move(shape);
+  t.parameter = index;
+  t.gradient = gradient;
+  tensors_.push_back(std::move(t));
+  return static_cast<int>(tensors_.size()) - 1;
+}
+
+GraphNode& Graph::add(GraphNode node) {
+  for (const std::vector<int>* list : {&node.reads, &node.writes})
+    for (int id : *list)
+      PS_CHECK(id >= 0 && id < static_cast<int>(tensors_.size()), "graph: node {} names tensor {} of {}", node.name, id,
+               tensors_.size());
+  nodes_.push_back(std::move(node));
+  return nodes_.back();
+}
+
+int Graph::root(int id) const {
+  while (at(id).view_of >= 0) id = at(id).view_of;
+  return id;
+}
+
+size_t Graph::plan() {
+  const size_t n = tensors_.size();
+  lifetimes_.assign(n, {kAlive, -1});
+  for (size_t i = 0; i < nodes_.size(); ++i) {
+    for (const std::vector<int>* list : {&nodes_[i].reads, &nodes_[i].writes}) {
+      for (int id : *list) {
+        std::pair<int, int>& life = lifetimes_[static_cast<size_t>(root(id))];
+        life.first = std::min(life.first, static_cast<int>(i));
+        life.second = std::max(life.second, static_cast<int>(i));
+      }
+    }
+  }
+  // Inputs and outputs of views extend their roots'.
+  for (size_t id = 0; id < n; ++id) {
+    const GraphTensor& t = tensors_[id];
+    std::pair<int, int>& life = lifetimes_[static_cast<size_t>(root(static_cast<int>(id)))];
+    if (t.input) life.first = -1;
+    if (t.output) life.second = kAlive;
+  }
+  std::vector<size_t> order;
+  for (size_t id = 0; id < n; ++id) {
+    if (!tensors_[id].planned()) continue;
+    PS_CHECK(lifetimes_[id].second >= lifetimes_[id].first,
+             "graph: tensor {} is planned but no node reads or writes it", tensors_[id].name);
+    order.push_back(id);
+  }
+  // Largest first (ties: in order of declaration), each at the lowest aligned offset that meets
+  // no placed tensor alive at the same time.
+  std::stable_sort(order.begin(), order.end(),
+                   [&](size_t a, size_t b) { return aligned(tensors_[a].bytes()) > aligned(tensors_[b].bytes()); });
+  std::vector<size_t> placed;
+  size_t total = 0;
+  for (size_t id : order) {
+    GraphTensor& t = tensors_[id];
+    const size_t bytes = aligned(t.bytes());
+    std::vector<std::pair<size_t, size_t>> busy;
+    for (size_t other : placed) {
+      const bool meet = lifetimes_[other].first <= lifetimes_[id].second &&
+                        lifetimes_[id].first <= lifetimes_[other].second;
+      if (meet) busy.push_back({tensors_[other].offset, tensors_[other].offset + aligned(tensors_[other].bytes())});
+    }
+    std::sort(busy.begin(), busy.end());
+    size_t offset = 0;
+    for (const auto& [begin, end] : busy) {
+      if (offset + bytes <= begin) break;
+      offset = std::max(offset, end);
+    }
+    t.offset = offset;
+    total = std::max(total, offset + bytes);
+    placed.push_back(id);
+  }
+  planned_bytes_ = total;
+  return total;
+}
+
+double Graph::flops(size_t begin, size_t end) const {
+  double sum = 0;
+  for (size_t i = begin; i < std::min(end, nodes_.size()); ++i) sum += nodes_[i].flops;
+  return sum;
+}
+
+std::string Graph::memory_report(size_t largest) const {
+  std::vector<size_t> order;
+  for (size_t id = 0; id < tensors_.size(); ++id)
+    if (tensors_[id].planned()) order.push_back(id);
+  std::sort(order.begin(), order.end(), [&](size_t a, size_t b) { return tensors_[a].bytes() > tensors_[b].bytes(); });
+  size_t sum = 0;
+  for (size_t id : order) sum += aligned(tensors_[id].bytes());
+  std::string report = fmt::format("{} planned tensors, {:.1f} MiB of them in a block of {:.1f} MiB ({} nodes)\n",
+                                   order.size(), static_cast<double>(sum) / (1 << 20),
+                                   static_cast<double>(planned_bytes_) / (1 << 20), nodes_.size());
+  for (size_t k = 0; k < std::min(largest, order.size()); ++k) {
+    const GraphTensor& t = tensors_[order[k]];
+    const auto& [first, last] = lifetimes_.empty() ? std::pair<int, int>{0, 0} : lifetimes_[order[k]];
+    report += fmt::format("  {:<32} {:<22} {:>4} {:>9.1f} MiB at {:>9.1f} MiB, nodes {}..{}\n", t.name,
+                          shape_str(t.shape), dtype_name(t.dtype), static_cast<double>(t.bytes()) / (1 << 20),
+                          static_cast<double>(t.offset) / (1 << 20), first < 0 ? std::string("input") : std::to_string(first),
+                          last == kAlive ? std::string("end") : std::to_string(last));
+  }
+  return report;
+}
+
+}  // namespace pillarseg

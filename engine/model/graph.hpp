@@ -1,0 +1,119 @@
+// The model as one explicit list of ops (STYLE.md rule 14): a Graph holds tensors and nodes, each
+// node an op of the Backend with the tensors it reads and writes and its output's shape from the
+// op's shape function (core/ops.hpp). PillarSegNet builds one graph for the evaluation forward
+// and one for the training step (forward, loss, backward); everything else reads these lists:
+//   - the lifetime planner (plan()): every planned tensor lives from the first node that touches
+//     it to the last (or to the end, for outputs), and tensors whose lifetimes are disjoint share
+//     bytes (greedy by size, lowest offset that overlaps no tensor alive at the same time); views
+//     lie inside another tensor and share its lifetime; external tensors (parameters, gradients)
+//     are bound by the model;
+//   - graph capture (the model records the evaluation forward's nodes);
+//   - FLOP counts (flops()) and per-op timing (the model's node timer) for the benchmarks;
+//   - the memory report (memory_report()).
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include "core/tensor.hpp"
+
+namespace pillarseg {
+
+enum class DType { F32, I32, U8 };
+size_t dtype_bytes(DType dtype);
+const char* dtype_name(DType dtype);
+
+enum class OpKind {
+  FillZero,               // w0 = 0
+  PfnForward,             // r: points, weight | w: out (training: argmax, save stats)
+  PfnBackward,            // r: points, weight, argmax, dout | w: dweight, dgamma, dbeta
+  Scatter,                // r: features, cells | w: canvas band
+  ScatterBackward,        // r: dcanvas band, cells | w: dfeatures
+  CopyChannels,           // r: x | w: band of y
+  ExtractChannels,        // r: band of y | w: x
+  Conv2d,                 // r: x, w, bias | w: y
+  Conv2dBnReluEval,       // r: x, w, bias, BatchNorm | w: y
+  Conv2dBackward,         // r: x, w, dy | w: dx, dw, dbias
+  ConvTranspose2x2,       // r: x, w, bias | w: y
+  ConvTranspose2x2Backward,
+  BatchNormRelu,          // r: x | w: y (training: save stats)
+  BatchNormReluBackward,  // r: x, y, dy, save stats | w: dx (may be dy), dgamma, dbeta
+  MaxPool2x2,             // r: x | w: y, argmax
+  MaxPool2x2Backward,     // r: dy, argmax | w: dx
+  Upsample2x,
+  Upsample2xBackward,
+  PadConcat,              // r: skip, up | w: y
+  PadConcatBackward,      // r: dy | w: dskip, dup
+  AddInplace,             // r: a, b | w: a
+  Loss,                   // r: logits, labels, coefficients | w: dlogits
+};
+const char* op_name(OpKind op);
+
+// Which part of a forward a node belongs to, for the stage timing of pillarseg bench.
+enum class Stage { Pfn, Scatter, Occupancy, GridMap, UNet, Head, Loss, Backward };
+
+struct GraphTensor {
+  std::string name;  // "down2.conv1.out": for the memory report
+  Shape shape;
+  DType dtype = DType::F32;
+  int view_of = -1;            // >= 0: lies in that tensor at view_offset bytes
+  size_t view_offset = 0;
+  int parameter = -1;          // >= 0: a parameter's value, or its gradient with `gradient`
+  bool gradient = false;
+  bool input = false;          // written before the graph runs (an upload): alive from the start
+  bool output = false;         // read after the graph ran: alive to the end
+  bool dynamic_rows = false;   // dim 0 is the pillar rows of the current batch (planned: capacity)
+  size_t offset = 0;           // planned: bytes into the block
+  size_t bytes() const { return static_cast<size_t>(shape_numel(shape)) * dtype_bytes(dtype); }
+  bool planned() const { return view_of < 0 && parameter < 0; }
+};
+
+struct GraphNode {
+  OpKind op = OpKind::FillZero;
+  Stage stage = Stage::UNet;
+  std::string name;            // "down2.conv1"
+  std::vector<int> args;       // the op's tensors in its Backend method's order (-1: absent)
+  std::vector<int> reads, writes;
+  int pad = 0;                 // convolutions
+  int channel0 = 0;            // scatter, channel copies
+  int batchnorm = -1;          // the model's BatchNorm this node uses
+  bool training = false;       // PFN, BatchNorm: batch statistics
+  double flops = 0;            // 2 x multiply-adds of its arithmetic on weights
+};
+
+class Graph {
+ public:
+  // A planned activation (or an input, or an output), a view into one, or an external tensor.
+  int tensor(std::string name, Shape shape, DType dtype = DType::F32);
+  int view(std::string name, int of, Shape shape, size_t byte_offset = 0);
+  int parameter(int index, Shape shape, bool gradient);
+  GraphTensor& at(int id) { return tensors_.at(static_cast<size_t>(id)); }
+  const GraphTensor& at(int id) const { return tensors_.at(static_cast<size_t>(id)); }
+  const std::vector<GraphTensor>& tensors() const { return tensors_; }
+
+  GraphNode& add(GraphNode node);
+  const std::vector<GraphNode>& nodes() const { return nodes_; }
+  size_t size() const { return nodes_.size(); }
+
+  // Places every planned tensor (see the file comment); returns the bytes of the block.
+  size_t plan();
+  size_t planned_bytes() const { return planned_bytes_; }
+  // After plan(): the first and last node that a planned tensor is alive at (-1: from before the
+  // first node, an input; INT_MAX: to the end, an output).
+  std::pair<int, int> lifetime(int id) const { return lifetimes_.at(static_cast<size_t>(root(id))); }
+  double flops(size_t begin, size_t end) const;
+  // The largest planned tensors with their offsets and lifetimes, and the total, as text.
+  std::string memory_report(size_t largest = 12) const;
+
+ private:
+  int root(int id) const;
+  std::vector<GraphTensor> tensors_;
+  std::vector<GraphNode> nodes_;
+  std::vector<std::pair<int, int>> lifetimes_;  // per tensor: first and last node (planned roots)
+  size_t planned_bytes_ = 0;
+};
+
+}  // namespace pillarseg
