@@ -93,10 +93,10 @@ void model_step(PillarSegNet& net, Backend& backend, const SizeSetup& s, bool tr
   Ref grads = ps.grads();
   const double norm = std::sqrt(backend.sum_of_squares(grads));
   if (norm > kGradClip) backend.scale(grads, static_cast<float>(kGradClip / (norm + 1e-6)));
-  AdamHyper hyper;
-  hyper.step = ++adam_steps;
+  AdamOptions adam;
+  adam.beta2 = 0.99;  // the paper's
   Ref values = ps.values(), m = ps.adam_m(), v = ps.adam_v();
-  backend.adam_step(values, grads, m, v, hyper);
+  backend.adam_step(values, grads, m, v, ++adam_steps, adam);
 }
 
 std::vector<std::string> peer_model_arguments(const ModelCase& c, const SizeSetup& s) {

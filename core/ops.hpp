@@ -4,6 +4,10 @@
 // ops (host/), the CUDA backend and the model's op graph (engine/model/graph.hpp) all call these;
 // a shape rule changes here or nowhere.
 //
+// Every shape function takes the name of its caller last ("conv2d_backward", "CudaBackend::
+// conv2d_forward"): messages begin with it, so that an error names the call that was given the
+// wrong shapes.
+//
 // Layouts: activations (B, C, H, W); pillar tensors (P, N, 10) and (P, C); cells (P, 3) rows
 // (sample, iy, ix); conv weights (O, I, k, k); transposed-conv weights (I, O, 2, 2); labels
 // (B, H, W).
@@ -17,26 +21,29 @@
 namespace pillarseg::op {
 
 // PFN: points (P, N, 10), weight (C, 10) -> (P, C).
-Shape pfn(const Shape& points, const Shape& weight);
+Shape pfn(const Shape& points, const Shape& weight, const char* caller = "pfn");
 // Scatter into channels [channel0, channel0 + C) of canvas (B, Cc, H, W): features (P, C),
 // cells (P, 3). Returns the canvas's shape.
-Shape scatter(const Shape& features, const Shape& cells, const Shape& canvas, int64_t channel0);
+Shape scatter(const Shape& features, const Shape& cells, const Shape& canvas, int64_t channel0,
+              const char* caller = "scatter");
 // x (B, Cx, H, W) as channels [channel0, channel0 + Cx) of y (B, Cy, H, W). Returns y's shape.
-Shape channel_band(const Shape& x, const Shape& y, int64_t channel0);
+Shape channel_band(const Shape& x, const Shape& y, int64_t channel0, const char* caller = "channel copy");
 // Stride-1 convolution: x (B, I, H, W), weight (O, I, k, k), padding pad >= 0 -> (B, O, H + 2 pad
 // - k + 1, W + 2 pad - k + 1), each at least 1. bias, when given, (O).
-Shape conv2d(const Shape& x, const Shape& weight, int pad, const Shape* bias = nullptr);
+Shape conv2d(const Shape& x, const Shape& weight, int pad, const Shape* bias = nullptr,
+             const char* caller = "conv2d");
 // ConvTranspose2d kernel 2 stride 2: x (B, I, H, W), weight (I, O, 2, 2) -> (B, O, 2 H, 2 W).
-Shape conv_transpose2x2(const Shape& x, const Shape& weight, const Shape* bias = nullptr);
+Shape conv_transpose2x2(const Shape& x, const Shape& weight, const Shape* bias = nullptr,
+                        const char* caller = "conv_transpose2x2");
 // BatchNorm over channels (axis 1) of x (B, C, ...) with per-channel parameters (C) -> x's shape.
 Shape batchnorm(const Shape& x, const Shape& channel_parameter);
 // MaxPool 2x2 stride 2 (floor): x (B, C, H, W) -> (B, C, H / 2, W / 2).
-Shape maxpool2x2(const Shape& x);
+Shape maxpool2x2(const Shape& x, const char* caller = "maxpool2x2");
 // Bilinear x2 upsampling (align_corners = true): x (B, C, H, W) -> (B, C, 2 H, 2 W).
-Shape upsample2x(const Shape& x);
+Shape upsample2x(const Shape& x, const char* caller = "upsample2x");
 // [skip, up zero-padded to skip's H, W]: skip (B, Cs, H, W), up (B, Cu, h <= H, w <= W) ->
 // (B, Cs + Cu, H, W).
-Shape pad_concat(const Shape& skip, const Shape& up);
+Shape pad_concat(const Shape& skip, const Shape& up, const char* caller = "pad_concat");
 // Class ids of logits (B, K, H, W) -> (B, H, W).
 Shape argmax(const Shape& logits);
 // The loss of logits (B, K, H, W) against labels (B, H, W) with coefficients (K + 1), one per class

@@ -8,15 +8,11 @@
 #include <cstdint>
 #include <span>
 
+#include "core/adam_options.hpp"
+
 namespace pillarseg::host {
 
-struct AdamOptions {
-  double lr = 1e-3;
-  double beta1 = 0.9;
-  double beta2 = 0.999;
-  double eps = 1e-8;
-  double weight_decay = 0.0;  // decoupled: params *= 1 - lr * weight_decay before the Adam update
-};
+using pillarseg::AdamOptions;
 
 // One step t (1-based, counting this step) on n parameters; all four spans have length n:
 //   p *= 1 - lr * wd

@@ -18,6 +18,7 @@
 
 #include "core/eigen.hpp"
 #include "core/error.hpp"
+#include "core/ops.hpp"
 #include "core/parallel.hpp"
 
 namespace pillarseg::host {
@@ -189,17 +190,11 @@ void weight_gradient(const T* x, const T* dy, const ConvShape& s, T* dw) {
   });
 }
 
-// Checks x, w, bias and pad and returns the sizes; `op` names the caller in messages.
+// Checks x, w, bias and pad (op::conv2d) and returns the sizes; `caller` names the op in messages.
 template <class T>
-ConvShape check_conv_args(const char* op, const Tensor<T>& x, const Tensor<T>& w,
+ConvShape check_conv_args(const char* caller, const Tensor<T>& x, const Tensor<T>& w,
                           const std::type_identity_t<Tensor<T>>* bias, int pad) {
-  PS_CHECK(x.rank() == 4, "{}: x must be (B, I, H, W), got shape {}", op, shape_str(x.shape()));
-  PS_CHECK(w.rank() == 4 && w.dim(2) == w.dim(3) && w.dim(2) >= 1,
-           "{}: w must be (O, I, k, k) with a square kernel k >= 1, got shape {}", op,
-           shape_str(w.shape()));
-  PS_CHECK(w.dim(1) == x.dim(1), "{}: w {} expects I = {} input channels, but x {} has {} channels",
-           op, shape_str(w.shape()), w.dim(1), shape_str(x.shape()), x.dim(1));
-  PS_CHECK(pad >= 0, "{}: pad must be >= 0, got {}", op, pad);
+  op::conv2d(x.shape(), w.shape(), pad, bias != nullptr ? &bias->shape() : nullptr, caller);
   ConvShape s;
   s.batch = x.dim(0);
   s.in_channels = x.dim(1);
@@ -208,15 +203,6 @@ ConvShape check_conv_args(const char* op, const Tensor<T>& x, const Tensor<T>& w
   s.out_channels = w.dim(0);
   s.kernel = w.dim(2);
   s.pad = pad;
-  PS_CHECK(s.height >= 1 && s.width >= 1 && s.out_height() >= 1 && s.out_width() >= 1,
-           "{}: a {}x{} kernel with pad {} needs an image of at least {}x{} (H x W), got {}x{}", op,
-           s.kernel, s.kernel, pad, std::max<int64_t>(1, s.kernel - 2 * pad),
-           std::max<int64_t>(1, s.kernel - 2 * pad), s.height, s.width);
-  if (bias != nullptr) {
-    PS_CHECK(bias->rank() == 1 && bias->dim(0) == s.out_channels,
-             "{}: bias must be (O) = ({}) for w {}, got shape {}", op, s.out_channels,
-             shape_str(w.shape()), shape_str(bias->shape()));
-  }
   return s;
 }
 

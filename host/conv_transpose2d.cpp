@@ -16,6 +16,7 @@
 #include <vector>
 
 #include "core/error.hpp"
+#include "core/ops.hpp"
 #include "core/parallel.hpp"
 #include "host/conv2d.hpp"
 
@@ -24,23 +25,11 @@ namespace {
 
 constexpr int64_t kSubPixels = 4;  // (dy, dx) in {0, 1}^2, index dy * 2 + dx
 
-// Checks x, w and bias; `op` names the caller in messages.
+// Checks x, w and bias (op::conv_transpose2x2); `caller` names the calling op in messages.
 template <class T>
-void check_args(const char* op, const Tensor<T>& x, const Tensor<T>& w,
+void check_args(const char* caller, const Tensor<T>& x, const Tensor<T>& w,
                 const std::type_identity_t<Tensor<T>>* bias) {
-  PS_CHECK(x.rank() == 4, "{}: x must be (B, I, H, W), got shape {}", op, shape_str(x.shape()));
-  PS_CHECK(x.dim(2) >= 1 && x.dim(3) >= 1, "{}: x must have H, W >= 1, got shape {}", op,
-           shape_str(x.shape()));
-  PS_CHECK(w.rank() == 4 && w.dim(2) == 2 && w.dim(3) == 2,
-           "{}: w must be (I, O, 2, 2) (PyTorch ConvTranspose2d layout), got shape {}", op,
-           shape_str(w.shape()));
-  PS_CHECK(w.dim(0) == x.dim(1), "{}: w {} expects I = {} input channels, but x {} has {} channels",
-           op, shape_str(w.shape()), w.dim(0), shape_str(x.shape()), x.dim(1));
-  if (bias != nullptr) {
-    PS_CHECK(bias->rank() == 1 && bias->dim(0) == w.dim(1),
-             "{}: bias must be (O) = ({}) for w {}, got shape {}", op, w.dim(1),
-             shape_str(w.shape()), shape_str(bias->shape()));
-  }
+  op::conv_transpose2x2(x.shape(), w.shape(), bias != nullptr ? &bias->shape() : nullptr, caller);
 }
 
 // w (I, O, 2, 2) -> the equivalent 1x1 convolution weight (4 O, I, 1, 1):

@@ -6,14 +6,14 @@
 #include <limits>
 
 #include "core/error.hpp"
+#include "core/ops.hpp"
 #include "core/parallel.hpp"
 
 namespace pillarseg::host {
 
 template <class T>
 void maxpool2d_forward(const Tensor<T>& x, Tensor<T>& y, Tensor<int32_t>* argmax) {
-  PS_CHECK(x.rank() == 4, "maxpool2d_forward: x must be (B, C, H, W), got shape {}",
-           shape_str(x.shape()));
+  op::maxpool2x2(x.shape(), "maxpool2d_forward");
   PS_CHECK(x.dim(2) * x.dim(3) <= std::numeric_limits<int32_t>::max(),
            "maxpool2d_forward: an x plane of {}x{} has more elements than an int32 argmax holds",
            x.dim(2), x.dim(3));

@@ -7,6 +7,7 @@
 #include <cstdint>
 
 #include "core/error.hpp"
+#include "core/ops.hpp"
 #include "core/parallel.hpp"
 
 namespace pillarseg::host {
@@ -26,15 +27,8 @@ struct Placement {
   int64_t left = 0;
 };
 
-Placement place(const char* op, const Shape& skip, const Shape& up) {
-  PS_CHECK(skip.size() == 4, "{}: skip must be (B, Cs, H, W), got shape {}", op, shape_str(skip));
-  PS_CHECK(up.size() == 4, "{}: up must be (B, Cu, h, w), got shape {}", op, shape_str(up));
-  PS_CHECK(up[0] == skip[0], "{}: skip {} and up {} must have the same batch size", op,
-           shape_str(skip), shape_str(up));
-  PS_CHECK(up[2] <= skip[2] && up[3] <= skip[3],
-           "{}: up {} must be at most as large as skip {} (h <= H, w <= W), to be zero-padded to "
-           "it",
-           op, shape_str(up), shape_str(skip));
+Placement place(const char* caller, const Shape& skip, const Shape& up) {
+  op::pad_concat(skip, up, caller);
   Placement p;
   p.batch = skip[0];
   p.skip_channels = skip[1];

@@ -10,6 +10,7 @@
 #include <vector>
 
 #include "core/error.hpp"
+#include "core/ops.hpp"
 #include "core/parallel.hpp"
 
 namespace pillarseg::host {
@@ -46,9 +47,7 @@ std::vector<Tap<T>> axis_taps(int64_t in, int64_t out) {
 
 template <class T>
 void upsample_bilinear_forward(const Tensor<T>& x, Tensor<T>& y) {
-  PS_CHECK(x.rank() == 4 && x.dim(2) >= 1 && x.dim(3) >= 1,
-           "upsample_bilinear_forward: x must be (B, C, H, W) with H, W >= 1, got shape {}",
-           shape_str(x.shape()));
+  op::upsample2x(x.shape(), "upsample_bilinear_forward");
   PS_CHECK(&y != &x, "upsample_bilinear_forward: the output y must be a different tensor from x");
   const int64_t in_h = x.dim(2);
   const int64_t in_w = x.dim(3);

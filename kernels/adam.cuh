@@ -11,17 +11,12 @@
 
 #include <cstdint>
 
+#include "core/adam_options.hpp"
 #include "kernels/emu/cuda_compat.cuh"
 
 namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 
-struct AdamOptions {
-  double lr = 1e-3;
-  double beta1 = 0.9;
-  double beta2 = 0.999;
-  double eps = 1e-8;
-  double weight_decay = 0.0;
-};
+using pillarseg::AdamOptions;
 
 // params, exp_avg, exp_avg_sq (n) updated in place from grads (n); step >= 1. The four arrays do
 // not overlap.

@@ -47,11 +47,11 @@ double max_abs(const Tensor<float>& t) {
 
 // One AdamW step over all trainable parameters.
 void adam(Backend& backend, ParameterSet& ps, int64_t step) {
-  AdamHyper h;
-  h.lr = 1e-2f;
-  h.step = step;
+  AdamOptions adam;
+  adam.lr = 1e-2;
+  adam.beta2 = 0.99;
   Ref values = ps.values(), m = ps.adam_m(), v = ps.adam_v();
-  backend.adam_step(values, ps.grads(), m, v, h);
+  backend.adam_step(values, ps.grads(), m, v, step, adam);
 }
 
 struct Variant {

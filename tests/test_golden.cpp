@@ -80,7 +80,7 @@ struct Golden {
   SafeTensors file;
   ModelConfig config;
   LossKind loss = LossKind::CrossEntropy;
-  AdamHyper adam;
+  AdamOptions adam;
   int adam_steps = 0;
   ModelBatch batch;
   Tensor<uint8_t> labels;  // (B, H, W)
@@ -287,10 +287,8 @@ TEST_P(GoldenTest, TwoAdamStepsMatchPyTorch) {
       Ref grad = ps.grad(static_cast<int>(i));
       backend->fill_zero(grad.data, grad.bytes());
     }
-    AdamHyper hyper = g.adam;
-    hyper.step = step;
     Ref values = ps.values(), m = ps.adam_m(), v = ps.adam_v();
-    backend->adam_step(values, ps.grads(), m, v, hyper);
+    backend->adam_step(values, ps.grads(), m, v, step, g.adam);
   }
 
   const SafeTensors state = section(g, ps, "after_adam.", kState);

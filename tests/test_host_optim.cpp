@@ -83,7 +83,7 @@ TYPED_TEST(HostAdam, ZeroGradientWithoutDecayKeepsParameters) {
   using T = TypeParam;
   std::vector<T> params = {0.5, -3, 7}, m = {0, 0, 0}, v = {0, 0, 0};
   const std::vector<T> zero = {0, 0, 0};
-  for (int64_t step = 1; step <= 3; ++step) adam_step<T>(params, zero, m, v, step, {});
+  for (int64_t step = 1; step <= 3; ++step) adam_step<T>(params, zero, m, v, step, {.weight_decay = 0});
   EXPECT_EQ(params, (std::vector<T>{0.5, -3, 7}));
 }
 

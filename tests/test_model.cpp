@@ -151,11 +151,11 @@ TEST(Model, AdamStepsReduceTheLossAndEvalUsesRunningStatistics) {
     if (step == 1) first = loss;
     last = loss;
     net.backward();
-    AdamHyper h;
-    h.lr = 1e-2f;
-    h.step = step;
+    AdamOptions adam;
+    adam.lr = 1e-2;
+    adam.beta2 = 0.99;
     Ref values = ps.values(), m = ps.adam_m(), v = ps.adam_v();
-    backend->adam_step(values, ps.grads(), m, v, h);
+    backend->adam_step(values, ps.grads(), m, v, step, adam);
   }
   EXPECT_LT(last, 0.7 * first);
   EXPECT_EQ(ps.counters().at("segmentation_head.down1.maxpool_conv.1.double_conv.1.num_batches_tracked"), 30);
@@ -358,9 +358,8 @@ TEST(Model, GradientsAndAdamMomentsAreAllocatedOnFirstUse) {
   EXPECT_EQ(ps.download_flat(ps.adam_v()), zeros);
   EXPECT_TRUE(ps.has_optimizer_state());
   EXPECT_EQ(ps.allocated_bytes(), values_and_buffers + 3 * one_section);
-  AdamHyper h;
   Ref values = ps.values(), m = ps.adam_m(), v = ps.adam_v();
-  backend->adam_step(values, ps.grads(), m, v, h);
+  backend->adam_step(values, ps.grads(), m, v, 1, AdamOptions{});
   EXPECT_NE(ps.download_adam_m(), zeros);
   EXPECT_EQ(ps.download_adam_m(), ps.download_flat(ps.adam_m()));
   EXPECT_EQ(ps.allocated_bytes(), values_and_buffers + 3 * one_section);

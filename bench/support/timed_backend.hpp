@@ -189,8 +189,8 @@ class TimedBackend final : public Backend {
   void scale(Ref& x, float factor) override {
     timed("optimizer: norm, clip, adam", 0, [&] { inner_->scale(x, factor); });
   }
-  void adam_step(Ref& param, const Ref& grad, Ref& m, Ref& v, const AdamHyper& hyper) override {
-    timed("optimizer: norm, clip, adam", 0, [&] { inner_->adam_step(param, grad, m, v, hyper); });
+  void adam_step(Ref& param, const Ref& grad, Ref& m, Ref& v, int64_t step, const AdamOptions& options) override {
+    timed("optimizer: norm, clip, adam", 0, [&] { inner_->adam_step(param, grad, m, v, step, options); });
   }
 
  private:

@@ -10,6 +10,7 @@
 #include <cstring>
 
 #include "core/error.hpp"
+#include "core/ops.hpp"
 #include "kernels/adam.cuh"
 #include "kernels/batchnorm.cuh"
 #include "kernels/common.cuh"
@@ -491,12 +492,8 @@ void CudaBackend::mask_unobserved(const URef& transmissions, const URef& detecti
 void CudaBackend::pfn_forward(const Ref& points, const Ref& weight, BatchNormRefs& bn,
                               bool training, IRef& argmax, Ref& out, const Ref& /*scratch*/) {
   const char* op = "pfn_forward";
-  require_rank(op, "points", points, 3);
-  require_rank(op, "weight", weight, 2);
+  require_shape(op, "out", out, op::pfn(points.shape, weight.shape, op));
   const cuda::PfnShape shape{points.dim(0), points.dim(1), weight.dim(0)};
-  require_shape(op, "points", points, {shape.pillars, shape.slots, cuda::kPfnFeatures});
-  require_shape(op, "weight", weight, {shape.channels, cuda::kPfnFeatures});
-  require_shape(op, "out", out, {shape.pillars, shape.channels});
   if (!training) {
     // Evaluation needs no arg-max slots (nothing flows back).
     cuda::pfn_forward_eval(points.data, weight.data, shape, bn.gamma.data, bn.beta.data,
@@ -515,10 +512,8 @@ void CudaBackend::pfn_backward(const Ref& points, const Ref& weight, const Batch
                                const IRef& argmax, const Ref& dout, Ref& d_points, Ref& dweight,
                                Ref& dgamma, Ref& dbeta, const Ref& /*scratch*/) {
   const char* op = "pfn_backward";
-  require_rank(op, "points", points, 3);
-  require_rank(op, "weight", weight, 2);
+  require_shape(op, "dout", dout, op::pfn(points.shape, weight.shape, op));
   const cuda::PfnShape shape{points.dim(0), points.dim(1), weight.dim(0)};
-  require_shape(op, "dout", dout, {shape.pillars, shape.channels});
   require_shape(op, "argmax", argmax, {shape.pillars, shape.channels});
   require_shape(op, "d_points", d_points, points.shape);
   require_shape(op, "dweight", dweight, weight.shape);
@@ -531,10 +526,7 @@ void CudaBackend::pfn_backward(const Ref& points, const Ref& weight, const Batch
 
 void CudaBackend::scatter_forward(const Ref& features, const IRef& cells, int channel0,
                                   Ref& canvas) {
-  const char* op = "scatter_forward";
-  require_rank(op, "features", features, 2);
-  require_rank(op, "canvas", canvas, 4);
-  require_shape(op, "cells", cells, {features.dim(0), 3});
+  op::scatter(features.shape, cells.shape, canvas.shape, channel0, "scatter_forward");
   const cuda::ScatterCanvas shape{canvas.dim(0), canvas.dim(1), canvas.dim(2), canvas.dim(3),
                                   channel0};
   cuda::scatter_forward(features.data, cells.data, features.dim(0), features.dim(1), shape,
@@ -543,10 +535,7 @@ void CudaBackend::scatter_forward(const Ref& features, const IRef& cells, int ch
 
 void CudaBackend::scatter_backward(const Ref& dcanvas, const IRef& cells, int channel0,
                                    Ref& dfeatures) {
-  const char* op = "scatter_backward";
-  require_rank(op, "dfeatures", dfeatures, 2);
-  require_rank(op, "dcanvas", dcanvas, 4);
-  require_shape(op, "cells", cells, {dfeatures.dim(0), 3});
+  op::scatter(dfeatures.shape, cells.shape, dcanvas.shape, channel0, "scatter_backward");
   const cuda::ScatterCanvas shape{dcanvas.dim(0), dcanvas.dim(1), dcanvas.dim(2), dcanvas.dim(3),
                                   channel0};
   cuda::scatter_backward(dcanvas.data, shape, cells.data, dfeatures.dim(0), dfeatures.dim(1),
@@ -556,13 +545,8 @@ void CudaBackend::scatter_backward(const Ref& dcanvas, const IRef& cells, int ch
 namespace {
 
 // x (B, Cx, H, W) as the band [channel0, channel0 + Cx) of y (B, Cy, H, W).
-cuda::ChannelBand channel_band(const char* op, const Ref& x, int channel0, const Ref& y) {
-  require_rank(op, "x", x, 4);
-  require_rank(op, "y", y, 4);
-  PS_CHECK(x.dim(0) == y.dim(0) && x.dim(2) == y.dim(2) && x.dim(3) == y.dim(3) && channel0 >= 0 &&
-               channel0 + x.dim(1) <= y.dim(1),
-           "{}: x {} does not fit at channel {} of y {}", op, shape_str(x.shape), channel0,
-           shape_str(y.shape));
+cuda::ChannelBand channel_band(const char* caller, const Ref& x, int channel0, const Ref& y) {
+  op::channel_band(x.shape, y.shape, channel0, caller);
   return {x.dim(0), x.dim(1), x.dim(2) * x.dim(3), y.dim(1), channel0};
 }
 
@@ -580,12 +564,8 @@ void CudaBackend::extract_channels(const Ref& y, int channel0, Ref& x) {
 
 namespace {
 
-cuda::Conv2dShape conv_shape(const char* op, const Ref& x, const Ref& w, int pad) {
-  require_rank(op, "x", x, 4);
-  require_rank(op, "weight", w, 4);
-  PS_CHECK(w.dim(1) == x.dim(1) && w.dim(2) == w.dim(3),
-           "{}: weight (O, I, k, k) must have I = {} (the input's channels), got {}", op, x.dim(1),
-           shape_str(w.shape));
+cuda::Conv2dShape conv_shape(const char* caller, const Ref& x, const Ref& w, int pad) {
+  op::conv2d(x.shape, w.shape, pad, nullptr, caller);
   return {x.dim(0), x.dim(1), x.dim(2), x.dim(3), w.dim(0), w.dim(2), pad};
 }
 
@@ -593,11 +573,8 @@ Shape conv_output(const cuda::Conv2dShape& s) {
   return {s.batch, s.out_channels, s.out_height(), s.out_width()};
 }
 
-cuda::ConvTranspose2dShape conv_transpose_shape(const char* op, const Ref& x, const Ref& w) {
-  require_rank(op, "x", x, 4);
-  require_rank(op, "weight", w, 4);
-  PS_CHECK(w.dim(0) == x.dim(1) && w.dim(2) == 2 && w.dim(3) == 2,
-           "{}: weight must be ({}, O, 2, 2), got {}", op, x.dim(1), shape_str(w.shape));
+cuda::ConvTranspose2dShape conv_transpose_shape(const char* caller, const Ref& x, const Ref& w) {
+  op::conv_transpose2x2(x.shape, w.shape, nullptr, caller);
   return {x.dim(0), x.dim(1), x.dim(2), x.dim(3), w.dim(1)};
 }
 
@@ -711,8 +688,7 @@ void CudaBackend::batchnorm_relu_backward(const Ref& x, const Ref& y, const Ref&
 
 void CudaBackend::maxpool2x2_forward(const Ref& x, Ref& y, IRef& argmax) {
   const char* op = "maxpool2x2_forward";
-  require_rank(op, "x", x, 4);
-  const Shape pooled{x.dim(0), x.dim(1), x.dim(2) / 2, x.dim(3) / 2};
+  const Shape pooled = op::maxpool2x2(x.shape, op);
   require_shape(op, "y", y, pooled);
   require_shape(op, "argmax", argmax, pooled);
   cuda::maxpool2d_forward(x.data, x.dim(0) * x.dim(1), x.dim(2), x.dim(3), y.data, argmax.data,
@@ -730,8 +706,7 @@ void CudaBackend::maxpool2x2_backward(const Ref& dy, const IRef& argmax, Ref& dx
 }
 
 void CudaBackend::upsample2x_forward(const Ref& x, Ref& y) {
-  require_rank("upsample2x_forward", "x", x, 4);
-  require_shape("upsample2x_forward", "y", y, {x.dim(0), x.dim(1), 2 * x.dim(2), 2 * x.dim(3)});
+  require_shape("upsample2x_forward", "y", y, op::upsample2x(x.shape, "upsample2x_forward"));
   cuda::upsample_bilinear_forward(x.data, x.dim(0) * x.dim(1), x.dim(2), x.dim(3), y.data, stream_.get());
 }
 
@@ -745,14 +720,9 @@ void CudaBackend::upsample2x_backward(const Ref& dy, Ref& dx) {
 
 namespace {
 
-cuda::PadConcatShape pad_concat_shape(const char* op, const Ref& skip, const Ref& up,
+cuda::PadConcatShape pad_concat_shape(const char* caller, const Ref& skip, const Ref& up,
                                       const Ref& joined) {
-  require_rank(op, "skip", skip, 4);
-  require_rank(op, "up", up, 4);
-  PS_CHECK(up.dim(0) == skip.dim(0) && up.dim(2) <= skip.dim(2) && up.dim(3) <= skip.dim(3),
-           "{}: up {} must fit inside skip {}", op, shape_str(up.shape), shape_str(skip.shape));
-  require_shape(op, "the joined tensor", joined,
-                {skip.dim(0), skip.dim(1) + up.dim(1), skip.dim(2), skip.dim(3)});
+  require_shape(caller, "the joined tensor", joined, op::pad_concat(skip.shape, up.shape, caller));
   return {skip.dim(0), skip.dim(1), up.dim(1), skip.dim(2), skip.dim(3), up.dim(2), up.dim(3)};
 }
 
@@ -820,16 +790,13 @@ void CudaBackend::scale(Ref& x, float factor) {
   cuda::scale(x.data, factor, x.numel(), stream_.get());
 }
 
-void CudaBackend::adam_step(Ref& param, const Ref& grad, Ref& m, Ref& v, const AdamHyper& hyper) {
+void CudaBackend::adam_step(Ref& param, const Ref& grad, Ref& m, Ref& v, int64_t step,
+                            const AdamOptions& options) {
   const char* op = "adam_step";
   require_shape(op, "grad", grad, param.shape);
   require_shape(op, "m", m, param.shape);
   require_shape(op, "v", v, param.shape);
-  cuda::AdamOptions options;
-  options.lr = hyper.lr, options.beta1 = hyper.beta1, options.beta2 = hyper.beta2;
-  options.eps = hyper.eps, options.weight_decay = hyper.weight_decay;
-  cuda::adam_step(param.data, grad.data, m.data, v.data, param.numel(), hyper.step, options,
-                  stream_.get());
+  cuda::adam_step(param.data, grad.data, m.data, v.data, param.numel(), step, options, stream_.get());
 }
 
 // ---- factory ----

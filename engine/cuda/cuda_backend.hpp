@@ -148,7 +148,7 @@ class CudaBackend final : public Backend {
               Ref& dlogits) override;
   double sum_of_squares(const Ref& x) override;
   void scale(Ref& x, float factor) override;
-  void adam_step(Ref& param, const Ref& grad, Ref& m, Ref& v, const AdamHyper& hyper) override;
+  void adam_step(Ref& param, const Ref& grad, Ref& m, Ref& v, int64_t step, const AdamOptions& options) override;
 
  private:
   // The kernels' scratch, in one place. `floats`, `doubles`, `gather` and `rays` grow to the

@@ -11,6 +11,7 @@
 #include <memory>
 #include <string>
 
+#include "core/adam_options.hpp"
 #include "core/eigen.hpp"
 #include "core/grid.hpp"
 #include "core/tensor.hpp"
@@ -55,10 +56,6 @@ class CapturedGraph {
   virtual bool valid() const { return true; }
 };
 
-struct AdamHyper {
-  float lr = 1e-3f, beta1 = 0.9f, beta2 = 0.99f, eps = 1e-8f, weight_decay = 0.01f;
-  int64_t step = 1;  // 1-based, for the bias correction
-};
 
 class Backend {
  public:
@@ -196,7 +193,7 @@ class Backend {
   // Optimiser over one flat parameter array.
   virtual double sum_of_squares(const Ref& x) = 0;
   virtual void scale(Ref& x, float factor) = 0;
-  virtual void adam_step(Ref& param, const Ref& grad, Ref& m, Ref& v, const AdamHyper& hyper) = 0;
+  virtual void adam_step(Ref& param, const Ref& grad, Ref& m, Ref& v, int64_t step, const AdamOptions& options) = 0;
 };
 
 std::unique_ptr<Backend> make_cpu_backend();

@@ -266,12 +266,10 @@ class CpuBackend final : public Backend {
     float* p = x.data;
     parallel_for(x.numel(), [&](int64_t i) { p[i] *= factor; });
   }
-  void adam_step(Ref& param, const Ref& grad, Ref& m, Ref& v, const AdamHyper& h) override {
+  void adam_step(Ref& param, const Ref& grad, Ref& m, Ref& v, int64_t step, const AdamOptions& options) override {
     const size_t n = static_cast<size_t>(param.numel());
-    host::AdamOptions o;
-    o.lr = h.lr, o.beta1 = h.beta1, o.beta2 = h.beta2, o.eps = h.eps, o.weight_decay = h.weight_decay;
     host::adam_step<float>(std::span<float>(param.data, n), std::span<const float>(grad.data, n),
-                           std::span<float>(m.data, n), std::span<float>(v.data, n), h.step, o);
+                           std::span<float>(m.data, n), std::span<float>(v.data, n), step, options);
   }
 
   // ---- input preparation ----

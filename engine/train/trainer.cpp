@@ -27,6 +27,14 @@ fs::path latest_checkpoint(const fs::path& run_dir) { return run_dir / "checkpoi
 
 namespace {
 
+// The optimiser's settings are float values on every backend (what the CUDA kernel computes
+// with; the CPU's steps equal those of earlier versions bit for bit). GCC folds
+// (double)(float)x back to x in this file at -O3, so the rounding goes through a volatile float.
+double float_value(double x) {
+  const volatile float rounded = static_cast<float>(x);
+  return rounded;
+}
+
 // Sample order of an epoch: a permutation drawn from its own stream.
 std::vector<size_t> epoch_order(size_t n, uint64_t seed, uint64_t epoch) {
   std::vector<size_t> order(n);
@@ -191,15 +199,14 @@ TrainResult train(const TrainOptions& options) {
       if (tc.grad_clip > 0 && grad_norm > tc.grad_clip)
         backend->scale(grads, static_cast<float>(tc.grad_clip / (grad_norm + 1e-6)));
       const host::LrAndMomentum lm = host::lr_schedule_at(schedule, state.step);
-      AdamHyper hyper;
-      hyper.lr = static_cast<float>(lm.lr);
-      hyper.beta1 = static_cast<float>(lm.beta1);
-      hyper.beta2 = static_cast<float>(tc.beta2);
-      hyper.eps = static_cast<float>(tc.eps);
-      hyper.weight_decay = static_cast<float>(tc.weight_decay);
-      hyper.step = state.step + 1;
+      AdamOptions adam;
+      adam.lr = float_value(lm.lr);
+      adam.beta1 = float_value(lm.beta1);
+      adam.beta2 = float_value(tc.beta2);
+      adam.eps = float_value(tc.eps);
+      adam.weight_decay = float_value(tc.weight_decay);
       Ref values = ps.values(), m = ps.adam_m(), v = ps.adam_v();
-      backend->adam_step(values, grads, m, v, hyper);
+      backend->adam_step(values, grads, m, v, state.step + 1, adam);
       ++state.step;
       loss_sum += loss;
       const double elapsed = std::chrono::duration<double>(std::chrono::steady_clock::now() - started).count();
