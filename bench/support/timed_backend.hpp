@@ -128,6 +128,31 @@ class TimedBackend final : public Backend {
     timed(conv_op(w, "+BN+ReLU eval"), conv_flops(y, w),
           [&] { inner_->conv2d_bn_relu_eval(x, w, bias, bn, pad, y); });
   }
+  bool supports_precision(Precision p, std::string* why_not) const override {
+    return inner_->supports_precision(p, why_not);
+  }
+  Shape prepared_conv_weights_shape(const Shape& weight, bool transposed) const override {
+    return inner_->prepared_conv_weights_shape(weight, transposed);
+  }
+  void prepare_conv_weights(const Ref& w, const Ref* bias, const BatchNormRefs* bn, Precision p, HRef& w16,
+                            Ref& bias_out) override {
+    timed("16-bit weights", 0, [&] { inner_->prepare_conv_weights(w, bias, bn, p, w16, bias_out); });
+  }
+  void prepare_conv_transpose_weights(const Ref& w, const Ref* bias, Precision p, HRef& w16, Ref& bias_out) override {
+    timed("16-bit weights", 0, [&] { inner_->prepare_conv_transpose_weights(w, bias, p, w16, bias_out); });
+  }
+  void conv2d_half_forward(const Ref& x, const HRef& w16, const Ref& bias_out, const Shape& weight, int pad, bool relu,
+                           Precision p, Ref& y) override {
+    const double flops = 2.0 * static_cast<double>(y.numel()) * static_cast<double>(weight[1] * weight[2] * weight[3]);
+    timed(fmt::format("conv{}x{} {} (tensor cores)", weight[2], weight[3], precision_name(p)), flops,
+          [&] { inner_->conv2d_half_forward(x, w16, bias_out, weight, pad, relu, p, y); });
+  }
+  void conv_transpose2x2_half_forward(const Ref& x, const HRef& w16, const Ref& bias_out, const Shape& weight,
+                                      Precision p, Ref& y) override {
+    const double flops = 2.0 * static_cast<double>(x.numel()) * static_cast<double>(weight[1] * 4);
+    timed(fmt::format("convT 2x2 {} (tensor cores)", precision_name(p)), flops,
+          [&] { inner_->conv_transpose2x2_half_forward(x, w16, bias_out, weight, p, y); });
+  }
   void conv2d_backward(const Ref& x, const Ref& w, const Ref& dy, int pad, Ref* dx, Ref& dw,
                        Ref* dbias) override {
     const double passes = dx != nullptr ? 2.0 : 1.0;  // dw, and dx when asked for

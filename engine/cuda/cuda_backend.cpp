@@ -15,6 +15,7 @@
 #include "kernels/batchnorm.cuh"
 #include "kernels/common.cuh"
 #include "kernels/conv2d.cuh"
+#include "kernels/conv2d_mma.cuh"
 #include "kernels/conv_transpose2d.cuh"
 #include "kernels/elementwise.cuh"
 #include "kernels/grid_map_features.cuh"
@@ -797,6 +798,71 @@ void CudaBackend::adam_step(Ref& param, const Ref& grad, Ref& m, Ref& v, int64_t
   require_shape(op, "m", m, param.shape);
   require_shape(op, "v", v, param.shape);
   cuda::adam_step(param.data, grad.data, m.data, v.data, param.numel(), step, options, stream_.get());
+}
+
+// ---- mixed-precision evaluation convolutions ----
+
+namespace {
+
+cuda::Half16 half_type(const char* op, Precision p) {
+  PS_CHECK(p != Precision::F32, "{}: precision fp32 has no 16-bit weights", op);
+  return p == Precision::BF16 ? cuda::Half16::BF16 : cuda::Half16::F16;
+}
+
+}  // namespace
+
+bool CudaBackend::supports_precision(Precision p, std::string* why_not) const {
+  if (p == Precision::F32) return true;
+  return cuda::mma_supported(why_not);
+}
+
+void CudaBackend::prepare_conv_weights(const Ref& w, const Ref* bias, const BatchNormRefs* bn, Precision p,
+                                       HRef& w16, Ref& bias_out) {
+  const char* op = "prepare_conv_weights";
+  require_rank(op, "w", w, 4);
+  const cuda::Conv2dShape shape{1, w.dim(1), w.dim(2), w.dim(3), w.dim(0), w.dim(2), 0};
+  if (bias) require_shape(op, "bias", *bias, {w.dim(0)});
+  require_shape(op, "w16", w16, prepared_conv_weights_shape(w.shape, false));
+  require_shape(op, "bias_out", bias_out, {w.dim(0)});
+  cuda::FoldedBatchNorm folded;
+  if (bn != nullptr) {
+    require_shape(op, "gamma", bn->gamma, {w.dim(0)});
+    folded = {bn->gamma.data, bn->beta.data, bn->running_mean.data, bn->running_var.data, bn->eps};
+  }
+  cuda::prepare_conv_weights(w.data, bias ? bias->data : nullptr, folded, shape, half_type(op, p), w16.data,
+                             bias_out.data, stream_.get());
+}
+
+void CudaBackend::prepare_conv_transpose_weights(const Ref& w, const Ref* bias, Precision p, HRef& w16,
+                                                 Ref& bias_out) {
+  const char* op = "prepare_conv_transpose_weights";
+  require_rank(op, "w", w, 4);
+  if (bias) require_shape(op, "bias", *bias, {w.dim(1)});
+  require_shape(op, "w16", w16, prepared_conv_weights_shape(w.shape, true));
+  require_shape(op, "bias_out", bias_out, {4 * w.dim(1)});
+  cuda::prepare_conv_transpose_weights(w.data, bias ? bias->data : nullptr, w.dim(0), w.dim(1), half_type(op, p),
+                                       w16.data, bias_out.data, stream_.get());
+}
+
+void CudaBackend::conv2d_half_forward(const Ref& x, const HRef& w16, const Ref& bias_out, const Shape& weight,
+                                      int pad, bool relu, Precision p, Ref& y) {
+  const char* op = "conv2d_half_forward";
+  const Shape y_shape = op::conv2d(x.shape, weight, pad, nullptr, op);
+  require_shape(op, "y", y, y_shape);
+  require_shape(op, "w16", w16, prepared_conv_weights_shape(weight, false));
+  require_shape(op, "bias_out", bias_out, {weight[0]});
+  const cuda::Conv2dShape shape{x.dim(0), x.dim(1), x.dim(2), x.dim(3), weight[0], weight[2], pad};
+  cuda::conv2d_mma_forward(x.data, w16.data, bias_out.data, shape, half_type(op, p), relu, y.data, stream_.get());
+}
+
+void CudaBackend::conv_transpose2x2_half_forward(const Ref& x, const HRef& w16, const Ref& bias_out,
+                                                 const Shape& weight, Precision p, Ref& y) {
+  const char* op = "conv_transpose2x2_half_forward";
+  require_shape(op, "y", y, op::conv_transpose2x2(x.shape, weight, nullptr, op));
+  require_shape(op, "w16", w16, prepared_conv_weights_shape(weight, true));
+  require_shape(op, "bias_out", bias_out, {4 * weight[1]});
+  cuda::conv_transpose2x2_mma_forward(x.data, w16.data, bias_out.data, x.dim(0), x.dim(1), x.dim(2), x.dim(3),
+                                      weight[1], half_type(op, p), y.data, stream_.get());
 }
 
 // ---- factory ----

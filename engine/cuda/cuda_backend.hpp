@@ -150,6 +150,17 @@ class CudaBackend final : public Backend {
   void scale(Ref& x, float factor) override;
   void adam_step(Ref& param, const Ref& grad, Ref& m, Ref& v, int64_t step, const AdamOptions& options) override;
 
+  // BF16 / FP16 evaluation convolutions on the tensor cores (kernels/conv2d_mma.cuh): compute
+  // capability 8.0 or later, or the emulation.
+  bool supports_precision(Precision p, std::string* why_not = nullptr) const override;
+  void prepare_conv_weights(const Ref& w, const Ref* bias, const BatchNormRefs* bn, Precision p, HRef& w16,
+                            Ref& bias_out) override;
+  void prepare_conv_transpose_weights(const Ref& w, const Ref* bias, Precision p, HRef& w16, Ref& bias_out) override;
+  void conv2d_half_forward(const Ref& x, const HRef& w16, const Ref& bias_out, const Shape& weight, int pad, bool relu,
+                           Precision p, Ref& y) override;
+  void conv_transpose2x2_half_forward(const Ref& x, const HRef& w16, const Ref& bias_out, const Shape& weight,
+                                      Precision p, Ref& y) override;
+
  private:
   // The kernels' scratch, in one place. `floats`, `doubles`, `gather` and `rays` grow to the
   // largest request so far; the loss and reduction buffers have fixed sizes.

@@ -5,6 +5,8 @@
 #include <atomic>
 #include <chrono>
 
+#include <fmt/format.h>
+
 #include "core/error.hpp"
 
 namespace pillarseg {
@@ -30,6 +32,49 @@ double Backend::clock_ms() {
 
 std::unique_ptr<CapturedGraph> Backend::capture(const std::function<void()>&) {
   PS_FAIL("backend {} cannot capture graphs (check supports_capture() first)", name());
+}
+
+const char* precision_name(Precision p) {
+  switch (p) {
+    case Precision::F32: return "fp32";
+    case Precision::BF16: return "bf16";
+    case Precision::F16: return "fp16";
+  }
+  return "?";
+}
+
+Precision parse_precision(const std::string& text, const std::string& what) {
+  if (text == "fp32") return Precision::F32;
+  if (text == "bf16") return Precision::BF16;
+  if (text == "fp16") return Precision::F16;
+  PS_FAIL("{}: expected fp32, bf16 or fp16, got '{}'", what, text);
+}
+
+bool Backend::supports_precision(Precision p, std::string* why_not) const {
+  if (p == Precision::F32) return true;
+  if (why_not != nullptr)
+    *why_not = fmt::format("the {} backend computes in FP32 only ({} convolutions run on the CUDA backend)", name(),
+                           precision_name(p));
+  return false;
+}
+
+Shape Backend::prepared_conv_weights_shape(const Shape& weight, bool transposed) const {
+  const int64_t rows = transposed ? 4 * weight[1] : weight[0];
+  const int64_t k = transposed ? weight[0] : weight[1] * weight[2] * weight[3];
+  return {rows, (k + 31) / 32 * 32};
+}
+
+void Backend::prepare_conv_weights(const Ref&, const Ref*, const BatchNormRefs*, Precision p, HRef&, Ref&) {
+  PS_FAIL("backend {}: no {} convolutions (supports_precision)", name(), precision_name(p));
+}
+void Backend::prepare_conv_transpose_weights(const Ref&, const Ref*, Precision p, HRef&, Ref&) {
+  PS_FAIL("backend {}: no {} convolutions (supports_precision)", name(), precision_name(p));
+}
+void Backend::conv2d_half_forward(const Ref&, const HRef&, const Ref&, const Shape&, int, bool, Precision p, Ref&) {
+  PS_FAIL("backend {}: no {} convolutions (supports_precision)", name(), precision_name(p));
+}
+void Backend::conv_transpose2x2_half_forward(const Ref&, const HRef&, const Ref&, const Shape&, Precision p, Ref&) {
+  PS_FAIL("backend {}: no {} convolutions (supports_precision)", name(), precision_name(p));
 }
 
 void Arena::reserve(size_t bytes) {

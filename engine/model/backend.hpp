@@ -20,6 +20,13 @@ namespace pillarseg {
 
 enum class Device { Cpu, Cuda };
 
+// The arithmetic of the evaluation convolutions: FP32, or BF16 / FP16 multiplies with FP32
+// accumulation (tensor cores on the CUDA backend). Everything else runs in FP32.
+enum class Precision { F32, BF16, F16 };
+const char* precision_name(Precision p);  // "fp32", "bf16", "fp16"
+// "fp32", "bf16" or "fp16"; throws pillarseg::Error naming `what` (the option) otherwise.
+Precision parse_precision(const std::string& text, const std::string& what = "--precision");
+
 // A tensor in a backend's memory; T is float, int32_t, uint32_t or uint8_t.
 template <class T>
 struct RefT {
@@ -33,6 +40,7 @@ using Ref = RefT<float>;
 using IRef = RefT<int32_t>;
 using LRef = RefT<uint8_t>;
 using URef = RefT<uint32_t>;  // ray counts
+using HRef = RefT<uint16_t>;  // 16-bit floats (BF16 or FP16) as bits
 
 // BatchNorm parameters, running statistics and the per-channel statistics a training forward
 // saves for the backward. All (C).
@@ -194,6 +202,25 @@ class Backend {
   virtual double sum_of_squares(const Ref& x) = 0;
   virtual void scale(Ref& x, float factor) = 0;
   virtual void adam_step(Ref& param, const Ref& grad, Ref& m, Ref& v, int64_t step, const AdamOptions& options) = 0;
+
+  // ---- mixed-precision evaluation convolutions (kernels/conv2d_mma.cuh is the spec) ----
+  // Whether this backend runs them in `p` (F32 always); else false with the reason in why_not.
+  virtual bool supports_precision(Precision p, std::string* why_not = nullptr) const;
+  // The rows of the prepared weights and their K, padded: (O, Kp) for a convolution with weight
+  // (O, I, k, k), (4 O, Kp) for a transposed one with weight (I, O, 2, 2).
+  virtual Shape prepared_conv_weights_shape(const Shape& weight, bool transposed) const;
+  // weight (O, I, k, k) [, bias (O)] [, eval BatchNorm] -> w16 (O, Kp) rounded to `p` with the
+  // BatchNorm scale multiplied in, bias_out (O) with its shift added.
+  virtual void prepare_conv_weights(const Ref& w, const Ref* bias, const BatchNormRefs* bn, Precision p, HRef& w16,
+                                    Ref& bias_out);
+  // weight (I, O, 2, 2) [, bias (O)] -> w16 (4 O, Kp), bias_out (4 O).
+  virtual void prepare_conv_transpose_weights(const Ref& w, const Ref* bias, Precision p, HRef& w16, Ref& bias_out);
+  // y = act(conv(x, w16) + bias_out) for the weight shape `weight` (O, I, k, k) and `pad`.
+  virtual void conv2d_half_forward(const Ref& x, const HRef& w16, const Ref& bias_out, const Shape& weight, int pad,
+                                   bool relu, Precision p, Ref& y);
+  // y (B, O, 2H, 2W) = the transposed convolution of x (B, I, H, W) for weight (I, O, 2, 2).
+  virtual void conv_transpose2x2_half_forward(const Ref& x, const HRef& w16, const Ref& bias_out, const Shape& weight,
+                                              Precision p, Ref& y);
 };
 
 std::unique_ptr<Backend> make_cpu_backend();

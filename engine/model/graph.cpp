@@ -23,6 +23,8 @@ size_t dtype_bytes(DType dtype) {
       return 4;
     case DType::U8:
       return 1;
+    case DType::U16:
+      return 2;
   }
   return 4;
 }
@@ -32,6 +34,7 @@ const char* dtype_name(DType dtype) {
     case DType::F32: return "f32";
     case DType::I32: return "i32";
     case DType::U8: return "u8";
+    case DType::U16: return "16b";
   }
   return "?";
 }
@@ -60,6 +63,10 @@ const char* op_name(OpKind op) {
     case OpKind::PadConcatBackward: return "pad+concat backward";
     case OpKind::AddInplace: return "add (skip gradients)";
     case OpKind::Loss: return "loss";
+    case OpKind::PrepareConvWeights: return "16-bit weights";
+    case OpKind::PrepareConvTransposeWeights: return "16-bit weights";
+    case OpKind::Conv2dHalf: return "conv 16-bit (tensor cores)";
+    case OpKind::ConvTranspose2x2Half: return "convT 2x2 16-bit (tensor cores)";
   }
   return "?";
 }

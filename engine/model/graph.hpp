@@ -22,7 +22,7 @@
 
 namespace pillarseg {
 
-enum class DType { F32, I32, U8 };
+enum class DType { F32, I32, U8, U16 };  // U16: 16-bit floats (BF16, FP16) as bits
 size_t dtype_bytes(DType dtype);
 const char* dtype_name(DType dtype);
 
@@ -49,6 +49,12 @@ enum class OpKind {
   PadConcatBackward,      // r: dy | w: dskip, dup
   AddInplace,             // r: a, b | w: a
   Loss,                   // r: logits, labels, coefficients | w: dlogits
+  // Mixed precision (eval): 16-bit weights prepared from the FP32 parameters on every run, then
+  // the tensor-core convolution.
+  PrepareConvWeights,           // r: w, bias, BatchNorm | w: w16, bias_out
+  PrepareConvTransposeWeights,  // r: w, bias | w: w16, bias_out
+  Conv2dHalf,                   // r: x, w16, bias_out | w: y (relu: + ReLU)
+  ConvTranspose2x2Half,         // r: x, w16, bias_out | w: y
 };
 const char* op_name(OpKind op);
 
@@ -81,6 +87,8 @@ struct GraphNode {
   int channel0 = 0;            // scatter, channel copies
   int batchnorm = -1;          // the model's BatchNorm this node uses
   bool training = false;       // PFN, BatchNorm: batch statistics
+  bool relu = false;           // Conv2dHalf
+  Shape weight;                // Conv2dHalf, ConvTranspose2x2Half: the FP32 weight's shape
   double flops = 0;            // 2 x multiply-adds of its arithmetic on weights
 };
 

@@ -95,6 +95,7 @@ struct PillarSegNet::Impl {
   GraphPlan eval, train;
   GraphPlan* current = nullptr;
   LossKind loss_kind = LossKind::CrossEntropy;
+  Precision precision = Precision::F32;  // of the evaluation convolutions
   // Pillar buffers are planned for a capacity that grows with headroom (a slowly rising pillar
   // count does not re-plan every batch); the nodes run on the current batch's rows.
   int64_t pillar_capacity = 0, pillar_rows = 0;
@@ -114,10 +115,37 @@ namespace {
 // Emits the nodes of one graph in the order the backend runs them.
 class Builder {
  public:
-  Builder(Graph& g, ParameterSet& ps, const std::vector<BnParams>& bns, bool training)
-      : g_(g), ps_(ps), bns_(bns), training_(training) {}
+  Builder(Graph& g, ParameterSet& ps, const std::vector<BnParams>& bns, bool training, const Backend& be,
+          Precision precision)
+      : g_(g), ps_(ps), bns_(bns), training_(training), be_(be), half_(training ? Precision::F32 : precision) {}
 
   Stage stage = Stage::UNet;
+  bool half() const { return half_ != Precision::F32; }
+
+  // Mixed precision: a node preparing the 16-bit weights (with the eval BatchNorm `bn` folded
+  // in, when >= 0) and the tensor-core convolution x -> y.
+  void half_conv(const std::string& name, int x, int w, int b, int bn, int pad, bool relu, int y) {
+    const Shape w_shape = shape(w);
+    const int w16 = g_.tensor(name + ".w16", be_.prepared_conv_weights_shape(w_shape, false), DType::U16);
+    const int b16 = g_.tensor(name + ".bias16", {w_shape[0]});
+    GraphNode& prep = node(OpKind::PrepareConvWeights, name, {w, b, w16, b16}, {w, b}, {w16, b16});
+    prep.batchnorm = bn;
+    GraphNode& n = node(OpKind::Conv2dHalf, name, {x, w16, b16, y}, {x, w16, b16}, {y});
+    n.pad = pad;
+    n.relu = relu;
+    n.weight = w_shape;
+    n.flops = op::conv2d_flops(shape(y), w_shape);
+  }
+  // The same for a transposed 2x2 convolution.
+  void half_conv_transpose(const std::string& name, int x, int w, int b, int y) {
+    const Shape w_shape = shape(w);
+    const int w16 = g_.tensor(name + ".w16", be_.prepared_conv_weights_shape(w_shape, true), DType::U16);
+    const int b16 = g_.tensor(name + ".bias16", {4 * w_shape[1]});
+    node(OpKind::PrepareConvTransposeWeights, name, {w, b, w16, b16}, {w, b}, {w16, b16});
+    GraphNode& n = node(OpKind::ConvTranspose2x2Half, name, {x, w16, b16, y}, {x, w16, b16}, {y});
+    n.weight = w_shape;
+    n.flops = op::conv_transpose2x2_flops(shape(x), w_shape);
+  }
 
   int param(int index) { return index < 0 ? -1 : g_.parameter(index, ps_.entries()[static_cast<size_t>(index)].shape, false); }
   int grad(int index) { return index < 0 ? -1 : g_.parameter(index, ps_.entries()[static_cast<size_t>(index)].shape, true); }
@@ -142,6 +170,10 @@ class Builder {
     const int w = param(c.weight), b = param(c.bias);
     const Shape b_shape = b >= 0 ? shape(b) : Shape{};
     const int y = g_.tensor(name + "." + out, op::conv2d(shape(x), shape(w), c.pad, b >= 0 ? &b_shape : nullptr));
+    if (half()) {
+      half_conv(name, x, w, b, -1, c.pad, false, y);
+      return y;
+    }
     GraphNode& n = node(OpKind::Conv2d, name, {x, w, b, y}, {x, w, b}, {y});
     n.pad = c.pad;
     n.flops = op::conv2d_flops(shape(y), shape(w));
@@ -179,6 +211,10 @@ class Builder {
     const Shape b_shape = b >= 0 ? shape(b) : Shape{};
     const Shape y_shape = op::conv2d(shape(x), shape(w), m.conv.pad, b >= 0 ? &b_shape : nullptr);
     a.out = into >= 0 ? into : g_.tensor(name + ".out", y_shape);
+    if (half()) {
+      half_conv(name, x, w, b, m.bn, m.conv.pad, true, a.out);
+      return a;
+    }
     GraphNode& n = node(OpKind::Conv2dBnReluEval, name, {x, w, b, a.out}, {x, w, b}, {a.out});
     n.pad = m.conv.pad;
     n.batchnorm = m.bn;
@@ -213,6 +249,8 @@ class Builder {
   ParameterSet& ps_;
   const std::vector<BnParams>& bns_;
   bool training_;
+  const Backend& be_;
+  Precision half_;
 };
 
 }  // namespace
@@ -307,7 +345,7 @@ void PillarSegNet::build_graph(GraphPlan& p, int batch, bool training) {
   ParameterSet& ps = params_;
   p.graph = Graph();
   Graph& g = p.graph;
-  Builder bld(g, ps, m.bns, training);
+  Builder bld(g, ps, m.bns, training, backend_, m.precision);
   const int H = config_.grid.height(), W = config_.grid.width(), depth = config_.depth;
   const int64_t N = config_.max_points_per_pillar, C = config_.pillar_channels, cap = m.pillar_capacity;
   const int K = config_.num_classes;
@@ -440,7 +478,9 @@ void PillarSegNet::build_graph(GraphPlan& p, int batch, bool training) {
                                static_cast<size_t>(u.skip_channels) * static_cast<size_t>(hs[skip_level]) *
                                    static_cast<size_t>(ws[skip_level]) * sizeof(float))
                       : g.tensor(name + ".upsampled", up_shape);
-    if (u.transposed) {
+    if (u.transposed && bld.half()) {
+      bld.half_conv_transpose(name + ".up", current, bld.param(u.up.weight), bld.param(u.up.bias), a.upsampled);
+    } else if (u.transposed) {
       const int w = bld.param(u.up.weight), bias = bld.param(u.up.bias);
       GraphNode& n = bld.node(OpKind::ConvTranspose2x2, name + ".up", {current, w, bias, a.upsampled},
                               {current, w, bias}, {a.upsampled});
@@ -711,6 +751,32 @@ double PillarSegNet::execute(const GraphPlan& p, size_t begin, size_t end) {
         be.conv_transpose2d_forward(f(0), f(1), &bias, y);
         break;
       }
+      case OpKind::PrepareConvWeights: {
+        const Ref bias = f(1);
+        HRef w16 = bind<uint16_t>(p, a[2]);
+        Ref bias_out = f(3);
+        const BatchNormRefs bn = n.batchnorm >= 0 ? batchnorm_refs(p, n, -1, -1) : BatchNormRefs{};
+        be.prepare_conv_weights(f(0), a[1] >= 0 ? &bias : nullptr, n.batchnorm >= 0 ? &bn : nullptr, m.precision, w16,
+                                bias_out);
+        break;
+      }
+      case OpKind::PrepareConvTransposeWeights: {
+        const Ref bias = f(1);
+        HRef w16 = bind<uint16_t>(p, a[2]);
+        Ref bias_out = f(3);
+        be.prepare_conv_transpose_weights(f(0), a[1] >= 0 ? &bias : nullptr, m.precision, w16, bias_out);
+        break;
+      }
+      case OpKind::Conv2dHalf: {
+        Ref y = f(3);
+        be.conv2d_half_forward(f(0), bind<uint16_t>(p, a[1]), f(2), n.weight, n.pad, n.relu, m.precision, y);
+        break;
+      }
+      case OpKind::ConvTranspose2x2Half: {
+        Ref y = f(3);
+        be.conv_transpose2x2_half_forward(f(0), bind<uint16_t>(p, a[1]), f(2), n.weight, m.precision, y);
+        break;
+      }
       case OpKind::PadConcat: {
         Ref y = f(2);
         be.pad_concat_forward(f(0), f(1), y);
@@ -779,6 +845,18 @@ double PillarSegNet::execute(const GraphPlan& p, size_t begin, size_t end) {
   }
   return loss_value;
 }
+
+void PillarSegNet::set_precision(Precision precision) {
+  Impl& m = *impl_;
+  if (precision == m.precision) return;
+  std::string why;
+  PS_CHECK(backend_.supports_precision(precision, &why), "--precision {}: {}", precision_name(precision), why);
+  m.precision = precision;
+  m.eval.batch = -1;  // planned again at the next evaluation forward
+  m.eval_graph.reset();
+}
+
+Precision PillarSegNet::precision() const { return impl_->precision; }
 
 void PillarSegNet::plan(int batch, bool training) {
   Impl& m = *impl_;

@@ -125,6 +125,8 @@ const char* op_name(WarpOp op) {
       return "__any_sync";
     case WarpOp::All:
       return "__all_sync";
+    case WarpOp::Matrix:
+      return "a warp matrix instruction (mma.sync, ldmatrix)";
   }
   return "?";
 }
@@ -207,6 +209,7 @@ struct WarpGroup {
   unsigned arrived = 0;
   std::array<std::uint64_t, kWarpSize> values{};
   std::array<std::int8_t, kWarpSize> sources{};
+  void (*compute)(void* const* lanes) = nullptr;  // WarpOp::Matrix
 };
 
 [[noreturn]] void fiber_main();
@@ -237,7 +240,7 @@ class BlockRunner {
 
   int barrier(int predicate);
   std::uint64_t warp_exchange(WarpOp op, unsigned mask, std::uint64_t value, int lane_argument,
-                              int width);
+                              int width, void (*compute)(void* const* lanes) = nullptr);
   std::byte* dynamic_shared() const { return dynamic_shared_; }
 
   // Body of every fiber: start threads while some are left, then wait idle for the next block.
@@ -512,7 +515,7 @@ int BlockRunner::barrier(int predicate) {
 }
 
 std::uint64_t BlockRunner::warp_exchange(WarpOp op, unsigned mask, std::uint64_t value,
-                                         int lane_argument, int width) {
+                                         int lane_argument, int width, void (*compute)(void* const* lanes)) {
   const int thread = current_->thread;
   const int warp = thread / kWarpSize;
   const int lane = thread % kWarpSize;
@@ -546,12 +549,15 @@ std::uint64_t BlockRunner::warp_exchange(WarpOp op, unsigned mask, std::uint64_t
     return g.mask == mask && (g.arrived & lane_bit) == 0;
   });
   if (group == groups.end()) {
-    groups.push_back(WarpGroup{op, mask, 0, {}, {}});
+    groups.push_back(WarpGroup{op, mask, 0, {}, {}, compute});
     group = groups.end() - 1;
   } else if (group->op != op) {
     fail_here(
         fmt::format("{} with mask {:#010x} while lanes {} of warp {} wait in {} with the same mask",
                     op_name(op), mask, format_lanes(group->arrived), warp, op_name(group->op)));
+  } else if (group->compute != compute) {
+    fail_here(fmt::format("{} with mask {:#010x} while lanes {} of warp {} wait in a different one",
+                          op_name(op), mask, format_lanes(group->arrived), warp));
   }
   group->values[static_cast<std::size_t>(lane)] = value;
   group->sources[static_cast<std::size_t>(lane)] = static_cast<std::int8_t>(
@@ -566,6 +572,15 @@ std::uint64_t BlockRunner::warp_exchange(WarpOp op, unsigned mask, std::uint64_t
   }
 
   // The last lane has arrived: hand every lane its result and wake the others.
+  if (op == WarpOp::Matrix) {
+    std::array<void*, kWarpSize> lanes{};
+    for (unsigned bits = mask; bits != 0; bits &= bits - 1) {
+      const int other = std::countr_zero(bits);
+      lanes[static_cast<std::size_t>(other)] =
+          reinterpret_cast<void*>(static_cast<std::uintptr_t>(group->values[static_cast<std::size_t>(other)]));
+    }
+    group->compute(lanes.data());
+  }
   unsigned ballot = 0;
   if (!is_shuffle(op)) {
     for (unsigned bits = mask; bits != 0; bits &= bits - 1) {
@@ -741,6 +756,12 @@ unsigned warp_vote(WarpOp op, unsigned mask, int predicate) {
   return static_cast<unsigned>(
       runner_in_kernel(op_name(op))
           .warp_exchange(op, mask, predicate != 0 ? 1u : 0u, 0, kWarpSize));
+}
+
+void warp_matrix(const char* name, unsigned mask, void* lane_block, void (*compute)(void* const* lanes)) {
+  runner_in_kernel(name).warp_exchange(WarpOp::Matrix, mask,
+                                       static_cast<std::uint64_t>(reinterpret_cast<std::uintptr_t>(lane_block)), 0,
+                                       kWarpSize, compute);
 }
 
 std::byte* dynamic_shared_memory() {

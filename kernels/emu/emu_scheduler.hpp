@@ -43,7 +43,8 @@ enum class WarpOp : std::uint8_t {
   ShuffleXor,
   Ballot,
   Any,
-  All
+  All,
+  Matrix  // mma.sync and ldmatrix (emu_mma.hpp): a function of every lane's registers
 };
 
 // __syncthreads(): waits until every thread of the block has arrived; returns how many arrived
@@ -57,6 +58,13 @@ std::uint64_t warp_shuffle(WarpOp op, unsigned mask, std::uint64_t value, int la
 
 // Votes and __syncwarp: returns the ballot of `predicate` over the lanes of `mask`.
 unsigned warp_vote(WarpOp op, unsigned mask, int predicate);
+
+// A warp-collective matrix instruction: each lane of `mask` gives its own block of registers
+// (`lane_block`, alive until this returns); once all have arrived, `compute` runs once with the
+// blocks of all 32 lanes (nullptr for lanes outside the mask), reading each lane's inputs and
+// writing each lane's outputs, and then every lane returns. All lanes must give the same
+// `compute`; `name` is the instruction, for messages.
+void warp_matrix(const char* name, unsigned mask, void* lane_block, void (*compute)(void* const* lanes));
 
 // The current block's dynamic shared memory (the launch's dynamic_shared_bytes, 256-byte
 // aligned; nullptr when the launch asked for none).

@@ -1,0 +1,340 @@
+// The tensor-core evaluation convolutions of conv2d_mma.cuh. One kernel serves both kinds: a
+// block of 128 threads (4 warps in a 2 x 2 arrangement) computes a 64 x 64 tile of D (64 output
+// pixels by 64 GEMM columns) in steps of 32 along K:
+//   - staging: each thread owns one pixel m of the tile (tid % 64) and gathers its 16 values of
+//     the step's A (rows k = tid / 64 + 2 j), zero outside the image, rounded to the 16-bit type,
+//     into As[k][m] (pixels contiguous, as NCHW reads them); the weights' 64 x 32 block goes to
+//     Bs[n][k] in 16-byte vectors. Rows are padded by 8 elements against bank conflicts, and stay
+//     16-byte aligned for ldmatrix;
+//   - compute: per 16 of K, each warp loads its two 16 x 16 A fragments with ldmatrix.x4.trans
+//     (As holds A transposed) and its four 16 x 8 B fragments with two ldmatrix.x4, and issues
+//     8 mma.sync m16n8k16;
+//   - epilogue: bias, ReLU, and the FP32 store of each accumulator to its (pixel, column), for
+//     the transposed kind at its sub-pixel (2 h + dy, 2 w + dx).
+#include "kernels/conv2d_mma.cuh"
+
+#include <cstring>
+#include <string>
+
+#include "kernels/common.cuh"
+
+namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
+namespace {
+
+constexpr int kTileM = 64, kTileN = 64, kTileK = 32, kThreads = 128;
+constexpr int kPadA = kTileM + 8, kPadB = kTileK + 8;  // shared row lengths, in 16-bit elements
+
+struct MmaGemm {
+  std::int64_t batch, in_channels, height, width;  // x
+  std::int64_t columns;                            // N: O, or 4 O for the transposed kind
+  std::int64_t out_height, out_width;              // of the pixels D's rows are (conv: y's)
+  std::int64_t k, k_padded;                        // I k k (I), and rounded up to 32
+  int kernel, pad;
+  bool transposed, relu;
+};
+
+// 16 bytes, both ends 16-byte aligned.
+__device__ __forceinline__ void copy16(void* dst, const void* src) {
+#if defined(__CUDA_ARCH__)
+  *static_cast<uint4*>(dst) = *static_cast<const uint4*>(src);
+#else
+  std::memcpy(dst, src, 16);
+#endif
+}
+
+template <Half16 H>
+__global__ void __launch_bounds__(kThreads)
+    mma_gemm_kernel(const float* __restrict__ x, const std::uint16_t* __restrict__ w16,
+                    const float* __restrict__ bias, MmaGemm g, float* __restrict__ y) {
+  __shared__ __align__(16) std::uint16_t as[kTileK][kPadA];
+  __shared__ __align__(16) std::uint16_t bs[kTileN][kPadB];
+  const int tid = static_cast<int>(threadIdx.x), lane = tid % 32, warp = tid / 32;
+  const int warp_m = warp % 2, warp_n = warp / 2;
+  const std::int64_t pixels_per_image = g.out_height * g.out_width;
+  const std::int64_t rows = g.batch * pixels_per_image;
+  const std::int64_t m0 = static_cast<std::int64_t>(blockIdx.x) * kTileM;
+  const std::int64_t n0 = static_cast<std::int64_t>(blockIdx.y) * kTileN;
+
+  // This thread's staging pixel.
+  const int sm = tid % kTileM;
+  const std::int64_t m = m0 + sm;
+  const bool m_valid = m < rows;
+  const std::int64_t image = m_valid ? m / pixels_per_image : 0;
+  const std::int64_t pixel = m_valid ? m % pixels_per_image : 0;
+  const std::int64_t oy = pixel / g.out_width, ox = pixel % g.out_width;
+  const std::int64_t plane = g.height * g.width;
+  const float* x_image = x + image * g.in_channels * plane;
+  const int taps = g.kernel * g.kernel;
+
+  float acc[2][4][4];
+  for (int a = 0; a < 2; ++a)
+    for (int b = 0; b < 4; ++b)
+      for (int c = 0; c < 4; ++c) acc[a][b][c] = 0.0f;
+
+  for (std::int64_t k0 = 0; k0 < g.k_padded; k0 += kTileK) {
+    // A: rows k0 + tid / 64 + 2 j of this thread's pixel.
+    for (int j = 0; j < kTileK * kTileM / kThreads; ++j) {
+      const int sk = tid / kTileM + 2 * j;
+      const std::int64_t k = k0 + sk;
+      float value = 0.0f;
+      if (m_valid && k < g.k) {
+        if (g.transposed) {
+          value = x_image[k * plane + oy * g.width + ox];
+        } else {
+          const std::int64_t channel = k / taps;
+          const int tap = static_cast<int>(k % taps);
+          const std::int64_t iy = oy + tap / g.kernel - g.pad, ix = ox + tap % g.kernel - g.pad;
+          if (iy >= 0 && iy < g.height && ix >= 0 && ix < g.width) value = x_image[channel * plane + iy * g.width + ix];
+        }
+      }
+      as[sk][sm] = to_half16<H>(value);
+    }
+    // B: 64 rows n of 32 k, as 256 vectors of 8 elements.
+    for (int v = tid; v < kTileN * kTileK / 8; v += kThreads) {
+      const int sn = v / (kTileK / 8), sk = v % (kTileK / 8) * 8;
+      const std::int64_t n = n0 + sn;
+      if (n < g.columns) {
+        copy16(&bs[sn][sk], w16 + n * g.k_padded + k0 + sk);
+      } else {
+        for (int e = 0; e < 8; ++e) bs[sn][sk + e] = 0;
+      }
+    }
+    __syncthreads();
+    for (int kk = 0; kk < kTileK; kk += 16) {
+      std::uint32_t a[2][4], b[4][2];
+      const int j = lane / 8, r = lane % 8;
+      for (int mt = 0; mt < 2; ++mt) {
+        // Matrix j of the fragment: k rows kk + (j / 2) 8 .. + 8, pixels + (j % 2) 8.
+        const int pm = warp_m * 32 + mt * 16 + (j % 2) * 8;
+        ldmatrix_x4<true>(a[mt], &as[kk + (j / 2) * 8 + r][pm]);
+      }
+      for (int np = 0; np < 2; ++np) {
+        // Matrices: (n 0-7, k 0-7), (n 0-7, k 8-15), (n 8-15, k 0-7), (n 8-15, k 8-15).
+        const int pn = warp_n * 32 + np * 16 + (j / 2) * 8 + r;
+        std::uint32_t regs[4];
+        ldmatrix_x4<false>(regs, &bs[pn][kk + (j % 2) * 8]);
+        b[2 * np][0] = regs[0], b[2 * np][1] = regs[1], b[2 * np + 1][0] = regs[2], b[2 * np + 1][1] = regs[3];
+      }
+      for (int mt = 0; mt < 2; ++mt)
+        for (int nt = 0; nt < 4; ++nt) mma_m16n8k16<H>(acc[mt][nt], a[mt], b[nt], acc[mt][nt]);
+    }
+    __syncthreads();
+  }
+
+  // Epilogue: accumulator i of (mt, nt) is D[row g + 8 (i >= 2)][column 2 t + (i & 1)].
+  const int group = lane / 4, t = lane % 4;
+  for (int mt = 0; mt < 2; ++mt) {
+    for (int half = 0; half < 2; ++half) {
+      const std::int64_t row = m0 + warp_m * 32 + mt * 16 + group + 8 * half;
+      if (row >= rows) continue;
+      const std::int64_t img = row / pixels_per_image, px = row % pixels_per_image;
+      const std::int64_t py = px / g.out_width, pxx = px % g.out_width;
+      for (int nt = 0; nt < 4; ++nt) {
+        for (int e = 0; e < 2; ++e) {
+          const std::int64_t n = n0 + warp_n * 32 + nt * 8 + 2 * t + e;
+          if (n >= g.columns) continue;
+          float value = acc[mt][nt][2 * half + e] + bias[n];
+          if (g.relu) value = value > 0.0f ? value : 0.0f;
+          if (g.transposed) {
+            const std::int64_t o = n / 4, dy = (n % 4) / 2, dx = n % 2;
+            const std::int64_t yh = 2 * g.out_height, yw = 2 * g.out_width;
+            y[((img * (g.columns / 4) + o) * yh + 2 * py + dy) * yw + 2 * pxx + dx] = value;
+          } else {
+            y[(img * g.columns + n) * pixels_per_image + px] = value;
+          }
+        }
+      }
+    }
+  }
+}
+
+template <Half16 H>
+__global__ void prepare_weights_kernel(const float* __restrict__ w, const float* __restrict__ bias,
+                                       FoldedBatchNorm bn, std::int64_t rows, std::int64_t k, std::int64_t k_padded,
+                                       bool transposed, std::int64_t out_channels, std::uint16_t* __restrict__ w16,
+                                       float* __restrict__ bias_out) {
+  const std::int64_t i = static_cast<std::int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (i >= rows * k_padded) return;
+  const std::int64_t n = i / k_padded, kk = i % k_padded;
+  float scale = 1.0f, shift = 0.0f;
+  // Transposed: row n = o 4 + s of column kk = i reads w[i, o, s]; no BatchNorm.
+  const std::int64_t o = transposed ? n / 4 : n;
+  if (!transposed && bn.gamma != nullptr) {
+    scale = bn.gamma[o] / sqrtf(bn.running_var[o] + bn.eps);
+    shift = bn.beta[o] - scale * bn.running_mean[o];
+  }
+  float value = 0.0f;
+  if (kk < k) value = transposed ? w[(kk * out_channels + o) * 4 + n % 4] : w[n * k + kk] * scale;
+  w16[i] = to_half16<H>(value);
+  if (kk == 0) bias_out[n] = scale * (bias != nullptr ? bias[o] : 0.0f) + shift;
+}
+
+template <Half16 H>
+__global__ void round_kernel(const float* __restrict__ x, std::int64_t n, float* __restrict__ y) {
+  const std::int64_t i = static_cast<std::int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (i < n) y[i] = from_half16<H>(to_half16<H>(x[i]));
+}
+
+// One warp: each lane builds its A and B registers from row-major A (16 x 16) and B (16 x 8) by
+// the ISA's formulas, runs the mma, and writes its four results to D (16 x 8) by the formula.
+template <Half16 H>
+__global__ void mma_probe_kernel(const float* a, const float* b, const float* c, float* d) {
+  const int lane = static_cast<int>(threadIdx.x), g = lane / 4, t = lane % 4;
+  std::uint32_t ra[4], rb[2];
+  for (int r = 0; r < 4; ++r) {
+    std::uint32_t reg = 0;
+    for (int half = 0; half < 2; ++half) {
+      const int i = 2 * r + half;
+      const int row = g + ((i == 2 || i == 3 || i == 6 || i == 7) ? 8 : 0);
+      const int col = 2 * t + (i & 1) + (i >= 4 ? 8 : 0);
+      reg |= std::uint32_t{to_half16<H>(a[row * 16 + col])} << (16 * half);
+    }
+    ra[r] = reg;
+  }
+  for (int r = 0; r < 2; ++r) {
+    std::uint32_t reg = 0;
+    for (int half = 0; half < 2; ++half) {
+      const int i = 2 * r + half;
+      const int row = 2 * t + (i & 1) + (i >= 2 ? 8 : 0);
+      reg |= std::uint32_t{to_half16<H>(b[row * 8 + g])} << (16 * half);
+    }
+    rb[r] = reg;
+  }
+  float rc[4], rd[4];
+  for (int i = 0; i < 4; ++i) rc[i] = c[(g + (i >= 2 ? 8 : 0)) * 8 + 2 * t + (i & 1)];
+  mma_m16n8k16<H>(rd, ra, rb, rc);
+  for (int i = 0; i < 4; ++i) d[(g + (i >= 2 ? 8 : 0)) * 8 + 2 * t + (i & 1)] = rd[i];
+}
+
+
+// One warp loads a 16 x 16 matrix of 16-bit values v[r][c] = 256 r + c (as bits) into shared
+// memory and reads it with ldmatrix.x4 (matrices: rows 0-7 / 8-15 by columns 0-7 / 8-15, in the
+// order (0, 0), (8, 0), (0, 8), (8, 8)) and x2 (the first two), plain and transposed.
+__global__ void ldmatrix_probe_kernel(std::uint32_t* out) {
+  __shared__ __align__(16) std::uint16_t m[16][16];
+  const int lane = static_cast<int>(threadIdx.x);
+  for (int i = lane; i < 256; i += 32) m[i / 16][i % 16] = static_cast<std::uint16_t>(256 * (i / 16) + i % 16);
+  __syncwarp();
+  const int j = lane / 8, r = lane % 8;
+  const int row = (j % 2) * 8 + r, col = (j / 2) * 8;
+  std::uint32_t x4[4], x4t[4], x2[2], x2t[2];
+  ldmatrix_x4<false>(x4, &m[row][col]);
+  ldmatrix_x4<true>(x4t, &m[row][col]);
+  ldmatrix_x2<false>(x2, &m[row][col]);
+  ldmatrix_x2<true>(x2t, &m[row][col]);
+  for (int q = 0; q < 4; ++q) {
+    out[lane * 12 + q] = x4[q];
+    out[lane * 12 + 4 + q] = x4t[q];
+  }
+  for (int q = 0; q < 2; ++q) {
+    out[lane * 12 + 8 + q] = x2[q];
+    out[lane * 12 + 10 + q] = x2t[q];
+  }
+}
+
+
+void run_gemm(const float* x, const std::uint16_t* w16, const float* bias, const MmaGemm& g, Half16 type, float* y,
+              cudaStream_t stream) {
+  const std::int64_t rows = g.batch * g.out_height * g.out_width;
+  if (rows == 0 || g.columns == 0) return;
+  std::string why;
+  PS_CHECK(mma_supported(&why), "conv2d_mma: {}", why);
+  const dim3 grid(static_cast<unsigned>(ceil_div(rows, kTileM)), static_cast<unsigned>(ceil_div(g.columns, kTileN)));
+  if (type == Half16::BF16)
+    launch_kernel(mma_gemm_kernel<Half16::BF16>, grid, dim3(kThreads), 0, stream, x, w16, bias, g, y);
+  else
+    launch_kernel(mma_gemm_kernel<Half16::F16>, grid, dim3(kThreads), 0, stream, x, w16, bias, g, y);
+}
+
+void run_prepare(const float* w, const float* bias, const FoldedBatchNorm& bn, std::int64_t rows, std::int64_t k,
+                 bool transposed, std::int64_t out_channels, Half16 type, std::uint16_t* w16, float* bias_out,
+                 cudaStream_t stream) {
+  const std::int64_t total = rows * mma_padded_k(k);
+  if (total == 0) return;
+  const dim3 grid(static_cast<unsigned>(ceil_div(total, 256)));
+  if (type == Half16::BF16)
+    launch_kernel(prepare_weights_kernel<Half16::BF16>, grid, dim3(256), 0, stream, w, bias, bn, rows, k,
+                  mma_padded_k(k), transposed, out_channels, w16, bias_out);
+  else
+    launch_kernel(prepare_weights_kernel<Half16::F16>, grid, dim3(256), 0, stream, w, bias, bn, rows, k,
+                  mma_padded_k(k), transposed, out_channels, w16, bias_out);
+}
+
+}  // namespace
+
+std::int64_t mma_padded_k(std::int64_t k) { return ceil_div(k, kTileK) * kTileK; }
+
+bool mma_supported(std::string* why_not) {
+#if defined(PILLARSEG_CUDA_EMULATION)
+  static_cast<void>(why_not);
+  return true;
+#else
+  int device = 0, major = 0, minor = 0;
+  PS_CUDA_CHECK(cudaGetDevice(&device));
+  PS_CUDA_CHECK(cudaDeviceGetAttribute(&major, cudaDevAttrComputeCapabilityMajor, device));
+  PS_CUDA_CHECK(cudaDeviceGetAttribute(&minor, cudaDevAttrComputeCapabilityMinor, device));
+  if (major >= 8) return true;
+  if (why_not != nullptr) {
+    *why_not = fmt::format(
+        "BF16 and FP16 tensor-core convolutions (mma.sync m16n8k16) need compute capability 8.0 or later; device {} "
+        "has {}.{}",
+        device, major, minor);
+  }
+  return false;
+#endif
+}
+
+void prepare_conv_weights(const float* w, const float* bias, const FoldedBatchNorm& bn, const Conv2dShape& shape,
+                          Half16 type, std::uint16_t* w16, float* bias_out, cudaStream_t stream) {
+  run_prepare(w, bias, bn, shape.out_channels, shape.in_channels * shape.kernel * shape.kernel, false,
+              shape.out_channels, type, w16, bias_out, stream);
+}
+
+void prepare_conv_transpose_weights(const float* w, const float* bias, std::int64_t in_channels,
+                                    std::int64_t out_channels, Half16 type, std::uint16_t* w16, float* bias_out,
+                                    cudaStream_t stream) {
+  run_prepare(w, bias, FoldedBatchNorm{}, 4 * out_channels, in_channels, true, out_channels, type, w16, bias_out,
+              stream);
+}
+
+void conv2d_mma_forward(const float* x, const std::uint16_t* w16, const float* bias, const Conv2dShape& shape,
+                        Half16 type, bool relu, float* y, cudaStream_t stream) {
+  const std::int64_t k = shape.in_channels * shape.kernel * shape.kernel;
+  const MmaGemm g{shape.batch,      shape.in_channels, shape.height,        shape.width,
+                  shape.out_channels, shape.out_height(), shape.out_width(), k,
+                  mma_padded_k(k),  static_cast<int>(shape.kernel), static_cast<int>(shape.pad), false,
+                  relu};
+  run_gemm(x, w16, bias, g, type, y, stream);
+}
+
+void conv_transpose2x2_mma_forward(const float* x, const std::uint16_t* w16, const float* bias, std::int64_t batch,
+                                   std::int64_t in_channels, std::int64_t height, std::int64_t width,
+                                   std::int64_t out_channels, Half16 type, float* y, cudaStream_t stream) {
+  const MmaGemm g{batch, in_channels, height, width, 4 * out_channels, height, width, in_channels,
+                  mma_padded_k(in_channels), 1, 0, true, false};
+  run_gemm(x, w16, bias, g, type, y, stream);
+}
+
+void mma_fragment_probe(const float* a, const float* b, const float* c, Half16 type, float* d, cudaStream_t stream) {
+  std::string why;
+  PS_CHECK(mma_supported(&why), "mma_fragment_probe: {}", why);
+  if (type == Half16::BF16)
+    launch_kernel(mma_probe_kernel<Half16::BF16>, dim3(1), dim3(32), 0, stream, a, b, c, d);
+  else
+    launch_kernel(mma_probe_kernel<Half16::F16>, dim3(1), dim3(32), 0, stream, a, b, c, d);
+}
+
+void ldmatrix_probe(std::uint32_t* out, cudaStream_t stream) {
+  launch_kernel(ldmatrix_probe_kernel, dim3(1), dim3(32), 0, stream, out);
+}
+
+void round_to_half16(const float* x, std::int64_t n, Half16 type, float* y, cudaStream_t stream) {
+  if (n == 0) return;
+  const dim3 grid(static_cast<unsigned>(ceil_div(n, 256)));
+  if (type == Half16::BF16)
+    launch_kernel(round_kernel<Half16::BF16>, grid, dim3(256), 0, stream, x, n, y);
+  else
+    launch_kernel(round_kernel<Half16::F16>, grid, dim3(256), 0, stream, x, n, y);
+}
+
+}  // namespace pillarseg::cuda

@@ -1,0 +1,74 @@
+// Evaluation convolutions on the tensor cores: implicit GEMM with mma.sync m16n8k16 in BF16 or
+// FP16 (kernels/mma.cuh), FP32 accumulation, fragments loaded with ldmatrix. Two kinds:
+//   - a stride-1 convolution x (B, I, H, W), weight (O, I, k, k), pad -> y (B, O, Ho, Wo), as the
+//     GEMM D (pixels x O) = A (pixels x I k k, the im2col taps gathered on the fly) B, with an
+//     eval BatchNorm folded into the weights and the bias, and an optional ReLU;
+//   - ConvTranspose2d kernel 2 stride 2, x (B, I, H, W), weight (I, O, 2, 2) -> y (B, O, 2H, 2W),
+//     as D (pixels x 4 O) = x^T B, each column (o, dy, dx) written to its sub-pixel.
+// The weights go through prepare_*_weights once per set of values: rounded to the 16-bit type
+// (after the BatchNorm scale is multiplied in, in FP32), laid out (N, Kp) with Kp the GEMM's K
+// rounded up to a multiple of 32 and zero-filled, and the bias (with the BatchNorm shift) in
+// FP32. Activations are read as FP32 and rounded to the 16-bit type as they are staged in
+// shared memory; y is FP32. So y = act(sum_k half(w' [n, k]) half(a[m, k]) + b'[n]) with the
+// products exact and the sum in FP32.
+//
+// Needs compute capability 8.0 or later on a GPU (mma_supported()); the emulation runs it
+// everywhere. Pointers are device memory; the work is queued on `stream`.
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+#include <string>
+
+#include "kernels/conv2d.cuh"
+#include "kernels/emu/cuda_compat.cuh"
+#include "kernels/mma.cuh"
+
+namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
+
+// K of the prepared weights: I k k (convolution) or I (transposed), rounded up to 32.
+std::int64_t mma_padded_k(std::int64_t k);
+
+// Whether the current device runs these kernels (compute capability >= 8.0; always in the
+// emulation), and a sentence saying why not.
+bool mma_supported(std::string* why_not = nullptr);
+
+// Eval BatchNorm folded into a convolution: y = gamma (conv + bias - mean) / sqrt(var + eps) +
+// beta. All (O), device memory; nullptr pointers throughout for no BatchNorm.
+struct FoldedBatchNorm {
+  const float* gamma = nullptr;
+  const float* beta = nullptr;
+  const float* running_mean = nullptr;
+  const float* running_var = nullptr;
+  float eps = 1e-5f;
+};
+
+// w (O, I, k, k) [, bias (O) or nullptr] [, BatchNorm] -> w16 (O, Kp) 16-bit, bias_out (O) FP32.
+void prepare_conv_weights(const float* w, const float* bias, const FoldedBatchNorm& bn, const Conv2dShape& shape,
+                          Half16 type, std::uint16_t* w16, float* bias_out, cudaStream_t stream);
+// w (I, O, 2, 2) [, bias (O)] -> w16 (4 O, Kp) with row o 4 + dy 2 + dx, bias_out (4 O).
+void prepare_conv_transpose_weights(const float* w, const float* bias, std::int64_t in_channels,
+                                    std::int64_t out_channels, Half16 type, std::uint16_t* w16, float* bias_out,
+                                    cudaStream_t stream);
+
+// x (B, I, H, W) FP32, prepared w16 and bias -> y (B, O, Ho, Wo) FP32, ReLU when `relu`.
+void conv2d_mma_forward(const float* x, const std::uint16_t* w16, const float* bias, const Conv2dShape& shape,
+                        Half16 type, bool relu, float* y, cudaStream_t stream);
+// x (B, I, H, W) FP32, prepared w16 and bias -> y (B, O, 2H, 2W) FP32.
+void conv_transpose2x2_mma_forward(const float* x, const std::uint16_t* w16, const float* bias, std::int64_t batch,
+                                   std::int64_t in_channels, std::int64_t height, std::int64_t width,
+                                   std::int64_t out_channels, Half16 type, float* y, cudaStream_t stream);
+
+// x (n) FP32 -> y (n) the same values rounded to the 16-bit type and back (what the kernels see
+// of an activation; for tests and accuracy reports).
+void round_to_half16(const float* x, std::int64_t n, Half16 type, float* y, cudaStream_t stream);
+
+// Self-checks of the fragment layouts, one warp each (tests/test_kernels_mma.cpp, on the GPU
+// from the bundle): D (16 x 8) = A (16 x 16) B (16 x 8) + C, all row-major FP32, with each
+// lane's registers built from A and B by the PTX ISA's formulas and its results stored by them;
+// and out (32 lanes x 12 words) = what each lane's ldmatrix x4, x4.trans, x2, x2.trans return
+// for the 16 x 16 matrix of 16-bit values 256 r + c.
+void mma_fragment_probe(const float* a, const float* b, const float* c, Half16 type, float* d, cudaStream_t stream);
+void ldmatrix_probe(std::uint32_t* out, cudaStream_t stream);
+
+}  // namespace pillarseg::cuda

@@ -1,0 +1,130 @@
+// The warp-level matrix instructions of the tensor cores for the CUDA emulation, as warp
+// collectives with the fragment layouts of the PTX ISA (section 9.7.14.5.8 "Matrix Fragments for
+// mma.m16n8k16 with floating point type", and ldmatrix, 9.7.14.5.15), so that a kernel that puts
+// an element in the wrong register computes a wrong result here as it would on a GPU:
+//
+//   mma.sync.aligned.m16n8k16.row.col.f32.{bf16,f16}.{bf16,f16}.f32  D = A B + C, with
+//     groupID = lane / 4, t = lane % 4;
+//     A (16 x 16, 4 registers of 2 elements, low half first): a0 a1 | a2 a3 | a4 a5 | a6 a7 at
+//       row g (a0, a1, a4, a5) or g + 8 (a2, a3, a6, a7), column 2 t + (i & 1), + 8 for i >= 4;
+//     B (16 x 8, 2 registers): b0 b1 | b2 b3 at row 2 t + (i & 1), + 8 for i >= 2, column g;
+//     C, D (16 x 8 floats): c0..c3 at row g (c0, c1) or g + 8, column 2 t + (i & 1).
+//   The emulation forms each element of D as the exact sum of C and the 16 products (exact in
+//   double: a product of two 16-bit floats has at most 22 significant bits) rounded once to
+//   float. A GPU adds in an order and with internal rounding the ISA does not specify, so results
+//   there may differ from these in the last bits of the float accumulator.
+//
+//   ldmatrix.sync.aligned.m8n8.{x1,x2,x4}{,.trans}.shared.b16: lanes 8 j .. 8 j + 7 give the row
+//   addresses of matrix j (x1: lanes 0-7; x2: 0-15; x4: all); register j of lane l receives row
+//   l / 4, elements 2 (l % 4) and 2 (l % 4) + 1 of matrix j, or with .trans those of its
+//   transpose (rows 2 (l % 4) and 2 (l % 4) + 1 of column l / 4). Rows are 16 bytes, 16-byte
+//   aligned (checked).
+#pragma once
+
+#include <bit>
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+
+#include "core/error.hpp"
+#include "kernels/emu/emu_scheduler.hpp"
+
+namespace pillarseg::emu {
+
+// 16-bit floats: bfloat16 (8 exponent bits) and IEEE binary16 (5), as bits.
+inline float bf16_bits_to_float(std::uint16_t bits) { return std::bit_cast<float>(std::uint32_t{bits} << 16); }
+
+inline float f16_bits_to_float(std::uint16_t h) {
+  const std::uint32_t sign = std::uint32_t{h & 0x8000u} << 16;
+  const std::uint32_t exponent = (h >> 10) & 0x1Fu, mantissa = h & 0x3FFu;
+  if (exponent == 0x1F) return std::bit_cast<float>(sign | 0x7F800000u | (mantissa << 13));
+  if (exponent == 0) {
+    const float magnitude = std::ldexp(static_cast<float>(mantissa), -24);  // subnormal or zero
+    return sign != 0 ? -magnitude : magnitude;
+  }
+  return std::bit_cast<float>(sign | ((exponent + 112) << 23) | (mantissa << 13));
+}
+
+struct MmaLane {
+  float d[4];
+  std::uint32_t a[4], b[2];
+  float c[4];
+};
+
+template <float (*ToFloat)(std::uint16_t)>
+void mma_m16n8k16(void* const* lanes) {
+  double a[16][16], b[16][8], c[16][8];
+  for (int lane = 0; lane < 32; ++lane) {
+    const MmaLane& l = *static_cast<const MmaLane*>(lanes[lane]);
+    const int g = lane / 4, t = lane % 4;
+    for (int i = 0; i < 8; ++i) {
+      const std::uint16_t bits = static_cast<std::uint16_t>(l.a[i / 2] >> (16 * (i & 1)));
+      const int row = g + ((i & 2) != 0 ? 8 : 0), col = 2 * t + (i & 1) + (i >= 4 ? 8 : 0);
+      a[row][col] = ToFloat(bits);
+    }
+    for (int i = 0; i < 4; ++i) {
+      const std::uint16_t bits = static_cast<std::uint16_t>(l.b[i / 2] >> (16 * (i & 1)));
+      b[2 * t + (i & 1) + (i >= 2 ? 8 : 0)][g] = ToFloat(bits);
+    }
+    for (int i = 0; i < 4; ++i) c[g + (i >= 2 ? 8 : 0)][2 * t + (i & 1)] = l.c[i];
+  }
+  for (int lane = 0; lane < 32; ++lane) {
+    MmaLane& l = *static_cast<MmaLane*>(lanes[lane]);
+    const int g = lane / 4, t = lane % 4;
+    for (int i = 0; i < 4; ++i) {
+      const int row = g + (i >= 2 ? 8 : 0), col = 2 * t + (i & 1);
+      double sum = c[row][col];
+      for (int k = 0; k < 16; ++k) sum += a[row][k] * b[k][col];
+      l.d[i] = static_cast<float>(sum);
+    }
+  }
+}
+
+inline void mma_m16n8k16_collective(bool bf16, float d[4], const std::uint32_t a[4], const std::uint32_t b[2],
+                                    const float c[4]) {
+  MmaLane lane;
+  std::memcpy(lane.a, a, sizeof lane.a);
+  std::memcpy(lane.b, b, sizeof lane.b);
+  std::memcpy(lane.c, c, sizeof lane.c);
+  warp_matrix(bf16 ? "mma.sync.m16n8k16.bf16" : "mma.sync.m16n8k16.f16", 0xffffffffu, &lane,
+              bf16 ? &mma_m16n8k16<bf16_bits_to_float> : &mma_m16n8k16<f16_bits_to_float>);
+  std::memcpy(d, lane.d, sizeof lane.d);
+}
+
+struct LdmatrixLane {
+  const std::uint16_t* row = nullptr;
+  std::uint32_t r[4] = {0, 0, 0, 0};
+};
+
+template <int Matrices, bool Transposed>
+void ldmatrix_compute(void* const* lanes) {
+  std::uint16_t m[4][8][8];
+  for (int j = 0; j < Matrices; ++j) {
+    for (int r = 0; r < 8; ++r) {
+      const std::uint16_t* row = static_cast<const LdmatrixLane*>(lanes[8 * j + r])->row;
+      PS_CHECK(reinterpret_cast<std::uintptr_t>(row) % 16 == 0,
+               "CUDA emulation: ldmatrix: lane {} gave the row address {}, which is not 16-byte aligned", 8 * j + r,
+               static_cast<const void*>(row));
+      std::memcpy(m[j][r], row, 16);
+    }
+  }
+  for (int lane = 0; lane < 32; ++lane) {
+    LdmatrixLane& l = *static_cast<LdmatrixLane*>(lanes[lane]);
+    const int row = lane / 4, col = 2 * (lane % 4);
+    for (int j = 0; j < Matrices; ++j) {
+      const std::uint16_t lo = Transposed ? m[j][col][row] : m[j][row][col];
+      const std::uint16_t hi = Transposed ? m[j][col + 1][row] : m[j][row][col + 1];
+      l.r[j] = std::uint32_t{lo} | (std::uint32_t{hi} << 16);
+    }
+  }
+}
+
+template <int Matrices, bool Transposed>
+void ldmatrix_collective(std::uint32_t* r, const void* row_address) {
+  LdmatrixLane lane;
+  lane.row = static_cast<const std::uint16_t*>(row_address);
+  warp_matrix(Transposed ? "ldmatrix.trans" : "ldmatrix", 0xffffffffu, &lane, &ldmatrix_compute<Matrices, Transposed>);
+  for (int j = 0; j < Matrices; ++j) r[j] = lane.r[j];
+}
+
+}  // namespace pillarseg::emu

@@ -1,0 +1,263 @@
+// The tensor-core pieces (kernels/mma.cuh) and the mixed-precision convolutions
+// (kernels/conv2d_mma.cuh), on the emulation here and on a GPU as test_kernels_mma_gpu:
+//   - BF16 and FP16 rounding to nearest even at hand-worked values: ties, the largest finite
+//     value and overflow, FP16 subnormals, NaN;
+//   - mma.sync m16n8k16 (both types) and ldmatrix (x2, x4, with and without .trans) in one warp
+//     against the PTX ISA's fragment formulas, with integer-valued elements all distinct, so that
+//     a register in the wrong place gives a wrong number;
+//   - the convolutions (3x3 with and without padding, 1x1, BatchNorm folded, ReLU, the transposed
+//     2x2) against a double reference computed from the same 16-bit-rounded inputs and weights.
+//     Tolerance per element: the products are exact, so only the FP32 sums round: |err| <=
+//     K 2^-24 sum_k |w_k a_k| + 2^-24 |y|. Against the FP32 reference (unrounded values) each
+//     product is off by at most (2 u + u^2) |w a| with u = 2^-8 (BF16) or 2^-11 (FP16).
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <cstdint>
+#include <limits>
+#include <string>
+#include <vector>
+
+#include "core/rng.hpp"
+#include "kernels/common.cuh"
+#include "kernels/conv2d_mma.cuh"
+#include "kernels/device_buffer.hpp"
+#include "kernels/mma.cuh"
+
+using namespace pillarseg;
+using cuda::DeviceBuffer;
+using cuda::Half16;
+
+namespace {
+
+float bits_float(std::uint32_t u) {
+  float x;
+  std::memcpy(&x, &u, 4);
+  return x;
+}
+
+TEST(Half16, RoundsToNearestEven) {
+  // BF16 keeps 8 significant bits: 1 + 2^-8 is half-way between 1 and 1 + 2^-7 -> even (1).
+  EXPECT_EQ(cuda::float_to_bf16_bits(1.0f), 0x3F80);
+  EXPECT_EQ(cuda::float_to_bf16_bits(1.0f + 0x1p-8f), 0x3F80);
+  EXPECT_EQ(cuda::float_to_bf16_bits(1.0f + 3 * 0x1p-8f), 0x3F82);  // half-way, odd below -> up
+  EXPECT_EQ(cuda::float_to_bf16_bits(1.0f + 0x1p-8f + 0x1p-20f), 0x3F81);  // just above half-way
+  EXPECT_EQ(cuda::float_to_bf16_bits(-2.5f), 0xC020);
+  EXPECT_EQ(cuda::float_to_bf16_bits(bits_float(0x7F7FFFFFu)), 0x7F80);  // the largest float -> inf
+  EXPECT_EQ(cuda::float_to_bf16_bits(bits_float(0x7F7F7FFFu)), 0x7F7F);  // below half-way: stays finite
+  const std::uint16_t nan = cuda::float_to_bf16_bits(std::numeric_limits<float>::quiet_NaN());
+  EXPECT_TRUE(std::isnan(cuda::bf16_bits_to_float(nan)));
+  EXPECT_TRUE(std::isnan(cuda::bf16_bits_to_float(cuda::float_to_bf16_bits(bits_float(0x7F800001u)))));
+  EXPECT_EQ(cuda::bf16_bits_to_float(0x3F81), 1.0f + 0x1p-7f);
+
+  // FP16: 11 significant bits, largest 65504, subnormals down to 2^-24.
+  EXPECT_EQ(cuda::float_to_f16_bits(1.0f), 0x3C00);
+  EXPECT_EQ(cuda::float_to_f16_bits(1.0f + 0x1p-11f), 0x3C00);
+  EXPECT_EQ(cuda::float_to_f16_bits(1.0f + 3 * 0x1p-11f), 0x3C02);
+  EXPECT_EQ(cuda::float_to_f16_bits(65504.0f), 0x7BFF);
+  EXPECT_EQ(cuda::float_to_f16_bits(65519.0f), 0x7BFF);
+  EXPECT_EQ(cuda::float_to_f16_bits(65520.0f), 0x7C00);  // half-way to 65536, odd below -> inf
+  EXPECT_EQ(cuda::float_to_f16_bits(0x1p-24f), 0x0001);
+  EXPECT_EQ(cuda::float_to_f16_bits(0x1p-25f), 0x0000);      // half-way to 2^-24 -> even 0
+  EXPECT_EQ(cuda::float_to_f16_bits(3 * 0x1p-25f), 0x0002);  // 1.5 x 2^-24 -> even 2
+  EXPECT_EQ(cuda::float_to_f16_bits(0x1p-14f), 0x0400);      // the smallest normal
+  EXPECT_EQ(cuda::float_to_f16_bits(-0x1p-15f), 0x8200);     // a subnormal, negative
+  EXPECT_EQ(cuda::f16_bits_to_float(0x0001), 0x1p-24f);
+  EXPECT_EQ(cuda::f16_bits_to_float(0x7BFF), 65504.0f);
+  EXPECT_EQ(cuda::f16_bits_to_float(0xC500), -5.0f);
+  EXPECT_TRUE(std::isinf(cuda::f16_bits_to_float(0x7C00)));
+  EXPECT_TRUE(std::isnan(cuda::f16_bits_to_float(cuda::float_to_f16_bits(std::numeric_limits<float>::quiet_NaN()))));
+  // Every BF16 and FP16 value converts to float and back to itself (NaNs to a NaN).
+  for (std::uint32_t b = 0; b < 65536; ++b) {
+    const auto bits = static_cast<std::uint16_t>(b);
+    const float x = cuda::bf16_bits_to_float(bits), h = cuda::f16_bits_to_float(bits);
+    if (!std::isnan(x)) {
+      EXPECT_EQ(cuda::float_to_bf16_bits(x), bits) << b;
+    }
+    if (!std::isnan(h)) {
+      EXPECT_EQ(cuda::float_to_f16_bits(h), bits) << b;
+    }
+  }
+}
+
+template <Half16 H>
+void check_mma() {
+  std::string why;
+  if (!cuda::mma_supported(&why)) GTEST_SKIP() << why;
+  // Distinct small integers: exact in both types, products and sums exact in float.
+  std::vector<float> a(256), b(128), c(128);
+  for (int i = 0; i < 256; ++i) a[static_cast<size_t>(i)] = static_cast<float>((i * 37) % 61 - 30);
+  for (int i = 0; i < 128; ++i) b[static_cast<size_t>(i)] = static_cast<float>((i * 53) % 29 - 14);
+  for (int i = 0; i < 128; ++i) c[static_cast<size_t>(i)] = static_cast<float>(i % 7 * 100);
+  auto da = DeviceBuffer<float>::from_host(a), db = DeviceBuffer<float>::from_host(b),
+       dc = DeviceBuffer<float>::from_host(c);
+  DeviceBuffer<float> dd(128);
+  cuda::mma_fragment_probe(da.data(), db.data(), dc.data(), H, dd.data(), nullptr);
+  PS_CUDA_CHECK(cudaDeviceSynchronize());
+  const std::vector<float> d = dd.to_host();
+  for (int row = 0; row < 16; ++row) {
+    for (int col = 0; col < 8; ++col) {
+      double expected = c[static_cast<size_t>(row * 8 + col)];
+      for (int k = 0; k < 16; ++k)
+        expected += static_cast<double>(a[static_cast<size_t>(row * 16 + k)]) * b[static_cast<size_t>(k * 8 + col)];
+      EXPECT_EQ(d[static_cast<size_t>(row * 8 + col)], expected) << "D[" << row << "][" << col << "]";
+    }
+  }
+}
+
+TEST(Mma, M16n8k16Bf16MatchesTheIsaLayout) { check_mma<Half16::BF16>(); }
+TEST(Mma, M16n8k16F16MatchesTheIsaLayout) { check_mma<Half16::F16>(); }
+
+// ldmatrix_probe (conv2d_mma.cuh): x4, x4.trans, x2, x2.trans of v[r][c] = 256 r + c.
+TEST(Mma, LdmatrixMatchesTheIsaLayout) {
+  DeviceBuffer<std::uint32_t> out(32 * 12);
+  cuda::ldmatrix_probe(out.data(), nullptr);
+  PS_CUDA_CHECK(cudaDeviceSynchronize());
+  const std::vector<std::uint32_t> got = out.to_host();
+  const auto value = [](int row, int col) { return static_cast<std::uint32_t>(256 * row + col); };
+  for (int lane = 0; lane < 32; ++lane) {
+    const int g = lane / 4, t = lane % 4;
+    for (int q = 0; q < 4; ++q) {
+      const int r0 = (q % 2) * 8, c0 = (q / 2) * 8;  // matrix q's corner
+      const std::uint32_t plain = value(r0 + g, c0 + 2 * t) | (value(r0 + g, c0 + 2 * t + 1) << 16);
+      const std::uint32_t trans = value(r0 + 2 * t, c0 + g) | (value(r0 + 2 * t + 1, c0 + g) << 16);
+      EXPECT_EQ(got[static_cast<size_t>(lane * 12 + q)], plain) << "x4 lane " << lane << " r" << q;
+      EXPECT_EQ(got[static_cast<size_t>(lane * 12 + 4 + q)], trans) << "x4.trans lane " << lane << " r" << q;
+      if (q < 2) {
+        EXPECT_EQ(got[static_cast<size_t>(lane * 12 + 8 + q)], plain) << "x2 lane " << lane << " r" << q;
+        EXPECT_EQ(got[static_cast<size_t>(lane * 12 + 10 + q)], trans) << "x2.trans lane " << lane << " r" << q;
+      }
+    }
+  }
+}
+
+// ---- the convolutions ----
+
+float round_half(float x, Half16 type) {
+  return type == Half16::BF16 ? cuda::bf16_bits_to_float(cuda::float_to_bf16_bits(x))
+                              : cuda::f16_bits_to_float(cuda::float_to_f16_bits(x));
+}
+
+std::vector<float> uniform(size_t n, Rng& rng, double lo, double hi) {
+  std::vector<float> v(n);
+  for (float& x : v) x = static_cast<float>(rng.uniform(lo, hi));
+  return v;
+}
+
+struct ConvCase {
+  std::int64_t batch, in_channels, height, width, out_channels, kernel, pad;
+  bool batchnorm, relu;
+};
+
+void check_conv(const ConvCase& cc, Half16 type) {
+  std::string why;
+  if (!cuda::mma_supported(&why)) GTEST_SKIP() << why;
+  const cuda::Conv2dShape s{cc.batch, cc.in_channels, cc.height, cc.width, cc.out_channels, cc.kernel, cc.pad};
+  const std::int64_t k = s.in_channels * s.kernel * s.kernel, ho = s.out_height(), wo = s.out_width();
+  Rng rng(11 + static_cast<uint64_t>(cc.out_channels));
+  const std::vector<float> x = uniform(static_cast<size_t>(s.batch * s.in_channels * s.height * s.width), rng, -2, 2);
+  const std::vector<float> w = uniform(static_cast<size_t>(s.out_channels * k), rng, -0.5, 0.5);
+  const std::vector<float> bias = uniform(static_cast<size_t>(s.out_channels), rng, -1, 1);
+  const std::vector<float> gamma = uniform(bias.size(), rng, 0.5, 1.5), beta = uniform(bias.size(), rng, -0.5, 0.5),
+                           mean = uniform(bias.size(), rng, -0.3, 0.3), var = uniform(bias.size(), rng, 0.5, 2);
+  auto dx = DeviceBuffer<float>::from_host(x), dw = DeviceBuffer<float>::from_host(w),
+       dbias = DeviceBuffer<float>::from_host(bias), dg = DeviceBuffer<float>::from_host(gamma),
+       dbeta = DeviceBuffer<float>::from_host(beta), dm = DeviceBuffer<float>::from_host(mean),
+       dv = DeviceBuffer<float>::from_host(var);
+  cuda::FoldedBatchNorm bn;
+  if (cc.batchnorm) bn = {dg.data(), dbeta.data(), dm.data(), dv.data(), 1e-5f};
+  DeviceBuffer<std::uint16_t> w16(static_cast<size_t>(s.out_channels * cuda::mma_padded_k(k)));
+  DeviceBuffer<float> b_out(static_cast<size_t>(s.out_channels));
+  DeviceBuffer<float> dy(static_cast<size_t>(s.batch * s.out_channels * ho * wo));
+  cuda::prepare_conv_weights(dw.data(), dbias.data(), bn, s, type, w16.data(), b_out.data(), nullptr);
+  cuda::conv2d_mma_forward(dx.data(), w16.data(), b_out.data(), s, type, cc.relu, dy.data(), nullptr);
+  PS_CUDA_CHECK(cudaDeviceSynchronize());
+  const std::vector<float> y = dy.to_host();
+
+  const double u = type == Half16::BF16 ? 0x1p-8 : 0x1p-11;
+  double worst_vs_fp32 = 0;
+  for (std::int64_t b = 0; b < s.batch; ++b) {
+    for (std::int64_t o = 0; o < s.out_channels; ++o) {
+      const size_t oi = static_cast<size_t>(o);
+      float scale = 1.0f, shift = 0.0f;
+      if (cc.batchnorm) {
+        scale = gamma[oi] / std::sqrt(var[oi] + 1e-5f);
+        shift = beta[oi] - scale * mean[oi];
+      }
+      for (std::int64_t oy = 0; oy < ho; ++oy) {
+        for (std::int64_t ox = 0; ox < wo; ++ox) {
+          double sum16 = 0, sum32 = 0, magnitude = 0;
+          for (std::int64_t i = 0; i < s.in_channels; ++i) {
+            for (std::int64_t ky = 0; ky < s.kernel; ++ky) {
+              for (std::int64_t kx = 0; kx < s.kernel; ++kx) {
+                const std::int64_t iy = oy + ky - s.pad, ix = ox + kx - s.pad;
+                if (iy < 0 || iy >= s.height || ix < 0 || ix >= s.width) continue;
+                const float xv = x[static_cast<size_t>(((b * s.in_channels + i) * s.height + iy) * s.width + ix)];
+                const float wv = w[static_cast<size_t>(((o * s.in_channels + i) * s.kernel + ky) * s.kernel + kx)];
+                const double p16 = static_cast<double>(round_half(wv * scale, type)) * round_half(xv, type);
+                sum16 += p16;
+                sum32 += static_cast<double>(wv) * scale * xv;
+                magnitude += std::abs(p16);
+              }
+            }
+          }
+          const double b_folded = static_cast<double>(scale) * bias[oi] + shift;
+          double ref16 = sum16 + b_folded, ref32 = sum32 + b_folded;
+          if (cc.relu) ref16 = std::max(0.0, ref16), ref32 = std::max(0.0, ref32);
+          const float got = y[static_cast<size_t>(((b * s.out_channels + o) * ho + oy) * wo + ox)];
+          const double tol = static_cast<double>(k) * 0x1p-24 * (magnitude + std::abs(b_folded)) +
+                             0x1p-23 * std::abs(ref16) + 1e-7;
+          ASSERT_NEAR(got, ref16, tol) << "y[" << b << "][" << o << "][" << oy << "][" << ox << "]";
+          const double tol32 = (2 * u + u * u) * magnitude * 1.01 + tol;
+          EXPECT_NEAR(got, ref32, tol32);
+          worst_vs_fp32 = std::max(worst_vs_fp32, std::abs(got - ref32) / (magnitude + 1e-30));
+        }
+      }
+    }
+  }
+  ::testing::Test::RecordProperty("worst_error_vs_fp32_relative_to_sum_abs_products", std::to_string(worst_vs_fp32));
+}
+
+TEST(ConvMma, Conv3x3PaddedBatchNormReluBf16) { check_conv({2, 5, 9, 11, 70, 3, 1, true, true}, Half16::BF16); }
+TEST(ConvMma, Conv3x3PaddedF16) { check_conv({1, 19, 7, 6, 33, 3, 1, false, false}, Half16::F16); }
+TEST(ConvMma, Conv3x3UnpaddedBf16) { check_conv({1, 3, 6, 9, 8, 3, 0, true, false}, Half16::BF16); }
+TEST(ConvMma, Conv1x1HeadBf16) { check_conv({2, 40, 5, 13, 12, 1, 0, false, false}, Half16::BF16); }
+TEST(ConvMma, ManyChannelsBf16) { check_conv({1, 96, 4, 5, 130, 3, 1, true, true}, Half16::BF16); }
+
+void check_transposed(Half16 type) {
+  std::string why;
+  if (!cuda::mma_supported(&why)) GTEST_SKIP() << why;
+  const std::int64_t B = 2, I = 6, O = 5, H = 3, W = 4;
+  Rng rng(5);
+  const std::vector<float> x = uniform(static_cast<size_t>(B * I * H * W), rng, -2, 2);
+  const std::vector<float> w = uniform(static_cast<size_t>(I * O * 4), rng, -0.5, 0.5);
+  const std::vector<float> bias = uniform(static_cast<size_t>(O), rng, -1, 1);
+  auto dx = DeviceBuffer<float>::from_host(x), dw = DeviceBuffer<float>::from_host(w),
+       dbias = DeviceBuffer<float>::from_host(bias);
+  DeviceBuffer<std::uint16_t> w16(static_cast<size_t>(4 * O * cuda::mma_padded_k(I)));
+  DeviceBuffer<float> b_out(static_cast<size_t>(4 * O)), dy(static_cast<size_t>(B * O * 4 * H * W));
+  cuda::prepare_conv_transpose_weights(dw.data(), dbias.data(), I, O, type, w16.data(), b_out.data(), nullptr);
+  cuda::conv_transpose2x2_mma_forward(dx.data(), w16.data(), b_out.data(), B, I, H, W, O, type, dy.data(), nullptr);
+  PS_CUDA_CHECK(cudaDeviceSynchronize());
+  const std::vector<float> y = dy.to_host();
+  for (std::int64_t b = 0; b < B; ++b)
+    for (std::int64_t o = 0; o < O; ++o)
+      for (std::int64_t yy = 0; yy < 2 * H; ++yy)
+        for (std::int64_t xx = 0; xx < 2 * W; ++xx) {
+          double sum = bias[static_cast<size_t>(o)], magnitude = 0;
+          for (std::int64_t i = 0; i < I; ++i) {
+            const double p =
+                static_cast<double>(round_half(w[static_cast<size_t>(((i * O + o) * 2 + yy % 2) * 2 + xx % 2)], type)) *
+                round_half(x[static_cast<size_t>(((b * I + i) * H + yy / 2) * W + xx / 2)], type);
+            sum += p;
+            magnitude += std::abs(p);
+          }
+          const float got = y[static_cast<size_t>(((b * O + o) * 2 * H + yy) * 2 * W + xx)];
+          EXPECT_NEAR(got, sum, static_cast<double>(I) * 0x1p-24 * magnitude + 0x1p-23 * std::abs(sum) + 1e-7);
+        }
+}
+
+TEST(ConvMma, Transposed2x2Bf16) { check_transposed(Half16::BF16); }
+TEST(ConvMma, Transposed2x2F16) { check_transposed(Half16::F16); }
+
+}  // namespace
