@@ -47,6 +47,18 @@ grep -q '^pillars ' "$work/bench.log" || fail "bench --device emu: no pillars st
 grep -q 'pillarize' "$work/bench.log" && fail "bench --device emu: a host pillarize stage"
 grep -q '^bytes over the bus per scan' "$work/bench.log" || fail "bench --device emu: no bytes count"
 
+# --precision bf16: the tensor-core convolutions on the emulation (a label map of the same size,
+# mostly the FP32 one); on the CPU one warning line and fp32; refused by train.
+run infer --weights "$weights" --scan "$velodyne/000001.bin" --out "$work/bf16" --device emu --precision bf16 > /dev/null
+cmp -s "$work/bf16.u8" "$work/emu_one.u8" && echo "cli_test: note: bf16 and fp32 label maps are identical"
+[[ $(stat -c %s "$work/bf16.u8") == $(stat -c %s "$work/emu_one.u8") ]] || fail "infer --precision bf16: label map size"
+message=$(run infer --weights "$weights" --scan "$velodyne/000001.bin" --out "$work/cpu_bf16" --precision bf16 2>&1)
+[[ $message == *"--precision bf16: the "*"running fp32"* ]] || fail "infer --precision bf16 on the CPU: '$message'"
+cmp "$work/cpu_bf16.u8" "$work/one.u8" || fail "infer --precision bf16 on the CPU is not the fp32 label map"
+run bench --device emu --precision bf16 --config "$work/tiny.yaml" --weights "$weights" --scan "$velodyne/000001.bin" \
+  --repeat 1 > "$work/bench_bf16.log" 2>&1 || { cat "$work/bench_bf16.log"; fail "bench --precision bf16 failed"; }
+grep -q 'precision bf16' "$work/bench_bf16.log" || fail "bench --precision bf16: precision not reported"
+
 # Errors name the argument and exit 1.
 expect_error() {
   local expected=$1
@@ -60,9 +72,11 @@ expect_error() {
 }
 expect_error "--scan $work/none.bin: no such file" infer --weights "$weights" --scan "$work/none.bin" --out "$work/x"
 expect_error "is a file" infer --weights "$weights" --scan "$velodyne" --out "$work/one.u8"
+expect_error "train --precision bf16: training computes in FP32" train --data "$work/data" --config "$work/tiny.yaml" \
+  --out "$work/bf16_run" --precision bf16
 # A --device outside cpu, cuda, emu: the command line refuses it and names the option.
 if message=$(run infer --weights "$weights" --scan "$velodyne" --out "$work/y" --device tpu 2>&1); then
   fail "--device tpu was accepted"
 fi
 [[ $message == *"--device"* ]] || fail "--device tpu: '$message' does not name --device"
-echo "cli_test: infer (one scan, a directory, two files), --device emu (infer, eval, bench, train) and errors pass"
+echo "cli_test: infer (one scan, a directory, two files), --device emu (infer, eval, bench, train), --precision and errors pass"

@@ -86,6 +86,7 @@ void pillarseg_default_options(pillarseg_options* options) {
   options->cuda_device = 0;
   options->mask_unobserved = 0;
   options->convolution = "own";
+  options->precision = "fp32";
 }
 
 pillarseg_segmenter* pillarseg_open(const char* weights_path, const char* config_path,
@@ -111,6 +112,8 @@ pillarseg_segmenter* pillarseg_open(const char* weights_path, const char* config
     }
     if (PS_OPTION_PRESENT(o, mask_unobserved)) so.mask_unobserved = o->mask_unobserved != 0;
     if (PS_OPTION_PRESENT(o, convolution) && o->convolution != nullptr) so.backend.convolution = o->convolution;
+    if (PS_OPTION_PRESENT(o, precision) && o->precision != nullptr)
+      so.precision = pillarseg::parse_precision(o->precision, "options->precision");
     PS_CHECK(so.device == "cpu" || so.device == "cuda" || so.device == "emu",
              "options->device must be \"cpu\", \"cuda\" or \"emu\", got \"{}\"", so.device);
     install_backends();
@@ -137,6 +140,10 @@ void pillarseg_grid_geometry(const pillarseg_segmenter* s, double* x_min, double
 
 const char* pillarseg_device_name(const pillarseg_segmenter* s) {
   return s ? s->device_name.c_str() : "";
+}
+
+const char* pillarseg_precision(const pillarseg_segmenter* s) {
+  return s ? pillarseg::precision_name(s->engine->net().precision()) : "";
 }
 
 const char* pillarseg_class_name(int class_id) {

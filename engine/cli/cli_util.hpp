@@ -7,6 +7,7 @@
 
 #include "core/error.hpp"
 #include "engine/data/semantickitti.hpp"
+#include "engine/pipeline/segmenter.hpp"
 
 namespace pillarseg::cli {
 
@@ -29,10 +30,10 @@ inline void require_extension(const std::filesystem::path& path, std::initialize
   PS_FAIL("{} {}: unsupported extension '{}' (expected {})", option, path.string(), ext, list);
 }
 
-// --device and --conv, the same on every command that runs the network (infer, render, eval,
-// bench, train).
+// --device, --conv and --precision, the same on every command that runs the network (infer,
+// render, eval, bench, train).
 struct DeviceArgs {
-  std::string device = "cpu", conv = "own";
+  std::string device = "cpu", conv = "own", precision = "fp32";
   int cuda_device = 0;
 };
 inline void add_device_options(CLI::App* cmd, DeviceArgs& args) {
@@ -45,6 +46,19 @@ inline void add_device_options(CLI::App* cmd, DeviceArgs& args) {
       ->check(CLI::IsMember({"own", "cudnn", "cublas"}));
   cmd->add_option("--cuda-device", args.cuda_device, "the CUDA device ordinal with --device cuda")
       ->check(CLI::NonNegativeNumber);
+  cmd->add_option("--precision", args.precision,
+                  "the evaluation convolutions: fp32, or bf16 / fp16 on the tensor cores (--device cuda on "
+                  "compute capability 8.0+, or emu; elsewhere one line says so and fp32 runs)")
+      ->check(CLI::IsMember({"fp32", "bf16", "fp16"}));
+}
+
+// The segmenter options of --device, --conv, --cuda-device and --precision.
+inline SegmenterOptions segmenter_options(const DeviceArgs& args) {
+  SegmenterOptions options;
+  options.device = args.device;
+  options.backend = {args.conv, args.cuda_device};
+  options.precision = parse_precision(args.precision);
+  return options;
 }
 
 }  // namespace pillarseg::cli

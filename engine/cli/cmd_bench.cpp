@@ -66,10 +66,10 @@ void run_bench(const BenchArgs& a) {
   if (!a.weights.empty() && a.config.empty()) model = config_for(read_checkpoint(a.weights), "").model;
   if (!a.config.empty()) model = load_run_config(a.config).model;
   model.transposed = model.transposed || a.transposed;
-  SegmenterOptions options;
+  SegmenterOptions options = segmenter_options(a.device);
   options.mask_unobserved = a.mask_unobserved;
   // The device first: no device, no scratch files left behind.
-  ScanSegmenter segmenter(model, make_backend(a.device.device, {a.device.conv, a.device.cuda_device}), options);
+  ScanSegmenter segmenter(model, make_backend(options.device, options.backend), options);
   Backend& backend = segmenter.backend();
   const fs::path scratch = fs::temp_directory_path() / fmt::format("pillarseg_bench_{}", ::getpid());
   fs::path scan_path = a.scan;
@@ -130,8 +130,9 @@ void run_bench(const BenchArgs& a) {
   if (backend.device() != Device::Cpu) host_bytes = host_inputs_bytes(segmenter, read_scan(scan_path));
   std::error_code ec;
   fs::remove_all(scratch, ec);
-  fmt::print("pillarseg bench: device {}, {} threads, grid {} x {}, C {}, b {}, {} upsampling, occupancy {}{}\n",
-             backend.name(), num_threads(), model.grid.width(), model.grid.height(), model.pillar_channels,
+  fmt::print("pillarseg bench: device {}, precision {}, {} threads, grid {} x {}, C {}, b {}, {} upsampling, "
+             "occupancy {}{}\n",
+             backend.name(), precision_name(segmenter.net().precision()), num_threads(), model.grid.width(), model.grid.height(), model.pillar_channels,
              model.base_width, model.transposed ? "transposed" : "bilinear", occupancy_name(model.occupancy),
              model.grid_map_input ? ", grid-map input" : "");
   fmt::print("scan: {} ({} points); median of {} runs after one warm-up, each stage timed on the backend's "

@@ -46,9 +46,7 @@ struct RenderArgs {
 
 std::unique_ptr<ScanSegmenter> open_for(const std::string& weights, const std::string& config,
                                         const DeviceArgs& device, bool mask_unobserved) {
-  SegmenterOptions options;
-  options.device = device.device;
-  options.backend = {device.conv, device.cuda_device};
+  SegmenterOptions options = segmenter_options(device);
   options.mask_unobserved = mask_unobserved;
   return open_segmenter(weights, config, options);
 }

@@ -35,6 +35,10 @@ void run_train(const TrainArgs& a) {
   o.config = load_run_config(a.config);
   o.device = a.device.device;
   o.backend = {a.device.conv, a.device.cuda_device};
+  PS_CHECK(a.device.precision == "fp32",
+           "train --precision {}: training computes in FP32 (BF16 training with FP32 master weights is not "
+           "implemented yet); --precision applies to infer, eval, render and bench",
+           a.device.precision);
   if (!a.cache.empty()) o.cache_dir = a.cache;
   o.resume = a.resume;
   o.max_epochs_this_run = a.epochs_now;
@@ -47,7 +51,8 @@ void run_train(const TrainArgs& a) {
 void run_eval(const EvalArgs& a) {
   const Checkpoint ckpt = read_checkpoint(a.weights);
   const RunConfig config = config_for(ckpt, a.config);
-  ScanSegmenter segmenter(config.model, make_backend(a.device.device, {a.device.conv, a.device.cuda_device}));
+  const SegmenterOptions options = segmenter_options(a.device);
+  ScanSegmenter segmenter(config.model, make_backend(options.device, options.backend), options);
   load_weights(ckpt, segmenter.net(), false);
   EvalOptions o;
   o.data_root = a.data;

@@ -1,5 +1,9 @@
 #include "engine/pipeline/segmenter.hpp"
 
+#include <spdlog/spdlog.h>
+
+#include <string>
+
 #include "core/error.hpp"
 #include "core/parallel.hpp"
 #include "engine/train/checkpoint.hpp"
@@ -12,7 +16,15 @@ ScanSegmenter::ScanSegmenter(const ModelConfig& model, std::unique_ptr<Backend> 
       options_(options),
       backend_(std::move(backend)),
       net_(std::make_unique<PillarSegNet>(model, *backend_, seed)),
-      pipeline_(model, *backend_, options.mask_unobserved) {}
+      pipeline_(model, *backend_, options.mask_unobserved) {
+  if (options.precision == Precision::F32) return;
+  std::string why;
+  if (backend_->supports_precision(options.precision, &why)) {
+    net_->set_precision(options.precision);
+  } else {
+    spdlog::warn("--precision {}: {}; running fp32", precision_name(options.precision), why);
+  }
+}
 
 void ScanSegmenter::queue_predictions(bool probabilities) {
   net_->queue_predictions(probabilities);

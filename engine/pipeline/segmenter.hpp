@@ -33,6 +33,9 @@ struct SegmenterOptions {
   BackendOptions backend;      // the CUDA backends' convolution and device
   bool mask_unobserved = false;  // cells no ray observed: class 0, probabilities 0
   int threads = 0;               // CPU threads of this segmenter's work, 0: the process's setting
+  // The evaluation convolutions' arithmetic; a backend without it (the CPU) says so in one
+  // warning line and runs FP32 (precision() tells which runs).
+  Precision precision = Precision::F32;
 };
 
 class ScanSegmenter {

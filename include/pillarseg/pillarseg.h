@@ -67,13 +67,16 @@ typedef struct pillarseg_options {
   int cuda_device;          /* CUDA device ordinal with "cuda" (default 0) */
   int mask_unobserved;      /* non-zero: cells no ray observed get class 0 and probabilities 0 */
   const char* convolution;  /* Conv2d with "cuda": "own" (default), "cudnn" or "cublas" */
+  const char* precision;    /* the convolutions: "fp32" (default), "bf16" or "fp16" (tensor cores
+                               with "cuda" on compute capability 8.0+, or "emu"; elsewhere fp32
+                               runs, see pillarseg_precision) */
 } pillarseg_options;
 
 /* "0.2.0": the library's version (the header's is PILLARSEG_VERSION_*). */
 PILLARSEG_API const char* pillarseg_version(void);
 
 /* Fills *options with the defaults: device "cpu", threads 0, cuda_device 0, mask_unobserved 0,
- * convolution "own". */
+ * convolution "own", precision "fp32". */
 PILLARSEG_API void pillarseg_default_options(pillarseg_options* options);
 
 /* Opens a segmenter on `weights_path`, a safetensors checkpoint: one written by `pillarseg
@@ -96,6 +99,10 @@ PILLARSEG_API void pillarseg_grid_geometry(const pillarseg_segmenter* s, double*
 
 /* The device the segmenter runs on, e.g. "cpu" or "cuda:0 (NVIDIA H200)"; valid until close. */
 PILLARSEG_API const char* pillarseg_device_name(const pillarseg_segmenter* s);
+
+/* The arithmetic the segmenter's convolutions run in: "fp32", "bf16" or "fp16" (fp32 where the
+ * options asked for bf16 or fp16 on a device without them). */
+PILLARSEG_API const char* pillarseg_precision(const pillarseg_segmenter* s);
 
 /* "vehicle" ... "terrain" for ids 1..12, "unlabeled" for 0, NULL for any other id. */
 PILLARSEG_API const char* pillarseg_class_name(int class_id);

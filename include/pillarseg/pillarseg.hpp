@@ -31,6 +31,7 @@ struct Options {
   int cuda_device = 0;
   bool mask_unobserved = false;  // cells no ray observed: class 0, probabilities 0
   std::string convolution = "own";  // with "cuda": "own", "cudnn" or "cublas"
+  std::string precision = "fp32";   // "fp32", "bf16" or "fp16" (see pillarseg_options)
 };
 
 class Segmenter {
@@ -46,6 +47,7 @@ class Segmenter {
     o.cuda_device = options.cuda_device;
     o.mask_unobserved = options.mask_unobserved ? 1 : 0;
     o.convolution = options.convolution.c_str();
+    o.precision = options.precision.c_str();
     char error[1024];
     handle_ = pillarseg_open(weights.c_str(), config.empty() ? nullptr : config.c_str(), &o, error,
                              sizeof error);
@@ -71,6 +73,7 @@ class Segmenter {
   int height() const { return height_; }  // cells along y (rows)
   std::size_t cells() const { return static_cast<std::size_t>(width_) * static_cast<std::size_t>(height_); }
   std::string device() const { return pillarseg_device_name(handle_); }
+  std::string precision() const { return pillarseg_precision(handle_); }
   pillarseg_segmenter* handle() const { return handle_; }
 
   // xyzr: 4 floats per point. labels: cells() bytes; probabilities: 12 * cells() floats or null.

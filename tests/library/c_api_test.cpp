@@ -162,6 +162,47 @@ TEST(CApi, LabelsAndProbabilitiesAreTheEngines) {
   }
 }
 
+// options.precision: bf16 on the emulated CUDA backend runs the tensor-core path (the class map
+// nearly the FP32 one, the probabilities close); on the CPU it falls back to fp32 and says so
+// through pillarseg_precision; an unknown precision is an error message.
+TEST(CApi, PrecisionOption) {
+  pillarseg::install_emulated_cuda_backend();
+  const std::vector<float> xyzr = tiny_scan(3000, 5);
+  const auto open_with = [](const char* device, const char* precision) {
+    pillarseg_options options;
+    pillarseg_default_options(&options);
+    options.device = device;
+    options.precision = precision;
+    char error[512];
+    pillarseg_segmenter* s = pillarseg_open(tiny_checkpoint().c_str(), nullptr, &options, error, sizeof error);
+    EXPECT_NE(s, nullptr) << error;
+    return s;
+  };
+  pillarseg_segmenter* fp32 = open_with("emu", "fp32");
+  pillarseg_segmenter* bf16 = open_with("emu", "bf16");
+  pillarseg_segmenter* cpu = open_with("cpu", "bf16");
+  ASSERT_TRUE(fp32 && bf16 && cpu);
+  EXPECT_STREQ(pillarseg_precision(fp32), "fp32");
+  EXPECT_STREQ(pillarseg_precision(bf16), "bf16");
+  EXPECT_STREQ(pillarseg_precision(cpu), "fp32");
+  EXPECT_STREQ(pillarseg_precision(nullptr), "");
+  const Output a = segment(fp32, xyzr), b = segment(bf16, xyzr);
+  size_t same = 0;
+  double largest = 0;
+  for (size_t i = 0; i < a.labels.size(); ++i) same += a.labels[i] == b.labels[i];
+  for (size_t i = 0; i < a.probabilities.size(); ++i)
+    largest = std::max(largest, static_cast<double>(std::abs(a.probabilities[i] - b.probabilities[i])));
+  EXPECT_GE(static_cast<double>(same), 0.99 * static_cast<double>(a.labels.size()));
+  EXPECT_LT(largest, 0.05);
+  EXPECT_NE(a.probabilities, b.probabilities);
+  for (pillarseg_segmenter* s : {fp32, bf16, cpu}) pillarseg_close(s);
+  pillarseg_options options;
+  pillarseg_default_options(&options);
+  options.precision = "int8";
+  EXPECT_NE(open_error(tiny_checkpoint().c_str(), nullptr, &options).find("options->precision: expected fp32, bf16 or fp16, got 'int8'"),
+            std::string::npos);
+}
+
 TEST(CApi, BadFilesAndOptionsAreMessages) {
   const std::string missing = (pillarseg::test::temp_dir() / "nope.safetensors").string();
   EXPECT_NE(open_error(missing.c_str(), nullptr, nullptr).find("nope.safetensors: no such file"), std::string::npos);
