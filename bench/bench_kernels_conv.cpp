@@ -11,6 +11,9 @@
 // cuBLAS SGEMM in FP32; those rows add ours_ms/peer_ms, our pass's time over theirs (> 1: the
 // peer is faster).
 //
+// Beside them, the BF16 and FP16 tensor-core forward (Conv2dForwardBF16/..., FP16), with its
+// percentage of the device's dense 16-bit peak and its speed-up over our FP32 forward.
+//
 // Without a CUDA device, and in the emulated build (whose times say nothing about a GPU), it
 // prints "skipped: no CUDA device" and runs nothing.
 #include <benchmark/benchmark.h>
@@ -30,6 +33,7 @@
 #endif
 #include "kernels/common.cuh"
 #include "kernels/conv2d.cuh"
+#include "kernels/conv2d_mma.cuh"
 #include "kernels/conv_transpose2d.cuh"
 #include "kernels/device_buffer.hpp"
 
@@ -250,6 +254,49 @@ void BM_ConvTranspose2dBackwardWeights(benchmark::State& state, const ConvTransp
   state.counters["workspace_MiB"] = static_cast<double>(b.workspace.bytes()) / (1 << 20);
 }
 
+// The tensor-core evaluation convolutions (kernels/conv2d_mma.cuh): the 16-bit weights prepared
+// once, then the forward (FP32 activations in and out, BF16 or FP16 multiplies, FP32 sums) timed
+// like ours above, with its share of the device's dense 16-bit tensor-core peak: SMs x clock x
+// the architecture's dense FP16/BF16 rate with FP32 accumulation (flops per clock per SM: 2048
+// on sm_80 and sm_87, 1024 on sm_86 and sm_89, 4096 on sm_90).
+double dense_half_peak_flops() {
+#if defined(PILLARSEG_CUDA_EMULATION)
+  return 0;  // no device, no peak
+#else
+  int device = 0, major = 0, minor = 0, sms = 0, khz = 0;
+  PS_CUDA_CHECK(cudaGetDevice(&device));
+  PS_CUDA_CHECK(cudaDeviceGetAttribute(&major, cudaDevAttrComputeCapabilityMajor, device));
+  PS_CUDA_CHECK(cudaDeviceGetAttribute(&minor, cudaDevAttrComputeCapabilityMinor, device));
+  PS_CUDA_CHECK(cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, device));
+  PS_CUDA_CHECK(cudaDeviceGetAttribute(&khz, cudaDevAttrClockRate, device));
+  const int sm = 10 * major + minor;
+  const double per_clock = sm >= 90 ? 4096 : (sm == 86 || sm == 89) ? 1024 : sm >= 80 ? 2048 : 0;
+  return per_clock * sms * khz * 1e3;
+#endif
+}
+
+void BM_Conv2dForwardHalf(benchmark::State& state, const ConvLayer& l, cuda::Half16 type) {
+  std::string why;
+  if (!cuda::mma_supported(&why)) {
+    state.SkipWithError(why.c_str());
+    return;
+  }
+  ConvBuffers b(l.shape);
+  const std::int64_t k = l.shape.in_channels * l.shape.kernel * l.shape.kernel;
+  DeviceBuffer<std::uint16_t> w16(static_cast<size_t>(l.shape.out_channels * cuda::mma_padded_k(k)));
+  DeviceBuffer<float> bias(static_cast<size_t>(l.shape.out_channels));
+  cuda::prepare_conv_weights(b.w.data(), l.bias ? b.bias.data() : nullptr, cuda::FoldedBatchNorm{}, l.shape, type,
+                             w16.data(), bias.data(), nullptr);
+  const double flops = conv_flops(l.shape);
+  const double ms = time_pass(state, flops, [&](cudaStream_t stream) {
+    cuda::conv2d_mma_forward(b.x.data(), w16.data(), bias.data(), l.shape, type, false, b.y.data(), stream);
+  });
+  const double peak = dense_half_peak_flops();
+  if (ms > 0 && peak > 0) state.counters["pct_of_peak"] = 100.0 * flops / (ms * 1e-3) / peak;
+  const auto ours = our_ms().find(std::string("forward/") + l.name);
+  if (ours != our_ms().end() && ms > 0.0) state.counters["fp32_ms/half_ms"] = ours->second / ms;
+}
+
 template <class Function, class Layer>
 void register_pass(const std::string& name, Function function, const Layer& layer) {
   benchmark::RegisterBenchmark(name.c_str(), function, layer)
@@ -262,6 +309,12 @@ void register_benchmarks() {
     register_pass(std::string("Conv2dForward/") + l.name, BM_Conv2dForward, l);
     register_pass(std::string("Conv2dBackwardData/") + l.name, BM_Conv2dBackwardData, l);
     register_pass(std::string("Conv2dBackwardWeights/") + l.name, BM_Conv2dBackwardWeights, l);
+    for (const auto& [type_name, type] : {std::pair{"BF16", cuda::Half16::BF16}, std::pair{"FP16", cuda::Half16::F16}}) {
+      benchmark::RegisterBenchmark((std::string("Conv2dForward") + type_name + "/" + l.name).c_str(),
+                                   BM_Conv2dForwardHalf, l, type)
+          ->Unit(benchmark::kMillisecond)
+          ->UseManualTime();
+    }
 #if defined(PILLARSEG_BENCH_VENDOR_CONV)
     register_peers(l, Pass::Forward, "Conv2dForward");
     register_peers(l, Pass::BackwardData, "Conv2dBackwardData");

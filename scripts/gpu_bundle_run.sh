@@ -145,12 +145,12 @@ scan=$here/data/sequences/99/velodyne/000000.bin
 [[ -f $scan ]] || scan=""
 note "## pillarseg bench --device cuda (full size, the real scan)"
 note
-note "| model | conv | steady state ms | stage sum ms | U-Net ms | MB over the bus (host inputs) |"
-note "|---|---|---:|---:|---:|---|"
+note "| model | conv | steady state ms | stage sum ms | U-Net ms | MB over the bus (host inputs) | against fp32 |"
+note "|---|---|---:|---:|---:|---|---|"
 run_bench() {
   local label=$1 conv=$2
   shift 2
-  (( $(left) > 120 )) || { note "| $label | $conv | not run: time budget | | | |"; return; }
+  (( $(left) > 120 )) || { note "| $label | $conv | not run: time budget | | | | |"; return; }
   echo "=== $label --conv $conv" >> "$bench_log"
   timeout 60 "$here/bin/pillarseg" bench --device cuda --conv "$conv" --repeat 5 ${scan:+--scan "$scan"} "$@" \
     > "$out/.bench" 2>&1
@@ -158,20 +158,24 @@ run_bench() {
   cat "$out/.bench" >> "$bench_log"
   if ((rc != 0)); then
     failures+=("bench $label $conv")
-    note "| $label | $conv | failed (exit $rc) | | | |"
+    note "| $label | $conv | failed (exit $rc) | | | | |"
     return
   fi
-  local steady staged unet bytes
+  local steady staged unet bytes agreement
   steady=$(sed -n 's/^steady state.*: \([0-9.]*\) ms; stage by stage above: \([0-9.]*\) ms.*/\1/p' "$out/.bench")
   staged=$(sed -n 's/^steady state.*stage by stage above: \([0-9.]*\) ms.*/\1/p' "$out/.bench")
   unet=$(awk '$1 == "U-Net" {print $2}' "$out/.bench")
   bytes=$(sed -n 's/^bytes over the bus per scan: \([0-9.]*\) MB.*: \([0-9.]*\) MB.*/\1 (\2)/p' "$out/.bench")
-  note "| $label | $conv | $steady | $staged | $unet | $bytes |"
+  agreement=$(sed -n 's/^[a-z0-9]* against fp32: arg-max agreement \([0-9.]*%\).*largest probability difference \([0-9.]*\)/\1, max |dp| \2/p' "$out/.bench")
+  note "| $label | $conv | $steady | $staged | $unet | $bytes | ${agreement:--} |"
 }
 run_bench "bilinear" own
 run_bench "bilinear" cudnn
 run_bench "bilinear" cublas
 run_bench "transposed" own --transposed
+run_bench "bilinear, bf16 tensor cores" own --precision bf16
+run_bench "bilinear, fp16 tensor cores" own --precision fp16
+run_bench "transposed, bf16 tensor cores" own --transposed --precision bf16
 run_bench "pillar + 2D occupancy" own --config "$here/configs/pillar_2d_sparse.yaml"
 run_bench "pillar + 3D occupancy" own --config "$here/configs/pillar_3d_sparse.yaml"
 rm -f "$out/.bench"

@@ -156,6 +156,37 @@ void run_bench(const BenchArgs& a) {
                static_cast<double>(steady_bytes) / 1e6, static_cast<double>(host_bytes) / 1e6,
                static_cast<double>(host_bytes) / std::max<double>(static_cast<double>(steady_bytes), 1.0));
   }
+  if (segmenter.net().precision() != Precision::F32) {
+    // The same network in FP32 on another backend of the same kind, on the same scan: how far
+    // the 16-bit convolutions move the result.
+    SegmenterOptions fp32_options = options;
+    fp32_options.precision = Precision::F32;
+    ScanSegmenter reference(model, make_backend(options.device, options.backend), fp32_options);
+    if (!a.weights.empty()) load_weights(read_checkpoint(a.weights), reference.net(), false);
+    const Scan scan = read_scan(scan_path);
+    const int64_t cells = model.grid.cells();
+    Tensor<uint8_t> half_labels({model.grid.height(), model.grid.width()}), fp32_labels(half_labels.shape());
+    Tensor<float> half_probs({12, model.grid.height(), model.grid.width()}), fp32_probs(half_probs.shape());
+    segmenter.segment(scan.points, half_labels.data(), half_probs.data());
+    reference.segment(scan.points, fp32_labels.data(), fp32_probs.data());
+    std::vector<bool> with_points(static_cast<size_t>(cells), false);
+    for (const Point& p : scan.points)
+      if (model.grid.contains(p.x, p.y, p.z)) with_points[static_cast<size_t>(model.grid.cell_index(p.x, p.y))] = true;
+    int64_t occupied = 0, agree = 0;
+    for (int64_t c = 0; c < cells; ++c) {
+      if (!with_points[static_cast<size_t>(c)]) continue;
+      ++occupied;
+      agree += half_labels.data()[c] == fp32_labels.data()[c];
+    }
+    double largest = 0;
+    for (int64_t i = 0; i < half_probs.numel(); ++i)
+      largest = std::max(largest, static_cast<double>(std::abs(half_probs.data()[i] - fp32_probs.data()[i])));
+    fmt::print("{} against fp32: arg-max agreement {:.3f}% of the {} cells with points, largest probability "
+               "difference {:.4f}\n",
+               precision_name(segmenter.net().precision()), 100.0 * static_cast<double>(agree) /
+                                                                std::max<double>(static_cast<double>(occupied), 1.0),
+               occupied, largest);
+  }
   rusage usage{};
   getrusage(RUSAGE_SELF, &usage);
   fmt::print("peak resident memory: {:.0f} MiB (host; activations planned: {:.0f} MiB)\n",

@@ -62,6 +62,21 @@ class CpuBackend final : public Backend {
   Device device() const override { return Device::Cpu; }
   std::string name() const override { return fast_paths_ ? "cpu" : "cpu-reference"; }
 
+  // BF16 on the CPU (AVX512_BF16 dot products, AMX-BF16 tiles) has no micro-kernels yet: the
+  // reason names what this CPU offers, detected at run time.
+  bool supports_precision(Precision p, std::string* why_not) const override {
+    if (p == Precision::F32) return true;
+    if (why_not != nullptr) {
+      const bool avx512_bf16 = __builtin_cpu_supports("avx512bf16") != 0;
+      const bool amx_bf16 = __builtin_cpu_supports("amx-bf16") != 0;
+      *why_not = fmt::format(
+          "the CPU backend computes in FP32 only (this CPU: AVX512_BF16 {}, AMX-BF16 {}; pillarseg's CPU BF16 "
+          "kernels are not written yet; {} convolutions run on --device cuda)",
+          avx512_bf16 ? "yes" : "no", amx_bf16 ? "yes" : "no", precision_name(p));
+    }
+    return false;
+  }
+
   void* allocate(size_t bytes) override {
     void* p = std::aligned_alloc(64, (bytes + 63) / 64 * 64);
     PS_CHECK(p, "out of host memory allocating {} bytes", bytes);
