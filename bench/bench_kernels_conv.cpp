@@ -289,7 +289,8 @@ void BM_Conv2dForwardHalf(benchmark::State& state, const ConvLayer& l, cuda::Hal
                              w16.data(), bias.data(), nullptr);
   const double flops = conv_flops(l.shape);
   const double ms = time_pass(state, flops, [&](cudaStream_t stream) {
-    cuda::conv2d_mma_forward(b.x.data(), w16.data(), bias.data(), l.shape, type, false, b.y.data(), stream);
+    cuda::conv2d_mma_forward(b.x.data(), false, w16.data(), bias.data(), l.shape, type, false, b.y.data(), false,
+                             stream);
   });
   const double peak = dense_half_peak_flops();
   if (ms > 0 && peak > 0) state.counters["pct_of_peak"] = 100.0 * flops / (ms * 1e-3) / peak;

@@ -15,6 +15,7 @@
 
 #include <cstring>
 #include <string>
+#include <type_traits>
 
 #include "kernels/common.cuh"
 
@@ -42,10 +43,11 @@ __device__ __forceinline__ void copy16(void* dst, const void* src) {
 #endif
 }
 
-template <Half16 H>
+// TIn, TOut: float (FP32 activations) or std::uint16_t (16-bit activations of type H).
+template <Half16 H, class TIn, class TOut>
 __global__ void __launch_bounds__(kThreads)
-    mma_gemm_kernel(const float* __restrict__ x, const std::uint16_t* __restrict__ w16,
-                    const float* __restrict__ bias, MmaGemm g, float* __restrict__ y) {
+    mma_gemm_kernel(const TIn* __restrict__ x, const std::uint16_t* __restrict__ w16,
+                    const float* __restrict__ bias, MmaGemm g, TOut* __restrict__ y) {
   __shared__ __align__(16) std::uint16_t as[kTileK][kPadA];
   __shared__ __align__(16) std::uint16_t bs[kTileN][kPadB];
   const int tid = static_cast<int>(threadIdx.x), lane = tid % 32, warp = tid / 32;
@@ -63,7 +65,7 @@ __global__ void __launch_bounds__(kThreads)
   const std::int64_t pixel = m_valid ? m % pixels_per_image : 0;
   const std::int64_t oy = pixel / g.out_width, ox = pixel % g.out_width;
   const std::int64_t plane = g.height * g.width;
-  const float* x_image = x + image * g.in_channels * plane;
+  const TIn* x_image = x + image * g.in_channels * plane;
   const int taps = g.kernel * g.kernel;
 
   float acc[2][4][4];
@@ -76,18 +78,25 @@ __global__ void __launch_bounds__(kThreads)
     for (int j = 0; j < kTileK * kTileM / kThreads; ++j) {
       const int sk = tid / kTileM + 2 * j;
       const std::int64_t k = k0 + sk;
-      float value = 0.0f;
+      std::int64_t index = -1;
       if (m_valid && k < g.k) {
         if (g.transposed) {
-          value = x_image[k * plane + oy * g.width + ox];
+          index = k * plane + oy * g.width + ox;
         } else {
           const std::int64_t channel = k / taps;
           const int tap = static_cast<int>(k % taps);
           const std::int64_t iy = oy + tap / g.kernel - g.pad, ix = ox + tap % g.kernel - g.pad;
-          if (iy >= 0 && iy < g.height && ix >= 0 && ix < g.width) value = x_image[channel * plane + iy * g.width + ix];
+          if (iy >= 0 && iy < g.height && ix >= 0 && ix < g.width) index = channel * plane + iy * g.width + ix;
         }
       }
-      as[sk][sm] = to_half16<H>(value);
+      std::uint16_t bits = 0;  // +0 in both types
+      if (index >= 0) {
+        if constexpr (std::is_same_v<TIn, float>)
+          bits = to_half16<H>(x_image[index]);
+        else
+          bits = x_image[index];
+      }
+      as[sk][sm] = bits;
     }
     // B: 64 rows n of 32 k, as 256 vectors of 8 elements.
     for (int v = tid; v < kTileN * kTileK / 8; v += kThreads) {
@@ -135,13 +144,18 @@ __global__ void __launch_bounds__(kThreads)
           if (n >= g.columns) continue;
           float value = acc[mt][nt][2 * half + e] + bias[n];
           if (g.relu) value = value > 0.0f ? value : 0.0f;
+          std::int64_t index = 0;
           if (g.transposed) {
             const std::int64_t o = n / 4, dy = (n % 4) / 2, dx = n % 2;
             const std::int64_t yh = 2 * g.out_height, yw = 2 * g.out_width;
-            y[((img * (g.columns / 4) + o) * yh + 2 * py + dy) * yw + 2 * pxx + dx] = value;
+            index = ((img * (g.columns / 4) + o) * yh + 2 * py + dy) * yw + 2 * pxx + dx;
           } else {
-            y[(img * g.columns + n) * pixels_per_image + px] = value;
+            index = (img * g.columns + n) * pixels_per_image + px;
           }
+          if constexpr (std::is_same_v<TOut, float>)
+            y[index] = value;
+          else
+            y[index] = to_half16<H>(value);
         }
       }
     }
@@ -233,17 +247,35 @@ __global__ void ldmatrix_probe_kernel(std::uint32_t* out) {
 }
 
 
-void run_gemm(const float* x, const std::uint16_t* w16, const float* bias, const MmaGemm& g, Half16 type, float* y,
-              cudaStream_t stream) {
+template <Half16 H>
+void launch_gemm(dim3 grid, const void* x, bool x_half, const std::uint16_t* w16, const float* bias, const MmaGemm& g,
+                 void* y, bool y_half, cudaStream_t stream) {
+  using U = std::uint16_t;
+  if (x_half && y_half)
+    launch_kernel(mma_gemm_kernel<H, U, U>, grid, dim3(kThreads), 0, stream, static_cast<const U*>(x), w16, bias, g,
+                  static_cast<U*>(y));
+  else if (x_half)
+    launch_kernel(mma_gemm_kernel<H, U, float>, grid, dim3(kThreads), 0, stream, static_cast<const U*>(x), w16, bias,
+                  g, static_cast<float*>(y));
+  else if (y_half)
+    launch_kernel(mma_gemm_kernel<H, float, U>, grid, dim3(kThreads), 0, stream, static_cast<const float*>(x), w16,
+                  bias, g, static_cast<U*>(y));
+  else
+    launch_kernel(mma_gemm_kernel<H, float, float>, grid, dim3(kThreads), 0, stream, static_cast<const float*>(x),
+                  w16, bias, g, static_cast<float*>(y));
+}
+
+void run_gemm(const void* x, bool x_half, const std::uint16_t* w16, const float* bias, const MmaGemm& g, Half16 type,
+              void* y, bool y_half, cudaStream_t stream) {
   const std::int64_t rows = g.batch * g.out_height * g.out_width;
   if (rows == 0 || g.columns == 0) return;
   std::string why;
   PS_CHECK(mma_supported(&why), "conv2d_mma: {}", why);
   const dim3 grid(static_cast<unsigned>(ceil_div(rows, kTileM)), static_cast<unsigned>(ceil_div(g.columns, kTileN)));
   if (type == Half16::BF16)
-    launch_kernel(mma_gemm_kernel<Half16::BF16>, grid, dim3(kThreads), 0, stream, x, w16, bias, g, y);
+    launch_gemm<Half16::BF16>(grid, x, x_half, w16, bias, g, y, y_half, stream);
   else
-    launch_kernel(mma_gemm_kernel<Half16::F16>, grid, dim3(kThreads), 0, stream, x, w16, bias, g, y);
+    launch_gemm<Half16::F16>(grid, x, x_half, w16, bias, g, y, y_half, stream);
 }
 
 void run_prepare(const float* w, const float* bias, const FoldedBatchNorm& bn, std::int64_t rows, std::int64_t k,
@@ -297,22 +329,23 @@ void prepare_conv_transpose_weights(const float* w, const float* bias, std::int6
               stream);
 }
 
-void conv2d_mma_forward(const float* x, const std::uint16_t* w16, const float* bias, const Conv2dShape& shape,
-                        Half16 type, bool relu, float* y, cudaStream_t stream) {
+void conv2d_mma_forward(const void* x, bool x_half, const std::uint16_t* w16, const float* bias,
+                        const Conv2dShape& shape, Half16 type, bool relu, void* y, bool y_half, cudaStream_t stream) {
   const std::int64_t k = shape.in_channels * shape.kernel * shape.kernel;
   const MmaGemm g{shape.batch,      shape.in_channels, shape.height,        shape.width,
                   shape.out_channels, shape.out_height(), shape.out_width(), k,
                   mma_padded_k(k),  static_cast<int>(shape.kernel), static_cast<int>(shape.pad), false,
                   relu};
-  run_gemm(x, w16, bias, g, type, y, stream);
+  run_gemm(x, x_half, w16, bias, g, type, y, y_half, stream);
 }
 
-void conv_transpose2x2_mma_forward(const float* x, const std::uint16_t* w16, const float* bias, std::int64_t batch,
-                                   std::int64_t in_channels, std::int64_t height, std::int64_t width,
-                                   std::int64_t out_channels, Half16 type, float* y, cudaStream_t stream) {
+void conv_transpose2x2_mma_forward(const void* x, bool x_half, const std::uint16_t* w16, const float* bias,
+                                   std::int64_t batch, std::int64_t in_channels, std::int64_t height,
+                                   std::int64_t width, std::int64_t out_channels, Half16 type, void* y, bool y_half,
+                                   cudaStream_t stream) {
   const MmaGemm g{batch, in_channels, height, width, 4 * out_channels, height, width, in_channels,
                   mma_padded_k(in_channels), 1, 0, true, false};
-  run_gemm(x, w16, bias, g, type, y, stream);
+  run_gemm(x, x_half, w16, bias, g, type, y, y_half, stream);
 }
 
 void mma_fragment_probe(const float* a, const float* b, const float* c, Half16 type, float* d, cudaStream_t stream) {

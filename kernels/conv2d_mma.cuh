@@ -8,9 +8,9 @@
 // The weights go through prepare_*_weights once per set of values: rounded to the 16-bit type
 // (after the BatchNorm scale is multiplied in, in FP32), laid out (N, Kp) with Kp the GEMM's K
 // rounded up to a multiple of 32 and zero-filled, and the bias (with the BatchNorm shift) in
-// FP32. Activations are read as FP32 and rounded to the 16-bit type as they are staged in
-// shared memory; y is FP32. So y = act(sum_k half(w' [n, k]) half(a[m, k]) + b'[n]) with the
-// products exact and the sum in FP32.
+// FP32. Activations are FP32 (rounded to the 16-bit type as they are staged in shared memory) or
+// already 16-bit, and so is y (rounded once from the FP32 result). So y = act(sum_k half(w'[n,
+// k]) half(a[m, k]) + b'[n]) with the products exact and the sum in FP32.
 //
 // Needs compute capability 8.0 or later on a GPU (mma_supported()); the emulation runs it
 // everywhere. Pointers are device memory; the work is queued on `stream`.
@@ -51,13 +51,15 @@ void prepare_conv_transpose_weights(const float* w, const float* bias, std::int6
                                     std::int64_t out_channels, Half16 type, std::uint16_t* w16, float* bias_out,
                                     cudaStream_t stream);
 
-// x (B, I, H, W) FP32, prepared w16 and bias -> y (B, O, Ho, Wo) FP32, ReLU when `relu`.
-void conv2d_mma_forward(const float* x, const std::uint16_t* w16, const float* bias, const Conv2dShape& shape,
-                        Half16 type, bool relu, float* y, cudaStream_t stream);
-// x (B, I, H, W) FP32, prepared w16 and bias -> y (B, O, 2H, 2W) FP32.
-void conv_transpose2x2_mma_forward(const float* x, const std::uint16_t* w16, const float* bias, std::int64_t batch,
-                                   std::int64_t in_channels, std::int64_t height, std::int64_t width,
-                                   std::int64_t out_channels, Half16 type, float* y, cudaStream_t stream);
+// x (B, I, H, W), prepared w16 and bias -> y (B, O, Ho, Wo), ReLU when `relu`. x and y are
+// FP32 (float) or, with x_half / y_half, 16-bit values of `type` (std::uint16_t bits).
+void conv2d_mma_forward(const void* x, bool x_half, const std::uint16_t* w16, const float* bias,
+                        const Conv2dShape& shape, Half16 type, bool relu, void* y, bool y_half, cudaStream_t stream);
+// x (B, I, H, W), prepared w16 and bias -> y (B, O, 2H, 2W); x, y as above.
+void conv_transpose2x2_mma_forward(const void* x, bool x_half, const std::uint16_t* w16, const float* bias,
+                                   std::int64_t batch, std::int64_t in_channels, std::int64_t height,
+                                   std::int64_t width, std::int64_t out_channels, Half16 type, void* y, bool y_half,
+                                   cudaStream_t stream);
 
 // x (n) FP32 -> y (n) the same values rounded to the 16-bit type and back (what the kernels see
 // of an activation; for tests and accuracy reports).

@@ -9,6 +9,7 @@
 #include <cstdint>
 #include <limits>
 
+#include "kernels/bilinear_taps.cuh"
 #include "kernels/common.cuh"
 
 namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
@@ -37,28 +38,7 @@ void check_sizes(const char* op, std::int64_t planes, std::int64_t height, std::
            "{}: an output plane of {} x {} exceeds the grid", op, 2 * height, 2 * width);
 }
 
-// Output sample d of an axis: (1 - lambda) in[i0] + lambda in[i1].
-struct Tap {
-  std::int64_t i0;
-  std::int64_t i1;
-  float w0;  // 1 - lambda
-  float w1;  // lambda
-};
-
 }  // namespace
-
-// The tap of output d of an axis with `in` inputs and out = 2 in outputs: s = d (in - 1) /
-// (out - 1) = i0 + remainder / (out - 1), the weights rounded once from the exact fractions.
-static __device__ __forceinline__ Tap axis_tap(std::int64_t d, std::int64_t in, std::int64_t out) {
-  if (in == 1) return Tap{0, 0, 1.0f, 0.0f};
-  const std::int64_t numerator = d * (in - 1);
-  const std::int64_t i0 = numerator / (out - 1);
-  const std::int64_t remainder = numerator - i0 * (out - 1);
-  const auto denominator = static_cast<float>(out - 1);
-  return Tap{i0, i0 + 1 < in ? i0 + 1 : in - 1,
-             static_cast<float>(out - 1 - remainder) / denominator,
-             static_cast<float>(remainder) / denominator};
-}
 
 // The outputs of an axis that read input i, with the weight each gives it: those d whose i0 is
 // i - 1 or i.

@@ -19,6 +19,7 @@
 
 #include "core/rng.hpp"
 #include "engine/cuda/cuda_backend.hpp"
+#include "engine/model/graph.hpp"
 #include "engine/model/pillarsegnet.hpp"
 #include "tests/support/test_support.hpp"
 #include "tests/support/tiny_model.hpp"
@@ -688,6 +689,20 @@ TEST(CudaBackendPrecision, HalfEvaluationTracksFp32) {
       net.forward(d.batch, false);
       EXPECT_EQ(net.download_logits(), fp32) << "back to fp32 gives the fp32 logits bit for bit";
     }
+  }
+  // At full size (the paper's model, 1000 x 500) the U-Net's activations dominate the planned
+  // evaluation block, and 16-bit ones shrink it (planned only: nothing runs).
+  {
+    CudaBackend backend;
+    PillarSegNet full(ModelConfig{}, backend);
+    full.prepare(1, 12000, false);
+    const size_t fp32_bytes = full.graph(false).planned_bytes();
+    full.set_precision(Precision::BF16);
+    full.prepare(1, 12000, false);
+    const size_t bf16_bytes = full.graph(false).planned_bytes();
+    RecordProperty("full_size_eval_block_fp32_bytes", std::to_string(fp32_bytes));
+    RecordProperty("full_size_eval_block_bf16_bytes", std::to_string(bf16_bytes));
+    EXPECT_LT(static_cast<double>(bf16_bytes), 0.75 * static_cast<double>(fp32_bytes));
   }
   auto cpu = make_cpu_backend();
   PillarSegNet on_cpu(tiny_config(), *cpu);

@@ -5,6 +5,10 @@
 //   - mma.sync m16n8k16 (both types) and ldmatrix (x2, x4, with and without .trans) in one warp
 //     against the PTX ISA's fragment formulas, with integer-valued elements all distinct, so that
 //     a register in the wrong place gives a wrong number;
+//   - the 16-bit activation kernels (half_ops.cuh) against the FP32 kernels on the same rounded
+//     values: max-pool, zero-padded concatenation and channel copies exactly, the upsampling
+//     within one 16-bit rounding, and a convolution with 16-bit input and output against the
+//     FP32-in/out one within one rounding of its output;
 //   - the convolutions (3x3 with and without padding, 1x1, BatchNorm folded, ReLU, the transposed
 //     2x2) against a double reference computed from the same 16-bit-rounded inputs and weights.
 //     Tolerance per element: the products are exact, so only the FP32 sums round: |err| <=
@@ -22,6 +26,11 @@
 #include "kernels/common.cuh"
 #include "kernels/conv2d_mma.cuh"
 #include "kernels/device_buffer.hpp"
+#include "kernels/elementwise.cuh"
+#include "kernels/half_ops.cuh"
+#include "kernels/maxpool2d.cuh"
+#include "kernels/pad_concat.cuh"
+#include "kernels/upsample_bilinear.cuh"
 #include "kernels/mma.cuh"
 
 using namespace pillarseg;
@@ -170,7 +179,7 @@ void check_conv(const ConvCase& cc, Half16 type) {
   DeviceBuffer<float> b_out(static_cast<size_t>(s.out_channels));
   DeviceBuffer<float> dy(static_cast<size_t>(s.batch * s.out_channels * ho * wo));
   cuda::prepare_conv_weights(dw.data(), dbias.data(), bn, s, type, w16.data(), b_out.data(), nullptr);
-  cuda::conv2d_mma_forward(dx.data(), w16.data(), b_out.data(), s, type, cc.relu, dy.data(), nullptr);
+  cuda::conv2d_mma_forward(dx.data(), false, w16.data(), b_out.data(), s, type, cc.relu, dy.data(), false, nullptr);
   PS_CUDA_CHECK(cudaDeviceSynchronize());
   const std::vector<float> y = dy.to_host();
 
@@ -237,7 +246,8 @@ void check_transposed(Half16 type) {
   DeviceBuffer<std::uint16_t> w16(static_cast<size_t>(4 * O * cuda::mma_padded_k(I)));
   DeviceBuffer<float> b_out(static_cast<size_t>(4 * O)), dy(static_cast<size_t>(B * O * 4 * H * W));
   cuda::prepare_conv_transpose_weights(dw.data(), dbias.data(), I, O, type, w16.data(), b_out.data(), nullptr);
-  cuda::conv_transpose2x2_mma_forward(dx.data(), w16.data(), b_out.data(), B, I, H, W, O, type, dy.data(), nullptr);
+  cuda::conv_transpose2x2_mma_forward(dx.data(), false, w16.data(), b_out.data(), B, I, H, W, O, type, dy.data(), false,
+                                      nullptr);
   PS_CUDA_CHECK(cudaDeviceSynchronize());
   const std::vector<float> y = dy.to_host();
   for (std::int64_t b = 0; b < B; ++b)
@@ -259,5 +269,114 @@ void check_transposed(Half16 type) {
 
 TEST(ConvMma, Transposed2x2Bf16) { check_transposed(Half16::BF16); }
 TEST(ConvMma, Transposed2x2F16) { check_transposed(Half16::F16); }
+
+// ---- 16-bit activations ----
+
+std::vector<std::uint16_t> half_bits(const std::vector<float>& v, Half16 type) {
+  std::vector<std::uint16_t> bits(v.size());
+  for (size_t i = 0; i < v.size(); ++i)
+    bits[i] = type == Half16::BF16 ? cuda::float_to_bf16_bits(v[i]) : cuda::float_to_f16_bits(v[i]);
+  return bits;
+}
+std::vector<float> half_values(const std::vector<std::uint16_t>& bits, Half16 type) {
+  std::vector<float> v(bits.size());
+  for (size_t i = 0; i < v.size(); ++i)
+    v[i] = type == Half16::BF16 ? cuda::bf16_bits_to_float(bits[i]) : cuda::f16_bits_to_float(bits[i]);
+  return v;
+}
+// |a - b| within one rounding of b to the 16-bit type (unit roundoff u of its magnitude).
+void expect_within_one_rounding(const std::vector<float>& a, const std::vector<float>& b, Half16 type,
+                                const char* what) {
+  ASSERT_EQ(a.size(), b.size());
+  const double u = type == Half16::BF16 ? 0x1p-8 : 0x1p-11;
+  for (size_t i = 0; i < a.size(); ++i)
+    ASSERT_LE(std::abs(static_cast<double>(a[i]) - b[i]), u * std::abs(static_cast<double>(b[i])) * 1.0001 + 1e-30)
+        << what << " element " << i << ": " << a[i] << " vs " << b[i];
+}
+
+void check_half_ops(Half16 type) {
+  const std::int64_t B = 2, C = 3, H = 7, W = 10, planes = B * C;
+  Rng rng(77);
+  const std::vector<float> raw = uniform(static_cast<size_t>(planes * H * W), rng, -3, 3);
+  const std::vector<std::uint16_t> bits = half_bits(raw, type);
+  const std::vector<float> rounded = half_values(bits, type);
+  auto d_bits = DeviceBuffer<std::uint16_t>::from_host(bits);
+  auto d_rounded = DeviceBuffer<float>::from_host(rounded);
+  auto d_raw = DeviceBuffer<float>::from_host(raw);
+
+  // to_half16 rounds like the host.
+  DeviceBuffer<std::uint16_t> converted(bits.size());
+  cuda::to_half16(d_raw.data(), static_cast<std::int64_t>(raw.size()), type, converted.data(), nullptr);
+  PS_CUDA_CHECK(cudaDeviceSynchronize());
+  EXPECT_EQ(converted.to_host(), bits);
+
+  // Max-pool: the FP32 kernel on the rounded values, exactly.
+  const size_t pooled = static_cast<size_t>(planes * (H / 2) * (W / 2));
+  DeviceBuffer<std::uint16_t> pool16(pooled);
+  DeviceBuffer<float> pool32(pooled);
+  DeviceBuffer<std::int32_t> argmax(pooled);
+  cuda::maxpool2x2_half16(d_bits.data(), planes, H, W, type, pool16.data(), nullptr);
+  cuda::maxpool2d_forward(d_rounded.data(), planes, H, W, pool32.data(), argmax.data(), nullptr);
+  PS_CUDA_CHECK(cudaDeviceSynchronize());
+  EXPECT_EQ(half_values(pool16.to_host(), type), pool32.to_host());
+
+  // Upsampling: within one rounding of the FP32 kernel's result on the rounded values.
+  const size_t up = static_cast<size_t>(planes * 4 * H * W);
+  DeviceBuffer<std::uint16_t> up16(up);
+  DeviceBuffer<float> up32(up);
+  cuda::upsample2x_half16(d_bits.data(), planes, H, W, type, up16.data(), nullptr);
+  cuda::upsample_bilinear_forward(d_rounded.data(), planes, H, W, up32.data(), nullptr);
+  PS_CUDA_CHECK(cudaDeviceSynchronize());
+  expect_within_one_rounding(half_values(up16.to_host(), type), up32.to_host(), type, "upsample");
+
+  // Zero-padded concatenation of skip (B, 3, 7, 10) and up (B, 2, 4, 6), and a channel copy.
+  const std::vector<float> up_raw = uniform(static_cast<size_t>(B * 2 * 4 * 6), rng, -3, 3);
+  const std::vector<std::uint16_t> up_bits = half_bits(up_raw, type);
+  auto d_up_bits = DeviceBuffer<std::uint16_t>::from_host(up_bits);
+  auto d_up_rounded = DeviceBuffer<float>::from_host(half_values(up_bits, type));
+  const cuda::PadConcatShape shape{B, C, 2, H, W, 4, 6};
+  const size_t joined = static_cast<size_t>(B * 5 * H * W);
+  DeviceBuffer<std::uint16_t> cat16(joined);
+  DeviceBuffer<float> cat32(joined);
+  cuda::pad_concat_half16(d_bits.data(), d_up_bits.data(), shape, cat16.data(), nullptr);
+  cuda::pad_concat_forward(d_rounded.data(), d_up_rounded.data(), shape, cat32.data(), nullptr);
+  PS_CUDA_CHECK(cudaDeviceSynchronize());
+  EXPECT_EQ(half_values(cat16.to_host(), type), cat32.to_host());
+  const cuda::ChannelBand band{B, C, H * W, 5, 2};
+  std::vector<std::uint16_t> wide(joined, 0x1234);
+  auto d_wide = DeviceBuffer<std::uint16_t>::from_host(wide);
+  cuda::copy_channels_half16(d_bits.data(), band, d_wide.data(), nullptr);
+  PS_CUDA_CHECK(cudaDeviceSynchronize());
+  const std::vector<std::uint16_t> got = d_wide.to_host();
+  for (std::int64_t b = 0; b < B; ++b)
+    for (std::int64_t c = 0; c < 5; ++c)
+      for (std::int64_t p = 0; p < H * W; ++p) {
+        const std::uint16_t expected =
+            c >= 2 ? bits[static_cast<size_t>((b * C + c - 2) * H * W + p)] : std::uint16_t{0x1234};
+        ASSERT_EQ(got[static_cast<size_t>((b * 5 + c) * H * W + p)], expected) << b << " " << c << " " << p;
+      }
+
+  // A convolution with 16-bit input and output against FP32 input and output on the same values.
+  const cuda::Conv2dShape s{B, C, H, W, 9, 3, 1};
+  const std::vector<float> w = uniform(static_cast<size_t>(9 * C * 9), rng, -0.5, 0.5);
+  const std::vector<float> bias = uniform(9, rng, -1, 1);
+  auto dw = DeviceBuffer<float>::from_host(w), dbias = DeviceBuffer<float>::from_host(bias);
+  DeviceBuffer<std::uint16_t> w16(static_cast<size_t>(9 * cuda::mma_padded_k(C * 9)));
+  DeviceBuffer<float> b_out(9);
+  cuda::prepare_conv_weights(dw.data(), dbias.data(), cuda::FoldedBatchNorm{}, s, type, w16.data(), b_out.data(),
+                             nullptr);
+  const size_t outputs = static_cast<size_t>(B * 9 * H * W);
+  DeviceBuffer<std::uint16_t> y16(outputs);
+  DeviceBuffer<float> y32(outputs);
+  cuda::conv2d_mma_forward(d_bits.data(), true, w16.data(), b_out.data(), s, type, true, y16.data(), true, nullptr);
+  cuda::conv2d_mma_forward(d_rounded.data(), false, w16.data(), b_out.data(), s, type, true, y32.data(), false,
+                           nullptr);
+  PS_CUDA_CHECK(cudaDeviceSynchronize());
+  const std::vector<float> y32_host = y32.to_host();
+  EXPECT_EQ(half_bits(y32_host, type), y16.to_host()) << "the 16-bit output is the FP32 one rounded once";
+}
+
+TEST(HalfOps, MatchTheFp32KernelsOnRoundedValuesBf16) { check_half_ops(Half16::BF16); }
+TEST(HalfOps, MatchTheFp32KernelsOnRoundedValuesF16) { check_half_ops(Half16::F16); }
 
 }  // namespace

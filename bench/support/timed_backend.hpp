@@ -141,17 +141,32 @@ class TimedBackend final : public Backend {
   void prepare_conv_transpose_weights(const Ref& w, const Ref* bias, Precision p, HRef& w16, Ref& bias_out) override {
     timed("16-bit weights", 0, [&] { inner_->prepare_conv_transpose_weights(w, bias, p, w16, bias_out); });
   }
-  void conv2d_half_forward(const Ref& x, const HRef& w16, const Ref& bias_out, const Shape& weight, int pad, bool relu,
-                           Precision p, Ref& y) override {
+  void conv2d_half_forward(const ActRef& x, const HRef& w16, const Ref& bias_out, const Shape& weight, int pad,
+                           bool relu, Precision p, const ActRef& y) override {
     const double flops = 2.0 * static_cast<double>(y.numel()) * static_cast<double>(weight[1] * weight[2] * weight[3]);
     timed(fmt::format("conv{}x{} {} (tensor cores)", weight[2], weight[3], precision_name(p)), flops,
           [&] { inner_->conv2d_half_forward(x, w16, bias_out, weight, pad, relu, p, y); });
   }
-  void conv_transpose2x2_half_forward(const Ref& x, const HRef& w16, const Ref& bias_out, const Shape& weight,
-                                      Precision p, Ref& y) override {
+  void conv_transpose2x2_half_forward(const ActRef& x, const HRef& w16, const Ref& bias_out, const Shape& weight,
+                                      Precision p, const ActRef& y) override {
     const double flops = 2.0 * static_cast<double>(x.numel()) * static_cast<double>(weight[1] * 4);
     timed(fmt::format("convT 2x2 {} (tensor cores)", precision_name(p)), flops,
           [&] { inner_->conv_transpose2x2_half_forward(x, w16, bias_out, weight, p, y); });
+  }
+  void to_half(const Ref& x, Precision p, HRef& y) override {
+    timed("16-bit activations", 0, [&] { inner_->to_half(x, p, y); });
+  }
+  void maxpool2x2_half(const HRef& x, Precision p, HRef& y) override {
+    timed("16-bit activations", 0, [&] { inner_->maxpool2x2_half(x, p, y); });
+  }
+  void upsample2x_half(const HRef& x, Precision p, HRef& y) override {
+    timed("16-bit activations", 0, [&] { inner_->upsample2x_half(x, p, y); });
+  }
+  void pad_concat_half(const HRef& skip, const HRef& up, HRef& y) override {
+    timed("16-bit activations", 0, [&] { inner_->pad_concat_half(skip, up, y); });
+  }
+  void copy_channels_half(const HRef& x, int channel0, HRef& y) override {
+    timed("16-bit activations", 0, [&] { inner_->copy_channels_half(x, channel0, y); });
   }
   void conv2d_backward(const Ref& x, const Ref& w, const Ref& dy, int pad, Ref* dx, Ref& dw,
                        Ref* dbias) override {

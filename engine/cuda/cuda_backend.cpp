@@ -16,6 +16,7 @@
 #include "kernels/common.cuh"
 #include "kernels/conv2d.cuh"
 #include "kernels/conv2d_mma.cuh"
+#include "kernels/half_ops.cuh"
 #include "kernels/conv_transpose2d.cuh"
 #include "kernels/elementwise.cuh"
 #include "kernels/grid_map_features.cuh"
@@ -844,25 +845,58 @@ void CudaBackend::prepare_conv_transpose_weights(const Ref& w, const Ref* bias, 
                                        w16.data, bias_out.data, stream_.get());
 }
 
-void CudaBackend::conv2d_half_forward(const Ref& x, const HRef& w16, const Ref& bias_out, const Shape& weight,
-                                      int pad, bool relu, Precision p, Ref& y) {
+void CudaBackend::conv2d_half_forward(const ActRef& x, const HRef& w16, const Ref& bias_out, const Shape& weight,
+                                      int pad, bool relu, Precision p, const ActRef& y) {
   const char* op = "conv2d_half_forward";
   const Shape y_shape = op::conv2d(x.shape, weight, pad, nullptr, op);
-  require_shape(op, "y", y, y_shape);
+  PS_CHECK(y.shape == y_shape, "{}: y must be {}, got {}", op, shape_str(y_shape), shape_str(y.shape));
   require_shape(op, "w16", w16, prepared_conv_weights_shape(weight, false));
   require_shape(op, "bias_out", bias_out, {weight[0]});
   const cuda::Conv2dShape shape{x.dim(0), x.dim(1), x.dim(2), x.dim(3), weight[0], weight[2], pad};
-  cuda::conv2d_mma_forward(x.data, w16.data, bias_out.data, shape, half_type(op, p), relu, y.data, stream_.get());
+  cuda::conv2d_mma_forward(x.data, x.half, w16.data, bias_out.data, shape, half_type(op, p), relu, y.data, y.half,
+                           stream_.get());
 }
 
-void CudaBackend::conv_transpose2x2_half_forward(const Ref& x, const HRef& w16, const Ref& bias_out,
-                                                 const Shape& weight, Precision p, Ref& y) {
+void CudaBackend::conv_transpose2x2_half_forward(const ActRef& x, const HRef& w16, const Ref& bias_out,
+                                                 const Shape& weight, Precision p, const ActRef& y) {
   const char* op = "conv_transpose2x2_half_forward";
-  require_shape(op, "y", y, op::conv_transpose2x2(x.shape, weight, nullptr, op));
+  const Shape y_shape = op::conv_transpose2x2(x.shape, weight, nullptr, op);
+  PS_CHECK(y.shape == y_shape, "{}: y must be {}, got {}", op, shape_str(y_shape), shape_str(y.shape));
   require_shape(op, "w16", w16, prepared_conv_weights_shape(weight, true));
   require_shape(op, "bias_out", bias_out, {4 * weight[1]});
-  cuda::conv_transpose2x2_mma_forward(x.data, w16.data, bias_out.data, x.dim(0), x.dim(1), x.dim(2), x.dim(3),
-                                      weight[1], half_type(op, p), y.data, stream_.get());
+  cuda::conv_transpose2x2_mma_forward(x.data, x.half, w16.data, bias_out.data, x.dim(0), x.dim(1), x.dim(2),
+                                      x.dim(3), weight[1], half_type(op, p), y.data, y.half, stream_.get());
+}
+
+void CudaBackend::to_half(const Ref& x, Precision p, HRef& y) {
+  require_shape("to_half", "y", y, x.shape);
+  cuda::to_half16(x.data, x.numel(), half_type("to_half", p), y.data, stream_.get());
+}
+
+void CudaBackend::maxpool2x2_half(const HRef& x, Precision p, HRef& y) {
+  const char* op = "maxpool2x2_half";
+  require_shape(op, "y", y, op::maxpool2x2(x.shape, op));
+  cuda::maxpool2x2_half16(x.data, x.dim(0) * x.dim(1), x.dim(2), x.dim(3), half_type(op, p), y.data, stream_.get());
+}
+
+void CudaBackend::upsample2x_half(const HRef& x, Precision p, HRef& y) {
+  const char* op = "upsample2x_half";
+  require_shape(op, "y", y, op::upsample2x(x.shape, op));
+  cuda::upsample2x_half16(x.data, x.dim(0) * x.dim(1), x.dim(2), x.dim(3), half_type(op, p), y.data, stream_.get());
+}
+
+void CudaBackend::pad_concat_half(const HRef& skip, const HRef& up, HRef& y) {
+  const char* op = "pad_concat_half";
+  require_shape(op, "y", y, op::pad_concat(skip.shape, up.shape, op));
+  const cuda::PadConcatShape shape{skip.dim(0), skip.dim(1), up.dim(1), skip.dim(2), skip.dim(3), up.dim(2), up.dim(3)};
+  cuda::pad_concat_half16(skip.data, up.data, shape, y.data, stream_.get());
+}
+
+void CudaBackend::copy_channels_half(const HRef& x, int channel0, HRef& y) {
+  const char* op = "copy_channels_half";
+  op::channel_band(x.shape, y.shape, channel0, op);
+  cuda::copy_channels_half16(x.data, {x.dim(0), x.dim(1), x.dim(2) * x.dim(3), y.dim(1), channel0}, y.data,
+                             stream_.get());
 }
 
 // ---- factory ----

@@ -156,10 +156,15 @@ class CudaBackend final : public Backend {
   void prepare_conv_weights(const Ref& w, const Ref* bias, const BatchNormRefs* bn, Precision p, HRef& w16,
                             Ref& bias_out) override;
   void prepare_conv_transpose_weights(const Ref& w, const Ref* bias, Precision p, HRef& w16, Ref& bias_out) override;
-  void conv2d_half_forward(const Ref& x, const HRef& w16, const Ref& bias_out, const Shape& weight, int pad, bool relu,
-                           Precision p, Ref& y) override;
-  void conv_transpose2x2_half_forward(const Ref& x, const HRef& w16, const Ref& bias_out, const Shape& weight,
-                                      Precision p, Ref& y) override;
+  void conv2d_half_forward(const ActRef& x, const HRef& w16, const Ref& bias_out, const Shape& weight, int pad,
+                           bool relu, Precision p, const ActRef& y) override;
+  void conv_transpose2x2_half_forward(const ActRef& x, const HRef& w16, const Ref& bias_out, const Shape& weight,
+                                      Precision p, const ActRef& y) override;
+  void to_half(const Ref& x, Precision p, HRef& y) override;
+  void maxpool2x2_half(const HRef& x, Precision p, HRef& y) override;
+  void upsample2x_half(const HRef& x, Precision p, HRef& y) override;
+  void pad_concat_half(const HRef& skip, const HRef& up, HRef& y) override;
+  void copy_channels_half(const HRef& x, int channel0, HRef& y) override;
 
  private:
   // The kernels' scratch, in one place. `floats`, `doubles`, `gather` and `rays` grow to the

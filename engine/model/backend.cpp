@@ -70,11 +70,28 @@ void Backend::prepare_conv_weights(const Ref&, const Ref*, const BatchNormRefs*,
 void Backend::prepare_conv_transpose_weights(const Ref&, const Ref*, Precision p, HRef&, Ref&) {
   PS_FAIL("backend {}: no {} convolutions (supports_precision)", name(), precision_name(p));
 }
-void Backend::conv2d_half_forward(const Ref&, const HRef&, const Ref&, const Shape&, int, bool, Precision p, Ref&) {
+void Backend::conv2d_half_forward(const ActRef&, const HRef&, const Ref&, const Shape&, int, bool, Precision p,
+                                  const ActRef&) {
   PS_FAIL("backend {}: no {} convolutions (supports_precision)", name(), precision_name(p));
 }
-void Backend::conv_transpose2x2_half_forward(const Ref&, const HRef&, const Ref&, const Shape&, Precision p, Ref&) {
+void Backend::conv_transpose2x2_half_forward(const ActRef&, const HRef&, const Ref&, const Shape&, Precision p,
+                                             const ActRef&) {
   PS_FAIL("backend {}: no {} convolutions (supports_precision)", name(), precision_name(p));
+}
+void Backend::to_half(const Ref&, Precision p, HRef&) {
+  PS_FAIL("backend {}: no {} activations (supports_precision)", name(), precision_name(p));
+}
+void Backend::maxpool2x2_half(const HRef&, Precision p, HRef&) {
+  PS_FAIL("backend {}: no {} activations (supports_precision)", name(), precision_name(p));
+}
+void Backend::upsample2x_half(const HRef&, Precision p, HRef&) {
+  PS_FAIL("backend {}: no {} activations (supports_precision)", name(), precision_name(p));
+}
+void Backend::pad_concat_half(const HRef&, const HRef&, HRef&) {
+  PS_FAIL("backend {}: no 16-bit activations (supports_precision)", name());
+}
+void Backend::copy_channels_half(const HRef&, int, HRef&) {
+  PS_FAIL("backend {}: no 16-bit activations (supports_precision)", name());
 }
 
 void Arena::reserve(size_t bytes) {

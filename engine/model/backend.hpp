@@ -42,6 +42,15 @@ using LRef = RefT<uint8_t>;
 using URef = RefT<uint32_t>;  // ray counts
 using HRef = RefT<uint16_t>;  // 16-bit floats (BF16 or FP16) as bits
 
+// An activation of the mixed-precision evaluation forward: FP32, or 16-bit (`half`).
+struct ActRef {
+  void* data = nullptr;
+  Shape shape;
+  bool half = false;
+  int64_t numel() const { return shape_numel(shape); }
+  int64_t dim(int i) const { return shape.at(static_cast<size_t>(i)); }
+};
+
 // BatchNorm parameters, running statistics and the per-channel statistics a training forward
 // saves for the backward. All (C).
 struct BatchNormRefs {
@@ -215,12 +224,20 @@ class Backend {
                                     Ref& bias_out);
   // weight (I, O, 2, 2) [, bias (O)] -> w16 (4 O, Kp), bias_out (4 O).
   virtual void prepare_conv_transpose_weights(const Ref& w, const Ref* bias, Precision p, HRef& w16, Ref& bias_out);
-  // y = act(conv(x, w16) + bias_out) for the weight shape `weight` (O, I, k, k) and `pad`.
-  virtual void conv2d_half_forward(const Ref& x, const HRef& w16, const Ref& bias_out, const Shape& weight, int pad,
-                                   bool relu, Precision p, Ref& y);
+  // y = act(conv(x, w16) + bias_out) for the weight shape `weight` (O, I, k, k) and `pad`; x
+  // and y FP32 or 16-bit.
+  virtual void conv2d_half_forward(const ActRef& x, const HRef& w16, const Ref& bias_out, const Shape& weight, int pad,
+                                   bool relu, Precision p, const ActRef& y);
   // y (B, O, 2H, 2W) = the transposed convolution of x (B, I, H, W) for weight (I, O, 2, 2).
-  virtual void conv_transpose2x2_half_forward(const Ref& x, const HRef& w16, const Ref& bias_out, const Shape& weight,
-                                              Precision p, Ref& y);
+  virtual void conv_transpose2x2_half_forward(const ActRef& x, const HRef& w16, const Ref& bias_out,
+                                              const Shape& weight, Precision p, const ActRef& y);
+  // The 16-bit activations' data movement (kernels/half_ops.cuh): x FP32 -> y rounded; max-pool
+  // 2x2; bilinear x2; [skip, zero-padded up]; x into channels [channel0, ..) of y.
+  virtual void to_half(const Ref& x, Precision p, HRef& y);
+  virtual void maxpool2x2_half(const HRef& x, Precision p, HRef& y);
+  virtual void upsample2x_half(const HRef& x, Precision p, HRef& y);
+  virtual void pad_concat_half(const HRef& skip, const HRef& up, HRef& y);
+  virtual void copy_channels_half(const HRef& x, int channel0, HRef& y);
 };
 
 std::unique_ptr<Backend> make_cpu_backend();

@@ -67,6 +67,11 @@ const char* op_name(OpKind op) {
     case OpKind::PrepareConvTransposeWeights: return "16-bit weights";
     case OpKind::Conv2dHalf: return "conv 16-bit (tensor cores)";
     case OpKind::ConvTranspose2x2Half: return "convT 2x2 16-bit (tensor cores)";
+    case OpKind::ToHalf: return "to 16-bit";
+    case OpKind::MaxPool2x2Half: return "maxpool 16-bit";
+    case OpKind::Upsample2xHalf: return "upsample 16-bit";
+    case OpKind::PadConcatHalf: return "pad+concat 16-bit";
+    case OpKind::CopyChannelsHalf: return "channel copies 16-bit";
   }
   return "?";
 }

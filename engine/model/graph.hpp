@@ -55,6 +55,11 @@ enum class OpKind {
   PrepareConvTransposeWeights,  // r: w, bias | w: w16, bias_out
   Conv2dHalf,                   // r: x, w16, bias_out | w: y (relu: + ReLU)
   ConvTranspose2x2Half,         // r: x, w16, bias_out | w: y
+  ToHalf,                       // r: x (FP32) | w: y (16-bit)
+  MaxPool2x2Half,               // r: x | w: y (16-bit, no arg-max)
+  Upsample2xHalf,               // r: x | w: y
+  PadConcatHalf,                // r: skip, up | w: y
+  CopyChannelsHalf,             // r: x | w: band of y
 };
 const char* op_name(OpKind op);
 

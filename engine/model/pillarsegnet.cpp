@@ -121,6 +121,10 @@ class Builder {
 
   Stage stage = Stage::UNet;
   bool half() const { return half_ != Precision::F32; }
+  // The type of the U-Net's activations: 16-bit in a mixed-precision evaluation forward once
+  // `unet` is set (the occupancy stream writes the FP32 canvas).
+  bool unet = false;
+  DType act() const { return half() && unet ? DType::U16 : DType::F32; }
 
   // Mixed precision: a node preparing the 16-bit weights (with the eval BatchNorm `bn` folded
   // in, when >= 0) and the tensor-core convolution x -> y.
@@ -210,7 +214,7 @@ class Builder {
     const int w = param(m.conv.weight), b = param(m.conv.bias);
     const Shape b_shape = b >= 0 ? shape(b) : Shape{};
     const Shape y_shape = op::conv2d(shape(x), shape(w), m.conv.pad, b >= 0 ? &b_shape : nullptr);
-    a.out = into >= 0 ? into : g_.tensor(name + ".out", y_shape);
+    a.out = into >= 0 ? into : g_.tensor(name + ".out", y_shape, act());
     if (half()) {
       half_conv(name, x, w, b, m.bn, m.conv.pad, true, a.out);
       return a;
@@ -410,6 +414,13 @@ void PillarSegNet::build_graph(GraphPlan& p, int batch, bool training) {
                                {p.grid_map_input, canvas}, {canvas});
     copy.channel0 = channel;
   }
+  // Mixed precision: the U-Net runs on a 16-bit copy of the canvas.
+  int unet_input = canvas;
+  if (bld.half()) {
+    unet_input = g.tensor("canvas16", g.at(canvas).shape, DType::U16);
+    bld.node(OpKind::ToHalf, "canvas", {canvas, unet_input}, {canvas}, {unet_input});
+  }
+  bld.unet = true;
   // Level sizes; x[i] is level i's tensor (x[0] the canvas).
   std::vector<int64_t> hs(static_cast<size_t>(depth) + 1, H), ws(static_cast<size_t>(depth) + 1, W);
   for (int i = 1; i <= depth; ++i) {
@@ -423,13 +434,13 @@ void PillarSegNet::build_graph(GraphPlan& p, int batch, bool training) {
   for (int j = 1; j <= depth; ++j) {
     const Up& u = m.ups[static_cast<size_t>(j - 1)];
     const size_t level = static_cast<size_t>(depth - j);
-    cat[static_cast<size_t>(j - 1)] =
-        g.tensor(fmt::format("up{}.cat", j), {batch, u.skip_channels + u.up_channels, hs[level], ws[level]});
+    cat[static_cast<size_t>(j - 1)] = g.tensor(fmt::format("up{}.cat", j),
+                                               {batch, u.skip_channels + u.up_channels, hs[level], ws[level]}, bld.act());
     skip_in_cat[static_cast<size_t>(j - 1)] = training && batch == 1 && depth - j >= 1 &&
                                               2 * hs[level + 1] == hs[level] && 2 * ws[level + 1] == ws[level];
   }
   std::vector<int> x(static_cast<size_t>(depth) + 1, -1);
-  x[0] = canvas;
+  x[0] = unet_input;
   struct DownActs {
     int pooled = -1, argmax = -1;
     Builder::Activations first, second;
@@ -440,10 +451,15 @@ void PillarSegNet::build_graph(GraphPlan& p, int batch, bool training) {
     DownActs& a = down_acts[static_cast<size_t>(i - 1)];
     const std::string name = fmt::format("down{}", i);
     const Shape pooled = op::maxpool2x2(g.at(x[static_cast<size_t>(i - 1)]).shape);
-    a.pooled = g.tensor(name + ".pooled", pooled);
-    a.argmax = g.tensor(name + ".argmax", pooled, DType::I32);
-    bld.node(OpKind::MaxPool2x2, name, {x[static_cast<size_t>(i - 1)], a.pooled, a.argmax},
-             {x[static_cast<size_t>(i - 1)]}, {a.pooled, a.argmax});
+    a.pooled = g.tensor(name + ".pooled", pooled, bld.act());
+    if (bld.half()) {
+      bld.node(OpKind::MaxPool2x2Half, name, {x[static_cast<size_t>(i - 1)], a.pooled},
+               {x[static_cast<size_t>(i - 1)]}, {a.pooled});
+    } else {
+      a.argmax = g.tensor(name + ".argmax", pooled, DType::I32);
+      bld.node(OpKind::MaxPool2x2, name, {x[static_cast<size_t>(i - 1)], a.pooled, a.argmax},
+               {x[static_cast<size_t>(i - 1)]}, {a.pooled, a.argmax});
+    }
     a.first = bld.conv_bn_relu(name + ".conv1", d.conv.first, a.pooled);
     // Up depth - i takes this level's output as its skip.
     int into = -1;
@@ -476,8 +492,8 @@ void PillarSegNet::build_graph(GraphPlan& p, int batch, bool training) {
     a.upsampled = upsampled_in_cat
                       ? g.view(name + ".upsampled", a.cat, up_shape,
                                static_cast<size_t>(u.skip_channels) * static_cast<size_t>(hs[skip_level]) *
-                                   static_cast<size_t>(ws[skip_level]) * sizeof(float))
-                      : g.tensor(name + ".upsampled", up_shape);
+                                   static_cast<size_t>(ws[skip_level]) * dtype_bytes(bld.act()))
+                      : g.tensor(name + ".upsampled", up_shape, bld.act());
     if (u.transposed && bld.half()) {
       bld.half_conv_transpose(name + ".up", current, bld.param(u.up.weight), bld.param(u.up.bias), a.upsampled);
     } else if (u.transposed) {
@@ -486,17 +502,20 @@ void PillarSegNet::build_graph(GraphPlan& p, int batch, bool training) {
                               {current, w, bias}, {a.upsampled});
       n.flops = op::conv_transpose2x2_flops(in, g.at(w).shape);
     } else {
-      bld.node(OpKind::Upsample2x, name, {current, a.upsampled}, {current}, {a.upsampled});
+      bld.node(bld.half() ? OpKind::Upsample2xHalf : OpKind::Upsample2x, name, {current, a.upsampled}, {current},
+               {a.upsampled});
     }
     if (upsampled_in_cat) {
-      GraphNode& n = bld.node(OpKind::CopyChannels, name + ".skip", {skip, a.cat}, {skip, a.cat}, {a.cat});
+      GraphNode& n = bld.node(bld.half() ? OpKind::CopyChannelsHalf : OpKind::CopyChannels, name + ".skip",
+                              {skip, a.cat}, {skip, a.cat}, {a.cat});
       n.channel0 = 0;
     } else if (skip_in_cat[static_cast<size_t>(j - 1)]) {
       GraphNode& n = bld.node(OpKind::CopyChannels, name + ".up", {a.upsampled, a.cat}, {a.upsampled, a.cat}, {a.cat});
       n.channel0 = u.skip_channels;
     } else {
       op::pad_concat(g.at(skip).shape, up_shape);
-      bld.node(OpKind::PadConcat, name, {skip, a.upsampled, a.cat}, {skip, a.upsampled}, {a.cat});
+      bld.node(bld.half() ? OpKind::PadConcatHalf : OpKind::PadConcat, name, {skip, a.upsampled, a.cat},
+               {skip, a.upsampled}, {a.cat});
     }
     a.first = bld.conv_bn_relu(name + ".conv1", u.conv.first, a.cat);
     a.second = bld.conv_bn_relu(name + ".conv2", u.conv.second, a.first.out);
@@ -684,6 +703,11 @@ double PillarSegNet::execute(const GraphPlan& p, size_t begin, size_t end) {
     const auto& a = n.args;
     const auto f = [&](size_t k) { return bind<float>(p, a[k]); };
     const auto ints = [&](size_t k) { return bind<int32_t>(p, a[k]); };
+    const auto h = [&](size_t k) { return bind<uint16_t>(p, a[k]); };
+    const auto activation = [&](size_t k) {
+      const HRef r = bind<uint16_t>(p, a[k]);
+      return ActRef{r.data, r.shape, p.graph.at(a[k]).dtype == DType::U16};
+    };
     switch (n.op) {
       case OpKind::FillZero: {
         const Ref r = f(0);
@@ -767,14 +791,35 @@ double PillarSegNet::execute(const GraphPlan& p, size_t begin, size_t end) {
         be.prepare_conv_transpose_weights(f(0), a[1] >= 0 ? &bias : nullptr, m.precision, w16, bias_out);
         break;
       }
-      case OpKind::Conv2dHalf: {
-        Ref y = f(3);
-        be.conv2d_half_forward(f(0), bind<uint16_t>(p, a[1]), f(2), n.weight, n.pad, n.relu, m.precision, y);
+      case OpKind::Conv2dHalf:
+        be.conv2d_half_forward(activation(0), h(1), f(2), n.weight, n.pad, n.relu, m.precision, activation(3));
+        break;
+      case OpKind::ConvTranspose2x2Half:
+        be.conv_transpose2x2_half_forward(activation(0), h(1), f(2), n.weight, m.precision, activation(3));
+        break;
+      case OpKind::ToHalf: {
+        HRef y = h(1);
+        be.to_half(f(0), m.precision, y);
         break;
       }
-      case OpKind::ConvTranspose2x2Half: {
-        Ref y = f(3);
-        be.conv_transpose2x2_half_forward(f(0), bind<uint16_t>(p, a[1]), f(2), n.weight, m.precision, y);
+      case OpKind::MaxPool2x2Half: {
+        HRef y = h(1);
+        be.maxpool2x2_half(h(0), m.precision, y);
+        break;
+      }
+      case OpKind::Upsample2xHalf: {
+        HRef y = h(1);
+        be.upsample2x_half(h(0), m.precision, y);
+        break;
+      }
+      case OpKind::PadConcatHalf: {
+        HRef y = h(2);
+        be.pad_concat_half(h(0), h(1), y);
+        break;
+      }
+      case OpKind::CopyChannelsHalf: {
+        HRef y = h(1);
+        be.copy_channels_half(h(0), n.channel0, y);
         break;
       }
       case OpKind::PadConcat: {
