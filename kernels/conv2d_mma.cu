@@ -69,12 +69,16 @@ __global__ void __launch_bounds__(kThreads)
   const int taps = g.kernel * g.kernel;
 
   float acc[2][4][4];
+  #pragma unroll
   for (int a = 0; a < 2; ++a)
+    #pragma unroll
     for (int b = 0; b < 4; ++b)
+      #pragma unroll
       for (int c = 0; c < 4; ++c) acc[a][b][c] = 0.0f;
 
   for (std::int64_t k0 = 0; k0 < g.k_padded; k0 += kTileK) {
     // A: rows k0 + tid / 64 + 2 j of this thread's pixel.
+    #pragma unroll
     for (int j = 0; j < kTileK * kTileM / kThreads; ++j) {
       const int sk = tid / kTileM + 2 * j;
       const std::int64_t k = k0 + sk;
@@ -109,14 +113,18 @@ __global__ void __launch_bounds__(kThreads)
       }
     }
     __syncthreads();
+    #pragma unroll
     for (int kk = 0; kk < kTileK; kk += 16) {
       std::uint32_t a[2][4], b[4][2];
       const int j = lane / 8, r = lane % 8;
-      for (int mt = 0; mt < 2; ++mt) {
+      #pragma unroll
+      #pragma unroll
+  for (int mt = 0; mt < 2; ++mt) {
         // Matrix j of the fragment: k rows kk + (j / 2) 8 .. + 8, pixels + (j % 2) 8.
         const int pm = warp_m * 32 + mt * 16 + (j % 2) * 8;
         ldmatrix_x4<true>(a[mt], &as[kk + (j / 2) * 8 + r][pm]);
       }
+      #pragma unroll
       for (int np = 0; np < 2; ++np) {
         // Matrices: (n 0-7, k 0-7), (n 0-7, k 8-15), (n 8-15, k 0-7), (n 8-15, k 8-15).
         const int pn = warp_n * 32 + np * 16 + (j / 2) * 8 + r;
@@ -124,7 +132,9 @@ __global__ void __launch_bounds__(kThreads)
         ldmatrix_x4<false>(regs, &bs[pn][kk + (j % 2) * 8]);
         b[2 * np][0] = regs[0], b[2 * np][1] = regs[1], b[2 * np + 1][0] = regs[2], b[2 * np + 1][1] = regs[3];
       }
+      #pragma unroll
       for (int mt = 0; mt < 2; ++mt)
+        #pragma unroll
         for (int nt = 0; nt < 4; ++nt) mma_m16n8k16<H>(acc[mt][nt], a[mt], b[nt], acc[mt][nt]);
     }
     __syncthreads();
@@ -132,13 +142,17 @@ __global__ void __launch_bounds__(kThreads)
 
   // Epilogue: accumulator i of (mt, nt) is D[row g + 8 (i >= 2)][column 2 t + (i & 1)].
   const int group = lane / 4, t = lane % 4;
+  #pragma unroll
   for (int mt = 0; mt < 2; ++mt) {
+    #pragma unroll
     for (int half = 0; half < 2; ++half) {
       const std::int64_t row = m0 + warp_m * 32 + mt * 16 + group + 8 * half;
       if (row >= rows) continue;
       const std::int64_t img = row / pixels_per_image, px = row % pixels_per_image;
       const std::int64_t py = px / g.out_width, pxx = px % g.out_width;
+      #pragma unroll
       for (int nt = 0; nt < 4; ++nt) {
+        #pragma unroll
         for (int e = 0; e < 2; ++e) {
           const std::int64_t n = n0 + warp_n * 32 + nt * 8 + 2 * t + e;
           if (n >= g.columns) continue;
