@@ -48,7 +48,7 @@ extern "C" {
 #endif
 
 #define PILLARSEG_VERSION_MAJOR 0
-#define PILLARSEG_VERSION_MINOR 2
+#define PILLARSEG_VERSION_MINOR 3
 #define PILLARSEG_VERSION_PATCH 0
 
 /* Classes of the map: 1 vehicle, 2 person, 3 two-wheel, 4 rider, 5 road, 6 sidewalk,
@@ -72,7 +72,7 @@ typedef struct pillarseg_options {
                                runs, see pillarseg_precision) */
 } pillarseg_options;
 
-/* "0.2.0": the library's version (the header's is PILLARSEG_VERSION_*). */
+/* "0.3.0": the library's version (the header's is PILLARSEG_VERSION_*). */
 PILLARSEG_API const char* pillarseg_version(void);
 
 /* Fills *options with the defaults: device "cpu", threads 0, cuda_device 0, mask_unobserved 0,

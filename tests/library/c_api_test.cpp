@@ -64,11 +64,12 @@ using pillarseg_test::tiny_scan;
 namespace {
 
 // A segmenter with default options but `device` and `mask`; fails the test with the message.
-pillarseg_segmenter* open_tiny(const char* device = "cpu", int mask = 0) {
+pillarseg_segmenter* open_tiny(const char* device = "cpu", int mask = 0, const char* precision = "fp32") {
   pillarseg_options options;
   pillarseg_default_options(&options);
   options.device = device;
   options.mask_unobserved = mask;
+  options.precision = precision;
   char error[512];
   pillarseg_segmenter* s = pillarseg_open(tiny_checkpoint().c_str(), nullptr, &options, error, sizeof error);
   EXPECT_NE(s, nullptr) << error;
@@ -168,19 +169,9 @@ TEST(CApi, LabelsAndProbabilitiesAreTheEngines) {
 TEST(CApi, PrecisionOption) {
   pillarseg::install_emulated_cuda_backend();
   const std::vector<float> xyzr = tiny_scan(3000, 5);
-  const auto open_with = [](const char* device, const char* precision) {
-    pillarseg_options options;
-    pillarseg_default_options(&options);
-    options.device = device;
-    options.precision = precision;
-    char error[512];
-    pillarseg_segmenter* s = pillarseg_open(tiny_checkpoint().c_str(), nullptr, &options, error, sizeof error);
-    EXPECT_NE(s, nullptr) << error;
-    return s;
-  };
-  pillarseg_segmenter* fp32 = open_with("emu", "fp32");
-  pillarseg_segmenter* bf16 = open_with("emu", "bf16");
-  pillarseg_segmenter* cpu = open_with("cpu", "bf16");
+  pillarseg_segmenter* fp32 = open_tiny("emu", 0, "fp32");
+  pillarseg_segmenter* bf16 = open_tiny("emu", 0, "bf16");
+  pillarseg_segmenter* cpu = open_tiny("cpu", 0, "bf16");
   ASSERT_TRUE(fp32 && bf16 && cpu);
   EXPECT_STREQ(pillarseg_precision(fp32), "fp32");
   EXPECT_STREQ(pillarseg_precision(bf16), "bf16");
