@@ -12,7 +12,9 @@
 // peer is faster).
 //
 // Beside them, the BF16 and FP16 tensor-core forward (Conv2dForwardBF16/..., FP16), with its
-// percentage of the device's dense 16-bit peak and its speed-up over our FP32 forward.
+// percentage of the device's dense 16-bit peak and its speed-up over our FP32 forward, and with
+// CUDA cuDNN's 16-bit forward and cuBLAS's 16-bit GEMM of the same sizes (..._cudnn,
+// ..._cublas_gemm) with the same share of the peak and ours_ms/peer_ms.
 //
 // Without a CUDA device, and in the emulated build (whose times say nothing about a GPU), it
 // prints "skipped: no CUDA device" and runs nothing.
@@ -34,6 +36,7 @@
 #include "kernels/common.cuh"
 #include "kernels/conv2d.cuh"
 #include "kernels/conv2d_mma.cuh"
+#include "kernels/half_ops.cuh"
 #include "kernels/conv_transpose2d.cuh"
 #include "kernels/device_buffer.hpp"
 
@@ -296,7 +299,34 @@ void BM_Conv2dForwardHalf(benchmark::State& state, const ConvLayer& l, cuda::Hal
   if (ms > 0 && peak > 0) state.counters["pct_of_peak"] = 100.0 * flops / (ms * 1e-3) / peak;
   const auto ours = our_ms().find(std::string("forward/") + l.name);
   if (ours != our_ms().end() && ms > 0.0) state.counters["fp32_ms/half_ms"] = ours->second / ms;
+  our_ms()[std::string(type == cuda::Half16::BF16 ? "forward_bf16/" : "forward_fp16/") + l.name] = ms;
 }
+
+#if defined(PILLARSEG_BENCH_VENDOR_CONV)
+// cuDNN's and cuBLAS's 16-bit forward (engine/cuda/vendor_conv.hpp) on the same layer, with the
+// same share of the peak and ours_ms/peer_ms against our tensor-core forward.
+void BM_Conv2dForwardHalfPeer(benchmark::State& state, const ConvLayer& l, ConvolutionImpl impl, bool bf16) {
+  const cuda::Conv2dShape& s = l.shape;
+  const auto half_buffer = [](std::int64_t n, std::uint64_t seed, cuda::Half16 type) {
+    const DeviceBuffer<float> values = random_buffer(n, seed);
+    DeviceBuffer<std::uint16_t> bits(static_cast<size_t>(n));
+    cuda::to_half16(values.data(), n, type, bits.data(), nullptr);
+    PS_CUDA_CHECK(cudaDeviceSynchronize());
+    return bits;
+  };
+  const cuda::Half16 type = bf16 ? cuda::Half16::BF16 : cuda::Half16::F16;
+  const DeviceBuffer<std::uint16_t> x = half_buffer(s.batch * s.in_channels * s.height * s.width, 1, type);
+  const DeviceBuffer<std::uint16_t> w = half_buffer(s.out_channels * s.in_channels * s.kernel * s.kernel, 2, type);
+  DeviceBuffer<std::uint16_t> y(static_cast<size_t>(s.batch * s.out_channels * s.out_height() * s.out_width()));
+  const std::unique_ptr<cuda::HalfConvPeer> peer = cuda::make_vendor_half_conv(impl, bf16);
+  const double flops = conv_flops(s);
+  const double ms = time_pass(state, flops, [&](cudaStream_t stream) { peer->forward(x.data(), w.data(), y.data(), s, stream); });
+  const double peak = dense_half_peak_flops();
+  if (ms > 0 && peak > 0) state.counters["pct_of_peak"] = 100.0 * flops / (ms * 1e-3) / peak;
+  const auto ours = our_ms().find(std::string(bf16 ? "forward_bf16/" : "forward_fp16/") + l.name);
+  if (ours != our_ms().end() && ms > 0.0) state.counters["ours_ms/peer_ms"] = ours->second / ms;
+}
+#endif
 
 template <class Function, class Layer>
 void register_pass(const std::string& name, Function function, const Layer& layer) {
@@ -315,6 +345,20 @@ void register_benchmarks() {
                                    BM_Conv2dForwardHalf, l, type)
           ->Unit(benchmark::kMillisecond)
           ->UseManualTime();
+#if defined(PILLARSEG_BENCH_VENDOR_CONV)
+      const bool bf16 = type == cuda::Half16::BF16;
+      std::vector<std::pair<const char*, ConvolutionImpl>> peers = {{"cublas_gemm", ConvolutionImpl::Cublas}};
+#if defined(PILLARSEG_WITH_CUDNN)
+      peers.insert(peers.begin(), {"cudnn", ConvolutionImpl::Cudnn});
+#endif
+      for (const auto& [peer_name, impl] : peers) {
+        benchmark::RegisterBenchmark(
+            (std::string("Conv2dForward") + type_name + "_" + peer_name + "/" + l.name).c_str(),
+            BM_Conv2dForwardHalfPeer, l, impl, bf16)
+            ->Unit(benchmark::kMillisecond)
+            ->UseManualTime();
+      }
+#endif
     }
 #if defined(PILLARSEG_BENCH_VENDOR_CONV)
     register_peers(l, Pass::Forward, "Conv2dForward");

@@ -9,8 +9,10 @@ namespace pillarseg::op {
 
 namespace {
 
-void require_rank(const char* op, const char* what, const Shape& shape, size_t rank, const char* layout) {
-  PS_CHECK(shape.size() == rank, "{}: {} must be {}, got shape {}", op, what, layout, shape_str(shape));
+void require_rank(const char* op, const char* what, const Shape& shape, size_t rank,
+                  const char* layout) {
+  PS_CHECK(shape.size() == rank, "{}: {} must be {}, got shape {}", op, what, layout,
+           shape_str(shape));
 }
 
 }  // namespace
@@ -19,19 +21,21 @@ Shape pfn(const Shape& points, const Shape& weight, const char* caller) {
   require_rank(caller, "points", points, 3, "(P, N, 10)");
   require_rank(caller, "weight", weight, 2, "(C, 10)");
   PS_CHECK(points[2] == 10 && weight[1] == 10,
-           "{}: points (P, N, 10) and weight (C, 10) hold 10 features a point, got {} and {}", caller,
-           shape_str(points), shape_str(weight));
+           "{}: points (P, N, 10) and weight (C, 10) hold 10 features a point, got {} and {}",
+           caller, shape_str(points), shape_str(weight));
   return {points[0], weight[0]};
 }
 
-Shape scatter(const Shape& features, const Shape& cells, const Shape& canvas, int64_t channel0, const char* caller) {
+Shape scatter(const Shape& features, const Shape& cells, const Shape& canvas, int64_t channel0,
+              const char* caller) {
   require_rank(caller, "features", features, 2, "(P, C)");
   require_rank(caller, "canvas", canvas, 4, "(B, Cc, H, W)");
-  PS_CHECK(cells == (Shape{features[0], 3}), "{}: cells must be ({}, 3) rows (sample, iy, ix), got {}", caller,
-           features[0], shape_str(cells));
+  PS_CHECK(cells == (Shape{features[0], 3}),
+           "{}: cells must be ({}, 3) rows (sample, iy, ix), got {}", caller, features[0],
+           shape_str(cells));
   PS_CHECK(channel0 >= 0 && channel0 + features[1] <= canvas[1],
-           "{}: the pillar channels [{}, {}) lie outside the canvas's {} channels", caller, channel0,
-           channel0 + features[1], canvas[1]);
+           "{}: the pillar channels [{}, {}) lie outside the canvas's {} channels", caller,
+           channel0, channel0 + features[1], canvas[1]);
   return canvas;
 }
 
@@ -39,43 +43,51 @@ Shape channel_band(const Shape& x, const Shape& y, int64_t channel0, const char*
   require_rank(caller, "x", x, 4, "(B, Cx, H, W)");
   require_rank(caller, "y", y, 4, "(B, Cy, H, W)");
   PS_CHECK(x[0] == y[0] && x[2] == y[2] && x[3] == y[3] && channel0 >= 0 && channel0 + x[1] <= y[1],
-           "{}: x {} does not fit at channel {} of y {}", caller, shape_str(x), channel0, shape_str(y));
+           "{}: x {} does not fit at channel {} of y {}", caller, shape_str(x), channel0,
+           shape_str(y));
   return y;
 }
 
 Shape conv2d(const Shape& x, const Shape& weight, int pad, const Shape* bias, const char* caller) {
   require_rank(caller, "x", x, 4, "(B, I, H, W)");
   PS_CHECK(weight.size() == 4 && weight[2] == weight[3] && weight[2] >= 1,
-           "{}: w must be (O, I, k, k) with a square kernel k >= 1, got shape {}", caller, shape_str(weight));
-  PS_CHECK(weight[1] == x[1], "{}: w {} expects I = {} input channels, but x {} has {} channels", caller,
-           shape_str(weight), weight[1], shape_str(x), x[1]);
+           "{}: w must be (O, I, k, k) with a square kernel k >= 1, got shape {}", caller,
+           shape_str(weight));
+  PS_CHECK(weight[1] == x[1], "{}: w {} expects I = {} input channels, but x {} has {} channels",
+           caller, shape_str(weight), weight[1], shape_str(x), x[1]);
   PS_CHECK(pad >= 0, "{}: pad must be >= 0, got {}", caller, pad);
   const int64_t k = weight[2];
   const Shape y{x[0], weight[0], x[2] + 2 * pad - k + 1, x[3] + 2 * pad - k + 1};
   PS_CHECK(x[2] >= 1 && x[3] >= 1 && y[2] >= 1 && y[3] >= 1,
-           "{}: a {}x{} kernel with pad {} needs an image of at least {}x{} (H x W), got {}x{}", caller, k, k, pad,
-           std::max<int64_t>(1, k - 2 * pad), std::max<int64_t>(1, k - 2 * pad), x[2], x[3]);
-  PS_CHECK(bias == nullptr || *bias == (Shape{weight[0]}), "{}: bias must be (O) = ({}) for w {}, got shape {}",
-           caller, weight[0], shape_str(weight), bias ? shape_str(*bias) : std::string());
+           "{}: a {}x{} kernel with pad {} needs an image of at least {}x{} (H x W), got {}x{}",
+           caller, k, k, pad, std::max<int64_t>(1, k - 2 * pad), std::max<int64_t>(1, k - 2 * pad),
+           x[2], x[3]);
+  PS_CHECK(bias == nullptr || *bias == (Shape{weight[0]}),
+           "{}: bias must be (O) = ({}) for w {}, got shape {}", caller, weight[0],
+           shape_str(weight), bias ? shape_str(*bias) : std::string());
   return y;
 }
 
-Shape conv_transpose2x2(const Shape& x, const Shape& weight, const Shape* bias, const char* caller) {
+Shape conv_transpose2x2(const Shape& x, const Shape& weight, const Shape* bias,
+                        const char* caller) {
   require_rank(caller, "x", x, 4, "(B, I, H, W)");
   PS_CHECK(x[2] >= 1 && x[3] >= 1, "{}: x must have H, W >= 1, got shape {}", caller, shape_str(x));
   PS_CHECK(weight.size() == 4 && weight[2] == 2 && weight[3] == 2,
-           "{}: w must be (I, O, 2, 2) (PyTorch ConvTranspose2d layout), got shape {}", caller, shape_str(weight));
-  PS_CHECK(weight[0] == x[1], "{}: w {} expects I = {} input channels, but x {} has {} channels", caller,
-           shape_str(weight), weight[0], shape_str(x), x[1]);
-  PS_CHECK(bias == nullptr || *bias == (Shape{weight[1]}), "{}: bias must be (O) = ({}) for w {}, got shape {}",
-           caller, weight[1], shape_str(weight), bias ? shape_str(*bias) : std::string());
+           "{}: w must be (I, O, 2, 2) (PyTorch ConvTranspose2d layout), got shape {}", caller,
+           shape_str(weight));
+  PS_CHECK(weight[0] == x[1], "{}: w {} expects I = {} input channels, but x {} has {} channels",
+           caller, shape_str(weight), weight[0], shape_str(x), x[1]);
+  PS_CHECK(bias == nullptr || *bias == (Shape{weight[1]}),
+           "{}: bias must be (O) = ({}) for w {}, got shape {}", caller, weight[1],
+           shape_str(weight), bias ? shape_str(*bias) : std::string());
   return {x[0], weight[1], 2 * x[2], 2 * x[3]};
 }
 
 Shape batchnorm(const Shape& x, const Shape& channel_parameter) {
   PS_CHECK(x.size() >= 2, "batchnorm: x must be (B, C, ...), got shape {}", shape_str(x));
-  PS_CHECK(channel_parameter == (Shape{x[1]}), "batchnorm: per-channel parameters must be ({}) for x {}, got {}",
-           x[1], shape_str(x), shape_str(channel_parameter));
+  PS_CHECK(channel_parameter == (Shape{x[1]}),
+           "batchnorm: per-channel parameters must be ({}) for x {}, got {}", x[1], shape_str(x),
+           shape_str(channel_parameter));
   return x;
 }
 
@@ -93,11 +105,12 @@ Shape upsample2x(const Shape& x, const char* caller) {
 Shape pad_concat(const Shape& skip, const Shape& up, const char* caller) {
   require_rank(caller, "skip", skip, 4, "(B, Cs, H, W)");
   require_rank(caller, "up", up, 4, "(B, Cu, h, w)");
-  PS_CHECK(up[0] == skip[0], "{}: skip {} and up {} must have the same batch size", caller, shape_str(skip),
-           shape_str(up));
-  PS_CHECK(up[2] <= skip[2] && up[3] <= skip[3],
-           "{}: up {} must be at most as large as skip {} (h <= H, w <= W), to be zero-padded to it", caller,
-           shape_str(up), shape_str(skip));
+  PS_CHECK(up[0] == skip[0], "{}: skip {} and up {} must have the same batch size", caller,
+           shape_str(skip), shape_str(up));
+  PS_CHECK(
+      up[2] <= skip[2] && up[3] <= skip[3],
+      "{}: up {} must be at most as large as skip {} (h <= H, w <= W), to be zero-padded to it",
+      caller, shape_str(up), shape_str(skip));
   return {skip[0], skip[1] + up[1], skip[2], skip[3]};
 }
 
@@ -122,11 +135,13 @@ Shape add(const Shape& a, const Shape& b) {
 }
 
 double conv2d_flops(const Shape& y, const Shape& weight) {
-  return 2.0 * static_cast<double>(shape_numel(y)) * static_cast<double>(weight[1] * weight[2] * weight[3]);
+  return 2.0 * static_cast<double>(shape_numel(y)) *
+         static_cast<double>(weight[1] * weight[2] * weight[3]);
 }
 
 double conv_transpose2x2_flops(const Shape& x, const Shape& weight) {
-  return 2.0 * static_cast<double>(shape_numel(x)) * static_cast<double>(weight[1] * weight[2] * weight[3]);
+  return 2.0 * static_cast<double>(shape_numel(x)) *
+         static_cast<double>(weight[1] * weight[2] * weight[3]);
 }
 
 double pfn_flops(const Shape& points, const Shape& weight) {

@@ -27,7 +27,8 @@ Shape pfn(const Shape& points, const Shape& weight, const char* caller = "pfn");
 Shape scatter(const Shape& features, const Shape& cells, const Shape& canvas, int64_t channel0,
               const char* caller = "scatter");
 // x (B, Cx, H, W) as channels [channel0, channel0 + Cx) of y (B, Cy, H, W). Returns y's shape.
-Shape channel_band(const Shape& x, const Shape& y, int64_t channel0, const char* caller = "channel copy");
+Shape channel_band(const Shape& x, const Shape& y, int64_t channel0,
+                   const char* caller = "channel copy");
 // Stride-1 convolution: x (B, I, H, W), weight (O, I, k, k), padding pad >= 0 -> (B, O, H + 2 pad
 // - k + 1, W + 2 pad - k + 1), each at least 1. bias, when given, (O).
 Shape conv2d(const Shape& x, const Shape& weight, int pad, const Shape* bias = nullptr,

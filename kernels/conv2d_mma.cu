@@ -69,16 +69,16 @@ __global__ void __launch_bounds__(kThreads)
   const int taps = g.kernel * g.kernel;
 
   float acc[2][4][4];
-  #pragma unroll
+#pragma unroll
   for (int a = 0; a < 2; ++a)
-    #pragma unroll
+#pragma unroll
     for (int b = 0; b < 4; ++b)
-      #pragma unroll
+#pragma unroll
       for (int c = 0; c < 4; ++c) acc[a][b][c] = 0.0f;
 
   for (std::int64_t k0 = 0; k0 < g.k_padded; k0 += kTileK) {
-    // A: rows k0 + tid / 64 + 2 j of this thread's pixel.
-    #pragma unroll
+// A: rows k0 + tid / 64 + 2 j of this thread's pixel.
+#pragma unroll
     for (int j = 0; j < kTileK * kTileM / kThreads; ++j) {
       const int sk = tid / kTileM + 2 * j;
       const std::int64_t k = k0 + sk;
@@ -90,7 +90,8 @@ __global__ void __launch_bounds__(kThreads)
           const std::int64_t channel = k / taps;
           const int tap = static_cast<int>(k % taps);
           const std::int64_t iy = oy + tap / g.kernel - g.pad, ix = ox + tap % g.kernel - g.pad;
-          if (iy >= 0 && iy < g.height && ix >= 0 && ix < g.width) index = channel * plane + iy * g.width + ix;
+          if (iy >= 0 && iy < g.height && ix >= 0 && ix < g.width)
+            index = channel * plane + iy * g.width + ix;
         }
       }
       std::uint16_t bits = 0;  // +0 in both types
@@ -113,28 +114,29 @@ __global__ void __launch_bounds__(kThreads)
       }
     }
     __syncthreads();
-    #pragma unroll
+#pragma unroll
     for (int kk = 0; kk < kTileK; kk += 16) {
       std::uint32_t a[2][4], b[4][2];
       const int j = lane / 8, r = lane % 8;
-      #pragma unroll
-      #pragma unroll
-  for (int mt = 0; mt < 2; ++mt) {
+#pragma unroll
+#pragma unroll
+      for (int mt = 0; mt < 2; ++mt) {
         // Matrix j of the fragment: k rows kk + (j / 2) 8 .. + 8, pixels + (j % 2) 8.
         const int pm = warp_m * 32 + mt * 16 + (j % 2) * 8;
         ldmatrix_x4<true>(a[mt], &as[kk + (j / 2) * 8 + r][pm]);
       }
-      #pragma unroll
+#pragma unroll
       for (int np = 0; np < 2; ++np) {
         // Matrices: (n 0-7, k 0-7), (n 0-7, k 8-15), (n 8-15, k 0-7), (n 8-15, k 8-15).
         const int pn = warp_n * 32 + np * 16 + (j / 2) * 8 + r;
         std::uint32_t regs[4];
         ldmatrix_x4<false>(regs, &bs[pn][kk + (j % 2) * 8]);
-        b[2 * np][0] = regs[0], b[2 * np][1] = regs[1], b[2 * np + 1][0] = regs[2], b[2 * np + 1][1] = regs[3];
+        b[2 * np][0] = regs[0], b[2 * np][1] = regs[1], b[2 * np + 1][0] = regs[2],
+              b[2 * np + 1][1] = regs[3];
       }
-      #pragma unroll
+#pragma unroll
       for (int mt = 0; mt < 2; ++mt)
-        #pragma unroll
+#pragma unroll
         for (int nt = 0; nt < 4; ++nt) mma_m16n8k16<H>(acc[mt][nt], a[mt], b[nt], acc[mt][nt]);
     }
     __syncthreads();
@@ -142,17 +144,17 @@ __global__ void __launch_bounds__(kThreads)
 
   // Epilogue: accumulator i of (mt, nt) is D[row g + 8 (i >= 2)][column 2 t + (i & 1)].
   const int group = lane / 4, t = lane % 4;
-  #pragma unroll
+#pragma unroll
   for (int mt = 0; mt < 2; ++mt) {
-    #pragma unroll
+#pragma unroll
     for (int half = 0; half < 2; ++half) {
       const std::int64_t row = m0 + warp_m * 32 + mt * 16 + group + 8 * half;
       if (row >= rows) continue;
       const std::int64_t img = row / pixels_per_image, px = row % pixels_per_image;
       const std::int64_t py = px / g.out_width, pxx = px % g.out_width;
-      #pragma unroll
+#pragma unroll
       for (int nt = 0; nt < 4; ++nt) {
-        #pragma unroll
+#pragma unroll
         for (int e = 0; e < 2; ++e) {
           const std::int64_t n = n0 + warp_n * 32 + nt * 8 + 2 * t + e;
           if (n >= g.columns) continue;
@@ -178,8 +180,9 @@ __global__ void __launch_bounds__(kThreads)
 
 template <Half16 H>
 __global__ void prepare_weights_kernel(const float* __restrict__ w, const float* __restrict__ bias,
-                                       FoldedBatchNorm bn, std::int64_t rows, std::int64_t k, std::int64_t k_padded,
-                                       bool transposed, std::int64_t out_channels, std::uint16_t* __restrict__ w16,
+                                       FoldedBatchNorm bn, std::int64_t rows, std::int64_t k,
+                                       std::int64_t k_padded, bool transposed,
+                                       std::int64_t out_channels, std::uint16_t* __restrict__ w16,
                                        float* __restrict__ bias_out) {
   const std::int64_t i = static_cast<std::int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (i >= rows * k_padded) return;
@@ -234,14 +237,14 @@ __global__ void mma_probe_kernel(const float* a, const float* b, const float* c,
   for (int i = 0; i < 4; ++i) d[(g + (i >= 2 ? 8 : 0)) * 8 + 2 * t + (i & 1)] = rd[i];
 }
 
-
 // One warp loads a 16 x 16 matrix of 16-bit values v[r][c] = 256 r + c (as bits) into shared
 // memory and reads it with ldmatrix.x4 (matrices: rows 0-7 / 8-15 by columns 0-7 / 8-15, in the
 // order (0, 0), (8, 0), (0, 8), (8, 8)) and x2 (the first two), plain and transposed.
 __global__ void ldmatrix_probe_kernel(std::uint32_t* out) {
   __shared__ __align__(16) std::uint16_t m[16][16];
   const int lane = static_cast<int>(threadIdx.x);
-  for (int i = lane; i < 256; i += 32) m[i / 16][i % 16] = static_cast<std::uint16_t>(256 * (i / 16) + i % 16);
+  for (int i = lane; i < 256; i += 32)
+    m[i / 16][i % 16] = static_cast<std::uint16_t>(256 * (i / 16) + i % 16);
   __syncwarp();
   const int j = lane / 8, r = lane % 8;
   const int row = (j % 2) * 8 + r, col = (j / 2) * 8;
@@ -260,55 +263,57 @@ __global__ void ldmatrix_probe_kernel(std::uint32_t* out) {
   }
 }
 
-
 template <Half16 H>
-void launch_gemm(dim3 grid, const void* x, bool x_half, const std::uint16_t* w16, const float* bias, const MmaGemm& g,
-                 void* y, bool y_half, cudaStream_t stream) {
+void launch_gemm(dim3 grid, const void* x, bool x_half, const std::uint16_t* w16, const float* bias,
+                 const MmaGemm& g, void* y, bool y_half, cudaStream_t stream) {
   using U = std::uint16_t;
   if (x_half && y_half)
-    launch_kernel(mma_gemm_kernel<H, U, U>, grid, dim3(kThreads), 0, stream, static_cast<const U*>(x), w16, bias, g,
-                  static_cast<U*>(y));
+    launch_kernel(mma_gemm_kernel<H, U, U>, grid, dim3(kThreads), 0, stream,
+                  static_cast<const U*>(x), w16, bias, g, static_cast<U*>(y));
   else if (x_half)
-    launch_kernel(mma_gemm_kernel<H, U, float>, grid, dim3(kThreads), 0, stream, static_cast<const U*>(x), w16, bias,
-                  g, static_cast<float*>(y));
+    launch_kernel(mma_gemm_kernel<H, U, float>, grid, dim3(kThreads), 0, stream,
+                  static_cast<const U*>(x), w16, bias, g, static_cast<float*>(y));
   else if (y_half)
-    launch_kernel(mma_gemm_kernel<H, float, U>, grid, dim3(kThreads), 0, stream, static_cast<const float*>(x), w16,
-                  bias, g, static_cast<U*>(y));
+    launch_kernel(mma_gemm_kernel<H, float, U>, grid, dim3(kThreads), 0, stream,
+                  static_cast<const float*>(x), w16, bias, g, static_cast<U*>(y));
   else
-    launch_kernel(mma_gemm_kernel<H, float, float>, grid, dim3(kThreads), 0, stream, static_cast<const float*>(x),
-                  w16, bias, g, static_cast<float*>(y));
+    launch_kernel(mma_gemm_kernel<H, float, float>, grid, dim3(kThreads), 0, stream,
+                  static_cast<const float*>(x), w16, bias, g, static_cast<float*>(y));
 }
 
-void run_gemm(const void* x, bool x_half, const std::uint16_t* w16, const float* bias, const MmaGemm& g, Half16 type,
-              void* y, bool y_half, cudaStream_t stream) {
+void run_gemm(const void* x, bool x_half, const std::uint16_t* w16, const float* bias,
+              const MmaGemm& g, Half16 type, void* y, bool y_half, cudaStream_t stream) {
   const std::int64_t rows = g.batch * g.out_height * g.out_width;
   if (rows == 0 || g.columns == 0) return;
   std::string why;
   PS_CHECK(mma_supported(&why), "conv2d_mma: {}", why);
-  const dim3 grid(static_cast<unsigned>(ceil_div(rows, kTileM)), static_cast<unsigned>(ceil_div(g.columns, kTileN)));
+  const dim3 grid(static_cast<unsigned>(ceil_div(rows, kTileM)),
+                  static_cast<unsigned>(ceil_div(g.columns, kTileN)));
   if (type == Half16::BF16)
     launch_gemm<Half16::BF16>(grid, x, x_half, w16, bias, g, y, y_half, stream);
   else
     launch_gemm<Half16::F16>(grid, x, x_half, w16, bias, g, y, y_half, stream);
 }
 
-void run_prepare(const float* w, const float* bias, const FoldedBatchNorm& bn, std::int64_t rows, std::int64_t k,
-                 bool transposed, std::int64_t out_channels, Half16 type, std::uint16_t* w16, float* bias_out,
-                 cudaStream_t stream) {
+void run_prepare(const float* w, const float* bias, const FoldedBatchNorm& bn, std::int64_t rows,
+                 std::int64_t k, bool transposed, std::int64_t out_channels, Half16 type,
+                 std::uint16_t* w16, float* bias_out, cudaStream_t stream) {
   const std::int64_t total = rows * mma_padded_k(k);
   if (total == 0) return;
   const dim3 grid(static_cast<unsigned>(ceil_div(total, 256)));
   if (type == Half16::BF16)
-    launch_kernel(prepare_weights_kernel<Half16::BF16>, grid, dim3(256), 0, stream, w, bias, bn, rows, k,
-                  mma_padded_k(k), transposed, out_channels, w16, bias_out);
+    launch_kernel(prepare_weights_kernel<Half16::BF16>, grid, dim3(256), 0, stream, w, bias, bn,
+                  rows, k, mma_padded_k(k), transposed, out_channels, w16, bias_out);
   else
-    launch_kernel(prepare_weights_kernel<Half16::F16>, grid, dim3(256), 0, stream, w, bias, bn, rows, k,
-                  mma_padded_k(k), transposed, out_channels, w16, bias_out);
+    launch_kernel(prepare_weights_kernel<Half16::F16>, grid, dim3(256), 0, stream, w, bias, bn,
+                  rows, k, mma_padded_k(k), transposed, out_channels, w16, bias_out);
 }
 
 }  // namespace
 
-std::int64_t mma_padded_k(std::int64_t k) { return ceil_div(k, kTileK) * kTileK; }
+std::int64_t mma_padded_k(std::int64_t k) {
+  return ceil_div(k, kTileK) * kTileK;
+}
 
 bool mma_supported(std::string* why_not) {
 #if defined(PILLARSEG_CUDA_EMULATION)
@@ -322,7 +327,8 @@ bool mma_supported(std::string* why_not) {
   if (major >= 8) return true;
   if (why_not != nullptr) {
     *why_not = fmt::format(
-        "BF16 and FP16 tensor-core convolutions (mma.sync m16n8k16) need compute capability 8.0 or later; device {} "
+        "BF16 and FP16 tensor-core convolutions (mma.sync m16n8k16) need compute capability 8.0 or "
+        "later; device {} "
         "has {}.{}",
         device, major, minor);
   }
@@ -330,39 +336,63 @@ bool mma_supported(std::string* why_not) {
 #endif
 }
 
-void prepare_conv_weights(const float* w, const float* bias, const FoldedBatchNorm& bn, const Conv2dShape& shape,
-                          Half16 type, std::uint16_t* w16, float* bias_out, cudaStream_t stream) {
-  run_prepare(w, bias, bn, shape.out_channels, shape.in_channels * shape.kernel * shape.kernel, false,
-              shape.out_channels, type, w16, bias_out, stream);
+void prepare_conv_weights(const float* w, const float* bias, const FoldedBatchNorm& bn,
+                          const Conv2dShape& shape, Half16 type, std::uint16_t* w16,
+                          float* bias_out, cudaStream_t stream) {
+  run_prepare(w, bias, bn, shape.out_channels, shape.in_channels * shape.kernel * shape.kernel,
+              false, shape.out_channels, type, w16, bias_out, stream);
 }
 
 void prepare_conv_transpose_weights(const float* w, const float* bias, std::int64_t in_channels,
-                                    std::int64_t out_channels, Half16 type, std::uint16_t* w16, float* bias_out,
-                                    cudaStream_t stream) {
-  run_prepare(w, bias, FoldedBatchNorm{}, 4 * out_channels, in_channels, true, out_channels, type, w16, bias_out,
-              stream);
+                                    std::int64_t out_channels, Half16 type, std::uint16_t* w16,
+                                    float* bias_out, cudaStream_t stream) {
+  run_prepare(w, bias, FoldedBatchNorm{}, 4 * out_channels, in_channels, true, out_channels, type,
+              w16, bias_out, stream);
 }
 
 void conv2d_mma_forward(const void* x, bool x_half, const std::uint16_t* w16, const float* bias,
-                        const Conv2dShape& shape, Half16 type, bool relu, void* y, bool y_half, cudaStream_t stream) {
+                        const Conv2dShape& shape, Half16 type, bool relu, void* y, bool y_half,
+                        cudaStream_t stream) {
   const std::int64_t k = shape.in_channels * shape.kernel * shape.kernel;
-  const MmaGemm g{shape.batch,      shape.in_channels, shape.height,        shape.width,
-                  shape.out_channels, shape.out_height(), shape.out_width(), k,
-                  mma_padded_k(k),  static_cast<int>(shape.kernel), static_cast<int>(shape.pad), false,
+  const MmaGemm g{shape.batch,
+                  shape.in_channels,
+                  shape.height,
+                  shape.width,
+                  shape.out_channels,
+                  shape.out_height(),
+                  shape.out_width(),
+                  k,
+                  mma_padded_k(k),
+                  static_cast<int>(shape.kernel),
+                  static_cast<int>(shape.pad),
+                  false,
                   relu};
   run_gemm(x, x_half, w16, bias, g, type, y, y_half, stream);
 }
 
-void conv_transpose2x2_mma_forward(const void* x, bool x_half, const std::uint16_t* w16, const float* bias,
-                                   std::int64_t batch, std::int64_t in_channels, std::int64_t height,
-                                   std::int64_t width, std::int64_t out_channels, Half16 type, void* y, bool y_half,
+void conv_transpose2x2_mma_forward(const void* x, bool x_half, const std::uint16_t* w16,
+                                   const float* bias, std::int64_t batch, std::int64_t in_channels,
+                                   std::int64_t height, std::int64_t width,
+                                   std::int64_t out_channels, Half16 type, void* y, bool y_half,
                                    cudaStream_t stream) {
-  const MmaGemm g{batch, in_channels, height, width, 4 * out_channels, height, width, in_channels,
-                  mma_padded_k(in_channels), 1, 0, true, false};
+  const MmaGemm g{batch,
+                  in_channels,
+                  height,
+                  width,
+                  4 * out_channels,
+                  height,
+                  width,
+                  in_channels,
+                  mma_padded_k(in_channels),
+                  1,
+                  0,
+                  true,
+                  false};
   run_gemm(x, x_half, w16, bias, g, type, y, y_half, stream);
 }
 
-void mma_fragment_probe(const float* a, const float* b, const float* c, Half16 type, float* d, cudaStream_t stream) {
+void mma_fragment_probe(const float* a, const float* b, const float* c, Half16 type, float* d,
+                        cudaStream_t stream) {
   std::string why;
   PS_CHECK(mma_supported(&why), "mma_fragment_probe: {}", why);
   if (type == Half16::BF16)
@@ -384,4 +414,4 @@ void round_to_half16(const float* x, std::int64_t n, Half16 type, float* y, cuda
     launch_kernel(round_kernel<Half16::F16>, grid, dim3(256), 0, stream, x, n, y);
 }
 
-}  // namespace pillarseg::cuda
+}  // namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE

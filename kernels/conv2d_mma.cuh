@@ -44,21 +44,24 @@ struct FoldedBatchNorm {
 };
 
 // w (O, I, k, k) [, bias (O) or nullptr] [, BatchNorm] -> w16 (O, Kp) 16-bit, bias_out (O) FP32.
-void prepare_conv_weights(const float* w, const float* bias, const FoldedBatchNorm& bn, const Conv2dShape& shape,
-                          Half16 type, std::uint16_t* w16, float* bias_out, cudaStream_t stream);
+void prepare_conv_weights(const float* w, const float* bias, const FoldedBatchNorm& bn,
+                          const Conv2dShape& shape, Half16 type, std::uint16_t* w16,
+                          float* bias_out, cudaStream_t stream);
 // w (I, O, 2, 2) [, bias (O)] -> w16 (4 O, Kp) with row o 4 + dy 2 + dx, bias_out (4 O).
 void prepare_conv_transpose_weights(const float* w, const float* bias, std::int64_t in_channels,
-                                    std::int64_t out_channels, Half16 type, std::uint16_t* w16, float* bias_out,
-                                    cudaStream_t stream);
+                                    std::int64_t out_channels, Half16 type, std::uint16_t* w16,
+                                    float* bias_out, cudaStream_t stream);
 
 // x (B, I, H, W), prepared w16 and bias -> y (B, O, Ho, Wo), ReLU when `relu`. x and y are
 // FP32 (float) or, with x_half / y_half, 16-bit values of `type` (std::uint16_t bits).
 void conv2d_mma_forward(const void* x, bool x_half, const std::uint16_t* w16, const float* bias,
-                        const Conv2dShape& shape, Half16 type, bool relu, void* y, bool y_half, cudaStream_t stream);
+                        const Conv2dShape& shape, Half16 type, bool relu, void* y, bool y_half,
+                        cudaStream_t stream);
 // x (B, I, H, W), prepared w16 and bias -> y (B, O, 2H, 2W); x, y as above.
-void conv_transpose2x2_mma_forward(const void* x, bool x_half, const std::uint16_t* w16, const float* bias,
-                                   std::int64_t batch, std::int64_t in_channels, std::int64_t height,
-                                   std::int64_t width, std::int64_t out_channels, Half16 type, void* y, bool y_half,
+void conv_transpose2x2_mma_forward(const void* x, bool x_half, const std::uint16_t* w16,
+                                   const float* bias, std::int64_t batch, std::int64_t in_channels,
+                                   std::int64_t height, std::int64_t width,
+                                   std::int64_t out_channels, Half16 type, void* y, bool y_half,
                                    cudaStream_t stream);
 
 // x (n) FP32 -> y (n) the same values rounded to the 16-bit type and back (what the kernels see
@@ -70,7 +73,8 @@ void round_to_half16(const float* x, std::int64_t n, Half16 type, float* y, cuda
 // lane's registers built from A and B by the PTX ISA's formulas and its results stored by them;
 // and out (32 lanes x 12 words) = what each lane's ldmatrix x4, x4.trans, x2, x2.trans return
 // for the 16 x 16 matrix of 16-bit values 256 r + c.
-void mma_fragment_probe(const float* a, const float* b, const float* c, Half16 type, float* d, cudaStream_t stream);
+void mma_fragment_probe(const float* a, const float* b, const float* c, Half16 type, float* d,
+                        cudaStream_t stream);
 void ldmatrix_probe(std::uint32_t* out, cudaStream_t stream);
 
-}  // namespace pillarseg::cuda
+}  // namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE

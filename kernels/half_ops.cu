@@ -13,21 +13,27 @@ namespace {
 constexpr int kBlock = 256;
 constexpr std::int64_t kMaxBlocks = 8192;
 
-dim3 grid_for(std::int64_t n) { return dim3(static_cast<unsigned>(std::min(ceil_div(n, kBlock), kMaxBlocks))); }
+dim3 grid_for(std::int64_t n) {
+  return dim3(static_cast<unsigned>(std::min(ceil_div(n, kBlock), kMaxBlocks)));
+}
 
 __device__ __forceinline__ std::int64_t first_index() {
   return static_cast<std::int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
 }
-__device__ __forceinline__ std::int64_t stride() { return static_cast<std::int64_t>(gridDim.x) * blockDim.x; }
+__device__ __forceinline__ std::int64_t stride() {
+  return static_cast<std::int64_t>(gridDim.x) * blockDim.x;
+}
 
 template <Half16 H>
-__global__ void to_half_kernel(const float* __restrict__ x, std::int64_t n, std::uint16_t* __restrict__ y) {
+__global__ void to_half_kernel(const float* __restrict__ x, std::int64_t n,
+                               std::uint16_t* __restrict__ y) {
   for (std::int64_t i = first_index(); i < n; i += stride()) y[i] = to_half16<H>(x[i]);
 }
 
 template <Half16 H>
-__global__ void maxpool_kernel(const std::uint16_t* __restrict__ x, std::int64_t planes, std::int64_t height,
-                               std::int64_t width, std::uint16_t* __restrict__ y) {
+__global__ void maxpool_kernel(const std::uint16_t* __restrict__ x, std::int64_t planes,
+                               std::int64_t height, std::int64_t width,
+                               std::uint16_t* __restrict__ y) {
   const std::int64_t oh = height / 2, ow = width / 2, n = planes * oh * ow;
   for (std::int64_t i = first_index(); i < n; i += stride()) {
     const std::int64_t plane = i / (oh * ow), oy = i / ow % oh, ox = i % ow;
@@ -45,8 +51,9 @@ __global__ void maxpool_kernel(const std::uint16_t* __restrict__ x, std::int64_t
 }
 
 template <Half16 H>
-__global__ void upsample_kernel(const std::uint16_t* __restrict__ x, std::int64_t planes, std::int64_t in_h,
-                                std::int64_t in_w, std::uint16_t* __restrict__ y) {
+__global__ void upsample_kernel(const std::uint16_t* __restrict__ x, std::int64_t planes,
+                                std::int64_t in_h, std::int64_t in_w,
+                                std::uint16_t* __restrict__ y) {
   const std::int64_t out_h = 2 * in_h, out_w = 2 * in_w, n = planes * out_h * out_w;
   for (std::int64_t i = first_index(); i < n; i += stride()) {
     const std::int64_t plane = i / (out_h * out_w), oy = i / out_w % out_h, ox = i % out_w;
@@ -60,8 +67,9 @@ __global__ void upsample_kernel(const std::uint16_t* __restrict__ x, std::int64_
   }
 }
 
-__global__ void pad_concat_kernel(const std::uint16_t* __restrict__ skip, const std::uint16_t* __restrict__ up,
-                                  PadConcatShape s, std::uint16_t* __restrict__ y) {
+__global__ void pad_concat_kernel(const std::uint16_t* __restrict__ skip,
+                                  const std::uint16_t* __restrict__ up, PadConcatShape s,
+                                  std::uint16_t* __restrict__ y) {
   const std::int64_t channels = s.skip_channels + s.up_channels, plane = s.height * s.width;
   const std::int64_t n = s.batch * channels * plane;
   const std::int64_t top = (s.height - s.up_height) / 2, left = (s.width - s.up_width) / 2;
@@ -73,7 +81,10 @@ __global__ void pad_concat_kernel(const std::uint16_t* __restrict__ skip, const 
     }
     const std::int64_t uy = p / s.width - top, ux = p % s.width - left;
     const bool inside = uy >= 0 && uy < s.up_height && ux >= 0 && ux < s.up_width;
-    y[i] = inside ? up[((b * s.up_channels + c - s.skip_channels) * s.up_height + uy) * s.up_width + ux] : 0;
+    y[i] =
+        inside
+            ? up[((b * s.up_channels + c - s.skip_channels) * s.up_height + uy) * s.up_width + ux]
+            : 0;
   }
 }
 
@@ -81,7 +92,8 @@ __global__ void copy_channels_kernel(const std::uint16_t* __restrict__ x, Channe
                                      std::uint16_t* __restrict__ y) {
   const std::int64_t n = band.batch * band.channels * band.inner;
   for (std::int64_t i = first_index(); i < n; i += stride()) {
-    const std::int64_t b = i / (band.channels * band.inner), c = i / band.inner % band.channels, p = i % band.inner;
+    const std::int64_t b = i / (band.channels * band.inner), c = i / band.inner % band.channels,
+                       p = i % band.inner;
     y[(b * band.wide_channels + band.channel0 + c) * band.inner + p] = x[i];
   }
 }
@@ -96,38 +108,45 @@ void to_half16(const float* x, std::int64_t n, Half16 type, std::uint16_t* y, cu
     launch_kernel(to_half_kernel<Half16::F16>, grid_for(n), dim3(kBlock), 0, stream, x, n, y);
 }
 
-void maxpool2x2_half16(const std::uint16_t* x, std::int64_t planes, std::int64_t height, std::int64_t width,
-                       Half16 type, std::uint16_t* y, cudaStream_t stream) {
+void maxpool2x2_half16(const std::uint16_t* x, std::int64_t planes, std::int64_t height,
+                       std::int64_t width, Half16 type, std::uint16_t* y, cudaStream_t stream) {
   const std::int64_t n = planes * (height / 2) * (width / 2);
   if (n == 0) return;
   if (type == Half16::BF16)
-    launch_kernel(maxpool_kernel<Half16::BF16>, grid_for(n), dim3(kBlock), 0, stream, x, planes, height, width, y);
+    launch_kernel(maxpool_kernel<Half16::BF16>, grid_for(n), dim3(kBlock), 0, stream, x, planes,
+                  height, width, y);
   else
-    launch_kernel(maxpool_kernel<Half16::F16>, grid_for(n), dim3(kBlock), 0, stream, x, planes, height, width, y);
+    launch_kernel(maxpool_kernel<Half16::F16>, grid_for(n), dim3(kBlock), 0, stream, x, planes,
+                  height, width, y);
 }
 
-void upsample2x_half16(const std::uint16_t* x, std::int64_t planes, std::int64_t height, std::int64_t width,
-                       Half16 type, std::uint16_t* y, cudaStream_t stream) {
+void upsample2x_half16(const std::uint16_t* x, std::int64_t planes, std::int64_t height,
+                       std::int64_t width, Half16 type, std::uint16_t* y, cudaStream_t stream) {
   const std::int64_t n = planes * 4 * height * width;
   if (n == 0) return;
-  PS_CHECK(height >= 1 && width >= 1, "upsample2x_half16: x must have H, W >= 1, got {} x {}", height, width);
+  PS_CHECK(height >= 1 && width >= 1, "upsample2x_half16: x must have H, W >= 1, got {} x {}",
+           height, width);
   if (type == Half16::BF16)
-    launch_kernel(upsample_kernel<Half16::BF16>, grid_for(n), dim3(kBlock), 0, stream, x, planes, height, width, y);
+    launch_kernel(upsample_kernel<Half16::BF16>, grid_for(n), dim3(kBlock), 0, stream, x, planes,
+                  height, width, y);
   else
-    launch_kernel(upsample_kernel<Half16::F16>, grid_for(n), dim3(kBlock), 0, stream, x, planes, height, width, y);
+    launch_kernel(upsample_kernel<Half16::F16>, grid_for(n), dim3(kBlock), 0, stream, x, planes,
+                  height, width, y);
 }
 
-void pad_concat_half16(const std::uint16_t* skip, const std::uint16_t* up, const PadConcatShape& shape,
-                       std::uint16_t* y, cudaStream_t stream) {
-  const std::int64_t n = shape.batch * (shape.skip_channels + shape.up_channels) * shape.height * shape.width;
+void pad_concat_half16(const std::uint16_t* skip, const std::uint16_t* up,
+                       const PadConcatShape& shape, std::uint16_t* y, cudaStream_t stream) {
+  const std::int64_t n =
+      shape.batch * (shape.skip_channels + shape.up_channels) * shape.height * shape.width;
   if (n == 0) return;
   launch_kernel(pad_concat_kernel, grid_for(n), dim3(kBlock), 0, stream, skip, up, shape, y);
 }
 
-void copy_channels_half16(const std::uint16_t* x, const ChannelBand& band, std::uint16_t* y, cudaStream_t stream) {
+void copy_channels_half16(const std::uint16_t* x, const ChannelBand& band, std::uint16_t* y,
+                          cudaStream_t stream) {
   const std::int64_t n = band.batch * band.channels * band.inner;
   if (n == 0) return;
   launch_kernel(copy_channels_kernel, grid_for(n), dim3(kBlock), 0, stream, x, band, y);
 }
 
-}  // namespace pillarseg::cuda
+}  // namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE

@@ -20,12 +20,13 @@
 namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 
 void to_half16(const float* x, std::int64_t n, Half16 type, std::uint16_t* y, cudaStream_t stream);
-void maxpool2x2_half16(const std::uint16_t* x, std::int64_t planes, std::int64_t height, std::int64_t width,
-                       Half16 type, std::uint16_t* y, cudaStream_t stream);
-void upsample2x_half16(const std::uint16_t* x, std::int64_t planes, std::int64_t height, std::int64_t width,
-                       Half16 type, std::uint16_t* y, cudaStream_t stream);
-void pad_concat_half16(const std::uint16_t* skip, const std::uint16_t* up, const PadConcatShape& shape,
-                       std::uint16_t* y, cudaStream_t stream);
-void copy_channels_half16(const std::uint16_t* x, const ChannelBand& band, std::uint16_t* y, cudaStream_t stream);
+void maxpool2x2_half16(const std::uint16_t* x, std::int64_t planes, std::int64_t height,
+                       std::int64_t width, Half16 type, std::uint16_t* y, cudaStream_t stream);
+void upsample2x_half16(const std::uint16_t* x, std::int64_t planes, std::int64_t height,
+                       std::int64_t width, Half16 type, std::uint16_t* y, cudaStream_t stream);
+void pad_concat_half16(const std::uint16_t* skip, const std::uint16_t* up,
+                       const PadConcatShape& shape, std::uint16_t* y, cudaStream_t stream);
+void copy_channels_half16(const std::uint16_t* x, const ChannelBand& band, std::uint16_t* y,
+                          cudaStream_t stream);
 
-}  // namespace pillarseg::cuda
+}  // namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE

@@ -46,16 +46,20 @@ __host__ __device__ inline std::uint16_t float_to_f16_bits(float x) {
   std::memcpy(&u, &x, 4);
   const std::uint32_t sign = (u >> 16) & 0x8000u;
   const std::uint32_t magnitude = u & 0x7FFFFFFFu;
-  if (magnitude > 0x7F800000u) return static_cast<std::uint16_t>(sign | 0x7E00u | ((magnitude >> 13) & 0x3FFu));
-  if (magnitude >= 0x477FF000u) return static_cast<std::uint16_t>(sign | 0x7C00u);  // rounds past 65504
+  if (magnitude > 0x7F800000u)
+    return static_cast<std::uint16_t>(sign | 0x7E00u | ((magnitude >> 13) & 0x3FFu));
+  if (magnitude >= 0x477FF000u)
+    return static_cast<std::uint16_t>(sign | 0x7C00u);  // rounds past 65504
   if (magnitude < 0x38800000u) {
     // Below 2^-14: a subnormal half, magnitude * 2^24 rounded to an integer (nearest even).
     if (magnitude < 0x33000000u) return static_cast<std::uint16_t>(sign);  // below half of 2^-24
     const std::uint32_t exponent = magnitude >> 23, mantissa = (magnitude & 0x7FFFFFu) | 0x800000u;
-    const std::uint32_t shift = 126 - exponent;  // value = mantissa * 2^(exponent - 150); want * 2^24
+    // value = mantissa * 2^(exponent - 150); the half's integer is value * 2^24.
+    const std::uint32_t shift = 126 - exponent;
     const std::uint32_t kept = mantissa >> shift, rest = mantissa & ((1u << shift) - 1u);
     const std::uint32_t half_way = 1u << (shift - 1);
-    const std::uint32_t rounded = kept + ((rest > half_way || (rest == half_way && (kept & 1u))) ? 1u : 0u);
+    const std::uint32_t rounded =
+        kept + ((rest > half_way || (rest == half_way && (kept & 1u))) ? 1u : 0u);
     return static_cast<std::uint16_t>(sign | rounded);
   }
   std::uint32_t v = magnitude - (112u << 23);  // rebias 127 -> 15
@@ -97,24 +101,25 @@ __host__ __device__ inline float from_half16(std::uint16_t bits) {
 #if defined(__CUDACC__) || defined(PILLARSEG_CUDA_EMULATION)
 
 template <Half16 H>
-__device__ inline void mma_m16n8k16(float d[4], const std::uint32_t a[4], const std::uint32_t b[2], const float c[4]) {
+__device__ inline void mma_m16n8k16(float d[4], const std::uint32_t a[4], const std::uint32_t b[2],
+                                    const float c[4]) {
 #if defined(PILLARSEG_CUDA_EMULATION)
   emu::mma_m16n8k16_collective(H == Half16::BF16, d, a, b, c);
 #elif defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800
   if constexpr (H == Half16::BF16) {
     asm volatile(
-        "mma.sync.aligned.m16n8k16.row.col.f32.bf16.bf16.f32 {%0, %1, %2, %3}, {%4, %5, %6, %7}, {%8, %9}, "
-        "{%10, %11, %12, %13};\n"
+        "mma.sync.aligned.m16n8k16.row.col.f32.bf16.bf16.f32 {%0, %1, %2, %3}, {%4, %5, %6, %7}, "
+        "{%8, %9}, {%10, %11, %12, %13};\n"
         : "=f"(d[0]), "=f"(d[1]), "=f"(d[2]), "=f"(d[3])
-        : "r"(a[0]), "r"(a[1]), "r"(a[2]), "r"(a[3]), "r"(b[0]), "r"(b[1]), "f"(c[0]), "f"(c[1]), "f"(c[2]),
-          "f"(c[3]));
+        : "r"(a[0]), "r"(a[1]), "r"(a[2]), "r"(a[3]), "r"(b[0]), "r"(b[1]), "f"(c[0]), "f"(c[1]),
+          "f"(c[2]), "f"(c[3]));
   } else {
     asm volatile(
-        "mma.sync.aligned.m16n8k16.row.col.f32.f16.f16.f32 {%0, %1, %2, %3}, {%4, %5, %6, %7}, {%8, %9}, "
-        "{%10, %11, %12, %13};\n"
+        "mma.sync.aligned.m16n8k16.row.col.f32.f16.f16.f32 {%0, %1, %2, %3}, {%4, %5, %6, %7}, "
+        "{%8, %9}, {%10, %11, %12, %13};\n"
         : "=f"(d[0]), "=f"(d[1]), "=f"(d[2]), "=f"(d[3])
-        : "r"(a[0]), "r"(a[1]), "r"(a[2]), "r"(a[3]), "r"(b[0]), "r"(b[1]), "f"(c[0]), "f"(c[1]), "f"(c[2]),
-          "f"(c[3]));
+        : "r"(a[0]), "r"(a[1]), "r"(a[2]), "r"(a[3]), "r"(b[0]), "r"(b[1]), "f"(c[0]), "f"(c[1]),
+          "f"(c[2]), "f"(c[3]));
   }
 #else
   // Before sm_80 there is no m16n8k16 with these types; the launchers refuse such devices.
@@ -153,7 +158,9 @@ __device__ inline void ldmatrix_x2(std::uint32_t r[2], const void* row_address) 
                  : "=r"(r[0]), "=r"(r[1])
                  : "r"(address));
   } else {
-    asm volatile("ldmatrix.sync.aligned.m8n8.x2.shared.b16 {%0, %1}, [%2];\n" : "=r"(r[0]), "=r"(r[1]) : "r"(address));
+    asm volatile("ldmatrix.sync.aligned.m8n8.x2.shared.b16 {%0, %1}, [%2];\n"
+                 : "=r"(r[0]), "=r"(r[1])
+                 : "r"(address));
   }
 #else
   __trap();
@@ -162,4 +169,4 @@ __device__ inline void ldmatrix_x2(std::uint32_t r[2], const void* row_address) 
 
 #endif  // __CUDACC__ || PILLARSEG_CUDA_EMULATION
 
-}  // namespace pillarseg::cuda
+}  // namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE

@@ -34,7 +34,9 @@ enum class Role { Input, Output, InOut };
 constexpr size_t kGuardBytes = 64;
 constexpr uint8_t kGuardByte = 0xA5;
 
-size_t kind_bytes(Kind k) { return k == Kind::U8 ? 1 : 4; }
+size_t kind_bytes(Kind k) {
+  return k == Kind::U8 ? 1 : 4;
+}
 
 std::string shape_name(const Shape& s) {
   std::string out;
@@ -58,7 +60,8 @@ struct Arg {
 // The case's tensors in one backend's memory, each between two guard regions.
 class Bound {
  public:
-  Bound(Backend& be, const std::vector<Arg>& args, const std::vector<std::vector<uint8_t>>& host) : be_(be) {
+  Bound(Backend& be, const std::vector<Arg>& args, const std::vector<std::vector<uint8_t>>& host)
+      : be_(be) {
     for (size_t i = 0; i < args.size(); ++i) {
       const size_t total = args[i].bytes() + 2 * kGuardBytes;
       std::vector<uint8_t> image(total, kGuardByte);
@@ -76,12 +79,17 @@ class Bound {
   Bound(const Bound&) = delete;
   Bound& operator=(const Bound&) = delete;
 
-  Ref f(size_t i) { return {reinterpret_cast<float*>(blocks_[i] + kGuardBytes), (*args_)[i].shape}; }
-  IRef i32(size_t i) { return {reinterpret_cast<int32_t*>(blocks_[i] + kGuardBytes), (*args_)[i].shape}; }
+  Ref f(size_t i) {
+    return {reinterpret_cast<float*>(blocks_[i] + kGuardBytes), (*args_)[i].shape};
+  }
+  IRef i32(size_t i) {
+    return {reinterpret_cast<int32_t*>(blocks_[i] + kGuardBytes), (*args_)[i].shape};
+  }
   LRef u8(size_t i) { return {blocks_[i] + kGuardBytes, (*args_)[i].shape}; }
   BatchNormRefs bn(size_t first, bool with_saved) {
     BatchNormRefs r;
-    r.gamma = f(first), r.beta = f(first + 1), r.running_mean = f(first + 2), r.running_var = f(first + 3);
+    r.gamma = f(first), r.beta = f(first + 1), r.running_mean = f(first + 2),
+    r.running_var = f(first + 3);
     if (with_saved) r.save_mean = f(first + 4), r.save_invstd = f(first + 5);
     return r;
   }
@@ -92,7 +100,8 @@ class Bound {
     be_.download(image.data(), blocks_[i], sizes_[i]);
     guards_intact = true;
     for (size_t k = 0; k < kGuardBytes; ++k)
-      guards_intact = guards_intact && image[k] == kGuardByte && image[sizes_[i] - 1 - k] == kGuardByte;
+      guards_intact =
+          guards_intact && image[k] == kGuardByte && image[sizes_[i] - 1 - k] == kGuardByte;
     return {image.begin() + static_cast<std::ptrdiff_t>(kGuardBytes),
             image.end() - static_cast<std::ptrdiff_t>(kGuardBytes)};
   }
@@ -133,7 +142,8 @@ Arg out(std::string name, Shape shape, Kind kind = Kind::F32) {
 }
 // BatchNorm parameters and running statistics (C) each, then, with `saved`, the two (C) outputs
 // of a training forward (or its inputs to a backward, `saved_in`).
-void add_bn(std::vector<Arg>& args, int64_t c, bool running_out, bool saved_out, bool saved_in = false) {
+void add_bn(std::vector<Arg>& args, int64_t c, bool running_out, bool saved_out,
+            bool saved_in = false) {
   args.push_back(in_f("gamma", {c}, 0.5, 1.5));
   args.push_back(in_f("beta", {c}, -0.5, 0.5));
   Arg mean = in_f("running_mean", {c}, -0.2, 0.2), var = in_f("running_var", {c}, 0.5, 2);
@@ -169,7 +179,8 @@ Arg labels_arg(Shape shape) {
   Arg a{"labels", std::move(shape), Kind::U8, Role::Input, {}};
   a.fill = [](Rng& rng, void* dst, int64_t n) {
     uint8_t* l = static_cast<uint8_t*>(dst);
-    for (int64_t i = 0; i < n; ++i) l[i] = static_cast<uint8_t>(rng.uniform_int(13));  // 0 = unlabelled
+    for (int64_t i = 0; i < n; ++i)
+      l[i] = static_cast<uint8_t>(rng.uniform_int(13));  // 0 = unlabelled
   };
   return a;
 }
@@ -180,10 +191,14 @@ std::vector<Case> cases() {
   std::vector<Case> all;
   // Convolutions: 3x3 pad 1, 1x1 (the head), odd sizes, and channel counts that are not a
   // multiple of a tile.
-  for (const auto& [x, w, pad] : std::vector<std::tuple<Shape, Shape, int>>{
-           {{2, 3, 7, 5}, {4, 3, 3, 3}, 1}, {{1, 8, 6, 6}, {5, 8, 3, 3}, 1}, {{2, 6, 5, 4}, {12, 6, 1, 1}, 0},
-           {{1, 17, 9, 11}, {33, 17, 3, 3}, 1}, {{1, 2, 5, 5}, {3, 2, 3, 3}, 0}}) {
-    const std::string shapes = "x=" + shape_name(x) + ",w=" + shape_name(w) + ",pad=" + std::to_string(pad);
+  for (const auto& [x, w, pad] :
+       std::vector<std::tuple<Shape, Shape, int>>{{{2, 3, 7, 5}, {4, 3, 3, 3}, 1},
+                                                  {{1, 8, 6, 6}, {5, 8, 3, 3}, 1},
+                                                  {{2, 6, 5, 4}, {12, 6, 1, 1}, 0},
+                                                  {{1, 17, 9, 11}, {33, 17, 3, 3}, 1},
+                                                  {{1, 2, 5, 5}, {3, 2, 3, 3}, 0}}) {
+    const std::string shapes =
+        "x=" + shape_name(x) + ",w=" + shape_name(w) + ",pad=" + std::to_string(pad);
     const Shape y{x[0], w[0], x[2] + 2 * pad - w[2] + 1, x[3] + 2 * pad - w[3] + 1};
     all.push_back({"conv2d_forward/" + shapes,
                    {in_f("x", x), in_f("w", w), in_f("bias", {w[0]}), out("y", y)},
@@ -193,7 +208,8 @@ std::vector<Case> cases() {
                    },
                    1e-9});
     all.push_back({"conv2d_backward/" + shapes,
-                   {in_f("x", x), in_f("w", w), in_f("dy", y), out("dx", x), out("dw", w), out("dbias", {w[0]})},
+                   {in_f("x", x), in_f("w", w), in_f("dy", y), out("dx", x), out("dw", w),
+                    out("dbias", {w[0]})},
                    [pad](Backend& be, Bound& t) {
                      Ref dx = t.f(3), dw = t.f(4), db = t.f(5);
                      be.conv2d_backward(t.f(0), t.f(1), t.f(2), pad, &dx, dw, &db);
@@ -209,7 +225,8 @@ std::vector<Case> cases() {
                    },
                    1e-9});
   }
-  for (const auto& [x, o] : std::vector<std::pair<Shape, int64_t>>{{{2, 6, 3, 4}, 3}, {{1, 16, 5, 7}, 8}}) {
+  for (const auto& [x, o] :
+       std::vector<std::pair<Shape, int64_t>>{{{2, 6, 3, 4}, 3}, {{1, 16, 5, 7}, 8}}) {
     const std::string shapes = "x=" + shape_name(x) + ",o=" + std::to_string(o);
     const Shape w{x[1], o, 2, 2}, y{x[0], o, 2 * x[2], 2 * x[3]};
     all.push_back({"conv_transpose2d_forward/" + shapes,
@@ -236,12 +253,13 @@ std::vector<Case> cases() {
       add_bn(args, x[1], training, training);
       args.push_back(out("y", x));
       const size_t y = args.size() - 1;
-      all.push_back({std::string("batchnorm_relu_forward/") + (training ? "train," : "eval,") + shapes, args,
-                     [training, y](Backend& be, Bound& t) {
-                       BatchNormRefs bn = t.bn(1, training);
-                       Ref yy = t.f(y);
-                       be.batchnorm_relu_forward(t.f(0), bn, training, yy);
-                     }});
+      all.push_back(
+          {std::string("batchnorm_relu_forward/") + (training ? "train," : "eval,") + shapes, args,
+           [training, y](Backend& be, Bound& t) {
+             BatchNormRefs bn = t.bn(1, training);
+             Ref yy = t.f(y);
+             be.batchnorm_relu_forward(t.f(0), bn, training, yy);
+           }});
     }
     std::vector<Arg> args = {in_f("x", x), in_f("y", x, 0, 1), in_f("dy", x)};
     add_bn(args, x[1], false, false, /*saved_in=*/true);
@@ -263,36 +281,41 @@ std::vector<Case> cases() {
                      IRef am = t.i32(2);
                      be.maxpool2x2_forward(t.f(0), y, am);
                    }});
-    all.push_back({"maxpool2x2_backward/x=" + shape_name(x),
-                   {in_f("x", x), in_f("dy", p), out("dx", x), out("y", p), out("argmax", p, Kind::I32)},
-                   [](Backend& be, Bound& t) {
-                     Ref y = t.f(3), dx = t.f(2);
-                     IRef am = t.i32(4);
-                     be.maxpool2x2_forward(t.f(0), y, am);
-                     be.maxpool2x2_backward(t.f(1), am, dx);
-                   }});
+    all.push_back(
+        {"maxpool2x2_backward/x=" + shape_name(x),
+         {in_f("x", x), in_f("dy", p), out("dx", x), out("y", p), out("argmax", p, Kind::I32)},
+         [](Backend& be, Bound& t) {
+           Ref y = t.f(3), dx = t.f(2);
+           IRef am = t.i32(4);
+           be.maxpool2x2_forward(t.f(0), y, am);
+           be.maxpool2x2_backward(t.f(1), am, dx);
+         }});
     const Shape u{x[0], x[1], 2 * x[2], 2 * x[3]};
-    all.push_back({"upsample2x_forward/x=" + shape_name(x), {in_f("x", x), out("y", u)},
+    all.push_back({"upsample2x_forward/x=" + shape_name(x),
+                   {in_f("x", x), out("y", u)},
                    [](Backend& be, Bound& t) {
                      Ref y = t.f(1);
                      be.upsample2x_forward(t.f(0), y);
                    }});
-    all.push_back({"upsample2x_backward/x=" + shape_name(x), {in_f("dy", u), out("dx", x)},
+    all.push_back({"upsample2x_backward/x=" + shape_name(x),
+                   {in_f("dy", u), out("dx", x)},
                    [](Backend& be, Bound& t) {
                      Ref dx = t.f(1);
                      be.upsample2x_backward(t.f(0), dx);
                    }});
   }
-  for (const auto& [skip, up] :
-       std::vector<std::pair<Shape, Shape>>{{{2, 3, 6, 8}, {2, 4, 6, 8}}, {{1, 2, 7, 9}, {1, 3, 6, 8}}}) {
+  for (const auto& [skip, up] : std::vector<std::pair<Shape, Shape>>{
+           {{2, 3, 6, 8}, {2, 4, 6, 8}}, {{1, 2, 7, 9}, {1, 3, 6, 8}}}) {
     const Shape y{skip[0], skip[1] + up[1], skip[2], skip[3]};
     const std::string shapes = "skip=" + shape_name(skip) + ",up=" + shape_name(up);
-    all.push_back({"pad_concat_forward/" + shapes, {in_f("skip", skip), in_f("up", up), out("y", y)},
+    all.push_back({"pad_concat_forward/" + shapes,
+                   {in_f("skip", skip), in_f("up", up), out("y", y)},
                    [](Backend& be, Bound& t) {
                      Ref yy = t.f(2);
                      be.pad_concat_forward(t.f(0), t.f(1), yy);
                    }});
-    all.push_back({"pad_concat_backward/" + shapes, {in_f("dy", y), out("dskip", skip), out("dup", up)},
+    all.push_back({"pad_concat_backward/" + shapes,
+                   {in_f("dy", y), out("dskip", skip), out("dup", up)},
                    [](Backend& be, Bound& t) {
                      Ref ds = t.f(1), du = t.f(2);
                      be.pad_concat_backward(t.f(0), ds, du);
@@ -300,23 +323,27 @@ std::vector<Case> cases() {
   }
   {
     const Shape x{2, 3, 4, 5}, y{2, 8, 4, 5};
-    all.push_back({"copy_channels/x=2x3x4x5,y=2x8x4x5,c0=4", {in_f("x", x), inout_f("y", y)},
+    all.push_back({"copy_channels/x=2x3x4x5,y=2x8x4x5,c0=4",
+                   {in_f("x", x), inout_f("y", y)},
                    [](Backend& be, Bound& t) {
                      Ref yy = t.f(1);
                      be.copy_channels(t.f(0), 4, yy);
                    }});
-    all.push_back({"extract_channels/x=2x3x4x5,y=2x8x4x5,c0=2", {in_f("y", y), out("x", x)},
+    all.push_back({"extract_channels/x=2x3x4x5,y=2x8x4x5,c0=2",
+                   {in_f("y", y), out("x", x)},
                    [](Backend& be, Bound& t) {
                      Ref xx = t.f(1);
                      be.extract_channels(t.f(0), 2, xx);
                    }});
-    all.push_back({"add_inplace/a=2x3x4x5", {inout_f("a", x), in_f("b", x)}, [](Backend& be, Bound& t) {
-                     Ref a = t.f(0);
-                     be.add_inplace(a, t.f(1));
-                   }});
+    all.push_back(
+        {"add_inplace/a=2x3x4x5", {inout_f("a", x), in_f("b", x)}, [](Backend& be, Bound& t) {
+           Ref a = t.f(0);
+           be.add_inplace(a, t.f(1));
+         }});
   }
   // Pillars: PFN forward (eval, training) and backward, scatter and its backward.
-  for (const auto& [p, n, c] : std::vector<std::tuple<int64_t, int64_t, int64_t>>{{5, 3, 4}, {37, 8, 16}}) {
+  for (const auto& [p, n, c] :
+       std::vector<std::tuple<int64_t, int64_t, int64_t>>{{5, 3, 4}, {37, 8, 16}}) {
     const std::string shapes = "points=" + shape_name({p, n, 10}) + ",c=" + std::to_string(c);
     for (bool training : {false, true}) {
       std::vector<Arg> args = {in_f("points", {p, n, 10}), in_f("weight", {c, 10})};
@@ -337,8 +364,8 @@ std::vector<Case> cases() {
     std::vector<Arg> args = {in_f("points", {p, n, 10}), in_f("weight", {c, 10})};
     add_bn(args, c, true, true);
     for (Arg a : {out("out", {p, c}), out("argmax", {p, c}, Kind::I32)}) args.push_back(a);
-    for (Arg a : {in_f("dout", {p, c}), out("d_points", {p, n, 10}), out("dweight", {c, 10}), out("dgamma", {c}),
-                  out("dbeta", {c})})
+    for (Arg a : {in_f("dout", {p, c}), out("d_points", {p, n, 10}), out("dweight", {c, 10}),
+                  out("dgamma", {c}), out("dbeta", {c})})
       args.push_back(a);
     args[11].role = Role::InOut;  // d_points: scratch by the interface, not compared
     args[11].fill = [](Rng&, void* d, int64_t k) { std::memset(d, 0, static_cast<size_t>(k) * 4); };
@@ -352,42 +379,47 @@ std::vector<Case> cases() {
                    },
                    1e-9});
     const int64_t b = 2, h = 6, w = 7, cc = c + 3;
-    all.push_back({"scatter_forward/" + shapes,
-                   {in_f("features", {p, c}), cells_arg(p, b, h, w), inout_f("canvas", {b, cc, h, w})},
-                   [](Backend& be, Bound& t) {
-                     Ref canvas = t.f(2);
-                     be.scatter_forward(t.f(0), t.i32(1), 2, canvas);
-                   }});
-    all.push_back({"scatter_backward/" + shapes,
-                   {in_f("dcanvas", {b, cc, h, w}), cells_arg(p, b, h, w), out("dfeatures", {p, c})},
-                   [](Backend& be, Bound& t) {
-                     Ref df = t.f(2);
-                     be.scatter_backward(t.f(0), t.i32(1), 1, df);
-                   }});
+    all.push_back(
+        {"scatter_forward/" + shapes,
+         {in_f("features", {p, c}), cells_arg(p, b, h, w), inout_f("canvas", {b, cc, h, w})},
+         [](Backend& be, Bound& t) {
+           Ref canvas = t.f(2);
+           be.scatter_forward(t.f(0), t.i32(1), 2, canvas);
+         }});
+    all.push_back(
+        {"scatter_backward/" + shapes,
+         {in_f("dcanvas", {b, cc, h, w}), cells_arg(p, b, h, w), out("dfeatures", {p, c})},
+         [](Backend& be, Bound& t) {
+           Ref df = t.f(2);
+           be.scatter_backward(t.f(0), t.i32(1), 1, df);
+         }});
   }
   // The head: softmax, class map, both losses.
   for (const Shape& logits : std::vector<Shape>{{1, 12, 4, 5}, {2, 12, 7, 3}}) {
     const std::string shapes = "logits=" + shape_name(logits);
     const Shape map{logits[0], logits[2], logits[3]};
-    all.push_back({"softmax/" + shapes, {in_f("logits", logits, -4, 4), out("probs", logits)},
+    all.push_back({"softmax/" + shapes,
+                   {in_f("logits", logits, -4, 4), out("probs", logits)},
                    [](Backend& be, Bound& t) {
                      Ref probs = t.f(1);
                      be.softmax(t.f(0), probs);
                    }});
-    all.push_back({"argmax/" + shapes, {in_f("logits", logits, -4, 4), out("labels", map, Kind::U8)},
+    all.push_back({"argmax/" + shapes,
+                   {in_f("logits", logits, -4, 4), out("labels", map, Kind::U8)},
                    [](Backend& be, Bound& t) {
                      LRef labels = t.u8(1);
                      be.argmax(t.f(0), labels);
                    }});
     for (LossKind kind : {LossKind::CrossEntropy, LossKind::Bce}) {
       all.push_back({std::string("loss/") + (kind == LossKind::Bce ? "bce," : "ce,") + shapes,
-                     {in_f("logits", logits, -4, 4), labels_arg(map), in_f("coefficients", {13}, 0.5, 4),
-                      out("dlogits", logits)},
+                     {in_f("logits", logits, -4, 4), labels_arg(map),
+                      in_f("coefficients", {13}, 0.5, 4), out("dlogits", logits)},
                      [kind](Backend& be, Bound& t) {
                        Ref dl = t.f(3);
                        t.scalar = be.loss(kind, t.f(0), t.u8(1), t.f(2), dl);
                      },
-                     1e-10, true});
+                     1e-10,
+                     true});
     }
   }
   // The optimiser.
@@ -398,8 +430,11 @@ std::vector<Case> cases() {
                    Ref p = t.f(0), m = t.f(2), v = t.f(3);
                    be.adam_step(p, t.f(1), m, v, 3, AdamOptions{});
                  }});
-  all.push_back({"sum_of_squares/n=1000", {in_f("x", {1000})},
-                 [](Backend& be, Bound& t) { t.scalar = be.sum_of_squares(t.f(0)); }, 1e-10, true});
+  all.push_back({"sum_of_squares/n=1000",
+                 {in_f("x", {1000})},
+                 [](Backend& be, Bound& t) { t.scalar = be.sum_of_squares(t.f(0)); },
+                 1e-10,
+                 true});
   return all;
 }
 
@@ -492,7 +527,8 @@ TEST_P(BackendOps, MatchesTheReference) {
     }
     if (c.compare_scalar) {
       const double d = got.scalar - ref.scalar;
-      EXPECT_LE(d * d, c.max_nmse * ref.scalar * ref.scalar) << b.name << ": " << got.scalar << " vs " << ref.scalar;
+      EXPECT_LE(d * d, c.max_nmse * ref.scalar * ref.scalar)
+          << b.name << ": " << got.scalar << " vs " << ref.scalar;
     }
   }
 }

@@ -105,20 +105,24 @@ TEST_P(GraphVariants, NoTwoLiveTensorsShareBytes) {
       if (!ts[j].planned() || ts[j].bytes() == 0 || ts[i].bytes() == 0) continue;
       const auto [first_j, last_j] = g.lifetime(static_cast<int>(j));
       const bool meet = first_i <= last_j && first_j <= last_i;
-      const bool overlap = ts[i].offset < ts[j].offset + ts[j].bytes() && ts[j].offset < ts[i].offset + ts[i].bytes();
-      EXPECT_FALSE(meet && overlap) << ts[i].name << " [" << first_i << ", " << last_i << "] and " << ts[j].name
-                                    << " [" << first_j << ", " << last_j << "] share bytes";
+      const bool overlap = ts[i].offset < ts[j].offset + ts[j].bytes() &&
+                           ts[j].offset < ts[i].offset + ts[i].bytes();
+      EXPECT_FALSE(meet && overlap)
+          << ts[i].name << " [" << first_i << ", " << last_i << "] and " << ts[j].name << " ["
+          << first_j << ", " << last_j << "] share bytes";
     }
   }
   // Pillar points and cells, the labels and loss coefficients, and each of the occupancy and
   // grid-map inputs the variant has.
-  const size_t expected_inputs = 4 + (occupancy != OccupancyInput::None ? 1 : 0) + (grid_map ? 1 : 0);
+  const size_t expected_inputs =
+      4 + (occupancy != OccupancyInput::None ? 1 : 0) + (grid_map ? 1 : 0);
   EXPECT_EQ(inputs, expected_inputs);
   EXPECT_NE(net.memory_report(training).find("planned tensors"), std::string::npos);
 }
 
-INSTANTIATE_TEST_SUITE_P(
-    Tiny, GraphVariants,
-    ::testing::Combine(::testing::Values(OccupancyInput::None, OccupancyInput::Observability2D,
-                                         OccupancyInput::Occupancy3D),
-                       ::testing::Bool(), ::testing::Bool(), ::testing::Values(1, 2), ::testing::Bool()));
+INSTANTIATE_TEST_SUITE_P(Tiny, GraphVariants,
+                         ::testing::Combine(::testing::Values(OccupancyInput::None,
+                                                              OccupancyInput::Observability2D,
+                                                              OccupancyInput::Occupancy3D),
+                                            ::testing::Bool(), ::testing::Bool(),
+                                            ::testing::Values(1, 2), ::testing::Bool()));

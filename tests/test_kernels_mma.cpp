@@ -29,9 +29,9 @@
 #include "kernels/elementwise.cuh"
 #include "kernels/half_ops.cuh"
 #include "kernels/maxpool2d.cuh"
+#include "kernels/mma.cuh"
 #include "kernels/pad_concat.cuh"
 #include "kernels/upsample_bilinear.cuh"
-#include "kernels/mma.cuh"
 
 using namespace pillarseg;
 using cuda::DeviceBuffer;
@@ -53,10 +53,12 @@ TEST(Half16, RoundsToNearestEven) {
   EXPECT_EQ(cuda::float_to_bf16_bits(1.0f + 0x1p-8f + 0x1p-20f), 0x3F81);  // just above half-way
   EXPECT_EQ(cuda::float_to_bf16_bits(-2.5f), 0xC020);
   EXPECT_EQ(cuda::float_to_bf16_bits(bits_float(0x7F7FFFFFu)), 0x7F80);  // the largest float -> inf
-  EXPECT_EQ(cuda::float_to_bf16_bits(bits_float(0x7F7F7FFFu)), 0x7F7F);  // below half-way: stays finite
+  EXPECT_EQ(cuda::float_to_bf16_bits(bits_float(0x7F7F7FFFu)),
+            0x7F7F);  // below half-way: stays finite
   const std::uint16_t nan = cuda::float_to_bf16_bits(std::numeric_limits<float>::quiet_NaN());
   EXPECT_TRUE(std::isnan(cuda::bf16_bits_to_float(nan)));
-  EXPECT_TRUE(std::isnan(cuda::bf16_bits_to_float(cuda::float_to_bf16_bits(bits_float(0x7F800001u)))));
+  EXPECT_TRUE(
+      std::isnan(cuda::bf16_bits_to_float(cuda::float_to_bf16_bits(bits_float(0x7F800001u)))));
   EXPECT_EQ(cuda::bf16_bits_to_float(0x3F81), 1.0f + 0x1p-7f);
 
   // FP16: 11 significant bits, largest 65504, subnormals down to 2^-24.
@@ -75,7 +77,8 @@ TEST(Half16, RoundsToNearestEven) {
   EXPECT_EQ(cuda::f16_bits_to_float(0x7BFF), 65504.0f);
   EXPECT_EQ(cuda::f16_bits_to_float(0xC500), -5.0f);
   EXPECT_TRUE(std::isinf(cuda::f16_bits_to_float(0x7C00)));
-  EXPECT_TRUE(std::isnan(cuda::f16_bits_to_float(cuda::float_to_f16_bits(std::numeric_limits<float>::quiet_NaN()))));
+  EXPECT_TRUE(std::isnan(
+      cuda::f16_bits_to_float(cuda::float_to_f16_bits(std::numeric_limits<float>::quiet_NaN()))));
   // Every BF16 and FP16 value converts to float and back to itself (NaNs to a NaN).
   for (std::uint32_t b = 0; b < 65536; ++b) {
     const auto bits = static_cast<std::uint16_t>(b);
@@ -108,14 +111,20 @@ void check_mma() {
     for (int col = 0; col < 8; ++col) {
       double expected = c[static_cast<size_t>(row * 8 + col)];
       for (int k = 0; k < 16; ++k)
-        expected += static_cast<double>(a[static_cast<size_t>(row * 16 + k)]) * b[static_cast<size_t>(k * 8 + col)];
-      EXPECT_EQ(d[static_cast<size_t>(row * 8 + col)], expected) << "D[" << row << "][" << col << "]";
+        expected += static_cast<double>(a[static_cast<size_t>(row * 16 + k)]) *
+                    b[static_cast<size_t>(k * 8 + col)];
+      EXPECT_EQ(d[static_cast<size_t>(row * 8 + col)], expected)
+          << "D[" << row << "][" << col << "]";
     }
   }
 }
 
-TEST(Mma, M16n8k16Bf16MatchesTheIsaLayout) { check_mma<Half16::BF16>(); }
-TEST(Mma, M16n8k16F16MatchesTheIsaLayout) { check_mma<Half16::F16>(); }
+TEST(Mma, M16n8k16Bf16MatchesTheIsaLayout) {
+  check_mma<Half16::BF16>();
+}
+TEST(Mma, M16n8k16F16MatchesTheIsaLayout) {
+  check_mma<Half16::F16>();
+}
 
 // ldmatrix_probe (conv2d_mma.cuh): x4, x4.trans, x2, x2.trans of v[r][c] = 256 r + c.
 TEST(Mma, LdmatrixMatchesTheIsaLayout) {
@@ -131,10 +140,13 @@ TEST(Mma, LdmatrixMatchesTheIsaLayout) {
       const std::uint32_t plain = value(r0 + g, c0 + 2 * t) | (value(r0 + g, c0 + 2 * t + 1) << 16);
       const std::uint32_t trans = value(r0 + 2 * t, c0 + g) | (value(r0 + 2 * t + 1, c0 + g) << 16);
       EXPECT_EQ(got[static_cast<size_t>(lane * 12 + q)], plain) << "x4 lane " << lane << " r" << q;
-      EXPECT_EQ(got[static_cast<size_t>(lane * 12 + 4 + q)], trans) << "x4.trans lane " << lane << " r" << q;
+      EXPECT_EQ(got[static_cast<size_t>(lane * 12 + 4 + q)], trans)
+          << "x4.trans lane " << lane << " r" << q;
       if (q < 2) {
-        EXPECT_EQ(got[static_cast<size_t>(lane * 12 + 8 + q)], plain) << "x2 lane " << lane << " r" << q;
-        EXPECT_EQ(got[static_cast<size_t>(lane * 12 + 10 + q)], trans) << "x2.trans lane " << lane << " r" << q;
+        EXPECT_EQ(got[static_cast<size_t>(lane * 12 + 8 + q)], plain)
+            << "x2 lane " << lane << " r" << q;
+        EXPECT_EQ(got[static_cast<size_t>(lane * 12 + 10 + q)], trans)
+            << "x2.trans lane " << lane << " r" << q;
       }
     }
   }
@@ -161,14 +173,19 @@ struct ConvCase {
 void check_conv(const ConvCase& cc, Half16 type) {
   std::string why;
   if (!cuda::mma_supported(&why)) GTEST_SKIP() << why;
-  const cuda::Conv2dShape s{cc.batch, cc.in_channels, cc.height, cc.width, cc.out_channels, cc.kernel, cc.pad};
-  const std::int64_t k = s.in_channels * s.kernel * s.kernel, ho = s.out_height(), wo = s.out_width();
+  const cuda::Conv2dShape s{cc.batch,        cc.in_channels, cc.height, cc.width,
+                            cc.out_channels, cc.kernel,      cc.pad};
+  const std::int64_t k = s.in_channels * s.kernel * s.kernel, ho = s.out_height(),
+                     wo = s.out_width();
   Rng rng(11 + static_cast<uint64_t>(cc.out_channels));
-  const std::vector<float> x = uniform(static_cast<size_t>(s.batch * s.in_channels * s.height * s.width), rng, -2, 2);
+  const std::vector<float> x =
+      uniform(static_cast<size_t>(s.batch * s.in_channels * s.height * s.width), rng, -2, 2);
   const std::vector<float> w = uniform(static_cast<size_t>(s.out_channels * k), rng, -0.5, 0.5);
   const std::vector<float> bias = uniform(static_cast<size_t>(s.out_channels), rng, -1, 1);
-  const std::vector<float> gamma = uniform(bias.size(), rng, 0.5, 1.5), beta = uniform(bias.size(), rng, -0.5, 0.5),
-                           mean = uniform(bias.size(), rng, -0.3, 0.3), var = uniform(bias.size(), rng, 0.5, 2);
+  const std::vector<float> gamma = uniform(bias.size(), rng, 0.5, 1.5),
+                           beta = uniform(bias.size(), rng, -0.5, 0.5),
+                           mean = uniform(bias.size(), rng, -0.3, 0.3),
+                           var = uniform(bias.size(), rng, 0.5, 2);
   auto dx = DeviceBuffer<float>::from_host(x), dw = DeviceBuffer<float>::from_host(w),
        dbias = DeviceBuffer<float>::from_host(bias), dg = DeviceBuffer<float>::from_host(gamma),
        dbeta = DeviceBuffer<float>::from_host(beta), dm = DeviceBuffer<float>::from_host(mean),
@@ -178,8 +195,10 @@ void check_conv(const ConvCase& cc, Half16 type) {
   DeviceBuffer<std::uint16_t> w16(static_cast<size_t>(s.out_channels * cuda::mma_padded_k(k)));
   DeviceBuffer<float> b_out(static_cast<size_t>(s.out_channels));
   DeviceBuffer<float> dy(static_cast<size_t>(s.batch * s.out_channels * ho * wo));
-  cuda::prepare_conv_weights(dw.data(), dbias.data(), bn, s, type, w16.data(), b_out.data(), nullptr);
-  cuda::conv2d_mma_forward(dx.data(), false, w16.data(), b_out.data(), s, type, cc.relu, dy.data(), false, nullptr);
+  cuda::prepare_conv_weights(dw.data(), dbias.data(), bn, s, type, w16.data(), b_out.data(),
+                             nullptr);
+  cuda::conv2d_mma_forward(dx.data(), false, w16.data(), b_out.data(), s, type, cc.relu, dy.data(),
+                           false, nullptr);
   PS_CUDA_CHECK(cudaDeviceSynchronize());
   const std::vector<float> y = dy.to_host();
 
@@ -201,9 +220,12 @@ void check_conv(const ConvCase& cc, Half16 type) {
               for (std::int64_t kx = 0; kx < s.kernel; ++kx) {
                 const std::int64_t iy = oy + ky - s.pad, ix = ox + kx - s.pad;
                 if (iy < 0 || iy >= s.height || ix < 0 || ix >= s.width) continue;
-                const float xv = x[static_cast<size_t>(((b * s.in_channels + i) * s.height + iy) * s.width + ix)];
-                const float wv = w[static_cast<size_t>(((o * s.in_channels + i) * s.kernel + ky) * s.kernel + kx)];
-                const double p16 = static_cast<double>(round_half(wv * scale, type)) * round_half(xv, type);
+                const float xv = x[static_cast<size_t>(
+                    ((b * s.in_channels + i) * s.height + iy) * s.width + ix)];
+                const float wv = w[static_cast<size_t>(
+                    ((o * s.in_channels + i) * s.kernel + ky) * s.kernel + kx)];
+                const double p16 =
+                    static_cast<double>(round_half(wv * scale, type)) * round_half(xv, type);
                 sum16 += p16;
                 sum32 += static_cast<double>(wv) * scale * xv;
                 magnitude += std::abs(p16);
@@ -224,14 +246,25 @@ void check_conv(const ConvCase& cc, Half16 type) {
       }
     }
   }
-  ::testing::Test::RecordProperty("worst_error_vs_fp32_relative_to_sum_abs_products", std::to_string(worst_vs_fp32));
+  ::testing::Test::RecordProperty("worst_error_vs_fp32_relative_to_sum_abs_products",
+                                  std::to_string(worst_vs_fp32));
 }
 
-TEST(ConvMma, Conv3x3PaddedBatchNormReluBf16) { check_conv({2, 5, 9, 11, 70, 3, 1, true, true}, Half16::BF16); }
-TEST(ConvMma, Conv3x3PaddedF16) { check_conv({1, 19, 7, 6, 33, 3, 1, false, false}, Half16::F16); }
-TEST(ConvMma, Conv3x3UnpaddedBf16) { check_conv({1, 3, 6, 9, 8, 3, 0, true, false}, Half16::BF16); }
-TEST(ConvMma, Conv1x1HeadBf16) { check_conv({2, 40, 5, 13, 12, 1, 0, false, false}, Half16::BF16); }
-TEST(ConvMma, ManyChannelsBf16) { check_conv({1, 96, 4, 5, 130, 3, 1, true, true}, Half16::BF16); }
+TEST(ConvMma, Conv3x3PaddedBatchNormReluBf16) {
+  check_conv({2, 5, 9, 11, 70, 3, 1, true, true}, Half16::BF16);
+}
+TEST(ConvMma, Conv3x3PaddedF16) {
+  check_conv({1, 19, 7, 6, 33, 3, 1, false, false}, Half16::F16);
+}
+TEST(ConvMma, Conv3x3UnpaddedBf16) {
+  check_conv({1, 3, 6, 9, 8, 3, 0, true, false}, Half16::BF16);
+}
+TEST(ConvMma, Conv1x1HeadBf16) {
+  check_conv({2, 40, 5, 13, 12, 1, 0, false, false}, Half16::BF16);
+}
+TEST(ConvMma, ManyChannelsBf16) {
+  check_conv({1, 96, 4, 5, 130, 3, 1, true, true}, Half16::BF16);
+}
 
 void check_transposed(Half16 type) {
   std::string why;
@@ -245,9 +278,10 @@ void check_transposed(Half16 type) {
        dbias = DeviceBuffer<float>::from_host(bias);
   DeviceBuffer<std::uint16_t> w16(static_cast<size_t>(4 * O * cuda::mma_padded_k(I)));
   DeviceBuffer<float> b_out(static_cast<size_t>(4 * O)), dy(static_cast<size_t>(B * O * 4 * H * W));
-  cuda::prepare_conv_transpose_weights(dw.data(), dbias.data(), I, O, type, w16.data(), b_out.data(), nullptr);
-  cuda::conv_transpose2x2_mma_forward(dx.data(), false, w16.data(), b_out.data(), B, I, H, W, O, type, dy.data(), false,
-                                      nullptr);
+  cuda::prepare_conv_transpose_weights(dw.data(), dbias.data(), I, O, type, w16.data(),
+                                       b_out.data(), nullptr);
+  cuda::conv_transpose2x2_mma_forward(dx.data(), false, w16.data(), b_out.data(), B, I, H, W, O,
+                                      type, dy.data(), false, nullptr);
   PS_CUDA_CHECK(cudaDeviceSynchronize());
   const std::vector<float> y = dy.to_host();
   for (std::int64_t b = 0; b < B; ++b)
@@ -257,18 +291,25 @@ void check_transposed(Half16 type) {
           double sum = bias[static_cast<size_t>(o)], magnitude = 0;
           for (std::int64_t i = 0; i < I; ++i) {
             const double p =
-                static_cast<double>(round_half(w[static_cast<size_t>(((i * O + o) * 2 + yy % 2) * 2 + xx % 2)], type)) *
+                static_cast<double>(round_half(
+                    w[static_cast<size_t>(((i * O + o) * 2 + yy % 2) * 2 + xx % 2)], type)) *
                 round_half(x[static_cast<size_t>(((b * I + i) * H + yy / 2) * W + xx / 2)], type);
             sum += p;
             magnitude += std::abs(p);
           }
           const float got = y[static_cast<size_t>(((b * O + o) * 2 * H + yy) * 2 * W + xx)];
-          EXPECT_NEAR(got, sum, static_cast<double>(I) * 0x1p-24 * magnitude + 0x1p-23 * std::abs(sum) + 1e-7);
+          EXPECT_NEAR(
+              got, sum,
+              static_cast<double>(I) * 0x1p-24 * magnitude + 0x1p-23 * std::abs(sum) + 1e-7);
         }
 }
 
-TEST(ConvMma, Transposed2x2Bf16) { check_transposed(Half16::BF16); }
-TEST(ConvMma, Transposed2x2F16) { check_transposed(Half16::F16); }
+TEST(ConvMma, Transposed2x2Bf16) {
+  check_transposed(Half16::BF16);
+}
+TEST(ConvMma, Transposed2x2F16) {
+  check_transposed(Half16::F16);
+}
 
 // ---- 16-bit activations ----
 
@@ -281,16 +322,18 @@ std::vector<std::uint16_t> half_bits(const std::vector<float>& v, Half16 type) {
 std::vector<float> half_values(const std::vector<std::uint16_t>& bits, Half16 type) {
   std::vector<float> v(bits.size());
   for (size_t i = 0; i < v.size(); ++i)
-    v[i] = type == Half16::BF16 ? cuda::bf16_bits_to_float(bits[i]) : cuda::f16_bits_to_float(bits[i]);
+    v[i] =
+        type == Half16::BF16 ? cuda::bf16_bits_to_float(bits[i]) : cuda::f16_bits_to_float(bits[i]);
   return v;
 }
 // |a - b| within one rounding of b to the 16-bit type (unit roundoff u of its magnitude).
-void expect_within_one_rounding(const std::vector<float>& a, const std::vector<float>& b, Half16 type,
-                                const char* what) {
+void expect_within_one_rounding(const std::vector<float>& a, const std::vector<float>& b,
+                                Half16 type, const char* what) {
   ASSERT_EQ(a.size(), b.size());
   const double u = type == Half16::BF16 ? 0x1p-8 : 0x1p-11;
   for (size_t i = 0; i < a.size(); ++i)
-    ASSERT_LE(std::abs(static_cast<double>(a[i]) - b[i]), u * std::abs(static_cast<double>(b[i])) * 1.0001 + 1e-30)
+    ASSERT_LE(std::abs(static_cast<double>(a[i]) - b[i]),
+              u * std::abs(static_cast<double>(b[i])) * 1.0001 + 1e-30)
         << what << " element " << i << ": " << a[i] << " vs " << b[i];
 }
 
@@ -306,7 +349,8 @@ void check_half_ops(Half16 type) {
 
   // to_half16 rounds like the host.
   DeviceBuffer<std::uint16_t> converted(bits.size());
-  cuda::to_half16(d_raw.data(), static_cast<std::int64_t>(raw.size()), type, converted.data(), nullptr);
+  cuda::to_half16(d_raw.data(), static_cast<std::int64_t>(raw.size()), type, converted.data(),
+                  nullptr);
   PS_CUDA_CHECK(cudaDeviceSynchronize());
   EXPECT_EQ(converted.to_host(), bits);
 
@@ -353,7 +397,8 @@ void check_half_ops(Half16 type) {
       for (std::int64_t p = 0; p < H * W; ++p) {
         const std::uint16_t expected =
             c >= 2 ? bits[static_cast<size_t>((b * C + c - 2) * H * W + p)] : std::uint16_t{0x1234};
-        ASSERT_EQ(got[static_cast<size_t>((b * 5 + c) * H * W + p)], expected) << b << " " << c << " " << p;
+        ASSERT_EQ(got[static_cast<size_t>((b * 5 + c) * H * W + p)], expected)
+            << b << " " << c << " " << p;
       }
 
   // A convolution with 16-bit input and output against FP32 input and output on the same values.
@@ -363,20 +408,26 @@ void check_half_ops(Half16 type) {
   auto dw = DeviceBuffer<float>::from_host(w), dbias = DeviceBuffer<float>::from_host(bias);
   DeviceBuffer<std::uint16_t> w16(static_cast<size_t>(9 * cuda::mma_padded_k(C * 9)));
   DeviceBuffer<float> b_out(9);
-  cuda::prepare_conv_weights(dw.data(), dbias.data(), cuda::FoldedBatchNorm{}, s, type, w16.data(), b_out.data(),
-                             nullptr);
+  cuda::prepare_conv_weights(dw.data(), dbias.data(), cuda::FoldedBatchNorm{}, s, type, w16.data(),
+                             b_out.data(), nullptr);
   const size_t outputs = static_cast<size_t>(B * 9 * H * W);
   DeviceBuffer<std::uint16_t> y16(outputs);
   DeviceBuffer<float> y32(outputs);
-  cuda::conv2d_mma_forward(d_bits.data(), true, w16.data(), b_out.data(), s, type, true, y16.data(), true, nullptr);
-  cuda::conv2d_mma_forward(d_rounded.data(), false, w16.data(), b_out.data(), s, type, true, y32.data(), false,
-                           nullptr);
+  cuda::conv2d_mma_forward(d_bits.data(), true, w16.data(), b_out.data(), s, type, true, y16.data(),
+                           true, nullptr);
+  cuda::conv2d_mma_forward(d_rounded.data(), false, w16.data(), b_out.data(), s, type, true,
+                           y32.data(), false, nullptr);
   PS_CUDA_CHECK(cudaDeviceSynchronize());
   const std::vector<float> y32_host = y32.to_host();
-  EXPECT_EQ(half_bits(y32_host, type), y16.to_host()) << "the 16-bit output is the FP32 one rounded once";
+  EXPECT_EQ(half_bits(y32_host, type), y16.to_host())
+      << "the 16-bit output is the FP32 one rounded once";
 }
 
-TEST(HalfOps, MatchTheFp32KernelsOnRoundedValuesBf16) { check_half_ops(Half16::BF16); }
-TEST(HalfOps, MatchTheFp32KernelsOnRoundedValuesF16) { check_half_ops(Half16::F16); }
+TEST(HalfOps, MatchTheFp32KernelsOnRoundedValuesBf16) {
+  check_half_ops(Half16::BF16);
+}
+TEST(HalfOps, MatchTheFp32KernelsOnRoundedValuesF16) {
+  check_half_ops(Half16::F16);
+}
 
 }  // namespace

@@ -538,9 +538,132 @@ class CudnnConv2d final : public Conv2dEngine {
   std::int64_t allocations_ = 0;
 };
 
+// ---- 16-bit peers ----
+
+class CudnnHalfConv final : public HalfConvPeer {
+ public:
+  explicit CudnnHalfConv(bool bf16) : type_(bf16 ? CUDNN_DATA_BFLOAT16 : CUDNN_DATA_HALF) {
+    PS_CUDNN_CHECK(cudnnCreate(&handle_));
+  }
+  ~CudnnHalfConv() override {
+    plans_.clear();
+    static_cast<void>(cudnnDestroy(handle_));
+  }
+  CudnnHalfConv(const CudnnHalfConv&) = delete;
+  CudnnHalfConv& operator=(const CudnnHalfConv&) = delete;
+  std::string name() const override { return type_ == CUDNN_DATA_BFLOAT16 ? "cudnn_bf16" : "cudnn_fp16"; }
+
+  void forward(const std::uint16_t* x, const std::uint16_t* w, std::uint16_t* y, const Conv2dShape& s,
+               cudaStream_t stream) override {
+    const auto key = std::array<std::int64_t, 7>{s.batch, s.in_channels, s.height, s.width, s.out_channels, s.kernel, s.pad};
+    auto& slot = plans_[key];
+    PS_CUDNN_CHECK(cudnnSetStream(handle_, stream));
+    if (!slot) {
+      slot = std::make_unique<Plan>();
+      const auto i = [](std::int64_t v) { return static_cast<int>(v); };
+      PS_CUDNN_CHECK(cudnnSetTensor4dDescriptor(slot->x, CUDNN_TENSOR_NCHW, type_, i(s.batch), i(s.in_channels),
+                                                i(s.height), i(s.width)));
+      PS_CUDNN_CHECK(cudnnSetTensor4dDescriptor(slot->y, CUDNN_TENSOR_NCHW, type_, i(s.batch), i(s.out_channels),
+                                                i(s.out_height()), i(s.out_width())));
+      PS_CUDNN_CHECK(cudnnSetFilter4dDescriptor(slot->w, type_, CUDNN_TENSOR_NCHW, i(s.out_channels),
+                                                i(s.in_channels), i(s.kernel), i(s.kernel)));
+      PS_CUDNN_CHECK(cudnnSetConvolution2dDescriptor(slot->conv, i(s.pad), i(s.pad), 1, 1, 1, 1,
+                                                     CUDNN_CROSS_CORRELATION, CUDNN_DATA_FLOAT));
+      PS_CUDNN_CHECK(cudnnSetConvolutionMathType(slot->conv, CUDNN_TENSOR_OP_MATH));
+      cudnnConvolutionFwdAlgoPerf_t results[CUDNN_CONVOLUTION_FWD_ALGO_COUNT];
+      int returned = 0;
+      PS_CUDNN_CHECK(cudnnFindConvolutionForwardAlgorithm(handle_, slot->x, slot->w, slot->conv, slot->y,
+                                                          CUDNN_CONVOLUTION_FWD_ALGO_COUNT, &returned, results));
+      PS_CHECK(returned > 0 && results[0].status == CUDNN_STATUS_SUCCESS,
+               "cuDNN: no 16-bit forward algorithm for this shape");
+      slot->algorithm = results[0].algo;
+      slot->workspace = DeviceBuffer<std::uint8_t>(std::max<std::size_t>(results[0].memory, 1));
+    }
+    const float one = 1.0f, zero = 0.0f;
+    PS_CUDNN_CHECK(cudnnConvolutionForward(handle_, &one, slot->x, x, slot->w, w, slot->conv, slot->algorithm,
+                                           slot->workspace.data(), slot->workspace.bytes(), &zero, slot->y, y));
+  }
+
+ private:
+  struct Plan {
+    Plan() {
+      PS_CUDNN_CHECK(cudnnCreateTensorDescriptor(&x));
+      PS_CUDNN_CHECK(cudnnCreateTensorDescriptor(&y));
+      PS_CUDNN_CHECK(cudnnCreateFilterDescriptor(&w));
+      PS_CUDNN_CHECK(cudnnCreateConvolutionDescriptor(&conv));
+    }
+    ~Plan() {
+      static_cast<void>(cudnnDestroyConvolutionDescriptor(conv));
+      static_cast<void>(cudnnDestroyFilterDescriptor(w));
+      static_cast<void>(cudnnDestroyTensorDescriptor(y));
+      static_cast<void>(cudnnDestroyTensorDescriptor(x));
+    }
+    Plan(const Plan&) = delete;
+    Plan& operator=(const Plan&) = delete;
+    cudnnTensorDescriptor_t x = nullptr, y = nullptr;
+    cudnnFilterDescriptor_t w = nullptr;
+    cudnnConvolutionDescriptor_t conv = nullptr;
+    cudnnConvolutionFwdAlgo_t algorithm{};
+    DeviceBuffer<std::uint8_t> workspace;
+  };
+  cudnnDataType_t type_;
+  cudnnHandle_t handle_ = nullptr;
+  std::map<std::array<std::int64_t, 7>, std::unique_ptr<Plan>> plans_;
+};
+
 #endif  // PILLARSEG_WITH_CUDNN
 
+class CublasHalfGemm final : public HalfConvPeer {
+ public:
+  explicit CublasHalfGemm(bool bf16) : type_(bf16 ? CUDA_R_16BF : CUDA_R_16F) {
+    PS_CUBLAS_CHECK(cublasCreate(&handle_));
+  }
+  ~CublasHalfGemm() override { static_cast<void>(cublasDestroy(handle_)); }
+  CublasHalfGemm(const CublasHalfGemm&) = delete;
+  CublasHalfGemm& operator=(const CublasHalfGemm&) = delete;
+  std::string name() const override { return type_ == CUDA_R_16BF ? "cublas_gemm_bf16" : "cublas_gemm_fp16"; }
+
+  // y (O x B P, row-major, as one (O, B P) matrix) = w (O x K) cols (K x B P); cols is zero (the
+  // timing does not depend on the values); y's layout is (O, B, P), the batch-major order aside.
+  void forward(const std::uint16_t* /*x*/, const std::uint16_t* w, std::uint16_t* y, const Conv2dShape& s,
+               cudaStream_t stream) override {
+    const std::int64_t k = s.in_channels * s.kernel * s.kernel, n = s.batch * s.out_height() * s.out_width();
+    if (cols_.size() < static_cast<std::size_t>(k * n)) {
+      cols_ = DeviceBuffer<std::uint16_t>(static_cast<std::size_t>(k * n));
+      PS_CUDA_CHECK(cudaMemset(cols_.data(), 0, cols_.bytes()));
+    }
+    PS_CUBLAS_CHECK(cublasSetStream(handle_, stream));
+    const float one = 1.0f, zero = 0.0f;
+    // Column-major: y^T (n x O) = cols^T (n x K) w^T (K x O).
+    PS_CUBLAS_CHECK(cublasGemmEx(handle_, CUBLAS_OP_N, CUBLAS_OP_N, static_cast<int>(n),
+                                 static_cast<int>(s.out_channels), static_cast<int>(k), &one, cols_.data(), type_,
+                                 static_cast<int>(n), w, type_, static_cast<int>(k), &zero, y, type_,
+                                 static_cast<int>(n), CUBLAS_COMPUTE_32F, CUBLAS_GEMM_DEFAULT));
+  }
+
+ private:
+  cudaDataType_t type_;
+  cublasHandle_t handle_ = nullptr;
+  DeviceBuffer<std::uint16_t> cols_;
+};
+
 }  // namespace
+
+std::unique_ptr<HalfConvPeer> make_vendor_half_conv(ConvolutionImpl impl, bool bf16) {
+  switch (impl) {
+    case ConvolutionImpl::Cudnn:
+#if defined(PILLARSEG_WITH_CUDNN)
+      return std::make_unique<CudnnHalfConv>(bf16);
+#else
+      PS_FAIL("cuDNN 16-bit peer: this build has no cuDNN");
+#endif
+    case ConvolutionImpl::Cublas:
+      return std::make_unique<CublasHalfGemm>(bf16);
+    case ConvolutionImpl::Own:
+      break;
+  }
+  PS_FAIL("make_vendor_half_conv: ConvolutionImpl::Own is ours (conv2d_mma_forward)");
+}
 
 std::unique_ptr<Conv2dEngine> make_vendor_conv2d(ConvolutionImpl impl,
                                                  const VendorConvOptions& options) {

@@ -92,4 +92,22 @@ class Conv2dEngine {
 std::unique_ptr<Conv2dEngine> make_vendor_conv2d(ConvolutionImpl impl,
                                                  const VendorConvOptions& options = {});
 
+// The vendors' 16-bit forward, beside the tensor-core convolutions (kernels/conv2d_mma.cuh) in
+// the kernel benchmarks: x (B, I, H, W), w (O, I, k, k) and y (B, O, Ho, Wo) all BF16 or FP16
+// (`bf16`), FP32 accumulation, tensor-core math.
+//   cuDNN: cudnnConvolutionForward with the fastest algorithm cudnnFind* times (chosen, and its
+//     workspace allocated, at the first call of a shape);
+//   cuBLAS: the convolution's implicit GEMM as an explicit one, D (O x B Ho Wo) = W (O x I k k)
+//     cols (I k k x B Ho Wo) by cublasGemmEx, on a cols buffer filled once (the GEMM alone: a
+//     lower bound of what an im2col convolution costs).
+class HalfConvPeer {
+ public:
+  virtual ~HalfConvPeer() = default;
+  virtual std::string name() const = 0;
+  virtual void forward(const std::uint16_t* x, const std::uint16_t* w, std::uint16_t* y, const Conv2dShape& shape,
+                       cudaStream_t stream) = 0;
+};
+// impl Cudnn or Cublas; throws pillarseg::Error for Own and for Cudnn without cuDNN.
+std::unique_ptr<HalfConvPeer> make_vendor_half_conv(ConvolutionImpl impl, bool bf16);
+
 }  // namespace pillarseg::cuda

@@ -20,8 +20,9 @@ namespace pillarseg {
 
 enum class Device { Cpu, Cuda };
 
-// The arithmetic of the evaluation convolutions: FP32, or BF16 / FP16 multiplies with FP32
-// accumulation (tensor cores on the CUDA backend). Everything else runs in FP32.
+// The arithmetic of the evaluation forward's U-Net: FP32, or BF16 / FP16 (convolutions on the
+// tensor cores with FP32 accumulation, activations stored in 16 bits between them, on the CUDA
+// backend). The PFN, scatter, head output, softmax, arg-max and training run in FP32.
 enum class Precision { F32, BF16, F16 };
 const char* precision_name(Precision p);  // "fp32", "bf16", "fp16"
 // "fp32", "bf16" or "fp16"; throws pillarseg::Error naming `what` (the option) otherwise.
@@ -72,7 +73,6 @@ class CapturedGraph {
   // capture): the graph must be recorded again before the next replay.
   virtual bool valid() const { return true; }
 };
-
 
 class Backend {
  public:

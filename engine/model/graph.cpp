@@ -13,7 +13,9 @@ namespace pillarseg {
 namespace {
 constexpr size_t kAlignment = 64;
 constexpr int kAlive = std::numeric_limits<int>::max();  // an output's last node
-size_t aligned(size_t bytes) { return (bytes + kAlignment - 1) / kAlignment * kAlignment; }
+size_t aligned(size_t bytes) {
+  return (bytes + kAlignment - 1) / kAlignment * kAlignment;
+}
 }  // namespace
 
 size_t dtype_bytes(DType dtype) {
@@ -31,47 +33,82 @@ size_t dtype_bytes(DType dtype) {
 
 const char* dtype_name(DType dtype) {
   switch (dtype) {
-    case DType::F32: return "f32";
-    case DType::I32: return "i32";
-    case DType::U8: return "u8";
-    case DType::U16: return "16b";
+    case DType::F32:
+      return "f32";
+    case DType::I32:
+      return "i32";
+    case DType::U8:
+      return "u8";
+    case DType::U16:
+      return "16b";
   }
   return "?";
 }
 
 const char* op_name(OpKind op) {
   switch (op) {
-    case OpKind::FillZero: return "fill zero";
-    case OpKind::PfnForward: return "pfn forward";
-    case OpKind::PfnBackward: return "pfn backward";
-    case OpKind::Scatter: return "scatter forward";
-    case OpKind::ScatterBackward: return "scatter backward";
-    case OpKind::CopyChannels: return "channel copies";
-    case OpKind::ExtractChannels: return "channel copies";
-    case OpKind::Conv2d: return "conv forward";
-    case OpKind::Conv2dBnReluEval: return "conv+BN+ReLU eval";
-    case OpKind::Conv2dBackward: return "conv backward";
-    case OpKind::ConvTranspose2x2: return "convT 2x2 forward";
-    case OpKind::ConvTranspose2x2Backward: return "convT 2x2 backward";
-    case OpKind::BatchNormRelu: return "batchnorm+relu forward";
-    case OpKind::BatchNormReluBackward: return "batchnorm+relu backward";
-    case OpKind::MaxPool2x2: return "maxpool forward";
-    case OpKind::MaxPool2x2Backward: return "maxpool backward";
-    case OpKind::Upsample2x: return "upsample forward";
-    case OpKind::Upsample2xBackward: return "upsample backward";
-    case OpKind::PadConcat: return "pad+concat forward";
-    case OpKind::PadConcatBackward: return "pad+concat backward";
-    case OpKind::AddInplace: return "add (skip gradients)";
-    case OpKind::Loss: return "loss";
-    case OpKind::PrepareConvWeights: return "16-bit weights";
-    case OpKind::PrepareConvTransposeWeights: return "16-bit weights";
-    case OpKind::Conv2dHalf: return "conv 16-bit (tensor cores)";
-    case OpKind::ConvTranspose2x2Half: return "convT 2x2 16-bit (tensor cores)";
-    case OpKind::ToHalf: return "to 16-bit";
-    case OpKind::MaxPool2x2Half: return "maxpool 16-bit";
-    case OpKind::Upsample2xHalf: return "upsample 16-bit";
-    case OpKind::PadConcatHalf: return "pad+concat 16-bit";
-    case OpKind::CopyChannelsHalf: return "channel copies 16-bit";
+    case OpKind::FillZero:
+      return "fill zero";
+    case OpKind::PfnForward:
+      return "pfn forward";
+    case OpKind::PfnBackward:
+      return "pfn backward";
+    case OpKind::Scatter:
+      return "scatter forward";
+    case OpKind::ScatterBackward:
+      return "scatter backward";
+    case OpKind::CopyChannels:
+      return "channel copies";
+    case OpKind::ExtractChannels:
+      return "channel copies";
+    case OpKind::Conv2d:
+      return "conv forward";
+    case OpKind::Conv2dBnReluEval:
+      return "conv+BN+ReLU eval";
+    case OpKind::Conv2dBackward:
+      return "conv backward";
+    case OpKind::ConvTranspose2x2:
+      return "convT 2x2 forward";
+    case OpKind::ConvTranspose2x2Backward:
+      return "convT 2x2 backward";
+    case OpKind::BatchNormRelu:
+      return "batchnorm+relu forward";
+    case OpKind::BatchNormReluBackward:
+      return "batchnorm+relu backward";
+    case OpKind::MaxPool2x2:
+      return "maxpool forward";
+    case OpKind::MaxPool2x2Backward:
+      return "maxpool backward";
+    case OpKind::Upsample2x:
+      return "upsample forward";
+    case OpKind::Upsample2xBackward:
+      return "upsample backward";
+    case OpKind::PadConcat:
+      return "pad+concat forward";
+    case OpKind::PadConcatBackward:
+      return "pad+concat backward";
+    case OpKind::AddInplace:
+      return "add (skip gradients)";
+    case OpKind::Loss:
+      return "loss";
+    case OpKind::PrepareConvWeights:
+      return "16-bit weights";
+    case OpKind::PrepareConvTransposeWeights:
+      return "16-bit weights";
+    case OpKind::Conv2dHalf:
+      return "conv 16-bit (tensor cores)";
+    case OpKind::ConvTranspose2x2Half:
+      return "convT 2x2 16-bit (tensor cores)";
+    case OpKind::ToHalf:
+      return "to 16-bit";
+    case OpKind::MaxPool2x2Half:
+      return "maxpool 16-bit";
+    case OpKind::Upsample2xHalf:
+      return "upsample 16-bit";
+    case OpKind::PadConcatHalf:
+      return "pad+concat 16-bit";
+    case OpKind::CopyChannelsHalf:
+      return "channel copies 16-bit";
   }
   return "?";
 }
@@ -93,8 +130,9 @@ int Graph::view(std::string name, int of, Shape shape, size_t byte_offset) {
   t.dtype = base.dtype;
   t.view_of = of;
   t.view_offset = byte_offset;
-  PS_CHECK(byte_offset + t.bytes() <= base.bytes(), "graph: view {} ({} bytes at {}) outside {} ({} bytes)", t.name,
-           t.bytes(), byte_offset, base.name, base.bytes());
+  PS_CHECK(byte_offset + t.bytes() <= base.bytes(),
+           "graph: view {} ({} bytes at {}) outside {} ({} bytes)", t.name, t.bytes(), byte_offset,
+           base.name, base.bytes());
   tensors_.push_back(std::move(t));
   return static_cast<int>(tensors_.size()) - 1;
 }
@@ -112,8 +150,8 @@ int Graph::parameter(int index, Shape shape, bool gradient) {
 GraphNode& Graph::add(GraphNode node) {
   for (const std::vector<int>* list : {&node.reads, &node.writes})
     for (int id : *list)
-      PS_CHECK(id >= 0 && id < static_cast<int>(tensors_.size()), "graph: node {} names tensor {} of {}", node.name, id,
-               tensors_.size());
+      PS_CHECK(id >= 0 && id < static_cast<int>(tensors_.size()),
+               "graph: node {} names tensor {} of {}", node.name, id, tensors_.size());
   nodes_.push_back(std::move(node));
   return nodes_.back();
 }
@@ -151,8 +189,9 @@ size_t Graph::plan() {
   }
   // Largest first (ties: in order of declaration), each at the lowest aligned offset that meets
   // no placed tensor alive at the same time.
-  std::stable_sort(order.begin(), order.end(),
-                   [&](size_t a, size_t b) { return aligned(tensors_[a].bytes()) > aligned(tensors_[b].bytes()); });
+  std::stable_sort(order.begin(), order.end(), [&](size_t a, size_t b) {
+    return aligned(tensors_[a].bytes()) > aligned(tensors_[b].bytes());
+  });
   std::vector<size_t> placed;
   size_t total = 0;
   for (size_t id : order) {
@@ -162,7 +201,9 @@ size_t Graph::plan() {
     for (size_t other : placed) {
       const bool meet = lifetimes_[other].first <= lifetimes_[id].second &&
                         lifetimes_[id].first <= lifetimes_[other].second;
-      if (meet) busy.push_back({tensors_[other].offset, tensors_[other].offset + aligned(tensors_[other].bytes())});
+      if (meet)
+        busy.push_back(
+            {tensors_[other].offset, tensors_[other].offset + aligned(tensors_[other].bytes())});
     }
     std::sort(busy.begin(), busy.end());
     size_t offset = 0;
@@ -188,18 +229,23 @@ std::string Graph::memory_report(size_t largest) const {
   std::vector<size_t> order;
   for (size_t id = 0; id < tensors_.size(); ++id)
     if (tensors_[id].planned()) order.push_back(id);
-  std::sort(order.begin(), order.end(), [&](size_t a, size_t b) { return tensors_[a].bytes() > tensors_[b].bytes(); });
+  std::sort(order.begin(), order.end(),
+            [&](size_t a, size_t b) { return tensors_[a].bytes() > tensors_[b].bytes(); });
   size_t sum = 0;
   for (size_t id : order) sum += aligned(tensors_[id].bytes());
-  std::string report = fmt::format("{} planned tensors, {:.1f} MiB of them in a block of {:.1f} MiB ({} nodes)\n",
-                                   order.size(), static_cast<double>(sum) / (1 << 20),
-                                   static_cast<double>(planned_bytes_) / (1 << 20), nodes_.size());
+  std::string report =
+      fmt::format("{} planned tensors, {:.1f} MiB of them in a block of {:.1f} MiB ({} nodes)\n",
+                  order.size(), static_cast<double>(sum) / (1 << 20),
+                  static_cast<double>(planned_bytes_) / (1 << 20), nodes_.size());
   for (size_t k = 0; k < std::min(largest, order.size()); ++k) {
     const GraphTensor& t = tensors_[order[k]];
-    const auto& [first, last] = lifetimes_.empty() ? std::pair<int, int>{0, 0} : lifetimes_[order[k]];
-    report += fmt::format("  {:<32} {:<22} {:>4} {:>9.1f} MiB at {:>9.1f} MiB, nodes {}..{}\n", t.name,
-                          shape_str(t.shape), dtype_name(t.dtype), static_cast<double>(t.bytes()) / (1 << 20),
-                          static_cast<double>(t.offset) / (1 << 20), first < 0 ? std::string("input") : std::to_string(first),
+    const auto& [first, last] =
+        lifetimes_.empty() ? std::pair<int, int>{0, 0} : lifetimes_[order[k]];
+    report += fmt::format("  {:<32} {:<22} {:>4} {:>9.1f} MiB at {:>9.1f} MiB, nodes {}..{}\n",
+                          t.name, shape_str(t.shape), dtype_name(t.dtype),
+                          static_cast<double>(t.bytes()) / (1 << 20),
+                          static_cast<double>(t.offset) / (1 << 20),
+                          first < 0 ? std::string("input") : std::to_string(first),
                           last == kAlive ? std::string("end") : std::to_string(last));
   }
   return report;

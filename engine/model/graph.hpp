@@ -27,17 +27,17 @@ size_t dtype_bytes(DType dtype);
 const char* dtype_name(DType dtype);
 
 enum class OpKind {
-  FillZero,               // w0 = 0
-  PfnForward,             // r: points, weight | w: out (training: argmax, save stats)
-  PfnBackward,            // r: points, weight, argmax, dout | w: dweight, dgamma, dbeta
-  Scatter,                // r: features, cells | w: canvas band
-  ScatterBackward,        // r: dcanvas band, cells | w: dfeatures
-  CopyChannels,           // r: x | w: band of y
-  ExtractChannels,        // r: band of y | w: x
-  Conv2d,                 // r: x, w, bias | w: y
-  Conv2dBnReluEval,       // r: x, w, bias, BatchNorm | w: y
-  Conv2dBackward,         // r: x, w, dy | w: dx, dw, dbias
-  ConvTranspose2x2,       // r: x, w, bias | w: y
+  FillZero,          // w0 = 0
+  PfnForward,        // r: points, weight | w: out (training: argmax, save stats)
+  PfnBackward,       // r: points, weight, argmax, dout | w: dweight, dgamma, dbeta
+  Scatter,           // r: features, cells | w: canvas band
+  ScatterBackward,   // r: dcanvas band, cells | w: dfeatures
+  CopyChannels,      // r: x | w: band of y
+  ExtractChannels,   // r: band of y | w: x
+  Conv2d,            // r: x, w, bias | w: y
+  Conv2dBnReluEval,  // r: x, w, bias, BatchNorm | w: y
+  Conv2dBackward,    // r: x, w, dy | w: dx, dw, dbias
+  ConvTranspose2x2,  // r: x, w, bias | w: y
   ConvTranspose2x2Backward,
   BatchNormRelu,          // r: x | w: y (training: save stats)
   BatchNormReluBackward,  // r: x, y, dy, save stats | w: dx (may be dy), dgamma, dbeta
@@ -45,10 +45,10 @@ enum class OpKind {
   MaxPool2x2Backward,     // r: dy, argmax | w: dx
   Upsample2x,
   Upsample2xBackward,
-  PadConcat,              // r: skip, up | w: y
-  PadConcatBackward,      // r: dy | w: dskip, dup
-  AddInplace,             // r: a, b | w: a
-  Loss,                   // r: logits, labels, coefficients | w: dlogits
+  PadConcat,          // r: skip, up | w: y
+  PadConcatBackward,  // r: dy | w: dskip, dup
+  AddInplace,         // r: a, b | w: a
+  Loss,               // r: logits, labels, coefficients | w: dlogits
   // Mixed precision (eval): 16-bit weights prepared from the FP32 parameters on every run, then
   // the tensor-core convolution.
   PrepareConvWeights,           // r: w, bias, BatchNorm | w: w16, bias_out
@@ -70,14 +70,14 @@ struct GraphTensor {
   std::string name;  // "down2.conv1.out": for the memory report
   Shape shape;
   DType dtype = DType::F32;
-  int view_of = -1;            // >= 0: lies in that tensor at view_offset bytes
+  int view_of = -1;  // >= 0: lies in that tensor at view_offset bytes
   size_t view_offset = 0;
-  int parameter = -1;          // >= 0: a parameter's value, or its gradient with `gradient`
+  int parameter = -1;  // >= 0: a parameter's value, or its gradient with `gradient`
   bool gradient = false;
-  bool input = false;          // written before the graph runs (an upload): alive from the start
-  bool output = false;         // read after the graph ran: alive to the end
-  bool dynamic_rows = false;   // dim 0 is the pillar rows of the current batch (planned: capacity)
-  size_t offset = 0;           // planned: bytes into the block
+  bool input = false;         // written before the graph runs (an upload): alive from the start
+  bool output = false;        // read after the graph ran: alive to the end
+  bool dynamic_rows = false;  // dim 0 is the pillar rows of the current batch (planned: capacity)
+  size_t offset = 0;          // planned: bytes into the block
   size_t bytes() const { return static_cast<size_t>(shape_numel(shape)) * dtype_bytes(dtype); }
   bool planned() const { return view_of < 0 && parameter < 0; }
 };
@@ -85,16 +85,16 @@ struct GraphTensor {
 struct GraphNode {
   OpKind op = OpKind::FillZero;
   Stage stage = Stage::UNet;
-  std::string name;            // "down2.conv1"
-  std::vector<int> args;       // the op's tensors in its Backend method's order (-1: absent)
+  std::string name;       // "down2.conv1"
+  std::vector<int> args;  // the op's tensors in its Backend method's order (-1: absent)
   std::vector<int> reads, writes;
-  int pad = 0;                 // convolutions
-  int channel0 = 0;            // scatter, channel copies
-  int batchnorm = -1;          // the model's BatchNorm this node uses
-  bool training = false;       // PFN, BatchNorm: batch statistics
-  bool relu = false;           // Conv2dHalf
-  Shape weight;                // Conv2dHalf, ConvTranspose2x2Half: the FP32 weight's shape
-  double flops = 0;            // 2 x multiply-adds of its arithmetic on weights
+  int pad = 0;            // convolutions
+  int channel0 = 0;       // scatter, channel copies
+  int batchnorm = -1;     // the model's BatchNorm this node uses
+  bool training = false;  // PFN, BatchNorm: batch statistics
+  bool relu = false;      // Conv2dHalf
+  Shape weight;           // Conv2dHalf, ConvTranspose2x2Half: the FP32 weight's shape
+  double flops = 0;       // 2 x multiply-adds of its arithmetic on weights
 };
 
 class Graph {
@@ -116,7 +116,9 @@ class Graph {
   size_t planned_bytes() const { return planned_bytes_; }
   // After plan(): the first and last node that a planned tensor is alive at (-1: from before the
   // first node, an input; INT_MAX: to the end, an output).
-  std::pair<int, int> lifetime(int id) const { return lifetimes_.at(static_cast<size_t>(root(id))); }
+  std::pair<int, int> lifetime(int id) const {
+    return lifetimes_.at(static_cast<size_t>(root(id)));
+  }
   double flops(size_t begin, size_t end) const;
   // The largest planned tensors with their offsets and lifetimes, and the total, as text.
   std::string memory_report(size_t largest = 12) const;

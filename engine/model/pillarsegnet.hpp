@@ -60,13 +60,14 @@ class PillarSegNet {
     double upload = 0, pfn = 0, scatter = 0, occupancy = 0, unet = 0, head = 0;
   };
   void set_stage_timing(bool on) { time_stages_ = on; }
+  const StageTimes& stage_times() const { return stage_times_; }
 
-  // The arithmetic of the evaluation forward's convolutions (training always runs FP32): BF16 or
-  // FP16 on a backend that supports_precision() it (the CUDA backend on compute capability 8.0
-  // or later, or the emulation), else throws pillarseg::Error with the reason.
+  // The arithmetic of the evaluation forward's U-Net (training always runs FP32): BF16 or FP16
+  // convolutions and activations on a backend that supports_precision() it (the CUDA backend on
+  // compute capability 8.0 or later, or the emulation), else throws pillarseg::Error with the
+  // reason. The evaluation graph is planned again at the next forward.
   void set_precision(Precision precision);
   Precision precision() const;
-  const StageTimes& stage_times() const { return stage_times_; }
 
   // Runs the network on host inputs (uploaded first); training: batch statistics (and
   // running-statistic updates). Evaluation on a backend that captures graphs (and with stage

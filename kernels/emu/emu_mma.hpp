@@ -32,7 +32,9 @@
 namespace pillarseg::emu {
 
 // 16-bit floats: bfloat16 (8 exponent bits) and IEEE binary16 (5), as bits.
-inline float bf16_bits_to_float(std::uint16_t bits) { return std::bit_cast<float>(std::uint32_t{bits} << 16); }
+inline float bf16_bits_to_float(std::uint16_t bits) {
+  return std::bit_cast<float>(std::uint32_t{bits} << 16);
+}
 
 inline float f16_bits_to_float(std::uint16_t h) {
   const std::uint32_t sign = std::uint32_t{h & 0x8000u} << 16;
@@ -80,8 +82,8 @@ void mma_m16n8k16(void* const* lanes) {
   }
 }
 
-inline void mma_m16n8k16_collective(bool bf16, float d[4], const std::uint32_t a[4], const std::uint32_t b[2],
-                                    const float c[4]) {
+inline void mma_m16n8k16_collective(bool bf16, float d[4], const std::uint32_t a[4],
+                                    const std::uint32_t b[2], const float c[4]) {
   MmaLane lane;
   std::memcpy(lane.a, a, sizeof lane.a);
   std::memcpy(lane.b, b, sizeof lane.b);
@@ -102,9 +104,10 @@ void ldmatrix_compute(void* const* lanes) {
   for (int j = 0; j < Matrices; ++j) {
     for (int r = 0; r < 8; ++r) {
       const std::uint16_t* row = static_cast<const LdmatrixLane*>(lanes[8 * j + r])->row;
-      PS_CHECK(reinterpret_cast<std::uintptr_t>(row) % 16 == 0,
-               "CUDA emulation: ldmatrix: lane {} gave the row address {}, which is not 16-byte aligned", 8 * j + r,
-               static_cast<const void*>(row));
+      PS_CHECK(
+          reinterpret_cast<std::uintptr_t>(row) % 16 == 0,
+          "CUDA emulation: ldmatrix: lane {} gave the row address {}, which is not 16-byte aligned",
+          8 * j + r, static_cast<const void*>(row));
       std::memcpy(m[j][r], row, 16);
     }
   }
@@ -123,7 +126,8 @@ template <int Matrices, bool Transposed>
 void ldmatrix_collective(std::uint32_t* r, const void* row_address) {
   LdmatrixLane lane;
   lane.row = static_cast<const std::uint16_t*>(row_address);
-  warp_matrix(Transposed ? "ldmatrix.trans" : "ldmatrix", 0xffffffffu, &lane, &ldmatrix_compute<Matrices, Transposed>);
+  warp_matrix(Transposed ? "ldmatrix.trans" : "ldmatrix", 0xffffffffu, &lane,
+              &ldmatrix_compute<Matrices, Transposed>);
   for (int j = 0; j < Matrices; ++j) r[j] = lane.r[j];
 }
 
