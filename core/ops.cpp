@@ -134,6 +134,14 @@ Shape add(const Shape& a, const Shape& b) {
   return a;
 }
 
+int64_t half16_padded_k(int64_t k) { return (k + kHalf16WeightK - 1) / kHalf16WeightK * kHalf16WeightK; }
+
+Shape half16_conv_weights(const Shape& weight, bool transposed) {
+  PS_CHECK(weight.size() == 4, "16-bit weights: weight must have 4 dimensions, got shape {}", shape_str(weight));
+  if (transposed) return {4 * weight[1], half16_padded_k(weight[0])};
+  return {weight[0], half16_padded_k(weight[1] * weight[2] * weight[3])};
+}
+
 double conv2d_flops(const Shape& y, const Shape& weight) {
   return 2.0 * static_cast<double>(shape_numel(y)) *
          static_cast<double>(weight[1] * weight[2] * weight[3]);

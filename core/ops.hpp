@@ -53,6 +53,13 @@ Shape loss(const Shape& logits, const Shape& labels, const Shape& coefficients);
 // a += b: b must have a's shape. Returns it.
 Shape add(const Shape& a, const Shape& b);
 
+// The 16-bit weights of a tensor-core convolution (kernels/conv2d_mma.cuh): the GEMM's K (I k k
+// for weight (O, I, k, k); I for a transposed one's (I, O, 2, 2)) rounded up to a multiple of
+// kHalf16WeightK, and the shape (O, Kp) or (4 O, Kp) of the prepared weights.
+inline constexpr int64_t kHalf16WeightK = 32;
+int64_t half16_padded_k(int64_t k);
+Shape half16_conv_weights(const Shape& weight, bool transposed);
+
 // Multiply-adds x 2 of the ops that do arithmetic on weights (for FLOP counts): a convolution
 // of output (B, O, h, w) with weight (O, I, k, k); a transposed one of input (B, I, H, W) with
 // weight (I, O, 2, 2); the PFN's linear layer on points (P, N, 10) with weight (C, 10).

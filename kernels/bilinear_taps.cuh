@@ -29,4 +29,4 @@ __device__ __forceinline__ Tap axis_tap(std::int64_t d, std::int64_t in, std::in
              static_cast<float>(remainder) / denominator};
 }
 
-}  // namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE
+}  // namespace pillarseg::cuda

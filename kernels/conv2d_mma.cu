@@ -13,10 +13,13 @@
 //     the transposed kind at its sub-pixel (2 h + dy, 2 w + dx).
 #include "kernels/conv2d_mma.cuh"
 
+#include <array>
+#include <atomic>
 #include <cstring>
 #include <string>
 #include <type_traits>
 
+#include "core/ops.hpp"
 #include "kernels/common.cuh"
 
 namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
@@ -200,12 +203,6 @@ __global__ void prepare_weights_kernel(const float* __restrict__ w, const float*
   if (kk == 0) bias_out[n] = scale * (bias != nullptr ? bias[o] : 0.0f) + shift;
 }
 
-template <Half16 H>
-__global__ void round_kernel(const float* __restrict__ x, std::int64_t n, float* __restrict__ y) {
-  const std::int64_t i = static_cast<std::int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
-  if (i < n) y[i] = from_half16<H>(to_half16<H>(x[i]));
-}
-
 // One warp: each lane builds its A and B registers from row-major A (16 x 16) and B (16 x 8) by
 // the ISA's formulas, runs the mma, and writes its four results to D (16 x 8) by the formula.
 template <Half16 H>
@@ -289,10 +286,9 @@ void run_gemm(const void* x, bool x_half, const std::uint16_t* w16, const float*
   PS_CHECK(mma_supported(&why), "conv2d_mma: {}", why);
   const dim3 grid(static_cast<unsigned>(ceil_div(rows, kTileM)),
                   static_cast<unsigned>(ceil_div(g.columns, kTileN)));
-  if (type == Half16::BF16)
-    launch_gemm<Half16::BF16>(grid, x, x_half, w16, bias, g, y, y_half, stream);
-  else
-    launch_gemm<Half16::F16>(grid, x, x_half, w16, bias, g, y, y_half, stream);
+  with_half16(type, [&](auto h) {
+    launch_gemm<decltype(h)::value>(grid, x, x_half, w16, bias, g, y, y_half, stream);
+  });
 }
 
 void run_prepare(const float* w, const float* bias, const FoldedBatchNorm& bn, std::int64_t rows,
@@ -301,29 +297,36 @@ void run_prepare(const float* w, const float* bias, const FoldedBatchNorm& bn, s
   const std::int64_t total = rows * mma_padded_k(k);
   if (total == 0) return;
   const dim3 grid(static_cast<unsigned>(ceil_div(total, 256)));
-  if (type == Half16::BF16)
-    launch_kernel(prepare_weights_kernel<Half16::BF16>, grid, dim3(256), 0, stream, w, bias, bn,
-                  rows, k, mma_padded_k(k), transposed, out_channels, w16, bias_out);
-  else
-    launch_kernel(prepare_weights_kernel<Half16::F16>, grid, dim3(256), 0, stream, w, bias, bn,
-                  rows, k, mma_padded_k(k), transposed, out_channels, w16, bias_out);
+  with_half16(type, [&](auto h) {
+    launch_kernel(prepare_weights_kernel<decltype(h)::value>, grid, dim3(256), 0, stream, w, bias,
+                  bn, rows, k, mma_padded_k(k), transposed, out_channels, w16, bias_out);
+  });
 }
 
 }  // namespace
 
-std::int64_t mma_padded_k(std::int64_t k) {
-  return ceil_div(k, kTileK) * kTileK;
-}
+static_assert(kTileK == op::kHalf16WeightK, "the prepared weights' K padding is the kernel's K step");
+
+std::int64_t mma_padded_k(std::int64_t k) { return op::half16_padded_k(k); }
 
 bool mma_supported(std::string* why_not) {
 #if defined(PILLARSEG_CUDA_EMULATION)
   static_cast<void>(why_not);
   return true;
 #else
-  int device = 0, major = 0, minor = 0;
+  int device = 0;
   PS_CUDA_CHECK(cudaGetDevice(&device));
-  PS_CUDA_CHECK(cudaDeviceGetAttribute(&major, cudaDevAttrComputeCapabilityMajor, device));
-  PS_CUDA_CHECK(cudaDeviceGetAttribute(&minor, cudaDevAttrComputeCapabilityMinor, device));
+  // Asked once per device: every launch checks it.
+  static std::array<std::atomic<int>, 64> cached{};  // 10 major + minor, 0: not asked yet
+  int capability = device >= 0 && device < 64 ? cached[static_cast<size_t>(device)].load() : 0;
+  if (capability == 0) {
+    int major = 0, minor = 0;
+    PS_CUDA_CHECK(cudaDeviceGetAttribute(&major, cudaDevAttrComputeCapabilityMajor, device));
+    PS_CUDA_CHECK(cudaDeviceGetAttribute(&minor, cudaDevAttrComputeCapabilityMinor, device));
+    capability = 10 * major + minor;
+    if (device >= 0 && device < 64) cached[static_cast<size_t>(device)].store(capability);
+  }
+  const int major = capability / 10, minor = capability % 10;
   if (major >= 8) return true;
   if (why_not != nullptr) {
     *why_not = fmt::format(
@@ -354,19 +357,13 @@ void conv2d_mma_forward(const void* x, bool x_half, const std::uint16_t* w16, co
                         const Conv2dShape& shape, Half16 type, bool relu, void* y, bool y_half,
                         cudaStream_t stream) {
   const std::int64_t k = shape.in_channels * shape.kernel * shape.kernel;
-  const MmaGemm g{shape.batch,
-                  shape.in_channels,
-                  shape.height,
-                  shape.width,
-                  shape.out_channels,
-                  shape.out_height(),
-                  shape.out_width(),
-                  k,
-                  mma_padded_k(k),
-                  static_cast<int>(shape.kernel),
-                  static_cast<int>(shape.pad),
-                  false,
-                  relu};
+  MmaGemm g{};
+  g.batch = shape.batch, g.in_channels = shape.in_channels, g.height = shape.height;
+  g.width = shape.width, g.columns = shape.out_channels;
+  g.out_height = shape.out_height(), g.out_width = shape.out_width();
+  g.k = k, g.k_padded = mma_padded_k(k);
+  g.kernel = static_cast<int>(shape.kernel), g.pad = static_cast<int>(shape.pad);
+  g.transposed = false, g.relu = relu;
   run_gemm(x, x_half, w16, bias, g, type, y, y_half, stream);
 }
 
@@ -375,19 +372,12 @@ void conv_transpose2x2_mma_forward(const void* x, bool x_half, const std::uint16
                                    std::int64_t height, std::int64_t width,
                                    std::int64_t out_channels, Half16 type, void* y, bool y_half,
                                    cudaStream_t stream) {
-  const MmaGemm g{batch,
-                  in_channels,
-                  height,
-                  width,
-                  4 * out_channels,
-                  height,
-                  width,
-                  in_channels,
-                  mma_padded_k(in_channels),
-                  1,
-                  0,
-                  true,
-                  false};
+  // The pixels are x's; each of the 4 O columns writes its sub-pixel of y.
+  MmaGemm g{};
+  g.batch = batch, g.in_channels = in_channels, g.height = height, g.width = width;
+  g.columns = 4 * out_channels, g.out_height = height, g.out_width = width;
+  g.k = in_channels, g.k_padded = mma_padded_k(in_channels);
+  g.kernel = 1, g.pad = 0, g.transposed = true, g.relu = false;
   run_gemm(x, x_half, w16, bias, g, type, y, y_half, stream);
 }
 
@@ -395,23 +385,13 @@ void mma_fragment_probe(const float* a, const float* b, const float* c, Half16 t
                         cudaStream_t stream) {
   std::string why;
   PS_CHECK(mma_supported(&why), "mma_fragment_probe: {}", why);
-  if (type == Half16::BF16)
-    launch_kernel(mma_probe_kernel<Half16::BF16>, dim3(1), dim3(32), 0, stream, a, b, c, d);
-  else
-    launch_kernel(mma_probe_kernel<Half16::F16>, dim3(1), dim3(32), 0, stream, a, b, c, d);
+  with_half16(type, [&](auto h) {
+    launch_kernel(mma_probe_kernel<decltype(h)::value>, dim3(1), dim3(32), 0, stream, a, b, c, d);
+  });
 }
 
 void ldmatrix_probe(std::uint32_t* out, cudaStream_t stream) {
   launch_kernel(ldmatrix_probe_kernel, dim3(1), dim3(32), 0, stream, out);
 }
 
-void round_to_half16(const float* x, std::int64_t n, Half16 type, float* y, cudaStream_t stream) {
-  if (n == 0) return;
-  const dim3 grid(static_cast<unsigned>(ceil_div(n, 256)));
-  if (type == Half16::BF16)
-    launch_kernel(round_kernel<Half16::BF16>, grid, dim3(256), 0, stream, x, n, y);
-  else
-    launch_kernel(round_kernel<Half16::F16>, grid, dim3(256), 0, stream, x, n, y);
-}
-
-}  // namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE
+}  // namespace pillarseg::cuda

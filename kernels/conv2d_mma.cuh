@@ -64,10 +64,6 @@ void conv_transpose2x2_mma_forward(const void* x, bool x_half, const std::uint16
                                    std::int64_t out_channels, Half16 type, void* y, bool y_half,
                                    cudaStream_t stream);
 
-// x (n) FP32 -> y (n) the same values rounded to the 16-bit type and back (what the kernels see
-// of an activation; for tests and accuracy reports).
-void round_to_half16(const float* x, std::int64_t n, Half16 type, float* y, cudaStream_t stream);
-
 // Self-checks of the fragment layouts, one warp each (tests/test_kernels_mma.cpp, on the GPU
 // from the bundle): D (16 x 8) = A (16 x 16) B (16 x 8) + C, all row-major FP32, with each
 // lane's registers built from A and B by the PTX ISA's formulas and its results stored by them;
@@ -77,4 +73,4 @@ void mma_fragment_probe(const float* a, const float* b, const float* c, Half16 t
                         cudaStream_t stream);
 void ldmatrix_probe(std::uint32_t* out, cudaStream_t stream);
 
-}  // namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE
+}  // namespace pillarseg::cuda

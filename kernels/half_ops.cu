@@ -102,22 +102,19 @@ __global__ void copy_channels_kernel(const std::uint16_t* __restrict__ x, Channe
 
 void to_half16(const float* x, std::int64_t n, Half16 type, std::uint16_t* y, cudaStream_t stream) {
   if (n == 0) return;
-  if (type == Half16::BF16)
-    launch_kernel(to_half_kernel<Half16::BF16>, grid_for(n), dim3(kBlock), 0, stream, x, n, y);
-  else
-    launch_kernel(to_half_kernel<Half16::F16>, grid_for(n), dim3(kBlock), 0, stream, x, n, y);
+  with_half16(type, [&](auto h) {
+    launch_kernel(to_half_kernel<decltype(h)::value>, grid_for(n), dim3(kBlock), 0, stream, x, n, y);
+  });
 }
 
 void maxpool2x2_half16(const std::uint16_t* x, std::int64_t planes, std::int64_t height,
                        std::int64_t width, Half16 type, std::uint16_t* y, cudaStream_t stream) {
   const std::int64_t n = planes * (height / 2) * (width / 2);
   if (n == 0) return;
-  if (type == Half16::BF16)
-    launch_kernel(maxpool_kernel<Half16::BF16>, grid_for(n), dim3(kBlock), 0, stream, x, planes,
+  with_half16(type, [&](auto h) {
+    launch_kernel(maxpool_kernel<decltype(h)::value>, grid_for(n), dim3(kBlock), 0, stream, x, planes,
                   height, width, y);
-  else
-    launch_kernel(maxpool_kernel<Half16::F16>, grid_for(n), dim3(kBlock), 0, stream, x, planes,
-                  height, width, y);
+  });
 }
 
 void upsample2x_half16(const std::uint16_t* x, std::int64_t planes, std::int64_t height,
@@ -126,12 +123,10 @@ void upsample2x_half16(const std::uint16_t* x, std::int64_t planes, std::int64_t
   if (n == 0) return;
   PS_CHECK(height >= 1 && width >= 1, "upsample2x_half16: x must have H, W >= 1, got {} x {}",
            height, width);
-  if (type == Half16::BF16)
-    launch_kernel(upsample_kernel<Half16::BF16>, grid_for(n), dim3(kBlock), 0, stream, x, planes,
+  with_half16(type, [&](auto h) {
+    launch_kernel(upsample_kernel<decltype(h)::value>, grid_for(n), dim3(kBlock), 0, stream, x, planes,
                   height, width, y);
-  else
-    launch_kernel(upsample_kernel<Half16::F16>, grid_for(n), dim3(kBlock), 0, stream, x, planes,
-                  height, width, y);
+  });
 }
 
 void pad_concat_half16(const std::uint16_t* skip, const std::uint16_t* up,
@@ -149,4 +144,4 @@ void copy_channels_half16(const std::uint16_t* x, const ChannelBand& band, std::
   launch_kernel(copy_channels_kernel, grid_for(n), dim3(kBlock), 0, stream, x, band, y);
 }
 
-}  // namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE
+}  // namespace pillarseg::cuda

@@ -29,4 +29,4 @@ void pad_concat_half16(const std::uint16_t* skip, const std::uint16_t* up,
 void copy_channels_half16(const std::uint16_t* x, const ChannelBand& band, std::uint16_t* y,
                           cudaStream_t stream);
 
-}  // namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE
+}  // namespace pillarseg::cuda

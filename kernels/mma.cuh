@@ -11,6 +11,7 @@
 
 #include <cstdint>
 #include <cstring>
+#include <type_traits>
 
 #include "kernels/emu/cuda_compat.cuh"
 
@@ -87,6 +88,16 @@ __host__ __device__ inline float f16_bits_to_float(std::uint16_t bits) {
 #else
   return __half2float(__ushort_as_half(bits));
 #endif
+}
+
+// Calls f(std::integral_constant<Half16, type>{}): a launcher's one way from the run-time type to
+// a kernel template's argument (decltype(h)::value inside f).
+template <class F>
+void with_half16(Half16 type, F&& f) {
+  if (type == Half16::BF16)
+    f(std::integral_constant<Half16, Half16::BF16>{});
+  else
+    f(std::integral_constant<Half16, Half16::F16>{});
 }
 
 template <Half16 H>
@@ -169,4 +180,4 @@ __device__ inline void ldmatrix_x2(std::uint32_t r[2], const void* row_address) 
 
 #endif  // __CUDACC__ || PILLARSEG_CUDA_EMULATION
 
-}  // namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE
+}  // namespace pillarseg::cuda

@@ -131,9 +131,6 @@ class TimedBackend final : public Backend {
   bool supports_precision(Precision p, std::string* why_not) const override {
     return inner_->supports_precision(p, why_not);
   }
-  Shape prepared_conv_weights_shape(const Shape& weight, bool transposed) const override {
-    return inner_->prepared_conv_weights_shape(weight, transposed);
-  }
   void prepare_conv_weights(const Ref& w, const Ref* bias, const BatchNormRefs* bn, Precision p, HRef& w16,
                             Ref& bias_out) override {
     timed("16-bit weights", 0, [&] { inner_->prepare_conv_weights(w, bias, bn, p, w16, bias_out); });

@@ -823,7 +823,7 @@ void CudaBackend::prepare_conv_weights(const Ref& w, const Ref* bias, const Batc
   require_rank(op, "w", w, 4);
   const cuda::Conv2dShape shape{1, w.dim(1), w.dim(2), w.dim(3), w.dim(0), w.dim(2), 0};
   if (bias) require_shape(op, "bias", *bias, {w.dim(0)});
-  require_shape(op, "w16", w16, prepared_conv_weights_shape(w.shape, false));
+  require_shape(op, "w16", w16, op::half16_conv_weights(w.shape, false));
   require_shape(op, "bias_out", bias_out, {w.dim(0)});
   cuda::FoldedBatchNorm folded;
   if (bn != nullptr) {
@@ -839,7 +839,7 @@ void CudaBackend::prepare_conv_transpose_weights(const Ref& w, const Ref* bias, 
   const char* op = "prepare_conv_transpose_weights";
   require_rank(op, "w", w, 4);
   if (bias) require_shape(op, "bias", *bias, {w.dim(1)});
-  require_shape(op, "w16", w16, prepared_conv_weights_shape(w.shape, true));
+  require_shape(op, "w16", w16, op::half16_conv_weights(w.shape, true));
   require_shape(op, "bias_out", bias_out, {4 * w.dim(1)});
   cuda::prepare_conv_transpose_weights(w.data, bias ? bias->data : nullptr, w.dim(0), w.dim(1), half_type(op, p),
                                        w16.data, bias_out.data, stream_.get());
@@ -850,7 +850,7 @@ void CudaBackend::conv2d_half_forward(const ActRef& x, const HRef& w16, const Re
   const char* op = "conv2d_half_forward";
   const Shape y_shape = op::conv2d(x.shape, weight, pad, nullptr, op);
   PS_CHECK(y.shape == y_shape, "{}: y must be {}, got {}", op, shape_str(y_shape), shape_str(y.shape));
-  require_shape(op, "w16", w16, prepared_conv_weights_shape(weight, false));
+  require_shape(op, "w16", w16, op::half16_conv_weights(weight, false));
   require_shape(op, "bias_out", bias_out, {weight[0]});
   const cuda::Conv2dShape shape{x.dim(0), x.dim(1), x.dim(2), x.dim(3), weight[0], weight[2], pad};
   cuda::conv2d_mma_forward(x.data, x.half, w16.data, bias_out.data, shape, half_type(op, p), relu, y.data, y.half,
@@ -862,7 +862,7 @@ void CudaBackend::conv_transpose2x2_half_forward(const ActRef& x, const HRef& w1
   const char* op = "conv_transpose2x2_half_forward";
   const Shape y_shape = op::conv_transpose2x2(x.shape, weight, nullptr, op);
   PS_CHECK(y.shape == y_shape, "{}: y must be {}, got {}", op, shape_str(y_shape), shape_str(y.shape));
-  require_shape(op, "w16", w16, prepared_conv_weights_shape(weight, true));
+  require_shape(op, "w16", w16, op::half16_conv_weights(weight, true));
   require_shape(op, "bias_out", bias_out, {4 * weight[1]});
   cuda::conv_transpose2x2_mma_forward(x.data, x.half, w16.data, bias_out.data, x.dim(0), x.dim(1), x.dim(2),
                                       x.dim(3), weight[1], half_type(op, p), y.data, y.half, stream_.get());

@@ -349,6 +349,25 @@ struct CudnnPlan {
   CudnnPlan(const CudnnPlan&) = delete;
   CudnnPlan& operator=(const CudnnPlan&) = delete;
 
+  // The descriptors of shape `s` with tensors of `type` (NCHW), FP32 compute and `math`.
+  void describe(const Conv2dShape& s, cudnnDataType_t type, cudnnMathType_t math) {
+    const auto i32 = [](std::int64_t v) { return static_cast<int>(v); };
+    PS_CUDNN_CHECK(cudnnSetTensor4dDescriptor(x, CUDNN_TENSOR_NCHW, type, i32(s.batch),
+                                              i32(s.in_channels), i32(s.height), i32(s.width)));
+    PS_CUDNN_CHECK(cudnnSetTensor4dDescriptor(y, CUDNN_TENSOR_NCHW, type, i32(s.batch),
+                                              i32(s.out_channels), i32(s.out_height()),
+                                              i32(s.out_width())));
+    PS_CUDNN_CHECK(
+        cudnnSetTensor4dDescriptor(bias, CUDNN_TENSOR_NCHW, type, 1, i32(s.out_channels), 1, 1));
+    PS_CUDNN_CHECK(cudnnSetFilter4dDescriptor(w, type, CUDNN_TENSOR_NCHW, i32(s.out_channels),
+                                              i32(s.in_channels), i32(s.kernel), i32(s.kernel)));
+    // pad on both axes, stride 1, dilation 1; cross-correlation is what conv2d.cuh computes
+    // (CUDNN_CONVOLUTION would flip the kernel). The compute type is float.
+    PS_CUDNN_CHECK(cudnnSetConvolution2dDescriptor(conv, i32(s.pad), i32(s.pad), 1, 1, 1, 1,
+                                                   CUDNN_CROSS_CORRELATION, CUDNN_DATA_FLOAT));
+    PS_CUDNN_CHECK(cudnnSetConvolutionMathType(conv, math));
+  }
+
   cudnnTensorDescriptor_t x = nullptr, y = nullptr, bias = nullptr;
   cudnnFilterDescriptor_t w = nullptr;
   cudnnConvolutionDescriptor_t conv = nullptr;
@@ -469,24 +488,8 @@ class CudnnConv2d final : public Conv2dEngine {
     auto found = plans_.find(key);
     if (found != plans_.end()) return *found->second;
     auto plan = std::make_unique<CudnnPlan>();
-    const auto i32 = [](std::int64_t v) { return static_cast<int>(v); };
-    PS_CUDNN_CHECK(cudnnSetTensor4dDescriptor(plan->x, CUDNN_TENSOR_NCHW, CUDNN_DATA_FLOAT,
-                                              i32(s.batch), i32(s.in_channels), i32(s.height),
-                                              i32(s.width)));
-    PS_CUDNN_CHECK(cudnnSetTensor4dDescriptor(plan->y, CUDNN_TENSOR_NCHW, CUDNN_DATA_FLOAT,
-                                              i32(s.batch), i32(s.out_channels),
-                                              i32(s.out_height()), i32(s.out_width())));
-    PS_CUDNN_CHECK(cudnnSetTensor4dDescriptor(plan->bias, CUDNN_TENSOR_NCHW, CUDNN_DATA_FLOAT, 1,
-                                              i32(s.out_channels), 1, 1));
-    PS_CUDNN_CHECK(cudnnSetFilter4dDescriptor(plan->w, CUDNN_DATA_FLOAT, CUDNN_TENSOR_NCHW,
-                                              i32(s.out_channels), i32(s.in_channels),
-                                              i32(s.kernel), i32(s.kernel)));
-    // pad on both axes, stride 1, dilation 1; cross-correlation is what conv2d.cuh computes
-    // (CUDNN_CONVOLUTION would flip the kernel). The compute type is float.
-    PS_CUDNN_CHECK(cudnnSetConvolution2dDescriptor(plan->conv, i32(s.pad), i32(s.pad), 1, 1, 1, 1,
-                                                   CUDNN_CROSS_CORRELATION, CUDNN_DATA_FLOAT));
-    PS_CUDNN_CHECK(cudnnSetConvolutionMathType(
-        plan->conv, options_.allow_tensor_cores ? CUDNN_DEFAULT_MATH : CUDNN_FMA_MATH));
+    plan->describe(s, CUDNN_DATA_FLOAT,
+                   options_.allow_tensor_cores ? CUDNN_DEFAULT_MATH : CUDNN_FMA_MATH);
     return *plans_.emplace(key, std::move(plan)).first->second;
   }
 
@@ -551,58 +554,41 @@ class CudnnHalfConv final : public HalfConvPeer {
   }
   CudnnHalfConv(const CudnnHalfConv&) = delete;
   CudnnHalfConv& operator=(const CudnnHalfConv&) = delete;
-  std::string name() const override { return type_ == CUDNN_DATA_BFLOAT16 ? "cudnn_bf16" : "cudnn_fp16"; }
+  std::string name() const override {
+    return type_ == CUDNN_DATA_BFLOAT16 ? "cudnn_bf16" : "cudnn_fp16";
+  }
 
-  void forward(const std::uint16_t* x, const std::uint16_t* w, std::uint16_t* y, const Conv2dShape& s,
-               cudaStream_t stream) override {
-    const auto key = std::array<std::int64_t, 7>{s.batch, s.in_channels, s.height, s.width, s.out_channels, s.kernel, s.pad};
-    auto& slot = plans_[key];
+  void forward(const std::uint16_t* x, const std::uint16_t* w, std::uint16_t* y,
+               const Conv2dShape& s, cudaStream_t stream) override {
+    check_shape("cuDNN 16-bit", s);
+    auto& slot =
+        plans_[{s.batch, s.in_channels, s.height, s.width, s.out_channels, s.kernel, s.pad}];
     PS_CUDNN_CHECK(cudnnSetStream(handle_, stream));
     if (!slot) {
       slot = std::make_unique<Plan>();
-      const auto i = [](std::int64_t v) { return static_cast<int>(v); };
-      PS_CUDNN_CHECK(cudnnSetTensor4dDescriptor(slot->x, CUDNN_TENSOR_NCHW, type_, i(s.batch), i(s.in_channels),
-                                                i(s.height), i(s.width)));
-      PS_CUDNN_CHECK(cudnnSetTensor4dDescriptor(slot->y, CUDNN_TENSOR_NCHW, type_, i(s.batch), i(s.out_channels),
-                                                i(s.out_height()), i(s.out_width())));
-      PS_CUDNN_CHECK(cudnnSetFilter4dDescriptor(slot->w, type_, CUDNN_TENSOR_NCHW, i(s.out_channels),
-                                                i(s.in_channels), i(s.kernel), i(s.kernel)));
-      PS_CUDNN_CHECK(cudnnSetConvolution2dDescriptor(slot->conv, i(s.pad), i(s.pad), 1, 1, 1, 1,
-                                                     CUDNN_CROSS_CORRELATION, CUDNN_DATA_FLOAT));
-      PS_CUDNN_CHECK(cudnnSetConvolutionMathType(slot->conv, CUDNN_TENSOR_OP_MATH));
+      CudnnPlan& d = slot->descriptors;
+      d.describe(s, type_, CUDNN_TENSOR_OP_MATH);
       cudnnConvolutionFwdAlgoPerf_t results[CUDNN_CONVOLUTION_FWD_ALGO_COUNT];
       int returned = 0;
-      PS_CUDNN_CHECK(cudnnFindConvolutionForwardAlgorithm(handle_, slot->x, slot->w, slot->conv, slot->y,
-                                                          CUDNN_CONVOLUTION_FWD_ALGO_COUNT, &returned, results));
+      PS_CUDNN_CHECK(cudnnFindConvolutionForwardAlgorithm(
+          handle_, d.x, d.w, d.conv, d.y, CUDNN_CONVOLUTION_FWD_ALGO_COUNT, &returned, results));
       PS_CHECK(returned > 0 && results[0].status == CUDNN_STATUS_SUCCESS,
                "cuDNN: no 16-bit forward algorithm for this shape");
       slot->algorithm = results[0].algo;
       slot->workspace = DeviceBuffer<std::uint8_t>(std::max<std::size_t>(results[0].memory, 1));
     }
     const float one = 1.0f, zero = 0.0f;
-    PS_CUDNN_CHECK(cudnnConvolutionForward(handle_, &one, slot->x, x, slot->w, w, slot->conv, slot->algorithm,
-                                           slot->workspace.data(), slot->workspace.bytes(), &zero, slot->y, y));
+    const CudnnPlan& d = slot->descriptors;
+    PS_CUDNN_CHECK(cudnnConvolutionForward(handle_, &one, d.x, x, d.w, w, d.conv, slot->algorithm,
+                                           slot->workspace.data(), slot->workspace.bytes(), &zero,
+                                           d.y, y));
   }
 
  private:
+  // The FP32 engine's descriptors (its bias descriptor and algorithm choices unused), in the
+  // 16-bit type, with the algorithm cudnnFind* timed fastest and its workspace.
   struct Plan {
-    Plan() {
-      PS_CUDNN_CHECK(cudnnCreateTensorDescriptor(&x));
-      PS_CUDNN_CHECK(cudnnCreateTensorDescriptor(&y));
-      PS_CUDNN_CHECK(cudnnCreateFilterDescriptor(&w));
-      PS_CUDNN_CHECK(cudnnCreateConvolutionDescriptor(&conv));
-    }
-    ~Plan() {
-      static_cast<void>(cudnnDestroyConvolutionDescriptor(conv));
-      static_cast<void>(cudnnDestroyFilterDescriptor(w));
-      static_cast<void>(cudnnDestroyTensorDescriptor(y));
-      static_cast<void>(cudnnDestroyTensorDescriptor(x));
-    }
-    Plan(const Plan&) = delete;
-    Plan& operator=(const Plan&) = delete;
-    cudnnTensorDescriptor_t x = nullptr, y = nullptr;
-    cudnnFilterDescriptor_t w = nullptr;
-    cudnnConvolutionDescriptor_t conv = nullptr;
+    CudnnPlan descriptors;
     cudnnConvolutionFwdAlgo_t algorithm{};
     DeviceBuffer<std::uint8_t> workspace;
   };
@@ -621,13 +607,16 @@ class CublasHalfGemm final : public HalfConvPeer {
   ~CublasHalfGemm() override { static_cast<void>(cublasDestroy(handle_)); }
   CublasHalfGemm(const CublasHalfGemm&) = delete;
   CublasHalfGemm& operator=(const CublasHalfGemm&) = delete;
-  std::string name() const override { return type_ == CUDA_R_16BF ? "cublas_gemm_bf16" : "cublas_gemm_fp16"; }
+  std::string name() const override {
+    return type_ == CUDA_R_16BF ? "cublas_gemm_bf16" : "cublas_gemm_fp16";
+  }
 
   // y (O x B P, row-major, as one (O, B P) matrix) = w (O x K) cols (K x B P); cols is zero (the
   // timing does not depend on the values); y's layout is (O, B, P), the batch-major order aside.
-  void forward(const std::uint16_t* /*x*/, const std::uint16_t* w, std::uint16_t* y, const Conv2dShape& s,
-               cudaStream_t stream) override {
-    const std::int64_t k = s.in_channels * s.kernel * s.kernel, n = s.batch * s.out_height() * s.out_width();
+  void forward(const std::uint16_t* /*x*/, const std::uint16_t* w, std::uint16_t* y,
+               const Conv2dShape& s, cudaStream_t stream) override {
+    const std::int64_t k = s.in_channels * s.kernel * s.kernel,
+                       n = s.batch * s.out_height() * s.out_width();
     if (cols_.size() < static_cast<std::size_t>(k * n)) {
       cols_ = DeviceBuffer<std::uint16_t>(static_cast<std::size_t>(k * n));
       PS_CUDA_CHECK(cudaMemset(cols_.data(), 0, cols_.bytes()));
@@ -636,9 +625,10 @@ class CublasHalfGemm final : public HalfConvPeer {
     const float one = 1.0f, zero = 0.0f;
     // Column-major: y^T (n x O) = cols^T (n x K) w^T (K x O).
     PS_CUBLAS_CHECK(cublasGemmEx(handle_, CUBLAS_OP_N, CUBLAS_OP_N, static_cast<int>(n),
-                                 static_cast<int>(s.out_channels), static_cast<int>(k), &one, cols_.data(), type_,
-                                 static_cast<int>(n), w, type_, static_cast<int>(k), &zero, y, type_,
-                                 static_cast<int>(n), CUBLAS_COMPUTE_32F, CUBLAS_GEMM_DEFAULT));
+                                 static_cast<int>(s.out_channels), static_cast<int>(k), &one,
+                                 cols_.data(), type_, static_cast<int>(n), w, type_,
+                                 static_cast<int>(k), &zero, y, type_, static_cast<int>(n),
+                                 CUBLAS_COMPUTE_32F, CUBLAS_GEMM_DEFAULT));
   }
 
  private:
@@ -681,8 +671,9 @@ std::unique_ptr<Conv2dEngine> make_vendor_conv2d(ConvolutionImpl impl,
     case ConvolutionImpl::Own:
       break;
   }
-  PS_FAIL("make_vendor_conv2d: ConvolutionImpl::Own is not a vendor library (CudaBackend runs our "
-          "kernels for it)");
+  PS_FAIL(
+      "make_vendor_conv2d: ConvolutionImpl::Own is not a vendor library (CudaBackend runs our "
+      "kernels for it)");
 }
 
-}  // namespace pillarseg::cuda
+}  // namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE

@@ -58,12 +58,6 @@ bool Backend::supports_precision(Precision p, std::string* why_not) const {
   return false;
 }
 
-Shape Backend::prepared_conv_weights_shape(const Shape& weight, bool transposed) const {
-  const int64_t rows = transposed ? 4 * weight[1] : weight[0];
-  const int64_t k = transposed ? weight[0] : weight[1] * weight[2] * weight[3];
-  return {rows, (k + 31) / 32 * 32};
-}
-
 void Backend::prepare_conv_weights(const Ref&, const Ref*, const BatchNormRefs*, Precision p, HRef&, Ref&) {
   PS_FAIL("backend {}: no {} convolutions (supports_precision)", name(), precision_name(p));
 }

@@ -215,10 +215,8 @@ class Backend {
   // ---- mixed-precision evaluation convolutions (kernels/conv2d_mma.cuh is the spec) ----
   // Whether this backend runs them in `p` (F32 always); else false with the reason in why_not.
   virtual bool supports_precision(Precision p, std::string* why_not = nullptr) const;
-  // The rows of the prepared weights and their K, padded: (O, Kp) for a convolution with weight
-  // (O, I, k, k), (4 O, Kp) for a transposed one with weight (I, O, 2, 2).
-  virtual Shape prepared_conv_weights_shape(const Shape& weight, bool transposed) const;
-  // weight (O, I, k, k) [, bias (O)] [, eval BatchNorm] -> w16 (O, Kp) rounded to `p` with the
+  // weight (O, I, k, k) [, bias (O)] [, eval BatchNorm] -> w16 (O, Kp) (op::half16_conv_weights)
+  // rounded to `p` with the
   // BatchNorm scale multiplied in, bias_out (O) with its shift added.
   virtual void prepare_conv_weights(const Ref& w, const Ref* bias, const BatchNormRefs* bn, Precision p, HRef& w16,
                                     Ref& bias_out);

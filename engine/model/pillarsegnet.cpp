@@ -115,9 +115,8 @@ namespace {
 // Emits the nodes of one graph in the order the backend runs them.
 class Builder {
  public:
-  Builder(Graph& g, ParameterSet& ps, const std::vector<BnParams>& bns, bool training, const Backend& be,
-          Precision precision)
-      : g_(g), ps_(ps), bns_(bns), training_(training), be_(be), half_(training ? Precision::F32 : precision) {}
+  Builder(Graph& g, ParameterSet& ps, const std::vector<BnParams>& bns, bool training, Precision precision)
+      : g_(g), ps_(ps), bns_(bns), training_(training), half_(training ? Precision::F32 : precision) {}
 
   Stage stage = Stage::UNet;
   bool half() const { return half_ != Precision::F32; }
@@ -130,7 +129,7 @@ class Builder {
   // in, when >= 0) and the tensor-core convolution x -> y.
   void half_conv(const std::string& name, int x, int w, int b, int bn, int pad, bool relu, int y) {
     const Shape w_shape = shape(w);
-    const int w16 = g_.tensor(name + ".w16", be_.prepared_conv_weights_shape(w_shape, false), DType::U16);
+    const int w16 = g_.tensor(name + ".w16", op::half16_conv_weights(w_shape, false), DType::U16);
     const int b16 = g_.tensor(name + ".bias16", {w_shape[0]});
     GraphNode& prep = node(OpKind::PrepareConvWeights, name, {w, b, w16, b16}, {w, b}, {w16, b16});
     prep.batchnorm = bn;
@@ -143,7 +142,7 @@ class Builder {
   // The same for a transposed 2x2 convolution.
   void half_conv_transpose(const std::string& name, int x, int w, int b, int y) {
     const Shape w_shape = shape(w);
-    const int w16 = g_.tensor(name + ".w16", be_.prepared_conv_weights_shape(w_shape, true), DType::U16);
+    const int w16 = g_.tensor(name + ".w16", op::half16_conv_weights(w_shape, true), DType::U16);
     const int b16 = g_.tensor(name + ".bias16", {4 * w_shape[1]});
     node(OpKind::PrepareConvTransposeWeights, name, {w, b, w16, b16}, {w, b}, {w16, b16});
     GraphNode& n = node(OpKind::ConvTranspose2x2Half, name, {x, w16, b16, y}, {x, w16, b16}, {y});
@@ -253,7 +252,6 @@ class Builder {
   ParameterSet& ps_;
   const std::vector<BnParams>& bns_;
   bool training_;
-  const Backend& be_;
   Precision half_;
 };
 
@@ -349,7 +347,7 @@ void PillarSegNet::build_graph(GraphPlan& p, int batch, bool training) {
   ParameterSet& ps = params_;
   p.graph = Graph();
   Graph& g = p.graph;
-  Builder bld(g, ps, m.bns, training, backend_, m.precision);
+  Builder bld(g, ps, m.bns, training, m.precision);
   const int H = config_.grid.height(), W = config_.grid.width(), depth = config_.depth;
   const int64_t N = config_.max_points_per_pillar, C = config_.pillar_channels, cap = m.pillar_capacity;
   const int K = config_.num_classes;
