@@ -30,6 +30,8 @@
 #include "core/eigen.hpp"
 #include "core/parallel.hpp"
 #include "core/rng.hpp"
+#include "core/ops.hpp"
+#include "engine/cpu/bf16_conv.hpp"
 #include "engine/model/backend.hpp"
 #include "engine/model/pillarsegnet.hpp"
 #include "host/conv2d.hpp"
@@ -51,9 +53,11 @@ struct LayerResult {
   std::string name, shape;
   double gflop = 0.0;
   StepTimes ours, reference, torch;  // ours: the CPU backend's fast path; reference: host/
+  StepTimes bf16;                    // ours in BF16 (engine/cpu/bf16_conv), where the CPU has it
 };
 std::vector<LayerResult> g_layers;
 std::string g_layer_peer_note;
+std::string g_bf16_note;  // why the BF16 column is empty
 
 // ---- GEMM reference ----
 
@@ -126,13 +130,26 @@ void BM_Conv3x3(benchmark::State& state, const Layer& l) {
   const Ref x_ref{const_cast<float*>(x.data()), x.shape()}, w_ref{w.data(), w.shape()},
       bias_ref{bias.data(), bias.shape()};
   Ref y_ref{y.data(), y.shape()};
+  // BF16: the weights prepared once (as the model does), the input rounded once, y in BF16.
+  const bool bf16 = cpu::avx512_bf16_available(&g_bf16_note);
+  const Shape weight = w.shape();
+  std::vector<uint16_t> w16(static_cast<size_t>(shape_numel(op::half16_conv_weights(weight, false))));
+  std::vector<uint16_t> x16(static_cast<size_t>(x.numel())), y16(static_cast<size_t>(y.numel()));
+  std::vector<float> bias16(static_cast<size_t>(l.out));
+  HRef w16_ref{w16.data(), op::half16_conv_weights(weight, false)}, x16_ref{x16.data(), x.shape()};
+  Ref bias16_ref{bias16.data(), {l.out}};
+  if (bf16) {
+    cpu::prepare_conv_weights(Ref{w.data(), weight}, &bias_ref, nullptr, Precision::BF16, w16_ref,
+                              bias16_ref);
+    cpu::to_half(Ref{const_cast<float*>(x.data()), x.shape()}, Precision::BF16, x16_ref);
+  }
   if (options().peer && !conv_peer() && g_layer_peer_note.empty()) {
     conv_peer().emplace(std::vector<std::string>{"--case", "conv3x3"});
   }
   PeerProcess* peer = conv_peer() && conv_peer()->ok() ? &*conv_peer() : nullptr;
   const std::string command = fmt::format("conv3x3 {}:{}:{}:{}", l.in, l.out, l.h, l.w);
   LayerResult r{
-      l.name, fmt::format("{} -> {} @ {}x{}", l.in, l.out, l.h, l.w), l.flops() * 1e-9, {}, {}, {}};
+      l.name, fmt::format("{} -> {} @ {}x{}", l.in, l.out, l.h, l.w), l.flops() * 1e-9, {}, {}, {}, {}};
   int64_t pair = 0;
   for (auto _ : state) {
     // The order alternates so that a load rising or falling through the run weighs on both.
@@ -147,6 +164,13 @@ void BM_Conv3x3(benchmark::State& state, const Layer& l) {
       host::conv2d_forward(x, w, &bias, 1, y_reference);
       benchmark::DoNotOptimize(y_reference.data());
     });
+    if (bf16) {
+      time_once(r.bf16, [&] {
+        cpu::conv2d_forward(cpu::Bf16Kernels::Avx512, x16_ref, w16_ref, bias16_ref, weight, 1, false,
+                            ActRef{y16.data(), y.shape(), true});
+        benchmark::DoNotOptimize(y16.data());
+      });
+    }
   }
   if (peer && !peer->ok()) finish_conv_peer();
   set_rate_counters(state, l.flops(), r.ours);
@@ -197,25 +221,27 @@ void print_gemm_and_layers() {
       "threads, median of {}: ms, GFLOP/s, CPU ms, GFLOP per CPU-s, % of the {}-thread GEMM's "
       "rate by wall and by CPU time (GFLOP: the direct convolution's 2 O I 9 h w, so Winograd's "
       "fewer multiplies show as a higher rate); the host/ reference (im2col + GEMM) ms; PyTorch's "
-      "nn.Conv2d run in turn, and the median step ratio ours / torch (wall, CPU):\n",
+      "nn.Conv2d run in turn, and the median step ratio ours / torch (wall, CPU); ours in BF16 "
+      "(AVX512_BF16 micro-kernel, BF16 in and out) ms and fp32 ms / bf16 ms:\n",
       num_threads(), options().layer_reps, num_threads());
   fmt::print(
-      "  {:<30} {:>22} {:>7} {:>7} {:>7} {:>8} {:>6} {:>6} | {:>7} | {:>8} {:>7} | {:>5} {:>5}\n",
+      "  {:<30} {:>22} {:>7} {:>7} {:>7} {:>8} {:>6} {:>6} | {:>7} | {:>8} {:>7} | {:>5} {:>5} | {:>7} {:>5}\n",
       "layer", "I -> O @ h x w", "ms", "GFLOP/s", "CPU ms", "GF/cpu-s", "%wall", "%CPU", "ref ms",
-      "torch ms", "CPU ms", "wall", "CPU");
+      "torch ms", "CPU ms", "wall", "CPU", "bf16 ms", "x");
   for (const LayerResult& l : g_layers) {
     const double wall_rate = l.gflop / l.ours.wall_median(),
                  cpu_rate = l.gflop / l.ours.cpu_median();
     fmt::print(
         "  {:<30} {:>22} {:>7.0f} {:>7.1f} {:>7.0f} {:>8.1f} {:>6} {:>6} | {:>7.0f} | {:>8} {:>7} "
-        "| {:>5} {:>5}\n",
+        "| {:>5} {:>5} | {:>7} {:>5}\n",
         l.name, l.shape, l.ours.wall_median() * 1e3, wall_rate, l.ours.cpu_median() * 1e3, cpu_rate,
         share(wall_rate, false), share(cpu_rate, true), l.reference.wall_median() * 1e3,
         fixed(wall_ms(l.torch), 0),
         fixed(cpu_ms(l.torch), 0), ratio(l.ours.wall, l.torch.wall),
-        ratio(l.ours.cpu, l.torch.cpu));
+        ratio(l.ours.cpu, l.torch.cpu), fixed(wall_ms(l.bf16), 0), ratio(l.ours.wall, l.bf16.wall));
   }
   if (!g_layer_peer_note.empty()) fmt::print("  PyTorch: {}\n", g_layer_peer_note);
+  if (!g_bf16_note.empty()) fmt::print("  BF16: not run: {}\n", g_bf16_note);
 }
 
 // ---- registration ----

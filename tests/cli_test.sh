@@ -48,13 +48,24 @@ grep -q 'pillarize' "$work/bench.log" && fail "bench --device emu: a host pillar
 grep -q '^bytes over the bus per scan' "$work/bench.log" || fail "bench --device emu: no bytes count"
 
 # --precision bf16: the tensor-core convolutions on the emulation (a label map of the same size,
-# mostly the FP32 one); on the CPU one warning line and fp32; refused by train.
+# mostly the FP32 one); on the CPU the AVX512_BF16 micro-kernel where the CPU has it, else one
+# warning line and fp32; fp16 on the CPU always falls back; refused by train.
 run infer --weights "$weights" --scan "$velodyne/000001.bin" --out "$work/bf16" --device emu --precision bf16 > /dev/null
 cmp -s "$work/bf16.u8" "$work/emu_one.u8" && echo "cli_test: note: bf16 and fp32 label maps are identical"
 [[ $(stat -c %s "$work/bf16.u8") == $(stat -c %s "$work/emu_one.u8") ]] || fail "infer --precision bf16: label map size"
 message=$(run infer --weights "$weights" --scan "$velodyne/000001.bin" --out "$work/cpu_bf16" --precision bf16 2>&1)
-[[ $message == *"--precision bf16: the "*"running fp32"* ]] || fail "infer --precision bf16 on the CPU: '$message'"
-cmp "$work/cpu_bf16.u8" "$work/one.u8" || fail "infer --precision bf16 on the CPU is not the fp32 label map"
+if grep -qw avx512_bf16 /proc/cpuinfo && grep -qw avx512bw /proc/cpuinfo && grep -qw avx512vl /proc/cpuinfo; then
+  [[ $message != *"running fp32"* ]] || fail "infer --precision bf16 on an AVX512_BF16 CPU fell back: '$message'"
+  [[ $(stat -c %s "$work/cpu_bf16.u8") == $(stat -c %s "$work/one.u8") ]] || fail "infer --precision bf16 on the CPU: label map size"
+else
+  [[ $message == *"--precision bf16: the CPU's BF16 convolutions need AVX512_BF16: "*"running fp32"* ]] ||
+    fail "infer --precision bf16 on the CPU: '$message'"
+  cmp "$work/cpu_bf16.u8" "$work/one.u8" || fail "infer --precision bf16 on the CPU is not the fp32 label map"
+fi
+message=$(run infer --weights "$weights" --scan "$velodyne/000001.bin" --out "$work/cpu_fp16" --precision fp16 2>&1)
+[[ $message == *"--precision fp16: the CPU backend has no FP16 convolutions"*"running fp32"* ]] ||
+  fail "infer --precision fp16 on the CPU: '$message'"
+cmp "$work/cpu_fp16.u8" "$work/one.u8" || fail "infer --precision fp16 on the CPU is not the fp32 label map"
 run bench --device emu --precision bf16 --config "$work/tiny.yaml" --weights "$weights" --scan "$velodyne/000001.bin" \
   --repeat 1 > "$work/bench_bf16.log" 2>&1 || { cat "$work/bench_bf16.log"; fail "bench --precision bf16 failed"; }
 grep -q 'precision bf16' "$work/bench_bf16.log" || fail "bench --precision bf16: precision not reported"

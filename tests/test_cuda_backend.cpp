@@ -647,7 +647,7 @@ TEST(CudaBackendVendorConv, ConvolutionNamesParseAndRoundTrip) {
 // 16-bit weights with the BatchNorm folded in, FP32 accumulation), against the FP32 forward of
 // the same weights after a few training steps (so that BatchNorm statistics and weights are not
 // at their initial values), for the bilinear and transposed U-Nets, replayed as a graph; the
-// CPU backend refuses with the reason.
+// CPU backend refuses FP16 with the reason (its BF16: test_cpu_bf16).
 TEST(CudaBackendPrecision, HalfEvaluationTracksFp32) {
   for (const bool transposed : {false, true}) {
     for (const Precision precision : {Precision::BF16, Precision::F16}) {
@@ -707,9 +707,10 @@ TEST(CudaBackendPrecision, HalfEvaluationTracksFp32) {
   auto cpu = make_cpu_backend();
   PillarSegNet on_cpu(tiny_config(), *cpu);
   try {
-    on_cpu.set_precision(Precision::BF16);
-    FAIL() << "the CPU backend has no BF16 convolutions";
+    on_cpu.set_precision(Precision::F16);
+    FAIL() << "the CPU backend has no FP16 convolutions";
   } catch (const Error& e) {
-    EXPECT_NE(std::string(e.what()).find("--precision bf16"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("--precision fp16: the CPU backend has no FP16"), std::string::npos)
+        << e.what();
   }
 }

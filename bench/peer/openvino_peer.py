@@ -7,9 +7,10 @@ written as ONNX with the `onnx` helper API (PyTorch is not needed; the graph is 
 pytorch_peer.py's UNet exports: the same ops, shapes and layouts) and compiled by OpenVINO for
 the CPU twice: INFERENCE_PRECISION_HINT f32, and bf16 (which OpenVINO keeps only on CPUs with
 AVX512_BF16 or AMX; elsewhere it runs f32, and the report says which it ran). Ours is `pillarseg
-bench --device cpu` on the same input size and thread count: its "U-Net" and "head" stages (our
-FP32; `--precision bf16` on the CPU falls back to FP32 with a warning, see the README). The
-sides alternate round by round and the medians are reported, with the ratios.
+bench --device cpu` on the same input size and thread count: its "U-Net" and "head" stages, in
+FP32 and with `--precision bf16` (our AVX512_BF16 micro-kernel; on CPUs without it ours falls
+back to FP32 with a warning, and the report says which ours ran). The sides alternate round by
+round and the medians are reported, with the ratios.
 
     python3 bench/peer/openvino_peer.py --pillarseg build/pillarseg --threads 2 --rounds 5
 
@@ -137,13 +138,16 @@ def unet_onnx(channels, classes, base, depth, height, width, seed):
     return model
 
 
-def ours_ms(args):
-    """Our U-Net + head stage times (ms) of one `pillarseg bench` run (after its warm-up)."""
+def ours_ms(args, precision):
+    """Our U-Net + head stage times (ms) of one `pillarseg bench` run (after its warm-up), and the
+    precision it ran."""
     out = subprocess.run([args.pillarseg, "--threads", str(args.threads), "bench", "--device", "cpu",
-                          "--repeat", "1"] + (["--config", args.config] if args.config else []),
+                          "--precision", precision, "--repeat", "1"] +
+                         (["--config", args.config] if args.config else []),
                          capture_output=True, text=True, check=True).stdout
     stages = dict(re.findall(r"^(U-Net|head)\s+([0-9.]+)$", out, re.M))
-    return float(stages["U-Net"]) + float(stages["head"])
+    ran = re.search(r"precision (fp32|bf16|fp16)", out)
+    return float(stages["U-Net"]) + float(stages["head"]), ran.group(1) if ran else "?"
 
 
 def main():
@@ -174,10 +178,13 @@ def main():
     requests = {hint: c.create_infer_request() for hint, c in compiled.items()}
     for r in requests.values():
         r.infer({"canvas": canvas})  # warm-up
-    ours_ms(args)  # warm-up
-    times = {"ours": [], "f32": [], "bf16": []}
+    ours_ms(args, "fp32")  # warm-up
+    times = {"ours": [], "ours_bf16": [], "f32": [], "bf16": []}
+    ours_ran = "?"
     for _ in range(args.rounds):
-        times["ours"].append(ours_ms(args))
+        times["ours"].append(ours_ms(args, "fp32")[0])
+        ms, ours_ran = ours_ms(args, "bf16")
+        times["ours_bf16"].append(ms)
         for hint, r in requests.items():
             start = time.perf_counter()
             r.infer({"canvas": canvas})
@@ -191,10 +198,13 @@ def main():
           f"{args.height} x {args.width}, {args.threads} threads, CPU: {cpu} ({platform.machine()}); "
           f"OpenVINO {ov.__version__}; median of {args.rounds} alternating rounds")
     print(f"ours fp32 (U-Net + head stages): {med['ours']:.1f} ms")
-    for hint in ("f32", "bf16"):
-        print(f"OpenVINO, hint {hint} (ran {ran[hint]}): {med[hint]:.1f} ms; ours / OpenVINO = "
-              f"{med['ours'] / med[hint]:.2f}")
-    print(f"PEER case=unet threads={args.threads} ours_ms={med['ours']:.1f} openvino_f32_ms={med['f32']:.1f} "
+    print(f"ours --precision bf16 (ran {ours_ran}): {med['ours_bf16']:.1f} ms")
+    print(f"OpenVINO, hint f32 (ran {ran['f32']}): {med['f32']:.1f} ms; ours fp32 / OpenVINO = "
+          f"{med['ours'] / med['f32']:.2f}")
+    print(f"OpenVINO, hint bf16 (ran {ran['bf16']}): {med['bf16']:.1f} ms; ours bf16 / OpenVINO = "
+          f"{med['ours_bf16'] / med['bf16']:.2f}")
+    print(f"PEER case=unet threads={args.threads} ours_ms={med['ours']:.1f} ours_bf16_ms={med['ours_bf16']:.1f} "
+          f"ours_bf16_ran={ours_ran} openvino_f32_ms={med['f32']:.1f} "
           f"openvino_bf16_ms={med['bf16']:.1f} openvino_bf16_ran={ran['bf16']}")
 
 

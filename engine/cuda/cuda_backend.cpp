@@ -44,18 +44,6 @@ size_t align_staging(size_t bytes) {
   return (bytes + kStagingAlignment - 1) / kStagingAlignment * kStagingAlignment;
 }
 
-template <class T>
-void require_shape(const char* op, const char* what, const RefT<T>& r, const Shape& expected) {
-  PS_CHECK(r.shape == expected, "{}: {} must be {}, got {}", op, what, shape_str(expected),
-           shape_str(r.shape));
-}
-
-template <class T>
-void require_rank(const char* op, const char* what, const RefT<T>& r, size_t rank) {
-  PS_CHECK(r.shape.size() == rank, "{}: {} must have {} dimensions, got {}", op, what, rank,
-           shape_str(r.shape));
-}
-
 // (B, C, H, W) seen as B items of C planes of H * W values.
 cuda::PlanarShape planar(const Ref& x) {
   return {x.dim(0), x.dim(1), x.dim(2) * x.dim(3)};

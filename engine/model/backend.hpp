@@ -12,6 +12,7 @@
 #include <string>
 
 #include "core/adam_options.hpp"
+#include "core/error.hpp"
 #include "core/eigen.hpp"
 #include "core/grid.hpp"
 #include "core/tensor.hpp"
@@ -20,9 +21,10 @@ namespace pillarseg {
 
 enum class Device { Cpu, Cuda };
 
-// The arithmetic of the evaluation forward's U-Net: FP32, or BF16 / FP16 (convolutions on the
-// tensor cores with FP32 accumulation, activations stored in 16 bits between them, on the CUDA
-// backend). The PFN, scatter, head output, softmax, arg-max and training run in FP32.
+// The arithmetic of the evaluation forward's U-Net: FP32, or BF16 / FP16 (convolutions with FP32
+// accumulation, activations stored in 16 bits between them: on the tensor cores of the CUDA
+// backend, BF16 also on the CPU's AVX512_BF16). The PFN, scatter, head output, softmax, arg-max
+// and training run in FP32.
 enum class Precision { F32, BF16, F16 };
 const char* precision_name(Precision p);  // "fp32", "bf16", "fp16"
 // "fp32", "bf16" or "fp16"; throws pillarseg::Error naming `what` (the option) otherwise.
@@ -42,6 +44,16 @@ using IRef = RefT<int32_t>;
 using LRef = RefT<uint8_t>;
 using URef = RefT<uint32_t>;  // ray counts
 using HRef = RefT<uint16_t>;  // 16-bit floats (BF16 or FP16) as bits
+
+// Argument checks of the backends' ops: "op: what must be (shape), got (shape)".
+template <class T>
+void require_shape(const char* op, const char* what, const RefT<T>& r, const Shape& expected) {
+  PS_CHECK(r.shape == expected, "{}: {} must be {}, got {}", op, what, shape_str(expected), shape_str(r.shape));
+}
+template <class T>
+void require_rank(const char* op, const char* what, const RefT<T>& r, size_t rank) {
+  PS_CHECK(r.shape.size() == rank, "{}: {} must have {} dimensions, got {}", op, what, rank, shape_str(r.shape));
+}
 
 // An activation of the mixed-precision evaluation forward: FP32, or 16-bit (`half`).
 struct ActRef {
@@ -212,7 +224,8 @@ class Backend {
   virtual void scale(Ref& x, float factor) = 0;
   virtual void adam_step(Ref& param, const Ref& grad, Ref& m, Ref& v, int64_t step, const AdamOptions& options) = 0;
 
-  // ---- mixed-precision evaluation convolutions (kernels/conv2d_mma.cuh is the spec) ----
+  // ---- mixed-precision evaluation convolutions (kernels/conv2d_mma.cuh is the spec; the CPU's
+  // are engine/cpu/bf16_conv.hpp) ----
   // Whether this backend runs them in `p` (F32 always); else false with the reason in why_not.
   virtual bool supports_precision(Precision p, std::string* why_not = nullptr) const;
   // weight (O, I, k, k) [, bias (O)] [, eval BatchNorm] -> w16 (O, Kp) (op::half16_conv_weights)
@@ -242,6 +255,10 @@ std::unique_ptr<Backend> make_cpu_backend();
 // The CPU backend on the host/ reference ops alone (no Winograd, Conv -> BN -> ReLU composed):
 // what the fast paths are tested and benchmarked against.
 std::unique_ptr<Backend> make_cpu_reference_backend();
+// The CPU backend with its BF16 convolutions' micro-kernel on the exact scalar model of the
+// AVX512_BF16 instructions (engine/cpu/bf16_isa_emulated.hpp), on any CPU: how the tests check
+// --precision bf16 on the CPU where it lacks them. Slow; otherwise make_cpu_backend().
+std::unique_ptr<Backend> make_cpu_backend_emulated_bf16();
 
 // How make_backend() makes a backend.
 struct BackendOptions {

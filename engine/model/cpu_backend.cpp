@@ -2,7 +2,8 @@
 // host pointers; each op wraps them as Tensor views (no copies) and calls host/. The 3x3 / pad 1
 // convolutions (forward, input and weight gradients, and eval-mode Conv -> BatchNorm -> ReLU in
 // one pass) run on the Winograd fast path host/conv2d_winograd, which is tested against
-// host/conv2d; the eval PFN runs fused per block of pillars. make_cpu_reference_backend() has neither.
+// host/conv2d; the eval PFN runs fused per block of pillars; --precision bf16 runs the U-Net on
+// engine/cpu/bf16_conv (AVX512_BF16). make_cpu_reference_backend() has none of these.
 #include <algorithm>
 #include <cmath>
 #include <cstdlib>
@@ -13,6 +14,7 @@
 #include "core/eigen.hpp"
 #include "core/error.hpp"
 #include "core/parallel.hpp"
+#include "engine/cpu/bf16_conv.hpp"
 #include "engine/model/backend.hpp"
 #include "host/adam.hpp"
 #include "host/batchnorm.hpp"
@@ -58,24 +60,62 @@ host::BatchNormSaved<float> bn_saved(const BatchNormRefs& bn) {
 
 class CpuBackend final : public Backend {
  public:
-  explicit CpuBackend(bool fast_paths) : fast_paths_(fast_paths) {}
+  CpuBackend(bool fast_paths, cpu::Bf16Kernels bf16_kernels) : fast_paths_(fast_paths), bf16_kernels_(bf16_kernels) {}
   Device device() const override { return Device::Cpu; }
   std::string name() const override { return fast_paths_ ? "cpu" : "cpu-reference"; }
 
-  // BF16 on the CPU (AVX512_BF16 dot products, AMX-BF16 tiles) has no micro-kernels yet: the
-  // reason names what this CPU offers, detected at run time.
+  // BF16 (engine/cpu/bf16_conv.hpp): the AVX512_BF16 micro-kernel where this CPU has it (asked
+  // at run time), or its exact scalar model for the tests; not in the reference backend, and no
+  // FP16 (the CPU's 16-bit type is BF16).
   bool supports_precision(Precision p, std::string* why_not) const override {
     if (p == Precision::F32) return true;
-    if (why_not != nullptr) {
-      const bool avx512_bf16 = __builtin_cpu_supports("avx512bf16") != 0;
-      const bool amx_bf16 = __builtin_cpu_supports("amx-bf16") != 0;
-      *why_not = fmt::format(
-          "the CPU backend computes in FP32 only (this CPU: AVX512_BF16 {}, AMX-BF16 {}; pillarseg's CPU BF16 "
-          "kernels are not written yet; {} convolutions run on --device cuda)",
-          avx512_bf16 ? "yes" : "no", amx_bf16 ? "yes" : "no", precision_name(p));
+    std::string why;
+    if (!fast_paths_) {
+      why = "the reference CPU backend computes in FP32 only";
+    } else if (p == Precision::F16) {
+      why = "the CPU backend has no FP16 convolutions (its 16-bit type is BF16, on AVX512_BF16; fp16 runs on "
+            "--device cuda)";
+    } else if (bf16_kernels_ == cpu::Bf16Kernels::Emulated || cpu::avx512_bf16_available(&why)) {
+      return true;
+    } else {
+      why = "the CPU's BF16 convolutions need AVX512_BF16: " + why + " (AMX-BF16 tiles are not used)";
     }
+    if (why_not != nullptr) *why_not = why;
     return false;
   }
+  void prepare_conv_weights(const Ref& w, const Ref* bias, const BatchNormRefs* bn, Precision p, HRef& w16,
+                            Ref& bias_out) override {
+    require_precision(p);
+    cpu::prepare_conv_weights(w, bias, bn, p, w16, bias_out);
+  }
+  void prepare_conv_transpose_weights(const Ref& w, const Ref* bias, Precision p, HRef& w16, Ref& bias_out) override {
+    require_precision(p);
+    cpu::prepare_conv_transpose_weights(w, bias, p, w16, bias_out);
+  }
+  void conv2d_half_forward(const ActRef& x, const HRef& w16, const Ref& bias_out, const Shape& weight, int pad,
+                           bool relu, Precision p, const ActRef& y) override {
+    require_precision(p);
+    cpu::conv2d_forward(bf16_kernels_, half_input(x, p), w16, bias_out, weight, pad, relu, y);
+  }
+  void conv_transpose2x2_half_forward(const ActRef& x, const HRef& w16, const Ref& bias_out, const Shape& weight,
+                                      Precision p, const ActRef& y) override {
+    require_precision(p);
+    cpu::conv_transpose2x2_forward(bf16_kernels_, half_input(x, p), w16, bias_out, weight, y);
+  }
+  void to_half(const Ref& x, Precision p, HRef& y) override {
+    require_precision(p);
+    cpu::to_half(x, p, y);
+  }
+  void maxpool2x2_half(const HRef& x, Precision p, HRef& y) override {
+    require_precision(p);
+    cpu::maxpool2x2_half(x, p, y);
+  }
+  void upsample2x_half(const HRef& x, Precision p, HRef& y) override {
+    require_precision(p);
+    cpu::upsample2x_half(x, p, y);
+  }
+  void pad_concat_half(const HRef& skip, const HRef& up, HRef& y) override { cpu::pad_concat_half(skip, up, y); }
+  void copy_channels_half(const HRef& x, int channel0, HRef& y) override { cpu::copy_channels_half(x, channel0, y); }
 
   void* allocate(size_t bytes) override {
     void* p = std::aligned_alloc(64, (bytes + 63) / 64 * 64);
@@ -412,7 +452,22 @@ class CpuBackend final : public Backend {
     });
   }
 
+  void require_precision(Precision p) const {
+    std::string why;
+    PS_CHECK(supports_precision(p, &why), "backend {}: --precision {}: {}", name(), precision_name(p), why);
+  }
+  // x as BF16: itself, or rounded from FP32 into staging_.
+  HRef half_input(const ActRef& x, Precision p) {
+    if (x.half) return {static_cast<uint16_t*>(x.data), x.shape};
+    staging_.resize(static_cast<size_t>(x.numel()));
+    HRef h{staging_.data(), x.shape};
+    cpu::to_half(Ref{static_cast<float*>(x.data), x.shape}, p, h);
+    return h;
+  }
+
   bool fast_paths_;
+  cpu::Bf16Kernels bf16_kernels_;
+  std::vector<uint16_t> staging_;
   host::WinogradWorkspace winograd_;
   std::vector<float> epilogue_scale_, epilogue_shift_;
   host::PillarWorkspace pillar_workspace_;
@@ -436,7 +491,14 @@ class CpuBackend final : public Backend {
 
 }  // namespace
 
-std::unique_ptr<Backend> make_cpu_backend() { return std::make_unique<CpuBackend>(/*fast_paths=*/true); }
-std::unique_ptr<Backend> make_cpu_reference_backend() { return std::make_unique<CpuBackend>(/*fast_paths=*/false); }
+std::unique_ptr<Backend> make_cpu_backend() {
+  return std::make_unique<CpuBackend>(/*fast_paths=*/true, cpu::Bf16Kernels::Avx512);
+}
+std::unique_ptr<Backend> make_cpu_reference_backend() {
+  return std::make_unique<CpuBackend>(/*fast_paths=*/false, cpu::Bf16Kernels::Avx512);
+}
+std::unique_ptr<Backend> make_cpu_backend_emulated_bf16() {
+  return std::make_unique<CpuBackend>(/*fast_paths=*/true, cpu::Bf16Kernels::Emulated);
+}
 
 }  // namespace pillarseg

@@ -164,14 +164,15 @@ TEST(CApi, LabelsAndProbabilitiesAreTheEngines) {
 }
 
 // options.precision: bf16 on the emulated CUDA backend runs the tensor-core path (the class map
-// nearly the FP32 one, the probabilities close); on the CPU it falls back to fp32 and says so
-// through pillarseg_precision; an unknown precision is an error message.
+// nearly the FP32 one, the probabilities close); on the CPU fp16 falls back to fp32 and says so
+// through pillarseg_precision (bf16 runs there where the CPU has AVX512_BF16: test_cpu_bf16); an
+// unknown precision is an error message.
 TEST(CApi, PrecisionOption) {
   pillarseg::install_emulated_cuda_backend();
   const std::vector<float> xyzr = tiny_scan(3000, 5);
   pillarseg_segmenter* fp32 = open_tiny("emu", 0, "fp32");
   pillarseg_segmenter* bf16 = open_tiny("emu", 0, "bf16");
-  pillarseg_segmenter* cpu = open_tiny("cpu", 0, "bf16");
+  pillarseg_segmenter* cpu = open_tiny("cpu", 0, "fp16");
   ASSERT_TRUE(fp32 && bf16 && cpu);
   EXPECT_STREQ(pillarseg_precision(fp32), "fp32");
   EXPECT_STREQ(pillarseg_precision(bf16), "bf16");

@@ -1,0 +1,305 @@
+// The CPU's BF16 convolutions and 16-bit data movement (bf16_conv.hpp): argument checks, the
+// GEMM descriptions for the micro-kernel, the run-time choice of its instructions, threads.
+#include "engine/cpu/bf16_conv.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <string>
+#include <vector>
+
+#include "core/error.hpp"
+#include "core/ops.hpp"
+#include "core/parallel.hpp"
+#include "engine/cpu/bf16_isa_emulated.hpp"
+#include "engine/cpu/bf16_microkernel.hpp"
+#include "weights_io/half.hpp"
+
+namespace pillarseg::cpu {
+
+namespace {
+
+std::uint16_t to_bits(float v, Precision p) {
+  return p == Precision::BF16 ? weights::float_to_bf16_bits(v) : weights::float_to_f16_bits(v);
+}
+float from_bits(std::uint16_t bits, Precision p) {
+  return p == Precision::BF16 ? weights::bf16_bits_to_float(bits)
+                              : weights::f16_bits_to_float(bits);
+}
+
+void require_half(const char* op, Precision p) {
+  PS_CHECK(p == Precision::BF16 || p == Precision::F16,
+           "{}: 16-bit activations need bf16 or fp16, got {}", op, precision_name(p));
+}
+
+// K's elements (c, t) for c < channels and the spatial taps t, plus the partner of the last
+// element when K is odd (bf16_microkernel.hpp).
+std::vector<KTap> k_taps(std::int64_t channels, const std::vector<TapOffset>& offsets,
+                         std::int64_t height, std::int64_t width) {
+  std::vector<KTap> taps;
+  taps.reserve(static_cast<size_t>(channels) * offsets.size() + 1);
+  for (std::int64_t c = 0; c < channels; ++c) {
+    for (size_t t = 0; t < offsets.size(); ++t) {
+      taps.push_back({c * height * width + offsets[t].dy * width + offsets[t].dx,
+                      static_cast<std::int32_t>(t)});
+    }
+  }
+  if (taps.size() % 2 == 1) taps.push_back({0, static_cast<std::int32_t>(offsets.size())});
+  return taps;
+}
+
+void run_gemm(Bf16Kernels kernels, const Bf16Gemm& g) {
+  if (kernels == Bf16Kernels::Avx512) {
+    std::string why;
+    PS_CHECK(avx512_bf16_available(&why), "BF16 convolutions on the CPU: {}", why);
+  }
+  parallel_chunks(gemm_items(g), [&](std::int64_t begin, std::int64_t end, int) {
+#if defined(PILLARSEG_HAVE_AVX512_BF16_KERNELS)
+    if (kernels == Bf16Kernels::Avx512) {
+      bf16_gemm_rows_avx512(g, begin, end);
+      return;
+    }
+#endif
+    gemm_rows<EmulatedBf16Isa>(g, begin, end);
+  });
+}
+
+// y's shape against the op's, and whether y is FP32 or BF16.
+void require_output(const char* op, const ActRef& y, const Shape& expected) {
+  PS_CHECK(y.shape == expected, "{}: y must be {}, got {}", op, shape_str(expected),
+           shape_str(y.shape));
+  PS_CHECK(y.data != nullptr || y.numel() == 0, "{}: y has no memory", op);
+}
+
+}  // namespace
+
+bool avx512_bf16_available(std::string* why_not) {
+#if defined(PILLARSEG_HAVE_AVX512_BF16_KERNELS)
+  __builtin_cpu_init();
+  // libgcc reports AVX-512 features only where the OS saves the ZMM registers (XCR0).
+  std::string missing;
+  const auto need = [&](bool present, const char* feature) {
+    if (!present) missing += (missing.empty() ? "" : ", ") + std::string(feature);
+  };
+  need(__builtin_cpu_supports("avx512f") != 0, "AVX512F");
+  need(__builtin_cpu_supports("avx512bw") != 0, "AVX512BW");
+  need(__builtin_cpu_supports("avx512vl") != 0, "AVX512VL");
+  need(__builtin_cpu_supports("avx512bf16") != 0, "AVX512_BF16");
+  if (missing.empty()) return true;
+  if (why_not != nullptr) *why_not = "this CPU (or its OS) lacks " + missing;
+  return false;
+#else
+  if (why_not != nullptr) {
+    *why_not =
+        "this build has no AVX512_BF16 micro-kernel (not an x86-64 target, or the compiler lacks "
+        "-mavx512bf16)";
+  }
+  return false;
+#endif
+}
+
+const char* bf16_kernels_name(Bf16Kernels kernels) {
+  return kernels == Bf16Kernels::Avx512 ? "avx512_bf16" : "emulated";
+}
+
+void prepare_conv_weights(const Ref& w, const Ref* bias, const BatchNormRefs* bn, Precision p,
+                          HRef& w16, Ref& bias_out) {
+  const char* op = "CpuBackend::prepare_conv_weights";
+  require_half(op, p);
+  require_rank(op, "w", w, 4);
+  const std::int64_t out = w.dim(0), k = w.dim(1) * w.dim(2) * w.dim(3);
+  if (bias) require_shape(op, "bias", *bias, {out});
+  require_shape(op, "w16", w16, op::half16_conv_weights(w.shape, false));
+  require_shape(op, "bias_out", bias_out, {out});
+  if (bn != nullptr) {
+    for (const Ref* r : {&bn->gamma, &bn->beta, &bn->running_mean, &bn->running_var})
+      require_shape(op, "BatchNorm", *r, {out});
+  }
+  const std::int64_t kp = w16.dim(1);
+  parallel_for(out, [&](std::int64_t n) {
+    // The CUDA backend's arithmetic (prepare_weights_kernel in kernels/conv2d_mma.cu).
+    float scale = 1.0f, shift = 0.0f;
+    if (bn != nullptr) {
+      scale = bn->gamma.data[n] / std::sqrt(bn->running_var.data[n] + bn->eps);
+      shift = bn->beta.data[n] - scale * bn->running_mean.data[n];
+    }
+    for (std::int64_t i = 0; i < kp; ++i)
+      w16.data[n * kp + i] = to_bits(i < k ? w.data[n * k + i] * scale : 0.0f, p);
+    bias_out.data[n] = scale * (bias != nullptr ? bias->data[n] : 0.0f) + shift;
+  });
+}
+
+void prepare_conv_transpose_weights(const Ref& w, const Ref* bias, Precision p, HRef& w16,
+                                    Ref& bias_out) {
+  const char* op = "CpuBackend::prepare_conv_transpose_weights";
+  require_half(op, p);
+  require_rank(op, "w", w, 4);
+  const std::int64_t in = w.dim(0), out = w.dim(1);
+  PS_CHECK(w.dim(2) == 2 && w.dim(3) == 2, "{}: w must be (I, O, 2, 2), got {}", op,
+           shape_str(w.shape));
+  if (bias) require_shape(op, "bias", *bias, {out});
+  require_shape(op, "w16", w16, op::half16_conv_weights(w.shape, true));
+  require_shape(op, "bias_out", bias_out, {4 * out});
+  const std::int64_t kp = w16.dim(1);
+  parallel_for(4 * out, [&](std::int64_t n) {
+    const std::int64_t o = n / 4, s = n % 4;
+    for (std::int64_t i = 0; i < kp; ++i)
+      w16.data[n * kp + i] = to_bits(i < in ? w.data[(i * out + o) * 4 + s] : 0.0f, p);
+    bias_out.data[n] = bias != nullptr ? bias->data[o] : 0.0f;
+  });
+}
+
+void conv2d_forward(Bf16Kernels kernels, const HRef& x, const HRef& w16, const Ref& bias_out,
+                    const Shape& weight, int pad, bool relu, const ActRef& y) {
+  const char* op = "CpuBackend::conv2d_half_forward";
+  const Shape y_shape = op::conv2d(x.shape, weight, pad, nullptr, op);
+  require_output(op, y, y_shape);
+  require_shape(op, "w16", w16, op::half16_conv_weights(weight, false));
+  require_shape(op, "bias_out", bias_out, {weight[0]});
+  const std::int64_t in = weight[1], kh = weight[2], kw = weight[3], h = x.dim(2), w = x.dim(3);
+  PS_CHECK(kh * kw <= kMaxTaps, "{}: kernels up to 7 x 7, got {}", op, shape_str(weight));
+  std::vector<TapOffset> offsets;
+  for (std::int64_t ky = 0; ky < kh; ++ky) {
+    for (std::int64_t kx = 0; kx < kw; ++kx)
+      offsets.push_back({static_cast<std::int32_t>(ky - pad), static_cast<std::int32_t>(kx - pad)});
+  }
+  const std::vector<KTap> taps = k_taps(in, offsets, h, w);
+  Bf16Gemm g;
+  g.x = x.data, g.batch = x.dim(0), g.x_batch_stride = in * h * w, g.height = h, g.width = w;
+  g.k_taps = taps.data(), g.k = in * kh * kw, g.offsets = offsets.data(),
+  g.taps = static_cast<int>(offsets.size());
+  g.w = w16.data, g.kp = w16.dim(1), g.columns = weight[0], g.bias = bias_out.data, g.relu = relu;
+  g.y = y.data, g.y_bf16 = y.half;
+  g.rows = y_shape[2], g.row_pixels = y_shape[3];
+  g.out_height = y_shape[2], g.out_width = y_shape[3], g.out_planes = y_shape[1];
+  run_gemm(kernels, g);
+}
+
+void conv_transpose2x2_forward(Bf16Kernels kernels, const HRef& x, const HRef& w16,
+                               const Ref& bias_out, const Shape& weight, const ActRef& y) {
+  const char* op = "CpuBackend::conv_transpose2x2_half_forward";
+  const Shape y_shape = op::conv_transpose2x2(x.shape, weight, nullptr, op);
+  require_output(op, y, y_shape);
+  require_shape(op, "w16", w16, op::half16_conv_weights(weight, true));
+  require_shape(op, "bias_out", bias_out, {4 * weight[1]});
+  const std::int64_t in = x.dim(1), h = x.dim(2), w = x.dim(3);
+  const std::vector<TapOffset> offsets = {{0, 0}};
+  const std::vector<KTap> taps = k_taps(in, offsets, h, w);
+  Bf16Gemm g;
+  g.x = x.data, g.batch = x.dim(0), g.x_batch_stride = in * h * w, g.height = h, g.width = w;
+  g.k_taps = taps.data(), g.k = in, g.offsets = offsets.data(), g.taps = 1;
+  g.w = w16.data, g.kp = w16.dim(1), g.columns = 4 * weight[1], g.bias = bias_out.data;
+  g.transposed = true;
+  g.y = y.data, g.y_bf16 = y.half;
+  g.rows = h, g.row_pixels = w;
+  g.out_height = y_shape[2], g.out_width = y_shape[3], g.out_planes = y_shape[1];
+  run_gemm(kernels, g);
+}
+
+void to_half(const Ref& x, Precision p, HRef& y) {
+  require_half("CpuBackend::to_half", p);
+  require_shape("CpuBackend::to_half", "y", y, x.shape);
+  const std::int64_t n = x.numel();
+  parallel_chunks(n, [&](std::int64_t begin, std::int64_t end, int) {
+    for (std::int64_t i = begin; i < end; ++i) y.data[i] = to_bits(x.data[i], p);
+  });
+}
+
+void maxpool2x2_half(const HRef& x, Precision p, HRef& y) {
+  const char* op = "CpuBackend::maxpool2x2_half";
+  require_half(op, p);
+  require_shape(op, "y", y, op::maxpool2x2(x.shape, op));
+  const std::int64_t h = x.dim(2), w = x.dim(3), oh = h / 2, ow = w / 2;
+  parallel_for(x.dim(0) * x.dim(1), [&](std::int64_t plane) {
+    for (std::int64_t oy = 0; oy < oh; ++oy) {
+      for (std::int64_t ox = 0; ox < ow; ++ox) {
+        const std::uint16_t* in = x.data + plane * h * w + 2 * oy * w + 2 * ox;
+        const std::uint16_t window[4] = {in[0], in[1], in[w], in[w + 1]};
+        std::uint16_t best_bits = window[0];
+        float best = from_bits(window[0], p);
+        for (int k = 1; k < 4; ++k) {
+          // The FP32 op's rule: a greater value, or NaN, replaces the best so far.
+          const float value = from_bits(window[k], p);
+          if (value > best || std::isnan(value)) best = value, best_bits = window[k];
+        }
+        y.data[(plane * oh + oy) * ow + ox] = best_bits;
+      }
+    }
+  });
+}
+
+void upsample2x_half(const HRef& x, Precision p, HRef& y) {
+  const char* op = "CpuBackend::upsample2x_half";
+  require_half(op, p);
+  require_shape(op, "y", y, op::upsample2x(x.shape, op));
+  const std::int64_t in_h = x.dim(2), in_w = x.dim(3), out_h = 2 * in_h, out_w = 2 * in_w;
+  // The taps of kernels/bilinear_taps.cuh: s = d (in - 1) / (out - 1) = i0 + remainder / (out -
+  // 1), the weights rounded once from the exact fractions.
+  struct Tap {
+    std::int64_t i0, i1;
+    float w0, w1;
+  };
+  const auto taps = [](std::int64_t in, std::int64_t out) {
+    std::vector<Tap> t(static_cast<size_t>(out));
+    for (std::int64_t d = 0; d < out; ++d) {
+      if (in == 1) {
+        t[static_cast<size_t>(d)] = {0, 0, 1.0f, 0.0f};
+        continue;
+      }
+      const std::int64_t numerator = d * (in - 1), i0 = numerator / (out - 1),
+                         remainder = numerator - i0 * (out - 1);
+      const auto denominator = static_cast<float>(out - 1);
+      t[static_cast<size_t>(d)] = {i0, i0 + 1 < in ? i0 + 1 : in - 1,
+                                   static_cast<float>(out - 1 - remainder) / denominator,
+                                   static_cast<float>(remainder) / denominator};
+    }
+    return t;
+  };
+  const std::vector<Tap> rows = taps(in_h, out_h), cols = taps(in_w, out_w);
+  parallel_for(x.dim(0) * x.dim(1), [&](std::int64_t plane) {
+    const std::uint16_t* in = x.data + plane * in_h * in_w;
+    std::uint16_t* out = y.data + plane * out_h * out_w;
+    for (std::int64_t oy = 0; oy < out_h; ++oy) {
+      const Tap& r = rows[static_cast<size_t>(oy)];
+      const std::uint16_t* top = in + r.i0 * in_w;
+      const std::uint16_t* bottom = in + r.i1 * in_w;
+      for (std::int64_t ox = 0; ox < out_w; ++ox) {
+        const Tap& c = cols[static_cast<size_t>(ox)];
+        const float value =
+            r.w0 * (c.w0 * from_bits(top[c.i0], p) + c.w1 * from_bits(top[c.i1], p)) +
+            r.w1 * (c.w0 * from_bits(bottom[c.i0], p) + c.w1 * from_bits(bottom[c.i1], p));
+        out[oy * out_w + ox] = to_bits(value, p);
+      }
+    }
+  });
+}
+
+void pad_concat_half(const HRef& skip, const HRef& up, HRef& y) {
+  const char* op = "CpuBackend::pad_concat_half";
+  require_shape(op, "y", y, op::pad_concat(skip.shape, up.shape, op));
+  const std::int64_t cs = skip.dim(1), cu = up.dim(1), h = skip.dim(2), w = skip.dim(3),
+                     uh = up.dim(2), uw = up.dim(3);
+  const std::int64_t top = (h - uh) / 2, left = (w - uw) / 2, plane = h * w;
+  parallel_for(skip.dim(0) * (cs + cu), [&](std::int64_t item) {
+    const std::int64_t b = item / (cs + cu), c = item % (cs + cu);
+    std::uint16_t* out = y.data + item * plane;
+    if (c < cs) {
+      std::copy_n(skip.data + (b * cs + c) * plane, plane, out);
+      return;
+    }
+    std::fill_n(out, plane, std::uint16_t{0});
+    const std::uint16_t* in = up.data + (b * cu + c - cs) * uh * uw;
+    for (std::int64_t uy = 0; uy < uh; ++uy)
+      std::copy_n(in + uy * uw, uw, out + (uy + top) * w + left);
+  });
+}
+
+void copy_channels_half(const HRef& x, int channel0, HRef& y) {
+  op::channel_band(x.shape, y.shape, channel0, "CpuBackend::copy_channels_half");
+  const std::int64_t channels = x.dim(1), inner = x.dim(2) * x.dim(3), wide = y.dim(1);
+  parallel_for(x.dim(0) * channels, [&](std::int64_t item) {
+    const std::int64_t b = item / channels, c = item % channels;
+    std::copy_n(x.data + item * inner, inner, y.data + (b * wide + channel0 + c) * inner);
+  });
+}
+
+}  // namespace pillarseg::cpu

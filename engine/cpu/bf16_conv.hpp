@@ -1,0 +1,52 @@
+// The CPU backend's BF16 evaluation convolutions (--precision bf16 on --device cpu): the
+// contract of kernels/conv2d_mma.cuh (prepared weights w16 (O, Kp) or (4 O, Kp) in BF16 with the
+// eval BatchNorm folded in, FP32 bias, FP32 accumulation, BF16 or FP32 outputs rounded once), on
+// our own AVX512_BF16 micro-kernel (bf16_microkernel.hpp), chosen at run time; and the 16-bit
+// activations' data movement of kernels/half_ops.cuh on host memory, bit for bit the same.
+//
+// Bf16Kernels::Emulated runs the same micro-kernel on an exact scalar model of the instructions
+// (bf16_isa_emulated.hpp): the tests' way to check it on CPUs without AVX512_BF16 (slow).
+#pragma once
+
+#include <cstdint>
+#include <string>
+
+#include "core/tensor.hpp"
+#include "engine/model/backend.hpp"
+
+namespace pillarseg::cpu {
+
+enum class Bf16Kernels { Avx512, Emulated };
+
+// Whether this CPU and its OS run the AVX512_BF16 micro-kernel (AVX512F, BW, VL and BF16, and
+// this build has it); else false with what is missing in why_not.
+bool avx512_bf16_available(std::string* why_not = nullptr);
+// "avx512_bf16" or "emulated".
+const char* bf16_kernels_name(Bf16Kernels kernels);
+
+// The host version of the CUDA backend's weight preparation, the same arithmetic: w (O, I, k,
+// k) [, bias] [, eval BatchNorm] -> w16 (O, Kp) rounded to `p`, bias_out (O); transposed: w (I,
+// O, 2, 2) -> w16 (4 O, Kp) with row o 4 + dy 2 + dx, bias_out (4 O).
+void prepare_conv_weights(const Ref& w, const Ref* bias, const BatchNormRefs* bn, Precision p,
+                          HRef& w16, Ref& bias_out);
+void prepare_conv_transpose_weights(const Ref& w, const Ref* bias, Precision p, HRef& w16,
+                                    Ref& bias_out);
+
+// x (B, I, H, W) BF16 -> y (B, O, Ho, Wo) = act(conv(x, w16) + bias_out) for `weight` (O, I, k,
+// k) and `pad` (stride 1), FP32 or BF16 (y.half). Threads: num_threads(); results do not depend
+// on the thread count.
+void conv2d_forward(Bf16Kernels kernels, const HRef& x, const HRef& w16, const Ref& bias_out,
+                    const Shape& weight, int pad, bool relu, const ActRef& y);
+// x (B, I, H, W) BF16 -> y (B, O, 2H, 2W), the transposed 2x2 stride-2 convolution for `weight`
+// (I, O, 2, 2).
+void conv_transpose2x2_forward(Bf16Kernels kernels, const HRef& x, const HRef& w16,
+                               const Ref& bias_out, const Shape& weight, const ActRef& y);
+
+// The 16-bit data movement (kernels/half_ops.cuh), for BF16 and FP16 bits.
+void to_half(const Ref& x, Precision p, HRef& y);
+void maxpool2x2_half(const HRef& x, Precision p, HRef& y);
+void upsample2x_half(const HRef& x, Precision p, HRef& y);
+void pad_concat_half(const HRef& skip, const HRef& up, HRef& y);
+void copy_channels_half(const HRef& x, int channel0, HRef& y);
+
+}  // namespace pillarseg::cpu

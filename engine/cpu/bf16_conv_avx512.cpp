@@ -1,0 +1,88 @@
+// The BF16 micro-kernel (bf16_microkernel.hpp) on AVX512_BF16: VDPBF16PS for the dot products,
+// VCVTNE(2)PS2BF16 for BF16 outputs, AVX512BW masked loads and stores for the image borders and
+// row ends. This file alone is built with -mavx512f -mavx512bw -mavx512vl -mavx512bf16 and
+// includes no library header: its functions are called only after the run-time check
+// (avx512_bf16_available in bf16_conv.cpp), and nothing here may be shared with code that runs
+// on other CPUs. Its instruction-for-instruction model is EmulatedBf16Isa (bf16_isa_emulated.hpp).
+#include <immintrin.h>
+
+#include <cstdint>
+
+#include "engine/cpu/bf16_microkernel.hpp"
+
+namespace pillarseg::cpu {
+namespace {
+
+// Word 2 i of the result is word i of the source, word 2 i + 1 is word 16 + i.
+alignas(64) constexpr std::uint16_t kInterleaveWords[32] = {
+    0, 16, 1, 17, 2,  18, 3,  19, 4,  20, 5,  21, 6,  22, 7,  23,
+    8, 24, 9, 25, 10, 26, 11, 27, 12, 28, 13, 29, 14, 30, 15, 31};
+// Dword 2 i of the first result is a[i], 2 i + 1 is b[i] (index 16 + i of permutex2var); the
+// second result holds lanes 8..15.
+alignas(64) constexpr std::uint32_t kInterleaveLow[16] = {0, 16, 1, 17, 2, 18, 3, 19,
+                                                          4, 20, 5, 21, 6, 22, 7, 23};
+alignas(64) constexpr std::uint32_t kInterleaveHigh[16] = {8,  24, 9,  25, 10, 26, 11, 27,
+                                                           12, 28, 13, 29, 14, 30, 15, 31};
+
+// base + index as an address; the lanes a zero mask bit names are never read or written, so the
+// address of a row outside the image is formed but not dereferenced.
+template <class T>
+T* at(T* base, std::int64_t index) {
+  return reinterpret_cast<T*>(reinterpret_cast<std::uintptr_t>(base) +
+                              static_cast<std::uintptr_t>(index) * sizeof(T));
+}
+
+struct Avx512Bf16Isa {
+  using Acc = __m512;
+  using Pair = __m512i;
+
+  static Acc zero() { return _mm512_setzero_ps(); }
+  static Pair load_pairs(const std::uint16_t* base, std::int64_t first, std::uint32_t first_mask,
+                         std::int64_t second, std::uint32_t second_mask) {
+    const __m256i a = _mm256_maskz_loadu_epi16(static_cast<__mmask16>(first_mask), at(base, first));
+    const __m256i b =
+        _mm256_maskz_loadu_epi16(static_cast<__mmask16>(second_mask), at(base, second));
+    const __m512i ab = _mm512_inserti64x4(_mm512_castsi256_si512(a), b, 1);
+    return _mm512_permutexvar_epi16(_mm512_load_si512(kInterleaveWords), ab);
+  }
+  static Pair broadcast_pair(const std::uint16_t* two) {
+    std::uint32_t bits;
+    __builtin_memcpy(&bits, two, sizeof(bits));
+    return _mm512_set1_epi32(static_cast<int>(bits));
+  }
+  static Acc dot(Acc acc, Pair a, Pair b) {
+    return _mm512_dpbf16_ps(acc, reinterpret_cast<__m512bh>(a), reinterpret_cast<__m512bh>(b));
+  }
+  static Acc bias_act(Acc acc, float bias, bool relu) {
+    const __m512 v = _mm512_add_ps(acc, _mm512_set1_ps(bias));
+    return relu ? _mm512_max_ps(v, _mm512_setzero_ps()) : v;
+  }
+  static void store_f32(float* y, Acc acc, std::uint32_t mask) {
+    _mm512_mask_storeu_ps(y, static_cast<__mmask16>(mask), acc);
+  }
+  static void store_bf16(std::uint16_t* y, Acc acc, std::uint32_t mask) {
+    const __m256bh h = _mm512_cvtneps_pbh(acc);
+    _mm256_mask_storeu_epi16(y, static_cast<__mmask16>(mask), reinterpret_cast<const __m256i&>(h));
+  }
+  static void store_f32_interleaved(float* y, Acc even, Acc odd, std::uint32_t mask) {
+    const __m512 low = _mm512_permutex2var_ps(even, _mm512_load_si512(kInterleaveLow), odd);
+    const __m512 high = _mm512_permutex2var_ps(even, _mm512_load_si512(kInterleaveHigh), odd);
+    _mm512_mask_storeu_ps(y, static_cast<__mmask16>(mask & 0xFFFFu), low);
+    _mm512_mask_storeu_ps(y + 16, static_cast<__mmask16>(mask >> 16), high);
+  }
+  static void store_bf16_interleaved(std::uint16_t* y, Acc even, Acc odd, std::uint32_t mask) {
+    // Words 0..15: even, 16..31: odd; then interleaved.
+    const __m512bh both = _mm512_cvtne2ps_pbh(odd, even);
+    const __m512i words = _mm512_permutexvar_epi16(_mm512_load_si512(kInterleaveWords),
+                                                   reinterpret_cast<const __m512i&>(both));
+    _mm512_mask_storeu_epi16(y, static_cast<__mmask32>(mask), words);
+  }
+};
+
+}  // namespace
+
+void bf16_gemm_rows_avx512(const Bf16Gemm& g, std::int64_t begin, std::int64_t end) {
+  gemm_rows<Avx512Bf16Isa>(g, begin, end);
+}
+
+}  // namespace pillarseg::cpu
