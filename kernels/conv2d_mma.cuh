@@ -1,5 +1,6 @@
-// Evaluation convolutions on the tensor cores: implicit GEMM with mma.sync m16n8k16 in BF16 or
-// FP16 (kernels/mma.cuh), FP32 accumulation, fragments loaded with ldmatrix. Two kinds:
+// Convolutions on the tensor cores: implicit GEMM with mma.sync m16n8k16 in BF16 or FP16
+// (kernels/mma.cuh), FP32 accumulation, fragments loaded with ldmatrix. The forward (evaluation,
+// and training without the BatchNorm fold) of two kinds, and their training gradients (below):
 //   - a stride-1 convolution x (B, I, H, W), weight (O, I, k, k), pad -> y (B, O, Ho, Wo), as the
 //     GEMM D (pixels x O) = A (pixels x I k k, the im2col taps gathered on the fly) B, with an
 //     eval BatchNorm folded into the weights and the bias, and an optional ReLU;
@@ -21,6 +22,7 @@
 #include <string>
 
 #include "kernels/conv2d.cuh"
+#include "kernels/conv_transpose2d.cuh"
 #include "kernels/emu/cuda_compat.cuh"
 #include "kernels/mma.cuh"
 
@@ -63,6 +65,36 @@ void conv_transpose2x2_mma_forward(const void* x, bool x_half, const std::uint16
                                    std::int64_t height, std::int64_t width,
                                    std::int64_t out_channels, Half16 type, void* y, bool y_half,
                                    cudaStream_t stream);
+
+// Training gradients on the tensor cores, FP32 tensors throughout: x, dy and the weights rounded
+// to `type` as they are staged, FP32 accumulation, dbias (or nullptr) summed in double from the
+// FP32 dy.
+//   - dx (B, I, H, W) of a stride-1 convolution = the convolution of dy (B, O, Ho, Wo) with the
+//     flipped weights w16t (I, Kp(O k k)), row i column (o, tap) = w[o][i][k k - 1 - tap]
+//     (prepare_conv_data_weights), padding k - 1 - pad;
+//   - dw (O, I, k, k) = sum over the pixels of dy x im2col(x), split over the pixels in a fixed
+//     number of parts summed in order (the same bits on every run and GPU), `workspace` of
+//     conv2d_mma_backward_weights_workspace(shape) floats;
+//   - the transposed 2x2: dx (B, I, H, W) from the 4 O sub-pixel values of dy (B, O, 2H, 2W) and
+//     w16t (I, Kp(4 O)) = w (I, O, 2, 2) row by row; dw (I, O, 2, 2).
+void prepare_conv_data_weights(const float* w, const Conv2dShape& shape, Half16 type,
+                               std::uint16_t* w16t, cudaStream_t stream);
+void conv2d_mma_backward_data(const float* dy, const std::uint16_t* w16t, const Conv2dShape& shape,
+                              Half16 type, float* dx, cudaStream_t stream);
+std::int64_t conv2d_mma_backward_weights_workspace(const Conv2dShape& shape);
+void conv2d_mma_backward_weights(const float* x, const float* dy, const Conv2dShape& shape,
+                                 Half16 type, float* dw, float* dbias, float* workspace,
+                                 cudaStream_t stream);
+void prepare_conv_transpose_data_weights(const float* w, const ConvTranspose2dShape& shape,
+                                         Half16 type, std::uint16_t* w16t, cudaStream_t stream);
+void conv_transpose2x2_mma_backward_data(const float* dy, const std::uint16_t* w16t,
+                                         const ConvTranspose2dShape& shape, Half16 type, float* dx,
+                                         cudaStream_t stream);
+std::int64_t conv_transpose2x2_mma_backward_weights_workspace(const ConvTranspose2dShape& shape);
+void conv_transpose2x2_mma_backward_weights(const float* x, const float* dy,
+                                            const ConvTranspose2dShape& shape, Half16 type,
+                                            float* dw, float* dbias, float* workspace,
+                                            cudaStream_t stream);
 
 // Self-checks of the fragment layouts, one warp each (tests/test_kernels_mma.cpp, on the GPU
 // from the bundle): D (16 x 8) = A (16 x 16) B (16 x 8) + C, all row-major FP32, with each

@@ -7,7 +7,7 @@
 #   kernels.log      the kernel benchmarks: ours against cuDNN and cuBLAS
 #   bench.log        pillarseg bench --device cuda at full size (bilinear, transposed, 2D and 3D
 #                    occupancy; --conv own, cudnn, cublas)
-#   train.log        100 steps of the small config on cuda and on cpu, their loss curves
+#   train.log        100 steps of the small config on cuda (fp32, bf16) and on cpu, their loss curves
 #   environment.txt  the libraries found, the bundle's commit
 #   report.md        the figures of all of them, and what failed
 # Usage: [OUT=dir] ./run.sh [SECONDS]   (SECONDS: the time budget, default 470)
@@ -181,20 +181,22 @@ run_bench "pillar + 3D occupancy" own --config "$here/configs/pillar_3d_sparse.y
 rm -f "$out/.bench"
 note
 
-# ---- 5. 100 training steps on cuda and on cpu ----
+# ---- 5. 100 training steps on cuda (fp32, bf16) and on cpu ----
 train_log=$out/train.log
 : > "$train_log"
-note "## Training: 100 steps of configs/small_cpu.yaml on cuda and on cpu"
+note "## Training: 100 steps of configs/small_cpu.yaml on cuda (fp32 and bf16) and on cpu"
 note
 work=$(mktemp -d)
 if (( $(left) > 60 )); then
   "$here/bin/pillarseg" simulate --out "$work/data" --sequences 1 --scans 200 --seed 3 >> "$train_log" 2>&1
   sed -e 's/epochs: 16/epochs: 1/' -e 's/precise_bn_batches: 8/precise_bn_batches: 0/' \
       -e 's/sequences: \[0, 1, 2, 3, 4, 5, 6, 7\]/sequences: [0]/' "$here/configs/small_cpu.yaml" > "$work/check.yaml"
-  for device in cuda cpu; do
+  for run in cuda cuda_bf16 cpu; do
+    precision=fp32
+    [[ $run == cuda_bf16 ]] && precision=bf16
     timeout $(( $(left) > 30 ? $(left) - 20 : 10 )) "$here/bin/pillarseg" train --data "$work/data" \
-      --config "$work/check.yaml" --out "$work/run_$device" --device "$device" >> "$train_log" 2>&1 ||
-      failures+=("train on $device")
+      --config "$work/check.yaml" --out "$work/run_$run" --device "${run%_bf16}" --precision "$precision" \
+      >> "$train_log" 2>&1 || failures+=("train on $run")
   done
   python3 - "$work" >> "$report" 2>> "$train_log" <<'PY' || note "(loss comparison failed: see train.log)"
 import json, sys
@@ -216,6 +218,16 @@ print(f"Relative loss difference: first 10 steps at most {max(d[:10]):.2e}, all 
 tg = gpu[n-1]["elapsed_s"] / n
 tc = cpu[n-1]["elapsed_s"] / n
 print(f"Time per step (elapsed / steps, data preparation included): cuda {1e3*tg:.1f} ms, cpu {1e3*tc:.1f} ms.")
+try:
+    bf = steps("cuda_bf16")
+    m = min(len(bf), len(gpu))
+    db = [abs(b["loss"] - g["loss"]) / max(abs(g["loss"]), 1e-9) for b, g in zip(bf, gpu)]
+    print(f"bf16 training (tensor cores, FP32 master weights) against fp32 on cuda, {m} steps: step 1 "
+          f"{bf[0]['loss']:.5f} / {gpu[0]['loss']:.5f}, relative difference first 10 at most {max(db[:10]):.2e}; "
+          f"mean of the last 10: bf16 {sum(b['loss'] for b in bf[m-10:m])/10:.4f}, fp32 "
+          f"{sum(g['loss'] for g in gpu[m-10:m])/10:.4f}; time per step {1e3*bf[m-1]['elapsed_s']/m:.1f} ms.")
+except (OSError, IndexError, ZeroDivisionError) as e:
+    print(f"bf16 training: no result ({e})")
 print()
 PY
 else

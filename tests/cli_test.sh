@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The command line end to end on a tiny simulated data set: pillarseg infer over one scan, a
 # directory and several files (the same label maps), --device emu for infer, bench, eval and
-# train (training's first losses those of the CPU), and errors that name the argument.
+# train (training's first losses those of the CPU; in bf16 close to them), --precision, and errors
+# that name the argument.
 # Usage: tests/cli_test.sh PILLARSEG_BINARY WORK_DIR
 set -euo pipefail
 bin=$1 work=$2
@@ -19,13 +20,18 @@ eval: {sequences: [0]}
 YAML
 run train --data "$work/data" --config "$work/tiny.yaml" --out "$work/cpu" > /dev/null 2>&1
 run train --data "$work/data" --config "$work/tiny.yaml" --out "$work/emu" --device emu > /dev/null 2>&1
+run train --data "$work/data" --config "$work/tiny.yaml" --out "$work/emu_bf16" --device emu --precision bf16 \
+  > "$work/emu_bf16.log" 2>&1 || { cat "$work/emu_bf16.log"; fail "train --device emu --precision bf16 failed"; }
+grep -q 'precision bf16' "$work/emu_bf16.log" || fail "train --precision bf16: precision not logged"
 first_loss() { grep -m1 '"type": "step"' "$1/metrics.jsonl" | sed 's/.*"loss": \([0-9.]*\).*/\1/'; }
-python3 - "$(first_loss "$work/cpu")" "$(first_loss "$work/emu")" <<'PY' || fail "training on emu: first loss differs from the CPU's"
+python3 - "$(first_loss "$work/cpu")" "$(first_loss "$work/emu")" "$(first_loss "$work/emu_bf16")" <<'PY' ||
 import sys
-cpu, emu = map(float, sys.argv[1:])
-assert abs(cpu - emu) <= 1e-4 * abs(cpu), (cpu, emu)
-print(f"cli_test: first training loss cpu {cpu}, emu {emu}")
+cpu, emu, bf16 = map(float, sys.argv[1:])
+assert abs(cpu - emu) <= 1e-4 * abs(cpu), ("emu", cpu, emu)
+assert abs(cpu - bf16) <= 2e-2 * abs(cpu), ("bf16", cpu, bf16)
+print(f"cli_test: first training loss cpu {cpu}, emu {emu}, emu bf16 {bf16}")
 PY
+  fail "training on emu: first loss differs from the CPU's"
 weights=$work/cpu/checkpoint.safetensors
 velodyne=$work/data/sequences/00/velodyne
 
@@ -83,8 +89,9 @@ expect_error() {
 }
 expect_error "--scan $work/none.bin: no such file" infer --weights "$weights" --scan "$work/none.bin" --out "$work/x"
 expect_error "is a file" infer --weights "$weights" --scan "$velodyne" --out "$work/one.u8"
-expect_error "train --precision bf16: training computes in FP32" train --data "$work/data" --config "$work/tiny.yaml" \
-  --out "$work/bf16_run" --precision bf16
+expect_error "train --precision bf16: backend cpu trains in fp32 only" train --data "$work/data" \
+  --config "$work/tiny.yaml" --out "$work/bf16_run" --precision bf16
+[[ ! -e "$work/bf16_run" ]] || fail "train --precision bf16 on the CPU left a run directory"
 # A --device outside cpu, cuda, emu: the command line refuses it and names the option.
 if message=$(run infer --weights "$weights" --scan "$velodyne" --out "$work/y" --device tpu 2>&1); then
   fail "--device tpu was accepted"

@@ -619,6 +619,87 @@ INSTANTIATE_TEST_SUITE_P(Impls, CudaBackendVendorModel,
 
 #endif  // PILLARSEG_CUDA_EMULATION
 
+// Training in BF16 / FP16 (--precision on train): the convolutions' forward and both gradients
+// on the tensor cores, everything else FP32. From the same initial parameters, the first step's
+// loss and every gradient track the FP32 ones within the rounding of the operands; the graph
+// holds no FP32 convolution; a few AdamW steps lower the loss as FP32 does; the CPU backend
+// refuses.
+TEST(CudaBackendPrecision, HalfTrainingTracksFp32) {
+  for (const bool transposed : {false, true}) {
+    for (const Precision precision : {Precision::BF16, Precision::F16}) {
+      SCOPED_TRACE(std::string(transposed ? "transposed " : "bilinear ") + precision_name(precision));
+      const ModelConfig c = tiny_config(OccupancyInput::Occupancy3D, transposed);
+      const TinyData d = tiny_data(c, 2, 29, 0.4);
+      CudaBackend backend32, backend16;
+      PillarSegNet net32(c, backend32, 5), net16(c, backend16, 5);
+      net16.set_training_precision(precision);
+      EXPECT_EQ(net16.training_precision(), precision);
+      EXPECT_EQ(net16.precision(), Precision::F32) << "the evaluation precision is separate";
+      std::vector<double> losses32, losses16;
+      for (int64_t step = 1; step <= 4; ++step) {
+        for (PillarSegNet* net : {&net32, &net16}) {
+          net->parameters().zero_grads();
+          net->forward(d.batch, true);
+          (net == &net32 ? losses32 : losses16).push_back(net->loss(d.labels, LossKind::CrossEntropy, kCoefficients));
+          net->backward();
+        }
+        if (step == 1) {
+          const std::vector<float> g32 = net32.parameters().download_flat(net32.parameters().grads());
+          const std::vector<float> g16 = net16.parameters().download_flat(net16.parameters().grads());
+          ASSERT_EQ(g32.size(), g16.size());
+          double num = 0, den = 0;
+          for (size_t i = 0; i < g32.size(); ++i) {
+            const double e = static_cast<double>(g16[i]) - g32[i];
+            num += e * e, den += static_cast<double>(g32[i]) * g32[i];
+          }
+          // The head's weight gradient takes one rounding of each operand: an NMSE of about
+          // (2^-9)^2 (BF16) or (2^-12)^2 (FP16) times a few. Deeper, the BatchNorm backward's
+          // cancellations and ReLU / max-pool choices that the forward's rounding flips add up.
+          const int head = net32.parameters().find("segmentation_head.outc.conv.weight");
+          ASSERT_GE(head, 0);
+          const ParamEntry& e = net32.parameters().entries()[static_cast<size_t>(head)];
+          double head_num = 0, head_den = 0;
+          for (int64_t i = e.offset; i < e.offset + shape_numel(e.shape); ++i) {
+            const double diff = static_cast<double>(g16[static_cast<size_t>(i)]) - g32[static_cast<size_t>(i)];
+            head_num += diff * diff, head_den += static_cast<double>(g32[static_cast<size_t>(i)]) * g32[static_cast<size_t>(i)];
+          }
+          EXPECT_LT(head_num / head_den, precision == Precision::BF16 ? 1e-4 : 2e-6);
+          RecordProperty(fmt::format("gradient_nmse_{}_{}", transposed ? "transposed" : "bilinear",
+                                     precision_name(precision)),
+                         fmt::format("{:.3g}", num / den));
+          // Measured (emulation, 2026-12-02): 8.5e-3 / 1.2e-2 (bilinear / transposed) in BF16,
+          // 4.5e-4 / 2.2e-3 in FP16; the head's 1.5e-5 in BF16.
+          EXPECT_LT(num / den, precision == Precision::BF16 ? 3e-2 : 6e-3);
+          EXPECT_GT(num / den, 0.0) << "the 16-bit path must round something";
+          EXPECT_NEAR(losses16[0], losses32[0], 1e-2 * std::abs(losses32[0]));
+        }
+        adam(backend32, net32.parameters(), step);
+        adam(backend16, net16.parameters(), step);
+      }
+      EXPECT_LT(losses16.back(), losses16.front()) << "training in 16 bits lowers the loss";
+      EXPECT_NEAR(losses16.back(), losses32.back(), 0.05 * losses32.front());
+      int half_backward = 0, fp32_convs = 0;
+      for (const GraphNode& n : net16.graph(true).nodes()) {
+        half_backward += n.op == OpKind::Conv2dBackwardHalf || n.op == OpKind::ConvTranspose2x2BackwardHalf;
+        fp32_convs += n.op == OpKind::Conv2d || n.op == OpKind::Conv2dBackward || n.op == OpKind::ConvTranspose2x2 ||
+                      n.op == OpKind::ConvTranspose2x2Backward;
+      }
+      EXPECT_GT(half_backward, 0);
+      EXPECT_EQ(fp32_convs, 0);
+    }
+  }
+  auto cpu = make_cpu_backend();
+  PillarSegNet on_cpu(tiny_config(), *cpu);
+  try {
+    on_cpu.set_training_precision(Precision::BF16);
+    FAIL() << "the CPU backend trains in FP32 only";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("--precision bf16 for training: backend cpu trains in fp32 only"),
+              std::string::npos)
+        << e.what();
+  }
+}
+
 // The names behind --conv, in both builds.
 TEST(CudaBackendVendorConv, ConvolutionNamesParseAndRoundTrip) {
   for (ConvolutionImpl impl :

@@ -25,6 +25,7 @@
 #include "core/rng.hpp"
 #include "kernels/common.cuh"
 #include "kernels/conv2d_mma.cuh"
+#include "tests/kernel_test_helpers.hpp"
 #include "kernels/device_buffer.hpp"
 #include "kernels/elementwise.cuh"
 #include "kernels/half_ops.cuh"
@@ -36,6 +37,7 @@
 using namespace pillarseg;
 using cuda::DeviceBuffer;
 using cuda::Half16;
+using kernel_test::GuardedArray;
 
 namespace {
 
@@ -309,6 +311,191 @@ TEST(ConvMma, Transposed2x2Bf16) {
 }
 TEST(ConvMma, Transposed2x2F16) {
   check_transposed(Half16::F16);
+}
+
+// ---- training gradients ----
+
+// The gradients of a stride-1 convolution against a double reference on the rounded operands:
+// dx (K = O k k terms), dw (K = the B Ho Wo pixels, split over blocks and summed in order), dbias
+// (in double); outputs between guard words; two runs give the same bits.
+void check_conv_backward(const ConvCase& cc, Half16 type) {
+  std::string why;
+  if (!cuda::mma_supported(&why)) GTEST_SKIP() << why;
+  const cuda::Conv2dShape s{cc.batch, cc.in_channels, cc.height, cc.width, cc.out_channels, cc.kernel, cc.pad};
+  const std::int64_t kk = s.kernel * s.kernel, ho = s.out_height(), wo = s.out_width();
+  Rng rng(23 + static_cast<uint64_t>(cc.out_channels));
+  const std::vector<float> x = uniform(static_cast<size_t>(s.batch * s.in_channels * s.height * s.width), rng, -2, 2);
+  const std::vector<float> w = uniform(static_cast<size_t>(s.out_channels * s.in_channels * kk), rng, -0.5, 0.5);
+  const std::vector<float> g = uniform(static_cast<size_t>(s.batch * s.out_channels * ho * wo), rng, -1, 1);
+  auto d_x = DeviceBuffer<float>::from_host(x), d_w = DeviceBuffer<float>::from_host(w),
+       d_g = DeviceBuffer<float>::from_host(g);
+  DeviceBuffer<std::uint16_t> w16t(static_cast<size_t>(s.in_channels * cuda::mma_padded_k(s.out_channels * kk)));
+  DeviceBuffer<float> workspace(static_cast<size_t>(std::max<std::int64_t>(1, cuda::conv2d_mma_backward_weights_workspace(s))));
+  std::vector<std::vector<float>> runs;
+  for (int run = 0; run < 2; ++run) {
+    GuardedArray<float> dx(static_cast<std::int64_t>(x.size())), dw(static_cast<std::int64_t>(w.size())),
+        db(s.out_channels);
+    cuda::prepare_conv_data_weights(d_w.data(), s, type, w16t.data(), nullptr);
+    cuda::conv2d_mma_backward_data(d_g.data(), w16t.data(), s, type, dx.data(), nullptr);
+    cuda::conv2d_mma_backward_weights(d_x.data(), d_g.data(), s, type, dw.data(), db.data(), workspace.data(),
+                                      nullptr);
+    PS_CUDA_CHECK(cudaDeviceSynchronize());
+    EXPECT_TRUE(dx.guards_intact());
+    EXPECT_TRUE(dw.guards_intact());
+    EXPECT_TRUE(db.guards_intact());
+    std::vector<float> all = dx.download(), part = dw.download(), bias = db.download();
+    all.insert(all.end(), part.begin(), part.end());
+    all.insert(all.end(), bias.begin(), bias.end());
+    runs.push_back(std::move(all));
+  }
+  EXPECT_EQ(runs[0], runs[1]) << "two runs differ";
+  const std::vector<float>& got = runs[0];
+  const auto at_x = [&](std::int64_t b, std::int64_t i, std::int64_t y, std::int64_t xx) {
+    return round_half(x[static_cast<size_t>(((b * s.in_channels + i) * s.height + y) * s.width + xx)], type);
+  };
+  const auto at_g = [&](std::int64_t b, std::int64_t o, std::int64_t y, std::int64_t xx) {
+    return round_half(g[static_cast<size_t>(((b * s.out_channels + o) * ho + y) * wo + xx)], type);
+  };
+  const auto at_w = [&](std::int64_t o, std::int64_t i, std::int64_t t) {
+    return round_half(w[static_cast<size_t>((o * s.in_channels + i) * kk + t)], type);
+  };
+  // dx
+  for (std::int64_t b = 0; b < s.batch; ++b)
+    for (std::int64_t i = 0; i < s.in_channels; ++i)
+      for (std::int64_t y = 0; y < s.height; ++y)
+        for (std::int64_t xx = 0; xx < s.width; ++xx) {
+          double sum = 0, magnitude = 0;
+          for (std::int64_t o = 0; o < s.out_channels; ++o)
+            for (std::int64_t t = 0; t < kk; ++t) {
+              const std::int64_t oy = y + s.pad - t / s.kernel, ox = xx + s.pad - t % s.kernel;
+              if (oy < 0 || oy >= ho || ox < 0 || ox >= wo) continue;
+              const double p = static_cast<double>(at_w(o, i, t)) * at_g(b, o, oy, ox);
+              sum += p, magnitude += std::abs(p);
+            }
+          const float v = got[static_cast<size_t>(((b * s.in_channels + i) * s.height + y) * s.width + xx)];
+          ASSERT_NEAR(v, sum, static_cast<double>(s.out_channels * kk) * 0x1p-24 * magnitude + 1e-7)
+              << "dx[" << b << "][" << i << "][" << y << "][" << xx << "]";
+        }
+  // dw, dbias
+  const size_t dw0 = x.size(), db0 = x.size() + w.size();
+  for (std::int64_t o = 0; o < s.out_channels; ++o) {
+    double bias_sum = 0, bias_magnitude = 0;
+    for (std::int64_t b = 0; b < s.batch; ++b)
+      for (std::int64_t oy = 0; oy < ho; ++oy)
+        for (std::int64_t ox = 0; ox < wo; ++ox) {
+          const double v = g[static_cast<size_t>(((b * s.out_channels + o) * ho + oy) * wo + ox)];
+          bias_sum += v, bias_magnitude += std::abs(v);
+        }
+    ASSERT_NEAR(got[db0 + static_cast<size_t>(o)], bias_sum, 1e-6 * bias_magnitude + 1e-7) << "dbias[" << o << "]";
+    for (std::int64_t i = 0; i < s.in_channels; ++i)
+      for (std::int64_t t = 0; t < kk; ++t) {
+        double sum = 0, magnitude = 0;
+        for (std::int64_t b = 0; b < s.batch; ++b)
+          for (std::int64_t oy = 0; oy < ho; ++oy)
+            for (std::int64_t ox = 0; ox < wo; ++ox) {
+              const std::int64_t iy = oy + t / s.kernel - s.pad, ix = ox + t % s.kernel - s.pad;
+              if (iy < 0 || iy >= s.height || ix < 0 || ix >= s.width) continue;
+              const double p = static_cast<double>(at_g(b, o, oy, ox)) * at_x(b, i, iy, ix);
+              sum += p, magnitude += std::abs(p);
+            }
+        const float v = got[dw0 + static_cast<size_t>((o * s.in_channels + i) * kk + t)];
+        ASSERT_NEAR(v, sum, static_cast<double>(s.batch * ho * wo) * 0x1p-24 * magnitude + 1e-7)
+            << "dw[" << o << "][" << i << "][" << t << "]";
+      }
+  }
+}
+
+TEST(ConvMmaBackward, Conv3x3PaddedBf16) {
+  check_conv_backward({2, 5, 9, 11, 70, 3, 1, false, false}, Half16::BF16);
+}
+TEST(ConvMmaBackward, Conv3x3PaddedF16) {
+  check_conv_backward({1, 19, 7, 6, 33, 3, 1, false, false}, Half16::F16);
+}
+TEST(ConvMmaBackward, Conv3x3UnpaddedBf16) {
+  check_conv_backward({1, 3, 6, 9, 8, 3, 0, false, false}, Half16::BF16);
+}
+TEST(ConvMmaBackward, Conv1x1HeadBf16) {
+  check_conv_backward({2, 40, 5, 13, 12, 1, 0, false, false}, Half16::BF16);
+}
+// 37 x 41 pixels: the weight gradient splits them over 48 blocks, the last one short.
+TEST(ConvMmaBackward, ManyPixelsSplitBf16) {
+  check_conv_backward({1, 4, 37, 41, 4, 3, 1, false, false}, Half16::BF16);
+}
+
+void check_transposed_backward(std::int64_t B, std::int64_t I, std::int64_t O, std::int64_t H, std::int64_t W,
+                               Half16 type) {
+  std::string why;
+  if (!cuda::mma_supported(&why)) GTEST_SKIP() << why;
+  const cuda::ConvTranspose2dShape s{B, I, H, W, O};
+  Rng rng(7 + static_cast<uint64_t>(I));
+  const std::vector<float> x = uniform(static_cast<size_t>(B * I * H * W), rng, -2, 2);
+  const std::vector<float> w = uniform(static_cast<size_t>(I * O * 4), rng, -0.5, 0.5);
+  const std::vector<float> g = uniform(static_cast<size_t>(B * O * 4 * H * W), rng, -1, 1);
+  auto d_x = DeviceBuffer<float>::from_host(x), d_w = DeviceBuffer<float>::from_host(w),
+       d_g = DeviceBuffer<float>::from_host(g);
+  DeviceBuffer<std::uint16_t> w16t(static_cast<size_t>(I * cuda::mma_padded_k(4 * O)));
+  DeviceBuffer<float> workspace(
+      static_cast<size_t>(std::max<std::int64_t>(1, cuda::conv_transpose2x2_mma_backward_weights_workspace(s))));
+  GuardedArray<float> dx(static_cast<std::int64_t>(x.size())), dw(static_cast<std::int64_t>(w.size())), db(O);
+  cuda::prepare_conv_transpose_data_weights(d_w.data(), s, type, w16t.data(), nullptr);
+  cuda::conv_transpose2x2_mma_backward_data(d_g.data(), w16t.data(), s, type, dx.data(), nullptr);
+  cuda::conv_transpose2x2_mma_backward_weights(d_x.data(), d_g.data(), s, type, dw.data(), db.data(),
+                                               workspace.data(), nullptr);
+  PS_CUDA_CHECK(cudaDeviceSynchronize());
+  EXPECT_TRUE(dx.guards_intact());
+    EXPECT_TRUE(dw.guards_intact());
+    EXPECT_TRUE(db.guards_intact());
+  const std::vector<float> gx = dx.download(), gw = dw.download(), gb = db.download();
+  const auto at_g = [&](std::int64_t b, std::int64_t o, std::int64_t y, std::int64_t xx) {
+    return round_half(g[static_cast<size_t>(((b * O + o) * 2 * H + y) * 2 * W + xx)], type);
+  };
+  for (std::int64_t b = 0; b < B; ++b)
+    for (std::int64_t i = 0; i < I; ++i)
+      for (std::int64_t y = 0; y < H; ++y)
+        for (std::int64_t xx = 0; xx < W; ++xx) {
+          double sum = 0, magnitude = 0;
+          for (std::int64_t o = 0; o < O; ++o)
+            for (std::int64_t sub = 0; sub < 4; ++sub) {
+              const double p = static_cast<double>(round_half(w[static_cast<size_t>((i * O + o) * 4 + sub)], type)) *
+                               at_g(b, o, 2 * y + sub / 2, 2 * xx + sub % 2);
+              sum += p, magnitude += std::abs(p);
+            }
+          ASSERT_NEAR(gx[static_cast<size_t>(((b * I + i) * H + y) * W + xx)], sum,
+                      static_cast<double>(4 * O) * 0x1p-24 * magnitude + 1e-7)
+              << "dx[" << b << "][" << i << "][" << y << "][" << xx << "]";
+        }
+  for (std::int64_t i = 0; i < I; ++i)
+    for (std::int64_t o = 0; o < O; ++o)
+      for (std::int64_t sub = 0; sub < 4; ++sub) {
+        double sum = 0, magnitude = 0;
+        for (std::int64_t b = 0; b < B; ++b)
+          for (std::int64_t y = 0; y < H; ++y)
+            for (std::int64_t xx = 0; xx < W; ++xx) {
+              const double p =
+                  static_cast<double>(round_half(x[static_cast<size_t>(((b * I + i) * H + y) * W + xx)], type)) *
+                  at_g(b, o, 2 * y + sub / 2, 2 * xx + sub % 2);
+              sum += p, magnitude += std::abs(p);
+            }
+        ASSERT_NEAR(gw[static_cast<size_t>((i * O + o) * 4 + sub)], sum,
+                    static_cast<double>(B * H * W) * 0x1p-24 * magnitude + 1e-7)
+            << "dw[" << i << "][" << o << "][" << sub << "]";
+      }
+  for (std::int64_t o = 0; o < O; ++o) {
+    double sum = 0, magnitude = 0;
+    for (std::int64_t b = 0; b < B; ++b)
+      for (std::int64_t p = 0; p < 4 * H * W; ++p) {
+        const double v = g[static_cast<size_t>((b * O + o) * 4 * H * W + p)];
+        sum += v, magnitude += std::abs(v);
+      }
+    ASSERT_NEAR(gb[static_cast<size_t>(o)], sum, 1e-6 * magnitude + 1e-7) << "dbias[" << o << "]";
+  }
+}
+
+TEST(ConvMmaBackward, Transposed2x2Bf16) {
+  check_transposed_backward(2, 6, 5, 3, 4, Half16::BF16);
+}
+TEST(ConvMmaBackward, Transposed2x2ManyChannelsF16) {
+  check_transposed_backward(1, 70, 17, 5, 7, Half16::F16);
 }
 
 // ---- 16-bit activations ----

@@ -171,6 +171,20 @@ class TimedBackend final : public Backend {
     timed(conv_op(w, "backward"), passes * conv_flops(dy, w),
           [&] { inner_->conv2d_backward(x, w, dy, pad, dx, dw, dbias); });
   }
+  bool supports_training_precision(Precision p, std::string* why_not) const override {
+    return inner_->supports_training_precision(p, why_not);
+  }
+  void conv2d_backward_half(const Ref& x, const Ref& w, const Ref& dy, int pad, Precision p, Ref* dx, Ref& dw,
+                            Ref* dbias) override {
+    const double passes = dx != nullptr ? 2.0 : 1.0;
+    timed(fmt::format("conv{}x{} backward {} (tensor cores)", w.dim(2), w.dim(3), precision_name(p)),
+          passes * conv_flops(dy, w), [&] { inner_->conv2d_backward_half(x, w, dy, pad, p, dx, dw, dbias); });
+  }
+  void conv_transpose2x2_backward_half(const Ref& x, const Ref& w, const Ref& dy, Precision p, Ref& dx, Ref& dw,
+                                       Ref* dbias) override {
+    timed(fmt::format("convT 2x2 backward {} (tensor cores)", precision_name(p)), 2 * transposed_flops(x, w),
+          [&] { inner_->conv_transpose2x2_backward_half(x, w, dy, p, dx, dw, dbias); });
+  }
   void conv_transpose2d_forward(const Ref& x, const Ref& w, const Ref* bias, Ref& y) override {
     timed("convT 2x2 forward", transposed_flops(x, w),
           [&] { inner_->conv_transpose2d_forward(x, w, bias, y); });

@@ -47,8 +47,9 @@ inline void add_device_options(CLI::App* cmd, DeviceArgs& args) {
   cmd->add_option("--cuda-device", args.cuda_device, "the CUDA device ordinal with --device cuda")
       ->check(CLI::NonNegativeNumber);
   cmd->add_option("--precision", args.precision,
-                  "the evaluation convolutions: fp32, or bf16 / fp16 on the tensor cores (--device cuda on "
-                  "compute capability 8.0+, or emu; elsewhere one line says so and fp32 runs)")
+                  "the convolutions: fp32, or bf16 / fp16 (tensor cores on --device cuda, compute capability "
+                  "8.0+, or emu; bf16 also on CPUs with AVX512_BF16; elsewhere one line says so and fp32 runs; "
+                  "train: cuda or emu only, with FP32 master weights)")
       ->check(CLI::IsMember({"fp32", "bf16", "fp16"}));
 }
 

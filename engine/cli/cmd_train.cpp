@@ -35,10 +35,7 @@ void run_train(const TrainArgs& a) {
   o.config = load_run_config(a.config);
   o.device = a.device.device;
   o.backend = {a.device.conv, a.device.cuda_device};
-  PS_CHECK(a.device.precision == "fp32",
-           "train --precision {}: training computes in FP32 (BF16 training with FP32 master weights is not "
-           "implemented yet); --precision applies to infer, eval, render and bench",
-           a.device.precision);
+  o.precision = parse_precision(a.device.precision);
   if (!a.cache.empty()) o.cache_dir = a.cache;
   o.resume = a.resume;
   o.max_epochs_this_run = a.epochs_now;

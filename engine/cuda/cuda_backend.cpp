@@ -304,6 +304,10 @@ float* CudaBackend::float_workspace(size_t count) {
   return grow(workspace_.floats, count);
 }
 
+std::uint16_t* CudaBackend::half_workspace(size_t count) {
+  return grow(workspace_.halves, std::max<size_t>(count, 1));
+}
+
 double* CudaBackend::double_workspace(int64_t count) {
   return grow(workspace_.doubles, static_cast<size_t>(std::max<int64_t>(count, 1)));
 }
@@ -854,6 +858,49 @@ void CudaBackend::conv_transpose2x2_half_forward(const ActRef& x, const HRef& w1
   require_shape(op, "bias_out", bias_out, {4 * weight[1]});
   cuda::conv_transpose2x2_mma_forward(x.data, x.half, w16.data, bias_out.data, x.dim(0), x.dim(1), x.dim(2),
                                       x.dim(3), weight[1], half_type(op, p), y.data, y.half, stream_.get());
+}
+
+bool CudaBackend::supports_training_precision(Precision p, std::string* why_not) const {
+  return supports_precision(p, why_not);
+}
+
+void CudaBackend::conv2d_backward_half(const Ref& x, const Ref& w, const Ref& dy, int pad, Precision p, Ref* dx,
+                                       Ref& dw, Ref* dbias) {
+  const char* op = "conv2d_backward_half";
+  const cuda::Conv2dShape shape = conv_shape(op, x, w, pad);
+  require_shape(op, "dy", dy, conv_output(shape));
+  require_shape(op, "dw", dw, w.shape);
+  if (dbias) require_shape(op, "dbias", *dbias, {shape.out_channels});
+  if (dx) require_shape(op, "dx", *dx, x.shape);
+  const cuda::Half16 type = half_type(op, p);
+  if (dx) {
+    const size_t halves = static_cast<size_t>(
+        shape.in_channels * cuda::mma_padded_k(shape.out_channels * shape.kernel * shape.kernel));
+    std::uint16_t* w16t = half_workspace(halves);
+    cuda::prepare_conv_data_weights(w.data, shape, type, w16t, stream_.get());
+    cuda::conv2d_mma_backward_data(dy.data, w16t, shape, type, dx->data, stream_.get());
+  }
+  float* workspace = float_workspace(static_cast<size_t>(cuda::conv2d_mma_backward_weights_workspace(shape)));
+  cuda::conv2d_mma_backward_weights(x.data, dy.data, shape, type, dw.data, dbias ? dbias->data : nullptr, workspace,
+                                    stream_.get());
+}
+
+void CudaBackend::conv_transpose2x2_backward_half(const Ref& x, const Ref& w, const Ref& dy, Precision p, Ref& dx,
+                                                  Ref& dw, Ref* dbias) {
+  const char* op = "conv_transpose2x2_backward_half";
+  const cuda::ConvTranspose2dShape shape = conv_transpose_shape(op, x, w);
+  require_shape(op, "dy", dy, conv_transpose_output(shape));
+  require_shape(op, "dx", dx, x.shape);
+  require_shape(op, "dw", dw, w.shape);
+  if (dbias) require_shape(op, "dbias", *dbias, {shape.out_channels});
+  const cuda::Half16 type = half_type(op, p);
+  std::uint16_t* w16t = half_workspace(static_cast<size_t>(shape.in_channels * cuda::mma_padded_k(4 * shape.out_channels)));
+  cuda::prepare_conv_transpose_data_weights(w.data, shape, type, w16t, stream_.get());
+  cuda::conv_transpose2x2_mma_backward_data(dy.data, w16t, shape, type, dx.data, stream_.get());
+  float* workspace =
+      float_workspace(static_cast<size_t>(cuda::conv_transpose2x2_mma_backward_weights_workspace(shape)));
+  cuda::conv_transpose2x2_mma_backward_weights(x.data, dy.data, shape, type, dw.data, dbias ? dbias->data : nullptr,
+                                               workspace, stream_.get());
 }
 
 void CudaBackend::to_half(const Ref& x, Precision p, HRef& y) {

@@ -160,6 +160,11 @@ class CudaBackend final : public Backend {
                            bool relu, Precision p, const ActRef& y) override;
   void conv_transpose2x2_half_forward(const ActRef& x, const HRef& w16, const Ref& bias_out, const Shape& weight,
                                       Precision p, const ActRef& y) override;
+  bool supports_training_precision(Precision p, std::string* why_not) const override;
+  void conv2d_backward_half(const Ref& x, const Ref& w, const Ref& dy, int pad, Precision p, Ref* dx, Ref& dw,
+                            Ref* dbias) override;
+  void conv_transpose2x2_backward_half(const Ref& x, const Ref& w, const Ref& dy, Precision p, Ref& dx, Ref& dw,
+                                       Ref* dbias) override;
   void to_half(const Ref& x, Precision p, HRef& y) override;
   void maxpool2x2_half(const HRef& x, Precision p, HRef& y) override;
   void upsample2x_half(const HRef& x, Precision p, HRef& y) override;
@@ -171,6 +176,7 @@ class CudaBackend final : public Backend {
   // largest request so far; the loss and reduction buffers have fixed sizes.
   struct Workspace {
     cuda::DeviceBuffer<float> floats;           // convolution weight-gradient partials
+    cuda::DeviceBuffer<std::uint16_t> halves;   // 16-bit training: the input gradient's weights
     cuda::DeviceBuffer<double> doubles;         // BatchNorm and PFN statistics
     cuda::DeviceBuffer<std::int32_t> gather;    // the pillar gather's (and grid map's) arrays
     cuda::DeviceBuffer<std::uint32_t> rays;     // the ray walks' counts
@@ -179,6 +185,7 @@ class CudaBackend final : public Backend {
     cuda::DeviceBuffer<cuda::LossResult> loss_result;
   };
   float* float_workspace(size_t count);
+  std::uint16_t* half_workspace(size_t count);
   double* double_workspace(int64_t count);
   std::int32_t* gather_workspace(int64_t count);
   std::uint32_t* ray_workspace(int64_t count);

@@ -72,6 +72,20 @@ void Backend::conv_transpose2x2_half_forward(const ActRef&, const HRef&, const R
                                              const ActRef&) {
   PS_FAIL("backend {}: no {} convolutions (supports_precision)", name(), precision_name(p));
 }
+bool Backend::supports_training_precision(Precision p, std::string* why_not) const {
+  if (p == Precision::F32) return true;
+  if (why_not != nullptr) {
+    *why_not = fmt::format("backend {} trains in fp32 only ({} training runs on --device cuda)", name(),
+                           precision_name(p));
+  }
+  return false;
+}
+void Backend::conv2d_backward_half(const Ref&, const Ref&, const Ref&, int, Precision p, Ref*, Ref&, Ref*) {
+  PS_FAIL("backend {}: no {} training (supports_training_precision)", name(), precision_name(p));
+}
+void Backend::conv_transpose2x2_backward_half(const Ref&, const Ref&, const Ref&, Precision p, Ref&, Ref&, Ref*) {
+  PS_FAIL("backend {}: no {} training (supports_training_precision)", name(), precision_name(p));
+}
 void Backend::to_half(const Ref&, Precision p, HRef&) {
   PS_FAIL("backend {}: no {} activations (supports_precision)", name(), precision_name(p));
 }

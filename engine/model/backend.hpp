@@ -242,6 +242,17 @@ class Backend {
   // y (B, O, 2H, 2W) = the transposed convolution of x (B, I, H, W) for weight (I, O, 2, 2).
   virtual void conv_transpose2x2_half_forward(const ActRef& x, const HRef& w16, const Ref& bias_out,
                                               const Shape& weight, Precision p, const ActRef& y);
+  // Training in `p` (FP32 tensors and master weights; the convolutions' forward is
+  // conv2d_half_forward / conv_transpose2x2_half_forward on weights prepared without BatchNorm):
+  // whether this backend has the backward below, else false with the reason.
+  virtual bool supports_training_precision(Precision p, std::string* why_not = nullptr) const;
+  // The gradients with x, dy and w rounded to `p` and FP32 accumulation (kernels/conv2d_mma.cuh):
+  // dx (when given), dw and dbias (when given) of conv2d_backward, FP32; the backend keeps the
+  // flipped 16-bit weights and the weight gradient's partial sums in its own scratch.
+  virtual void conv2d_backward_half(const Ref& x, const Ref& w, const Ref& dy, int pad, Precision p, Ref* dx, Ref& dw,
+                                    Ref* dbias);
+  virtual void conv_transpose2x2_backward_half(const Ref& x, const Ref& w, const Ref& dy, Precision p, Ref& dx,
+                                               Ref& dw, Ref* dbias);
   // The 16-bit activations' data movement (kernels/half_ops.cuh): x FP32 -> y rounded; max-pool
   // 2x2; bilinear x2; [skip, zero-padded up]; x into channels [channel0, ..) of y.
   virtual void to_half(const Ref& x, Precision p, HRef& y);

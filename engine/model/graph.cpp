@@ -99,6 +99,10 @@ const char* op_name(OpKind op) {
       return "conv 16-bit (tensor cores)";
     case OpKind::ConvTranspose2x2Half:
       return "convT 2x2 16-bit (tensor cores)";
+    case OpKind::Conv2dBackwardHalf:
+      return "conv backward 16-bit (tensor cores)";
+    case OpKind::ConvTranspose2x2BackwardHalf:
+      return "convT 2x2 backward 16-bit (tensor cores)";
     case OpKind::ToHalf:
       return "to 16-bit";
     case OpKind::MaxPool2x2Half:

@@ -55,6 +55,9 @@ enum class OpKind {
   PrepareConvTransposeWeights,  // r: w, bias | w: w16, bias_out
   Conv2dHalf,                   // r: x, w16, bias_out | w: y (relu: + ReLU)
   ConvTranspose2x2Half,         // r: x, w16, bias_out | w: y
+  // Mixed precision (training): the gradients on the tensor cores from the FP32 tensors.
+  Conv2dBackwardHalf,            // r: x, w, dy | w: dx, dw, dbias
+  ConvTranspose2x2BackwardHalf,  // r: x, w, dy | w: dx, dw, dbias
   ToHalf,                       // r: x (FP32) | w: y (16-bit)
   MaxPool2x2Half,               // r: x | w: y (16-bit, no arg-max)
   Upsample2xHalf,               // r: x | w: y

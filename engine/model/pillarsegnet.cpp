@@ -76,6 +76,7 @@ struct GraphPlan {
   size_t loss_node = 0;
   int batch = -1;
   int64_t pillar_capacity = -1;
+  Precision precision = Precision::F32;  // of its 16-bit nodes
   std::unique_ptr<Arena> arena;
   uint8_t* base = nullptr;
   // Tensors the model binds outside the nodes.
@@ -95,7 +96,8 @@ struct PillarSegNet::Impl {
   GraphPlan eval, train;
   GraphPlan* current = nullptr;
   LossKind loss_kind = LossKind::CrossEntropy;
-  Precision precision = Precision::F32;  // of the evaluation convolutions
+  Precision precision = Precision::F32;        // of the evaluation convolutions
+  Precision train_precision = Precision::F32;  // of the training step's convolutions
   // Pillar buffers are planned for a capacity that grows with headroom (a slowly rising pillar
   // count does not re-plan every batch); the nodes run on the current batch's rows.
   int64_t pillar_capacity = 0, pillar_rows = 0;
@@ -115,11 +117,17 @@ namespace {
 // Emits the nodes of one graph in the order the backend runs them.
 class Builder {
  public:
+  // `precision`: the convolutions'; the evaluation forward also keeps the U-Net's activations in
+  // it, training keeps them (and BatchNorm, the loss, gradients) in FP32.
   Builder(Graph& g, ParameterSet& ps, const std::vector<BnParams>& bns, bool training, Precision precision)
-      : g_(g), ps_(ps), bns_(bns), training_(training), half_(training ? Precision::F32 : precision) {}
+      : g_(g), ps_(ps), bns_(bns), training_(training), half_(training ? Precision::F32 : precision),
+        conv_precision_(precision) {}
 
   Stage stage = Stage::UNet;
+  // 16-bit activations (the evaluation forward in bf16 / fp16).
   bool half() const { return half_ != Precision::F32; }
+  // Convolutions on prepared 16-bit weights (the tensor-core kernels), in either graph.
+  bool half_convs() const { return conv_precision_ != Precision::F32; }
   // The type of the U-Net's activations: 16-bit in a mixed-precision evaluation forward once
   // `unet` is set (the occupancy stream writes the FP32 canvas).
   bool unet = false;
@@ -173,7 +181,7 @@ class Builder {
     const int w = param(c.weight), b = param(c.bias);
     const Shape b_shape = b >= 0 ? shape(b) : Shape{};
     const int y = g_.tensor(name + "." + out, op::conv2d(shape(x), shape(w), c.pad, b >= 0 ? &b_shape : nullptr));
-    if (half()) {
+    if (half_convs()) {
       half_conv(name, x, w, b, -1, c.pad, false, y);
       return y;
     }
@@ -237,8 +245,8 @@ class Builder {
     bn.writes.push_back(bn.args[6]), bn.writes.push_back(bn.args[7]);
     if (with_dx && dx < 0) dx = g_.tensor(name + ".dx", shape(x));
     const int w = param(m.conv.weight);
-    GraphNode& c = node(OpKind::Conv2dBackward, name, {x, w, d_conv_out, with_dx ? dx : -1, grad(m.conv.weight),
-                                                        grad(m.conv.bias)},
+    GraphNode& c = node(half_convs() ? OpKind::Conv2dBackwardHalf : OpKind::Conv2dBackward, name,
+                        {x, w, d_conv_out, with_dx ? dx : -1, grad(m.conv.weight), grad(m.conv.bias)},
                         {x, w, d_conv_out}, {with_dx ? dx : -1});
     c.pad = m.conv.pad;
     c.writes.push_back(c.args[4]);
@@ -252,7 +260,7 @@ class Builder {
   ParameterSet& ps_;
   const std::vector<BnParams>& bns_;
   bool training_;
-  Precision half_;
+  Precision half_, conv_precision_;
 };
 
 }  // namespace
@@ -347,7 +355,8 @@ void PillarSegNet::build_graph(GraphPlan& p, int batch, bool training) {
   ParameterSet& ps = params_;
   p.graph = Graph();
   Graph& g = p.graph;
-  Builder bld(g, ps, m.bns, training, m.precision);
+  p.precision = training ? m.train_precision : m.precision;
+  Builder bld(g, ps, m.bns, training, p.precision);
   const int H = config_.grid.height(), W = config_.grid.width(), depth = config_.depth;
   const int64_t N = config_.max_points_per_pillar, C = config_.pillar_channels, cap = m.pillar_capacity;
   const int K = config_.num_classes;
@@ -492,7 +501,7 @@ void PillarSegNet::build_graph(GraphPlan& p, int batch, bool training) {
                                static_cast<size_t>(u.skip_channels) * static_cast<size_t>(hs[skip_level]) *
                                    static_cast<size_t>(ws[skip_level]) * dtype_bytes(bld.act()))
                       : g.tensor(name + ".upsampled", up_shape, bld.act());
-    if (u.transposed && bld.half()) {
+    if (u.transposed && bld.half_convs()) {
       bld.half_conv_transpose(name + ".up", current, bld.param(u.up.weight), bld.param(u.up.bias), a.upsampled);
     } else if (u.transposed) {
       const int w = bld.param(u.up.weight), bias = bld.param(u.up.bias);
@@ -545,7 +554,7 @@ void PillarSegNet::build_graph(GraphPlan& p, int batch, bool training) {
     const int head_w = bld.param(m.head.weight);
     int d_current = g.tensor("up" + std::to_string(depth) + ".conv2.d_out", g.at(last_acts.second.out).shape);
     {
-      GraphNode& n = bld.node(OpKind::Conv2dBackward, "head",
+      GraphNode& n = bld.node(bld.half_convs() ? OpKind::Conv2dBackwardHalf : OpKind::Conv2dBackward, "head",
                               {last_acts.second.out, head_w, p.d_logits, d_current, bld.grad(m.head.weight),
                                bld.grad(m.head.bias)},
                               {last_acts.second.out, head_w, p.d_logits}, {d_current});
@@ -574,7 +583,8 @@ void PillarSegNet::build_graph(GraphPlan& p, int batch, bool training) {
                                  : g.tensor(fmt::format("up{}.conv2.d_out", j - 1), g.at(input).shape);
       if (u.transposed) {
         const int w = bld.param(u.up.weight);
-        GraphNode& n = bld.node(OpKind::ConvTranspose2x2Backward, name + ".up",
+        GraphNode& n = bld.node(bld.half_convs() ? OpKind::ConvTranspose2x2BackwardHalf : OpKind::ConvTranspose2x2Backward,
+                                name + ".up",
                                 {input, w, d_upsampled, d_input, bld.grad(u.up.weight), bld.grad(u.up.bias)},
                                 {input, w, d_upsampled}, {d_input});
         n.writes.push_back(n.args[4]), n.writes.push_back(n.args[5]);
@@ -778,7 +788,7 @@ double PillarSegNet::execute(const GraphPlan& p, size_t begin, size_t end) {
         HRef w16 = bind<uint16_t>(p, a[2]);
         Ref bias_out = f(3);
         const BatchNormRefs bn = n.batchnorm >= 0 ? batchnorm_refs(p, n, -1, -1) : BatchNormRefs{};
-        be.prepare_conv_weights(f(0), a[1] >= 0 ? &bias : nullptr, n.batchnorm >= 0 ? &bn : nullptr, m.precision, w16,
+        be.prepare_conv_weights(f(0), a[1] >= 0 ? &bias : nullptr, n.batchnorm >= 0 ? &bn : nullptr, p.precision, w16,
                                 bias_out);
         break;
       }
@@ -786,28 +796,28 @@ double PillarSegNet::execute(const GraphPlan& p, size_t begin, size_t end) {
         const Ref bias = f(1);
         HRef w16 = bind<uint16_t>(p, a[2]);
         Ref bias_out = f(3);
-        be.prepare_conv_transpose_weights(f(0), a[1] >= 0 ? &bias : nullptr, m.precision, w16, bias_out);
+        be.prepare_conv_transpose_weights(f(0), a[1] >= 0 ? &bias : nullptr, p.precision, w16, bias_out);
         break;
       }
       case OpKind::Conv2dHalf:
-        be.conv2d_half_forward(activation(0), h(1), f(2), n.weight, n.pad, n.relu, m.precision, activation(3));
+        be.conv2d_half_forward(activation(0), h(1), f(2), n.weight, n.pad, n.relu, p.precision, activation(3));
         break;
       case OpKind::ConvTranspose2x2Half:
-        be.conv_transpose2x2_half_forward(activation(0), h(1), f(2), n.weight, m.precision, activation(3));
+        be.conv_transpose2x2_half_forward(activation(0), h(1), f(2), n.weight, p.precision, activation(3));
         break;
       case OpKind::ToHalf: {
         HRef y = h(1);
-        be.to_half(f(0), m.precision, y);
+        be.to_half(f(0), p.precision, y);
         break;
       }
       case OpKind::MaxPool2x2Half: {
         HRef y = h(1);
-        be.maxpool2x2_half(h(0), m.precision, y);
+        be.maxpool2x2_half(h(0), p.precision, y);
         break;
       }
       case OpKind::Upsample2xHalf: {
         HRef y = h(1);
-        be.upsample2x_half(h(0), m.precision, y);
+        be.upsample2x_half(h(0), p.precision, y);
         break;
       }
       case OpKind::PadConcatHalf: {
@@ -849,6 +859,17 @@ double PillarSegNet::execute(const GraphPlan& p, size_t begin, size_t end) {
       case OpKind::ConvTranspose2x2Backward: {
         Ref dx = f(3), dw = f(4), db = f(5);
         be.conv_transpose2d_backward(f(0), f(1), f(2), dx, dw, &db);
+        break;
+      }
+      case OpKind::Conv2dBackwardHalf: {
+        Ref dx = f(3), dw = f(4), db = f(5);
+        be.conv2d_backward_half(f(0), f(1), f(2), n.pad, p.precision, a[3] >= 0 ? &dx : nullptr, dw,
+                                a[5] >= 0 ? &db : nullptr);
+        break;
+      }
+      case OpKind::ConvTranspose2x2BackwardHalf: {
+        Ref dx = f(3), dw = f(4), db = f(5);
+        be.conv_transpose2x2_backward_half(f(0), f(1), f(2), p.precision, dx, dw, &db);
         break;
       }
       case OpKind::Upsample2xBackward: {
@@ -900,6 +921,18 @@ void PillarSegNet::set_precision(Precision precision) {
 }
 
 Precision PillarSegNet::precision() const { return impl_->precision; }
+
+void PillarSegNet::set_training_precision(Precision precision) {
+  Impl& m = *impl_;
+  if (precision == m.train_precision) return;
+  std::string why;
+  PS_CHECK(backend_.supports_training_precision(precision, &why), "--precision {} for training: {}",
+           precision_name(precision), why);
+  m.train_precision = precision;
+  m.train.batch = -1;  // planned again at the next training forward
+}
+
+Precision PillarSegNet::training_precision() const { return impl_->train_precision; }
 
 void PillarSegNet::plan(int batch, bool training) {
   Impl& m = *impl_;

@@ -62,12 +62,18 @@ class PillarSegNet {
   void set_stage_timing(bool on) { time_stages_ = on; }
   const StageTimes& stage_times() const { return stage_times_; }
 
-  // The arithmetic of the evaluation forward's U-Net (training always runs FP32): BF16 or FP16
-  // convolutions and activations on a backend that supports_precision() it (the CUDA backend on
-  // compute capability 8.0 or later, or the emulation), else throws pillarseg::Error with the
+  // The arithmetic of the evaluation forward's U-Net: BF16 or FP16 convolutions and activations
+  // on a backend that supports_precision() it (the CUDA backend on compute capability 8.0 or
+  // later, the emulation, the CPU with AVX512_BF16), else throws pillarseg::Error with the
   // reason. The evaluation graph is planned again at the next forward.
   void set_precision(Precision precision);
   Precision precision() const;
+  // The training step's convolutions (forward, input and weight gradients) in BF16 or FP16 on
+  // the tensor cores, with activations, BatchNorm, the loss, gradients, the FP32 master weights
+  // and the optimiser state in FP32, on a backend that supports_training_precision() it (the
+  // CUDA backend), else throws with the reason. The training graph is planned again.
+  void set_training_precision(Precision precision);
+  Precision training_precision() const;
 
   // Runs the network on host inputs (uploaded first); training: batch statistics (and
   // running-statistic updates). Evaluation on a backend that captures graphs (and with stage

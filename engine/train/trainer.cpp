@@ -87,6 +87,9 @@ TrainResult train(const TrainOptions& options) {
   const TrainConfig& tc = cfg.train;
   // The device and the data first: a run that cannot start leaves no run directory behind.
   auto backend = make_backend(options.device, options.backend);
+  std::string why;
+  PS_CHECK(backend->supports_training_precision(options.precision, &why), "train --precision {}: {}",
+           precision_name(options.precision), why);
   const ClassTable classes = ClassTable::defaults();
   const bool augmented_dense = tc.ground_truth == GroundTruthKind::dense && tc.augment;
   ScanDataset data(options.data_root, tc.sequences, tc.scan_stride, tc.max_scans_per_sequence, cfg.model, classes,
@@ -96,6 +99,7 @@ TrainResult train(const TrainOptions& options) {
   const fs::path ckpt_path = latest_checkpoint(options.run_dir);
 
   PillarSegNet net(cfg.model, *backend, tc.seed);
+  net.set_training_precision(options.precision);
   ParameterSet& ps = net.parameters();
   // On a CUDA backend the decoration and the maps of each augmented scan are computed there
   // (engine/pipeline/scan_pipeline.hpp); the CPU backend's inputs come from the host pipeline.
@@ -132,8 +136,8 @@ TrainResult train(const TrainOptions& options) {
   schedule.momentum_min = tc.momentum_min;
   schedule.constant_beta1 = 0.9;
 
-  spdlog::info("training on {} scans ({} steps per epoch, batch {}), {} epochs, device {}, {} threads", n,
-               steps_per_epoch, B, tc.epochs, backend->name(), num_threads());
+  spdlog::info("training on {} scans ({} steps per epoch, batch {}), {} epochs, device {}, precision {}, {} threads", n,
+               steps_per_epoch, B, tc.epochs, backend->name(), precision_name(options.precision), num_threads());
   TrainResult result;
   const int64_t last_epoch =
       options.max_epochs_this_run > 0 ? std::min<int64_t>(tc.epochs, state.epoch + options.max_epochs_this_run)

@@ -20,6 +20,10 @@ struct TrainOptions {
   RunConfig config;
   std::string device = "cpu";  // cpu, cuda or emu (make_backend)
   BackendOptions backend;      // the CUDA backends' Conv2d and device
+  // The convolutions' arithmetic (--precision): BF16 / FP16 on the tensor cores of a backend that
+  // supports_training_precision() it, with FP32 master weights and optimiser state; else the run
+  // does not start.
+  Precision precision = Precision::F32;
   std::optional<std::filesystem::path> cache_dir;
   bool resume = false;
   bool progress = true;
