@@ -59,6 +59,16 @@ __device__ __forceinline__ void copy16(void* dst, const void* src) {
 #endif
 }
 
+// A warp's 2 x 4 accumulator fragments of mma_tile_step = 0.
+__device__ __forceinline__ void zero_accumulators(float (&acc)[2][4][4]) {
+#pragma unroll
+  for (int a = 0; a < 2; ++a)
+#pragma unroll
+    for (int b = 0; b < 4; ++b)
+#pragma unroll
+      for (int c = 0; c < 4; ++c) acc[a][b][c] = 0.0f;
+}
+
 // One step of 32 along K for a warp of the 2 x 2 arrangement: per 16 of K, its two 16 x 16 A
 // fragments with ldmatrix.x4.trans (as holds A transposed: as[k][m]) and its four 16 x 8 B
 // fragments with two ldmatrix.x4 (bs[n][k]), and 8 mma.sync m16n8k16 into acc.
@@ -119,12 +129,7 @@ __global__ void __launch_bounds__(kThreads)
   const int taps = g.kernel * g.kernel;
 
   float acc[2][4][4];
-#pragma unroll
-  for (int a = 0; a < 2; ++a)
-#pragma unroll
-    for (int b = 0; b < 4; ++b)
-#pragma unroll
-      for (int c = 0; c < 4; ++c) acc[a][b][c] = 0.0f;
+  zero_accumulators(acc);
 
   for (std::int64_t k0 = 0; k0 < g.k_padded; k0 += kTileK) {
 // A: rows k0 + tid / 64 + 2 j of this thread's pixel.
@@ -241,12 +246,7 @@ __global__ void __launch_bounds__(kThreads)
   const int taps = g.kernel * g.kernel;
 
   float acc[2][4][4];
-#pragma unroll
-  for (int a = 0; a < 2; ++a)
-#pragma unroll
-    for (int b = 0; b < 4; ++b)
-#pragma unroll
-      for (int c = 0; c < 4; ++c) acc[a][b][c] = 0.0f;
+  zero_accumulators(acc);
 
   for (std::int64_t q0 = q_begin; q0 < q_end; q0 += kTileK) {
     // A: as[sk][sm] = A[m0 + sm][q0 + sk]; a warp reads 32 consecutive pixels of one row m.
