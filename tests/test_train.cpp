@@ -1,10 +1,13 @@
 // Training end to end on a tiny simulated data set: checkpoints and the metrics log, bitwise
 // reproducibility, exact resume, the stop on a non-finite loss, and evaluation.
 #include <gtest/gtest.h>
-
 #include <unistd.h>
 
+#include <atomic>
+#include <chrono>
 #include <fstream>
+#include <sstream>
+#include <thread>
 
 #include "core/io.hpp"
 #include "core/parallel.hpp"
@@ -14,6 +17,7 @@
 #include "engine/pipeline/scan_inputs.hpp"
 #include "engine/sim/simulate.hpp"
 #include "engine/train/checkpoint.hpp"
+#include "engine/train/prefetcher.hpp"
 #include "engine/train/trainer.hpp"
 #include "tests/support/test_support.hpp"
 
@@ -64,6 +68,17 @@ TrainOptions options_for(const fs::path& run_dir, const std::string& config_text
   o.cache_dir = run_dir / "cache";
   o.progress = false;
   return o;
+}
+
+// The model's F32 tensors of a checkpoint (without the optimiser's moments).
+std::vector<float> model_values(const Checkpoint& c) {
+  std::vector<float> all;
+  for (const std::string& name : c.file.names()) {
+    if (name.rfind("optimizer.", 0) == 0 || c.file.at(name).dtype != weights::DType::F32) continue;
+    const Tensor<float> t = c.file.get_f32(name);
+    all.insert(all.end(), t.begin(), t.end());
+  }
+  return all;
 }
 
 std::vector<float> checkpoint_values(const fs::path& path) {
@@ -161,6 +176,125 @@ TEST(Train, ResumeIsExact) {
   TrainOptions changed = options_for(dir / "split", other);
   changed.resume = true;
   EXPECT_THROW(train(changed), Error);
+}
+
+// The step lines of a metrics log without their wall-clock field.
+std::vector<std::string> step_lines(const fs::path& log_path) {
+  std::vector<std::string> out;
+  std::istringstream in(read_file_text(log_path));
+  for (std::string line; std::getline(in, line);) {
+    if (line.find(R"("type": "step")") == std::string::npos) continue;
+    out.push_back(line.substr(0, line.find(R"(, "elapsed_s")")));
+  }
+  return out;
+}
+
+// The loader's queue: items in order whatever the workers' timing, never more than `ahead` made
+// and not taken, and 0 workers makes each item when it is taken.
+TEST(Prefetcher, InOrderAndBounded) {
+  for (const int workers : {0, 1, 4}) {
+    std::atomic<int> made{0}, taken{0}, most_ahead{0};
+    Prefetcher<int> p(50, workers, 3, [&](size_t i) {
+      const int ahead = ++made - taken.load();
+      int seen = most_ahead.load();
+      while (ahead > seen && !most_ahead.compare_exchange_weak(seen, ahead)) {
+      }
+      std::this_thread::sleep_for(std::chrono::microseconds(50 * (i % 3)));
+      return static_cast<int>(i * i);
+    });
+    for (size_t i = 0; i < 50; ++i) {
+      EXPECT_EQ(p.take(i), static_cast<int>(i * i));
+      ++taken;
+    }
+    EXPECT_LE(most_ahead.load(), workers == 0 ? 1 : 3 + 1) << workers << " workers";
+    EXPECT_THROW(p.take(7), Error) << "out of order";
+  }
+}
+
+// train.workers: samples prepared ahead by 1 or 3 threads give the run of 0 workers bit for bit
+// (each sample's randomness comes from (seed, epoch, index)), and each epoch logs its data wait.
+TEST(Train, WorkersDoNotChangeTheResults) {
+  const fs::path dir = test::temp_dir();
+  train(options_for(dir / "w0", tiny_config_text()));
+  for (const int workers : {1, 3}) {
+    const std::string name = "w" + std::to_string(workers);
+    train(options_for(dir / name, tiny_config_text(fmt::format("  workers: {}\n", workers))));
+    EXPECT_EQ(checkpoint_values(dir / "w0" / "checkpoint.safetensors"),
+              checkpoint_values(dir / name / "checkpoint.safetensors"))
+        << workers << " workers";
+    EXPECT_EQ(step_lines(dir / "w0" / "metrics.jsonl"), step_lines(dir / name / "metrics.jsonl"));
+  }
+  EXPECT_NE(read_file_text(dir / "w3" / "metrics.jsonl").find(R"("data_wait_s": )"), std::string::npos);
+  EXPECT_THROW(parse_run_config(tiny_config_text("  workers: -1\n"), "test config"), Error);
+}
+
+// A bad scan stops a run with workers as it does without: its message, no hang.
+TEST(Train, AWorkersFailureStopsTheRun) {
+  const fs::path dir = test::temp_dir();
+  const fs::path data = dir / "data";
+  fs::copy(tiny_data(), data, fs::copy_options::recursive);
+  // A truncated scan: 10 bytes are not a whole number of points.
+  const fs::path scan = data / "sequences" / "00" / "velodyne" / "000001.bin";
+  std::ofstream(scan, std::ios::binary | std::ios::trunc).write("0123456789", 10);
+  TrainOptions o = options_for(dir / "run", tiny_config_text("  workers: 2\n"));
+  o.data_root = data;
+  try {
+    train(o);
+    FAIL() << "a truncated scan must stop training";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("000001.bin"), std::string::npos) << e.what();
+  }
+}
+
+// eval.every_epochs: the validation's mIoU and per-class IoU in the log after every epoch, the
+// best epoch's weights in best.safetensors (with its mIoU in the metadata, kept over a resume).
+TEST(Train, ValidatesWhileTrainingAndKeepsTheBest) {
+  const fs::path dir = test::temp_dir();
+  std::string text = tiny_config_text();
+  text.replace(text.find("eval: {sequences: [8]}"), 22, "eval: {sequences: [8], every_epochs: 1}");
+  train(options_for(dir / "run", text));
+  const std::string log = read_file_text(dir / "run" / "metrics.jsonl");
+  std::vector<double> mious;
+  std::istringstream in(log);
+  for (std::string line; std::getline(in, line);) {
+    if (line.find(R"("type": "eval")") == std::string::npos) continue;
+    EXPECT_NE(line.find(R"("mode": "sparse")"), std::string::npos) << line;
+    EXPECT_NE(line.find(R"("iou": {"vehicle": )"), std::string::npos) << line;
+    const size_t at = line.find(R"("miou": )");
+    ASSERT_NE(at, std::string::npos) << line;
+    mious.push_back(std::stod(line.substr(at + 8)));
+  }
+  ASSERT_EQ(mious.size(), 2u) << log;
+  ASSERT_TRUE(fs::exists(dir / "run" / "best.safetensors"));
+  const Checkpoint best = read_checkpoint(dir / "run" / "best.safetensors");
+  const Checkpoint last = read_checkpoint(dir / "run" / "checkpoint.safetensors");
+  const double top = std::max(mious[0], mious[1]);
+  EXPECT_NEAR(best.state.best_miou, top, 1e-6);
+  EXPECT_EQ(best.state.best_epoch, mious[1] > mious[0] ? 2 : 1);
+  EXPECT_FALSE(best.has_optimizer) << "best.safetensors holds the weights";
+  EXPECT_NEAR(last.state.best_miou, top, 1e-6);
+  // The last epoch was the best: best.safetensors holds its weights.
+  if (mious[1] > mious[0]) {
+    EXPECT_EQ(model_values(best), model_values(last));
+  }
+}
+
+// --resume drops what a killed run logged after its checkpoint: no step appears twice, and the
+// log is the uninterrupted run's.
+TEST(Train, ResumeTruncatesTheMetricsLog) {
+  const fs::path dir = test::temp_dir();
+  train(options_for(dir / "straight", tiny_config_text()));
+  TrainOptions first = options_for(dir / "killed", tiny_config_text());
+  first.max_epochs_this_run = 1;
+  train(first);
+  // What a run killed during epoch 2 leaves after the epoch-1 checkpoint.
+  std::ofstream(dir / "killed" / "metrics.jsonl", std::ios::app)
+      << R"({"type": "step", "epoch": 2, "step": 3, "loss": 9.0, "lr": 1e-3, "beta1": 0.9, "grad_norm": 1.0, "elapsed_s": 1.00})"
+      << "\n";
+  TrainOptions second = options_for(dir / "killed", tiny_config_text());
+  second.resume = true;
+  train(second);
+  EXPECT_EQ(step_lines(dir / "killed" / "metrics.jsonl"), step_lines(dir / "straight" / "metrics.jsonl"));
 }
 
 TEST(Train, NonFiniteLossStopsAndKeepsTheLastGoodCheckpoint) {

@@ -3,6 +3,7 @@
 #include <fmt/format.h>
 
 #include <charconv>
+#include <cstdlib>
 #include <set>
 
 #include "core/error.hpp"
@@ -42,6 +43,10 @@ void save_checkpoint(const fs::path& path, const PillarSegNet& net, const RunCon
   file.metadata["config"] = config.text;
   file.metadata["epoch"] = std::to_string(state.epoch);
   file.metadata["step"] = std::to_string(state.step);
+  if (state.best_miou >= 0) {
+    file.metadata["best_miou"] = fmt::format("{:.17g}", state.best_miou);
+    file.metadata["best_epoch"] = std::to_string(state.best_epoch);
+  }
   file.write(path);
 }
 
@@ -53,6 +58,13 @@ Checkpoint read_checkpoint(const fs::path& path) {
   if (auto it = md.find("config"); it != md.end()) c.config = parse_run_config(it->second, path.string() + " (config)");
   if (auto it = md.find("epoch"); it != md.end()) c.state.epoch = parse_int(it->second, "epoch", path);
   if (auto it = md.find("step"); it != md.end()) c.state.step = parse_int(it->second, "step", path);
+  if (auto it = md.find("best_miou"); it != md.end()) {
+    char* end = nullptr;
+    c.state.best_miou = std::strtod(it->second.c_str(), &end);
+    PS_CHECK(end != it->second.c_str() && *end == '\0' && c.state.best_miou >= 0 && c.state.best_miou <= 1,
+             "{}: metadata best_miou is not an mIoU in [0, 1]: '{}'", path.string(), it->second);
+  }
+  if (auto it = md.find("best_epoch"); it != md.end()) c.state.best_epoch = parse_int(it->second, "best_epoch", path);
   c.has_optimizer = c.file.contains("optimizer.exp_avg") && c.file.contains("optimizer.exp_avg_sq");
   return c;
 }

@@ -19,6 +19,9 @@ namespace pillarseg {
 struct TrainState {
   int64_t epoch = 0;  // epochs completed
   int64_t step = 0;   // optimiser steps completed
+  // Validation while training: the best mIoU so far (negative: none yet) and its epoch.
+  double best_miou = -1;
+  int64_t best_epoch = 0;
 };
 
 // Writes atomically (temporary file, then rename).

@@ -35,6 +35,10 @@ void read_train(const YAML::Node& t, const ClassTable& classes, const std::strin
     else if (key == "max_scans_per_sequence") c.max_scans_per_sequence = get<int>(v, where);
     else if (key == "scan_stride") c.scan_stride = get<int>(v, where);
     else if (key == "precise_bn_batches") c.precise_bn_batches = get<int>(v, where);
+    else if (key == "workers") {
+      c.workers = get<int>(v, where);
+      PS_CHECK(c.workers >= 0 && c.workers <= 64, "{}: expected 0..64 threads, got {}", where, c.workers);
+    }
     else if (key == "sequences") c.sequences = get<std::vector<int>>(v, where);
     else if (key == "coefficients") coefficients = v;
     else if (key == "optimizer") {
@@ -132,6 +136,11 @@ RunConfig parse_run_config(const std::string& yaml_text, const std::string& sour
       const std::string key = kv.first.as<std::string>();
       if (key == "sequences") c.eval.sequences = get<std::vector<int>>(kv.second, source + ": eval.sequences");
       else if (key == "scan_stride") c.eval.scan_stride = get<int>(kv.second, source + ": eval.scan_stride");
+      else if (key == "every_epochs") {
+        c.eval.every_epochs = get<int>(kv.second, source + ": eval.every_epochs");
+        PS_CHECK(c.eval.every_epochs >= 0, "{}: eval.every_epochs must be >= 0 (0: off), got {}", source,
+                 c.eval.every_epochs);
+      } else if (key == "mode") c.eval.mode = parse_ground_truth_kind(get<std::string>(kv.second, source + ": eval.mode"));
       else PS_FAIL("{}: eval.{}: unknown key", source, key);
     }
     PS_CHECK(c.eval.scan_stride >= 1, "{}: eval.scan_stride must be >= 1", source);

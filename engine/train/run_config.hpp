@@ -6,6 +6,7 @@
 #include <array>
 #include <cstdint>
 #include <filesystem>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -39,11 +40,19 @@ struct TrainConfig {
   // momentum averages). Short runs need it: the PFN's momentum of 0.01 still remembers weights
   // from hundreds of steps before.
   int precise_bn_batches = 0;
+  // Threads preparing samples ahead of the step into a bounded queue (engine/train/prefetcher.hpp);
+  // 0: each batch is prepared when the step needs it. The results do not depend on it.
+  int workers = 0;
 };
 
 struct EvalConfig {
   std::vector<int> sequences = {8};
   int scan_stride = 1;
+  // Validation while training: every this many epochs (and after the last), the evaluation of
+  // these sequences in `mode` (default: the training ground truth's), logged, and the best mIoU's
+  // weights kept in RUN_DIR/best.safetensors. 0: off.
+  int every_epochs = 0;
+  std::optional<GroundTruthKind> mode;
 };
 
 struct RunConfig {

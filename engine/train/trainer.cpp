@@ -9,13 +9,18 @@
 #include <ctime>
 #include <fstream>
 #include <numeric>
+#include <optional>
+#include <regex>
 
 #include "core/error.hpp"
 #include "core/io.hpp"
 #include "core/parallel.hpp"
+#include "engine/eval/evaluate.hpp"
 #include "engine/pipeline/scan_pipeline.hpp"
+#include "engine/pipeline/segmenter.hpp"
 #include "engine/train/checkpoint.hpp"
 #include "engine/train/dataset.hpp"
+#include "engine/train/prefetcher.hpp"
 #include "engine/util/progress.hpp"
 #include "host/lr_schedule.hpp"
 
@@ -44,9 +49,26 @@ std::vector<size_t> epoch_order(size_t n, uint64_t seed, uint64_t epoch) {
   return order;
 }
 
+// RUN_DIR/metrics.jsonl. On --resume the lines of what the checkpoint does not hold (the steps,
+// epoch and validation lines of a run killed after it) are dropped first, so that no step appears
+// twice; the file is rewritten atomically.
 class MetricsLog {
  public:
-  MetricsLog(const fs::path& path, bool append) : out_(path, append ? std::ios::app : std::ios::trunc) {
+  MetricsLog(const fs::path& path, bool resume, const TrainState& state) {
+    if (resume && fs::exists(path)) {
+      std::ifstream in(path);
+      std::string kept, line;
+      const std::regex epoch_field(R"("epoch": ([0-9]+))"), step_field(R"("step": ([0-9]+))");
+      while (std::getline(in, line)) {
+        std::smatch e, st;
+        const bool has_epoch = std::regex_search(line, e, epoch_field), has_step = std::regex_search(line, st, step_field);
+        if (has_epoch && std::stoll(e[1].str()) > state.epoch) continue;
+        if (has_step && std::stoll(st[1].str()) > state.step) continue;
+        kept += line + "\n";
+      }
+      write_file_atomic(path, kept.data(), kept.size());
+    }
+    out_.open(path, resume ? std::ios::app : std::ios::trunc);
     PS_CHECK(out_, "{}: cannot open the metrics log for writing", path.string());
   }
   void line(const std::string& json) {
@@ -57,6 +79,23 @@ class MetricsLog {
  private:
   std::ofstream out_;
 };
+
+// Copies the trained values and running statistics into the validation model.
+void copy_weights(const PillarSegNet& from, PillarSegNet& to) {
+  const ParameterSet& a = from.parameters();
+  ParameterSet& b = to.parameters();
+  for (size_t i = 0; i < a.entries().size(); ++i) b.upload(static_cast<int>(i), a.download(static_cast<int>(i)));
+}
+
+// {"road": 0.91, ...}: the per-class IoU (null where the class never occurs).
+std::string iou_json(const SegmentationMetrics& m, const ClassTable& classes) {
+  std::string out = "{";
+  for (int c = 1; c <= kNumClasses; ++c) {
+    const double v = m.iou(c);
+    out += fmt::format("{}\"{}\": {}", c > 1 ? ", " : "", classes.name(c), std::isfinite(v) ? fmt::format("{:.6f}", v) : "null");
+  }
+  return out + "}";
+}
 
 // Precise BatchNorm (train.precise_bn_batches): sets every running statistic to the mean of the
 // batch statistics of K full batches of unaugmented training scans, spread evenly over the data
@@ -121,7 +160,10 @@ TrainResult train(const TrainOptions& options) {
              ckpt_path.string());
     write_file_atomic(options.run_dir / "config.yaml", cfg.text.data(), cfg.text.size());
   }
-  MetricsLog log(options.run_dir / "metrics.jsonl", options.resume);
+  MetricsLog log(options.run_dir / "metrics.jsonl", options.resume, state);
+  // Validation while training (eval.every_epochs): a segmenter of its own on the same device.
+  std::unique_ptr<ScanSegmenter> validator;
+  const fs::path best_path = options.run_dir / "best.safetensors";
 
   const size_t n = data.size();
   const size_t B = static_cast<size_t>(tc.batch_size);
@@ -149,20 +191,43 @@ TrainResult train(const TrainOptions& options) {
     return fs::exists(ckpt_path) ? fmt::format("The last good checkpoint is {}", ckpt_path.string())
                                  : std::string("No checkpoint was written yet.");
   };
+  // train.workers: the epoch's samples, in its order, prepared ahead by that many threads (a
+  // window of two batches per worker); else each batch's samples in parallel when the step needs them.
+  const size_t ahead = 2 * B * static_cast<size_t>(std::max(tc.workers, 1));
   for (int64_t epoch = state.epoch; epoch < last_epoch; ++epoch) {
     const std::vector<size_t> order = epoch_order(n, tc.seed, static_cast<uint64_t>(epoch));
+    std::optional<Prefetcher<TrainingScan>> scans_ahead;
+    std::optional<Prefetcher<Sample>> samples_ahead;
+    if (tc.workers > 0 && on_device) {
+      scans_ahead.emplace(n, tc.workers, ahead, [&, epoch](size_t i) {
+        return data.training_scan(order[i], static_cast<uint64_t>(epoch), tc);
+      });
+    } else if (tc.workers > 0) {
+      samples_ahead.emplace(n, tc.workers, ahead, [&, epoch](size_t i) {
+        return data.training_sample(order[i], static_cast<uint64_t>(epoch), tc);
+      });
+    }
     Progress progress(fmt::format("epoch {}/{}", epoch + 1, tc.epochs), steps_per_epoch, "steps");
-    double loss_sum = 0;
+    double loss_sum = 0, data_wait = 0;
     for (int64_t s = 0; s < steps_per_epoch; ++s) {
       const size_t begin = static_cast<size_t>(s) * B, end = std::min(n, begin + B);
       Tensor<uint8_t> labels({static_cast<int64_t>(end - begin), cfg.model.grid.height(), cfg.model.grid.width()});
       const int64_t plane = cfg.model.grid.cells();
+      const auto wait_started = std::chrono::steady_clock::now();
+      const auto waited = [&] {
+        data_wait += std::chrono::duration<double>(std::chrono::steady_clock::now() - wait_started).count();
+      };
       if (on_device) {
         std::vector<TrainingScan> scans(end - begin);
-        parallel_for(static_cast<int64_t>(scans.size()), [&](int64_t k) {
-          scans[static_cast<size_t>(k)] =
-              data.training_scan(order[begin + static_cast<size_t>(k)], static_cast<uint64_t>(epoch), tc);
-        });
+        if (scans_ahead) {
+          for (size_t k = 0; k < scans.size(); ++k) scans[k] = scans_ahead->take(begin + k);
+        } else {
+          parallel_for(static_cast<int64_t>(scans.size()), [&](int64_t k) {
+            scans[static_cast<size_t>(k)] =
+                data.training_scan(order[begin + static_cast<size_t>(k)], static_cast<uint64_t>(epoch), tc);
+          });
+        }
+        waited();
         int64_t rows = 0;
         for (const TrainingScan& scan : scans) rows += scan.pillars.num_pillars();
         const PillarSegNet::Inputs inputs = net.prepare(static_cast<int>(scans.size()), rows, /*training=*/true);
@@ -179,10 +244,15 @@ TrainResult train(const TrainOptions& options) {
         net.run(/*training=*/true);
       } else {
         std::vector<Sample> samples(end - begin);
-        parallel_for(static_cast<int64_t>(samples.size()), [&](int64_t k) {
-          samples[static_cast<size_t>(k)] =
-              data.training_sample(order[begin + static_cast<size_t>(k)], static_cast<uint64_t>(epoch), tc);
-        });
+        if (samples_ahead) {
+          for (size_t k = 0; k < samples.size(); ++k) samples[k] = samples_ahead->take(begin + k);
+        } else {
+          parallel_for(static_cast<int64_t>(samples.size()), [&](int64_t k) {
+            samples[static_cast<size_t>(k)] =
+                data.training_sample(order[begin + static_cast<size_t>(k)], static_cast<uint64_t>(epoch), tc);
+          });
+        }
+        waited();
         std::vector<const ScanInputs*> inputs;
         for (size_t k = 0; k < samples.size(); ++k) {
           inputs.push_back(&samples[k].inputs);
@@ -220,11 +290,37 @@ TrainResult train(const TrainOptions& options) {
     }
     state.epoch = epoch + 1;
     result.last_epoch_loss = loss_sum / static_cast<double>(steps_per_epoch);
-    if (options.progress) progress.finish(fmt::format("mean loss {:.4f}", result.last_epoch_loss));
+    if (options.progress) {
+      progress.finish(fmt::format("mean loss {:.4f}, waited {:.1f} s for data", result.last_epoch_loss, data_wait));
+    }
     if (tc.precise_bn_batches > 0) recalibrate_batchnorm(net, data, tc);
+    const int every = cfg.eval.every_epochs;
+    if (every > 0 && (state.epoch % every == 0 || state.epoch == tc.epochs)) {
+      if (!validator) validator = std::make_unique<ScanSegmenter>(cfg.model, make_backend(options.device, options.backend));
+      copy_weights(net, validator->net());
+      EvalOptions eo;
+      eo.data_root = options.data_root;
+      eo.mode = cfg.eval.mode.value_or(tc.ground_truth);
+      eo.cache_dir = options.cache_dir;
+      eo.progress = options.progress;
+      const SegmentationMetrics m = evaluate(*validator, cfg, eo);
+      const double miou = m.miou();
+      const bool best = std::isfinite(miou) && miou > state.best_miou;
+      if (best) {
+        state.best_miou = miou, state.best_epoch = state.epoch;
+        save_checkpoint(best_path, net, cfg, state, /*with_optimizer=*/false);
+      }
+      spdlog::info("epoch {}: {} mIoU {:.1f}% over {} labelled cells{}", state.epoch, eval_mode_label(tc.ground_truth, eo.mode),
+                   100.0 * miou, m.labelled_cells(), best ? fmt::format(" (best so far: {})", best_path.string()) : "");
+      log.line(fmt::format(
+          R"({{"type": "eval", "epoch": {}, "step": {}, "mode": "{}", "miou": {}, "labelled_cells": {}, "best_epoch": {}, "iou": {}}})",
+          state.epoch, state.step, to_string(eo.mode), std::isfinite(miou) ? fmt::format("{:.6f}", miou) : "null",
+          m.labelled_cells(), state.best_epoch, iou_json(m, classes)));
+    }
     save_checkpoint(ckpt_path, net, cfg, state, /*with_optimizer=*/true);
-    log.line(fmt::format(R"({{"type": "epoch", "epoch": {}, "step": {}, "mean_loss": {:.6f}, "checkpoint": "{}"}})",
-                         state.epoch, state.step, result.last_epoch_loss, ckpt_path.filename().string()));
+    log.line(fmt::format(
+        R"({{"type": "epoch", "epoch": {}, "step": {}, "mean_loss": {:.6f}, "data_wait_s": {:.3f}, "checkpoint": "{}"}})",
+        state.epoch, state.step, result.last_epoch_loss, data_wait, ckpt_path.filename().string()));
   }
   result.epochs_done = state.epoch;
   result.steps_done = state.step;
