@@ -184,8 +184,7 @@ class Backend {
   // Stride-1 convolution, weight (O, I, k, k), zero padding `pad`.
   virtual void conv2d_forward(const Ref& x, const Ref& w, const Ref* bias, int pad, Ref& y) = 0;
   virtual void conv2d_backward(const Ref& x, const Ref& w, const Ref& dy, int pad, Ref* dx, Ref& dw, Ref* dbias) = 0;
-  // ConvTranspose2d kernel 2 stride 2, weight (I, O, 2, 2). The backward may overwrite dy (the
-  // CPU backend rearranges it in place instead of keeping a second tensor of its size).
+  // ConvTranspose2d kernel 2 stride 2, weight (I, O, 2, 2).
   virtual void conv_transpose2d_forward(const Ref& x, const Ref& w, const Ref* bias, Ref& y) = 0;
   virtual void conv_transpose2d_backward(const Ref& x, const Ref& w, const Ref& dy, Ref& dx, Ref& dw, Ref* dbias) = 0;
   // Eval-mode Conv2d -> BatchNorm (running statistics) -> ReLU, y = relu(bn(conv(x, w) + bias)),

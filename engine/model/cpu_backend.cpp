@@ -238,7 +238,9 @@ class CpuBackend final : public Backend {
     host::conv_transpose2d_forward(view(x), view(w), bias ? &b : nullptr, out);
   }
   void conv_transpose2d_backward(const Ref& x, const Ref& w, const Ref& dy, Ref& dx, Ref& dw, Ref* dbias) override {
-    Tensor<float> gx = view(dx), gw = view(dw), gb, scratch_dy = view(dy);
+    // host/ rearranges dy in place; this backend's own copy keeps the caller's dy intact.
+    transpose_dy_.assign(dy.data, dy.data + dy.numel());
+    Tensor<float> gx = view(dx), gw = view(dw), gb, scratch_dy = Tensor<float>::view(transpose_dy_.data(), dy.shape);
     if (dbias) gb = view(*dbias);
     host::conv_transpose2d_backward_overwriting_dy(view(x), view(w), scratch_dy, &gx, &gw,
                                                    dbias ? &gb : nullptr);
@@ -468,6 +470,7 @@ class CpuBackend final : public Backend {
   bool fast_paths_;
   cpu::Bf16Kernels bf16_kernels_;
   std::vector<uint16_t> staging_;
+  std::vector<float> transpose_dy_;  // conv_transpose2d_backward's copy of dy
   host::WinogradWorkspace winograd_;
   std::vector<float> epilogue_scale_, epilogue_shift_;
   host::PillarWorkspace pillar_workspace_;
