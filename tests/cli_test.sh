@@ -32,6 +32,23 @@ assert abs(cpu - bf16) <= 2e-2 * abs(cpu), ("bf16", cpu, bf16)
 print(f"cli_test: first training loss cpu {cpu}, emu {emu}, emu bf16 {bf16}")
 PY
   fail "training on emu: first loss differs from the CPU's"
+# The event file, read back by TensorBoard itself where it is installed.
+python3 - "$work/cpu" <<'PY' || fail "TensorBoard does not read the event file as metrics.jsonl says"
+import json, sys
+try:
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+except ImportError:
+    print("cli_test: TensorBoard check skipped: the tensorboard Python package is not installed")
+    sys.exit(0)
+run = sys.argv[1]
+acc = EventAccumulator(run)
+acc.Reload()
+got = [(e.step, e.value) for e in acc.Scalars("train/loss")]
+want = [(r["step"], r["loss"]) for r in map(json.loads, open(run + "/metrics.jsonl")) if r["type"] == "step"]
+assert [s for s, _ in got] == [s for s, _ in want], (got, want)
+assert all(abs(a - b) <= 1e-5 * abs(b) + 1e-6 for (_, a), (_, b) in zip(got, want)), (got, want)
+print(f"cli_test: TensorBoard reads {len(got)} train/loss scalars, those of metrics.jsonl")
+PY
 weights=$work/cpu/checkpoint.safetensors
 velodyne=$work/data/sequences/00/velodyne
 

@@ -19,6 +19,7 @@
 #include "engine/train/checkpoint.hpp"
 #include "engine/train/prefetcher.hpp"
 #include "engine/train/trainer.hpp"
+#include "engine/util/tensorboard.hpp"
 #include "tests/support/test_support.hpp"
 
 using namespace pillarseg;
@@ -189,6 +190,33 @@ std::vector<std::string> step_lines(const fs::path& log_path) {
   return out;
 }
 
+// TensorBoard's framing: CRC-32C's check value, and the scalars of a run read back from its
+// event file (the losses of metrics.jsonl, steps 1..4).
+TEST(Train, WritesTensorBoardEventFiles) {
+  EXPECT_EQ(crc32c("123456789"), 0xE3069283u);
+  const fs::path dir = test::temp_dir();
+  train(options_for(dir / "run", tiny_config_text()));
+  bool truncated = true;
+  const std::vector<EventScalar> scalars = read_event_scalars(EventWriter::path_in(dir / "run"), &truncated);
+  EXPECT_FALSE(truncated);
+  std::vector<double> losses;
+  for (const std::string& line : step_lines(dir / "run" / "metrics.jsonl")) {
+    losses.push_back(std::stod(line.substr(line.find(R"("loss": )") + 8)));
+  }
+  std::vector<int64_t> steps;
+  std::vector<float> values;
+  for (const EventScalar& e : scalars) {
+    if (e.tag != "train/loss") continue;
+    steps.push_back(e.step);
+    values.push_back(e.value);
+    EXPECT_GT(e.wall_time, 1.7e9) << "seconds since 1970";
+  }
+  EXPECT_EQ(steps, (std::vector<int64_t>{1, 2, 3, 4}));
+  ASSERT_EQ(values.size(), losses.size());
+  for (size_t i = 0; i < values.size(); ++i) EXPECT_NEAR(values[i], losses[i], 1e-6 * std::abs(losses[i]) + 1e-6);
+  EXPECT_EQ(std::count_if(scalars.begin(), scalars.end(), [](const EventScalar& e) { return e.tag == "train/epoch_mean_loss"; }), 2);
+}
+
 // The loader's queue: items in order whatever the workers' timing, never more than `ahead` made
 // and not taken, and 0 workers makes each item when it is taken.
 TEST(Prefetcher, InOrderAndBounded) {
@@ -279,8 +307,9 @@ TEST(Train, ValidatesWhileTrainingAndKeepsTheBest) {
   }
 }
 
-// --resume drops what a killed run logged after its checkpoint: no step appears twice, and the
-// log is the uninterrupted run's.
+// --resume drops what a killed run logged after its checkpoint, in metrics.jsonl and in the event
+// file (and the event file's cut-short last record): no step appears twice, and both are the
+// uninterrupted run's.
 TEST(Train, ResumeTruncatesTheMetricsLog) {
   const fs::path dir = test::temp_dir();
   train(options_for(dir / "straight", tiny_config_text()));
@@ -291,10 +320,33 @@ TEST(Train, ResumeTruncatesTheMetricsLog) {
   std::ofstream(dir / "killed" / "metrics.jsonl", std::ios::app)
       << R"({"type": "step", "epoch": 2, "step": 3, "loss": 9.0, "lr": 1e-3, "beta1": 0.9, "grad_norm": 1.0, "elapsed_s": 1.00})"
       << "\n";
+  // ... and in its event file: a step-3 scalar, then a record cut short by the kill.
+  {
+    const fs::path events = EventWriter::path_in(dir / "killed");
+    const std::string before = read_file_text(events);
+    {
+      EventWriter writer(dir / "killed", /*resume=*/true, 1000);
+      writer.scalar("train/loss", 3, 9.0);
+    }
+    std::ofstream(events, std::ios::binary | std::ios::app).write("\x20\x00\x00", 3);
+    bool truncated = false;
+    read_event_scalars(events, &truncated);
+    EXPECT_TRUE(truncated);
+    EXPECT_GT(read_file_text(events).size(), before.size());
+  }
   TrainOptions second = options_for(dir / "killed", tiny_config_text());
   second.resume = true;
   train(second);
   EXPECT_EQ(step_lines(dir / "killed" / "metrics.jsonl"), step_lines(dir / "straight" / "metrics.jsonl"));
+  const auto losses = [](const fs::path& run) {
+    bool truncated = true;
+    std::vector<std::pair<int64_t, float>> out;
+    for (const EventScalar& e : read_event_scalars(EventWriter::path_in(run), &truncated))
+      if (e.tag == "train/loss") out.emplace_back(e.step, e.value);
+    EXPECT_FALSE(truncated) << run;
+    return out;
+  };
+  EXPECT_EQ(losses(dir / "killed"), losses(dir / "straight"));
 }
 
 TEST(Train, NonFiniteLossStopsAndKeepsTheLastGoodCheckpoint) {

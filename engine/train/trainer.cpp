@@ -22,6 +22,7 @@
 #include "engine/train/dataset.hpp"
 #include "engine/train/prefetcher.hpp"
 #include "engine/util/progress.hpp"
+#include "engine/util/tensorboard.hpp"
 #include "host/lr_schedule.hpp"
 
 namespace pillarseg {
@@ -161,6 +162,7 @@ TrainResult train(const TrainOptions& options) {
     write_file_atomic(options.run_dir / "config.yaml", cfg.text.data(), cfg.text.size());
   }
   MetricsLog log(options.run_dir / "metrics.jsonl", options.resume, state);
+  EventWriter events(options.run_dir, options.resume, state.step);
   // Validation while training (eval.every_epochs): a segmenter of its own on the same device.
   std::unique_ptr<ScanSegmenter> validator;
   const fs::path best_path = options.run_dir / "best.safetensors";
@@ -286,6 +288,10 @@ TrainResult train(const TrainOptions& options) {
       const double elapsed = std::chrono::duration<double>(std::chrono::steady_clock::now() - started).count();
       log.line(fmt::format(R"({{"type": "step", "epoch": {}, "step": {}, "loss": {:.6f}, "lr": {:.6e}, "beta1": {:.4f}, "grad_norm": {:.4f}, "elapsed_s": {:.2f}}})",
                            epoch + 1, state.step, loss, lm.lr, lm.beta1, grad_norm, elapsed));
+      events.scalar("train/loss", state.step, loss);
+      events.scalar("train/lr", state.step, lm.lr);
+      events.scalar("train/grad_norm", state.step, grad_norm);
+      events.flush();
       if (options.progress) progress.update(s + 1, fmt::format("loss {:.4f} lr {:.2e}", loss, lm.lr));
     }
     state.epoch = epoch + 1;
@@ -316,8 +322,15 @@ TrainResult train(const TrainOptions& options) {
           R"({{"type": "eval", "epoch": {}, "step": {}, "mode": "{}", "miou": {}, "labelled_cells": {}, "best_epoch": {}, "iou": {}}})",
           state.epoch, state.step, to_string(eo.mode), std::isfinite(miou) ? fmt::format("{:.6f}", miou) : "null",
           m.labelled_cells(), state.best_epoch, iou_json(m, classes)));
+      if (std::isfinite(miou)) events.scalar("val/miou", state.step, miou);
+      for (int c = 1; c <= kNumClasses; ++c) {
+        if (std::isfinite(m.iou(c))) events.scalar("val/iou/" + classes.name(c), state.step, m.iou(c));
+      }
     }
     save_checkpoint(ckpt_path, net, cfg, state, /*with_optimizer=*/true);
+    events.scalar("train/epoch_mean_loss", state.step, result.last_epoch_loss);
+    events.scalar("train/data_wait_s", state.step, data_wait);
+    events.flush();
     log.line(fmt::format(
         R"({{"type": "epoch", "epoch": {}, "step": {}, "mean_loss": {:.6f}, "data_wait_s": {:.3f}, "checkpoint": "{}"}})",
         state.epoch, state.step, result.last_epoch_loss, data_wait, ckpt_path.filename().string()));
