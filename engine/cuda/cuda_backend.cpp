@@ -576,6 +576,27 @@ Shape conv_transpose_output(const cuda::ConvTranspose2dShape& s) {
   return {s.batch, s.out_channels, s.out_height(), s.out_width()};
 }
 
+// The shape of a convolution's backward (FP32 or 16-bit) after checking all its tensors.
+cuda::Conv2dShape conv_backward_shape(const char* op, const Ref& x, const Ref& w, const Ref& dy, int pad,
+                                      const Ref* dx, const Ref& dw, const Ref* dbias) {
+  const cuda::Conv2dShape shape = conv_shape(op, x, w, pad);
+  require_shape(op, "dy", dy, conv_output(shape));
+  require_shape(op, "dw", dw, w.shape);
+  if (dbias) require_shape(op, "dbias", *dbias, {shape.out_channels});
+  if (dx) require_shape(op, "dx", *dx, x.shape);
+  return shape;
+}
+
+cuda::ConvTranspose2dShape conv_transpose_backward_shape(const char* op, const Ref& x, const Ref& w, const Ref& dy,
+                                                         const Ref& dx, const Ref& dw, const Ref* dbias) {
+  const cuda::ConvTranspose2dShape shape = conv_transpose_shape(op, x, w);
+  require_shape(op, "dy", dy, conv_transpose_output(shape));
+  require_shape(op, "dx", dx, x.shape);
+  require_shape(op, "dw", dw, w.shape);
+  if (dbias) require_shape(op, "dbias", *dbias, {shape.out_channels});
+  return shape;
+}
+
 }  // namespace
 
 cuda::Conv2dEngine* CudaBackend::vendor_engine(const cuda::Conv2dShape& s) {
@@ -601,11 +622,7 @@ void CudaBackend::conv2d_forward(const Ref& x, const Ref& w, const Ref* bias, in
 void CudaBackend::conv2d_backward(const Ref& x, const Ref& w, const Ref& dy, int pad, Ref* dx,
                                   Ref& dw, Ref* dbias) {
   const char* op = "conv2d_backward";
-  const cuda::Conv2dShape shape = conv_shape(op, x, w, pad);
-  require_shape(op, "dy", dy, conv_output(shape));
-  require_shape(op, "dw", dw, w.shape);
-  if (dbias) require_shape(op, "dbias", *dbias, {shape.out_channels});
-  if (dx) require_shape(op, "dx", *dx, x.shape);
+  const cuda::Conv2dShape shape = conv_backward_shape(op, x, w, dy, pad, dx, dw, dbias);
   if (cuda::Conv2dEngine* vendor = vendor_engine(shape)) {
     if (dx) vendor->backward_data(dy.data, w.data, dx->data, shape, stream_.get(), capturing_);
     vendor->backward_weights(x.data, dy.data, dw.data, dbias ? dbias->data : nullptr, shape,
@@ -632,11 +649,7 @@ void CudaBackend::conv_transpose2d_forward(const Ref& x, const Ref& w, const Ref
 void CudaBackend::conv_transpose2d_backward(const Ref& x, const Ref& w, const Ref& dy, Ref& dx,
                                             Ref& dw, Ref* dbias) {
   const char* op = "conv_transpose2d_backward";
-  const cuda::ConvTranspose2dShape shape = conv_transpose_shape(op, x, w);
-  require_shape(op, "dy", dy, conv_transpose_output(shape));
-  require_shape(op, "dx", dx, x.shape);
-  require_shape(op, "dw", dw, w.shape);
-  if (dbias) require_shape(op, "dbias", *dbias, {shape.out_channels});
+  const cuda::ConvTranspose2dShape shape = conv_transpose_backward_shape(op, x, w, dy, dx, dw, dbias);
   cuda::conv_transpose2d_backward_data(dy.data, w.data, dx.data, shape, stream_.get());
   const size_t floats = cuda::conv_transpose2d_backward_weights_workspace(shape);
   float* workspace = float_workspace(floats);
@@ -867,11 +880,7 @@ bool CudaBackend::supports_training_precision(Precision p, std::string* why_not)
 void CudaBackend::conv2d_backward_half(const Ref& x, const Ref& w, const Ref& dy, int pad, Precision p, Ref* dx,
                                        Ref& dw, Ref* dbias) {
   const char* op = "conv2d_backward_half";
-  const cuda::Conv2dShape shape = conv_shape(op, x, w, pad);
-  require_shape(op, "dy", dy, conv_output(shape));
-  require_shape(op, "dw", dw, w.shape);
-  if (dbias) require_shape(op, "dbias", *dbias, {shape.out_channels});
-  if (dx) require_shape(op, "dx", *dx, x.shape);
+  const cuda::Conv2dShape shape = conv_backward_shape(op, x, w, dy, pad, dx, dw, dbias);
   const cuda::Half16 type = half_type(op, p);
   if (dx) {
     const size_t halves = static_cast<size_t>(
@@ -888,11 +897,7 @@ void CudaBackend::conv2d_backward_half(const Ref& x, const Ref& w, const Ref& dy
 void CudaBackend::conv_transpose2x2_backward_half(const Ref& x, const Ref& w, const Ref& dy, Precision p, Ref& dx,
                                                   Ref& dw, Ref* dbias) {
   const char* op = "conv_transpose2x2_backward_half";
-  const cuda::ConvTranspose2dShape shape = conv_transpose_shape(op, x, w);
-  require_shape(op, "dy", dy, conv_transpose_output(shape));
-  require_shape(op, "dx", dx, x.shape);
-  require_shape(op, "dw", dw, w.shape);
-  if (dbias) require_shape(op, "dbias", *dbias, {shape.out_channels});
+  const cuda::ConvTranspose2dShape shape = conv_transpose_backward_shape(op, x, w, dy, dx, dw, dbias);
   const cuda::Half16 type = half_type(op, p);
   std::uint16_t* w16t = half_workspace(static_cast<size_t>(shape.in_channels * cuda::mma_padded_k(4 * shape.out_channels)));
   cuda::prepare_conv_transpose_data_weights(w.data, shape, type, w16t, stream_.get());
