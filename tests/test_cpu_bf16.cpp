@@ -457,12 +457,6 @@ TEST(CpuHalfOps, BitForBitTheCudaBackends) {
 
 // ---- the whole model ----
 
-// Every value and buffer (running statistics) of `from`, by entry.
-void copy_parameters(const ParameterSet& from, ParameterSet& to) {
-  for (size_t i = 0; i < from.entries().size(); ++i)
-    to.upload(static_cast<int>(i), from.download(static_cast<int>(i)));
-}
-
 // A few training steps (BatchNorm statistics and weights away from their initial values), then
 // the evaluation forward in FP32 and in BF16 on the CPU (the instruction model, and the AVX-512
 // instructions where present), and in BF16 on the CUDA backend (emulation).
@@ -512,7 +506,7 @@ TEST(CpuBf16Model, TracksFp32AndTheCudaBackend) {
     // FP32 sums in another order.
     CudaBackend cuda_backend;
     PillarSegNet on_cuda(c, cuda_backend, 3);
-    copy_parameters(net.parameters(), on_cuda.parameters());
+    on_cuda.parameters().copy_values_from(net.parameters());
     on_cuda.set_precision(Precision::BF16);
     on_cuda.forward(d.batch, false);
     const double against_cuda = nmse(bf16_cpu, on_cuda.download_logits());
@@ -523,7 +517,7 @@ TEST(CpuBf16Model, TracksFp32AndTheCudaBackend) {
     if (cpu::avx512_bf16_available()) {
       auto native = make_cpu_backend();
       PillarSegNet on_native(c, *native, 3);
-      copy_parameters(net.parameters(), on_native.parameters());
+      on_native.parameters().copy_values_from(net.parameters());
       on_native.set_precision(Precision::BF16);
       on_native.forward(d.batch, false);
       EXPECT_LT(nmse(on_native.download_logits(), bf16_cpu), 0.1 * against_fp32);

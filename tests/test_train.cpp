@@ -236,6 +236,10 @@ TEST(Prefetcher, InOrderAndBounded) {
     }
     EXPECT_LE(most_ahead.load(), workers == 0 ? 1 : 3 + 1) << workers << " workers";
     EXPECT_THROW(p.take(7), Error) << "out of order";
+    Prefetcher<int> batches(10, workers, 4, [](size_t i) { return static_cast<int>(3 * i); });
+    EXPECT_EQ(batches.take_batch(0, 4), (std::vector<int>{0, 3, 6, 9}));
+    EXPECT_EQ(batches.take_batch(4, 6), (std::vector<int>{12, 15, 18, 21, 24, 27}));
+    EXPECT_THROW(batches.take_batch(2, 1), Error) << "out of order";
   }
 }
 

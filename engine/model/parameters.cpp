@@ -139,6 +139,16 @@ void ParameterSet::upload(int index, const Tensor<float>& t) {
   backend_.upload(dst, t.data(), static_cast<size_t>(t.numel()) * sizeof(float));
 }
 
+void ParameterSet::copy_values_from(const ParameterSet& other) {
+  PS_CHECK(other.entries_.size() == entries_.size(), "copying parameters: {} entries into a model of {}",
+           other.entries_.size(), entries_.size());
+  for (size_t i = 0; i < entries_.size(); ++i) {
+    PS_CHECK(other.entries_[i].name == entries_[i].name, "copying parameters: entry {} is {}, not {}", i,
+             other.entries_[i].name, entries_[i].name);
+    upload(static_cast<int>(i), other.download(static_cast<int>(i)));
+  }
+}
+
 std::vector<float> ParameterSet::download_flat(const Ref& r) const {
   std::vector<float> out(static_cast<size_t>(r.numel()));
   if (!out.empty()) backend_.download(out.data(), r.data, r.bytes());

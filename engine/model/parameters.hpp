@@ -63,6 +63,9 @@ class ParameterSet {
   Tensor<float> download(int index) const;
   void upload(int index, const Tensor<float>& t);
   int find(const std::string& name) const;  // -1 if absent
+  // Every value and buffer (running statistics) of `other`, a set with the same entries (the
+  // same model, possibly on another backend), through the host.
+  void copy_values_from(const ParameterSet& other);
 
   // Whole-array host copies for checkpoints (values, m, v, buffers).
   std::vector<float> download_flat(const Ref& r) const;

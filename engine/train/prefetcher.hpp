@@ -2,7 +2,8 @@
 // make items 0, 1, 2, ... of a sequence with make(i) into a bounded window ahead of the consumer,
 // which takes them in order. make(i) must depend on i alone (the trainer's samples draw their
 // randomness from (seed, epoch, sample index)), so what the consumer gets is the same for any
-// number of workers; with 0 workers take(i) calls make(i) itself (the synchronous path).
+// number of workers; with 0 workers take(i) calls make(i) itself and take_batch makes its items
+// in parallel on the calling thread's OpenMP threads (the synchronous path).
 //
 // An exception thrown by make(i) is rethrown by take(i) (the other workers stop at their next
 // item), so a bad scan stops training with its own message. The destructor stops and joins the
@@ -11,6 +12,7 @@
 
 #include <condition_variable>
 #include <cstddef>
+#include <cstdint>
 #include <exception>
 #include <functional>
 #include <map>
@@ -20,6 +22,7 @@
 #include <vector>
 
 #include "core/error.hpp"
+#include "core/parallel.hpp"
 
 namespace pillarseg {
 
@@ -42,6 +45,23 @@ class Prefetcher {
   }
   Prefetcher(const Prefetcher&) = delete;
   Prefetcher& operator=(const Prefetcher&) = delete;
+
+  // Items [begin, begin + count), taken in order.
+  std::vector<T> take_batch(std::size_t begin, std::size_t count) {
+    std::vector<T> items(count);
+    if (!threads_.empty()) {
+      for (std::size_t k = 0; k < count; ++k) items[k] = take(begin + k);
+      return items;
+    }
+    PS_CHECK(begin == next_take_ && begin + count <= count_,
+             "Prefetcher: items [{}, {}) taken out of order (next is {} of {})", begin,
+             begin + count, next_take_, count_);
+    parallel_for(static_cast<std::int64_t>(count), [&](std::int64_t k) {
+      items[static_cast<std::size_t>(k)] = make_(begin + static_cast<std::size_t>(k));
+    });
+    next_take_ += count;
+    return items;
+  }
 
   // Item i; items must be taken in order 0, 1, 2, ...
   T take(std::size_t i) {

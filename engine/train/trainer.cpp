@@ -81,13 +81,6 @@ class MetricsLog {
   std::ofstream out_;
 };
 
-// Copies the trained values and running statistics into the validation model.
-void copy_weights(const PillarSegNet& from, PillarSegNet& to) {
-  const ParameterSet& a = from.parameters();
-  ParameterSet& b = to.parameters();
-  for (size_t i = 0; i < a.entries().size(); ++i) b.upload(static_cast<int>(i), a.download(static_cast<int>(i)));
-}
-
 // {"road": 0.91, ...}: the per-class IoU (null where the class never occurs).
 std::string iou_json(const SegmentationMetrics& m, const ClassTable& classes) {
   std::string out = "{";
@@ -194,17 +187,18 @@ TrainResult train(const TrainOptions& options) {
                                  : std::string("No checkpoint was written yet.");
   };
   // train.workers: the epoch's samples, in its order, prepared ahead by that many threads (a
-  // window of two batches per worker); else each batch's samples in parallel when the step needs them.
+  // window of two batches per worker); with 0 each batch's samples in parallel when the step
+  // needs them.
   const size_t ahead = 2 * B * static_cast<size_t>(std::max(tc.workers, 1));
   for (int64_t epoch = state.epoch; epoch < last_epoch; ++epoch) {
     const std::vector<size_t> order = epoch_order(n, tc.seed, static_cast<uint64_t>(epoch));
     std::optional<Prefetcher<TrainingScan>> scans_ahead;
     std::optional<Prefetcher<Sample>> samples_ahead;
-    if (tc.workers > 0 && on_device) {
+    if (on_device) {
       scans_ahead.emplace(n, tc.workers, ahead, [&, epoch](size_t i) {
         return data.training_scan(order[i], static_cast<uint64_t>(epoch), tc);
       });
-    } else if (tc.workers > 0) {
+    } else {
       samples_ahead.emplace(n, tc.workers, ahead, [&, epoch](size_t i) {
         return data.training_sample(order[i], static_cast<uint64_t>(epoch), tc);
       });
@@ -220,15 +214,7 @@ TrainResult train(const TrainOptions& options) {
         data_wait += std::chrono::duration<double>(std::chrono::steady_clock::now() - wait_started).count();
       };
       if (on_device) {
-        std::vector<TrainingScan> scans(end - begin);
-        if (scans_ahead) {
-          for (size_t k = 0; k < scans.size(); ++k) scans[k] = scans_ahead->take(begin + k);
-        } else {
-          parallel_for(static_cast<int64_t>(scans.size()), [&](int64_t k) {
-            scans[static_cast<size_t>(k)] =
-                data.training_scan(order[begin + static_cast<size_t>(k)], static_cast<uint64_t>(epoch), tc);
-          });
-        }
+        const std::vector<TrainingScan> scans = scans_ahead->take_batch(begin, end - begin);
         waited();
         int64_t rows = 0;
         for (const TrainingScan& scan : scans) rows += scan.pillars.num_pillars();
@@ -245,15 +231,7 @@ TrainResult train(const TrainOptions& options) {
         }
         net.run(/*training=*/true);
       } else {
-        std::vector<Sample> samples(end - begin);
-        if (samples_ahead) {
-          for (size_t k = 0; k < samples.size(); ++k) samples[k] = samples_ahead->take(begin + k);
-        } else {
-          parallel_for(static_cast<int64_t>(samples.size()), [&](int64_t k) {
-            samples[static_cast<size_t>(k)] =
-                data.training_sample(order[begin + static_cast<size_t>(k)], static_cast<uint64_t>(epoch), tc);
-          });
-        }
+        const std::vector<Sample> samples = samples_ahead->take_batch(begin, end - begin);
         waited();
         std::vector<const ScanInputs*> inputs;
         for (size_t k = 0; k < samples.size(); ++k) {
@@ -303,7 +281,7 @@ TrainResult train(const TrainOptions& options) {
     const int every = cfg.eval.every_epochs;
     if (every > 0 && (state.epoch % every == 0 || state.epoch == tc.epochs)) {
       if (!validator) validator = std::make_unique<ScanSegmenter>(cfg.model, make_backend(options.device, options.backend));
-      copy_weights(net, validator->net());
+      validator->net().parameters().copy_values_from(ps);
       EvalOptions eo;
       eo.data_root = options.data_root;
       eo.mode = cfg.eval.mode.value_or(tc.ground_truth);
