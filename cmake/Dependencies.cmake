@@ -18,3 +18,9 @@ endif()
 if(PILLARSEG_BENCH)
   find_package(benchmark REQUIRED)
 endif()
+# OpenMPI (libopenmpi-dev, optional): data-parallel training, `mpirun -np R pillarseg train`.
+# Without it the build goes on, and `pillarseg train` started by mpirun says what is missing.
+find_package(MPI COMPONENTS CXX QUIET)
+if(NOT MPI_CXX_FOUND)
+  message(STATUS "pillarseg: no MPI found (Debian: libopenmpi-dev); data-parallel training is not built")
+endif()

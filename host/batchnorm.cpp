@@ -115,31 +115,54 @@ void add_channel_sums(const BlockExpr& values, ArrayXd& sums) {
   }
 }
 
-// Per-channel mean and biased variance over all values of each channel, in double, two-pass.
+// Per-channel sums over all values of each channel, in double: of x, or of (x - mean)^2 when
+// mean is given. Each channel is summed whole by one thread, in memory order.
 template <int Order, class T>
-void channel_statistics(const T* x, const ChannelBlocks& blocks, ArrayXd& mean, ArrayXd& variance) {
-  const auto count = static_cast<double>(blocks.values_per_channel());
-  ArrayXd sum = ArrayXd::Zero(blocks.channels);
-  for (int64_t b = 0; b < blocks.count; ++b) {
-    add_channel_sums<Order>(block<Order>(x, blocks, b), sum);
-  }
-  mean = sum / count;
-  ArrayXd squares = ArrayXd::Zero(blocks.channels);
-  for (int64_t b = 0; b < blocks.count; ++b) {
-    add_channel_sums<Order>(
-        (block<Order>(x, blocks, b).template cast<double>().colwise() - mean).square(), squares);
-  }
-  variance = squares / count;
+void channel_sums(const T* x, const ChannelBlocks& blocks, const ArrayXd* mean, ArrayXd& sums) {
+  for_channel_ranges(blocks, [&](const ChannelBlocks& part, int64_t c0) {
+    ArrayXd part_sums = ArrayXd::Zero(part.channels);
+    const T* px = x + c0 * part.per_block;
+    for (int64_t b = 0; b < part.count; ++b) {
+      if (mean) {
+        const ArrayXd center = mean->segment(c0, part.channels);
+        add_channel_sums<Order>(
+            (block<Order>(px, part, b).template cast<double>().colwise() - center).square(),
+            part_sums);
+      } else {
+        add_channel_sums<Order>(block<Order>(px, part, b), part_sums);
+      }
+    }
+    sums.segment(c0, part.channels) = part_sums;
+  });
 }
 
-template <int Order, class T>
-void batch_statistics(const T* x, const ChannelBlocks& blocks, ArrayXd& mean, ArrayXd& variance) {
-  for_channel_ranges(blocks, [&](const ChannelBlocks& part, int64_t c0) {
-    ArrayXd part_mean, part_variance;
-    channel_statistics<Order>(x + c0 * part.per_block, part, part_mean, part_variance);
-    mean.segment(c0, part.channels) = part_mean;
-    variance.segment(c0, part.channels) = part_variance;
-  });
+template <class T>
+void channel_sums(const T* x, const ChannelBlocks& blocks, const ArrayXd* mean, ArrayXd& sums) {
+  if (blocks.channels_last) {
+    channel_sums<Eigen::ColMajor>(x, blocks, mean, sums);
+  } else {
+    channel_sums<Eigen::RowMajor>(x, blocks, mean, sums);
+  }
+}
+
+// sums over the replicas of a data-parallel run (synchronised BatchNorm), or as they are.
+void sum_over_replicas(ReplicaSum* replicas, ArrayXd& sums) {
+  if (replicas) replicas->sum(sums.data(), sums.size());
+}
+
+// The batch mean and biased variance of every channel, two-pass (the mean first, then the
+// squares about it), over the values of all replicas. count: the values per channel of all of
+// them.
+template <class T>
+void batch_statistics(const T* x, const ChannelBlocks& blocks, double count, ReplicaSum* replicas,
+                      ArrayXd& mean, ArrayXd& variance) {
+  ArrayXd sums(blocks.channels);
+  channel_sums(x, blocks, nullptr, sums);
+  sum_over_replicas(replicas, sums);
+  mean = sums / count;
+  channel_sums(x, blocks, &mean, sums);
+  sum_over_replicas(replicas, sums);
+  variance = sums / count;
 }
 
 // y = (x - center) * scale + shift per channel, then y = max(y, 0) when relu (written so that
@@ -191,7 +214,9 @@ void forward_train(const char* op, const Tensor<T>& x, const Tensor<T>& gamma,
   check_channel_vector(running_mean, "running_mean", x, blocks.channels, op);
   check_channel_vector(running_var, "running_var", x, blocks.channels, op);
   check_options(options, op);
-  const int64_t count = blocks.values_per_channel();
+  double counts = static_cast<double>(blocks.values_per_channel());
+  if (options.replicas) options.replicas->sum(&counts, 1);
+  const auto count = static_cast<int64_t>(counts);
   PS_CHECK(count != 1,
            "{}: expected more than 1 value per channel when training, given x of shape {}", op,
            shape_str(x.shape()));
@@ -199,11 +224,7 @@ void forward_train(const char* op, const Tensor<T>& x, const Tensor<T>& gamma,
   ArrayXd mean = ArrayXd::Zero(blocks.channels);
   ArrayXd variance = ArrayXd::Zero(blocks.channels);
   if (count > 0) {
-    if (blocks.channels_last) {
-      batch_statistics<Eigen::ColMajor>(x.data(), blocks, mean, variance);
-    } else {
-      batch_statistics<Eigen::RowMajor>(x.data(), blocks, mean, variance);
-    }
+    batch_statistics(x.data(), blocks, counts, options.replicas, mean, variance);
     const double m = options.momentum;
     const ArrayXd unbiased_variance = variance * (static_cast<double>(count) / (count - 1));
     store(((1 - m) * to_double(running_mean) + m * mean).eval(), running_mean);
@@ -233,18 +254,20 @@ void forward_eval(const char* op, const Tensor<T>& x, const Tensor<T>& gamma, co
 }
 
 // With xhat = (x - mean) * inv_std and g = dy (masked by y > 0 after a ReLU), per channel over
-// its n values:
+// its n values (of all replicas, with synchronised BatchNorm):
 //   dbeta = sum g,  dgamma = sum g * xhat,
 //   dx = gamma * inv_std * (g - dbeta / n - xhat * dgamma / n).
-// dx first holds g, then is turned into the gradient in place.
+// dgamma and dbeta are this replica's own sums (its share of the parameter gradient, which the
+// trainer sums over the replicas with the others); dx takes those of all replicas.
+// Pass 1: dx holds g, and the sums of g and g * xhat per channel.
 template <int Order, class T>
-void channel_backward(const T* dy, const T* x, const T* relu_output, const ChannelBlocks& blocks,
-                      const ArrayXd& gamma, const ArrayXd& mean, const ArrayXd& inv_std, T* dx,
-                      ArrayXd& dgamma, ArrayXd& dbeta) {
+void gradient_sums(const T* dy, const T* x, const T* relu_output, const ChannelBlocks& blocks,
+                   const ArrayXd& mean, const ArrayXd& inv_std, T* dx, ArrayXd& sum_g,
+                   ArrayXd& sum_g_xhat) {
   const ChannelVector<T> mean_t = mean.cast<T>();
   const ChannelVector<T> inv_std_t = inv_std.cast<T>();
-  ArrayXd sum_g = ArrayXd::Zero(blocks.channels);
-  ArrayXd sum_g_xhat = ArrayXd::Zero(blocks.channels);
+  sum_g = ArrayXd::Zero(blocks.channels);
+  sum_g_xhat = ArrayXd::Zero(blocks.channels);
   for (int64_t b = 0; b < blocks.count; ++b) {
     auto g = block<Order>(dx, blocks, b);
     const auto dyb = block<Order>(dy, blocks, b);
@@ -257,10 +280,15 @@ void channel_backward(const T* dy, const T* x, const T* relu_output, const Chann
     add_channel_sums<Order>(g, sum_g);
     add_channel_sums<Order>(g * ((xb.colwise() - mean_t).colwise() * inv_std_t), sum_g_xhat);
   }
-  dbeta = sum_g;
-  dgamma = sum_g_xhat;
+}
 
-  const auto count = static_cast<double>(blocks.values_per_channel());
+// Pass 2: dx from g in place, with the sums and the count of all replicas.
+template <int Order, class T>
+void input_gradient(const T* x, const ChannelBlocks& blocks, double count, const ArrayXd& gamma,
+                    const ArrayXd& mean, const ArrayXd& inv_std, const ArrayXd& sum_g,
+                    const ArrayXd& sum_g_xhat, T* dx) {
+  const ChannelVector<T> mean_t = mean.cast<T>();
+  const ChannelVector<T> inv_std_t = inv_std.cast<T>();
   const ChannelVector<T> mean_g = (sum_g / count).cast<T>();
   const ChannelVector<T> mean_g_xhat = (sum_g_xhat / count).cast<T>();
   const ChannelVector<T> scale = (gamma * inv_std).cast<T>();
@@ -274,23 +302,40 @@ void channel_backward(const T* dy, const T* x, const T* relu_output, const Chann
 
 template <int Order, class T>
 void backward_blocks(const T* dy, const T* x, const T* relu_output, const ChannelBlocks& blocks,
-                     const ArrayXd& gamma, const ArrayXd& mean, const ArrayXd& inv_std, T* dx,
-                     ArrayXd& dgamma, ArrayXd& dbeta) {
+                     const ArrayXd& gamma, const ArrayXd& mean, const ArrayXd& inv_std,
+                     ReplicaSum* replicas, T* dx, ArrayXd& dgamma, ArrayXd& dbeta) {
   for_channel_ranges(blocks, [&](const ChannelBlocks& part, int64_t c0) {
     const int64_t n = part.channels, offset = c0 * part.per_block;
     ArrayXd part_dgamma, part_dbeta;
-    channel_backward<Order>(dy + offset, x + offset, relu_output ? relu_output + offset : nullptr,
-                            part, gamma.segment(c0, n), mean.segment(c0, n), inv_std.segment(c0, n),
-                            dx + offset, part_dgamma, part_dbeta);
+    gradient_sums<Order>(dy + offset, x + offset, relu_output ? relu_output + offset : nullptr,
+                         part, mean.segment(c0, n), inv_std.segment(c0, n), dx + offset, part_dbeta,
+                         part_dgamma);
     dgamma.segment(c0, n) = part_dgamma;
     dbeta.segment(c0, n) = part_dbeta;
+  });
+  double count = static_cast<double>(blocks.values_per_channel());
+  ArrayXd sum_g = dbeta, sum_g_xhat = dgamma;
+  if (replicas) {
+    ArrayXd all(2 * blocks.channels + 1);
+    all << dbeta, dgamma, count;
+    replicas->sum(all.data(), all.size());
+    sum_g = all.head(blocks.channels);
+    sum_g_xhat = all.segment(blocks.channels, blocks.channels);
+    count = all[2 * blocks.channels];
+  }
+  if (blocks.values_per_channel() == 0) return;
+  for_channel_ranges(blocks, [&](const ChannelBlocks& part, int64_t c0) {
+    const int64_t n = part.channels, offset = c0 * part.per_block;
+    input_gradient<Order>(x + offset, part, count, gamma.segment(c0, n), mean.segment(c0, n),
+                          inv_std.segment(c0, n), sum_g.segment(c0, n), sum_g_xhat.segment(c0, n),
+                          dx + offset);
   });
 }
 
 template <class T>
 void backward(const char* op, const Tensor<T>& dy, const Tensor<T>& x, const Tensor<T>* relu_output,
               const Tensor<T>& gamma, const BatchNormSaved<T>& saved, Tensor<T>& dx,
-              Tensor<T>& dgamma, Tensor<T>& dbeta) {
+              Tensor<T>& dgamma, Tensor<T>& dbeta, ReplicaSum* replicas) {
   const ChannelBlocks blocks = channel_blocks(x, op);
   PS_CHECK(dy.shape() == x.shape(), "{}: expected dy of the shape of x {}, given {}", op,
            shape_str(x.shape()), shape_str(dy.shape()));
@@ -307,15 +352,16 @@ void backward(const char* op, const Tensor<T>& dy, const Tensor<T>& x, const Ten
   ArrayXd dgamma_d = ArrayXd::Zero(blocks.channels);
   ArrayXd dbeta_d = ArrayXd::Zero(blocks.channels);
   const T* relu_data = relu_output ? relu_output->data() : nullptr;
-  if (blocks.values_per_channel() > 0) {
+  if (blocks.values_per_channel() > 0 ||
+      replicas) {  // every replica joins the sums, even with no values
     if (blocks.channels_last) {
       backward_blocks<Eigen::ColMajor>(dy.data(), x.data(), relu_data, blocks, to_double(gamma),
-                                       to_double(saved.mean), to_double(saved.inv_std), dx.data(),
-                                       dgamma_d, dbeta_d);
+                                       to_double(saved.mean), to_double(saved.inv_std), replicas,
+                                       dx.data(), dgamma_d, dbeta_d);
     } else {
       backward_blocks<Eigen::RowMajor>(dy.data(), x.data(), relu_data, blocks, to_double(gamma),
-                                       to_double(saved.mean), to_double(saved.inv_std), dx.data(),
-                                       dgamma_d, dbeta_d);
+                                       to_double(saved.mean), to_double(saved.inv_std), replicas,
+                                       dx.data(), dgamma_d, dbeta_d);
     }
   }
   store(dgamma_d, dgamma);
@@ -344,8 +390,8 @@ void batchnorm_forward_eval(const Tensor<T>& x, const Tensor<T>& gamma, const Te
 template <class T>
 void batchnorm_backward(const Tensor<T>& dy, const Tensor<T>& x, const Tensor<T>& gamma,
                         const BatchNormSaved<T>& saved, Tensor<T>& dx, Tensor<T>& dgamma,
-                        Tensor<T>& dbeta) {
-  backward<T>("batchnorm_backward", dy, x, nullptr, gamma, saved, dx, dgamma, dbeta);
+                        Tensor<T>& dbeta, ReplicaSum* replicas) {
+  backward<T>("batchnorm_backward", dy, x, nullptr, gamma, saved, dx, dgamma, dbeta, replicas);
 }
 
 template <class T>
@@ -368,8 +414,8 @@ void batchnorm_relu_forward_eval(const Tensor<T>& x, const Tensor<T>& gamma, con
 template <class T>
 void batchnorm_relu_backward(const Tensor<T>& dy, const Tensor<T>& x, const Tensor<T>& y,
                              const Tensor<T>& gamma, const BatchNormSaved<T>& saved, Tensor<T>& dx,
-                             Tensor<T>& dgamma, Tensor<T>& dbeta) {
-  backward("batchnorm_relu_backward", dy, x, &y, gamma, saved, dx, dgamma, dbeta);
+                             Tensor<T>& dgamma, Tensor<T>& dbeta, ReplicaSum* replicas) {
+  backward("batchnorm_relu_backward", dy, x, &y, gamma, saved, dx, dgamma, dbeta, replicas);
 }
 
 #define PILLARSEG_INSTANTIATE_BATCHNORM(T)                                                         \
@@ -381,7 +427,7 @@ void batchnorm_relu_backward(const Tensor<T>& dy, const Tensor<T>& x, const Tens
                                           const BatchNormOptions&, Tensor<T>&);                    \
   template void batchnorm_backward<T>(const Tensor<T>&, const Tensor<T>&, const Tensor<T>&,        \
                                       const BatchNormSaved<T>&, Tensor<T>&, Tensor<T>&,            \
-                                      Tensor<T>&);                                                 \
+                                      Tensor<T>&, ReplicaSum*);                                    \
   template void batchnorm_relu_forward_train<T>(                                                   \
       const Tensor<T>&, const Tensor<T>&, const Tensor<T>&, const BatchNormOptions&, Tensor<T>&,   \
       Tensor<T>&, int64_t&, Tensor<T>&, BatchNormSaved<T>&);                                       \
@@ -390,7 +436,7 @@ void batchnorm_relu_backward(const Tensor<T>& dy, const Tensor<T>& x, const Tens
       const BatchNormOptions&, Tensor<T>&);                                                        \
   template void batchnorm_relu_backward<T>(const Tensor<T>&, const Tensor<T>&, const Tensor<T>&,   \
                                            const Tensor<T>&, const BatchNormSaved<T>&, Tensor<T>&, \
-                                           Tensor<T>&, Tensor<T>&);
+                                           Tensor<T>&, Tensor<T>&, ReplicaSum*);
 
 PILLARSEG_INSTANTIATE_BATCHNORM(float)
 PILLARSEG_INSTANTIATE_BATCHNORM(double)

@@ -12,6 +12,7 @@
 
 #include <cstdint>
 
+#include "core/replicas.hpp"
 #include "core/tensor.hpp"
 
 namespace pillarseg::host {
@@ -21,6 +22,9 @@ namespace pillarseg::host {
 struct BatchNormOptions {
   double eps = 1e-5;
   double momentum = 0.1;
+  // Synchronised BatchNorm in a data-parallel run: the statistics (and, in the backward, the
+  // sums dx needs) are those of the values of all replicas; nullptr: this process's values.
+  ReplicaSum* replicas = nullptr;
 };
 
 // What the training forward keeps for the backward.
@@ -51,11 +55,13 @@ void batchnorm_forward_eval(const Tensor<T>& x, const Tensor<T>& gamma, const Te
                             const BatchNormOptions& options, Tensor<T>& y);
 
 // Backward of the training forward. dy, x (B, C, H, W) or (M, C); gamma (C); saved from the
-// forward. Writes dx (shape of x; dx may be dy, in place), dgamma and dbeta (C).
+// forward. Writes dx (shape of x; dx may be dy, in place), dgamma and dbeta (C). With replicas
+// (the forward's), dx is the gradient through the statistics of all replicas' values, while
+// dgamma and dbeta are this replica's share of the parameters' gradient.
 template <class T>
 void batchnorm_backward(const Tensor<T>& dy, const Tensor<T>& x, const Tensor<T>& gamma,
                         const BatchNormSaved<T>& saved, Tensor<T>& dx, Tensor<T>& dgamma,
-                        Tensor<T>& dbeta);
+                        Tensor<T>& dbeta, ReplicaSum* replicas = nullptr);
 
 // Fused BatchNorm + ReLU: y = max(batchnorm(x), 0), NaN passing through. Same arguments as the
 // plain versions; the backward also takes the forward's output y, whose zeros block dy.
@@ -73,6 +79,6 @@ void batchnorm_relu_forward_eval(const Tensor<T>& x, const Tensor<T>& gamma, con
 template <class T>
 void batchnorm_relu_backward(const Tensor<T>& dy, const Tensor<T>& x, const Tensor<T>& y,
                              const Tensor<T>& gamma, const BatchNormSaved<T>& saved, Tensor<T>& dx,
-                             Tensor<T>& dgamma, Tensor<T>& dbeta);
+                             Tensor<T>& dgamma, Tensor<T>& dbeta, ReplicaSum* replicas = nullptr);
 
 }  // namespace pillarseg::host

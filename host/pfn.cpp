@@ -102,7 +102,8 @@ void pfn_forward_eval(const Tensor<T>& input, const Tensor<T>& weight, const Ten
 template <class T>
 void pfn_backward(const Tensor<T>& d_out, const Tensor<T>& input, const Tensor<T>& weight,
                   const Tensor<T>& gamma, const PfnSaved<T>& saved, Tensor<T>& d_input,
-                  Tensor<T>& d_weight, Tensor<T>& d_gamma, Tensor<T>& d_beta, T* scratch) {
+                  Tensor<T>& d_weight, Tensor<T>& d_gamma, Tensor<T>& d_beta, T* scratch,
+                  ReplicaSum* replicas) {
   const char* op = "pfn_backward";
   const PfnShape s = check_input_and_weight(op, input, weight);
   const Shape out_shape{s.pillars, s.channels};
@@ -130,7 +131,7 @@ void pfn_backward(const Tensor<T>& d_out, const Tensor<T>& input, const Tensor<T
   Tensor<T> z =
       scratch ? Tensor<T>::view(scratch + s.rows() * s.channels, rows_shape) : Tensor<T>();
   linear(input, weight, s, z);
-  batchnorm_backward(dz, z, gamma, saved.norm, dz, d_gamma, d_beta);
+  batchnorm_backward(dz, z, gamma, saved.norm, dz, d_gamma, d_beta, replicas);
 
   const Eigen::Map<const RowMatrix<T>> points(input.data(), s.rows(), s.features);
   const Eigen::Map<const RowMatrix<T>> w(weight.data(), s.channels, s.features);
@@ -151,7 +152,7 @@ void pfn_backward(const Tensor<T>& d_out, const Tensor<T>& input, const Tensor<T
                                     const BatchNormOptions&, Tensor<T>&);                     \
   template void pfn_backward<T>(const Tensor<T>&, const Tensor<T>&, const Tensor<T>&,         \
                                 const Tensor<T>&, const PfnSaved<T>&, Tensor<T>&, Tensor<T>&, \
-                                Tensor<T>&, Tensor<T>&, T*);
+                                Tensor<T>&, Tensor<T>&, T*, ReplicaSum*);
 
 PILLARSEG_INSTANTIATE_PFN(float)
 PILLARSEG_INSTANTIATE_PFN(double)

@@ -50,6 +50,7 @@ void pfn_forward_eval(const Tensor<T>& input, const Tensor<T>& weight, const Ten
 template <class T>
 void pfn_backward(const Tensor<T>& d_out, const Tensor<T>& input, const Tensor<T>& weight,
                   const Tensor<T>& gamma, const PfnSaved<T>& saved, Tensor<T>& d_input,
-                  Tensor<T>& d_weight, Tensor<T>& d_gamma, Tensor<T>& d_beta, T* scratch = nullptr);
+                  Tensor<T>& d_weight, Tensor<T>& d_gamma, Tensor<T>& d_beta, T* scratch = nullptr,
+                  ReplicaSum* replicas = nullptr);
 
 }  // namespace pillarseg::host

@@ -15,6 +15,7 @@
 #include <cstdint>
 #include <initializer_list>
 #include <limits>
+#include <vector>
 
 #include "kernels/block_reduce.cuh"
 #include "kernels/common.cuh"
@@ -318,18 +319,102 @@ static __global__ void __launch_bounds__(kBlockSize)
 
 std::int64_t batchnorm_workspace_doubles(const PlanarShape& shape) {
   check_shape(shape, "batchnorm_workspace_doubles");
-  return 2 * shape.channels * parts_per_channel(shape) + 2 * shape.channels;
+  // At least one part: synchronised statistics are written back as one (see finalize).
+  const std::int64_t parts = parts_per_channel(shape);
+  return 2 * shape.channels * (parts > 0 ? parts : 1) + 2 * shape.channels;
 }
 
-void batchnorm_finalize_statistics(const double* shifts, const double* partials,
-                                   std::int64_t channels, std::int64_t parts, std::int64_t count,
-                                   float eps, float momentum, float* running_mean,
-                                   float* running_var, float* save_mean, float* save_inv_std,
-                                   cudaStream_t stream) {
+namespace {
+
+// Synchronised BatchNorm: the host side of the sums over the replicas (core/replicas.hpp).
+template <class T>
+std::vector<T> to_host(const T* device, std::int64_t n, cudaStream_t stream) {
+  std::vector<T> host(static_cast<std::size_t>(n));
+  if (n > 0) {
+    PS_CUDA_CHECK(cudaMemcpyAsync(host.data(), device, host.size() * sizeof(T),
+                                  cudaMemcpyDeviceToHost, stream));
+    PS_CUDA_CHECK(cudaStreamSynchronize(stream));
+  }
+  return host;
+}
+
+template <class T>
+void to_device(const std::vector<T>& host, T* device, cudaStream_t stream) {
+  PS_CUDA_CHECK(cudaMemcpyAsync(device, host.data(), host.size() * sizeof(T),
+                                cudaMemcpyHostToDevice, stream));
+  PS_CUDA_CHECK(cudaStreamSynchronize(stream));
+}
+
+// Per channel, the pairs of its parts added in part order (this replica's sums).
+void add_parts(const std::vector<double>& pairs, std::int64_t channels, std::int64_t parts,
+               std::vector<double>& first, std::vector<double>& second) {
+  first.assign(static_cast<std::size_t>(channels), 0.0);
+  second.assign(static_cast<std::size_t>(channels), 0.0);
+  for (std::int64_t c = 0; c < channels; ++c) {
+    for (std::int64_t j = 0; j < parts; ++j) {
+      first[static_cast<std::size_t>(c)] += pairs[static_cast<std::size_t>(2 * (c * parts + j))];
+      second[static_cast<std::size_t>(c)] += pairs[static_cast<std::size_t>(2 * (c * parts + j) + 1)];
+    }
+  }
+}
+
+// This replica's shifted sums -> the statistics of all replicas' values, written back as one
+// part about the common mean: shifts = mean, pair 0 = (0, sum (v - mean)^2); count becomes the
+// count of all replicas. The means first (sum v = count shift + sum (v - shift)), then
+// sum (v - mean)^2 = S2 - 2 d S1 + count d^2 with d = mean - shift, exact algebra that keeps
+// the shift's precision.
+void combine_statistics(double* shifts, double* partials, std::int64_t channels,
+                        std::int64_t parts, std::int64_t& count, ReplicaSum& replicas,
+                        cudaStream_t stream) {
+  const bool has_values = count > 0 && parts > 0;
+  const std::vector<double> shift =
+      has_values ? to_host(shifts, channels, stream) : std::vector<double>(static_cast<std::size_t>(channels), 0.0);
+  const std::vector<double> pairs = has_values ? to_host(partials, 2 * channels * parts, stream) : std::vector<double>();
+  std::vector<double> s1, s2;
+  add_parts(pairs, channels, has_values ? parts : 0, s1, s2);
+  const auto n_local = static_cast<double>(count);
+  std::vector<double> totals(static_cast<std::size_t>(channels) + 1);
+  for (std::int64_t c = 0; c < channels; ++c) {
+    const auto k = static_cast<std::size_t>(c);
+    totals[k] = has_values ? n_local * shift[k] + s1[k] : 0.0;
+  }
+  totals[static_cast<std::size_t>(channels)] = n_local;
+  replicas.sum(totals.data(), channels + 1);
+  const double n = totals[static_cast<std::size_t>(channels)];
+  std::vector<double> mean(static_cast<std::size_t>(channels)), squares(static_cast<std::size_t>(channels));
+  for (std::int64_t c = 0; c < channels; ++c) {
+    const auto k = static_cast<std::size_t>(c);
+    mean[k] = n > 0 ? totals[k] / n : 0.0;
+    const double d = mean[k] - shift[k];
+    squares[k] = has_values ? s2[k] - 2.0 * d * s1[k] + n_local * d * d : 0.0;
+  }
+  replicas.sum(squares.data(), channels);
+  std::vector<double> one_part(static_cast<std::size_t>(2 * channels), 0.0);
+  for (std::int64_t c = 0; c < channels; ++c) one_part[static_cast<std::size_t>(2 * c + 1)] = squares[static_cast<std::size_t>(c)];
+  to_device(mean, shifts, stream);
+  to_device(one_part, partials, stream);
+  count = static_cast<std::int64_t>(n);
+}
+
+}  // namespace
+
+void batchnorm_finalize_statistics(double* shifts, double* partials, std::int64_t channels,
+                                   std::int64_t parts, std::int64_t count, float eps,
+                                   float momentum, float* running_mean, float* running_var,
+                                   float* save_mean, float* save_inv_std, cudaStream_t stream,
+                                   ReplicaSum* replicas) {
   const char* op = "batchnorm_finalize_statistics";
   PS_CHECK(channels >= 1 && parts >= 0 && count >= 0,
            "{}: expected channels >= 1, parts >= 0, count >= 0, given {}, {}, {}", op, channels,
            parts, count);
+  if (replicas != nullptr) {
+    PS_CHECK(shifts != nullptr && partials != nullptr,
+             "{}: synchronised BatchNorm needs the shifts ({} doubles) and room for one part of "
+             "partials ({} doubles) in device memory",
+             op, channels, 2 * channels);
+    combine_statistics(shifts, partials, channels, parts, count, *replicas, stream);
+    parts = 1;
+  }
   PS_CHECK(count != 1,
            "{}: a channel needs more than 1 value when training (its unbiased variance is "
            "undefined otherwise), given 1",
@@ -347,7 +432,8 @@ void batchnorm_finalize_statistics(const double* shifts, const double* partials,
 
 void batchnorm_finalize_backward(const double* partials, std::int64_t channels, std::int64_t parts,
                                  std::int64_t count, float* dgamma, float* dbeta,
-                                 double* coefficients, cudaStream_t stream) {
+                                 double* coefficients, cudaStream_t stream,
+                                 ReplicaSum* replicas) {
   const char* op = "batchnorm_finalize_backward";
   PS_CHECK(channels >= 1 && parts >= 0 && count >= 0,
            "{}: expected channels >= 1, parts >= 0, count >= 0, given {}, {}, {}", op, channels,
@@ -361,16 +447,34 @@ void batchnorm_finalize_backward(const double* partials, std::int64_t channels, 
                 dim3(static_cast<unsigned>(ceil_div(channels, kChannelsPerFinalizeBlock))),
                 dim3(kBlockSize), 0, stream, partials, channels, parts, count, dgamma, dbeta,
                 coefficients);
+  if (replicas == nullptr) return;
+  // The coefficients of all replicas' values: their sums (and counts) added over the replicas.
+  std::vector<double> sum_g, sum_g_xhat;
+  add_parts(count > 0 ? to_host(partials, 2 * channels * parts, stream) : std::vector<double>(), channels,
+            count > 0 ? parts : 0, sum_g, sum_g_xhat);
+  std::vector<double> totals(static_cast<std::size_t>(2 * channels) + 1);
+  std::copy(sum_g.begin(), sum_g.end(), totals.begin());
+  std::copy(sum_g_xhat.begin(), sum_g_xhat.end(), totals.begin() + channels);
+  totals[static_cast<std::size_t>(2 * channels)] = static_cast<double>(count);
+  replicas->sum(totals.data(), 2 * channels + 1);
+  const double n = totals[static_cast<std::size_t>(2 * channels)] > 0 ? totals[static_cast<std::size_t>(2 * channels)] : 1.0;
+  std::vector<double> all(static_cast<std::size_t>(2 * channels));
+  for (std::int64_t c = 0; c < channels; ++c) {
+    all[static_cast<std::size_t>(2 * c)] = totals[static_cast<std::size_t>(c)] / n;
+    all[static_cast<std::size_t>(2 * c + 1)] = totals[static_cast<std::size_t>(channels + c)] / n;
+  }
+  to_device(all, coefficients, stream);
 }
 
 void batchnorm_forward_train(const float* x, const PlanarShape& shape, const float* gamma,
                              const float* beta, float eps, float momentum, float* running_mean,
                              float* running_var, bool relu, float* y, float* save_mean,
-                             float* save_inv_std, double* workspace, cudaStream_t stream) {
+                             float* save_inv_std, double* workspace, cudaStream_t stream,
+                             ReplicaSum* replicas) {
   const char* op = "batchnorm_forward_train";
   check_shape(shape, op);
   const std::int64_t count = shape.values_per_channel();
-  PS_CHECK(count != 1,
+  PS_CHECK(count != 1 || replicas != nullptr,
            "{}: expected more than 1 value per channel when training, given x of (B, C, S) = "
            "({}, {}, {})",
            op, shape.batch, shape.channels, shape.inner);
@@ -391,7 +495,8 @@ void batchnorm_forward_train(const float* x, const PlanarShape& shape, const flo
                   layout, parts, shifts, partials);
   }
   batchnorm_finalize_statistics(shifts, partials, shape.channels, parts, count, eps, momentum,
-                                running_mean, running_var, save_mean, save_inv_std, stream);
+                                running_mean, running_var, save_mean, save_inv_std, stream,
+                                replicas);
   if (count > 0) {
     launch_kernel(apply_kernel, chunk_grid(shape, op), dim3(kBlockSize), 0, stream, x, layout,
                   save_mean, save_inv_std, false, eps, gamma, beta, relu, y);
@@ -419,7 +524,7 @@ void batchnorm_forward_eval(const float* x, const PlanarShape& shape, const floa
 void batchnorm_backward(const float* dy, const float* x, const float* y, const PlanarShape& shape,
                         const float* gamma, const float* save_mean, const float* save_inv_std,
                         float* dx, float* dgamma, float* dbeta, double* workspace,
-                        cudaStream_t stream) {
+                        cudaStream_t stream, ReplicaSum* replicas) {
   const char* op = "batchnorm_backward";
   check_shape(shape, op);
   const std::int64_t count = shape.values_per_channel();
@@ -439,7 +544,7 @@ void batchnorm_backward(const float* dy, const float* x, const float* y, const P
                   x, y, layout, parts, save_mean, save_inv_std, partials);
   }
   batchnorm_finalize_backward(partials, shape.channels, parts, count, dgamma, dbeta, coefficients,
-                              stream);
+                              stream, replicas);
   if (count > 0) {
     launch_kernel(input_gradient_kernel, chunk_grid(shape, op), dim3(kBlockSize), 0, stream, dy, x,
                   y, layout, gamma, save_mean, save_inv_std, coefficients, dx);

@@ -10,11 +10,14 @@
 // Statistics are sums in double, per block and then per channel in a fixed order (no atomics):
 // the same inputs give the same bits on every run. The PFN (kernels/pfn.cu), whose BatchNorm
 // runs over its linear outputs computed on the fly, reuses the second passes below.
-// Pointers are device memory; the work is queued on `stream`; nothing waits for the device.
+// Pointers are device memory; the work is queued on `stream`; nothing waits for the device,
+// except for synchronised BatchNorm (`replicas`, a data-parallel run), whose statistics are
+// summed over the replicas on the host.
 #pragma once
 
 #include <cstdint>
 
+#include "core/replicas.hpp"
 #include "kernels/emu/cuda_compat.cuh"
 
 namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
@@ -39,7 +42,8 @@ std::int64_t batchnorm_workspace_doubles(const PlanarShape& shape);
 void batchnorm_forward_train(const float* x, const PlanarShape& shape, const float* gamma,
                              const float* beta, float eps, float momentum, float* running_mean,
                              float* running_var, bool relu, float* y, float* save_mean,
-                             float* save_inv_std, double* workspace, cudaStream_t stream);
+                             float* save_inv_std, double* workspace, cudaStream_t stream,
+                             ReplicaSum* replicas = nullptr);
 
 // Evaluation forward with the running statistics. x, y (B, C, S); the others (C). y may be x.
 void batchnorm_forward_eval(const float* x, const PlanarShape& shape, const float* gamma,
@@ -52,7 +56,7 @@ void batchnorm_forward_eval(const float* x, const PlanarShape& shape, const floa
 void batchnorm_backward(const float* dy, const float* x, const float* y, const PlanarShape& shape,
                         const float* gamma, const float* save_mean, const float* save_inv_std,
                         float* dx, float* dgamma, float* dbeta, double* workspace,
-                        cudaStream_t stream);
+                        cudaStream_t stream, ReplicaSum* replicas = nullptr);
 
 // ---- the second passes, shared with kernels/pfn.cu ----
 // Both read per-block partial sums laid out as partials[2 * (c * parts + j)] and
@@ -63,19 +67,28 @@ void batchnorm_backward(const float* dy, const float* x, const float* y, const P
 // shift (any value near the data, for precision): pair j = (sum (v - shift[c]), sum
 // (v - shift[c])^2). Writes save_mean, save_inv_std and, when count > 0, updates the running
 // statistics as batchnorm_forward_train does. shifts (C) and partials are doubles.
-void batchnorm_finalize_statistics(const double* shifts, const double* partials,
-                                   std::int64_t channels, std::int64_t parts, std::int64_t count,
-                                   float eps, float momentum, float* running_mean,
-                                   float* running_var, float* save_mean, float* save_inv_std,
-                                   cudaStream_t stream);
+// With replicas (synchronised BatchNorm of a data-parallel run, core/replicas.hpp) the statistics
+// are those of the values of all replicas: this replica's are brought to the host, combined with
+// the others' (their means first, then the squares about the common mean), and written back into
+// shifts and the first part of partials (so partials must have room for one part even when
+// parts = 0); the stream is synchronised.
+void batchnorm_finalize_statistics(double* shifts, double* partials, std::int64_t channels,
+                                   std::int64_t parts, std::int64_t count, float eps,
+                                   float momentum, float* running_mean, float* running_var,
+                                   float* save_mean, float* save_inv_std, cudaStream_t stream,
+                                   ReplicaSum* replicas = nullptr);
 
 // Backward sums from partials: pair j = (sum g, sum g * xhat) over parts of the `count` values of
 // each channel (g the gradient reaching the BatchNorm output, xhat the normalised input).
 // Writes dbeta = sum g and dgamma = sum g * xhat (C), and coefficients (2 C doubles):
 // coefficients[2 c] = sum g / count, coefficients[2 c + 1] = sum g * xhat / count, with which
 // dx = gamma * inv_std * (g - coefficients[2 c] - xhat * coefficients[2 c + 1]).
+// With replicas, dbeta and dgamma stay this replica's own sums (its share of the parameters'
+// gradient) while the coefficients are those of all replicas' values (the sums brought to the
+// host and summed over the replicas; the stream is synchronised).
 void batchnorm_finalize_backward(const double* partials, std::int64_t channels, std::int64_t parts,
                                  std::int64_t count, float* dgamma, float* dbeta,
-                                 double* coefficients, cudaStream_t stream);
+                                 double* coefficients, cudaStream_t stream,
+                                 ReplicaSum* replicas = nullptr);
 
 }  // namespace pillarseg::cuda

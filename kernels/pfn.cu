@@ -335,7 +335,9 @@ static __global__ void __launch_bounds__(kBlockSize)
 
 std::int64_t pfn_workspace_doubles(const PfnShape& shape) {
   check_shape(shape, "pfn_workspace_doubles");
-  const std::int64_t forward = shape.channels + 2 * shape.channels * row_parts(shape);
+  // At least one part: synchronised statistics are written back as one (batchnorm.cuh).
+  const std::int64_t parts = row_parts(shape);
+  const std::int64_t forward = shape.channels + 2 * shape.channels * (parts > 0 ? parts : 1);
   const std::int64_t backward = 2 * shape.channels * pillar_parts(shape) + 2 * shape.channels +
                                 kFeatures * shape.channels * row_parts(shape);
   return forward > backward ? forward : backward;
@@ -345,10 +347,10 @@ void pfn_forward_train(const float* points, const float* weight, const PfnShape&
                        const float* gamma, const float* beta, float eps, float momentum,
                        float* running_mean, float* running_var, float* out, std::int32_t* max_slot,
                        float* save_mean, float* save_inv_std, double* workspace,
-                       cudaStream_t stream) {
+                       cudaStream_t stream, ReplicaSum* replicas) {
   const char* op = "pfn_forward_train";
   check_shape(shape, op);
-  PS_CHECK(shape.rows() != 1,
+  PS_CHECK(shape.rows() != 1 || replicas != nullptr,
            "{}: BatchNorm needs more than 1 row (P * N) when training, given P = {}, N = {}", op,
            shape.pillars, shape.slots);
   PS_CHECK(weight != nullptr && gamma != nullptr && beta != nullptr && workspace != nullptr,
@@ -368,7 +370,7 @@ void pfn_forward_train(const float* points, const float* weight, const PfnShape&
   }
   batchnorm_finalize_statistics(shifts, partials, shape.channels, parts, shape.rows(), eps,
                                 momentum, running_mean, running_var, save_mean, save_inv_std,
-                                stream);
+                                stream, replicas);
   if (shape.pillars > 0) {
     launch_kernel(
         apply_max_kernel,
@@ -403,7 +405,7 @@ void pfn_backward(const float* d_out, const float* points, const float* weight,
                   const PfnShape& shape, const float* gamma, const float* save_mean,
                   const float* save_inv_std, const std::int32_t* max_slot, float* d_points,
                   float* d_weight, float* d_gamma, float* d_beta, double* workspace,
-                  cudaStream_t stream) {
+                  cudaStream_t stream, ReplicaSum* replicas) {
   const char* op = "pfn_backward";
   check_shape(shape, op);
   PS_CHECK(weight != nullptr && gamma != nullptr && save_mean != nullptr &&
@@ -428,7 +430,7 @@ void pfn_backward(const float* d_out, const float* points, const float* weight,
                   sums_parts, partials);
   }
   batchnorm_finalize_backward(partials, shape.channels, sums_parts, shape.rows(), d_gamma, d_beta,
-                              coefficients, stream);
+                              coefficients, stream, replicas);
   if (shape.pillars > 0) {
     launch_kernel(weight_partials_kernel,
                   dim3(static_cast<unsigned>(weight_parts), channel_tiles(shape)), tile_block, 0,

@@ -13,6 +13,7 @@
 
 #include <cstdint>
 
+#include "core/replicas.hpp"
 #include "kernels/emu/cuda_compat.cuh"
 
 namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
@@ -40,7 +41,7 @@ void pfn_forward_train(const float* points, const float* weight, const PfnShape&
                        const float* gamma, const float* beta, float eps, float momentum,
                        float* running_mean, float* running_var, float* out, std::int32_t* max_slot,
                        float* save_mean, float* save_inv_std, double* workspace,
-                       cudaStream_t stream);
+                       cudaStream_t stream, ReplicaSum* replicas = nullptr);
 
 // Evaluation forward with the running statistics. Shapes as pfn_forward_train; max_slot may be
 // nullptr (not needed).
@@ -57,6 +58,6 @@ void pfn_backward(const float* d_out, const float* points, const float* weight,
                   const PfnShape& shape, const float* gamma, const float* save_mean,
                   const float* save_inv_std, const std::int32_t* max_slot, float* d_points,
                   float* d_weight, float* d_gamma, float* d_beta, double* workspace,
-                  cudaStream_t stream);
+                  cudaStream_t stream, ReplicaSum* replicas = nullptr);
 
 }  // namespace pillarseg::cuda

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # make demo: the main job on the built-in default data. Simulates a small SemanticKITTI-format
 # data set, builds its ground truth, trains a small PillarSegNet on the CPU, evaluates it on a
-# sequence it never saw (Sparse Eval and Dense Eval), and renders PNGs.
+# sequence it never saw (Sparse Eval and Dense Eval), and renders PNGs (the training curves too).
 # Usage: scripts/demo.sh PILLARSEG_BINARY OUT_DIR
 set -euo pipefail
 bin=${1:?usage: demo.sh PILLARSEG_BINARY OUT_DIR}
@@ -15,36 +15,40 @@ step() { printf '\n== %s\n' "$*"; }
 
 if [[ ! -d "$data/sequences/08" ]]; then
   # Eight short streets rather than three long ones: the same 120 training scans, more layouts.
-  step "1/5 simulate: 8 training sequences of 15 scans (00-07) and a validation sequence of 20 scans (08)"
+  step "1/6 simulate: 8 training sequences of 15 scans (00-07) and a validation sequence of 20 scans (08)"
   rm -rf "$data"
   "$bin" simulate --out "$data" --sequences 8 --scans 15 --seed 1
   "$bin" simulate --out "$data" --sequences 1 --scans 20 --seed 2 --first-sequence 8
 else
-  step "1/5 simulate: reusing $data"
+  step "1/6 simulate: reusing $data"
 fi
 "$bin" info --data "$data"
 
-step "2/5 ground truth of the validation sequence (sparse and dense, cached) and pictures of scan 10"
+step "2/6 ground truth of the validation sequence (sparse and dense, cached) and pictures of scan 10"
 "$bin" gt --data "$data" --sequence 8 --mode sparse --cache "$cache"
 "$bin" gt --data "$data" --sequence 8 --mode dense --cache "$cache"
 "$bin" gt --data "$data" --sequence 8 --scan 10 --mode sparse --cache "$cache" --out "$pictures/gt_sparse_08_000010.png"
 "$bin" gt --data "$data" --sequence 8 --scan 10 --mode dense --cache "$cache" --out "$pictures/gt_dense_08_000010.png"
 "$bin" observability --data "$data" --sequence 8 --scan 10 --out "$pictures/observability_08_000010.png"
 
-step "3/5 train $(basename "$config") on the CPU"
+step "3/6 train $(basename "$config") on the CPU"
 if [[ -f "$run/checkpoint.safetensors" ]]; then
   "$bin" train --data "$data" --config "$config" --out "$run" --cache "$cache" --resume
 else
   "$bin" train --data "$data" --config "$config" --out "$run" --cache "$cache"
 fi
 
-step "4/5 evaluate on sequence 08 (never seen in training)"
+# Its one line names the PNGs and the directory; the validation charts need eval.every_epochs.
+step "4/6 plot the training curves (loss, learning rate, gradient norm, validation)"
+"$bin" plot "$run"
+
+step "5/6 evaluate on sequence 08 (never seen in training)"
 "$bin" eval --data "$data" --weights "$run/checkpoint.safetensors" --mode sparse --cache "$cache" \
   --report "$out/eval_sparse.json"
 "$bin" eval --data "$data" --weights "$run/checkpoint.safetensors" --mode dense --cache "$cache" \
   --report "$out/eval_dense.json"
 
-step "5/5 render points, observability, prediction and ground truth (the paper's Fig. 3 panels)"
+step "6/6 render points, observability, prediction and ground truth (the paper's Fig. 3 panels)"
 for scan in 0 10 19; do
   "$bin" render --data "$data" --sequence 8 --scan "$scan" --weights "$run/checkpoint.safetensors" \
     --mode dense --mask-unobserved --cache "$cache" --out "$pictures/panels_08_$(printf %06d "$scan").png"
@@ -55,5 +59,6 @@ done
 step "done"
 echo "data:        $data"
 echo "checkpoint:  $run/checkpoint.safetensors (metrics log: $run/metrics.jsonl)"
+echo "curves:      $run/plots"
 echo "evaluation:  $out/eval_sparse.json, $out/eval_dense.json"
 echo "pictures:    $pictures"

@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # The command line end to end on a tiny simulated data set: pillarseg infer over one scan, a
 # directory and several files (the same label maps), --device emu for infer, bench, eval and
-# train (training's first losses those of the CPU; in bf16 close to them), --precision, and errors
-# that name the argument.
+# train (training's first losses those of the CPU; in bf16 close to them), --precision, plot (the
+# PNGs of a run with and without validation), and errors that name the argument.
 # Usage: tests/cli_test.sh PILLARSEG_BINARY WORK_DIR
 set -euo pipefail
 bin=$1 work=$2
@@ -51,6 +51,51 @@ print(f"cli_test: TensorBoard reads {len(got)} train/loss scalars, those of metr
 PY
 weights=$work/cpu/checkpoint.safetensors
 velodyne=$work/data/sequences/00/velodyne
+
+# pillarseg plot: a run validated after each of its 2 epochs gives all six charts; the CPU run above
+# (no validation) the three training ones. Each a whole PNG: signature, chunk CRCs, the pixel rows.
+sed -e 's/epochs: 1,/epochs: 2,/' -e 's/eval: {sequences: \[0\]}/eval: {sequences: [0], every_epochs: 1}/' \
+  "$work/tiny.yaml" > "$work/tiny_eval.yaml"
+grep -q 'every_epochs: 1' "$work/tiny_eval.yaml" || fail "tiny_eval.yaml: the sed did not add eval.every_epochs"
+run train --data "$work/data" --config "$work/tiny_eval.yaml" --out "$work/eval_run" > "$work/eval_run.log" 2>&1 ||
+  { cat "$work/eval_run.log"; fail "train with eval.every_epochs failed"; }
+[[ $(grep -c '"type": "eval"' "$work/eval_run/metrics.jsonl") == 2 ]] || fail "train: expected 2 eval lines"
+check_pngs() {
+  python3 - "$@" <<'PY'
+import struct, sys, zlib
+for path in sys.argv[1:]:
+    data = open(path, "rb").read()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n", f"{path}: no PNG signature"
+    pos, idat, kinds = 8, b"", []
+    while pos < len(data):
+        n, kind = struct.unpack(">I4s", data[pos:pos + 8])
+        body = data[pos + 8:pos + 8 + n]
+        assert struct.unpack(">I", data[pos + 8 + n:pos + 12 + n])[0] == zlib.crc32(kind + body), f"{path}: bad CRC"
+        if kind == b"IHDR":
+            width, height, depth, colour = struct.unpack(">IIBB", body[:10])
+        if kind == b"IDAT":
+            idat += body
+        kinds.append(kind)
+        pos += 12 + n
+    assert kinds[0] == b"IHDR" and kinds[-1] == b"IEND", f"{path}: chunks {kinds}"
+    assert (depth, colour) == (8, 2) and width >= 200 and height >= 150, f"{path}: {width}x{height}"
+    assert len(zlib.decompress(idat)) == height * (1 + 3 * width), f"{path}: pixel data size"
+PY
+}
+plots=(loss lr grad_norm val_miou val_iou_per_class confusion)
+run plot "$work/eval_run" > "$work/plot.log" 2>&1 || { cat "$work/plot.log"; fail "plot failed"; }
+grep -q "wrote loss.png, lr.png, grad_norm.png, val_miou.png, val_iou_per_class.png, confusion.png in $work/eval_run/plots" \
+  "$work/plot.log" || fail "plot: '$(cat "$work/plot.log")' does not list the six files"
+pngs=()
+for name in "${plots[@]}"; do pngs+=("$work/eval_run/plots/$name.png"); done
+check_pngs "${pngs[@]}" || fail "plot: not six valid PNGs in $work/eval_run/plots"
+[[ $(ls "$work/eval_run/plots" | wc -l) == 6 ]] || fail "plot: expected exactly six files in $work/eval_run/plots"
+run plot "$work/cpu" --out "$work/cpu_plots" > "$work/plot_cpu.log" 2>&1 || { cat "$work/plot_cpu.log"; fail "plot --out failed"; }
+grep -q "skipped val_miou.png, val_iou_per_class.png, confusion.png (no eval lines" "$work/plot_cpu.log" ||
+  fail "plot of a run without validation: '$(cat "$work/plot_cpu.log")' does not say what it skipped and why"
+check_pngs "$work"/cpu_plots/{loss,lr,grad_norm}.png || fail "plot --out: not three valid PNGs in $work/cpu_plots"
+[[ ! -e $work/cpu_plots/val_miou.png && ! -e $work/cpu/plots ]] || fail "plot --out: files outside --out, or val_miou.png"
+echo "cli_test: plot wrote six valid PNGs for a validated run, three for one without validation"
 
 run infer --weights "$weights" --scan "$velodyne/000001.bin" --out "$work/one" > /dev/null
 run infer --weights "$weights" --scan "$velodyne" --out "$work/dir" --no-png > "$work/dir.log" 2>&1
@@ -104,6 +149,16 @@ expect_error() {
   [[ $rc == 1 ]] || fail "'$*' exited $rc, expected 1: $message"
   [[ $message == *"$expected"* ]] || fail "'$*': '$message' does not say '$expected'"
 }
+# plot: no metrics.jsonl; a broken line (named by file:line); a log without steps: nothing written.
+mkdir -p "$work/no_run" "$work/bad_run" "$work/stepless_run"
+expect_error "$work/no_run/metrics.jsonl: no such file" plot "$work/no_run"
+{ head -n 3 "$work/eval_run/metrics.jsonl"; echo '{"type": "step", "epoch": 1, "step": 4, "loss": nan}'; } \
+  > "$work/bad_run/metrics.jsonl"
+expect_error "$work/bad_run/metrics.jsonl:4: not valid JSON" plot "$work/bad_run"
+grep -v '"type": "step"' "$work/eval_run/metrics.jsonl" > "$work/stepless_run/metrics.jsonl"
+expect_error "$work/stepless_run/metrics.jsonl: no step lines" plot "$work/stepless_run"
+[[ ! -e $work/no_run/plots && ! -e $work/bad_run/plots && ! -e $work/stepless_run/plots ]] ||
+  fail "plot wrote a plots directory for a bad log"
 expect_error "--scan $work/none.bin: no such file" infer --weights "$weights" --scan "$work/none.bin" --out "$work/x"
 expect_error "is a file" infer --weights "$weights" --scan "$velodyne" --out "$work/one.u8"
 expect_error "train --precision bf16: backend cpu trains in fp32 only" train --data "$work/data" \
@@ -114,4 +169,4 @@ if message=$(run infer --weights "$weights" --scan "$velodyne" --out "$work/y" -
   fail "--device tpu was accepted"
 fi
 [[ $message == *"--device"* ]] || fail "--device tpu: '$message' does not name --device"
-echo "cli_test: infer (one scan, a directory, two files), --device emu (infer, eval, bench, train), --precision and errors pass"
+echo "cli_test: infer (one scan, a directory, two files), --device emu (infer, eval, bench, train), --precision, plot and errors pass"

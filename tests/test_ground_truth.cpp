@@ -31,6 +31,8 @@
 using namespace pillarseg;
 namespace fs = std::filesystem;
 
+using pillarseg::test::error_of;
+
 namespace {
 
 // Raw SemanticKITTI ids used below and their classes.
@@ -105,16 +107,6 @@ std::vector<uint8_t> classes_of(const std::vector<uint32_t>& labels, const Class
   std::vector<uint8_t> classes;
   for (uint32_t label : labels) classes.push_back(table.class_of(label));
   return classes;
-}
-
-template <class F>
-std::string error_of(F&& f) {
-  try {
-    f();
-  } catch (const Error& e) {
-    return e.what();
-  }
-  return "";
 }
 
 // KITTI's LiDAR -> cam0 transform (sequence 00), so that poses go through a real calibration.

@@ -4,9 +4,12 @@
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
 
+#include <barrier>
 #include <cmath>
 #include <functional>
 #include <string>
+#include <thread>
+#include <utility>
 #include <vector>
 
 #include "core/parallel.hpp"
@@ -180,6 +183,129 @@ TEST(HostBatchNorm, SameBitsForEveryThreadCount) {
   for (size_t i = 0; i < per_run; ++i) {
     EXPECT_EQ(results[i], results[per_run + i]) << "result " << i << ", 2 threads";
     EXPECT_EQ(results[i], results[2 * per_run + i]) << "result " << i << ", 3 threads";
+  }
+}
+
+// R replicas of a data-parallel run as R threads of this process: each sum() waits for all of
+// them and adds their values in replica order, as engine/mpi/ does across processes.
+class ThreadReplicas {
+ public:
+  explicit ThreadReplicas(int size) : slots_(static_cast<size_t>(size)), barrier_(size) {
+    for (int r = 0; r < size; ++r) members_.push_back(Member(this, r));
+  }
+  ReplicaSum* member(int rank) { return &members_[static_cast<size_t>(rank)]; }
+
+ private:
+  class Member final : public ReplicaSum {
+   public:
+    Member(ThreadReplicas* all, int rank) : all_(all), rank_(rank) {}
+    void sum(double* values, int64_t n) override { all_->sum(rank_, values, n); }
+
+   private:
+    ThreadReplicas* all_;
+    int rank_;
+  };
+  void sum(int rank, double* values, int64_t n) {
+    slots_[static_cast<size_t>(rank)].assign(values, values + n);
+    barrier_.arrive_and_wait();
+    for (int64_t i = 0; i < n; ++i) {
+      double total = slots_[0][static_cast<size_t>(i)];
+      for (size_t r = 1; r < slots_.size(); ++r) total += slots_[r][static_cast<size_t>(i)];
+      values[i] = total;
+    }
+    barrier_.arrive_and_wait();
+  }
+  std::vector<std::vector<double>> slots_;
+  std::barrier<> barrier_;
+  std::vector<Member> members_;
+};
+
+// Rows [begin, end) of axis 0 of x.
+Tensor<float> rows(const Tensor<float>& x, int64_t begin, int64_t end) {
+  Shape shape = x.shape();
+  const int64_t per_row = x.numel() / shape[0];
+  shape[0] = end - begin;
+  Tensor<float> out(shape);
+  std::copy(x.data() + begin * per_row, x.data() + end * per_row, out.data());
+  return out;
+}
+
+// Synchronised BatchNorm: replicas that each hold some rows of a batch get the statistics, the
+// outputs and the input gradients of the whole batch, and their dgamma / dbeta add up to its.
+// With one batch item per replica of a (B, C, H, W) input, the per-channel sums are the same
+// additions in the same order (double), so every result is the same bits; for (M, C) (the PFN)
+// the row sums are regrouped, which double accumulation leaves below float rounding, except for
+// a rare tie. One (M, C) replica holds no rows (a scan without pillars) and still joins the sums.
+TEST(HostBatchNorm, SynchronisedOverReplicasIsTheWholeBatch) {
+  struct Split {
+    Shape shape;
+    std::vector<int64_t> bounds;  // replica r holds rows [bounds[r], bounds[r + 1])
+    bool exact;
+  };
+  for (const Split& split :
+       {Split{{3, 5, 7, 6}, {0, 1, 2, 3}, true}, Split{{40, 4}, {0, 13, 13, 30, 40}, false}}) {
+    SCOPED_TRACE(shape_str(split.shape));
+    const int64_t C = split.shape[1];
+    const int R = static_cast<int>(split.bounds.size()) - 1;
+    Rng rng(31);
+    const Tensor<float> x = random_tensor<float>(split.shape, rng, -2, 3);
+    const Tensor<float> dy = random_tensor<float>(split.shape, rng);
+    const Tensor<float> gamma = random_tensor<float>({C}, rng, 0.5, 1.5);
+    const Tensor<float> beta = random_tensor<float>({C}, rng);
+    struct Result {
+      Tensor<float> y, dx, dgamma, dbeta, mean, var;
+      BatchNormSaved<float> saved;
+    };
+    const auto run = [&](const Tensor<float>& xs, const Tensor<float>& dys, ReplicaSum* replicas) {
+      Result r;
+      r.mean = Tensor<float>({C}, 0.25f), r.var = Tensor<float>({C}, 1.5f);
+      int64_t batches = 0;
+      BatchNormOptions options;
+      options.replicas = replicas;
+      batchnorm_relu_forward_train(xs, gamma, beta, options, r.mean, r.var, batches, r.y, r.saved);
+      batchnorm_relu_backward(dys, xs, r.y, gamma, r.saved, r.dx, r.dgamma, r.dbeta, replicas);
+      return r;
+    };
+    const Result whole = run(x, dy, nullptr);
+    std::vector<Result> parts(static_cast<size_t>(R));
+    ThreadReplicas replicas(R);
+    std::vector<std::thread> threads;
+    for (int r = 0; r < R; ++r) {
+      threads.emplace_back([&, r] {
+        const int64_t begin = split.bounds[static_cast<size_t>(r)],
+                      end = split.bounds[static_cast<size_t>(r) + 1];
+        parts[static_cast<size_t>(r)] =
+            run(rows(x, begin, end), rows(dy, begin, end), replicas.member(r));
+      });
+    }
+    for (std::thread& t : threads) t.join();
+    const double tolerance = split.exact ? 0.0 : 1e-6;
+    Tensor<double> dgamma_sum({C}, 0.0), dbeta_sum({C}, 0.0);
+    for (int r = 0; r < R; ++r) {
+      SCOPED_TRACE("replica " + std::to_string(r));
+      const Result& part = parts[static_cast<size_t>(r)];
+      const int64_t begin = split.bounds[static_cast<size_t>(r)],
+                    end = split.bounds[static_cast<size_t>(r) + 1];
+      const std::pair<const Tensor<float>*, const Tensor<float>*> statistics[] = {
+          {&part.mean, &whole.mean},
+          {&part.var, &whole.var},
+          {&part.saved.mean, &whole.saved.mean},
+          {&part.saved.inv_std, &whole.saved.inv_std}};
+      for (const auto& [mine, batch] : statistics)
+        EXPECT_TRUE(test::all_close(*mine, *batch, tolerance, tolerance));
+      EXPECT_TRUE(test::all_close(part.y, rows(whole.y, begin, end), tolerance, tolerance));
+      EXPECT_TRUE(test::all_close(part.dx, rows(whole.dx, begin, end), tolerance, tolerance));
+      for (int64_t c = 0; c < C; ++c)
+        dgamma_sum[c] += part.dgamma[c], dbeta_sum[c] += part.dbeta[c];
+    }
+    for (int64_t c = 0; c < C; ++c) {  // each replica's share is rounded to float once
+      EXPECT_NEAR(dgamma_sum[c], whole.dgamma[c], 1e-5 * (1 + std::abs(whole.dgamma[c])));
+      EXPECT_NEAR(dbeta_sum[c], whole.dbeta[c], 1e-5 * (1 + std::abs(whole.dbeta[c])));
+    }
+    // Without the replicas, a share normalises with its own statistics: the test sees that.
+    const Result alone = run(rows(x, split.bounds[0], split.bounds[1]),
+                             rows(dy, split.bounds[0], split.bounds[1]), nullptr);
+    EXPECT_FALSE(test::all_close(alone.saved.mean, whole.saved.mean, 1e-3, 1e-3));
   }
 }
 

@@ -1,4 +1,5 @@
-// kernels/relu.cu (relu_forward, relu_backward) and kernels/reduce.cu (sum_of_squares), run on
+// kernels/relu.cu (relu_forward, relu_backward), kernels/reduce.cu (sum_of_squares) and
+// kernels/replica_sum.cu (the replica-order gradient sum), run on
 // the CUDA emulation and compared with plain host loops: sizes around the warp, block and float4
 // boundaries up to 2^20 + 3, pointers at every 4-byte misalignment (float4 path with scalar head
 // and tail; mixed misalignments take the scalar path), NaN, Inf and -0 inputs, in-place use, guard
@@ -21,6 +22,7 @@
 #include "kernels/device_buffer.hpp"
 #include "kernels/reduce.cuh"
 #include "kernels/relu.cuh"
+#include "kernels/replica_sum.cuh"
 
 using namespace pillarseg;
 using cuda::DeviceBuffer;
@@ -336,4 +338,35 @@ TEST(ReduceKernels, LauncherChecksItsArguments) {
   const std::string null_result =
       error_message([&] { cuda::sum_of_squares(x.data(), 4, scratch.data(), nullptr, nullptr); });
   EXPECT_NE(null_result.find("must be device memory"), std::string::npos) << null_result;
+}
+
+// The replicas' chunks added in replica order: the same bits as the host loop in that order,
+// which for these values differ from another order's (1 + 3e-8 + 3e-8 != 1 + (3e-8 + 3e-8)).
+TEST(ReplicaSumKernels, AddsInReplicaOrder) {
+  for (const std::int64_t n : {std::int64_t{1}, std::int64_t{33}, std::int64_t{1000}, std::int64_t{(1 << 20) + 3}}) {
+    for (const int replicas : {1, 3, 4}) {
+      SCOPED_TRACE("n " + std::to_string(n) + ", replicas " + std::to_string(replicas));
+      std::vector<float> chunks(static_cast<size_t>(n * replicas));
+      const float scale[] = {1.0f, 3e-8f, 3e-8f, -0.5f};
+      for (int r = 0; r < replicas; ++r) {
+        for (std::int64_t i = 0; i < n; ++i) {
+          chunks[static_cast<size_t>(r * n + i)] = scale[r] * (1.0f + static_cast<float>(i % 5) * 0.25f);
+        }
+      }
+      auto device_chunks = DeviceBuffer<float>::from_host(chunks);
+      auto out = DeviceBuffer<float>::from_host(std::vector<float>(static_cast<size_t>(n) + 1, -7.0f));
+      cuda::sum_replica_chunks(device_chunks.data(), replicas, n, out.data(), nullptr);
+      const std::vector<float> host = out.to_host();
+      for (std::int64_t i = 0; i < n; ++i) {
+        float expected = chunks[static_cast<size_t>(i)];
+        for (int r = 1; r < replicas; ++r) expected += chunks[static_cast<size_t>(r * n + i)];
+        ASSERT_EQ(std::bit_cast<std::uint32_t>(host[static_cast<size_t>(i)]), std::bit_cast<std::uint32_t>(expected))
+            << "i " << i;
+      }
+      EXPECT_EQ(host[static_cast<size_t>(n)], -7.0f) << "guard after the output";
+    }
+  }
+  EXPECT_NE(1.0f + 3e-8f + 3e-8f, 1.0f + (3e-8f + 3e-8f)) << "the values above must tell the order apart";
+  const std::string bad = error_message([] { cuda::sum_replica_chunks(nullptr, 0, 4, nullptr, nullptr); });
+  EXPECT_NE(bad.find("expected replicas >= 1"), std::string::npos) << bad;
 }

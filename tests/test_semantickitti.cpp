@@ -15,6 +15,8 @@
 using namespace pillarseg;
 namespace fs = std::filesystem;
 
+using pillarseg::test::error_of;
+
 namespace {
 
 void write_text(const fs::path& path, const std::string& text) {
@@ -23,16 +25,6 @@ void write_text(const fs::path& path, const std::string& text) {
 }
 
 // The error message of f(), or "" if it did not throw pillarseg::Error.
-template <class F>
-std::string error_of(F&& f) {
-  try {
-    f();
-  } catch (const Error& e) {
-    return e.what();
-  }
-  return "";
-}
-
 const char* kCalibText =
     "P0: 7.188560000000e+02 0 6.071928000000e+02 0 0 7.188560000000e+02 1.852157000000e+02 0 0 0 1 0\n"
     "P1: 1 0 0 0 0 1 0 0 0 0 1 0\nP2: 1 0 0 0 0 1 0 0 0 0 1 0\nP3: 1 0 0 0 0 1 0 0 0 0 1 0\n"

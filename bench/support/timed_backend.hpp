@@ -174,6 +174,10 @@ class TimedBackend final : public Backend {
   bool supports_training_precision(Precision p, std::string* why_not) const override {
     return inner_->supports_training_precision(p, why_not);
   }
+  void sum_over_replicas(Ref& values, Replicas& replicas) override { inner_->sum_over_replicas(values, replicas); }
+  bool supports_synchronized_batchnorm(std::string* why_not) const override {
+    return inner_->supports_synchronized_batchnorm(why_not);
+  }
   void conv2d_backward_half(const Ref& x, const Ref& w, const Ref& dy, int pad, Precision p, Ref* dx, Ref& dw,
                             Ref* dbias) override {
     const double passes = dx != nullptr ? 2.0 : 1.0;

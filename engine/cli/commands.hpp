@@ -12,5 +12,6 @@ void add_maps(CLI::App& app);
 void add_train(CLI::App& app);
 void add_infer(CLI::App& app);
 void add_bench(CLI::App& app);
+void add_plot(CLI::App& app);
 
 }  // namespace pillarseg::cli

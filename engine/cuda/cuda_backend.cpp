@@ -33,6 +33,9 @@
 #include "kernels/scatter.cuh"
 #include "kernels/softmax.cuh"
 #include "kernels/upsample_bilinear.cuh"
+#if !defined(PILLARSEG_CUDA_EMULATION)
+#include "engine/cuda/nccl_sum.hpp"
+#endif
 
 namespace pillarseg::inline PILLARSEG_CUDA_NAMESPACE {
 
@@ -499,7 +502,8 @@ void CudaBackend::pfn_forward(const Ref& points, const Ref& weight, BatchNormRef
   double* workspace = double_workspace(cuda::pfn_workspace_doubles(shape));
   cuda::pfn_forward_train(points.data, weight.data, shape, bn.gamma.data, bn.beta.data, bn.eps,
                           bn.momentum, bn.running_mean.data, bn.running_var.data, out.data,
-                          argmax.data, bn.save_mean.data, bn.save_invstd.data, workspace, stream_.get());
+                          argmax.data, bn.save_mean.data, bn.save_invstd.data, workspace, stream_.get(),
+                          bn.replicas);
 }
 
 void CudaBackend::pfn_backward(const Ref& points, const Ref& weight, const BatchNormRefs& bn,
@@ -515,7 +519,7 @@ void CudaBackend::pfn_backward(const Ref& points, const Ref& weight, const Batch
   // The points are inputs: their gradient (d_points, scratch by the interface) is not computed.
   cuda::pfn_backward(dout.data, points.data, weight.data, shape, bn.gamma.data, bn.save_mean.data,
                      bn.save_invstd.data, argmax.data, nullptr, dweight.data, dgamma.data,
-                     dbeta.data, workspace, stream_.get());
+                     dbeta.data, workspace, stream_.get(), bn.replicas);
 }
 
 void CudaBackend::scatter_forward(const Ref& features, const IRef& cells, int channel0,
@@ -673,7 +677,8 @@ void CudaBackend::batchnorm_relu_forward(const Ref& x, BatchNormRefs& bn, bool t
   double* workspace = double_workspace(cuda::batchnorm_workspace_doubles(shape));
   cuda::batchnorm_forward_train(x.data, shape, bn.gamma.data, bn.beta.data, bn.eps, bn.momentum,
                                 bn.running_mean.data, bn.running_var.data, /*relu=*/true, y.data,
-                                bn.save_mean.data, bn.save_invstd.data, workspace, stream_.get());
+                                bn.save_mean.data, bn.save_invstd.data, workspace, stream_.get(),
+                                bn.replicas);
 }
 
 void CudaBackend::batchnorm_relu_backward(const Ref& x, const Ref& y, const Ref& dy,
@@ -690,7 +695,7 @@ void CudaBackend::batchnorm_relu_backward(const Ref& x, const Ref& y, const Ref&
   double* workspace = double_workspace(cuda::batchnorm_workspace_doubles(shape));
   cuda::batchnorm_backward(dy.data, x.data, y.data, shape, bn.gamma.data, bn.save_mean.data,
                            bn.save_invstd.data, dx.data, dgamma.data, dbeta.data, workspace,
-                           stream_.get());
+                           stream_.get(), bn.replicas);
 }
 
 void CudaBackend::maxpool2x2_forward(const Ref& x, Ref& y, IRef& argmax) {
@@ -792,6 +797,13 @@ double CudaBackend::sum_of_squares(const Ref& x) {
   download(&host, result, sizeof(double));
   return host;
 }
+
+#if !defined(PILLARSEG_CUDA_EMULATION)
+void CudaBackend::sum_over_replicas(Ref& values, Replicas& replicas) {
+  if (!nccl_) nccl_ = std::make_unique<NcclGradientSum>(replicas, stream_.get());
+  nccl_->sum(values.data, values.numel());
+}
+#endif
 
 void CudaBackend::scale(Ref& x, float factor) {
   cuda::scale(x.data, factor, x.numel(), stream_.get());

@@ -40,6 +40,10 @@
 #include "kernels/device_buffer.hpp"
 #include "kernels/losses.cuh"
 
+namespace pillarseg {
+class NcclGradientSum;  // engine/cuda/nccl_sum.hpp (the GPU build only)
+}  // namespace pillarseg
+
 namespace pillarseg::inline PILLARSEG_CUDA_NAMESPACE {
 
 struct CudaBackendOptions {
@@ -161,6 +165,13 @@ class CudaBackend final : public Backend {
   void conv_transpose2x2_half_forward(const ActRef& x, const HRef& w16, const Ref& bias_out, const Shape& weight,
                                       Precision p, const ActRef& y) override;
   bool supports_training_precision(Precision p, std::string* why_not) const override;
+  // Synchronised BatchNorm: the kernels' statistics summed over the replicas on the host.
+  bool supports_synchronized_batchnorm(std::string*) const override { return true; }
+#if !defined(PILLARSEG_CUDA_EMULATION)
+  // On a GPU the gradients are summed in device memory over NCCL (engine/cuda/nccl_sum.hpp; the
+  // communicator is made on the first call); the emulation sums through the host.
+  void sum_over_replicas(Ref& values, Replicas& replicas) override;
+#endif
   void conv2d_backward_half(const Ref& x, const Ref& w, const Ref& dy, int pad, Precision p, Ref* dx, Ref& dw,
                             Ref* dbias) override;
   void conv_transpose2x2_backward_half(const Ref& x, const Ref& w, const Ref& dy, Precision p, Ref& dx, Ref& dw,
@@ -217,6 +228,9 @@ class CudaBackend final : public Backend {
   size_t staging_used_ = 0;
   bool capturing_ = false;
   std::unique_ptr<cuda::Conv2dEngine> vendor_conv_;  // null with ConvolutionImpl::Own
+#if !defined(PILLARSEG_CUDA_EMULATION)
+  std::unique_ptr<NcclGradientSum> nccl_;  // data-parallel training
+#endif
   CudaBackendStats stats_;
 };
 

@@ -5,19 +5,25 @@
 
 namespace pillarseg {
 
-SegmentationMetrics evaluate(ScanSegmenter& segmenter, const RunConfig& config, const EvalOptions& options) {
+SegmentationMetrics evaluate(ScanSegmenter& segmenter, const RunConfig& config,
+                             const EvalOptions& options) {
   PillarSegNet& net = segmenter.net();
   const bool on_host = segmenter.backend().device() == Device::Cpu;
-  const std::vector<int>& sequences = options.sequences.empty() ? config.eval.sequences : options.sequences;
+  const std::vector<int>& sequences =
+      options.sequences.empty() ? config.eval.sequences : options.sequences;
   const int stride = options.scan_stride > 0 ? options.scan_stride : config.eval.scan_stride;
   const ClassTable classes = ClassTable::defaults();
-  ScanDataset data(options.data_root, sequences, stride, 0, config.model, classes, options.mode, options.cache_dir,
-                   false);
+  ScanDataset data(options.data_root, sequences, stride, 0, config.model, classes, options.mode,
+                   options.cache_dir, false);
   const bool dense = options.mode == GroundTruthKind::dense;
+  PS_CHECK(options.shards >= 1 && options.shard >= 0 && options.shard < options.shards,
+           "evaluate: shard {} of {} does not exist", options.shard, options.shards);
   SegmentationMetrics metrics;
-  Progress progress(dense ? "dense eval" : "sparse eval", static_cast<int64_t>(data.size()), "scans");
+  const auto shards = static_cast<size_t>(options.shards);
+  const size_t scans = (data.size() + shards - 1 - static_cast<size_t>(options.shard)) / shards;
+  Progress progress(dense ? "dense eval" : "sparse eval", static_cast<int64_t>(scans), "scans");
   Tensor<uint8_t> predicted({config.model.grid.height(), config.model.grid.width()});
-  for (size_t i = 0; i < data.size(); ++i) {
+  for (size_t i = static_cast<size_t>(options.shard), done = 0; i < data.size(); i += shards) {
     Sample s;
     if (on_host) {
       s = data.eval_sample(i, options.mode, dense);
@@ -29,7 +35,7 @@ SegmentationMetrics evaluate(ScanSegmenter& segmenter, const RunConfig& config, 
       segmenter.segment(data.scan(i).points, predicted.data());
     }
     metrics.add(s.labels, predicted, dense ? &s.mask : nullptr);
-    if (options.progress) progress.update(static_cast<int64_t>(i) + 1);
+    if (options.progress) progress.update(static_cast<int64_t>(++done));
   }
   if (options.progress) progress.finish();
   return metrics;

@@ -23,6 +23,9 @@ struct EvalOptions {
   int scan_stride = 0;         // 0: the config's eval.scan_stride
   std::optional<std::filesystem::path> cache_dir;
   bool progress = true;
+  // Scans i of the split with i % shards == shard only (validation on the replicas of a
+  // data-parallel run, whose confusion matrices add up to the whole split's).
+  int shard = 0, shards = 1;
 };
 
 // The segmenter's model over the split. On the CPU backend the inputs come from the host pipeline

@@ -4,12 +4,18 @@
 
 #include <cmath>
 #include <limits>
+#include <utility>
 
 #include "host/confusion.hpp"
 
 namespace pillarseg {
 
 SegmentationMetrics::SegmentationMetrics() : confusion_({kNumClasses, kNumClasses}) {}
+
+SegmentationMetrics::SegmentationMetrics(Tensor<int64_t> confusion) : confusion_(std::move(confusion)) {
+  PS_CHECK(confusion_.shape() == (Shape{kNumClasses, kNumClasses}), "a confusion matrix must be ({0}, {0}), got {1}",
+           kNumClasses, shape_str(confusion_.shape()));
+}
 
 void SegmentationMetrics::add(const Tensor<uint8_t>& truth, const Tensor<uint8_t>& predicted,
                               const Tensor<uint8_t>* mask) {

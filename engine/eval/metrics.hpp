@@ -15,6 +15,8 @@ namespace pillarseg {
 class SegmentationMetrics {
  public:
   SegmentationMetrics();
+  // From a (12, 12) confusion matrix (e.g. the sum of several processes').
+  explicit SegmentationMetrics(Tensor<int64_t> confusion);
   // truth, predicted: (B, H, W) or (H, W); mask (observability) or nullptr.
   void add(const Tensor<uint8_t>& truth, const Tensor<uint8_t>& predicted, const Tensor<uint8_t>* mask = nullptr);
   void merge(const SegmentationMetrics& other);

@@ -4,6 +4,7 @@
 #include <array>
 #include <atomic>
 #include <chrono>
+#include <vector>
 
 #include <fmt/format.h>
 
@@ -77,6 +78,24 @@ bool Backend::supports_training_precision(Precision p, std::string* why_not) con
   if (why_not != nullptr) {
     *why_not = fmt::format("backend {} trains in fp32 only ({} training runs on --device cuda)", name(),
                            precision_name(p));
+  }
+  return false;
+}
+void Backend::sum_over_replicas(Ref& values, Replicas& replicas) {
+  if (device() == Device::Cpu) {
+    replicas.sum(values.data, values.numel());
+    return;
+  }
+  std::vector<float> host(static_cast<size_t>(values.numel()));
+  download(host.data(), values.data, values.bytes());
+  replicas.sum(host.data(), values.numel());
+  upload(values.data, host.data(), values.bytes());
+}
+bool Backend::supports_synchronized_batchnorm(std::string* why_not) const {
+  if (why_not != nullptr) {
+    *why_not = fmt::format("backend {} computes BatchNorm statistics over its own batch only (no synchronised "
+                           "BatchNorm), which data-parallel training needs",
+                           name());
   }
   return false;
 }

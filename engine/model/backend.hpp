@@ -15,6 +15,7 @@
 #include "core/error.hpp"
 #include "core/eigen.hpp"
 #include "core/grid.hpp"
+#include "core/replicas.hpp"
 #include "core/tensor.hpp"
 
 namespace pillarseg {
@@ -70,6 +71,9 @@ struct BatchNormRefs {
   Ref gamma, beta, running_mean, running_var;
   Ref save_mean, save_invstd;
   float eps = 1e-5f, momentum = 0.1f;
+  // Synchronised BatchNorm of a data-parallel run (core/replicas.hpp), on a backend that
+  // supports_synchronized_batchnorm(); nullptr: this process's batch.
+  ReplicaSum* replicas = nullptr;
 };
 
 enum class LossKind { CrossEntropy, Bce };
@@ -222,6 +226,10 @@ class Backend {
   virtual double sum_of_squares(const Ref& x) = 0;
   virtual void scale(Ref& x, float factor) = 0;
   virtual void adam_step(Ref& param, const Ref& grad, Ref& m, Ref& v, int64_t step, const AdamOptions& options) = 0;
+  // Data-parallel training: values (the parameter gradients) summed over the replicas in replica
+  // order, the same bits on every replica. The default goes through the host (Replicas::sum);
+  // the CUDA backend on a GPU sums in device memory over NCCL where it is installed.
+  virtual void sum_over_replicas(Ref& values, Replicas& replicas);
 
   // ---- mixed-precision evaluation convolutions (kernels/conv2d_mma.cuh is the spec; the CPU's
   // are engine/cpu/bf16_conv.hpp) ----
@@ -245,6 +253,9 @@ class Backend {
   // conv2d_half_forward / conv_transpose2x2_half_forward on weights prepared without BatchNorm):
   // whether this backend has the backward below, else false with the reason.
   virtual bool supports_training_precision(Precision p, std::string* why_not = nullptr) const;
+  // Whether the training BatchNorm ops (batchnorm_relu_*, pfn_*) honour BatchNormRefs::replicas,
+  // as data-parallel training needs; else false with the reason in why_not.
+  virtual bool supports_synchronized_batchnorm(std::string* why_not = nullptr) const;
   // The gradients with x, dy and w rounded to `p` and FP32 accumulation (kernels/conv2d_mma.cuh):
   // dx (when given), dw and dbias (when given) of conv2d_backward, FP32; the backend keeps the
   // flipped 16-bit weights and the weight gradient's partial sums in its own scratch.

@@ -52,7 +52,7 @@ std::span<const Point> as_points(const Ref& points) {
   return {reinterpret_cast<const Point*>(points.data), static_cast<size_t>(points.dim(0))};
 }
 
-host::BatchNormOptions bn_options(const BatchNormRefs& bn) { return {bn.eps, bn.momentum}; }
+host::BatchNormOptions bn_options(const BatchNormRefs& bn) { return {bn.eps, bn.momentum, bn.replicas}; }
 
 host::BatchNormSaved<float> bn_saved(const BatchNormRefs& bn) {
   return {view(bn.save_mean), view(bn.save_invstd)};
@@ -148,7 +148,7 @@ class CpuBackend final : public Backend {
     const host::PfnSaved<float> saved{bn_saved(bn), view(argmax)};
     Tensor<float> dp = view(d_points), dw = view(dweight), dg = view(dgamma), db = view(dbeta);
     host::pfn_backward(view(dout), view(points), view(weight), view(bn.gamma), saved, dp, dw, dg,
-                       db, pfn_scratch(scratch, 2, points, weight));
+                       db, pfn_scratch(scratch, 2, points, weight), bn.replicas);
   }
 
   void scatter_forward(const Ref& features, const IRef& cells, int channel0, Ref& canvas) override {
@@ -245,6 +245,7 @@ class CpuBackend final : public Backend {
     host::conv_transpose2d_backward_overwriting_dy(view(x), view(w), scratch_dy, &gx, &gw,
                                                    dbias ? &gb : nullptr);
   }
+  bool supports_synchronized_batchnorm(std::string*) const override { return true; }
   void batchnorm_relu_forward(const Ref& x, BatchNormRefs& bn, bool training, Ref& y) override {
     Tensor<float> out = view(y), mean = view(bn.running_mean), var = view(bn.running_var);
     if (training) {
@@ -261,7 +262,7 @@ class CpuBackend final : public Backend {
     // dx may be dy (in place): host/ tells that case by the tensor object, so both are one view.
     Tensor<float> gy = view(dy), separate_gx = view(dx), gg = view(dgamma), gb = view(dbeta);
     Tensor<float>& gx = dx.data == dy.data ? gy : separate_gx;
-    host::batchnorm_relu_backward(gy, view(x), view(y), view(bn.gamma), bn_saved(bn), gx, gg, gb);
+    host::batchnorm_relu_backward(gy, view(x), view(y), view(bn.gamma), bn_saved(bn), gx, gg, gb, bn.replicas);
   }
   void maxpool2x2_forward(const Ref& x, Ref& y, IRef& argmax) override {
     Tensor<float> out = view(y);

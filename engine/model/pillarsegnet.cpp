@@ -102,6 +102,7 @@ struct PillarSegNet::Impl {
   // count does not re-plan every batch); the nodes run on the current batch's rows.
   int64_t pillar_capacity = 0, pillar_rows = 0;
   bool loss_gradient_ready = false;
+  ReplicaSum* replicas = nullptr;  // set_replicas
   int64_t memory_generation = 0;
   // The resolved outputs of the current plan.
   Ref logits, d_logits, probs, coefficients;
@@ -346,6 +347,12 @@ PillarSegNet::~PillarSegNet() = default;
 void PillarSegNet::set_batchnorm_momentum(float momentum) {
   PS_CHECK(momentum <= 1, "BatchNorm momentum must be at most 1, got {}", momentum);
   for (BnParams& bn : impl_->bns) bn.momentum = momentum > 0 ? momentum : bn.module_momentum;
+}
+
+void PillarSegNet::set_replicas(ReplicaSum* replicas) {
+  std::string why;
+  PS_CHECK(replicas == nullptr || backend_.supports_synchronized_batchnorm(&why), "data-parallel training: {}", why);
+  impl_->replicas = replicas;
 }
 
 // The graph of the evaluation forward (training: the training step) for `batch` samples and the
@@ -679,6 +686,7 @@ BatchNormRefs PillarSegNet::batchnorm_refs(const GraphPlan& p, const GraphNode& 
   r.save_invstd = bind<float>(p, save_invstd);
   r.eps = b.eps;
   r.momentum = b.momentum;
+  r.replicas = &p == &impl_->train ? impl_->replicas : nullptr;  // the training step's BatchNorms
   return r;
 }
 

@@ -115,6 +115,11 @@ class PillarSegNet {
   // Recalibration sets 1/k before the k-th of K forwards: the running statistics become the
   // plain average of the K batches' statistics under the current weights.
   void set_batchnorm_momentum(float momentum);
+  // Data-parallel training (DESIGN.md section 8): every training-mode BatchNorm normalises with
+  // the statistics of the global batch, summed over the replicas (synchronised BatchNorm), on a
+  // backend that supports_synchronized_batchnorm(); nullptr (the default): this process's batch.
+  // The replicas must outlive the model or be reset first.
+  void set_replicas(ReplicaSum* replicas);
 
   Ref logits() const { return logits_; }
   Tensor<float> download_logits() const;           // (B, 12, H, W)

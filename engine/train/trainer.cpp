@@ -29,7 +29,9 @@ namespace pillarseg {
 
 namespace fs = std::filesystem;
 
-fs::path latest_checkpoint(const fs::path& run_dir) { return run_dir / "checkpoint.safetensors"; }
+fs::path latest_checkpoint(const fs::path& run_dir) {
+  return run_dir / "checkpoint.safetensors";
+}
 
 namespace {
 
@@ -62,7 +64,8 @@ class MetricsLog {
       const std::regex epoch_field(R"("epoch": ([0-9]+))"), step_field(R"("step": ([0-9]+))");
       while (std::getline(in, line)) {
         std::smatch e, st;
-        const bool has_epoch = std::regex_search(line, e, epoch_field), has_step = std::regex_search(line, st, step_field);
+        const bool has_epoch = std::regex_search(line, e, epoch_field),
+                   has_step = std::regex_search(line, st, step_field);
         if (has_epoch && std::stoll(e[1].str()) > state.epoch) continue;
         if (has_step && std::stoll(st[1].str()) > state.step) continue;
         kept += line + "\n";
@@ -86,24 +89,94 @@ std::string iou_json(const SegmentationMetrics& m, const ClassTable& classes) {
   std::string out = "{";
   for (int c = 1; c <= kNumClasses; ++c) {
     const double v = m.iou(c);
-    out += fmt::format("{}\"{}\": {}", c > 1 ? ", " : "", classes.name(c), std::isfinite(v) ? fmt::format("{:.6f}", v) : "null");
+    out += fmt::format("{}\"{}\": {}", c > 1 ? ", " : "", classes.name(c),
+                       std::isfinite(v) ? fmt::format("{:.6f}", v) : "null");
   }
   return out + "}";
+}
+
+// [[...], ...]: the (12, 12) confusion matrix, row the true class, column the predicted one.
+std::string confusion_json(const SegmentationMetrics& m) {
+  const Tensor<int64_t>& c = m.confusion();
+  std::string out = "[";
+  for (int64_t r = 0; r < c.dim(0); ++r) {
+    out += r > 0 ? ", [" : "[";
+    for (int64_t k = 0; k < c.dim(1); ++k)
+      out += fmt::format("{}{}", k > 0 ? ", " : "", c.data()[r * c.dim(1) + k]);
+    out += "]";
+  }
+  return out + "]";
+}
+
+// A data-parallel replica's share of the batch at positions [begin, begin + count) of an
+// epoch's order: the count padded to a multiple of the R replicas, R equal shares in replica
+// order. Positions past the end of the epoch wrap to its first scans (take them modulo n).
+struct Share {
+  size_t first = 0, count = 0;
+};
+Share replica_share(size_t begin, size_t count, const Replicas& replicas) {
+  const auto R = static_cast<size_t>(replicas.size());
+  const size_t share = (count + R - 1) / R;
+  return {begin + static_cast<size_t>(replicas.rank()) * share, share};
+}
+
+// The loss's class coefficients for this replica's share of a data-parallel batch: the losses
+// are means over the labelled cells of the batch (host/losses.hpp), so a share with M_r of the
+// batch's M labelled cells scales its coefficients by M_r / M, and the replicas' losses and
+// gradients add up to the whole batch's.
+std::array<float, 13> share_coefficients(const std::array<float, 13>& coefficients,
+                                         const Tensor<uint8_t>& labels, Replicas& replicas) {
+  int64_t cells[2] = {0, 0};  // this replica's labelled cells, all replicas'
+  cells[0] = std::count_if(labels.data(), labels.data() + labels.numel(),
+                           [](uint8_t l) { return l != 0; });
+  cells[1] = cells[0];
+  replicas.sum(&cells[1], 1);
+  std::array<float, 13> scaled = coefficients;
+  const double factor =
+      cells[1] > 0 ? static_cast<double>(cells[0]) / static_cast<double>(cells[1]) : 0.0;
+  for (float& c : scaled) c = static_cast<float>(c * factor);
+  return scaled;
+}
+
+// Replicas that summed the same gradients in the same order hold the same parameters, running
+// statistics and optimiser state bit for bit; a run whose replicas differ stops here.
+void require_identical_replicas(const ParameterSet& ps, Replicas& replicas, int64_t epoch) {
+  std::vector<int64_t> digests(static_cast<size_t>(replicas.size()), 0);
+  uint64_t digest = 1469598103934665603ull;  // FNV-1a over the bytes of every array
+  for (const std::vector<float>& host :
+       {ps.download_flat(ps.values()), ps.download_flat(ps.buffers()), ps.download_adam_m(),
+        ps.download_adam_v()}) {
+    const auto* bytes = reinterpret_cast<const unsigned char*>(host.data());
+    for (size_t i = 0; i < host.size() * sizeof(float); ++i)
+      digest = (digest ^ bytes[i]) * 1099511628211ull;
+  }
+  digests[static_cast<size_t>(replicas.rank())] = static_cast<int64_t>(digest >> 1);
+  replicas.sum(digests.data(), static_cast<int64_t>(digests.size()));
+  for (int r = 1; r < replicas.size(); ++r) {
+    PS_CHECK(
+        digests[static_cast<size_t>(r)] == digests[0],
+        "after epoch {}: the parameters of rank {} differ from rank 0's (the replicas diverged)",
+        epoch, r);
+  }
 }
 
 // Precise BatchNorm (train.precise_bn_batches): sets every running statistic to the mean of the
 // batch statistics of K full batches of unaugmented training scans, spread evenly over the data
 // set, under the current weights. Deterministic: the same scans in the same order every time.
-void recalibrate_batchnorm(PillarSegNet& net, const ScanDataset& data, const TrainConfig& tc) {
+// Data-parallel, each replica forwards its share of every batch (the statistics are synchronised).
+void recalibrate_batchnorm(PillarSegNet& net, const ScanDataset& data, const TrainConfig& tc,
+                           const Replicas& replicas) {
   const size_t n = data.size();
   const size_t B = std::min(n, static_cast<size_t>(tc.batch_size));
   const size_t batches = std::clamp<size_t>(n / B, 1, static_cast<size_t>(tc.precise_bn_batches));
   const size_t used = batches * B;
   for (size_t k = 0; k < batches; ++k) {
-    std::vector<Sample> samples(B);
-    parallel_for(static_cast<int64_t>(B), [&](int64_t j) {
-      const size_t slot = k * B + static_cast<size_t>(j);
-      samples[static_cast<size_t>(j)] = data.eval_sample(slot * n / used, tc.ground_truth, /*with_mask=*/false);
+    const Share share = replica_share(k * B, B, replicas);
+    std::vector<Sample> samples(share.count);
+    parallel_for(static_cast<int64_t>(share.count), [&](int64_t j) {
+      const size_t slot = (share.first + static_cast<size_t>(j)) % used;
+      samples[static_cast<size_t>(j)] =
+          data.eval_sample(slot * n / used, tc.ground_truth, /*with_mask=*/false);
     });
     std::vector<const ScanInputs*> inputs;
     for (const Sample& sample : samples) inputs.push_back(&sample.inputs);
@@ -118,21 +191,41 @@ void recalibrate_batchnorm(PillarSegNet& net, const ScanDataset& data, const Tra
 TrainResult train(const TrainOptions& options) {
   const RunConfig& cfg = options.config;
   const TrainConfig& tc = cfg.train;
+  SingleProcess single_process;
+  Replicas& replicas = options.replicas ? *options.replicas : single_process;
+  const int R = replicas.size();
+  const bool leader = replicas.leader();
   // The device and the data first: a run that cannot start leaves no run directory behind.
   auto backend = make_backend(options.device, options.backend);
   std::string why;
-  PS_CHECK(backend->supports_training_precision(options.precision, &why), "train --precision {}: {}",
-           precision_name(options.precision), why);
+  PS_CHECK(backend->supports_training_precision(options.precision, &why),
+           "train --precision {}: {}", precision_name(options.precision), why);
+  if (R > 1) {
+    PS_CHECK(backend->supports_synchronized_batchnorm(&why),
+             "data-parallel training on {} ranks: {}", R, why);
+    PS_CHECK(tc.batch_size % R == 0,
+             "{}: train.batch_size {} is the global batch and must be a multiple of the {} ranks "
+             "(each takes "
+             "batch_size / ranks scans of every batch)",
+             cfg.source, tc.batch_size, R);
+  }
   const ClassTable classes = ClassTable::defaults();
   const bool augmented_dense = tc.ground_truth == GroundTruthKind::dense && tc.augment;
-  ScanDataset data(options.data_root, tc.sequences, tc.scan_stride, tc.max_scans_per_sequence, cfg.model, classes,
-                   tc.ground_truth, options.cache_dir, augmented_dense);
-  if (tc.ground_truth == GroundTruthKind::dense) data.build_cache(GroundTruthKind::dense);
-  fs::create_directories(options.run_dir);
+  ScanDataset data(options.data_root, tc.sequences, tc.scan_stride, tc.max_scans_per_sequence,
+                   cfg.model, classes, tc.ground_truth, options.cache_dir, augmented_dense);
+  if (tc.ground_truth == GroundTruthKind::dense) {
+    // Replica 0 builds the cache; the others then read (and check) its entries.
+    if (leader) data.build_cache(GroundTruthKind::dense);
+    int64_t built = 0;
+    replicas.sum(&built, 1);
+    if (!leader) data.build_cache(GroundTruthKind::dense);
+  }
+  if (leader) fs::create_directories(options.run_dir);
   const fs::path ckpt_path = latest_checkpoint(options.run_dir);
 
   PillarSegNet net(cfg.model, *backend, tc.seed);
   net.set_training_precision(options.precision);
+  if (R > 1) net.set_replicas(&replicas);
   ParameterSet& ps = net.parameters();
   // On a CUDA backend the decoration and the maps of each augmented scan are computed there
   // (engine/pipeline/scan_pipeline.hpp); the CPU backend's inputs come from the host pipeline.
@@ -143,19 +236,29 @@ TrainResult train(const TrainOptions& options) {
   if (options.resume) {
     PS_CHECK(fs::exists(ckpt_path), "--resume: no checkpoint at {}", ckpt_path.string());
     const Checkpoint ckpt = read_checkpoint(ckpt_path);
-    PS_CHECK(ckpt.config && ckpt.config->text == cfg.text,
-             "--resume: {} was written with a different config than {}; resume with the same config", ckpt_path.string(),
-             cfg.source);
+    PS_CHECK(
+        ckpt.config && ckpt.config->text == cfg.text,
+        "--resume: {} was written with a different config than {}; resume with the same config",
+        ckpt_path.string(), cfg.source);
     load_weights(ckpt, net, /*with_optimizer=*/true);
     state = ckpt.state;
-    spdlog::info("resuming from {} (epoch {}, step {})", ckpt_path.string(), state.epoch, state.step);
+    spdlog::info("resuming from {} (epoch {}, step {})", ckpt_path.string(), state.epoch,
+                 state.step);
   } else {
-    PS_CHECK(!fs::exists(ckpt_path), "{} exists: pass --resume to continue that run, or choose another --out",
+    PS_CHECK(!fs::exists(ckpt_path),
+             "{} exists: pass --resume to continue that run, or choose another --out",
              ckpt_path.string());
-    write_file_atomic(options.run_dir / "config.yaml", cfg.text.data(), cfg.text.size());
+    if (leader)
+      write_file_atomic(options.run_dir / "config.yaml", cfg.text.data(), cfg.text.size());
   }
-  MetricsLog log(options.run_dir / "metrics.jsonl", options.resume, state);
-  EventWriter events(options.run_dir, options.resume, state.step);
+  // The logs are replica 0's.
+  std::optional<MetricsLog> log;
+  std::optional<EventWriter> events;
+  if (leader) {
+    log.emplace(options.run_dir / "metrics.jsonl", options.resume, state);
+    events.emplace(options.run_dir, options.resume, state.step);
+  }
+  const bool progress_bars = options.progress && leader;
   // Validation while training (eval.every_epochs): a segmenter of its own on the same device.
   std::unique_ptr<ScanSegmenter> validator;
   const fs::path best_path = options.run_dir / "best.safetensors";
@@ -173,12 +276,21 @@ TrainResult train(const TrainOptions& options) {
   schedule.momentum_min = tc.momentum_min;
   schedule.constant_beta1 = 0.9;
 
-  spdlog::info("training on {} scans ({} steps per epoch, batch {}), {} epochs, device {}, precision {}, {} threads", n,
-               steps_per_epoch, B, tc.epochs, backend->name(), precision_name(options.precision), num_threads());
+  if (leader) {
+    spdlog::info(
+        "training on {} scans ({} steps per epoch, batch {}), {} epochs, device {}, precision {}, "
+        "{} threads{}",
+        n, steps_per_epoch, B, tc.epochs, backend->name(), precision_name(options.precision),
+        num_threads(),
+        R > 1 ? fmt::format(" on each of {} ranks ({} scans of every batch each)", R,
+                            B / static_cast<size_t>(R))
+              : "");
+  }
   TrainResult result;
   const int64_t last_epoch =
-      options.max_epochs_this_run > 0 ? std::min<int64_t>(tc.epochs, state.epoch + options.max_epochs_this_run)
-                                      : tc.epochs;
+      options.max_epochs_this_run > 0
+          ? std::min<int64_t>(tc.epochs, state.epoch + options.max_epochs_this_run)
+          : tc.epochs;
   const auto started = std::chrono::steady_clock::now();
   const std::clock_t cpu_started = std::clock();
   // The end of a stop message: the checkpoint a user can resume from, if any.
@@ -192,33 +304,47 @@ TrainResult train(const TrainOptions& options) {
   const size_t ahead = 2 * B * static_cast<size_t>(std::max(tc.workers, 1));
   for (int64_t epoch = state.epoch; epoch < last_epoch; ++epoch) {
     const std::vector<size_t> order = epoch_order(n, tc.seed, static_cast<uint64_t>(epoch));
+    // This replica's positions in the epoch's order, step by step (all of them with one).
+    std::vector<size_t> mine;
+    for (int64_t s = 0; s < steps_per_epoch; ++s) {
+      const size_t begin = static_cast<size_t>(s) * B;
+      const Share share = replica_share(begin, std::min(n, begin + B) - begin, replicas);
+      for (size_t j = 0; j < share.count; ++j) mine.push_back(share.first + j);
+    }
     std::optional<Prefetcher<TrainingScan>> scans_ahead;
     std::optional<Prefetcher<Sample>> samples_ahead;
     if (on_device) {
-      scans_ahead.emplace(n, tc.workers, ahead, [&, epoch](size_t i) {
-        return data.training_scan(order[i], static_cast<uint64_t>(epoch), tc);
+      scans_ahead.emplace(mine.size(), tc.workers, ahead, [&, epoch](size_t i) {
+        return data.training_scan(order[mine[i] % n], static_cast<uint64_t>(epoch), tc);
       });
     } else {
-      samples_ahead.emplace(n, tc.workers, ahead, [&, epoch](size_t i) {
-        return data.training_sample(order[i], static_cast<uint64_t>(epoch), tc);
+      samples_ahead.emplace(mine.size(), tc.workers, ahead, [&, epoch](size_t i) {
+        return data.training_sample(order[mine[i] % n], static_cast<uint64_t>(epoch), tc);
       });
     }
     Progress progress(fmt::format("epoch {}/{}", epoch + 1, tc.epochs), steps_per_epoch, "steps");
     double loss_sum = 0, data_wait = 0;
+    size_t taken = 0;  // of mine
     for (int64_t s = 0; s < steps_per_epoch; ++s) {
-      const size_t begin = static_cast<size_t>(s) * B, end = std::min(n, begin + B);
-      Tensor<uint8_t> labels({static_cast<int64_t>(end - begin), cfg.model.grid.height(), cfg.model.grid.width()});
+      const size_t begin = static_cast<size_t>(s) * B;
+      const size_t count = replica_share(begin, std::min(n, begin + B) - begin, replicas).count;
+      const size_t first = taken;
+      taken += count;
+      Tensor<uint8_t> labels(
+          {static_cast<int64_t>(count), cfg.model.grid.height(), cfg.model.grid.width()});
       const int64_t plane = cfg.model.grid.cells();
       const auto wait_started = std::chrono::steady_clock::now();
       const auto waited = [&] {
-        data_wait += std::chrono::duration<double>(std::chrono::steady_clock::now() - wait_started).count();
+        data_wait +=
+            std::chrono::duration<double>(std::chrono::steady_clock::now() - wait_started).count();
       };
       if (on_device) {
-        const std::vector<TrainingScan> scans = scans_ahead->take_batch(begin, end - begin);
+        const std::vector<TrainingScan> scans = scans_ahead->take_batch(first, count);
         waited();
         int64_t rows = 0;
         for (const TrainingScan& scan : scans) rows += scan.pillars.num_pillars();
-        const PillarSegNet::Inputs inputs = net.prepare(static_cast<int>(scans.size()), rows, /*training=*/true);
+        const PillarSegNet::Inputs inputs =
+            net.prepare(static_cast<int>(scans.size()), rows, /*training=*/true);
         int64_t offset = 0;
         for (size_t k = 0; k < scans.size(); ++k) {
           const TrainingScan& scan = scans[k];
@@ -227,28 +353,38 @@ TrainResult train(const TrainOptions& options) {
           pipeline.fill_pillars(points, pillars, static_cast<int>(k), offset, inputs);
           pipeline.fill_maps(points, scan.origin, static_cast<int>(k), inputs);
           offset += pillars;
-          std::copy(scan.labels.begin(), scan.labels.end(), labels.data() + static_cast<int64_t>(k) * plane);
+          std::copy(scan.labels.begin(), scan.labels.end(),
+                    labels.data() + static_cast<int64_t>(k) * plane);
         }
         net.run(/*training=*/true);
       } else {
-        const std::vector<Sample> samples = samples_ahead->take_batch(begin, end - begin);
+        const std::vector<Sample> samples = samples_ahead->take_batch(first, count);
         waited();
         std::vector<const ScanInputs*> inputs;
         for (size_t k = 0; k < samples.size(); ++k) {
           inputs.push_back(&samples[k].inputs);
-          std::copy(samples[k].labels.begin(), samples[k].labels.end(), labels.data() + static_cast<int64_t>(k) * plane);
+          std::copy(samples[k].labels.begin(), samples[k].labels.end(),
+                    labels.data() + static_cast<int64_t>(k) * plane);
         }
         net.forward(collate(inputs, cfg.model), /*training=*/true);
       }
-      const double loss = net.loss(labels, tc.loss, tc.coefficients);
+      double loss = 0;
+      if (R > 1) {
+        loss = net.loss(labels, tc.loss, share_coefficients(tc.coefficients, labels, replicas));
+        replicas.sum(&loss, 1);
+      } else {
+        loss = net.loss(labels, tc.loss, tc.coefficients);
+      }
       if (!std::isfinite(loss)) {
-        PS_FAIL("non-finite loss ({}) at epoch {}, step {} (scans {}); stopping. {}", loss, epoch + 1, state.step + 1,
-                data.describe(order[begin]), last_good_checkpoint());
+        PS_FAIL("non-finite loss ({}) at epoch {}, step {} (scans {}); stopping. {}", loss,
+                epoch + 1, state.step + 1, data.describe(order[begin]), last_good_checkpoint());
       }
       net.backward();
       Ref grads = ps.grads();
+      if (R > 1) backend->sum_over_replicas(grads, replicas);
       const double grad_norm = std::sqrt(backend->sum_of_squares(grads));
-      PS_CHECK(std::isfinite(grad_norm), "non-finite gradient norm at epoch {}, step {}; stopping. {}", epoch + 1,
+      PS_CHECK(std::isfinite(grad_norm),
+               "non-finite gradient norm at epoch {}, step {}; stopping. {}", epoch + 1,
                state.step + 1, last_good_checkpoint());
       if (tc.grad_clip > 0 && grad_norm > tc.grad_clip)
         backend->scale(grads, static_cast<float>(tc.grad_clip / (grad_norm + 1e-6)));
@@ -263,59 +399,78 @@ TrainResult train(const TrainOptions& options) {
       backend->adam_step(values, grads, m, v, state.step + 1, adam);
       ++state.step;
       loss_sum += loss;
-      const double elapsed = std::chrono::duration<double>(std::chrono::steady_clock::now() - started).count();
-      log.line(fmt::format(R"({{"type": "step", "epoch": {}, "step": {}, "loss": {:.6f}, "lr": {:.6e}, "beta1": {:.4f}, "grad_norm": {:.4f}, "elapsed_s": {:.2f}}})",
-                           epoch + 1, state.step, loss, lm.lr, lm.beta1, grad_norm, elapsed));
-      events.scalar("train/loss", state.step, loss);
-      events.scalar("train/lr", state.step, lm.lr);
-      events.scalar("train/grad_norm", state.step, grad_norm);
-      events.flush();
-      if (options.progress) progress.update(s + 1, fmt::format("loss {:.4f} lr {:.2e}", loss, lm.lr));
+      const double elapsed =
+          std::chrono::duration<double>(std::chrono::steady_clock::now() - started).count();
+      if (!leader) continue;
+      log->line(fmt::format(
+          R"({{"type": "step", "epoch": {}, "step": {}, "loss": {:.6f}, "lr": {:.6e}, "beta1": {:.4f}, "grad_norm": {:.4f}, "elapsed_s": {:.2f}}})",
+          epoch + 1, state.step, loss, lm.lr, lm.beta1, grad_norm, elapsed));
+      events->scalar("train/loss", state.step, loss);
+      events->scalar("train/lr", state.step, lm.lr);
+      events->scalar("train/grad_norm", state.step, grad_norm);
+      events->flush();
+      if (progress_bars) progress.update(s + 1, fmt::format("loss {:.4f} lr {:.2e}", loss, lm.lr));
     }
     state.epoch = epoch + 1;
     result.last_epoch_loss = loss_sum / static_cast<double>(steps_per_epoch);
-    if (options.progress) {
-      progress.finish(fmt::format("mean loss {:.4f}, waited {:.1f} s for data", result.last_epoch_loss, data_wait));
+    if (progress_bars) {
+      progress.finish(fmt::format("mean loss {:.4f}, waited {:.1f} s for data",
+                                  result.last_epoch_loss, data_wait));
     }
-    if (tc.precise_bn_batches > 0) recalibrate_batchnorm(net, data, tc);
+    if (tc.precise_bn_batches > 0) recalibrate_batchnorm(net, data, tc, replicas);
+    if (R > 1) require_identical_replicas(ps, replicas, state.epoch);
     const int every = cfg.eval.every_epochs;
     if (every > 0 && (state.epoch % every == 0 || state.epoch == tc.epochs)) {
-      if (!validator) validator = std::make_unique<ScanSegmenter>(cfg.model, make_backend(options.device, options.backend));
+      if (!validator)
+        validator = std::make_unique<ScanSegmenter>(cfg.model,
+                                                    make_backend(options.device, options.backend));
       validator->net().parameters().copy_values_from(ps);
       EvalOptions eo;
       eo.data_root = options.data_root;
       eo.mode = cfg.eval.mode.value_or(tc.ground_truth);
       eo.cache_dir = options.cache_dir;
-      eo.progress = options.progress;
-      const SegmentationMetrics m = evaluate(*validator, cfg, eo);
+      eo.progress = progress_bars;
+      eo.shard = replicas.rank(), eo.shards = R;  // each replica scores its share of the scans
+      SegmentationMetrics m = evaluate(*validator, cfg, eo);
+      if (R > 1) {
+        Tensor<int64_t> confusion = m.confusion();
+        replicas.sum(confusion.data(), confusion.numel());
+        m = SegmentationMetrics(std::move(confusion));
+      }
       const double miou = m.miou();
       const bool best = std::isfinite(miou) && miou > state.best_miou;
       if (best) {
         state.best_miou = miou, state.best_epoch = state.epoch;
-        save_checkpoint(best_path, net, cfg, state, /*with_optimizer=*/false);
+        if (leader) save_checkpoint(best_path, net, cfg, state, /*with_optimizer=*/false);
       }
-      spdlog::info("epoch {}: {} mIoU {:.1f}% over {} labelled cells{}", state.epoch, eval_mode_label(tc.ground_truth, eo.mode),
-                   100.0 * miou, m.labelled_cells(), best ? fmt::format(" (best so far: {})", best_path.string()) : "");
-      log.line(fmt::format(
-          R"({{"type": "eval", "epoch": {}, "step": {}, "mode": "{}", "miou": {}, "labelled_cells": {}, "best_epoch": {}, "iou": {}}})",
-          state.epoch, state.step, to_string(eo.mode), std::isfinite(miou) ? fmt::format("{:.6f}", miou) : "null",
-          m.labelled_cells(), state.best_epoch, iou_json(m, classes)));
-      if (std::isfinite(miou)) events.scalar("val/miou", state.step, miou);
+      if (!leader) continue;
+      spdlog::info("epoch {}: {} mIoU {:.1f}% over {} labelled cells{}", state.epoch,
+                   eval_mode_label(tc.ground_truth, eo.mode), 100.0 * miou, m.labelled_cells(),
+                   best ? fmt::format(" (best so far: {})", best_path.string()) : "");
+      log->line(fmt::format(
+          R"({{"type": "eval", "epoch": {}, "step": {}, "mode": "{}", "miou": {}, "labelled_cells": {}, "best_epoch": {}, "iou": {}, "confusion": {}}})",
+          state.epoch, state.step, to_string(eo.mode),
+          std::isfinite(miou) ? fmt::format("{:.6f}", miou) : "null", m.labelled_cells(),
+          state.best_epoch, iou_json(m, classes), confusion_json(m)));
+      if (std::isfinite(miou)) events->scalar("val/miou", state.step, miou);
       for (int c = 1; c <= kNumClasses; ++c) {
-        if (std::isfinite(m.iou(c))) events.scalar("val/iou/" + classes.name(c), state.step, m.iou(c));
+        if (std::isfinite(m.iou(c)))
+          events->scalar("val/iou/" + classes.name(c), state.step, m.iou(c));
       }
     }
+    if (!leader) continue;
     save_checkpoint(ckpt_path, net, cfg, state, /*with_optimizer=*/true);
-    events.scalar("train/epoch_mean_loss", state.step, result.last_epoch_loss);
-    events.scalar("train/data_wait_s", state.step, data_wait);
-    events.flush();
-    log.line(fmt::format(
+    events->scalar("train/epoch_mean_loss", state.step, result.last_epoch_loss);
+    events->scalar("train/data_wait_s", state.step, data_wait);
+    events->flush();
+    log->line(fmt::format(
         R"({{"type": "epoch", "epoch": {}, "step": {}, "mean_loss": {:.6f}, "data_wait_s": {:.3f}, "checkpoint": "{}"}})",
         state.epoch, state.step, result.last_epoch_loss, data_wait, ckpt_path.filename().string()));
   }
   result.epochs_done = state.epoch;
   result.steps_done = state.step;
-  result.wall_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - started).count();
+  result.wall_seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - started).count();
   result.cpu_seconds = static_cast<double>(std::clock() - cpu_started) / CLOCKS_PER_SEC;
   result.checkpoint = ckpt_path;
   return result;

@@ -10,6 +10,7 @@
 #include <string>
 
 #include "engine/model/backend.hpp"
+#include "core/replicas.hpp"
 #include "engine/train/run_config.hpp"
 
 namespace pillarseg {
@@ -30,6 +31,14 @@ struct TrainOptions {
   // Stop after this many epochs of this invocation (0: run to config.train.epochs); the
   // schedule still spans all epochs, so a stopped run resumes exactly.
   int max_epochs_this_run = 0;
+  // Data-parallel training (`mpirun -np R pillarseg train`): this process's place among the R
+  // replicas; nullptr: one process. train.batch_size is the global batch, a multiple of R, and
+  // each replica takes its B / R scans of every batch (an epoch's incomplete last batch is padded
+  // to a multiple of R with the epoch's first scans, as PyTorch's DistributedSampler pads).
+  // Gradients, BatchNorm statistics (synchronised), the loss's normaliser and the validation's
+  // confusion matrix are summed over the replicas in a fixed order; replica 0 alone writes the
+  // run directory. The data root and the run directory are shared by all of them.
+  Replicas* replicas = nullptr;
 };
 
 struct TrainResult {

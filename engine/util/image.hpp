@@ -13,6 +13,7 @@ struct ImageRgb {
   ImageRgb() = default;
   ImageRgb(int w, int h) : width(w), height(h), pixels(static_cast<size_t>(w) * h * 3, 0) {}
   uint8_t* at(int x, int y) { return &pixels[(static_cast<size_t>(y) * width + x) * 3]; }
+  const uint8_t* at(int x, int y) const { return &pixels[(static_cast<size_t>(y) * width + x) * 3]; }
 };
 
 void write_png_rgb(const std::filesystem::path& path, const ImageRgb& image);

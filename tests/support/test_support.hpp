@@ -8,6 +8,7 @@
 #include <functional>
 #include <string>
 
+#include "core/error.hpp"
 #include "core/rng.hpp"
 #include "core/tensor.hpp"
 
@@ -39,6 +40,17 @@ Tensor<T> random_tensor(const Shape& shape, Rng& rng, double lo = -1, double hi 
   Tensor<T> t(shape);
   for (int64_t i = 0; i < t.numel(); ++i) t[i] = static_cast<T>(rng.uniform(lo, hi));
   return t;
+}
+
+// The message of the pillarseg::Error that f throws ("" if none).
+template <class F>
+std::string error_of(F&& f) {
+  try {
+    f();
+  } catch (const Error& e) {
+    return e.what();
+  }
+  return "";
 }
 
 // Sum of a[i] * b[i] (a scalar functional for gradient checks).

@@ -1,0 +1,39 @@
+// chunks (R, n) -> out (n): the replicas' values added in replica order, one thread per value
+// (grid-stride), see replica_sum.cuh.
+#include "kernels/replica_sum.cuh"
+
+#include "kernels/common.cuh"
+
+namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
+namespace {
+
+constexpr int kBlock = 256;
+constexpr std::int64_t kMaxBlocks = 4096;
+
+}  // namespace
+
+static __global__ void __launch_bounds__(kBlock)
+    sum_replica_chunks_kernel(const float* chunks, int replicas, std::int64_t n, float* out) {
+  const std::int64_t stride = std::int64_t{gridDim.x} * blockDim.x;
+  for (std::int64_t i = std::int64_t{blockIdx.x} * blockDim.x + threadIdx.x; i < n; i += stride) {
+    float total = chunks[i];
+    for (int r = 1; r < replicas; ++r) total += chunks[r * n + i];
+    out[i] = total;
+  }
+}
+
+void sum_replica_chunks(const float* chunks, int replicas, std::int64_t n, float* out,
+                        cudaStream_t stream) {
+  PS_CHECK(replicas >= 1 && n >= 0,
+           "sum_replica_chunks: expected replicas >= 1 and n >= 0, given {} and {}", replicas, n);
+  if (n == 0) return;
+  PS_CHECK(chunks != nullptr && out != nullptr,
+           "sum_replica_chunks: chunks ({} x {} floats) and out ({} floats) must be device memory",
+           replicas, n, n);
+  const std::int64_t blocks = ceil_div(n, std::int64_t{kBlock});
+  launch_kernel(sum_replica_chunks_kernel,
+                dim3(static_cast<unsigned>(blocks < kMaxBlocks ? blocks : kMaxBlocks)),
+                dim3(kBlock), 0, stream, chunks, replicas, n, out);
+}
+
+}  // namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE
