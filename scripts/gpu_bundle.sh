@@ -5,12 +5,14 @@
 #
 #   scripts/gpu_bundle.sh pack BUILD_DIR BUNDLE_DIR   binaries of a CUDA build, the shared libraries
 #                                                     they need that such a machine lacks (ldd), the
-#                                                     real scan from ../shared, configs, run.sh
+#                                                     real scan from ../shared, configs, run.sh; and
+#                                                     BUNDLE_DIR.tar.gz of it all (what travels)
 #   scripts/gpu_bundle.sh check BUNDLE_DIR [MAX_MIB]  every library the binaries need is in the
 #                                                     bundle, a CUDA library the machine has (driver,
 #                                                     runtime, cuBLAS, cuDNN, NCCL) or the C/C++
-#                                                     runtime; the size is at most MAX_MIB (60; 0:
-#                                                     no limit)
+#                                                     runtime; the size of BUNDLE_DIR.tar.gz (or of
+#                                                     the directory, without one) is at most MAX_MIB
+#                                                     (40; 0: no limit)
 #
 # `make gpu-bundle` builds build-gpu for GPU_ARCH (default 90) and packs build-gpu/bundle; `make
 # test` packs and checks a bundle from the main build, whose binaries hold every default
@@ -18,7 +20,7 @@
 # reported, not limited.
 set -euo pipefail
 here=$(cd "$(dirname "$0")/.." && pwd)
-max_mib=60
+max_mib=40
 
 # Libraries a bare CUDA machine has: the C/C++ runtime and the CUDA driver and libraries.
 provided() {
@@ -72,7 +74,10 @@ pack() {
   cp "$here/scripts/gpu_bundle_run.sh" "$bundle/run.sh"
   chmod +x "$bundle/run.sh"
   git -C "$here" rev-parse --short HEAD > "$bundle/commit" 2>/dev/null || echo unknown > "$bundle/commit"
-  echo "gpu_bundle: packed $(du -sh "$bundle" | cut -f1) into $bundle"
+  # The compressed copy is what goes to the GPU machine (the binaries compress about 3:1).
+  tar -C "$(dirname "$bundle")" -czf "$bundle.tar.gz.tmp" "$(basename "$bundle")"
+  mv "$bundle.tar.gz.tmp" "$bundle.tar.gz"
+  echo "gpu_bundle: packed $(du -sh "$bundle" | cut -f1) into $bundle, $(du -sh "$bundle.tar.gz" | cut -f1) as $bundle.tar.gz"
 }
 
 check() {
@@ -92,15 +97,16 @@ check() {
       fi
     done < <(LD_LIBRARY_PATH=$bundle/lib ldd "$b" | awk '/=>/ {print $1, $3}')
   done
-  local kib
-  kib=$(du -sk "$bundle" | cut -f1)
+  local kib sized=$bundle
+  [[ -f $bundle.tar.gz ]] && sized=$bundle.tar.gz
+  kib=$(du -sk "$sized" | cut -f1)
   if ((limit > 0 && kib > limit * 1024)); then
-    echo "gpu_bundle check: $bundle holds $((kib / 1024)) MiB, more than $limit MiB"
+    echo "gpu_bundle check: $sized holds $((kib / 1024)) MiB, more than $limit MiB"
     failed=1
   fi
   [[ -x $bundle/run.sh ]] || { echo "gpu_bundle check: no run.sh"; failed=1; }
   if ((failed == 0)); then
-    echo "gpu_bundle check: $(ls "$bundle"/bin | wc -l) binaries, $(find "$bundle"/lib -type f | wc -l) bundled libraries, $((kib / 1024)) MiB: every library is bundled, CUDA's or the C/C++ runtime's"
+    echo "gpu_bundle check: $(ls "$bundle"/bin | wc -l) binaries, $(find "$bundle"/lib -type f | wc -l) bundled libraries, $((kib / 1024)) MiB ($(basename "$sized")): every library is bundled, CUDA's or the C/C++ runtime's"
   fi
   return $failed
 }
