@@ -1,12 +1,15 @@
 # pillarseg: the two commands of the README, and a few more for developers.
 #   make demo   simulate a small data set, build ground truth, train, evaluate, render PNGs
+#   make table1 every row of the paper's Table I on the simulator at the small CPU size, the
+#               paper's figures beside (scripts/table1.sh; TABLE1_OUT, TABLE1_EPOCHS, TABLE1_SCANS)
 #   make test   build everything and run the test suite (CTest)
 BUILD ?= build
 JOBS ?= $(shell nproc)
 CMAKE_FLAGS ?=
 DEMO_OUT ?= demo_out
+TABLE1_OUT ?= table1_out
 
-.PHONY: all deps configure build test demo bench asan kernel-report gpu-bundle clean
+.PHONY: all deps configure build test demo table1 bench asan kernel-report gpu-bundle clean
 
 all: build
 
@@ -24,6 +27,9 @@ test: build
 
 demo: build
 	@scripts/demo.sh $(BUILD)/pillarseg $(DEMO_OUT)
+
+table1: build
+	@scripts/table1.sh $(BUILD)/pillarseg $(TABLE1_OUT)
 
 bench: build
 	@for b in $(BUILD)/bench/bench_*; do echo "== $$b"; $$b --benchmark_min_time=0.2; done
@@ -48,7 +54,7 @@ kernel-report: deps
 	  > build-kernels/cubin-list-test.log 2>&1 || { cat build-kernels/cubin-list-test.log; exit 1; }
 	@python3 scripts/kernel_report.py build-kernels/resource-usage.log build-kernels/kernels/libpillarseg_kernels_cuda.a
 
-# The GPU check in one call: build-gpu/bundle (at most 60 MiB) holds pillarseg, every *_gpu test,
+# The GPU check in one call: build-gpu/bundle (build-gpu/bundle.tar.gz, at most 40 MiB, is what travels) holds pillarseg, every *_gpu test,
 # the kernel benchmarks and the libraries a bare CUDA machine lacks, built here for GPU_ARCH only,
 # and run.sh, which runs all of it there in at most 8 minutes (README: "On a GPU machine").
 GPU_ARCH ?= 90
