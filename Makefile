@@ -3,6 +3,7 @@
 #   make table1 every row of the paper's Table I on the simulator at the small CPU size, the
 #               paper's figures beside (scripts/table1.sh; TABLE1_OUT, TABLE1_EPOCHS, TABLE1_SCANS)
 #   make test   build everything and run the test suite (CTest)
+#   make fuzz   each reader's libFuzzer target, ASan + UBSan, FUZZ_SECONDS each (scripts/fuzz.sh)
 BUILD ?= build
 JOBS ?= $(shell nproc)
 CMAKE_FLAGS ?=
@@ -40,6 +41,12 @@ asan: deps
 	@cmake -S . -B build-asan -DCMAKE_BUILD_TYPE=RelWithDebInfo -DPILLARSEG_SANITIZE=ON -DPILLARSEG_BENCH=OFF -DPILLARSEG_CUDA=OFF >/dev/null
 	@cmake --build build-asan -j $(JOBS)
 	@ctest --test-dir build-asan --output-on-failure -j $(JOBS)
+
+# The libFuzzer targets of fuzz/ (clang 14, build-fuzz), each for FUZZ_SECONDS (default 600); a
+# crash's input goes to fuzz/findings/ and the target fails.
+.PHONY: fuzz
+fuzz: deps
+	@FUZZ_SECONDS=$(or $(FUZZ_SECONDS),600) JOBS=$(JOBS) scripts/fuzz.sh
 
 # Every CUDA kernel with its registers, shared memory, stack and spills per architecture, from
 # ptxas (a separate build of the kernel library; needs nvcc). Fails if a kernel spills. Without

@@ -113,7 +113,8 @@ int64_t group_and_select(std::span<const Point> points, const GridSpec& grid,
   PillarWorkspace& ws = workspace;
   const auto num_points = static_cast<int32_t>(points.size());
 
-  // Pass 1a: flat cell iy * W + ix of each point, -1 outside the volume. The test is
+  // Pass 1a: flat cell iy * W + ix of each point, -1 outside the volume or with a non-finite
+  // reflectance (non-finite coordinates fail the bounds). The test is
   // grid.contains() with the grid's numbers in locals and no branches, so the loop vectorises;
   // the floors are compared as doubles and only an inside point's floors are converted, so a
   // far or non-finite point is never converted to an integer.
@@ -129,10 +130,13 @@ int64_t group_and_select(std::span<const Point> points, const GridSpec& grid,
     const int32_t row = row_cells;
     for (int64_t i = begin; i < end; ++i) {
       const double x = point[i].x, y = point[i].y, z = point[i].z;
+      const float r = point[i].r;
       const double fx = std::floor((x - x_min) / cell);
       const double fy = std::floor((y - y_min) / cell);
+      // r - r is 0 exactly for a finite reflectance: a NaN or infinite one leaves the point out.
       const bool inside = (x >= x_min) & (x < x_max) & (y >= y_min) & (y < y_max) & (z >= z_min) &
-                          (z < z_max) & (fx >= 0.0) & (fx < cells_x) & (fy >= 0.0) & (fy < cells_y);
+                          (z < z_max) & (fx >= 0.0) & (fx < cells_x) & (fy >= 0.0) &
+                          (fy < cells_y) & (r - r == 0.0f);
       const int32_t flat =
           static_cast<int32_t>(inside ? fy : 0.0) * row + static_cast<int32_t>(inside ? fx : 0.0);
       cell_of_point[i] = inside ? flat : -1;

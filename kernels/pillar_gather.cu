@@ -165,11 +165,13 @@ static __global__ void __launch_bounds__(kPointThreads)
   const std::int64_t i = std::int64_t{blockIdx.x} * kPointThreads + threadIdx.x;
   if (i >= num_points) return;
   const double x = points[4 * i], y = points[4 * i + 1], z = points[4 * i + 2];
+  const float r = points[4 * i + 3];
   const double fx = floor((x - volume.x_min) / volume.cell);
   const double fy = floor((y - volume.y_min) / volume.cell);
+  // As the host: a NaN or infinite reflectance leaves the point out (r - r is then NaN).
   const bool inside = x >= volume.x_min && x < volume.x_max && y >= volume.y_min &&
                       y < volume.y_max && z >= volume.z_min && z < volume.z_max && fx >= 0.0 &&
-                      fx < volume.width && fy >= 0.0 && fy < volume.height;
+                      fx < volume.width && fy >= 0.0 && fy < volume.height && r - r == 0.0f;
   const std::int32_t cell =
       inside ? static_cast<std::int32_t>(fy) * volume.width + static_cast<std::int32_t>(fx) : -1;
   point_cell[i] = cell;

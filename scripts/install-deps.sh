@@ -7,7 +7,7 @@ set -euo pipefail
 packages=(cmake make g++ pkg-config libeigen3-dev libyaml-cpp-dev libcli11-dev libspdlog-dev
           libfmt-dev libpng-dev libgtest-dev libgmock-dev libbenchmark-dev
           libfreetype-dev fonts-dejavu-core nlohmann-json3-dev
-          libopenmpi-dev openmpi-bin python3)
+          libopenmpi-dev openmpi-bin python3 clang-14 libclang-rt-14-dev)
 if [[ "${1:-}" == "--with-torch" ]]; then packages+=(python3-torch python3-numpy); fi
 missing=()
 for p in "${packages[@]}"; do

@@ -1,6 +1,11 @@
 // Core utilities: RNG determinism and distributions, the grid, the class table, atomic files.
 #include <gtest/gtest.h>
 
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <cctype>
 #include <cmath>
 #include <fstream>
 
@@ -129,6 +134,65 @@ TEST(Io, AtomicWriteLeavesNoFileOnFailure) {
   write_file_atomic(target, data, 3);
   EXPECT_EQ(read_file_text(target), "abc");
   EXPECT_THROW(read_file_bytes(dir / "missing"), Error);
+}
+
+TEST(Io, AtomicWriteOfLargeFilesAndDeviceErrors) {
+  const auto dir = test::temp_dir();
+  // Larger than the write buffer, in pieces of every size: the bytes arrive in order.
+  std::string expected;
+  for (int i = 0; i < 3'000'000; ++i) expected.push_back(static_cast<char>(i * 7 + i / 1000));
+  write_file_atomic(dir / "big.bin", [&](std::ostream& out) {
+    size_t at = 0, piece = 1;
+    while (at < expected.size()) {
+      const size_t n = std::min(piece, expected.size() - at);
+      out.write(expected.data() + at, static_cast<std::streamsize>(n));
+      at += n;
+      piece = piece * 3 + 1;
+    }
+  }, Durability::kPowerLoss);
+  EXPECT_EQ(read_file_text(dir / "big.bin"), expected);
+  // A directory where the file should go: the error names it, nothing is left behind.
+  std::filesystem::create_directories(dir / "taken");
+  try {
+    write_file_atomic(dir / "taken", "x", 1);
+    FAIL() << "expected an error";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("taken"), std::string::npos) << e.what();
+  }
+  for (const auto& entry : std::filesystem::directory_iterator(dir))
+    EXPECT_EQ(entry.path().filename().string().find(".tmp-"), std::string::npos) << entry.path();
+}
+
+// What a killed writer leaves: NAME.tmp-HOST-PID-N of a process that is gone is removed; a live
+// process's, another host's and other files stay.
+TEST(Io, RemovesOnlyDeadWritersTemporaries) {
+  const auto dir = test::temp_dir();
+  char name[256] = {};
+  ASSERT_EQ(::gethostname(name, sizeof name - 1), 0);
+  std::string host(name);
+  for (char& c : host)
+    if (!std::isalnum(static_cast<unsigned char>(c)) && c != '.' && c != '_') c = '_';
+  const pid_t child = ::fork();
+  ASSERT_GE(child, 0);
+  if (child == 0) ::_exit(0);
+  ASSERT_EQ(::waitpid(child, nullptr, 0), child);  // `child` names no process now
+  const auto touch = [&](const std::string& file) {
+    std::filesystem::create_directories((dir / file).parent_path());
+    std::ofstream(dir / file) << "x";
+  };
+  const std::string dead = fmt::format("a.psc.tmp-{}-{}-0", host, child);
+  const std::string live = fmt::format("b.psc.tmp-{}-{}-3", host, ::getpid());
+  const std::string other_host = fmt::format("c.psc.tmp-{}x-{}-0", host, child);
+  touch(dead), touch(live), touch(other_host), touch("d.psc"), touch("sub/" + dead);
+  EXPECT_EQ(remove_stale_temporaries(dir, /*recursive=*/false), 1u);
+  EXPECT_FALSE(std::filesystem::exists(dir / dead));
+  EXPECT_TRUE(std::filesystem::exists(dir / live));
+  EXPECT_TRUE(std::filesystem::exists(dir / other_host));
+  EXPECT_TRUE(std::filesystem::exists(dir / "d.psc"));
+  EXPECT_TRUE(std::filesystem::exists(dir / "sub" / dead));
+  EXPECT_EQ(remove_stale_temporaries(dir, /*recursive=*/true), 1u);
+  EXPECT_FALSE(std::filesystem::exists(dir / "sub" / dead));
+  EXPECT_EQ(remove_stale_temporaries(dir / "missing", true), 0u);
 }
 
 TEST(Image, PngRoundTrip) {

@@ -365,6 +365,8 @@ TEST(PillarGather, RangeBordersLowerIncludedUpperExcluded) {
       {0.f, 0.f, -2.51f, 0.f},       // 8: below z_min, out
       {nan, 0.f, 0.f, 0.f},          // 9: not finite, out
       {0.f, 24.95f, 1.49f, 0.f},     // 10: in, iy 499
+      {1.f, 1.f, 0.f, nan},          // 11: reflectance not finite, out
+      {1.f, 1.f, 0.f, std::numeric_limits<float>::infinity()},  // 12: likewise
   };
   const Pillars pillars = pillar_gather(points, grid, {20, 0}, SampleMode::Inference, nullptr);
   // Points 0, 2, 4, 6, 10 are inside, each in its own cell, so they are pillars 0..4.

@@ -190,6 +190,43 @@ std::vector<std::string> step_lines(const fs::path& log_path) {
   return out;
 }
 
+// What resume keeps of a metrics log (the checkpoint of epoch 1, step 2): the lines up to it,
+// a later epoch's or step's dropped, a last line cut short by a kill dropped, a number too long
+// for int64 read as beyond any checkpoint; lines without the fields are kept.
+TEST(Train, ResumeKeepsTheLogLinesTheCheckpointHolds) {
+  const std::string log =
+      "{\"type\": \"step\", \"epoch\": 1, \"step\": 1, \"loss\": 2}\n"
+      "{\"type\": \"step\", \"epoch\": 1, \"step\": 2, \"loss\": 1}\n"
+      "{\"type\": \"note\"}\n"
+      "{\"type\": \"epoch\", \"epoch\": 1, \"step\": 2}\n"
+      "{\"type\": \"step\", \"epoch\": 2, \"step\": 3, \"loss\": 1}\n"
+      "{\"type\": \"step\", \"epoch\": 1, \"step\": 99999999999999999999}\n"
+      "{\"type\": \"eval\", \"epoch\": 1, \"st";
+  EXPECT_EQ(kept_metrics_lines(log, 1, 2),
+            "{\"type\": \"step\", \"epoch\": 1, \"step\": 1, \"loss\": 2}\n"
+            "{\"type\": \"step\", \"epoch\": 1, \"step\": 2, \"loss\": 1}\n"
+            "{\"type\": \"note\"}\n"
+            "{\"type\": \"epoch\", \"epoch\": 1, \"step\": 2}\n");
+  EXPECT_EQ(kept_metrics_lines(log, 0, 0), "{\"type\": \"note\"}\n");
+  EXPECT_EQ(kept_metrics_lines("", 5, 5), "");
+}
+
+// A run directory's --resume with no checkpoint yet (a run killed in its first epoch) starts the
+// run, and ends as a run started afresh does.
+TEST(Train, ResumeWithoutACheckpointStartsTheRun) {
+  const fs::path dir = test::temp_dir();
+  train(options_for(dir / "fresh", tiny_config_text()));
+  fs::create_directories(dir / "killed");
+  const std::string torn = "{\"type\": \"step\", \"ep";  // a first line cut short
+  write_file_atomic(dir / "killed" / "metrics.jsonl", torn.data(), torn.size());
+  TrainOptions resumed = options_for(dir / "killed", tiny_config_text());
+  resumed.resume = true;
+  EXPECT_EQ(train(resumed).epochs_done, 2);
+  EXPECT_EQ(read_file_bytes(dir / "fresh" / "checkpoint.safetensors"),
+            read_file_bytes(dir / "killed" / "checkpoint.safetensors"));
+  EXPECT_EQ(step_lines(dir / "fresh" / "metrics.jsonl"), step_lines(dir / "killed" / "metrics.jsonl"));
+}
+
 // TensorBoard's framing: CRC-32C's check value, and the scalars of a run read back from its
 // event file (the losses of metrics.jsonl, steps 1..4).
 TEST(Train, WritesTensorBoardEventFiles) {

@@ -323,7 +323,7 @@ std::vector<uint8_t> SafeTensors::serialize() const {
 
 void SafeTensors::write(const std::filesystem::path& path) const {
   const std::vector<uint8_t> bytes = serialize();
-  write_file_atomic(path, bytes.data(), bytes.size());
+  write_file_atomic(path, bytes.data(), bytes.size(), Durability::kPowerLoss);
 }
 
 void SafeTensors::check_new_name(const std::string& name) const {

@@ -50,7 +50,8 @@ class SafeTensors {
   // every tensor is aligned to its element size, as the reference writer does. Same contents
   // give the same bytes.
   std::vector<uint8_t> serialize() const;
-  // serialize() written with write_file_atomic (temporary file, then rename).
+  // serialize() written with write_file_atomic (temporary file, then rename), synced to disk
+  // (checkpoints survive a crash of the machine, not only of the process).
   void write(const std::filesystem::path& path) const;
 
   // Adds a float tensor stored as F32, F16 or BF16 (rounded to nearest even). A finite value

@@ -131,7 +131,8 @@ void add_train(CLI::App& app) {
   cmd->add_option("--out", a->out,
                   "run directory: checkpoint.safetensors, metrics.jsonl, config.yaml")
       ->required();
-  cmd->add_flag("--resume", a->resume, "continue the run in --out from its checkpoint");
+  cmd->add_flag("--resume", a->resume,
+                "continue the run in --out from its checkpoint (with none there yet: start it)");
   cmd->add_option("--epochs-now", a->epochs_now,
                   "stop after this many epochs of this invocation (resume later)")
       ->check(CLI::NonNegativeNumber);

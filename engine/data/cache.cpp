@@ -108,12 +108,23 @@ fs::path Cache::path_of(const CacheKey& key) const {
                                             }),
            "cache key kind '{}': expected lower-case letters, digits and '-'", key.kind);
   PS_CHECK(key.frame >= 0, "cache key frame {}: expected a frame number >= 0", key.frame);
+  return sequence_dir(key.sequence) / key.kind / fmt::format("{:06}-{:016x}.psc", key.frame, key.settings);
+}
+
+fs::path Cache::sequence_dir(const std::string& sequence) const {
   Hasher sequence_hash;
-  sequence_hash.add(key.sequence);
-  std::string name = fs::path(key.sequence).filename().string();
+  sequence_hash.add(sequence);
+  std::string name = fs::path(sequence).filename().string();
   if (name.empty()) name = "sequence";
-  return dir_ / fmt::format("{}-{:08x}", name, sequence_hash.digest() & 0xFFFFFFFFu) / key.kind /
-         fmt::format("{:06}-{:016x}.psc", key.frame, key.settings);
+  return dir_ / fmt::format("{}-{:08x}", name, sequence_hash.digest() & 0xFFFFFFFFu);
+}
+
+size_t Cache::remove_stale_temporaries(const std::string& sequence) const {
+  const fs::path dir = sequence_dir(sequence);
+  const size_t removed = pillarseg::remove_stale_temporaries(dir, /*recursive=*/true);
+  if (removed > 0)
+    spdlog::info("cache: removed {} temporary file(s) that killed writers left in {}", removed, dir.string());
+  return removed;
 }
 
 std::optional<Cache::Entry> Cache::read_entry(const CacheKey& key, CacheDType dtype,

@@ -81,6 +81,11 @@ class Cache {
   const std::filesystem::path& dir() const { return dir_; }
   // dir/<sequence name>-<hash of its path>/<kind>/<frame:06>-<settings:016x>.psc
   std::filesystem::path path_of(const CacheKey& key) const;
+  // dir/<sequence name>-<hash of its path>: the entries of the sequence at that canonical path.
+  std::filesystem::path sequence_dir(const std::string& sequence) const;
+  // Removes the temporary files that killed writers on this host left among the sequence's
+  // entries (remove_stale_temporaries, core/io.hpp); a live writer's are kept.
+  size_t remove_stale_temporaries(const std::string& sequence) const;
 
   // The stored tensor, or nullopt on a miss (no file, other key, other dtype, corrupt).
   template <class T>

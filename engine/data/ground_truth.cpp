@@ -436,6 +436,7 @@ GroundTruthBuilder::BuildCounts GroundTruthBuilder::build_all(GroundTruthKind ki
   PS_CHECK(cache_.has_value(),
            "building the ground-truth cache of sequence {} needs a cache directory",
            sequence_name(sequence_.id()));
+  cache_->remove_stale_temporaries(sequence_path_);
   BuildCounts counts;
   std::optional<Progress> progress;
   if (show_progress)

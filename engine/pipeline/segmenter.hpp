@@ -50,7 +50,7 @@ class ScanSegmenter {
   PillarSegNet& net() { return *net_; }
   const SegmenterOptions& options() const { return options_; }
 
-  // points: the sweep in the sensor frame (non-finite ones are ignored). labels: H x W class ids
+  // points: the sweep in the sensor frame (one with a NaN or infinite value is ignored). labels: H x W class ids
   // (row iy, column ix); probabilities: 12 x H x W softmax values, or null.
   void segment(std::span<const Point> points, uint8_t* labels, float* probabilities = nullptr);
 

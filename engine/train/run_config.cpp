@@ -112,6 +112,10 @@ std::array<float, kNumClassIds> default_coefficients(GroundTruthKind kind) {
   return c;
 }
 
+namespace {
+RunConfig run_config_from_yaml(const YAML::Node& root, const std::string& yaml_text, const std::string& source);
+}  // namespace
+
 RunConfig parse_run_config(const std::string& yaml_text, const std::string& source) {
   YAML::Node root;
   try {
@@ -120,6 +124,18 @@ RunConfig parse_run_config(const std::string& yaml_text, const std::string& sour
     PS_FAIL("{}: not valid YAML: {}", source, e.what());
   }
   PS_CHECK(root.IsMap() || root.IsNull(), "{}: expected a mapping with grid/model/train/eval sections", source);
+  // What the readers below do not check themselves (a key that is not a scalar, a section that is
+  // a sequence) yaml-cpp reports with an exception: it becomes this file's error.
+  try {
+    return run_config_from_yaml(root, yaml_text, source);
+  } catch (const YAML::Exception& e) {
+    PS_FAIL("{}: {}", source, e.what());
+  }
+}
+
+namespace {
+
+RunConfig run_config_from_yaml(const YAML::Node& root, const std::string& yaml_text, const std::string& source) {
   for (const auto& kv : root) {
     const std::string key = kv.first.as<std::string>();
     PS_CHECK(key == "grid" || key == "model" || key == "train" || key == "eval",
@@ -147,6 +163,8 @@ RunConfig parse_run_config(const std::string& yaml_text, const std::string& sour
   }
   return c;
 }
+
+}  // namespace
 
 RunConfig load_run_config(const std::filesystem::path& path) {
   PS_CHECK(std::filesystem::exists(path), "--config {}: no such file", path.string());

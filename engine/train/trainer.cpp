@@ -4,15 +4,19 @@
 #include <spdlog/spdlog.h>
 
 #include <algorithm>
+#include <cerrno>
+#include <charconv>
 #include <chrono>
 #include <cmath>
+#include <cstring>
 #include <ctime>
+#include <limits>
 #include <fstream>
 #include <numeric>
 #include <optional>
-#include <regex>
 
 #include "core/error.hpp"
+#include "core/fault.hpp"
 #include "core/io.hpp"
 #include "core/parallel.hpp"
 #include "engine/eval/evaluate.hpp"
@@ -52,35 +56,59 @@ std::vector<size_t> epoch_order(size_t n, uint64_t seed, uint64_t epoch) {
   return order;
 }
 
+}  // namespace
+
+std::string kept_metrics_lines(std::string_view log, int64_t epoch, int64_t step) {
+  // The value of `"name": <digits>` in a line, -1 if absent; digits too many for int64 read as
+  // the largest value (a line from beyond any checkpoint).
+  const auto field = [](std::string_view line, std::string_view name) -> int64_t {
+    const std::string key = fmt::format("\"{}\": ", name);
+    const size_t at = line.find(key);
+    if (at == std::string_view::npos) return -1;
+    const std::string_view rest = line.substr(at + key.size());
+    int64_t value = 0;
+    const auto [ptr, ec] = std::from_chars(rest.data(), rest.data() + rest.size(), value);
+    if (ec == std::errc::result_out_of_range) return std::numeric_limits<int64_t>::max();
+    return ec == std::errc() && ptr != rest.data() ? value : -1;
+  };
+  std::string kept;
+  size_t begin = 0;
+  while (begin < log.size()) {
+    const size_t end = log.find('\n', begin);
+    if (end == std::string_view::npos) break;  // cut short by a killed writer
+    const std::string_view line = log.substr(begin, end - begin);
+    begin = end + 1;
+    if (field(line, "epoch") > epoch || field(line, "step") > step) continue;
+    kept.append(line).push_back('\n');
+  }
+  return kept;
+}
+
+namespace {
+
 // RUN_DIR/metrics.jsonl. On --resume the lines of what the checkpoint does not hold (the steps,
-// epoch and validation lines of a run killed after it) are dropped first, so that no step appears
-// twice; the file is rewritten atomically.
+// epoch and validation lines of a run killed after it, and a last line it cut short) are dropped
+// first (kept_metrics_lines), so that no step appears twice; the file is rewritten atomically.
 class MetricsLog {
  public:
-  MetricsLog(const fs::path& path, bool resume, const TrainState& state) {
+  MetricsLog(const fs::path& path, bool resume, const TrainState& state) : path_(path) {
     if (resume && fs::exists(path)) {
-      std::ifstream in(path);
-      std::string kept, line;
-      const std::regex epoch_field(R"("epoch": ([0-9]+))"), step_field(R"("step": ([0-9]+))");
-      while (std::getline(in, line)) {
-        std::smatch e, st;
-        const bool has_epoch = std::regex_search(line, e, epoch_field),
-                   has_step = std::regex_search(line, st, step_field);
-        if (has_epoch && std::stoll(e[1].str()) > state.epoch) continue;
-        if (has_step && std::stoll(st[1].str()) > state.step) continue;
-        kept += line + "\n";
-      }
+      const std::string kept = kept_metrics_lines(read_file_text(path), state.epoch, state.step);
       write_file_atomic(path, kept.data(), kept.size());
     }
     out_.open(path, resume ? std::ios::app : std::ios::trunc);
-    PS_CHECK(out_, "{}: cannot open the metrics log for writing", path.string());
+    PS_CHECK(out_, "{}: cannot open the metrics log for writing: {}", path.string(),
+             std::strerror(errno));
   }
   void line(const std::string& json) {
     out_ << json << '\n';
     out_.flush();
+    PS_CHECK(out_, "{}: cannot write the metrics log: {}", path_.string(),
+             errno == ENOSPC ? "no space left on device" : std::strerror(errno));
   }
 
  private:
+  fs::path path_;
   std::ofstream out_;
 };
 
@@ -233,8 +261,13 @@ TrainResult train(const TrainOptions& options) {
   ScanPipeline pipeline(cfg.model, *backend);
 
   TrainState state;
-  if (options.resume) {
-    PS_CHECK(fs::exists(ckpt_path), "--resume: no checkpoint at {}", ckpt_path.string());
+  // What a killed writer left: temporaries of this host's dead processes.
+  if (leader) remove_stale_temporaries(options.run_dir, /*recursive=*/false);
+  const bool resume = options.resume && fs::exists(ckpt_path);
+  if (options.resume && !resume && leader)
+    spdlog::info("--resume: no checkpoint in {} yet; starting the run from the beginning",
+                 options.run_dir.string());
+  if (resume) {
     const Checkpoint ckpt = read_checkpoint(ckpt_path);
     PS_CHECK(
         ckpt.config && ckpt.config->text == cfg.text,
@@ -255,8 +288,8 @@ TrainResult train(const TrainOptions& options) {
   std::optional<MetricsLog> log;
   std::optional<EventWriter> events;
   if (leader) {
-    log.emplace(options.run_dir / "metrics.jsonl", options.resume, state);
-    events.emplace(options.run_dir, options.resume, state.step);
+    log.emplace(options.run_dir / "metrics.jsonl", resume, state);
+    events.emplace(options.run_dir, resume, state.step);
   }
   const bool progress_bars = options.progress && leader;
   // Validation while training (eval.every_epochs): a segmenter of its own on the same device.
@@ -380,6 +413,7 @@ TrainResult train(const TrainOptions& options) {
                 epoch + 1, state.step + 1, data.describe(order[begin]), last_good_checkpoint());
       }
       net.backward();
+      fault_point("step");
       Ref grads = ps.grads();
       if (R > 1) backend->sum_over_replicas(grads, replicas);
       const double grad_norm = std::sqrt(backend->sum_of_squares(grads));
@@ -459,13 +493,15 @@ TrainResult train(const TrainOptions& options) {
       }
     }
     if (!leader) continue;
-    save_checkpoint(ckpt_path, net, cfg, state, /*with_optimizer=*/true);
+    // The epoch's logs first, its checkpoint last: the checkpoint commits the epoch (a resume
+    // from the one before drops these lines again).
     events->scalar("train/epoch_mean_loss", state.step, result.last_epoch_loss);
     events->scalar("train/data_wait_s", state.step, data_wait);
     events->flush();
     log->line(fmt::format(
         R"({{"type": "epoch", "epoch": {}, "step": {}, "mean_loss": {:.6f}, "data_wait_s": {:.3f}, "checkpoint": "{}"}})",
         state.epoch, state.step, result.last_epoch_loss, data_wait, ckpt_path.filename().string()));
+    save_checkpoint(ckpt_path, net, cfg, state, /*with_optimizer=*/true);
   }
   result.epochs_done = state.epoch;
   result.steps_done = state.step;

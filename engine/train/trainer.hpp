@@ -3,11 +3,17 @@
 // (or constant) schedule. A checkpoint per epoch (atomic), exact resume from it, a metrics log
 // (RUN_DIR/metrics.jsonl: one line per step and per epoch), and a clear stop on a non-finite
 // loss that leaves the last good checkpoint in place.
+//
+// A run killed at any point (SIGKILL, an OOM kill, a preempted node) and resumed ends with the
+// checkpoint an uninterrupted run writes, bit for bit, and a log with each step once: an epoch's
+// logs are written before its checkpoint, the checkpoint is the commit point, and resume drops
+// what came after the checkpoint it resumes from (tests/fault_test.sh).
 #pragma once
 
 #include <filesystem>
 #include <optional>
 #include <string>
+#include <string_view>
 
 #include "engine/model/backend.hpp"
 #include "core/replicas.hpp"
@@ -26,6 +32,8 @@ struct TrainOptions {
   // does not start.
   Precision precision = Precision::F32;
   std::optional<std::filesystem::path> cache_dir;
+  // Continue the run in run_dir from its checkpoint; with none there yet (a run killed in its
+  // first epoch), start it from the beginning.
   bool resume = false;
   bool progress = true;
   // Stop after this many epochs of this invocation (0: run to config.train.epochs); the
@@ -49,6 +57,11 @@ struct TrainResult {
 };
 
 TrainResult train(const TrainOptions& options);
+
+// The lines of a metrics log to keep when resuming from the checkpoint of (epoch, step): those
+// whose "epoch" and "step" fields do not exceed them, each ending in a newline; a last line
+// without one (cut short by a killed writer) is dropped.
+std::string kept_metrics_lines(std::string_view log, int64_t epoch, int64_t step);
 
 // RUN_DIR/checkpoint.safetensors: the latest epoch's checkpoint.
 std::filesystem::path latest_checkpoint(const std::filesystem::path& run_dir);

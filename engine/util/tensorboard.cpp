@@ -2,6 +2,7 @@
 
 #include <array>
 #include <bit>
+#include <cerrno>
 #include <chrono>
 #include <cstring>
 
@@ -261,6 +262,8 @@ void EventWriter::scalar(const std::string& tag, std::int64_t step, double value
 
 void EventWriter::flush() {
   out_.flush();
+  PS_CHECK(out_, "{}: cannot write the event file: {}", path_.string(),
+           errno == ENOSPC ? "no space left on device" : std::strerror(errno));
 }
 
 }  // namespace pillarseg

@@ -108,10 +108,10 @@ PILLARSEG_API const char* pillarseg_precision(const pillarseg_segmenter* s);
 PILLARSEG_API const char* pillarseg_class_name(int class_id);
 
 /* Segments one sweep: points_xyzr holds num_points records (x, y, z, reflectance), any number
- * including 0; points with a non-finite coordinate are ignored. Writes labels (height x width
- * bytes, class ids) and, when probabilities is not NULL, the softmax probabilities
- * (PILLARSEG_NUM_CLASSES x height x width floats, class k - 1 in plane k - 1). Returns 0 on
- * success; else non-zero with the reason in `error`, and the outputs unspecified. */
+ * including 0; points with a non-finite value (coordinate or reflectance) are ignored. Writes
+ * labels (height x width bytes, class ids) and, when probabilities is not NULL, the softmax
+ * probabilities (PILLARSEG_NUM_CLASSES x height x width floats, class k - 1 in plane k - 1).
+ * Returns 0 on success; else non-zero with the reason in `error`, and the outputs unspecified. */
 PILLARSEG_API int pillarseg_segment(pillarseg_segmenter* s, const float* points_xyzr, size_t num_points,
                                     uint8_t* labels, float* probabilities, char* error,
                                     size_t error_size);
