@@ -14,6 +14,12 @@ struct Point {
 };
 static_assert(sizeof(Point) == 16, "Point must match the 16-byte .bin record");
 
+// The largest reflectance magnitude the network takes: FP16's largest value (SemanticKITTI's
+// remission is in [0, 1], 8-bit sensors give 0..255). A point beyond it, or with a NaN one, is
+// left out of the pillars and the grid map (pillar_gather, grid_map_features; the kernels
+// alike), so that no input can overflow the network into NaN.
+inline constexpr float kMaxAbsReflectance = 65504.0f;
+
 struct Scan {
   std::vector<Point> points;
   std::vector<uint32_t> labels;  // raw .label words, one per point, or empty when unlabelled

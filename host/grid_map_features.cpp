@@ -19,7 +19,7 @@ Tensor<float> grid_map_features(std::span<const Point> points, const Tensor<uint
   std::vector<float> zmin(static_cast<size_t>(cells), std::numeric_limits<float>::infinity());
   std::vector<float> zmax(static_cast<size_t>(cells), -std::numeric_limits<float>::infinity());
   for (const Point& p : points) {
-    if (!grid.contains(p.x, p.y, p.z) || !std::isfinite(p.r)) continue;  // as pillar_gather
+    if (!grid.contains(p.x, p.y, p.z) || !(std::fabs(p.r) <= kMaxAbsReflectance)) continue;  // as pillar_gather
     const size_t c = static_cast<size_t>(grid.cell_index(p.x, p.y));
     reflectance[c] += p.r;
     count[c] += 1;

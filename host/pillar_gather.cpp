@@ -113,8 +113,8 @@ int64_t group_and_select(std::span<const Point> points, const GridSpec& grid,
   PillarWorkspace& ws = workspace;
   const auto num_points = static_cast<int32_t>(points.size());
 
-  // Pass 1a: flat cell iy * W + ix of each point, -1 outside the volume or with a non-finite
-  // reflectance (non-finite coordinates fail the bounds). The test is
+  // Pass 1a: flat cell iy * W + ix of each point, -1 outside the volume or with a reflectance
+  // beyond kMaxAbsReflectance or NaN (non-finite coordinates fail the bounds). The test is
   // grid.contains() with the grid's numbers in locals and no branches, so the loop vectorises;
   // the floors are compared as doubles and only an inside point's floors are converted, so a
   // far or non-finite point is never converted to an integer.
@@ -133,10 +133,10 @@ int64_t group_and_select(std::span<const Point> points, const GridSpec& grid,
       const float r = point[i].r;
       const double fx = std::floor((x - x_min) / cell);
       const double fy = std::floor((y - y_min) / cell);
-      // r - r is 0 exactly for a finite reflectance: a NaN or infinite one leaves the point out.
+      // A NaN, infinite or absurd reflectance leaves the point out (kMaxAbsReflectance).
       const bool inside = (x >= x_min) & (x < x_max) & (y >= y_min) & (y < y_max) & (z >= z_min) &
                           (z < z_max) & (fx >= 0.0) & (fx < cells_x) & (fy >= 0.0) &
-                          (fy < cells_y) & (r - r == 0.0f);
+                          (fy < cells_y) & (std::fabs(r) <= kMaxAbsReflectance);
       const int32_t flat =
           static_cast<int32_t>(inside ? fy : 0.0) * row + static_cast<int32_t>(inside ? fx : 0.0);
       cell_of_point[i] = inside ? flat : -1;

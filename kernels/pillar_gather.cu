@@ -168,10 +168,11 @@ static __global__ void __launch_bounds__(kPointThreads)
   const float r = points[4 * i + 3];
   const double fx = floor((x - volume.x_min) / volume.cell);
   const double fy = floor((y - volume.y_min) / volume.cell);
-  // As the host: a NaN or infinite reflectance leaves the point out (r - r is then NaN).
+  // As the host: a NaN, infinite or absurd reflectance leaves the point out (65504:
+  // kMaxAbsReflectance of core/point.hpp).
   const bool inside = x >= volume.x_min && x < volume.x_max && y >= volume.y_min &&
                       y < volume.y_max && z >= volume.z_min && z < volume.z_max && fx >= 0.0 &&
-                      fx < volume.width && fy >= 0.0 && fy < volume.height && r - r == 0.0f;
+                      fx < volume.width && fy >= 0.0 && fy < volume.height && fabsf(r) <= 65504.0f;
   const std::int32_t cell =
       inside ? static_cast<std::int32_t>(fy) * volume.width + static_cast<std::int32_t>(fx) : -1;
   point_cell[i] = cell;

@@ -367,6 +367,7 @@ TEST(PillarGather, RangeBordersLowerIncludedUpperExcluded) {
       {0.f, 24.95f, 1.49f, 0.f},     // 10: in, iy 499
       {1.f, 1.f, 0.f, nan},          // 11: reflectance not finite, out
       {1.f, 1.f, 0.f, std::numeric_limits<float>::infinity()},  // 12: likewise
+      {1.f, 1.f, 0.f, 1e6f},         // 13: reflectance beyond kMaxAbsReflectance, out
   };
   const Pillars pillars = pillar_gather(points, grid, {20, 0}, SampleMode::Inference, nullptr);
   // Points 0, 2, 4, 6, 10 are inside, each in its own cell, so they are pillars 0..4.

@@ -145,6 +145,8 @@ TrainingLog read_training_log(const std::filesystem::path& path) {
       object = Json::parse(text);
     } catch (const Json::parse_error& e) {
       PS_FAIL("{}: not valid JSON: {}", where, parse_reason(e.what()));
+    } catch (const Json::exception& e) {  // a number beyond double's range, ...
+      PS_FAIL("{}: not a log line: {}", where, e.what());
     }
     PS_CHECK(object.is_object(), "{}: not a JSON object: {}", where, text);
     const auto type = object.find("type");
