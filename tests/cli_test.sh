@@ -2,7 +2,8 @@
 # The command line end to end on a tiny simulated data set: pillarseg infer over one scan, a
 # directory and several files (the same label maps), --device emu for infer, bench, eval and
 # train (training's first losses those of the CPU; in bf16 close to them), --precision, plot (the
-# PNGs of a run with and without validation), and errors that name the argument.
+# PNGs of a run with and without validation), errors that name the argument, and sizes refused
+# before allocating (a low PILLARSEG_MEMORY_LIMIT, a grid beyond the 32-bit cell indices).
 # Usage: tests/cli_test.sh PILLARSEG_BINARY WORK_DIR
 set -euo pipefail
 bin=$1 work=$2
@@ -169,4 +170,17 @@ if message=$(run infer --weights "$weights" --scan "$velodyne" --out "$work/y" -
   fail "--device tpu was accepted"
 fi
 [[ $message == *"--device"* ]] || fail "--device tpu: '$message' does not name --device"
-echo "cli_test: infer (one scan, a directory, two files), --device emu (infer, eval, bench, train), --precision, plot and errors pass"
+# Sizes checked before allocating: training and inference beyond a (low) memory limit, before a
+# run directory is made; a grid beyond the 32-bit cell indices, when the config is read.
+PILLARSEG_MEMORY_LIMIT=1M \
+  expect_error "training of PillarSegNet on a 100 x 50 grid of 0.4 m cells (batch 2) would need" \
+  train --data "$work/data" --config "$work/tiny.yaml" --out "$work/big_run"
+[[ ! -e "$work/big_run" ]] || fail "train beyond the memory limit left a run directory"
+PILLARSEG_MEMORY_LIMIT=1M \
+  expect_error "evaluation of PillarSegNet on a 100 x 50 grid of 0.4 m cells (batch 1) would need" \
+  infer --weights "$weights" --scan "$velodyne/000000.bin" --out "$work/z"
+sed 's/cell: 0.4/cell: 0.0001/' "$work/tiny.yaml" > "$work/fine.yaml"
+expect_error "grid of 400000 x 200000 cells = 80000000000 overflows the 32-bit cell indices" \
+  train --data "$work/data" --config "$work/fine.yaml" --out "$work/fine_run"
+echo "cli_test: infer (one scan, a directory, two files), --device emu (infer, eval, bench, train)," \
+  "--precision, plot, errors and size checks pass"

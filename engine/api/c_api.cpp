@@ -7,7 +7,6 @@
 #include <cstddef>
 #include <cstring>
 #include <exception>
-#include <limits>
 #include <memory>
 #include <new>
 #include <span>
@@ -15,6 +14,7 @@
 
 #include "core/classes.hpp"
 #include "core/error.hpp"
+#include "core/memory_budget.hpp"
 #include "core/point.hpp"
 #include "engine/cuda/install.hpp"
 #include "engine/pipeline/segmenter.hpp"
@@ -159,8 +159,10 @@ int pillarseg_segment(pillarseg_segmenter* s, const float* points_xyzr, size_t n
     PS_CHECK(points_xyzr != nullptr || num_points == 0, "points_xyzr is NULL for {} points", num_points);
     PS_CHECK(labels != nullptr, "labels is NULL: it must hold width x height = {} bytes",
              s->engine->model().grid.cells());
-    constexpr size_t kMaxPoints = std::numeric_limits<int32_t>::max() - 1;
-    PS_CHECK(num_points <= kMaxPoints, "{} points: at most {} a scan (point indices are int32)", num_points,
+    // Checked before the points are touched: a count beyond the 32-bit point indices, or (in
+    // the pipeline's reserve) beyond the memory, is an error, never a read past the caller's buffer.
+    constexpr size_t kMaxPoints = pillarseg::kMaxInt32Index - 1;
+    PS_CHECK(num_points <= kMaxPoints, "{} points overflow the 32-bit point indices (at most {} a scan)", num_points,
              kMaxPoints);
     const std::span<const pillarseg::Point> points(reinterpret_cast<const pillarseg::Point*>(points_xyzr),
                                                    num_points);

@@ -3,13 +3,16 @@
 #include <fmt/format.h>
 #include <spdlog/spdlog.h>
 
+#include <algorithm>
 #include <cstdlib>
 #include <optional>
 
 #include "core/io.hpp"
+#include "core/memory_budget.hpp"
 #include "engine/cli/cli_util.hpp"
 #include "engine/cli/commands.hpp"
 #include "engine/eval/evaluate.hpp"
+#include "engine/model/memory_estimate.hpp"
 #include "engine/train/checkpoint.hpp"
 #include "engine/train/trainer.hpp"
 #if defined(PILLARSEG_HAVE_MPI)
@@ -42,6 +45,16 @@ struct EvalArgs {
   int stride = 0;
 };
 
+// Training's memory, checked before the trainer reads any data: on the host for the CPU backend and
+// the emulation (the trainer checks a GPU's when it plans the model); this process's share of the
+// batch in a data-parallel run.
+void check_training_memory(const TrainOptions& o) {
+  if (o.device != "cpu" && o.device != "emu") return;
+  const int ranks = o.replicas ? o.replicas->size() : 1;
+  check_model_memory(o.config.model, std::max(1, o.config.train.batch_size / ranks), /*training=*/true,
+                     host_memory_budget());
+}
+
 void run_train(const TrainArgs& a) {
   TrainOptions o;
   o.data_root = a.data;
@@ -70,6 +83,7 @@ void run_train(const TrainArgs& a) {
   }
   TrainResult r;
   try {
+    check_training_memory(o);
     r = train(o);
   } catch (const std::exception& e) {
     // A failing rank stops all of them, with its message (the others would wait for it forever).
@@ -82,6 +96,7 @@ void run_train(const TrainArgs& a) {
            "pillarseg train was started by mpirun, but this build has no MPI (install Debian's "
            "libopenmpi-dev and "
            "rebuild) for data-parallel training");
+  check_training_memory(o);
   const TrainResult r = train(o);
 #endif
   fmt::print(

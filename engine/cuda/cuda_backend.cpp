@@ -198,6 +198,19 @@ void* CudaBackend::allocate(size_t bytes) {
   return p;
 }
 
+MemoryBudget CudaBackend::memory_budget() const {
+#if defined(PILLARSEG_CUDA_EMULATION)
+  return Backend::memory_budget();
+#else
+  if (std::optional<MemoryBudget> forced = memory_limit_override()) return *forced;
+  PS_CUDA_CHECK(cudaSetDevice(options_.device));
+  size_t free_bytes = 0, total_bytes = 0;
+  PS_CUDA_CHECK(cudaMemGetInfo(&free_bytes, &total_bytes));
+  return MemoryBudget{free_bytes, fmt::format("{} free of {} on {}", format_bytes(free_bytes),
+                                              format_bytes(total_bytes), name_)};
+#endif
+}
+
 void CudaBackend::deallocate(void* p) noexcept {
   // cudaFree waits for the device; it fails only for a context that is already broken.
   static_cast<void>(cudaFree(p));

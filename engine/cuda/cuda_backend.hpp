@@ -94,6 +94,8 @@ class CudaBackend final : public Backend {
 
   void* allocate(size_t bytes) override;
   void deallocate(void* p) noexcept override;
+  // The device's free memory (cudaMemGetInfo); in the emulation the host's, which it allocates.
+  MemoryBudget memory_budget() const override;
   void upload(void* dst, const void* host_src, size_t bytes) override;
   void download(void* host_dst, const void* src, size_t bytes) override;
   void fill_zero(void* dst, size_t bytes) override;

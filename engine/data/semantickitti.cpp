@@ -12,6 +12,7 @@
 #include "core/eigen.hpp"
 #include "core/error.hpp"
 #include "core/io.hpp"
+#include "core/memory_budget.hpp"
 
 namespace pillarseg {
 
@@ -72,9 +73,26 @@ bool blank(std::string_view s) {
   return std::all_of(s.begin(), s.end(), [](unsigned char c) { return std::isspace(c); });
 }
 
+// A file of fixed-size records, its size known before it is read: the record count checked
+// against the 32-bit point indices, and the `bytes_in_memory` each record takes while it is read
+// against the host's memory. A file that cannot be stat'ed passes: reading it says why.
+void require_records(const fs::path& path, size_t record_bytes, uint64_t bytes_in_memory, const char* records) {
+  std::error_code error;
+  const uintmax_t size = fs::file_size(path, error);
+  if (error) return;
+  const uint64_t count = size / record_bytes;
+  PS_CHECK(count < static_cast<uint64_t>(kMaxInt32Index),
+           "{}: {} bytes are {} {}, which overflows the 32-bit point indices (at most {} a scan)", path.string(),
+           size, count, records, kMaxInt32Index - 1);
+  require_memory(checked_product({static_cast<int64_t>(count), static_cast<int64_t>(bytes_in_memory)}, path.string()),
+                 fmt::format("{}: reading its {} {} ({} bytes)", path.string(), count, records, size));
+}
+
 }  // namespace
 
 std::vector<uint32_t> read_labels(const fs::path& label_path) {
+  // The file's bytes and the labels.
+  require_records(label_path, sizeof(uint32_t), 2 * sizeof(uint32_t), "labels");
   const std::vector<char> bytes = read_file_bytes(label_path);
   PS_CHECK(bytes.size() % 4 == 0, "{}: size {} bytes is not a multiple of 4 (uint32 labels)", label_path.string(),
            bytes.size());
@@ -84,13 +102,13 @@ std::vector<uint32_t> read_labels(const fs::path& label_path) {
 }
 
 Scan read_scan(const fs::path& bin_path, const std::optional<fs::path>& label_path) {
+  // The file's bytes and the scan's points (the labels' own check follows in read_labels).
+  require_records(bin_path, sizeof(Point), 2 * sizeof(Point) + (label_path ? 2 * sizeof(uint32_t) : 0), "points");
   const std::vector<char> bytes = read_file_bytes(bin_path);
   PS_CHECK(bytes.size() % sizeof(Point) == 0,
            "{}: size {} bytes is not a multiple of 16 (x y z reflectance float32 records); truncated file?",
            bin_path.string(), bytes.size());
   const size_t n = bytes.size() / sizeof(Point);
-  std::vector<Point> raw(n);
-  if (n) std::memcpy(raw.data(), bytes.data(), bytes.size());
 
   std::vector<uint32_t> raw_labels;
   if (label_path) {
@@ -103,11 +121,13 @@ Scan read_scan(const fs::path& bin_path, const std::optional<fs::path>& label_pa
   scan.points.reserve(n);
   if (label_path) scan.labels.reserve(n);
   for (size_t i = 0; i < n; ++i) {
-    if (!finite_point(raw[i])) {
+    Point p;
+    std::memcpy(&p, bytes.data() + i * sizeof(Point), sizeof(Point));
+    if (!finite_point(p)) {
       ++scan.dropped_nonfinite;
       continue;
     }
-    scan.points.push_back(raw[i]);
+    scan.points.push_back(p);
     if (label_path) scan.labels.push_back(raw_labels[i]);
   }
   if (scan.dropped_nonfinite)

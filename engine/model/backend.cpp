@@ -121,6 +121,8 @@ void Backend::copy_channels_half(const HRef&, int, HRef&) {
   PS_FAIL("backend {}: no 16-bit activations (supports_precision)", name());
 }
 
+MemoryBudget Backend::memory_budget() const { return host_memory_budget(); }
+
 void Arena::reserve(size_t bytes) {
   measuring_ = false;
   if (bytes <= capacity_ && base_) return;

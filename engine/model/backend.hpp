@@ -15,6 +15,7 @@
 #include "core/error.hpp"
 #include "core/eigen.hpp"
 #include "core/grid.hpp"
+#include "core/memory_budget.hpp"
 #include "core/replicas.hpp"
 #include "core/tensor.hpp"
 
@@ -103,6 +104,10 @@ class Backend {
   virtual void download(void* host_dst, const void* src, size_t bytes) = 0;
   virtual void fill_zero(void* dst, size_t bytes) = 0;
   virtual void synchronize() {}
+  // What allocate() may still take, for the size checks made before planning (the model's and
+  // the input pipeline's): the host's memory (core/memory_budget.hpp) unless the backend has
+  // memory of its own; PILLARSEG_MEMORY_LIMIT replaces it on every backend.
+  virtual MemoryBudget memory_budget() const;
   // Waits for the work queued so far, then reads the backend's clock, in ms from an arbitrary
   // origin (stage timing): the host's steady clock here, CUDA events on the CUDA backend.
   virtual double clock_ms();

@@ -5,6 +5,8 @@
 #include <cmath>
 
 #include "core/error.hpp"
+#include "core/memory_budget.hpp"
+#include "engine/model/memory_estimate.hpp"
 
 namespace pillarseg {
 
@@ -37,6 +39,17 @@ void ModelConfig::validate() const {
     return std::abs(n - std::round(n)) < 1e-6 && n >= 1;
   };
   PS_CHECK(grid.cell > 0, "grid.cell must be > 0, got {}", grid.cell);
+  // Cells and layers along each axis are ints (GridSpec::width() etc.): checked before they are
+  // rounded (a span that is not a number fails the whole-multiple checks below).
+  const auto axis = [](double span, double step, const char* name, const char* range) {
+    const double n = span / step;
+    PS_CHECK(!(step > 0 && n > static_cast<double>(kMaxInt32Index)),
+             "grid: {} / {} m = {:.4g} {} overflows the 32-bit cell indices (at most {})", range, step, n, name,
+             kMaxInt32Index);
+  };
+  axis(grid.x_max - grid.x_min, grid.cell, "cells along x", "the x range");
+  axis(grid.y_max - grid.y_min, grid.cell, "cells along y", "the y range");
+  axis(grid.z_max - grid.z_min, grid.voxel_z, "layers", "the z range");
   PS_CHECK(multiple(grid.x_max - grid.x_min, grid.cell) && multiple(grid.y_max - grid.y_min, grid.cell),
            "grid: x and y ranges must be positive whole multiples of the cell size {}", grid.cell);
   PS_CHECK(multiple(grid.z_max - grid.z_min, grid.voxel_z), "grid: the z range must be a whole multiple of voxel_z {}",
@@ -44,14 +57,21 @@ void ModelConfig::validate() const {
   PS_CHECK(max_points_per_pillar >= 1, "model.max_points_per_pillar must be >= 1, got {}", max_points_per_pillar);
   PS_CHECK(max_pillars >= 0, "model.max_pillars must be >= 0 (0 keeps all), got {}", max_pillars);
   PS_CHECK(pillar_channels >= 1 && occupancy_channels >= 1, "model: channel counts must be >= 1");
+  require_int32_count({int64_t{pillar_channels} + occupancy_channels + 6},
+                      fmt::format("model.pillar_channels {} + occupancy_channels {} + 6", pillar_channels,
+                                  occupancy_channels),
+                      "channel counts");
   PS_CHECK(input_channels() > 0, "model: no input stream enabled (pillars, occupancy or grid_map)");
   PS_CHECK(base_width >= 2 && base_width % 2 == 0, "model.base_width must be even and >= 2, got {}", base_width);
   PS_CHECK(depth >= 1 && depth <= 6, "model.depth must be in 1..6, got {}", depth);
+  require_int32_count({base_width, int64_t{1} << depth},
+                      fmt::format("model.base_width {} x 2^depth {}", base_width, depth), "channel counts");
   PS_CHECK(num_classes == 12, "model.num_classes must be 12 (the class table), got {}", num_classes);
   const int min_side = 1 << depth;
   PS_CHECK(grid.width() >= min_side && grid.height() >= min_side,
            "grid {}x{} is too small for a U-Net of depth {} (needs at least {} cells a side)", grid.width(),
            grid.height(), depth, min_side);
+  check_index_limits(*this, 1);
 }
 
 GridSpec grid_from_yaml(const YAML::Node& node, const std::string& source) {

@@ -15,6 +15,7 @@
 #include "core/error.hpp"
 #include "core/ops.hpp"
 #include "engine/model/graph.hpp"
+#include "engine/model/memory_estimate.hpp"
 
 namespace pillarseg {
 
@@ -269,6 +270,9 @@ class Builder {
 PillarSegNet::PillarSegNet(const ModelConfig& config, Backend& backend, uint64_t seed)
     : config_(config), backend_(backend), params_(backend), impl_(std::make_unique<Impl>()) {
   config_.validate();
+  // The least any use of the model needs (an evaluation forward of one sample), before the
+  // parameters are allocated; each plan is checked again, exactly, before its block is.
+  check_model_memory(config_, 1, /*training=*/false, backend_.memory_budget());
   Impl& m = *impl_;
   ParameterSet& ps = params_;
   const auto declare_bn = [&](const std::string& prefix, int channels, float eps, float momentum) {
@@ -947,8 +951,24 @@ void PillarSegNet::plan(int batch, bool training) {
   GraphPlan& p = training ? m.train : m.eval;
   if (!p.built() || p.batch != batch || p.pillar_capacity != m.pillar_capacity) {
     const bool batch_changed = p.batch != batch;
+    check_index_limits(config_, batch);
     build_graph(p, batch, training);
     const size_t bytes = p.graph.plan();
+    p.batch = -1;  // planned again at the next call unless this one places the graph
+    // The block is allocated after the one held is released.
+    const size_t held = p.arena ? p.arena->capacity() : 0;
+    if (bytes > held) {
+      MemoryBudget budget = backend_.memory_budget();
+      if (held > 0) {
+        budget.bytes = budget.bytes > ~uint64_t{0} - held ? ~uint64_t{0} : budget.bytes + held;
+        budget.description += fmt::format(", and the {} of the model's previous plan", format_bytes(held));
+      }
+      require_memory(bytes,
+                     fmt::format("the {} of PillarSegNet on a {} x {} grid (batch {}, {} pillar rows)",
+                                 training ? "training step" : "evaluation forward", config_.grid.width(),
+                                 config_.grid.height(), batch, m.pillar_capacity),
+                     budget);
+    }
     // Kept while the batch size stays, so that switching between training and eval does not
     // allocate; another batch size (or a new pillar capacity) plans again.
     if (!p.arena) p.arena = std::make_unique<Arena>(backend_);
@@ -956,6 +976,7 @@ void PillarSegNet::plan(int batch, bool training) {
     p.arena->reserve(bytes);
     p.arena->reset();
     p.base = p.arena->take<uint8_t>({static_cast<int64_t>(bytes)}).data;
+    p.batch = batch;
     ++m.memory_generation;  // every Ref of the plan may have moved
     if (!training) m.eval_graph.reset();
   }
@@ -973,9 +994,13 @@ void PillarSegNet::plan_pillars(int64_t pillars) {
   Impl& m = *impl_;
   if (!config_.pillar_input) return;
   if (pillars > m.pillar_capacity) {
+    // The PFN's point rows (pillars x N) are int32 (kernels/pfn.cu), and so are pillar ids.
+    const int64_t N = config_.max_points_per_pillar;
+    require_int32_count({pillars, N}, fmt::format("{} pillars x {} points a pillar", pillars, N),
+                        "point rows of the PFN");
     m.eval_graph.reset();  // it names the old buffers
     // Grow with headroom so that a slowly rising pillar count does not re-plan every batch.
-    m.pillar_capacity = std::max<int64_t>(pillars + pillars / 4, 1024);
+    m.pillar_capacity = std::min(std::max<int64_t>(pillars + pillars / 4, 1024), kMaxInt32Index / N);
     m.padding_cells.assign(static_cast<size_t>(m.pillar_capacity) * 3, -1);
   }
 }

@@ -4,6 +4,7 @@
 #include <cstring>
 
 #include "core/error.hpp"
+#include "core/memory_budget.hpp"
 
 namespace pillarseg {
 
@@ -45,16 +46,27 @@ ScanPipeline::ScanPipeline(const ModelConfig& config, Backend& backend, bool ray
 bool ScanPipeline::reserve(int64_t points) {
   PS_CHECK(points >= 0, "scan pipeline: a scan has >= 0 points, given {}", points);
   if (points <= capacity_) return false;
+  // Point indices are int32 in every op (the gather keeps kMaxInt32Index itself out of range).
+  PS_CHECK(points < kMaxInt32Index, "a scan of {} points overflows the 32-bit point indices (at most {} points)",
+           points, kMaxInt32Index - 1);
   // Headroom so that scans growing by a few points do not re-plan (and record) every time.
-  const int64_t capacity = std::max<int64_t>(points + points / 4, 4096);
+  const int64_t capacity = std::min(std::max<int64_t>(points + points / 4, 4096), kMaxInt32Index - 1);
   const GridSpec& grid = config_.grid;
   const int64_t rows = config_.pillar_input ? pillar_rows(capacity, grid, config_.max_pillars) : 0;
   const int64_t N = config_.max_points_per_pillar;
   Arena& a = *arena_;
   a.release();
+  capacity_ = -1, gather_rows_ = 0;  // nothing is reserved until this call completes
+  ++buffer_generation_;
   a.begin_measure();
   for (int pass = 0; pass < 2; ++pass) {
     if (pass == 1) {
+      // The buffers, and the gather's working memory in the backend (about 8 int32 a point and
+      // 2 a cell, kernels/pillar_gather.cuh).
+      const uint64_t workspace = checked_product({4, 8 * capacity + 2 * grid.cells()}, "the gather's workspace");
+      require_memory(checked_sum({a.used(), workspace}, "the scan buffers"),
+                     fmt::format("a scan of {} points (buffers for {} points, {} pillar rows)", points, capacity, rows),
+                     backend_.memory_budget());
       a.reserve(a.used());
       a.reset();
     }

@@ -40,9 +40,13 @@ class ScanPipeline {
   ScanPipeline(const ModelConfig& config, Backend& backend, bool ray_counts = false);
 
   // Buffers for scans of up to `points` points (they grow with headroom, never shrink); true when
-  // they moved, which invalidates anything recorded on them.
+  // they moved, which invalidates anything recorded on them. Throws pillarseg::Error, before
+  // allocating, for more points than the 32-bit point indices hold or the backend's memory
+  // (Backend::memory_budget()) takes; the buffers are then released (capacity() -1).
   bool reserve(int64_t points);
   int64_t capacity() const { return capacity_; }
+  // Changes whenever the buffers move (or are released), so that a recording on them is stale.
+  int64_t buffer_generation() const { return buffer_generation_; }
   // R for the capacity: the gather's rows.
   int64_t gather_rows() const { return gather_rows_; }
 
@@ -83,6 +87,7 @@ class ScanPipeline {
   Backend& backend_;
   bool needs_ray_counts_;
   int64_t capacity_ = -1, gather_rows_ = 0;
+  int64_t buffer_generation_ = 0;
   std::unique_ptr<Arena> arena_;
   Ref points_;
   IRef num_points_, cell_, point_index_, count_, num_pillars_;

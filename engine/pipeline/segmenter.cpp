@@ -90,7 +90,7 @@ void ScanSegmenter::segment(std::span<const Point> points, uint8_t* labels, floa
 
   if (be.supports_capture() && !time_stages_) {
     Recording& r = recordings_[with_probabilities ? 1 : 0];
-    const bool current = r.graph && r.graph->valid() && r.capacity == pipeline_.capacity() &&
+    const bool current = r.graph && r.graph->valid() && r.buffer_generation == pipeline_.buffer_generation() &&
                          r.model_generation == net_->memory_generation();
     if (current) {
       r.graph->replay();
@@ -100,7 +100,7 @@ void ScanSegmenter::segment(std::span<const Point> points, uint8_t* labels, floa
       r.graph.reset();
       queue_recordable(with_probabilities);
       r.graph = be.capture([&] { queue_recordable(with_probabilities); });
-      r.capacity = pipeline_.capacity();
+      r.buffer_generation = pipeline_.buffer_generation();
       r.model_generation = net_->memory_generation();
     }
   } else {

@@ -81,7 +81,7 @@ class ScanSegmenter {
   // The recorded pipelines, without and with the probabilities, and what they were recorded on.
   struct Recording {
     std::unique_ptr<CapturedGraph> graph;
-    int64_t capacity = -1, model_generation = -1;
+    int64_t buffer_generation = -1, model_generation = -1;  // the pipeline's and the model's
   };
   std::array<Recording, 2> recordings_;
 };

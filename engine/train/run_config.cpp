@@ -4,6 +4,7 @@
 
 #include "core/error.hpp"
 #include "core/io.hpp"
+#include "engine/model/memory_estimate.hpp"
 
 namespace pillarseg {
 
@@ -147,6 +148,11 @@ RunConfig run_config_from_yaml(const YAML::Node& root, const std::string& yaml_t
   c.model = model_config_from_yaml(root, source);
   read_train(root["train"] ? root["train"] : YAML::Node(YAML::NodeType::Map), ClassTable::defaults(), source,
              c.train);
+  try {
+    check_index_limits(c.model, c.train.batch_size);
+  } catch (const Error& e) {
+    PS_FAIL("{}: train.batch_size {}: {}", source, c.train.batch_size, e.what());
+  }
   if (const YAML::Node e = root["eval"]) {
     for (const auto& kv : e) {
       const std::string key = kv.first.as<std::string>();

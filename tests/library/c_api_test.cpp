@@ -5,6 +5,8 @@
 // PyTorch opened without a config.
 #include <gtest/gtest.h>
 
+#include <cstdint>
+#include <cstdlib>
 #include <cstring>
 #include <filesystem>
 #include <fstream>
@@ -263,6 +265,34 @@ TEST(CApi, BadSegmentArgumentsAreMessages) {
   EXPECT_EQ(width, 0);
   EXPECT_EQ(height, 0);
   EXPECT_STREQ(pillarseg_device_name(nullptr), "");
+}
+
+// Point counts too large for the 32-bit point indices or for the memory are refused before a point
+// is read (the buffers here hold 10): an error message, then the segmenter works as before.
+TEST(CApi, PointCountsBeyondTheIndicesOrTheMemoryAreMessages) {
+  pillarseg_segmenter* s = open_tiny();
+  ASSERT_NE(s, nullptr);
+  std::vector<uint8_t> labels(64 * 32);
+  const std::vector<float> xyzr = tiny_scan(10, 7);
+  char error[512];
+  EXPECT_NE(pillarseg_segment(s, xyzr.data(), SIZE_MAX / 8, labels.data(), nullptr, error, sizeof error), 0);
+  EXPECT_NE(std::string(error).find("pillarseg_segment: 2305843009213693951 points overflow the 32-bit point "
+                                    "indices (at most 2147483646 a scan)"),
+            std::string::npos)
+      << error;
+  setenv("PILLARSEG_MEMORY_LIMIT", "256M", 1);
+  EXPECT_NE(pillarseg_segment(s, xyzr.data(), size_t{1} << 30, labels.data(), nullptr, error, sizeof error), 0);
+  unsetenv("PILLARSEG_MEMORY_LIMIT");
+  EXPECT_NE(std::string(error).find("pillarseg_segment: a scan of 1073741824 points (buffers for 1342177280 "
+                                    "points, "),
+            std::string::npos)
+      << error;
+  EXPECT_NE(std::string(error).find("would need "), std::string::npos) << error;
+  EXPECT_NE(std::string(error).find("more than the 256.0 MiB of memory available (PILLARSEG_MEMORY_LIMIT=256M)"),
+            std::string::npos)
+      << error;
+  EXPECT_EQ(pillarseg_segment(s, xyzr.data(), 10, labels.data(), nullptr, error, sizeof error), 0) << error;
+  pillarseg_close(s);
 }
 
 TEST(CApi, SegmentersOnSeveralThreadsGiveTheirSingleThreadResults) {
