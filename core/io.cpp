@@ -58,11 +58,6 @@ const std::string& host_tag() {
   return tag;
 }
 
-std::string cause(int err) {
-  if (err == ENOSPC || err == EDQUOT) return "no space left on device (the file system or the quota is full)";
-  return std::strerror(err);
-}
-
 // A stream buffer on a file descriptor that writes with ::write, keeps the first error's errno
 // and then refuses further output (the stream goes bad), and reaches the fault point
 // "write:NAME" after each batch of bytes that reached the file.
@@ -125,7 +120,7 @@ void sync_directory(const fs::path& dir, const fs::path& target) {
   const int rc = ::fsync(fd);
   const int err = errno;
   ::close(fd);
-  PS_CHECK(rc == 0 || err == EINVAL, "{}: cannot sync its directory: {}", target.string(), cause(err));
+  PS_CHECK(rc == 0 || err == EINVAL, "{}: cannot sync its directory: {}", target.string(), write_error_cause(err));
 }
 
 // Whether `pid` names a process that can still write: one that exists (or that we may not
@@ -143,6 +138,11 @@ bool process_runs(pid_t pid) {
 
 }  // namespace
 
+std::string write_error_cause(int err) {
+  if (err == ENOSPC || err == EDQUOT) return "no space left on device (the file system or the quota is full)";
+  return std::strerror(err);
+}
+
 void write_file_atomic(const fs::path& path, const std::function<void(std::ostream&)>& write, Durability durability) {
   static std::atomic<uint64_t> counter{0};
   if (path.has_parent_path()) {
@@ -153,7 +153,7 @@ void write_file_atomic(const fs::path& path, const std::function<void(std::ostre
   }
   const fs::path tmp = fmt::format("{}.tmp-{}-{}-{}", path.string(), host_tag(), ::getpid(), counter.fetch_add(1));
   const int fd = ::open(tmp.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC, 0666);
-  PS_CHECK(fd >= 0, "{}: cannot create {}: {}", path.string(), tmp.string(), cause(errno));
+  PS_CHECK(fd >= 0, "{}: cannot create {}: {}", path.string(), tmp.string(), write_error_cause(errno));
   bool open = true;
   try {
     int err = 0;
@@ -164,13 +164,13 @@ void write_file_atomic(const fs::path& path, const std::function<void(std::ostre
       out.flush();
       err = buffer.error();
       PS_CHECK(err == 0 && out.good(), "{}: cannot write it: {}; the file is unchanged", path.string(),
-               err != 0 ? cause(err) : std::string("the stream failed"));
+               err != 0 ? write_error_cause(err) : std::string("the stream failed"));
     }
     if (durability == Durability::kPowerLoss && ::fsync(fd) != 0)
-      PS_FAIL("{}: cannot sync it to disk: {}; the file is unchanged", path.string(), cause(errno));
+      PS_FAIL("{}: cannot sync it to disk: {}; the file is unchanged", path.string(), write_error_cause(errno));
     const int closed = ::close(fd);
     open = false;  // whatever close returned: the descriptor is released
-    PS_CHECK(closed == 0, "{}: cannot write it (close): {}; the file is unchanged", path.string(), cause(errno));
+    PS_CHECK(closed == 0, "{}: cannot write it (close): {}; the file is unchanged", path.string(), write_error_cause(errno));
   } catch (...) {
     if (open) ::close(fd);
     std::error_code ignored;

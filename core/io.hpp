@@ -30,6 +30,10 @@ void write_file_atomic(const std::filesystem::path& path, const std::function<vo
 void write_file_atomic(const std::filesystem::path& path, const void* data, size_t size,
                        Durability durability = Durability::kProcess);
 
+// What a failed write's errno means for the user: "no space left on device (...)" for a full
+// file system or quota (ENOSPC, EDQUOT), else strerror's text.
+std::string write_error_cause(int err);
+
 // Removes the temporary files of write_file_atomic that a killed process left in `dir` (and its
 // subdirectories with `recursive`): those of this host whose process no longer runs. Another
 // host's, and a live process's, are kept (a shared cache directory). Returns how many it removed.

@@ -104,7 +104,7 @@ class MetricsLog {
     out_ << json << '\n';
     out_.flush();
     PS_CHECK(out_, "{}: cannot write the metrics log: {}", path_.string(),
-             errno == ENOSPC ? "no space left on device" : std::strerror(errno));
+             write_error_cause(errno));
   }
 
  private:

@@ -263,7 +263,7 @@ void EventWriter::scalar(const std::string& tag, std::int64_t step, double value
 void EventWriter::flush() {
   out_.flush();
   PS_CHECK(out_, "{}: cannot write the event file: {}", path_.string(),
-           errno == ENOSPC ? "no space left on device" : std::strerror(errno));
+           write_error_cause(errno));
 }
 
 }  // namespace pillarseg
