@@ -126,10 +126,11 @@ void run_bench(const BenchArgs& a) {
       if (r > 0) steady.push_back(replay_ms);
     }
   }
-  int64_t host_bytes = 0;
-  if (backend.device() != Device::Cpu) host_bytes = host_inputs_bytes(segmenter, read_scan(scan_path));
+  const Scan scan = read_scan(scan_path);  // for the checks below, before the scratch folder goes
   std::error_code ec;
   fs::remove_all(scratch, ec);
+  int64_t host_bytes = 0;
+  if (backend.device() != Device::Cpu) host_bytes = host_inputs_bytes(segmenter, scan);
   fmt::print("pillarseg bench: device {}, precision {}, {} threads, grid {} x {}, C {}, b {}, {} upsampling, "
              "occupancy {}{}\n",
              backend.name(), precision_name(segmenter.net().precision()), num_threads(), model.grid.width(), model.grid.height(), model.pillar_channels,
@@ -163,7 +164,6 @@ void run_bench(const BenchArgs& a) {
     fp32_options.precision = Precision::F32;
     ScanSegmenter reference(model, make_backend(options.device, options.backend), fp32_options);
     if (!a.weights.empty()) load_weights(read_checkpoint(a.weights), reference.net(), false);
-    const Scan scan = read_scan(scan_path);
     const int64_t cells = model.grid.cells();
     Tensor<uint8_t> half_labels({model.grid.height(), model.grid.width()}), fp32_labels(half_labels.shape());
     Tensor<float> half_probs({12, model.grid.height(), model.grid.width()}), fp32_probs(half_probs.shape());
