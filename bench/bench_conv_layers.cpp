@@ -53,7 +53,9 @@ struct LayerResult {
   std::string name, shape;
   double gflop = 0.0;
   StepTimes ours, reference, torch;  // ours: the CPU backend's fast path; reference: host/
-  StepTimes bf16;                    // ours in BF16 (engine/cpu/bf16_conv), where the CPU has it
+  StepTimes bf16;                    // ours in BF16 (engine/cpu/bf16_conv), where the CPU has it:
+                                     // the direct micro-kernel
+  StepTimes bf16_winograd;           // and Winograd F(2x2, 3x3), the model's choice
 };
 std::vector<LayerResult> g_layers;
 std::string g_layer_peer_note;
@@ -138,6 +140,7 @@ void BM_Conv3x3(benchmark::State& state, const Layer& l) {
   std::vector<float> bias16(static_cast<size_t>(l.out));
   HRef w16_ref{w16.data(), op::half16_conv_weights(weight, false)}, x16_ref{x16.data(), x.shape()};
   Ref bias16_ref{bias16.data(), {l.out}};
+  cpu::Bf16WinogradWorkspace bf16_workspace;
   if (bf16) {
     cpu::prepare_conv_weights(Ref{w.data(), weight}, &bias_ref, nullptr, Precision::BF16, w16_ref,
                               bias16_ref);
@@ -149,7 +152,7 @@ void BM_Conv3x3(benchmark::State& state, const Layer& l) {
   PeerProcess* peer = conv_peer() && conv_peer()->ok() ? &*conv_peer() : nullptr;
   const std::string command = fmt::format("conv3x3 {}:{}:{}:{}", l.in, l.out, l.h, l.w);
   LayerResult r{
-      l.name, fmt::format("{} -> {} @ {}x{}", l.in, l.out, l.h, l.w), l.flops() * 1e-9, {}, {}, {}, {}};
+      l.name, fmt::format("{} -> {} @ {}x{}", l.in, l.out, l.h, l.w), l.flops() * 1e-9, {}, {}, {}, {}, {}};
   int64_t pair = 0;
   for (auto _ : state) {
     // The order alternates so that a load rising or falling through the run weighs on both.
@@ -168,6 +171,11 @@ void BM_Conv3x3(benchmark::State& state, const Layer& l) {
       time_once(r.bf16, [&] {
         cpu::conv2d_forward(cpu::Bf16Kernels::Avx512, x16_ref, w16_ref, bias16_ref, weight, 1, false,
                             ActRef{y16.data(), y.shape(), true});
+        benchmark::DoNotOptimize(y16.data());
+      });
+      time_once(r.bf16_winograd, [&] {
+        cpu::conv3x3_winograd_forward(cpu::Bf16Kernels::Avx512, x16_ref, w16_ref, bias16_ref, weight, false,
+                                      ActRef{y16.data(), y.shape(), true}, bf16_workspace);
         benchmark::DoNotOptimize(y16.data());
       });
     }
@@ -222,23 +230,25 @@ void print_gemm_and_layers() {
       "rate by wall and by CPU time (GFLOP: the direct convolution's 2 O I 9 h w, so Winograd's "
       "fewer multiplies show as a higher rate); the host/ reference (im2col + GEMM) ms; PyTorch's "
       "nn.Conv2d run in turn, and the median step ratio ours / torch (wall, CPU); ours in BF16 "
-      "(AVX512_BF16 micro-kernel, BF16 in and out) ms and fp32 ms / bf16 ms:\n",
+      "(BF16 in and out, AVX512_BF16: the direct micro-kernel, and Winograd F(2x2, 3x3) as the model runs "
+      "it) ms and fp32 ms / Winograd bf16 ms:\n",
       num_threads(), options().layer_reps, num_threads());
   fmt::print(
       "  {:<30} {:>22} {:>7} {:>7} {:>7} {:>8} {:>6} {:>6} | {:>7} | {:>8} {:>7} | {:>5} {:>5} | {:>7} {:>5}\n",
       "layer", "I -> O @ h x w", "ms", "GFLOP/s", "CPU ms", "GF/cpu-s", "%wall", "%CPU", "ref ms",
-      "torch ms", "CPU ms", "wall", "CPU", "bf16 ms", "x");
+      "torch ms", "CPU ms", "wall", "CPU", "bf16 ms", "wino ms", "x");
   for (const LayerResult& l : g_layers) {
     const double wall_rate = l.gflop / l.ours.wall_median(),
                  cpu_rate = l.gflop / l.ours.cpu_median();
     fmt::print(
         "  {:<30} {:>22} {:>7.0f} {:>7.1f} {:>7.0f} {:>8.1f} {:>6} {:>6} | {:>7.0f} | {:>8} {:>7} "
-        "| {:>5} {:>5} | {:>7} {:>5}\n",
+        "| {:>5} {:>5} | {:>7} {:>7} {:>5}\n",
         l.name, l.shape, l.ours.wall_median() * 1e3, wall_rate, l.ours.cpu_median() * 1e3, cpu_rate,
         share(wall_rate, false), share(cpu_rate, true), l.reference.wall_median() * 1e3,
         fixed(wall_ms(l.torch), 0),
         fixed(cpu_ms(l.torch), 0), ratio(l.ours.wall, l.torch.wall),
-        ratio(l.ours.cpu, l.torch.cpu), fixed(wall_ms(l.bf16), 0), ratio(l.ours.wall, l.bf16.wall));
+        ratio(l.ours.cpu, l.torch.cpu), fixed(wall_ms(l.bf16), 0), fixed(wall_ms(l.bf16_winograd), 0),
+        ratio(l.ours.wall, l.bf16_winograd.wall));
   }
   if (!g_layer_peer_note.empty()) fmt::print("  PyTorch: {}\n", g_layer_peer_note);
   if (!g_bf16_note.empty()) fmt::print("  BF16: not run: {}\n", g_bf16_note);

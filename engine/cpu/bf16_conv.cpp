@@ -12,6 +12,7 @@
 #include "core/parallel.hpp"
 #include "engine/cpu/bf16_isa_emulated.hpp"
 #include "engine/cpu/bf16_microkernel.hpp"
+#include "engine/cpu/bf16_winograd.hpp"
 #include "weights_io/half.hpp"
 
 namespace pillarseg::cpu {
@@ -172,6 +173,79 @@ void conv2d_forward(Bf16Kernels kernels, const HRef& x, const HRef& w16, const R
   g.rows = y_shape[2], g.row_pixels = y_shape[3];
   g.out_height = y_shape[2], g.out_width = y_shape[3], g.out_planes = y_shape[1];
   run_gemm(kernels, g);
+}
+
+void conv3x3_winograd_forward(Bf16Kernels kernels, const HRef& x, const HRef& w16,
+                              const Ref& bias_out, const Shape& weight, bool relu, const ActRef& y,
+                              Bf16WinogradWorkspace& workspace) {
+  const char* op = "CpuBackend::conv2d_half_forward (Winograd)";
+  PS_CHECK(weight.size() == 4 && weight[2] == 3 && weight[3] == 3,
+           "{}: needs a 3 x 3 kernel, got {}", op, shape_str(weight));
+  const Shape y_shape = op::conv2d(x.shape, weight, 1, nullptr, op);
+  require_output(op, y, y_shape);
+  require_shape(op, "w16", w16, op::half16_conv_weights(weight, false));
+  require_shape(op, "bias_out", bias_out, {weight[0]});
+  if (kernels == Bf16Kernels::Avx512) {
+    std::string why;
+    PS_CHECK(avx512_bf16_available(&why), "BF16 convolutions on the CPU: {}", why);
+  }
+  const std::int64_t out = weight[0], in = weight[1], pairs = (in + 1) / 2, kp = w16.dim(1);
+  // U[p][o][c / 2][c % 2] = (G g G^T)[p] of the prepared BF16 kernel g of (o, c), in double,
+  // rounded once; zero for the partner of an odd channel count.
+  workspace.u.resize(static_cast<size_t>(16 * out * pairs * 2));
+  std::uint16_t* u = workspace.u.data();
+  parallel_for(out, [&](std::int64_t o) {
+    for (std::int64_t c = 0; c < 2 * pairs; ++c) {
+      double gg[4][3] = {};  // G g
+      if (c < in) {
+        double k[3][3];
+        for (int t = 0; t < 9; ++t)
+          k[t / 3][t % 3] = weights::bf16_bits_to_float(w16.data[o * kp + c * 9 + t]);
+        for (int b = 0; b < 3; ++b) {
+          gg[0][b] = k[0][b];
+          gg[1][b] = 0.5 * (k[0][b] + k[1][b] + k[2][b]);
+          gg[2][b] = 0.5 * (k[0][b] - k[1][b] + k[2][b]);
+          gg[3][b] = k[2][b];
+        }
+      }
+      for (int i = 0; i < 4; ++i) {
+        const double row[4] = {gg[i][0], 0.5 * (gg[i][0] + gg[i][1] + gg[i][2]),
+                               0.5 * (gg[i][0] - gg[i][1] + gg[i][2]), gg[i][2]};
+        for (int j = 0; j < 4; ++j) {
+          u[((static_cast<std::int64_t>(4 * i + j) * out + o) * pairs + c / 2) * 2 + c % 2] =
+              EmulatedBf16Isa::float_to_bf16(static_cast<float>(row[j]));
+        }
+      }
+    }
+  });
+  Bf16Winograd g;
+  g.x = x.data, g.batch = x.dim(0), g.channels = in, g.height = x.dim(2), g.width = x.dim(3);
+  g.channel_pairs = pairs, g.u = u, g.out_channels = out, g.bias = bias_out.data, g.relu = relu;
+  g.y = y.data, g.y_bf16 = y.half;
+  g.tiles_h = (g.height + 1) / 2, g.tiles_w = (g.width + 1) / 2;
+  // Blocks whose V (16 channel-pair rows of 4-byte pairs per tile) stays within 384 KiB of a
+  // core's L2, at least one 48-tile group, at most an image.
+  const std::int64_t tiles = g.tiles_h * g.tiles_w;
+  const std::int64_t fit = (384 << 10) / (16 * pairs * 4) / kWinogradGroupTiles;
+  g.block_tiles = std::min(std::max<std::int64_t>(fit, 1),
+                           (tiles + kWinogradGroupTiles - 1) / kWinogradGroupTiles) *
+                  kWinogradGroupTiles;
+  const int threads = std::max(num_threads(), 1);
+  g.v_stride = winograd_v_words(pairs, g.block_tiles);
+  g.m_stride = winograd_m_floats();
+  workspace.v.resize(static_cast<size_t>(threads * g.v_stride));
+  workspace.m.resize(static_cast<size_t>(threads * g.m_stride));
+  g.v = workspace.v.data(), g.m = workspace.m.data();
+  parallel_chunks(g.batch * winograd_blocks_per_image(g),
+                  [&](std::int64_t begin, std::int64_t end, int thread) {
+#if defined(PILLARSEG_HAVE_AVX512_BF16_KERNELS)
+                    if (kernels == Bf16Kernels::Avx512) {
+                      bf16_winograd_blocks_avx512(g, begin, end, thread);
+                      return;
+                    }
+#endif
+                    winograd_blocks<EmulatedBf16Isa>(g, begin, end, thread);
+                  });
 }
 
 void conv_transpose2x2_forward(Bf16Kernels kernels, const HRef& x, const HRef& w16,

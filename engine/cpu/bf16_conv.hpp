@@ -10,6 +10,7 @@
 
 #include <cstdint>
 #include <string>
+#include <vector>
 
 #include "core/tensor.hpp"
 #include "engine/model/backend.hpp"
@@ -37,6 +38,19 @@ void prepare_conv_transpose_weights(const Ref& w, const Ref* bias, Precision p, 
 // on the thread count.
 void conv2d_forward(Bf16Kernels kernels, const HRef& x, const HRef& w16, const Ref& bias_out,
                     const Shape& weight, int pad, bool relu, const ActRef& y);
+// Scratch of the Winograd convolution, kept by its owner (the CPU backend) between calls so that
+// the steady state allocates nothing: the transformed weights and each thread's blocks.
+struct Bf16WinogradWorkspace {
+  std::vector<std::uint16_t> u, v;
+  std::vector<float> m;
+};
+
+// The same convolution for 3 x 3 kernels with pad 1 by Winograd F(2x2, 3x3)
+// (bf16_winograd.hpp): x (B, I, H, W) BF16, the same w16 and bias_out -> y (B, O, H, W). The
+// transformed weights are computed from w16 on every call (w16 is prepared on every run).
+void conv3x3_winograd_forward(Bf16Kernels kernels, const HRef& x, const HRef& w16,
+                              const Ref& bias_out, const Shape& weight, bool relu, const ActRef& y,
+                              Bf16WinogradWorkspace& workspace);
 // x (B, I, H, W) BF16 -> y (B, O, 2H, 2W), the transposed 2x2 stride-2 convolution for `weight`
 // (I, O, 2, 2).
 void conv_transpose2x2_forward(Bf16Kernels kernels, const HRef& x, const HRef& w16,

@@ -1,4 +1,5 @@
-// The BF16 micro-kernel (bf16_microkernel.hpp) on AVX512_BF16: VDPBF16PS for the dot products,
+// The BF16 micro-kernel (bf16_microkernel.hpp) and the BF16 Winograd F(2x2, 3x3) convolution
+// (bf16_winograd.hpp) on AVX512_BF16: VDPBF16PS for the dot products,
 // VCVTNE(2)PS2BF16 for BF16 outputs, AVX512BW masked loads and stores for the image borders and
 // row ends. This file alone is built with -mavx512f -mavx512bw -mavx512vl -mavx512bf16 and
 // includes no library header: its functions are called only after the run-time check
@@ -9,6 +10,7 @@
 #include <cstdint>
 
 #include "engine/cpu/bf16_microkernel.hpp"
+#include "engine/cpu/bf16_winograd.hpp"
 
 namespace pillarseg::cpu {
 namespace {
@@ -45,6 +47,17 @@ struct Avx512Bf16Isa {
     const __m512i ab = _mm512_inserti64x4(_mm512_castsi256_si512(a), b, 1);
     return _mm512_permutexvar_epi16(_mm512_load_si512(kInterleaveWords), ab);
   }
+  static Pair load_words(const std::uint16_t* words) { return _mm512_loadu_si512(words); }
+  static Pair load_words_masked(const std::uint16_t* base, std::int64_t index, std::uint32_t mask) {
+    return _mm512_maskz_loadu_epi16(static_cast<__mmask32>(mask), at(base, index));
+  }
+  static Acc even_words(Pair a) { return _mm512_castsi512_ps(_mm512_slli_epi32(a, 16)); }
+  static Acc odd_words(Pair a) {
+    return _mm512_castsi512_ps(_mm512_and_si512(a, _mm512_set1_epi32(static_cast<int>(0xFFFF0000u))));
+  }
+  static Acc load_f32(const float* y) { return _mm512_loadu_ps(y); }
+  static Acc add(Acc a, Acc b) { return _mm512_add_ps(a, b); }
+  static Acc sub(Acc a, Acc b) { return _mm512_sub_ps(a, b); }
   static Pair broadcast_pair(const std::uint16_t* two) {
     std::uint32_t bits;
     __builtin_memcpy(&bits, two, sizeof(bits));
@@ -83,6 +96,11 @@ struct Avx512Bf16Isa {
 
 void bf16_gemm_rows_avx512(const Bf16Gemm& g, std::int64_t begin, std::int64_t end) {
   gemm_rows<Avx512Bf16Isa>(g, begin, end);
+}
+
+void bf16_winograd_blocks_avx512(const Bf16Winograd& g, std::int64_t begin, std::int64_t end,
+                                 int thread) {
+  winograd_blocks<Avx512Bf16Isa>(g, begin, end, thread);
 }
 
 }  // namespace pillarseg::cpu

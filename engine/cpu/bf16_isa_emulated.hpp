@@ -7,7 +7,7 @@
 //   VCVTNEPS2BF16 FP32 -> BF16 to nearest even; zero and denormal inputs give a signed zero,
 //                 infinities stay, NaNs stay NaN with the quiet bit set;
 //   masked loads  (vmovdqu16 with a zeroing mask) read only the lanes the mask names;
-//   the rest are plain moves, FP32 adds, max(v, 0) (NaN -> 0 as VMAXPS(v, 0) gives) and stores.
+//   the rest are plain moves, shifts and masks of words, FP32 adds and subtractions, max(v, 0) (NaN -> 0 as VMAXPS(v, 0) gives) and stores.
 // The AVX-512 implementation of the same interface is in bf16_conv_avx512.cpp.
 #pragma once
 
@@ -51,6 +51,46 @@ struct EmulatedBf16Isa {
       if ((second_mask >> i) & 1u) a.v[2 * i + 1] = base[second + i];
     }
     return a;
+  }
+  // The 32 words at `words` (16 pairs), a plain 64-byte load.
+  static Pair load_words(const std::uint16_t* words) {
+    Pair a;
+    for (int i = 0; i < 32; ++i) a.v[i] = words[i];
+    return a;
+  }
+  // Word i: base[index + i] where bit i of the 32-lane mask is set, else 0.
+  static Pair load_words_masked(const std::uint16_t* base, std::int64_t index, std::uint32_t mask) {
+    Pair a{};
+    for (int i = 0; i < 32; ++i)
+      if ((mask >> i) & 1u) a.v[i] = base[index + i];
+    return a;
+  }
+  // Lane i: the BF16 word 2 i (even) or 2 i + 1 (odd) as FP32 (a shift or a mask of dword i).
+  static Acc even_words(const Pair& a) {
+    Acc r;
+    for (int i = 0; i < 16; ++i) r.v[i] = std::bit_cast<float>(static_cast<std::uint32_t>(a.v[2 * i]) << 16);
+    return r;
+  }
+  static Acc odd_words(const Pair& a) {
+    Acc r;
+    for (int i = 0; i < 16; ++i)
+      r.v[i] = std::bit_cast<float>(static_cast<std::uint32_t>(a.v[2 * i + 1]) << 16);
+    return r;
+  }
+  static Acc load_f32(const float* y) {
+    Acc r;
+    for (int i = 0; i < 16; ++i) r.v[i] = y[i];
+    return r;
+  }
+  static Acc add(const Acc& a, const Acc& b) {
+    Acc r;
+    for (int i = 0; i < 16; ++i) r.v[i] = a.v[i] + b.v[i];
+    return r;
+  }
+  static Acc sub(const Acc& a, const Acc& b) {
+    Acc r;
+    for (int i = 0; i < 16; ++i) r.v[i] = a.v[i] - b.v[i];
+    return r;
   }
   static Pair broadcast_pair(const std::uint16_t* two) {
     Pair a;

@@ -177,51 +177,25 @@ void gemm_tile(const Bf16Gemm& g, std::int64_t b, std::int64_t row, std::int64_t
   }
 }
 
-template <class Isa, int NCO>
-void gemm_tile_pixels(const Bf16Gemm& g, std::int64_t b, std::int64_t row, std::int64_t n0,
-                      std::int64_t x0, std::int64_t vectors) {
-  switch (vectors) {
-    case 1:
-      gemm_tile<Isa, NCO, 1>(g, b, row, n0, x0);
-      break;
-    case 2:
-      gemm_tile<Isa, NCO, 2>(g, b, row, n0, x0);
-      break;
-    default:
-      gemm_tile<Isa, NCO, 3>(g, b, row, n0, x0);
-      break;
+// fn.template operator()<N>() for N = n, First <= n <= Last (n beyond Last as Last): the switch
+// from a run-time count to the register tiles' compile-time sizes.
+template <int First, int Last, class Fn>
+void with_count(std::int64_t n, Fn&& fn) {
+  if constexpr (First < Last) {
+    if (n > First) {
+      with_count<First + 1, Last>(n, fn);
+      return;
+    }
   }
+  fn.template operator()<First>();
 }
 
 template <class Isa>
 void gemm_tile_any(const Bf16Gemm& g, std::int64_t b, std::int64_t row, std::int64_t n0,
                    std::int64_t x0, std::int64_t columns, std::int64_t vectors) {
-  switch (columns) {
-    case 1:
-      gemm_tile_pixels<Isa, 1>(g, b, row, n0, x0, vectors);
-      break;
-    case 2:
-      gemm_tile_pixels<Isa, 2>(g, b, row, n0, x0, vectors);
-      break;
-    case 3:
-      gemm_tile_pixels<Isa, 3>(g, b, row, n0, x0, vectors);
-      break;
-    case 4:
-      gemm_tile_pixels<Isa, 4>(g, b, row, n0, x0, vectors);
-      break;
-    case 5:
-      gemm_tile_pixels<Isa, 5>(g, b, row, n0, x0, vectors);
-      break;
-    case 6:
-      gemm_tile_pixels<Isa, 6>(g, b, row, n0, x0, vectors);
-      break;
-    case 7:
-      gemm_tile_pixels<Isa, 7>(g, b, row, n0, x0, vectors);
-      break;
-    default:
-      gemm_tile_pixels<Isa, 8>(g, b, row, n0, x0, vectors);
-      break;
-  }
+  with_count<1, 8>(columns, [&]<int NCO>() {
+    with_count<1, 3>(vectors, [&]<int NPX>() { gemm_tile<Isa, NCO, NPX>(g, b, row, n0, x0); });
+  });
 }
 
 // Items [begin, end) (bf16_gemm_items): within one, the columns of its block eight at a time,

@@ -95,7 +95,12 @@ class CpuBackend final : public Backend {
   void conv2d_half_forward(const ActRef& x, const HRef& w16, const Ref& bias_out, const Shape& weight, int pad,
                            bool relu, Precision p, const ActRef& y) override {
     require_precision(p);
-    cpu::conv2d_forward(bf16_kernels_, half_input(x, p), w16, bias_out, weight, pad, relu, y);
+    if (weight[2] == 3 && weight[3] == 3 && pad == 1) {  // the U-Net's: Winograd F(2x2, 3x3)
+      cpu::conv3x3_winograd_forward(bf16_kernels_, half_input(x, p), w16, bias_out, weight, relu, y,
+                                    bf16_winograd_);
+    } else {
+      cpu::conv2d_forward(bf16_kernels_, half_input(x, p), w16, bias_out, weight, pad, relu, y);
+    }
   }
   void conv_transpose2x2_half_forward(const ActRef& x, const HRef& w16, const Ref& bias_out, const Shape& weight,
                                       Precision p, const ActRef& y) override {
@@ -470,6 +475,7 @@ class CpuBackend final : public Backend {
 
   bool fast_paths_;
   cpu::Bf16Kernels bf16_kernels_;
+  cpu::Bf16WinogradWorkspace bf16_winograd_;  // the BF16 3 x 3 convolutions' scratch
   std::vector<uint16_t> staging_;
   std::vector<float> transpose_dy_;  // conv_transpose2d_backward's copy of dy
   host::WinogradWorkspace winograd_;
