@@ -22,10 +22,6 @@ namespace {
 std::uint16_t to_bits(float v, Precision p) {
   return p == Precision::BF16 ? weights::float_to_bf16_bits(v) : weights::float_to_f16_bits(v);
 }
-float from_bits(std::uint16_t bits, Precision p) {
-  return p == Precision::BF16 ? weights::bf16_bits_to_float(bits)
-                              : weights::f16_bits_to_float(bits);
-}
 
 void require_half(const char* op, Precision p) {
   PS_CHECK(p == Precision::BF16 || p == Precision::F16,
@@ -283,22 +279,32 @@ void maxpool2x2_half(const HRef& x, Precision p, HRef& y) {
   require_half(op, p);
   require_shape(op, "y", y, op::maxpool2x2(x.shape, op));
   const std::int64_t h = x.dim(2), w = x.dim(3), oh = h / 2, ow = w / 2;
-  parallel_for(x.dim(0) * x.dim(1), [&](std::int64_t plane) {
-    for (std::int64_t oy = 0; oy < oh; ++oy) {
-      for (std::int64_t ox = 0; ox < ow; ++ox) {
-        const std::uint16_t* in = x.data + plane * h * w + 2 * oy * w + 2 * ox;
-        const std::uint16_t window[4] = {in[0], in[1], in[w], in[w + 1]};
-        std::uint16_t best_bits = window[0];
-        float best = from_bits(window[0], p);
-        for (int k = 1; k < 4; ++k) {
-          // The FP32 op's rule: a greater value, or NaN, replaces the best so far.
-          const float value = from_bits(window[k], p);
-          if (value > best || std::isnan(value)) best = value, best_bits = window[k];
+  // The 16-bit type as a template parameter, so that the conversions inline into the loop.
+  const auto pool = [&]<bool kBf16>() {
+    parallel_for(x.dim(0) * x.dim(1), [&](std::int64_t plane) {
+      for (std::int64_t oy = 0; oy < oh; ++oy) {
+        for (std::int64_t ox = 0; ox < ow; ++ox) {
+          const std::uint16_t* in = x.data + plane * h * w + 2 * oy * w + 2 * ox;
+          const std::uint16_t window[4] = {in[0], in[1], in[w], in[w + 1]};
+          std::uint16_t best_bits = window[0];
+          float best = kBf16 ? weights::bf16_bits_to_float(window[0])
+                             : weights::f16_bits_to_float(window[0]);
+          for (int k = 1; k < 4; ++k) {
+            // The FP32 op's rule: a greater value, or NaN, replaces the best so far.
+            const float value = kBf16 ? weights::bf16_bits_to_float(window[k])
+                                      : weights::f16_bits_to_float(window[k]);
+            if (value > best || std::isnan(value)) best = value, best_bits = window[k];
+          }
+          y.data[(plane * oh + oy) * ow + ox] = best_bits;
         }
-        y.data[(plane * oh + oy) * ow + ox] = best_bits;
       }
-    }
-  });
+    });
+  };
+  if (p == Precision::BF16) {
+    pool.template operator()<true>();
+  } else {
+    pool.template operator()<false>();
+  }
 }
 
 void upsample2x_half(const HRef& x, Precision p, HRef& y) {
@@ -329,22 +335,57 @@ void upsample2x_half(const HRef& x, Precision p, HRef& y) {
     return t;
   };
   const std::vector<Tap> rows = taps(in_h, out_h), cols = taps(in_w, out_w);
-  parallel_for(x.dim(0) * x.dim(1), [&](std::int64_t plane) {
-    const std::uint16_t* in = x.data + plane * in_h * in_w;
-    std::uint16_t* out = y.data + plane * out_h * out_w;
-    for (std::int64_t oy = 0; oy < out_h; ++oy) {
-      const Tap& r = rows[static_cast<size_t>(oy)];
-      const std::uint16_t* top = in + r.i0 * in_w;
-      const std::uint16_t* bottom = in + r.i1 * in_w;
-      for (std::int64_t ox = 0; ox < out_w; ++ox) {
-        const Tap& c = cols[static_cast<size_t>(ox)];
-        const float value =
-            r.w0 * (c.w0 * from_bits(top[c.i0], p) + c.w1 * from_bits(top[c.i1], p)) +
-            r.w1 * (c.w0 * from_bits(bottom[c.i0], p) + c.w1 * from_bits(bottom[c.i1], p));
-        out[oy * out_w + ox] = to_bits(value, p);
+  // The 16-bit type as a template parameter, so that the conversions inline into the loop.
+  const auto upsample = [&]<bool kBf16>() {
+    const auto value_of = [](std::uint16_t bits) {
+      return kBf16 ? weights::bf16_bits_to_float(bits) : weights::f16_bits_to_float(bits);
+    };
+    // Per plane: each input row interpolated along x once into FP32 (h_rows, the two a output
+    // row reads), then the rows along y, in the same expression tree as the CUDA kernel.
+    const int threads = std::max(num_threads(), 1);
+    std::vector<float> scratch(static_cast<size_t>(threads * 2 * out_w));
+    parallel_chunks(x.dim(0) * x.dim(1), [&](std::int64_t begin, std::int64_t end, int thread) {
+      float* h_top = scratch.data() + static_cast<std::int64_t>(thread) * 2 * out_w;
+      float* h_bottom = h_top + out_w;
+      const auto along_x = [&](const std::uint16_t* row, float* h) {
+        for (std::int64_t ox = 0; ox < out_w; ++ox) {
+          const Tap& c = cols[static_cast<size_t>(ox)];
+          h[ox] = c.w0 * value_of(row[c.i0]) + c.w1 * value_of(row[c.i1]);
+        }
+      };
+      for (std::int64_t plane = begin; plane < end; ++plane) {
+        const std::uint16_t* in = x.data + plane * in_h * in_w;
+        std::uint16_t* out = y.data + plane * out_h * out_w;
+        std::int64_t top_row = -1, bottom_row = -1;
+        for (std::int64_t oy = 0; oy < out_h; ++oy) {
+          const Tap& r = rows[static_cast<size_t>(oy)];
+          if (r.i0 != top_row) {
+            if (r.i0 == bottom_row) {
+              std::swap(h_top, h_bottom);
+              bottom_row = -1;
+            } else {
+              along_x(in + r.i0 * in_w, h_top);
+            }
+            top_row = r.i0;
+          }
+          if (r.i1 != bottom_row) {
+            along_x(in + r.i1 * in_w, h_bottom);
+            bottom_row = r.i1;
+          }
+          std::uint16_t* o = out + oy * out_w;
+          for (std::int64_t ox = 0; ox < out_w; ++ox) {
+            const float value = r.w0 * h_top[ox] + r.w1 * h_bottom[ox];
+            o[ox] = kBf16 ? weights::float_to_bf16_bits(value) : weights::float_to_f16_bits(value);
+          }
+        }
       }
-    }
-  });
+    });
+  };
+  if (p == Precision::BF16) {
+    upsample.template operator()<true>();
+  } else {
+    upsample.template operator()<false>();
+  }
 }
 
 void pad_concat_half(const HRef& skip, const HRef& up, HRef& y) {
