@@ -19,9 +19,11 @@
 // VCVTNEPS2BF16); U comes from the prepared BF16 weights (BatchNorm folded in) in double,
 // rounded once (bf16_conv.cpp); the 16 products M_p = sum_c U_p V_p are VDPBF16PS in FP32 over
 // the channel pairs in order; the output transform adds M in FP32 in a fixed order, then the bias
-// and the ReLU, and rounds once for a BF16 output. The transforms are plain C++ of adds and
-// halves only (no multiply that a compiler could contract into an FMA), so the two compilations
-// give the same bits, and the tests compare them bit for bit.
+// and the ReLU, and rounds once for a BF16 output. The transforms are the instruction
+// interface's adds and subtractions only (16 tiles a vector: two loads of 16 BF16 word pairs
+// give the four columns of a tile row, as shifted and masked words), with no multiply that a
+// compiler could contract into an FMA, so the two compilations give the same bits, and the tests
+// compare them bit for bit.
 //
 // Layout and blocking. The tiles of an image are taken in row-major order (ty, tx) in blocks of
 // `block_tiles` (a multiple of 48; the last block of an image may be shorter), each block by one
