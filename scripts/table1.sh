@@ -5,7 +5,7 @@
 # Sparse Train model on sparse and on dense ground truth and each Dense Train model on dense
 # (11 rows from 7 trainings, as configs/table1/paper_table1.tsv lists them), and prints Table I
 # with the paper's figures beside ours; the same goes to OUT_DIR/table1.md. At the defaults
-# (make demo's data set and model, 16 epochs) about an hour on 2 free CPU cores.
+# (make demo's data set and model, 16 epochs) about 35 minutes on 2 CPU cores (AMD EPYC Zen 4, 2026-12-02).
 # Usage: scripts/table1.sh PILLARSEG_BINARY OUT_DIR
 # Environment, for a quick run (a changed value needs a fresh OUT_DIR):
 #   TABLE1_EPOCHS     train every model this many epochs instead of its config's
