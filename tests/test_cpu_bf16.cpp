@@ -195,7 +195,8 @@ void expect_close(const std::vector<double>& ref, const std::vector<double>& mag
 // Says in the test's properties why the AVX-512 instructions did not run, where they did not.
 void record_where_not_native() {
   std::string why;
-  if (!cpu::avx512_bf16_available(&why)) ::testing::Test::RecordProperty("avx512_bf16", "not run: " + why);
+  if (!cpu::avx512_bf16_available(&why))
+    ::testing::Test::RecordProperty("avx512_bf16", "not run: " + why);
 }
 
 std::vector<float> random_floats(std::int64_t n, Rng& rng, double lo = -1, double hi = 1) {
@@ -422,7 +423,8 @@ TEST_P(CpuBf16Winograd, MatchesTheDoubleReference) {
   const Shape weight = {c.out, c.in, 3, 3};
   std::vector<float> w = random_floats(c.out * c.in * 9, rng), bias = random_floats(c.out, rng);
   std::vector<float> xf = random_floats(c.batch * c.in * c.height * c.width, rng, -2, 2);
-  std::vector<std::uint16_t> w16(static_cast<size_t>(shape_numel(op::half16_conv_weights(weight, false))));
+  std::vector<std::uint16_t> w16(
+      static_cast<size_t>(shape_numel(op::half16_conv_weights(weight, false))));
   std::vector<float> bias_out(static_cast<size_t>(c.out));
   HRef w16_ref{w16.data(), op::half16_conv_weights(weight, false)};
   Ref bias_out_ref{bias_out.data(), {c.out}}, b_ref{bias.data(), {c.out}};
@@ -475,7 +477,8 @@ TEST_P(CpuBf16Winograd, MatchesTheDoubleReference) {
             double sum = bias_out[static_cast<size_t>(o)], s = 0;
             for (std::int64_t i = 0; i < c.in; ++i) {
               for (int ky = 0; ky < 3; ++ky)
-                for (int kx = 0; kx < 3; ++kx) sum += g(o, i, ky, kx) * xv(b, i, y + ky - 1, x + kx - 1);
+                for (int kx = 0; kx < 3; ++kx)
+                  sum += g(o, i, ky, kx) * xv(b, i, y + ky - 1, x + kx - 1);
               for (int p = 0; p < 16; ++p) {
                 s += std::abs(AT[e / 2][p / 4] * AT[e % 2][p % 4]) *
                      std::abs(u[static_cast<size_t>((o * c.in + i) * 16 + p)]) *
@@ -505,7 +508,8 @@ TEST_P(CpuBf16Winograd, MatchesTheDoubleReference) {
     }
   }
   for (size_t r = 1; r < results.size(); ++r)
-    EXPECT_EQ(results[r], results[0]) << "run " << r << " differs from the instruction model's, 1 thread";
+    EXPECT_EQ(results[r], results[0])
+        << "run " << r << " differs from the instruction model's, 1 thread";
   record_where_not_native();
 }
 

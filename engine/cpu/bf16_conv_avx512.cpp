@@ -53,7 +53,8 @@ struct Avx512Bf16Isa {
   }
   static Acc even_words(Pair a) { return _mm512_castsi512_ps(_mm512_slli_epi32(a, 16)); }
   static Acc odd_words(Pair a) {
-    return _mm512_castsi512_ps(_mm512_and_si512(a, _mm512_set1_epi32(static_cast<int>(0xFFFF0000u))));
+    return _mm512_castsi512_ps(
+        _mm512_and_si512(a, _mm512_set1_epi32(static_cast<int>(0xFFFF0000u))));
   }
   static Acc load_f32(const float* y) { return _mm512_loadu_ps(y); }
   static Acc add(Acc a, Acc b) { return _mm512_add_ps(a, b); }

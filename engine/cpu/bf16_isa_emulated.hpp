@@ -7,7 +7,8 @@
 //   VCVTNEPS2BF16 FP32 -> BF16 to nearest even; zero and denormal inputs give a signed zero,
 //                 infinities stay, NaNs stay NaN with the quiet bit set;
 //   masked loads  (vmovdqu16 with a zeroing mask) read only the lanes the mask names;
-//   the rest are plain moves, shifts and masks of words, FP32 adds and subtractions, max(v, 0) (NaN -> 0 as VMAXPS(v, 0) gives) and stores.
+//   the rest are plain moves, shifts and masks of words, FP32 adds and subtractions, max(v, 0) (NaN
+//   -> 0 as VMAXPS(v, 0) gives) and stores.
 // The AVX-512 implementation of the same interface is in bf16_conv_avx512.cpp.
 #pragma once
 
@@ -68,7 +69,8 @@ struct EmulatedBf16Isa {
   // Lane i: the BF16 word 2 i (even) or 2 i + 1 (odd) as FP32 (a shift or a mask of dword i).
   static Acc even_words(const Pair& a) {
     Acc r;
-    for (int i = 0; i < 16; ++i) r.v[i] = std::bit_cast<float>(static_cast<std::uint32_t>(a.v[2 * i]) << 16);
+    for (int i = 0; i < 16; ++i)
+      r.v[i] = std::bit_cast<float>(static_cast<std::uint32_t>(a.v[2 * i]) << 16);
     return r;
   }
   static Acc odd_words(const Pair& a) {
