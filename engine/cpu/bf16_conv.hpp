@@ -1,8 +1,10 @@
 // The CPU backend's BF16 evaluation convolutions (--precision bf16 on --device cpu): the
 // contract of kernels/conv2d_mma.cuh (prepared weights w16 (O, Kp) or (4 O, Kp) in BF16 with the
 // eval BatchNorm folded in, FP32 bias, FP32 accumulation, BF16 or FP32 outputs rounded once), on
-// our own AVX512_BF16 micro-kernel (bf16_microkernel.hpp), chosen at run time; and the 16-bit
-// activations' data movement of kernels/half_ops.cuh on host memory, bit for bit the same.
+// our own AVX512_BF16 kernels, chosen at run time: a direct micro-kernel (bf16_microkernel.hpp)
+// for any kernel size and the transposed 2x2, and Winograd F(2x2, 3x3) (bf16_winograd.hpp) for
+// the 3x3 pad-1 convolutions, which the CPU backend runs; and the 16-bit activations' data
+// movement of kernels/half_ops.cuh on host memory, bit for bit the same.
 //
 // Bf16Kernels::Emulated runs the same micro-kernel on an exact scalar model of the instructions
 // (bf16_isa_emulated.hpp): the tests' way to check it on CPUs without AVX512_BF16 (slow).
