@@ -95,7 +95,7 @@ class CpuBackend final : public Backend {
   void conv2d_half_forward(const ActRef& x, const HRef& w16, const Ref& bias_out, const Shape& weight, int pad,
                            bool relu, Precision p, const ActRef& y) override {
     require_precision(p);
-    if (weight[2] == 3 && weight[3] == 3 && pad == 1) {  // the U-Net's: Winograd F(2x2, 3x3)
+    if (weight.size() == 4 && weight[2] == 3 && weight[3] == 3 && pad == 1) {  // the U-Net's: Winograd F(2x2, 3x3)
       cpu::conv3x3_winograd_forward(bf16_kernels_, half_input(x, p), w16, bias_out, weight, relu, y,
                                     bf16_winograd_);
     } else {
