@@ -22,6 +22,7 @@ set -euo pipefail
 bin=$(realpath "$1") work=$2 mode=$3 mpirun=${4:-}
 here=$(cd "$(dirname "$0")" && pwd)
 logs=(python3 "$here/support/run_logs.py")
+source "$here/support/tiny_run_config.sh"
 fail() { echo "FAIL: $*" >&2; exit 1; }
 
 if [[ $mode == disk-full && -z ${PILLARSEG_FAULT_IN_NAMESPACE:-} ]]; then
@@ -39,23 +40,7 @@ rm -rf "$work" && mkdir -p "$work" && cd "$work"
 "$bin" simulate --out data --sequences 1 --scans 6 --seed 7 --points-per-scan 30000 > /dev/null
 "$bin" simulate --out data --sequences 1 --scans 2 --seed 7 --first-sequence 8 --points-per-scan 30000 > /dev/null
 # 3 epochs of 3 steps (batch 2 of 6 scans), validation and best.safetensors every epoch.
-cat > run.yaml <<'YAML'
-grid: {x: [-20.0, 20.0], y: [-10.0, 10.0], z: [-2.5, 1.5], cell: 0.4, voxel_z: 0.2}
-model: {max_points_per_pillar: 8, max_pillars: 0, pillars: true, pillar_channels: 8, occupancy: 2d, base_width: 8,
-        depth: 2, upsampling: bilinear}
-train:
-  ground_truth: sparse
-  loss: ce
-  epochs: 3
-  batch_size: 2
-  seed: 3
-  optimizer: {lr: 0.003, weight_decay: 0.01, schedule: onecycle, div_factor: 10, pct_start: 0.4, moms: [0.95, 0.85], grad_clip: 10}
-  augmentation: {flip_x: true, flip_y: true, rotate: true, scale: true, translate: false}
-  sequences: [0]
-eval:
-  sequences: [8]
-  every_epochs: 1
-YAML
+tiny_run_config sparse 3 2 > run.yaml
 
 train() {  # RUN [--resume]: one process, one thread (the same bits every run)
   local run=$1

@@ -27,31 +27,14 @@ mpi=("$mpirun" --allow-run-as-root --oversubscribe)
 # LeakSanitizer cannot attribute: no leak check for these runs.
 export ASAN_OPTIONS="${ASAN_OPTIONS:+$ASAN_OPTIONS:}detect_leaks=0"
 compare=(python3 "$here/support/compare_checkpoints.py")
+source "$here/support/tiny_run_config.sh"
 fail() { echo "FAIL: $*" >&2; exit 1; }
 rm -rf "$work" && mkdir -p "$work" && cd "$work"
 
 "$bin" simulate --out data --sequences 1 --scans 8 --seed 5 --points-per-scan 30000 > /dev/null
 "$bin" simulate --out data --sequences 1 --scans 3 --seed 5 --first-sequence 8 --points-per-scan 30000 > /dev/null
 write_config() {  # epochs scans_per_sequence
-  cat <<YAML
-grid: {x: [-20.0, 20.0], y: [-10.0, 10.0], z: [-2.5, 1.5], cell: 0.4, voxel_z: 0.2}
-model: {max_points_per_pillar: 8, max_pillars: 0, pillars: true, pillar_channels: 8, occupancy: 2d, base_width: 8,
-        depth: 2, upsampling: bilinear}
-train:
-  ground_truth: dense
-  loss: ce
-  epochs: $1
-  batch_size: 4
-  seed: 3
-  precise_bn_batches: 2
-  max_scans_per_sequence: $2
-  optimizer: {lr: 0.003, weight_decay: 0.01, schedule: onecycle, div_factor: 10, pct_start: 0.4, moms: [0.95, 0.85], grad_clip: 10}
-  augmentation: {flip_x: true, flip_y: true, rotate: true, scale: true, translate: false}
-  sequences: [0]
-eval:
-  sequences: [8]
-  every_epochs: 1
-YAML
+  tiny_run_config dense "$1" 4 "precise_bn_batches: 2" "max_scans_per_sequence: $2"
 }
 write_config 1 4 > one_step.yaml
 write_config 3 8 > three_epochs.yaml
