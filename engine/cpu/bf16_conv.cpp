@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <cmath>
 #include <string>
+#include <type_traits>
 #include <vector>
 
 #include "core/error.hpp"
@@ -21,6 +22,26 @@ namespace {
 
 std::uint16_t to_bits(float v, Precision p) {
   return p == Precision::BF16 ? weights::float_to_bf16_bits(v) : weights::float_to_f16_bits(v);
+}
+
+// The 16-bit type as a compile-time value, so that its conversions inline into a loop: calls
+// f(std::true_type) for BF16, f(std::false_type) for FP16; inside f, half_value<decltype(h)::
+// value> and half_bits<...> convert.
+template <class F>
+void with_half_type(Precision p, F&& f) {
+  if (p == Precision::BF16) {
+    f(std::true_type{});
+  } else {
+    f(std::false_type{});
+  }
+}
+template <bool kBf16>
+float half_value(std::uint16_t bits) {
+  return kBf16 ? weights::bf16_bits_to_float(bits) : weights::f16_bits_to_float(bits);
+}
+template <bool kBf16>
+std::uint16_t half_bits(float v) {
+  return kBf16 ? weights::float_to_bf16_bits(v) : weights::float_to_f16_bits(v);
 }
 
 void require_half(const char* op, Precision p) {
@@ -279,32 +300,25 @@ void maxpool2x2_half(const HRef& x, Precision p, HRef& y) {
   require_half(op, p);
   require_shape(op, "y", y, op::maxpool2x2(x.shape, op));
   const std::int64_t h = x.dim(2), w = x.dim(3), oh = h / 2, ow = w / 2;
-  // The 16-bit type as a template parameter, so that the conversions inline into the loop.
-  const auto pool = [&]<bool kBf16>() {
+  with_half_type(p, [&](auto half) {
+    constexpr bool kBf16 = decltype(half)::value;
     parallel_for(x.dim(0) * x.dim(1), [&](std::int64_t plane) {
       for (std::int64_t oy = 0; oy < oh; ++oy) {
         for (std::int64_t ox = 0; ox < ow; ++ox) {
           const std::uint16_t* in = x.data + plane * h * w + 2 * oy * w + 2 * ox;
           const std::uint16_t window[4] = {in[0], in[1], in[w], in[w + 1]};
           std::uint16_t best_bits = window[0];
-          float best = kBf16 ? weights::bf16_bits_to_float(window[0])
-                             : weights::f16_bits_to_float(window[0]);
+          float best = half_value<kBf16>(window[0]);
           for (int k = 1; k < 4; ++k) {
             // The FP32 op's rule: a greater value, or NaN, replaces the best so far.
-            const float value = kBf16 ? weights::bf16_bits_to_float(window[k])
-                                      : weights::f16_bits_to_float(window[k]);
+            const float value = half_value<kBf16>(window[k]);
             if (value > best || std::isnan(value)) best = value, best_bits = window[k];
           }
           y.data[(plane * oh + oy) * ow + ox] = best_bits;
         }
       }
     });
-  };
-  if (p == Precision::BF16) {
-    pool.template operator()<true>();
-  } else {
-    pool.template operator()<false>();
-  }
+  });
 }
 
 void upsample2x_half(const HRef& x, Precision p, HRef& y) {
@@ -335,11 +349,8 @@ void upsample2x_half(const HRef& x, Precision p, HRef& y) {
     return t;
   };
   const std::vector<Tap> rows = taps(in_h, out_h), cols = taps(in_w, out_w);
-  // The 16-bit type as a template parameter, so that the conversions inline into the loop.
-  const auto upsample = [&]<bool kBf16>() {
-    const auto value_of = [](std::uint16_t bits) {
-      return kBf16 ? weights::bf16_bits_to_float(bits) : weights::f16_bits_to_float(bits);
-    };
+  with_half_type(p, [&](auto half) {
+    constexpr bool kBf16 = decltype(half)::value;
     // Per plane: each input row interpolated along x once into FP32 (h_rows, the two a output
     // row reads), then the rows along y, in the same expression tree as the CUDA kernel.
     const int threads = std::max(num_threads(), 1);
@@ -350,7 +361,7 @@ void upsample2x_half(const HRef& x, Precision p, HRef& y) {
       const auto along_x = [&](const std::uint16_t* row, float* h) {
         for (std::int64_t ox = 0; ox < out_w; ++ox) {
           const Tap& c = cols[static_cast<size_t>(ox)];
-          h[ox] = c.w0 * value_of(row[c.i0]) + c.w1 * value_of(row[c.i1]);
+          h[ox] = c.w0 * half_value<kBf16>(row[c.i0]) + c.w1 * half_value<kBf16>(row[c.i1]);
         }
       };
       for (std::int64_t plane = begin; plane < end; ++plane) {
@@ -375,17 +386,12 @@ void upsample2x_half(const HRef& x, Precision p, HRef& y) {
           std::uint16_t* o = out + oy * out_w;
           for (std::int64_t ox = 0; ox < out_w; ++ox) {
             const float value = r.w0 * h_top[ox] + r.w1 * h_bottom[ox];
-            o[ox] = kBf16 ? weights::float_to_bf16_bits(value) : weights::float_to_f16_bits(value);
+            o[ox] = half_bits<kBf16>(value);
           }
         }
       }
     });
-  };
-  if (p == Precision::BF16) {
-    upsample.template operator()<true>();
-  } else {
-    upsample.template operator()<false>();
-  }
+  });
 }
 
 void pad_concat_half(const HRef& skip, const HRef& up, HRef& y) {
