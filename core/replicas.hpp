@@ -5,9 +5,10 @@
 //   ReplicaSum: the sums an op needs inside itself (synchronised BatchNorm's statistics); an op
 //     given one calls it where its per-channel sums over its own values are complete; without one
 //     (nullptr) it is the single-process op.
-//   Replicas: a process's place in the run and every sum the trainer needs. SingleProcess is the
-//     run of one; the MPI implementation (engine/mpi/) is linked into the command line only, so
-//     that MPI never reaches libpillarseg.
+//   Replicas: a process's place in the run and every sum the trainer needs, the gradients' in
+//     pieces that may be summed while the backward goes on (begin_sum ... end_sums). SingleProcess
+//     is the run of one; the MPI implementation (engine/mpi/) is linked into the command line
+//     only, so that MPI never reaches libpillarseg.
 #pragma once
 
 #include <cstddef>
@@ -35,8 +36,14 @@ class Replicas : public ReplicaSum {
   using ReplicaSum::sum;
   // Exact sums of counts (the validation's confusion matrix, labelled cells).
   virtual void sum(int64_t* values, int64_t n) = 0;
-  // n floats in host memory (the parameter gradients), summed in replica order.
-  virtual void sum(float* values, int64_t n) = 0;
+  // n floats in host memory (a piece of the parameter gradients) summed in replica order, begun
+  // now and complete when end_sums() returns; values must stay untouched until then. Every
+  // replica begins the same pieces in the same order, and may make other sums in between (they
+  // do not wait for the pieces begun). progress() lets begun sums advance (the trainer calls it
+  // between the backward's ops); end_sums() completes every piece begun since the last call.
+  virtual void begin_sum(float* values, int64_t n) = 0;
+  virtual void progress() = 0;
+  virtual void end_sums() = 0;
   // Replica 0's bytes[0, n) to every replica (e.g. a communicator's id).
   virtual void broadcast(void* bytes, size_t n) = 0;
   // Stops every replica after this one failed with `message`; does not return.
@@ -49,7 +56,9 @@ class SingleProcess final : public Replicas {
   int size() const override { return 1; }
   void sum(double*, int64_t) override {}
   void sum(int64_t*, int64_t) override {}
-  void sum(float*, int64_t) override {}
+  void begin_sum(float*, int64_t) override {}
+  void progress() override {}
+  void end_sums() override {}
   void broadcast(void*, size_t) override {}
   [[noreturn]] void abort_all(const std::string& message) override { throw Error(message); }
 };

@@ -16,7 +16,8 @@
 #   per step (measured ~1e-5).
 # The same one-step check on --device emu (the CUDA backend's kernels on the emulation: their
 # BatchNorm statistics combined over the ranks on the host, the gradients summed through it).
-# Exact: two 2-rank runs give the same bytes (the sums' order never depends on timing), each
+# Exact: two 2-rank runs give the same bytes (the sums' order never depends on timing), and so do
+# gradients summed in many small buckets during the backward and in one after it; each
 # step is logged once, best.safetensors and the eval lines exist; a rank that fails stops all
 # ranks with its message; a batch that does not split over the ranks is refused.
 set -euo pipefail
@@ -92,6 +93,21 @@ echo "== the same 2-rank run again: the same bytes"
 "${mpi[@]}" -np 2 "$bin" --threads 1 train --data data --config three_epochs.yaml --out ranks3b --cache cache > /dev/null 2>&1
 cmp ranks3/checkpoint.safetensors ranks3b/checkpoint.safetensors || fail "two 2-rank runs differ"
 cmp ranks3/best.safetensors ranks3b/best.safetensors || fail "two 2-rank runs' best checkpoints differ"
+
+echo "== the gradients summed in buckets during the backward: the same bytes as one sum after it"
+# 2 KiB buckets cut the tiny model's gradients into dozens, each begun as soon as the backward has
+# finished it (three_epochs.yaml's default of 4 MiB holds them all: one sum after the backward).
+# A bucket begun before its last write would send gradients that later change.
+write_config 3 8 "gradient_bucket_mb: 0.002" > buckets.yaml
+"${mpi[@]}" -np 2 "$bin" --threads 1 train --data data --config buckets.yaml --out ranks3_buckets --cache cache \
+  > buckets.log 2>&1 || { cat buckets.log; fail "mpirun -np 2 train (2 KiB buckets) failed"; }
+"${compare[@]}" ranks3/checkpoint.safetensors ranks3_buckets/checkpoint.safetensors --max-abs 0 ||
+  fail "summing in buckets changed the weights"
+write_config 1 4 "gradient_bucket_mb: 0.002" > one_step_buckets.yaml
+"${mpi[@]}" -np 2 "$bin" --threads 1 train --device emu --data data --config one_step_buckets.yaml \
+  --out emu_ranks1_buckets --cache cache > emu_buckets.log 2>&1 || { cat emu_buckets.log; fail "emu buckets failed"; }
+"${compare[@]}" emu_ranks1/checkpoint.safetensors emu_ranks1_buckets/checkpoint.safetensors --max-abs 0 ||
+  fail "summing in buckets changed the weights (emu)"
 
 echo "== a global batch that does not split over 3 ranks"
 if "${mpi[@]}" -np 3 "$bin" --threads 1 train --data data --config three_epochs.yaml --out ranks_odd --cache cache \

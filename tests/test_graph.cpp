@@ -1,11 +1,16 @@
 // The op graph and its lifetime planner (engine/model/graph.hpp): a hand-built graph's offsets
 // and block size, and on every variant of the tiny model, for eval and training at batch 1 and
 // 2, the planner's invariant: two tensors alive at the same node never share a byte, inputs
-// are alive from the start, outputs to the end, and views lie inside their tensor.
+// are alive from the start, outputs to the end, and views lie inside their tensor. The gradient
+// buckets of data-parallel training: a hand-built graph's, and on every variant that the backward
+// hands each bucket out finished.
 #include <gtest/gtest.h>
 
 #include <climits>
+#include <cstring>
 #include <tuple>
+#include <utility>
+#include <vector>
 
 #include "core/error.hpp"
 #include "engine/model/graph.hpp"
@@ -126,3 +131,99 @@ INSTANTIATE_TEST_SUITE_P(Tiny, GraphVariants,
                                                               OccupancyInput::Occupancy3D),
                                             ::testing::Bool(), ::testing::Bool(),
                                             ::testing::Values(1, 2), ::testing::Bool()));
+
+// Parameters 0, 1, 3 trainable at offsets 0, 10, 30 of a 40-element gradient array (2 is a
+// buffer). Node 0 writes parameter 3's gradient, node 1 parameter 1's, node 2 parameter 0's,
+// node 3 parameter 3's again. From the end of the array: buckets of at least 10 elements are
+// [30, 40) (last written by node 3), [10, 30) (node 1), [0, 10) (node 2), handed out in the
+// order they are ready; of at least 25: [10, 40) (node 3) and what is left, [0, 10) (node 2).
+TEST(Graph, GradientBucketsAreReadyAfterTheLastWriteOfTheirParameters) {
+  Graph g;
+  const int g0 = g.parameter(0, {10}, true), g1 = g.parameter(1, {20}, true);
+  const int g3 = g.parameter(3, {10}, true), w3 = g.parameter(3, {10}, false);
+  g.add(node({w3}, {g3}));
+  g.add(node({w3}, {g1}));
+  g.add(node({w3}, {g0}));
+  g.add(node({w3}, {g3}));
+  const std::vector<int64_t> offsets = {0, 10, -1, 30};
+  const auto expect = [](const std::vector<GradientBucket>& b,
+                         const std::vector<std::tuple<size_t, int64_t, int64_t>>& want) {
+    ASSERT_EQ(b.size(), want.size());
+    for (size_t i = 0; i < b.size(); ++i) {
+      EXPECT_EQ(b[i].after, std::get<0>(want[i])) << "bucket " << i;
+      EXPECT_EQ(b[i].offset, std::get<1>(want[i])) << "bucket " << i;
+      EXPECT_EQ(b[i].count, std::get<2>(want[i])) << "bucket " << i;
+    }
+  };
+  expect(g.gradient_buckets(offsets, 40, 10), {{1, 10, 20}, {2, 0, 10}, {3, 30, 10}});
+  expect(g.gradient_buckets(offsets, 40, 25), {{2, 0, 10}, {3, 10, 30}});
+  expect(g.gradient_buckets(offsets, 40, 0), {{3, 0, 40}});
+  // A trainable parameter whose gradient no node writes.
+  EXPECT_THROW(g.gradient_buckets({0, 10, 20, 30}, 40, 10), Error);
+}
+
+// Records each bucket's gradients when the backward hands it out.
+class BucketRecorder final : public PillarSegNet::GradientListener {
+ public:
+  explicit BucketRecorder(const Ref& grads) : grads_(grads) {}
+  void bucket_ready(int64_t offset, int64_t count) override {
+    buckets.push_back({offset, count});
+    copies.emplace_back(grads_.data + offset, grads_.data + offset + count);
+  }
+  void between_nodes() override { ++nodes; }
+  std::vector<std::pair<int64_t, int64_t>> buckets;
+  std::vector<std::vector<float>> copies;
+  int nodes = 0;
+
+ private:
+  Ref grads_;
+};
+
+// On every variant of the tiny model: the buckets (of at least 64 elements) cover the gradient
+// array once, and each bucket's gradients when it is handed out are already the final ones (no
+// later node writes them; the CPU backend computes each node before returning: after a backward
+// without a listener and the gradients zeroed, a bucket handed out early holds zeros); the
+// gradients are those of a backward without a listener, bit for bit.
+class TrainingGraphVariants : public GraphVariants {};
+
+TEST_P(TrainingGraphVariants, BackwardHandsOutEachGradientBucketFinished) {
+  const auto [occupancy, transposed, grid_map, batch, training] = GetParam();
+  ASSERT_TRUE(training);
+  const ModelConfig c = test::tiny_config(occupancy, transposed, grid_map);
+  auto backend = make_cpu_backend();
+  PillarSegNet net(c, *backend);
+  const test::TinyData data = test::tiny_data(c, batch, 7);
+  const auto step = [&](PillarSegNet::GradientListener* listener) {
+    net.forward(data.batch, true);
+    net.loss(data.labels, LossKind::CrossEntropy, test::kCoefficients);
+    net.backward(listener, 64);
+    return net.parameters().download_flat(net.parameters().grads());
+  };
+  const std::vector<float> plain = step(nullptr);
+  // Zeros, so that a bucket handed out before its last write shows (the same step again would
+  // otherwise leave the same gradients there).
+  net.parameters().zero_grads();
+  BucketRecorder recorder(net.parameters().grads());
+  const std::vector<float> grads = step(&recorder);
+  EXPECT_EQ(std::memcmp(plain.data(), grads.data(), plain.size() * sizeof(float)), 0);
+  ASSERT_GT(recorder.buckets.size(), 3u);
+  EXPECT_EQ(recorder.buckets.size(), net.gradient_buckets(64).size());
+  EXPECT_GT(recorder.nodes, static_cast<int>(recorder.buckets.size()));
+  std::vector<int> covered(static_cast<size_t>(net.parameters().num_trainable()), 0);
+  for (size_t b = 0; b < recorder.buckets.size(); ++b) {
+    const auto [offset, count] = recorder.buckets[b];
+    for (int64_t i = offset; i < offset + count; ++i) {
+      ++covered[static_cast<size_t>(i)];
+      ASSERT_EQ(recorder.copies[b][static_cast<size_t>(i - offset)], grads[static_cast<size_t>(i)])
+          << "bucket [" << offset << ", " << offset + count << ") changed after it was handed out";
+    }
+  }
+  for (size_t i = 0; i < covered.size(); ++i) ASSERT_EQ(covered[i], 1) << "gradient element " << i;
+}
+
+INSTANTIATE_TEST_SUITE_P(Tiny, TrainingGraphVariants,
+                         ::testing::Combine(::testing::Values(OccupancyInput::None,
+                                                              OccupancyInput::Observability2D,
+                                                              OccupancyInput::Occupancy3D),
+                                            ::testing::Bool(), ::testing::Bool(),
+                                            ::testing::Values(1, 2), ::testing::Values(true)));

@@ -174,7 +174,10 @@ class TimedBackend final : public Backend {
   bool supports_training_precision(Precision p, std::string* why_not) const override {
     return inner_->supports_training_precision(p, why_not);
   }
-  void sum_over_replicas(Ref& values, Replicas& replicas) override { inner_->sum_over_replicas(values, replicas); }
+  void begin_sum_over_replicas(Ref& values, Replicas& replicas) override {
+    inner_->begin_sum_over_replicas(values, replicas);
+  }
+  void end_sums_over_replicas(Replicas& replicas) override { inner_->end_sums_over_replicas(replicas); }
   bool supports_synchronized_batchnorm(std::string* why_not) const override {
     return inner_->supports_synchronized_batchnorm(why_not);
   }

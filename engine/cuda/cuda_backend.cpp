@@ -812,9 +812,13 @@ double CudaBackend::sum_of_squares(const Ref& x) {
 }
 
 #if !defined(PILLARSEG_CUDA_EMULATION)
-void CudaBackend::sum_over_replicas(Ref& values, Replicas& replicas) {
+void CudaBackend::begin_sum_over_replicas(Ref& values, Replicas& replicas) {
   if (!nccl_) nccl_ = std::make_unique<NcclGradientSum>(replicas, stream_.get());
-  nccl_->sum(values.data, values.numel());
+  nccl_->begin(values.data, values.numel());
+}
+
+void CudaBackend::end_sums_over_replicas(Replicas&) {
+  if (nccl_) nccl_->end();
 }
 #endif
 

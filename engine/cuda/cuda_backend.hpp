@@ -171,8 +171,11 @@ class CudaBackend final : public Backend {
   bool supports_synchronized_batchnorm(std::string*) const override { return true; }
 #if !defined(PILLARSEG_CUDA_EMULATION)
   // On a GPU the gradients are summed in device memory over NCCL (engine/cuda/nccl_sum.hpp; the
-  // communicator is made on the first call); the emulation sums through the host.
-  void sum_over_replicas(Ref& values, Replicas& replicas) override;
+  // communicator is made on the first call) on a stream of their own that waits for the backward
+  // to reach each piece, and the compute stream waits for it at the end; the emulation sums
+  // through the host.
+  void begin_sum_over_replicas(Ref& values, Replicas& replicas) override;
+  void end_sums_over_replicas(Replicas& replicas) override;
 #endif
   void conv2d_backward_half(const Ref& x, const Ref& w, const Ref& dy, int pad, Precision p, Ref* dx, Ref& dw,
                             Ref* dbias) override;

@@ -5,6 +5,7 @@
 
 #include <string>
 
+#include "kernels/cuda_handles.hpp"
 #include "kernels/device_buffer.hpp"
 #include "kernels/replica_sum.cuh"
 
@@ -72,21 +73,24 @@ struct NcclGradientSum::State {
   NcclLibrary library;
   ncclComm_t comm = nullptr;
   int rank = 0, size = 1;
-  cudaStream_t stream = nullptr;
+  cudaStream_t compute = nullptr;  // the backend's
+  cuda::Stream stream;             // the sums'
+  cuda::Event reached, summed;     // compute reached a piece; the sums queued so far are done
   cuda::DeviceBuffer<float> padded, chunks;  // (R x chunk) each
 
   void check(ncclResult_t result, const char* call) const {
     PS_CHECK(result == ncclSuccess, "{} failed: {}", call, library.api.error_string(result));
   }
   ~State() {
+    // The communicator before the members (buffers, events, stream, the library) go.
     if (comm != nullptr) library.api.comm_destroy(comm);
   }
 };
 
-NcclGradientSum::NcclGradientSum(Replicas& replicas, cudaStream_t stream)
+NcclGradientSum::NcclGradientSum(Replicas& replicas, cudaStream_t compute)
     : state_(std::make_unique<State>()) {
   State& s = *state_;
-  s.rank = replicas.rank(), s.size = replicas.size(), s.stream = stream;
+  s.rank = replicas.rank(), s.size = replicas.size(), s.compute = compute;
   ncclUniqueId id{};
   if (replicas.leader()) s.check(s.library.api.get_unique_id(&id), "ncclGetUniqueId");
   replicas.broadcast(&id, sizeof id);
@@ -95,37 +99,45 @@ NcclGradientSum::NcclGradientSum(Replicas& replicas, cudaStream_t stream)
 
 NcclGradientSum::~NcclGradientSum() = default;
 
-void NcclGradientSum::sum(float* values, int64_t n) {
+void NcclGradientSum::begin(float* values, int64_t n) {
   State& s = *state_;
   if (s.size <= 1 || n == 0) return;
   const NcclApi& api = s.library.api;
   const auto R = static_cast<size_t>(s.size);
   const size_t chunk = (static_cast<size_t>(n) + R - 1) / R;
   if (s.padded.size() < R * chunk) {
+    PS_CUDA_CHECK(cudaStreamSynchronize(s.stream.get()));  // earlier pieces use the scratch
     s.padded = cuda::DeviceBuffer<float>(R * chunk);
     s.chunks = cuda::DeviceBuffer<float>(R * chunk);
   }
+  PS_CUDA_CHECK(cudaEventRecord(s.reached.get(), s.compute));
+  PS_CUDA_CHECK(cudaStreamWaitEvent(s.stream.get(), s.reached.get(), 0));
+  cudaStream_t stream = s.stream.get();
   const size_t bytes = static_cast<size_t>(n) * sizeof(float);
-  PS_CUDA_CHECK(cudaMemsetAsync(s.padded.data(), 0, R * chunk * sizeof(float), s.stream));
-  PS_CUDA_CHECK(
-      cudaMemcpyAsync(s.padded.data(), values, bytes, cudaMemcpyDeviceToDevice, s.stream));
+  PS_CUDA_CHECK(cudaMemsetAsync(s.padded.data(), 0, R * chunk * sizeof(float), stream));
+  PS_CUDA_CHECK(cudaMemcpyAsync(s.padded.data(), values, bytes, cudaMemcpyDeviceToDevice, stream));
   // Chunk p of this replica to replica p; chunk `rank` of replica p into row p of chunks.
   s.check(api.group_start(), "ncclGroupStart");
   for (size_t p = 0; p < R; ++p) {
     s.check(api.send(s.padded.data() + p * chunk, chunk, ncclFloat, static_cast<int>(p), s.comm,
-                     s.stream),
+                     stream),
             "ncclSend");
     s.check(api.recv(s.chunks.data() + p * chunk, chunk, ncclFloat, static_cast<int>(p), s.comm,
-                     s.stream),
+                     stream),
             "ncclRecv");
   }
   s.check(api.group_end(), "ncclGroupEnd");
   float* mine = s.padded.data() + static_cast<size_t>(s.rank) * chunk;
-  cuda::sum_replica_chunks(s.chunks.data(), s.size, static_cast<int64_t>(chunk), mine, s.stream);
-  s.check(api.all_gather(mine, s.padded.data(), chunk, ncclFloat, s.comm, s.stream),
-          "ncclAllGather");
-  PS_CUDA_CHECK(
-      cudaMemcpyAsync(values, s.padded.data(), bytes, cudaMemcpyDeviceToDevice, s.stream));
+  cuda::sum_replica_chunks(s.chunks.data(), s.size, static_cast<int64_t>(chunk), mine, stream);
+  s.check(api.all_gather(mine, s.padded.data(), chunk, ncclFloat, s.comm, stream), "ncclAllGather");
+  PS_CUDA_CHECK(cudaMemcpyAsync(values, s.padded.data(), bytes, cudaMemcpyDeviceToDevice, stream));
+}
+
+void NcclGradientSum::end() {
+  State& s = *state_;
+  if (s.size <= 1) return;
+  PS_CUDA_CHECK(cudaEventRecord(s.summed.get(), s.stream.get()));
+  PS_CUDA_CHECK(cudaStreamWaitEvent(s.compute, s.summed.get(), 0));
 }
 
 }  // namespace pillarseg

@@ -7,6 +7,10 @@
 // NCCL is loaded when the first sum needs it (dlopen of libnccl.so.2), so that libpillarseg and
 // the command line run where it is not installed; the communicator's unique id comes from replica
 // 0 through the Replicas (MPI), as llm.c does. Each replica uses its own GPU.
+// The sums run on a stream of their own: begin() makes it wait for the compute stream's work
+// queued so far (an event), so that the backward's later kernels run while NCCL moves the piece;
+// end() makes the compute stream wait for every sum begun. Pieces follow one another on that
+// stream and share its scratch.
 #pragma once
 
 #include <cstdint>
@@ -20,15 +24,18 @@ namespace pillarseg {
 class NcclGradientSum {
  public:
   // Creates the communicator of `replicas` on the current device (collective: every replica
-  // constructs one). Throws pillarseg::Error when NCCL cannot be loaded or initialised.
-  NcclGradientSum(Replicas& replicas, cudaStream_t stream);
+  // constructs one) and the sums' stream. Throws pillarseg::Error when NCCL cannot be loaded or
+  // initialised.
+  NcclGradientSum(Replicas& replicas, cudaStream_t compute);
   ~NcclGradientSum();
   NcclGradientSum(const NcclGradientSum&) = delete;
   NcclGradientSum& operator=(const NcclGradientSum&) = delete;
 
-  // values (n floats of device memory) summed over the replicas in replica order, queued on the
-  // stream given to the constructor.
-  void sum(float* values, int64_t n);
+  // values (n floats of device memory) summed over the replicas in replica order once the
+  // compute stream's work queued so far is done; the result is there for the compute stream's
+  // work queued after end().
+  void begin(float* values, int64_t n);
+  void end();
 
  private:
   struct State;

@@ -81,15 +81,19 @@ bool Backend::supports_training_precision(Precision p, std::string* why_not) con
   }
   return false;
 }
-void Backend::sum_over_replicas(Ref& values, Replicas& replicas) {
+void Backend::begin_sum_over_replicas(Ref& values, Replicas& replicas) {
   if (device() == Device::Cpu) {
-    replicas.sum(values.data, values.numel());
+    replicas.begin_sum(values.data, values.numel());
     return;
   }
   std::vector<float> host(static_cast<size_t>(values.numel()));
   download(host.data(), values.data, values.bytes());
-  replicas.sum(host.data(), values.numel());
+  replicas.begin_sum(host.data(), values.numel());
+  replicas.end_sums();
   upload(values.data, host.data(), values.bytes());
+}
+void Backend::end_sums_over_replicas(Replicas& replicas) {
+  if (device() == Device::Cpu) replicas.end_sums();
 }
 bool Backend::supports_synchronized_batchnorm(std::string* why_not) const {
   if (why_not != nullptr) {

@@ -231,10 +231,15 @@ class Backend {
   virtual double sum_of_squares(const Ref& x) = 0;
   virtual void scale(Ref& x, float factor) = 0;
   virtual void adam_step(Ref& param, const Ref& grad, Ref& m, Ref& v, int64_t step, const AdamOptions& options) = 0;
-  // Data-parallel training: values (the parameter gradients) summed over the replicas in replica
-  // order, the same bits on every replica. The default goes through the host (Replicas::sum);
-  // the CUDA backend on a GPU sums in device memory over NCCL where it is installed.
-  virtual void sum_over_replicas(Ref& values, Replicas& replicas);
+  // Data-parallel training: values (a piece of the parameter gradients) summed over the replicas
+  // in replica order, the same bits on every replica, begun once the work queued so far has
+  // written them, so that the sum may run while the backward goes on; end_sums_over_replicas()
+  // completes (on a device: queues the wait for) every piece begun. The default goes through the
+  // host: on the CPU Replicas::begin_sum at once; on a device the piece is downloaded, summed and
+  // uploaded before begin returns. The CUDA backend on a GPU sums in device memory over NCCL
+  // where it is installed, on a stream of its own.
+  virtual void begin_sum_over_replicas(Ref& values, Replicas& replicas);
+  virtual void end_sums_over_replicas(Replicas& replicas);
 
   // ---- mixed-precision evaluation convolutions (kernels/conv2d_mma.cuh is the spec; the CPU's
   // are engine/cpu/bf16_conv.hpp) ----

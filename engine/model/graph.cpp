@@ -229,6 +229,47 @@ double Graph::flops(size_t begin, size_t end) const {
   return sum;
 }
 
+std::vector<GradientBucket> Graph::gradient_buckets(const std::vector<int64_t>& offsets,
+                                                    int64_t total, int64_t min_count) const {
+  PS_CHECK(!nodes_.empty(), "graph: gradient buckets of an empty graph");
+  if (min_count <= 0) return {{nodes_.size() - 1, 0, total}};
+  // The last node writing each parameter's gradient.
+  std::vector<int64_t> last(offsets.size(), -1);
+  for (size_t i = 0; i < nodes_.size(); ++i)
+    for (int id : nodes_[i].writes) {
+      const GraphTensor& t = at(root(id));
+      if (t.gradient && t.parameter >= 0)
+        last.at(static_cast<size_t>(t.parameter)) = static_cast<int64_t>(i);
+    }
+  // Trainable parameters from the end of the array.
+  std::vector<size_t> order;
+  for (size_t p = 0; p < offsets.size(); ++p)
+    if (offsets[p] >= 0) {
+      PS_CHECK(last[p] >= 0, "graph: no node writes the gradient of parameter {}", p);
+      order.push_back(p);
+    }
+  std::sort(order.begin(), order.end(),
+            [&](size_t a, size_t b) { return offsets[a] > offsets[b]; });
+  std::vector<GradientBucket> buckets;
+  int64_t end = total;
+  GradientBucket open{0, total, 0};
+  for (size_t k = 0; k < order.size(); ++k) {
+    const size_t p = order[k];
+    open.after = std::max(open.after, static_cast<size_t>(last[p]));
+    open.offset = k + 1 == order.size() ? 0 : offsets[p];
+    open.count = end - open.offset;
+    if (open.count >= min_count || k + 1 == order.size()) {
+      buckets.push_back(open);
+      end = open.offset;
+      open = {0, end, 0};
+    }
+  }
+  std::stable_sort(
+      buckets.begin(), buckets.end(),
+      [](const GradientBucket& a, const GradientBucket& b) { return a.after < b.after; });
+  return buckets;
+}
+
 std::string Graph::memory_report(size_t largest) const {
   std::vector<size_t> order;
   for (size_t id = 0; id < tensors_.size(); ++id)

@@ -9,7 +9,8 @@
 //     are bound by the model;
 //   - graph capture (the model records the evaluation forward's nodes);
 //   - FLOP counts (flops()) and per-op timing (the model's node timer) for the benchmarks;
-//   - the memory report (memory_report()).
+//   - the memory report (memory_report());
+//   - the gradient buckets of data-parallel training (gradient_buckets()).
 #pragma once
 
 #include <cstddef>
@@ -100,6 +101,13 @@ struct GraphNode {
   double flops = 0;       // 2 x multiply-adds of its arithmetic on weights
 };
 
+// A range of the flat parameter-gradient array, [offset, offset + count), that no node after
+// node `after` writes: its sum over the replicas may begin there (DESIGN.md section 8).
+struct GradientBucket {
+  size_t after = 0;
+  int64_t offset = 0, count = 0;
+};
+
 class Graph {
  public:
   // A planned activation (or an input, or an output), a view into one, or an external tensor.
@@ -125,6 +133,16 @@ class Graph {
   double flops(size_t begin, size_t end) const;
   // The largest planned tensors with their offsets and lifetimes, and the total, as text.
   std::string memory_report(size_t largest = 12) const;
+  // The flat gradient array [0, total) cut into buckets for a sum overlapped with the backward.
+  // offsets[i]: parameter i's first element in the array (-1: not trainable; those elements, and
+  // the padding up to the next parameter, go with it). Walking the parameters from the end of
+  // the array (the backward meets the last layers first), each bucket gathers whole parameters
+  // until it holds at least min_count elements (the last takes what is left); it is ready after
+  // the last node writing any of its gradients. In the order they become ready (then from the
+  // end of the array). min_count <= 0: one bucket, after the last node. Throws when a trainable
+  // parameter's gradient is written by no node.
+  std::vector<GradientBucket> gradient_buckets(const std::vector<int64_t>& offsets, int64_t total,
+                                               int64_t min_count) const;
 
  private:
   int root(int id) const;

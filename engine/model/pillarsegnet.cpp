@@ -1142,14 +1142,36 @@ double PillarSegNet::loss(const Tensor<uint8_t>& labels, LossKind kind, const st
   return value;
 }
 
-void PillarSegNet::backward() {
+void PillarSegNet::backward(GradientListener* listener, int64_t bucket_count) {
   Impl& m = *impl_;
   PS_CHECK(m.current == &m.train, "backward() needs a training-mode forward first (the eval forward keeps no "
                                   "activations for it)");
   PS_CHECK(m.loss_gradient_ready, "backward() needs loss() after the training forward (each backward consumes "
                                   "the logits' gradient that loss() writes)");
   m.loss_gradient_ready = false;
-  execute(m.train, m.train.loss_node + 1, m.train.graph.size());
+  const size_t first = m.train.loss_node + 1, end = m.train.graph.size();
+  if (listener == nullptr) {
+    execute(m.train, first, end);
+    return;
+  }
+  const std::vector<GradientBucket> buckets = gradient_buckets(bucket_count);
+  size_t next = 0;
+  for (size_t i = first; i < end; ++i) {
+    execute(m.train, i, i + 1);
+    for (; next < buckets.size() && buckets[next].after <= i; ++next)
+      listener->bucket_ready(buckets[next].offset, buckets[next].count);
+    listener->between_nodes();
+  }
+  PS_CHECK(next == buckets.size(), "backward: {} of {} gradient buckets were never ready", buckets.size() - next,
+           buckets.size());
+}
+
+std::vector<GradientBucket> PillarSegNet::gradient_buckets(int64_t bucket_count) const {
+  const Impl& m = *impl_;
+  PS_CHECK(m.train.built(), "gradient_buckets() needs a training plan (a training-mode forward first)");
+  std::vector<int64_t> offsets;
+  for (const ParamEntry& e : params_.entries()) offsets.push_back(e.trainable ? e.offset : -1);
+  return m.train.graph.gradient_buckets(offsets, params_.num_trainable(), bucket_count);
 }
 
 Tensor<float> PillarSegNet::download_logits() const {

@@ -24,6 +24,7 @@
 #include "core/tensor.hpp"
 #include "engine/model/backend.hpp"
 #include "engine/model/config.hpp"
+#include "engine/model/graph.hpp"
 #include "engine/model/parameters.hpp"
 
 namespace pillarseg {
@@ -108,7 +109,19 @@ class PillarSegNet {
   // of the logits, ready for backward(). coefficients: per class id 0..12.
   double loss(const Tensor<uint8_t>& labels, LossKind kind, const std::array<float, 13>& coefficients);
   // After loss(): every parameter gradient. Once per loss() (it consumes the logits' gradient).
-  void backward();
+  // With a listener (data-parallel training): the gradient array in buckets of at least
+  // bucket_count elements (Graph::gradient_buckets; <= 0: one, after the last node), each handed
+  // to listener->bucket_ready() as soon as the backward has queued its last write, and
+  // listener->between_nodes() after every node.
+  class GradientListener {
+   public:
+    virtual ~GradientListener() = default;
+    virtual void bucket_ready(int64_t offset, int64_t count) = 0;
+    virtual void between_nodes() = 0;
+  };
+  void backward(GradientListener* listener = nullptr, int64_t bucket_count = 0);
+  // The buckets backward() hands out, for the current training plan (after a training forward).
+  std::vector<GradientBucket> gradient_buckets(int64_t bucket_count) const;
 
   // The momentum of every BatchNorm's running statistics in training-mode forwards; 0 (or
   // less) restores each module's own (0.1 in the U-Net, 0.01 in the PFN and occupancy stream).

@@ -49,6 +49,19 @@ void gather_and_add(T* values, int64_t n, MPI_Datatype type, int size, std::vect
 
 }  // namespace
 
+// One piece of the gradients on its way: the chunk bounds of every replica, this replica's
+// received chunks (R x mine) and the request of the stage it is in.
+struct MpiReplicas::PieceSum {
+  float* values = nullptr;
+  std::vector<int> counts, offsets, receive_counts, receive_offsets;
+  std::vector<float> chunks;
+  MPI_Request request = MPI_REQUEST_NULL;
+};
+
+struct MpiReplicas::Communicators {
+  MPI_Comm exchange = MPI_COMM_NULL, gather = MPI_COMM_NULL;
+};
+
 MpiReplicas::MpiReplicas() {
   int initialised = 0;
   check_mpi(MPI_Initialized(&initialised), "MPI_Initialized");
@@ -58,9 +71,15 @@ MpiReplicas::MpiReplicas() {
   check_mpi(MPI_Comm_set_errhandler(MPI_COMM_WORLD, MPI_ERRORS_RETURN), "MPI_Comm_set_errhandler");
   check_mpi(MPI_Comm_rank(MPI_COMM_WORLD, &rank_), "MPI_Comm_rank");
   check_mpi(MPI_Comm_size(MPI_COMM_WORLD, &size_), "MPI_Comm_size");
+  comms_ = std::make_unique<Communicators>();
+  check_mpi(MPI_Comm_dup(MPI_COMM_WORLD, &comms_->exchange), "MPI_Comm_dup");
+  check_mpi(MPI_Comm_dup(MPI_COMM_WORLD, &comms_->gather), "MPI_Comm_dup");
 }
 
 MpiReplicas::~MpiReplicas() {
+  pieces_.clear();
+  if (comms_->exchange != MPI_COMM_NULL) MPI_Comm_free(&comms_->exchange);
+  if (comms_->gather != MPI_COMM_NULL) MPI_Comm_free(&comms_->gather);
   MPI_Finalize();
 }
 
@@ -72,34 +91,73 @@ void MpiReplicas::sum(int64_t* values, int64_t n) {
   if (size_ > 1) gather_and_add(values, n, MPI_INT64_T, size_, gathered_counts_);
 }
 
-void MpiReplicas::sum(float* values, int64_t n) {
+void MpiReplicas::begin_sum(float* values, int64_t n) {
   if (size_ <= 1) return;
   mpi_count(n, "gradients");
+  if (begun_ == pieces_.size()) pieces_.push_back(std::make_unique<PieceSum>());
+  PieceSum& p = *pieces_[begun_++];
+  const auto R = static_cast<size_t>(size_);
+  p.values = values;
+  p.counts.resize(R), p.offsets.resize(R), p.receive_counts.resize(R), p.receive_offsets.resize(R);
   const auto begin = [&](int r) { return static_cast<int>(n * r / size_); };
-  std::vector<int> counts(static_cast<size_t>(size_)), offsets(static_cast<size_t>(size_));
   for (int r = 0; r < size_; ++r) {
-    offsets[static_cast<size_t>(r)] = begin(r);
-    counts[static_cast<size_t>(r)] = begin(r + 1) - begin(r);
+    p.offsets[static_cast<size_t>(r)] = begin(r);
+    p.counts[static_cast<size_t>(r)] = begin(r + 1) - begin(r);
   }
-  // Replica r receives chunk r of every replica's gradients, replica p's at p * mine.
-  const int mine = counts[static_cast<size_t>(rank_)];
-  std::vector<int> receive_counts(static_cast<size_t>(size_), mine),
-      receive_offsets(static_cast<size_t>(size_));
-  for (int r = 0; r < size_; ++r) receive_offsets[static_cast<size_t>(r)] = r * mine;
-  chunks_.resize(static_cast<size_t>(mine) * static_cast<size_t>(size_));
-  check_mpi(MPI_Alltoallv(values, counts.data(), offsets.data(), MPI_FLOAT, chunks_.data(),
-                          receive_counts.data(), receive_offsets.data(), MPI_FLOAT, MPI_COMM_WORLD),
-            "MPI_Alltoallv");
-  float* own = values + offsets[static_cast<size_t>(rank_)];
+  // Replica r receives chunk r of every replica's piece, replica q's at q * mine.
+  const int mine = p.counts[static_cast<size_t>(rank_)];
+  for (int r = 0; r < size_; ++r) {
+    p.receive_counts[static_cast<size_t>(r)] = mine;
+    p.receive_offsets[static_cast<size_t>(r)] = r * mine;
+  }
+  p.chunks.resize(static_cast<size_t>(mine) * R);
+  check_mpi(MPI_Ialltoallv(values, p.counts.data(), p.offsets.data(), MPI_FLOAT, p.chunks.data(),
+                           p.receive_counts.data(), p.receive_offsets.data(), MPI_FLOAT,
+                           comms_->exchange, &p.request),
+            "MPI_Ialltoallv");
+}
+
+void MpiReplicas::gather(PieceSum& p) {
+  const int mine = p.counts[static_cast<size_t>(rank_)];
+  float* own = p.values + p.offsets[static_cast<size_t>(rank_)];
   for (int i = 0; i < mine; ++i) {
-    float total = chunks_[static_cast<size_t>(i)];
+    float total = p.chunks[static_cast<size_t>(i)];
     for (int r = 1; r < size_; ++r)
-      total += chunks_[static_cast<size_t>(r) * static_cast<size_t>(mine) + static_cast<size_t>(i)];
+      total += p.chunks[static_cast<size_t>(r) * static_cast<size_t>(mine) + static_cast<size_t>(i)];
     own[i] = total;
   }
-  check_mpi(MPI_Allgatherv(MPI_IN_PLACE, 0, MPI_DATATYPE_NULL, values, counts.data(),
-                           offsets.data(), MPI_FLOAT, MPI_COMM_WORLD),
-            "MPI_Allgatherv");
+  check_mpi(MPI_Iallgatherv(MPI_IN_PLACE, 0, MPI_DATATYPE_NULL, p.values, p.counts.data(),
+                            p.offsets.data(), MPI_FLOAT, comms_->gather, &p.request),
+            "MPI_Iallgatherv");
+}
+
+void MpiReplicas::progress() {
+  // The all-gathers are posted in the order of the pieces: the first piece whose exchange has
+  // not arrived stops the walk. Testing one request also moves the others along (MPI's
+  // progress engine runs inside every call).
+  while (gathering_ < begun_) {
+    PieceSum& p = *pieces_[gathering_];
+    int done = 0;
+    check_mpi(MPI_Test(&p.request, &done, MPI_STATUS_IGNORE), "MPI_Test");
+    if (done == 0) return;
+    gather(p);
+    ++gathering_;
+  }
+  if (begun_ > 0) {
+    int done = 0;
+    check_mpi(MPI_Test(&pieces_[begun_ - 1]->request, &done, MPI_STATUS_IGNORE), "MPI_Test");
+  }
+}
+
+void MpiReplicas::end_sums() {
+  for (; gathering_ < begun_; ++gathering_) {
+    PieceSum& p = *pieces_[gathering_];
+    check_mpi(MPI_Wait(&p.request, MPI_STATUS_IGNORE), "MPI_Wait");
+    gather(p);
+  }
+  for (size_t i = 0; i < begun_; ++i)
+    check_mpi(MPI_Wait(&pieces_[i]->request, MPI_STATUS_IGNORE), "MPI_Wait");
+  begun_ = gathering_ = 0;
 }
 
 void MpiReplicas::broadcast(void* bytes, size_t n) {

@@ -40,6 +40,11 @@ void read_train(const YAML::Node& t, const ClassTable& classes, const std::strin
       c.workers = get<int>(v, where);
       PS_CHECK(c.workers >= 0 && c.workers <= 64, "{}: expected 0..64 threads, got {}", where, c.workers);
     }
+    else if (key == "gradient_bucket_mb") {
+      c.gradient_bucket_mb = get<double>(v, where);
+      PS_CHECK(c.gradient_bucket_mb >= 0 && c.gradient_bucket_mb <= 4096, "{}: expected 0..4096 MiB, got {}", where,
+               c.gradient_bucket_mb);
+    }
     else if (key == "sequences") c.sequences = get<std::vector<int>>(v, where);
     else if (key == "coefficients") coefficients = v;
     else if (key == "optimizer") {

@@ -43,6 +43,11 @@ struct TrainConfig {
   // Threads preparing samples ahead of the step into a bounded queue (engine/train/prefetcher.hpp);
   // 0: each batch is prepared when the step needs it. The results do not depend on it.
   int workers = 0;
+  // Data-parallel training: the gradients are summed over the replicas in buckets of at least
+  // this many MiB, each begun as soon as the backward has finished it, so that the sums overlap
+  // the rest of the backward (PyTorch DDP's bucket_cap_mb). 0: one sum after the backward. The
+  // results do not depend on it.
+  double gradient_bucket_mb = 4;
 };
 
 struct EvalConfig {

@@ -214,6 +214,25 @@ void recalibrate_batchnorm(PillarSegNet& net, const ScanDataset& data, const Tra
   net.set_batchnorm_momentum(0);
 }
 
+// Data-parallel training: each bucket of the gradients summed over the replicas as soon as the
+// backward has finished it (Backend::begin_sum_over_replicas), and the begun sums moved along
+// between the backward's nodes.
+class ReplicaGradientSum final : public PillarSegNet::GradientListener {
+ public:
+  ReplicaGradientSum(Backend& backend, Replicas& replicas, const Ref& grads)
+      : backend_(backend), replicas_(replicas), grads_(grads) {}
+  void bucket_ready(int64_t offset, int64_t count) override {
+    Ref bucket{grads_.data + offset, {count}};
+    backend_.begin_sum_over_replicas(bucket, replicas_);
+  }
+  void between_nodes() override { replicas_.progress(); }
+
+ private:
+  Backend& backend_;
+  Replicas& replicas_;
+  Ref grads_;
+};
+
 }  // namespace
 
 TrainResult train(const TrainOptions& options) {
@@ -255,6 +274,7 @@ TrainResult train(const TrainOptions& options) {
   net.set_training_precision(options.precision);
   if (R > 1) net.set_replicas(&replicas);
   ParameterSet& ps = net.parameters();
+  const auto bucket_count = static_cast<int64_t>(tc.gradient_bucket_mb * (1 << 20) / sizeof(float));
   // On a CUDA backend the decoration and the maps of each augmented scan are computed there
   // (engine/pipeline/scan_pipeline.hpp); the CPU backend's inputs come from the host pipeline.
   const bool on_device = backend->device() != Device::Cpu;
@@ -357,6 +377,7 @@ TrainResult train(const TrainOptions& options) {
     }
     Progress progress(fmt::format("epoch {}/{}", epoch + 1, tc.epochs), steps_per_epoch, "steps");
     double loss_sum = 0, data_wait = 0;
+    double sum_wait = 0;  // data-parallel: host time from the backward's end to the sums' end
     size_t taken = 0;  // of mine
     for (int64_t s = 0; s < steps_per_epoch; ++s) {
       const size_t begin = static_cast<size_t>(s) * B;
@@ -412,10 +433,17 @@ TrainResult train(const TrainOptions& options) {
         PS_FAIL("non-finite loss ({}) at epoch {}, step {} (scans {}); stopping. {}", loss,
                 epoch + 1, state.step + 1, data.describe(order[begin]), last_good_checkpoint());
       }
-      net.backward();
-      fault_point("step");
       Ref grads = ps.grads();
-      if (R > 1) backend->sum_over_replicas(grads, replicas);
+      if (R > 1) {
+        ReplicaGradientSum summing(*backend, replicas, grads);
+        net.backward(&summing, bucket_count);
+        const auto sums_started = std::chrono::steady_clock::now();
+        backend->end_sums_over_replicas(replicas);
+        sum_wait += std::chrono::duration<double>(std::chrono::steady_clock::now() - sums_started).count();
+      } else {
+        net.backward();
+      }
+      fault_point("step");
       const double grad_norm = std::sqrt(backend->sum_of_squares(grads));
       PS_CHECK(std::isfinite(grad_norm),
                "non-finite gradient norm at epoch {}, step {}; stopping. {}", epoch + 1,
@@ -497,10 +525,12 @@ TrainResult train(const TrainOptions& options) {
     // from the one before drops these lines again).
     events->scalar("train/epoch_mean_loss", state.step, result.last_epoch_loss);
     events->scalar("train/data_wait_s", state.step, data_wait);
+    if (R > 1) events->scalar("train/gradient_sum_wait_s", state.step, sum_wait);
     events->flush();
     log->line(fmt::format(
-        R"({{"type": "epoch", "epoch": {}, "step": {}, "mean_loss": {:.6f}, "data_wait_s": {:.3f}, "checkpoint": "{}"}})",
-        state.epoch, state.step, result.last_epoch_loss, data_wait, ckpt_path.filename().string()));
+        R"({{"type": "epoch", "epoch": {}, "step": {}, "mean_loss": {:.6f}, "data_wait_s": {:.3f}{}, "checkpoint": "{}"}})",
+        state.epoch, state.step, result.last_epoch_loss, data_wait,
+        R > 1 ? fmt::format(R"(, "gradient_sum_wait_s": {:.3f})", sum_wait) : "", ckpt_path.filename().string()));
     save_checkpoint(ckpt_path, net, cfg, state, /*with_optimizer=*/true);
   }
   result.epochs_done = state.epoch;

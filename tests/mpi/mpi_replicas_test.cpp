@@ -1,7 +1,9 @@
 // MpiReplicas under `mpirun -np R` (R >= 2; CTest runs 3, so that the gradient chunks are
 // uneven): every sum is the replica-order sum v_0 + v_1 + ... computed here by each rank from
 // the values every rank contributes (a function of rank and index), bit for bit, for sizes
-// below, at and above R; the float sums are chosen so that another order gives other bits.
+// below, at and above R; the float sums are chosen so that another order gives other bits. The
+// floats are summed in pieces that are in flight together, with blocking sums in between (the
+// trainer's buckets and synchronised BatchNorm), and each size reuses the last one's pieces.
 // Exits 1 with the first mismatch.
 #include <cmath>
 #include <cstdint>
@@ -47,9 +49,18 @@ int main() {
       doubles[static_cast<size_t>(i)] = static_cast<double>(contribution(me, i)) * 1e-3;
       counts[static_cast<size_t>(i)] = (int64_t{1} << 40) * me + i;
     }
-    replicas.sum(floats.data(), n);
+    // The floats in three pieces begun one after another (the last first, as the backward does),
+    // with the blocking sums and progress() in between and end_sums() after all of them.
+    const int64_t cut1 = n / 3, cut2 = n - n / 4;
+    replicas.begin_sum(floats.data() + cut2, n - cut2);
+    replicas.progress();
     replicas.sum(doubles.data(), n);
+    replicas.begin_sum(floats.data() + cut1, cut2 - cut1);
+    replicas.progress();
     replicas.sum(counts.data(), n);
+    replicas.progress();
+    replicas.begin_sum(floats.data(), cut1);
+    replicas.end_sums();
     for (int64_t i = 0; i < n; ++i) {
       float f = contribution(0, i);
       double d = static_cast<double>(contribution(0, i)) * 1e-3;
