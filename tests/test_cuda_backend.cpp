@@ -14,9 +14,11 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <cstring>
 #include <string>
 #include <vector>
 
+#include "core/replicas.hpp"
 #include "core/rng.hpp"
 #include "engine/cuda/cuda_backend.hpp"
 #include "engine/model/graph.hpp"
@@ -616,6 +618,47 @@ INSTANTIATE_TEST_SUITE_P(Impls, CudaBackendVendorModel,
                          [](const ::testing::TestParamInfo<ConvolutionImpl>& case_info) {
                            return std::string(convolution_impl_name(case_info.param));
                          });
+
+// ---- the data-parallel gradient sum over NCCL ----
+
+// One GPU holds one NCCL rank, and one rank runs the whole path of the sum: NCCL loaded, the
+// communicator made from an id sent through the Replicas, grouped send and receive to itself, the
+// replica-order sum kernel, the all-gather, all on the sums' own stream. That stream must wait for
+// the compute stream's work queued before begin (the values set to NaN, a large upload, then the
+// values): a sum that ran early would write NaN or a partial copy back. After end(), the compute
+// stream's download must see the summed values: for one rank, the values themselves, bit for bit.
+// Skips where NCCL cannot be loaded.
+TEST(CudaBackendReplicas, OneRankNcclSumRunsBehindTheComputeStream) {
+  CudaBackend backend;
+  SingleProcess one_rank;
+  const int64_t n = (int64_t{3} << 20) + 5;
+  std::vector<float> host(static_cast<size_t>(n));
+  for (size_t i = 0; i < host.size(); ++i) host[i] = static_cast<float>(i % 1013) * 0.125f - 60.0f;
+  const size_t bytes = host.size() * sizeof(float);
+  const std::vector<char> big_host(size_t{256} << 20, 1);
+  void* values = backend.allocate(bytes);
+  void* big = backend.allocate(big_host.size());
+  for (int round = 0; round < 2; ++round) {  // the second reuses the communicator and scratch
+    ASSERT_EQ(cudaMemsetAsync(values, 0xff, bytes, backend.stream()), cudaSuccess);
+    backend.upload(big, big_host.data(), big_host.size());
+    backend.upload(values, host.data(), bytes);
+    Ref piece{static_cast<float*>(values), {n}};
+    try {
+      backend.begin_sum_over_replicas(piece, one_rank);
+    } catch (const Error& e) {
+      backend.deallocate(values);
+      backend.deallocate(big);
+      if (std::string(e.what()).find("cannot be loaded") != std::string::npos) GTEST_SKIP() << e.what();
+      FAIL() << e.what();
+    }
+    backend.end_sums_over_replicas(one_rank);
+    std::vector<float> back(host.size());
+    backend.download(back.data(), values, bytes);
+    ASSERT_EQ(std::memcmp(back.data(), host.data(), bytes), 0) << "round " << round;
+  }
+  backend.deallocate(values);
+  backend.deallocate(big);
+}
 
 #endif  // PILLARSEG_CUDA_EMULATION
 

@@ -101,7 +101,7 @@ NcclGradientSum::~NcclGradientSum() = default;
 
 void NcclGradientSum::begin(float* values, int64_t n) {
   State& s = *state_;
-  if (s.size <= 1 || n == 0) return;
+  if (n == 0) return;
   const NcclApi& api = s.library.api;
   const auto R = static_cast<size_t>(s.size);
   const size_t chunk = (static_cast<size_t>(n) + R - 1) / R;
@@ -135,7 +135,6 @@ void NcclGradientSum::begin(float* values, int64_t n) {
 
 void NcclGradientSum::end() {
   State& s = *state_;
-  if (s.size <= 1) return;
   PS_CUDA_CHECK(cudaEventRecord(s.summed.get(), s.stream.get()));
   PS_CUDA_CHECK(cudaStreamWaitEvent(s.compute, s.summed.get(), 0));
 }

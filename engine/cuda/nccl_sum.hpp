@@ -10,7 +10,8 @@
 // The sums run on a stream of their own: begin() makes it wait for the compute stream's work
 // queued so far (an event), so that the backward's later kernels run while NCCL moves the piece;
 // end() makes the compute stream wait for every sum begun. Pieces follow one another on that
-// stream and share its scratch.
+// stream and share its scratch. One replica runs the whole path too (sending to and receiving
+// from itself), so that a machine with one GPU checks it (tests/test_cuda_backend.cpp).
 #pragma once
 
 #include <cstdint>
