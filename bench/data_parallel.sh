@@ -5,8 +5,8 @@
 # second of each (the epoch's steps over its training time, from metrics.jsonl) and their ratio,
 # and the largest weight difference after the epoch (tests/mpi_train_test.sh says why they are
 # not the same bits). The R ranks run twice: the gradients summed once after the backward
-# (gradient_bucket_mb: 0) and in 256 KiB buckets begun during it (the same bits; the small
-# model's gradients fit in one bucket of the default 4 MiB).
+# (gradient_bucket_mb: 0) and in 256 KiB buckets begun during it (nine; the same bits; the small
+# model's 4.16 MiB of gradients make only two buckets of the default 4 MiB).
 # Usage: bench/data_parallel.sh PILLARSEG_BINARY WORK_DIR [RANKS=2] [SCANS=40]
 set -euo pipefail
 bin=$(realpath "$1") work=$2 ranks=${3:-2} scans=${4:-40}

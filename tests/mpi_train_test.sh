@@ -34,8 +34,8 @@ rm -rf "$work" && mkdir -p "$work" && cd "$work"
 
 "$bin" simulate --out data --sequences 1 --scans 8 --seed 5 --points-per-scan 30000 > /dev/null
 "$bin" simulate --out data --sequences 1 --scans 3 --seed 5 --first-sequence 8 --points-per-scan 30000 > /dev/null
-write_config() {  # epochs scans_per_sequence
-  tiny_run_config dense "$1" 4 "precise_bn_batches: 2" "max_scans_per_sequence: $2"
+write_config() {  # epochs scans_per_sequence [TRAIN_LINE ...]
+  tiny_run_config dense "$1" 4 "precise_bn_batches: 2" "max_scans_per_sequence: $2" "${@:3}"
 }
 write_config 1 4 > one_step.yaml
 write_config 3 8 > three_epochs.yaml
@@ -95,15 +95,19 @@ cmp ranks3/checkpoint.safetensors ranks3b/checkpoint.safetensors || fail "two 2-
 cmp ranks3/best.safetensors ranks3b/best.safetensors || fail "two 2-rank runs' best checkpoints differ"
 
 echo "== the gradients summed in buckets during the backward: the same bytes as one sum after it"
-# 2 KiB buckets cut the tiny model's gradients into dozens, each begun as soon as the backward has
+# Buckets of at least 52 floats (0.0002 MiB) cut the tiny model's gradients into 11, one per
+# convolution weight with the small tensors next to it, each begun as soon as the backward has
 # finished it (three_epochs.yaml's default of 4 MiB holds them all: one sum after the backward).
 # A bucket begun before its last write would send gradients that later change.
-write_config 3 8 "gradient_bucket_mb: 0.002" > buckets.yaml
+write_config 3 8 "gradient_bucket_mb: 0.0002" > buckets.yaml
 "${mpi[@]}" -np 2 "$bin" --threads 1 train --data data --config buckets.yaml --out ranks3_buckets --cache cache \
-  > buckets.log 2>&1 || { cat buckets.log; fail "mpirun -np 2 train (2 KiB buckets) failed"; }
+  > buckets.log 2>&1 || { cat buckets.log; fail "mpirun -np 2 train (small buckets) failed"; }
+grep -q "summed over the 2 ranks in 11 buckets of at least 0.0002 MiB" buckets.log ||
+  { cat buckets.log; fail "the run does not say it sums in buckets"; }
+grep -q "summed over the 2 ranks in 1 bucket after the backward" ranks3.log || fail "ranks3 should sum once"
 "${compare[@]}" ranks3/checkpoint.safetensors ranks3_buckets/checkpoint.safetensors --max-abs 0 ||
   fail "summing in buckets changed the weights"
-write_config 1 4 "gradient_bucket_mb: 0.002" > one_step_buckets.yaml
+write_config 1 4 "gradient_bucket_mb: 0.0002" > one_step_buckets.yaml
 "${mpi[@]}" -np 2 "$bin" --threads 1 train --device emu --data data --config one_step_buckets.yaml \
   --out emu_ranks1_buckets --cache cache > emu_buckets.log 2>&1 || { cat emu_buckets.log; fail "emu buckets failed"; }
 "${compare[@]}" emu_ranks1/checkpoint.safetensors emu_ranks1_buckets/checkpoint.safetensors --max-abs 0 ||

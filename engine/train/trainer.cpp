@@ -275,6 +275,7 @@ TrainResult train(const TrainOptions& options) {
   if (R > 1) net.set_replicas(&replicas);
   ParameterSet& ps = net.parameters();
   const auto bucket_count = static_cast<int64_t>(tc.gradient_bucket_mb * (1 << 20) / sizeof(float));
+  bool buckets_said = false;
   // On a CUDA backend the decoration and the maps of each augmented scan are computed there
   // (engine/pipeline/scan_pipeline.hpp); the CPU backend's inputs come from the host pipeline.
   const bool on_device = backend->device() != Device::Cpu;
@@ -440,6 +441,15 @@ TrainResult train(const TrainOptions& options) {
         const auto sums_started = std::chrono::steady_clock::now();
         backend->end_sums_over_replicas(replicas);
         sum_wait += std::chrono::duration<double>(std::chrono::steady_clock::now() - sums_started).count();
+        if (leader && !buckets_said) {
+          buckets_said = true;
+          const size_t buckets = net.gradient_buckets(bucket_count).size();
+          spdlog::info("data-parallel: the gradients ({:.2f} MiB) are summed over the {} ranks in {} bucket{}{}",
+                       static_cast<double>(grads.bytes()) / (1 << 20), R, buckets, buckets == 1 ? "" : "s",
+                       buckets == 1 ? " after the backward"
+                                    : fmt::format(" of at least {} MiB, each begun as the backward finishes it",
+                                                  tc.gradient_bucket_mb));
+        }
       } else {
         net.backward();
       }

@@ -2,9 +2,9 @@
 """What of a training run's logs must not depend on timing or on where the run was killed.
 
   run_logs.py metrics RUN/metrics.jsonl   every line, the wall-clock fields (elapsed_s,
-                                          data_wait_s) removed
+                                          data_wait_s, gradient_sum_wait_s) removed
   run_logs.py events RUN/events.out...    every scalar as "tag step value" (tf.Event records,
-                                          CRCs checked; train/data_wait_s left out)
+                                          CRCs checked; the wait times left out)
 A record cut short, a CRC mismatch or a metrics line that is not JSON fails (exit 1).
 """
 import json
@@ -19,7 +19,7 @@ def metrics(path):
             json.loads(line)
         except ValueError as e:
             sys.exit(f"{path}:{number}: not JSON ({e})")
-        print(re.sub(r', "(elapsed_s|data_wait_s)": [0-9.eE+-]+', "", line.rstrip("\n")))
+        print(re.sub(r', "(elapsed_s|data_wait_s|gradient_sum_wait_s)": [0-9.eE+-]+', "", line.rstrip("\n")))
 
 
 def crc32c(data):
@@ -96,7 +96,7 @@ def events(path):
                         tag = x.decode()
                     elif n == 2:
                         (scalar,) = struct.unpack("<f", x)
-                if tag != "train/data_wait_s":
+                if tag not in ("train/data_wait_s", "train/gradient_sum_wait_s"):
                     print(f"{tag} {step} {scalar!r}")
 
 
