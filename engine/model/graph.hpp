@@ -134,8 +134,8 @@ class Graph {
   // The largest planned tensors with their offsets and lifetimes, and the total, as text.
   std::string memory_report(size_t largest = 12) const;
   // The flat gradient array [0, total) cut into buckets for a sum overlapped with the backward.
-  // offsets[i]: parameter i's first element in the array (-1: not trainable; those elements, and
-  // the padding up to the next parameter, go with it). Walking the parameters from the end of
+  // offsets[i]: parameter i's first element in the array (-1: not trainable, not in it; any
+  // padding after a parameter goes with it). Walking the parameters from the end of
   // the array (the backward meets the last layers first), each bucket gathers whole parameters
   // until it holds at least min_count elements (the last takes what is left); it is ready after
   // the last node writing any of its gradients. In the order they become ready (then from the
