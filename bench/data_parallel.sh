@@ -8,6 +8,8 @@
 # (gradient_bucket_mb: 0) and in 256 KiB buckets begun during it (nine; the same bits; the small
 # model's 4.16 MiB of gradients make only two buckets of the default 4 MiB).
 # Usage: bench/data_parallel.sh PILLARSEG_BINARY WORK_DIR [RANKS=2] [SCANS=40]
+# MPIRUN_ARGS: more mpirun options, e.g. "--mca btl tcp,self --mca btl_tcp_if_include lo" for
+# the ranks to talk over TCP (with the loopback's rate limited by tc, a stand-in for a network).
 set -euo pipefail
 bin=$(realpath "$1") work=$2 ranks=${3:-2} scans=${4:-40}
 here=$(cd "$(dirname "$0")/.." && pwd)
@@ -40,7 +42,9 @@ sed -e 's/^  seed: \(.*\)/  seed: \1\n  gradient_bucket_mb: 0.25/' bench.yaml > 
 grep -q "gradient_bucket_mb: 0.25" buckets.yaml || { echo "data_parallel: no train.seed in the config"; exit 1; }
 rm -rf single ranks buckets
 "$bin" --threads "$ranks" train --data data --config bench.yaml --out single --cache cache > single.log 2>&1
-mpi=(mpirun --allow-run-as-root --oversubscribe -np "$ranks" "$bin" --threads 1 train --data data --cache cache)
+read -r -a extra <<< "${MPIRUN_ARGS:-}"
+mpi=(mpirun --allow-run-as-root --oversubscribe "${extra[@]}" -np "$ranks" "$bin" --threads 1 train --data data
+     --cache cache)
 "${mpi[@]}" --config after.yaml --out ranks > ranks.log 2>&1
 "${mpi[@]}" --config buckets.yaml --out buckets > buckets.log 2>&1
 single=$(rate single) multi=$(rate ranks) bucketed=$(rate buckets)

@@ -501,7 +501,7 @@ void PillarSegNet::build_graph(GraphPlan& p, int batch, bool training) {
     const size_t skip_level = static_cast<size_t>(depth - j);
     const int skip = x[skip_level];
     a.cat = cat[static_cast<size_t>(j - 1)];
-    const Shape& in = g.at(current).shape;
+    const Shape in = g.at(current).shape;  // a copy: adding tensors below moves the list
     const Shape up_shape = u.transposed ? op::conv_transpose2x2(in, {u.in, u.up_channels, 2, 2}) : op::upsample2x(in);
     // Eval with batch 1 and no padding: the upsampled tensor is the band of the concatenation
     // after the skip, so the upsampling writes its part in place.
