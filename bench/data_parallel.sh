@@ -9,7 +9,7 @@
 # model's 4.16 MiB of gradients make only two buckets of the default 4 MiB).
 # Usage: bench/data_parallel.sh PILLARSEG_BINARY WORK_DIR [RANKS=2] [SCANS=40]
 # MPIRUN_ARGS: more mpirun options, e.g. "--mca btl tcp,self --mca btl_tcp_if_include lo" for
-# the ranks to talk over TCP (with the loopback's rate limited by tc, a stand-in for a network).
+# the ranks to talk over TCP instead of shared memory.
 set -euo pipefail
 bin=$(realpath "$1") work=$2 ranks=${3:-2} scans=${4:-40}
 here=$(cd "$(dirname "$0")/.." && pwd)
