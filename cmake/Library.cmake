@@ -40,6 +40,7 @@ foreach(part ${PILLARSEG_LIBRARY_PARTS})
 endforeach()
 target_link_options(pillarseg_shared PRIVATE
   -Wl,--version-script=${PROJECT_SOURCE_DIR}/engine/api/exports.map -Wl,--no-undefined)
+pillarseg_set_warnings(pillarseg_shared)  # with PILLARSEG_SANITIZE, links the sanitizers' runtimes
 
 set(PILLARSEG_STATIC_OBJECTS $<TARGET_OBJECTS:pillarseg_api>)
 foreach(part ${PILLARSEG_LIBRARY_PARTS})
