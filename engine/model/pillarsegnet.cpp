@@ -1142,7 +1142,7 @@ double PillarSegNet::loss(const Tensor<uint8_t>& labels, LossKind kind, const st
   return value;
 }
 
-void PillarSegNet::backward(GradientListener* listener, int64_t bucket_count) {
+void PillarSegNet::backward(GradientListener* listener, int64_t bucket_elements) {
   Impl& m = *impl_;
   PS_CHECK(m.current == &m.train, "backward() needs a training-mode forward first (the eval forward keeps no "
                                   "activations for it)");
@@ -1154,7 +1154,7 @@ void PillarSegNet::backward(GradientListener* listener, int64_t bucket_count) {
     execute(m.train, first, end);
     return;
   }
-  const std::vector<GradientBucket> buckets = gradient_buckets(bucket_count);
+  const std::vector<GradientBucket> buckets = gradient_buckets(bucket_elements);
   size_t next = 0;
   for (size_t i = first; i < end; ++i) {
     execute(m.train, i, i + 1);
@@ -1166,12 +1166,12 @@ void PillarSegNet::backward(GradientListener* listener, int64_t bucket_count) {
            buckets.size());
 }
 
-std::vector<GradientBucket> PillarSegNet::gradient_buckets(int64_t bucket_count) const {
+std::vector<GradientBucket> PillarSegNet::gradient_buckets(int64_t bucket_elements) const {
   const Impl& m = *impl_;
   PS_CHECK(m.train.built(), "gradient_buckets() needs a training plan (a training-mode forward first)");
   std::vector<int64_t> offsets;
   for (const ParamEntry& e : params_.entries()) offsets.push_back(e.trainable ? e.offset : -1);
-  return m.train.graph.gradient_buckets(offsets, params_.num_trainable(), bucket_count);
+  return m.train.graph.gradient_buckets(offsets, params_.num_trainable(), bucket_elements);
 }
 
 Tensor<float> PillarSegNet::download_logits() const {

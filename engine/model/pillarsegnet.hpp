@@ -110,8 +110,8 @@ class PillarSegNet {
   double loss(const Tensor<uint8_t>& labels, LossKind kind, const std::array<float, 13>& coefficients);
   // After loss(): every parameter gradient. Once per loss() (it consumes the logits' gradient).
   // With a listener (data-parallel training): the gradient array in buckets of at least
-  // bucket_count elements (Graph::gradient_buckets; <= 0: one, after the last node), each handed
-  // to listener->bucket_ready() as soon as the backward has queued its last write, and
+  // bucket_elements floats (Graph::gradient_buckets; <= 0: one, after the last node), each
+  // handed to listener->bucket_ready() as soon as the backward has queued its last write, and
   // listener->between_nodes() after every node.
   class GradientListener {
    public:
@@ -119,9 +119,9 @@ class PillarSegNet {
     virtual void bucket_ready(int64_t offset, int64_t count) = 0;
     virtual void between_nodes() = 0;
   };
-  void backward(GradientListener* listener = nullptr, int64_t bucket_count = 0);
+  void backward(GradientListener* listener = nullptr, int64_t bucket_elements = 0);
   // The buckets backward() hands out, for the current training plan (after a training forward).
-  std::vector<GradientBucket> gradient_buckets(int64_t bucket_count) const;
+  std::vector<GradientBucket> gradient_buckets(int64_t bucket_elements) const;
 
   // The momentum of every BatchNorm's running statistics in training-mode forwards; 0 (or
   // less) restores each module's own (0.1 in the U-Net, 0.01 in the PFN and occupancy stream).

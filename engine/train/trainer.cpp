@@ -274,7 +274,7 @@ TrainResult train(const TrainOptions& options) {
   net.set_training_precision(options.precision);
   if (R > 1) net.set_replicas(&replicas);
   ParameterSet& ps = net.parameters();
-  const auto bucket_count = static_cast<int64_t>(tc.gradient_bucket_mb * (1 << 20) / sizeof(float));
+  const auto bucket_elements = static_cast<int64_t>(tc.gradient_bucket_mb * (1 << 20) / sizeof(float));
   bool buckets_said = false;
   // On a CUDA backend the decoration and the maps of each augmented scan are computed there
   // (engine/pipeline/scan_pipeline.hpp); the CPU backend's inputs come from the host pipeline.
@@ -437,13 +437,13 @@ TrainResult train(const TrainOptions& options) {
       Ref grads = ps.grads();
       if (R > 1) {
         ReplicaGradientSum summing(*backend, replicas, grads);
-        net.backward(&summing, bucket_count);
+        net.backward(&summing, bucket_elements);
         const auto sums_started = std::chrono::steady_clock::now();
         backend->end_sums_over_replicas(replicas);
         sum_wait += std::chrono::duration<double>(std::chrono::steady_clock::now() - sums_started).count();
         if (leader && !buckets_said) {
           buckets_said = true;
-          const size_t buckets = net.gradient_buckets(bucket_count).size();
+          const size_t buckets = net.gradient_buckets(bucket_elements).size();
           spdlog::info("data-parallel: the gradients ({:.2f} MiB) are summed over the {} ranks in {} bucket{}{}",
                        static_cast<double>(grads.bytes()) / (1 << 20), R, buckets, buckets == 1 ? "" : "s",
                        buckets == 1 ? " after the backward"
