@@ -17,6 +17,7 @@ struct FaultPlan {
   bool armed = false;
   std::string point;
   long long hit = 0;  // which arrival kills
+  bool stop = false;  // PILLARSEG_FAULT_STOP=1: SIGSTOP instead of SIGKILL
 };
 
 long long parse_count(std::string_view text) {
@@ -54,6 +55,8 @@ const FaultPlan& plan() {
     out.armed = true;
     out.point = std::string(spec.substr(0, colon));
     out.hit = hit;
+    const char* stop = std::getenv("PILLARSEG_FAULT_STOP");
+    out.stop = stop != nullptr && std::string_view(stop) == "1";
     return out;
   }();
   return p;
@@ -70,9 +73,9 @@ void fault_point(std::string_view point) {
                            : point == p.point;
   if (!matches) return;
   if (arrivals.fetch_add(1) + 1 == p.hit) {
-    std::fprintf(stderr, "PILLARSEG_FAULT: killing process %d at %s (arrival %lld)\n", ::getpid(),
-                 p.point.c_str(), p.hit);
-    ::kill(::getpid(), SIGKILL);
+    std::fprintf(stderr, "PILLARSEG_FAULT: %s process %d at %s (arrival %lld)\n",
+                 p.stop ? "stopping" : "killing", ::getpid(), p.point.c_str(), p.hit);
+    ::kill(::getpid(), p.stop ? SIGSTOP : SIGKILL);
   }
 }
 

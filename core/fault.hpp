@@ -5,6 +5,8 @@
 // Points: "step" (inside an optimiser step: after backward, before the update), "write:NAME"
 // (inside write_file_atomic of a file named NAME, once bytes of it are on disk, before the
 // rename). A POINT ending in '*' matches every point it begins (write:* : any file's write).
+// With PILLARSEG_FAULT_STOP=1 as well, the process stops there (SIGSTOP) instead, so that a test
+// can hold it at the point while another process runs and kill it when it chooses.
 // Without the variable a point costs one branch.
 #pragma once
 

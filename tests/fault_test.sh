@@ -12,7 +12,8 @@
 #              checkpoint write under `mpirun -np 2`
 #   gt         `pillarseg gt` killed inside a cache write and rerun; damaged entries (cut short,
 #              a flipped payload byte, another key) recomputed; two gt processes on one cache at
-#              once, and one of two killed: the cache ends byte-identical to one clean gt's
+#              once, and one of two held at its first write and killed while the other runs:
+#              the cache ends byte-identical to one clean gt's
 #   disk-full  a run directory and a cache on a small tmpfs (a mount namespace of its own:
 #              unshare; exit 77, skipped, where neither root nor user namespaces allow it):
 #              writes to a full file system fail naming the file and "no space", the previous
@@ -173,14 +174,24 @@ PY
   if find shared -name '*.tmp-*' | grep -q .; then fail "two concurrent gt: temporaries left"; fi
   echo "ok: two gt processes on one cache"
   # One of two killed while the other runs: the survivor's entries are complete; a rerun removes
-  # what the killed one left. The one to be killed starts first and dies at its first write (a
-  # later one could find every entry already written by the other).
-  PILLARSEG_FAULT="write:*:1" gt shared_kill > a.log 2>&1 & a=$!
-  gt shared_kill > b.log 2>&1 & b=$!
+  # what the killed one left. The one to be killed is held (SIGSTOP) at its first write, with bytes
+  # of that entry on disk, while the other runs through the whole cache; then it is killed. (Started
+  # together, the second could write every entry before the first wrote any.)
+  PILLARSEG_FAULT_STOP=1 PILLARSEG_FAULT="write:*:1" "$bin" --threads 1 gt --data data --sequence 0 \
+    --mode dense --cache shared_kill > a.log 2>&1 & a=$!
+  state=
+  for ((i = 0; i < 600; ++i)); do
+    state=$(awk '{print $3}' "/proc/$a/stat" 2> /dev/null) || break
+    [[ $state == T ]] && break
+    sleep 0.1
+  done
+  [[ $state == T ]] || fail "the gt to be held did not stop at its first write: $(cat a.log)"
+  find shared_kill -name '*.tmp-*' | grep -q . || fail "the held gt left no partial entry on disk"
+  gt shared_kill > b.log 2>&1 || fail "the surviving gt failed: $(cat b.log)"
+  kill -KILL "$a"
   rc=0
-  wait $a || rc=$?
-  ((rc == 137)) || fail "the gt to be killed exited $rc"
-  wait $b || fail "the surviving gt failed: $(cat b.log)"
+  wait "$a" 2> /dev/null || rc=$?
+  ((rc == 137)) || fail "the held gt, killed, exited $rc"
   [[ $(tree_digest shared_kill) == "$ref" ]] || fail "one of two gt killed: the cache differs"
   gt shared_kill > /dev/null 2>&1
   if find shared_kill -name '*.tmp-*' | grep -q .; then fail "the rerun left the killed gt's temporaries"; fi
