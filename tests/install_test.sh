@@ -41,13 +41,20 @@ YAML
 weights=$work/run/checkpoint.safetensors
 scan=$work/data/sequences/00/velodyne/000001.bin
 
-cmake -S "$src/examples" -B "$work/examples" -DCMAKE_PREFIX_PATH="$prefix" -DCMAKE_BUILD_TYPE=Release > "$work/examples.log"
+# A sanitized build (make asan) installs a sanitized libpillarseg.a: programs linking it need the
+# sanitizers' runtimes, as they would in a user's sanitized build.
+link_flags=()
+if grep -q '^PILLARSEG_SANITIZE:BOOL=ON' "$build/CMakeCache.txt" 2> /dev/null; then
+  link_flags=(-fsanitize=address,undefined)
+fi
+cmake -S "$src/examples" -B "$work/examples" -DCMAKE_PREFIX_PATH="$prefix" -DCMAKE_BUILD_TYPE=Release \
+      -DCMAKE_EXE_LINKER_FLAGS="${link_flags[*]}" > "$work/examples.log"
 cmake --build "$work/examples" >> "$work/examples.log"
 cmake -S "$src/examples" -B "$work/examples-static" -DCMAKE_PREFIX_PATH="$prefix" -DCMAKE_BUILD_TYPE=Release \
-      -DPILLARSEG_EXAMPLES_STATIC=ON > "$work/examples-static.log"
+      -DCMAKE_EXE_LINKER_FLAGS="${link_flags[*]}" -DPILLARSEG_EXAMPLES_STATIC=ON > "$work/examples-static.log"
 cmake --build "$work/examples-static" >> "$work/examples-static.log"
 PKG_CONFIG_PATH=$libdir/pkgconfig cc -O2 -o "$work/segment_scan_pkgconfig" "$src/examples/segment_scan.c" \
-  $(PKG_CONFIG_PATH=$libdir/pkgconfig pkg-config --cflags --libs pillarseg) -Wl,-rpath,"$libdir"
+  $(PKG_CONFIG_PATH=$libdir/pkgconfig pkg-config --cflags --libs pillarseg) -Wl,-rpath,"$libdir" ${link_flags[@]+"${link_flags[@]}"}
 
 for device in cpu emu; do
   "$bin" --threads 2 infer --weights "$weights" --scan "$scan" --out "$work/infer_$device" --device "$device" > /dev/null
