@@ -56,10 +56,12 @@ struct LayerResult {
   StepTimes bf16;                    // ours in BF16 (engine/cpu/bf16_conv), where the CPU has it:
                                      // the direct micro-kernel
   StepTimes bf16_winograd;           // and Winograd F(2x2, 3x3), the model's choice
+  StepTimes amx_winograd;            // the same with its products on AMX-BF16 tiles, where present
 };
 std::vector<LayerResult> g_layers;
 std::string g_layer_peer_note;
 std::string g_bf16_note;  // why the BF16 column is empty
+std::string g_amx_note;   // why the AMX column is empty
 
 // ---- GEMM reference ----
 
@@ -134,6 +136,7 @@ void BM_Conv3x3(benchmark::State& state, const Layer& l) {
   Ref y_ref{y.data(), y.shape()};
   // BF16: the weights prepared once (as the model does), the input rounded once, y in BF16.
   const bool bf16 = cpu::avx512_bf16_available(&g_bf16_note);
+  const bool amx = cpu::amx_bf16_available(&g_amx_note);
   const Shape weight = w.shape();
   std::vector<uint16_t> w16(static_cast<size_t>(shape_numel(op::half16_conv_weights(weight, false))));
   std::vector<uint16_t> x16(static_cast<size_t>(x.numel())), y16(static_cast<size_t>(y.numel()));
@@ -152,7 +155,7 @@ void BM_Conv3x3(benchmark::State& state, const Layer& l) {
   PeerProcess* peer = conv_peer() && conv_peer()->ok() ? &*conv_peer() : nullptr;
   const std::string command = fmt::format("conv3x3 {}:{}:{}:{}", l.in, l.out, l.h, l.w);
   LayerResult r{
-      l.name, fmt::format("{} -> {} @ {}x{}", l.in, l.out, l.h, l.w), l.flops() * 1e-9, {}, {}, {}, {}, {}};
+      l.name, fmt::format("{} -> {} @ {}x{}", l.in, l.out, l.h, l.w), l.flops() * 1e-9, {}, {}, {}, {}, {}, {}};
   int64_t pair = 0;
   for (auto _ : state) {
     // The order alternates so that a load rising or falling through the run weighs on both.
@@ -167,6 +170,13 @@ void BM_Conv3x3(benchmark::State& state, const Layer& l) {
       host::conv2d_forward(x, w, &bias, 1, y_reference);
       benchmark::DoNotOptimize(y_reference.data());
     });
+    if (amx) {
+      time_once(r.amx_winograd, [&] {
+        cpu::conv3x3_winograd_forward(cpu::Bf16Kernels::Amx, x16_ref, w16_ref, bias16_ref, weight, false,
+                                      ActRef{y16.data(), y.shape(), true}, bf16_workspace);
+        benchmark::DoNotOptimize(y16.data());
+      });
+    }
     if (bf16) {
       time_once(r.bf16, [&] {
         cpu::conv2d_forward(cpu::Bf16Kernels::Avx512, x16_ref, w16_ref, bias16_ref, weight, 1, false,
@@ -231,27 +241,29 @@ void print_gemm_and_layers() {
       "fewer multiplies show as a higher rate); the host/ reference (im2col + GEMM) ms; PyTorch's "
       "nn.Conv2d run in turn, and the median step ratio ours / torch (wall, CPU); ours in BF16 "
       "(BF16 in and out, AVX512_BF16: the direct micro-kernel, and Winograd F(2x2, 3x3) as the model runs "
-      "it) ms and fp32 ms / Winograd bf16 ms:\n",
+      "it) ms and fp32 ms / Winograd bf16 ms; the BF16 Winograd with its products on AMX-BF16 tiles ms:\n",
       num_threads(), options().layer_reps, num_threads());
   fmt::print(
-      "  {:<30} {:>22} {:>7} {:>7} {:>7} {:>8} {:>6} {:>6} | {:>7} | {:>8} {:>7} | {:>5} {:>5} | {:>7} {:>5}\n",
+      "  {:<30} {:>22} {:>7} {:>7} {:>7} {:>8} {:>6} {:>6} | {:>7} | {:>8} {:>7} | {:>5} {:>5} | {:>7} {:>7} {:>5} "
+      "{:>7}\n",
       "layer", "I -> O @ h x w", "ms", "GFLOP/s", "CPU ms", "GF/cpu-s", "%wall", "%CPU", "ref ms",
-      "torch ms", "CPU ms", "wall", "CPU", "bf16 ms", "wino ms", "x");
+      "torch ms", "CPU ms", "wall", "CPU", "bf16 ms", "wino ms", "x", "amx ms");
   for (const LayerResult& l : g_layers) {
     const double wall_rate = l.gflop / l.ours.wall_median(),
                  cpu_rate = l.gflop / l.ours.cpu_median();
     fmt::print(
         "  {:<30} {:>22} {:>7.0f} {:>7.1f} {:>7.0f} {:>8.1f} {:>6} {:>6} | {:>7.0f} | {:>8} {:>7} "
-        "| {:>5} {:>5} | {:>7} {:>7} {:>5}\n",
+        "| {:>5} {:>5} | {:>7} {:>7} {:>5} {:>7}\n",
         l.name, l.shape, l.ours.wall_median() * 1e3, wall_rate, l.ours.cpu_median() * 1e3, cpu_rate,
         share(wall_rate, false), share(cpu_rate, true), l.reference.wall_median() * 1e3,
         fixed(wall_ms(l.torch), 0),
         fixed(cpu_ms(l.torch), 0), ratio(l.ours.wall, l.torch.wall),
         ratio(l.ours.cpu, l.torch.cpu), fixed(wall_ms(l.bf16), 0), fixed(wall_ms(l.bf16_winograd), 0),
-        ratio(l.ours.wall, l.bf16_winograd.wall));
+        ratio(l.ours.wall, l.bf16_winograd.wall), fixed(wall_ms(l.amx_winograd), 1));
   }
   if (!g_layer_peer_note.empty()) fmt::print("  PyTorch: {}\n", g_layer_peer_note);
   if (!g_bf16_note.empty()) fmt::print("  BF16: not run: {}\n", g_bf16_note);
+  if (!g_amx_note.empty()) fmt::print("  AMX-BF16 (amx ms): not run: {}\n", g_amx_note);
 }
 
 // ---- registration ----

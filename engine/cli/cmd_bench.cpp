@@ -18,6 +18,7 @@
 #include "core/parallel.hpp"
 #include "engine/cli/cli_util.hpp"
 #include "engine/cli/commands.hpp"
+#include "engine/cpu/bf16_conv.hpp"
 #include "engine/data/semantickitti.hpp"
 #include "engine/model/pillarsegnet.hpp"
 #include "engine/pipeline/scan_inputs.hpp"
@@ -131,9 +132,13 @@ void run_bench(const BenchArgs& a) {
   fs::remove_all(scratch, ec);
   int64_t host_bytes = 0;
   if (backend.device() != Device::Cpu) host_bytes = host_inputs_bytes(segmenter, scan);
+  // Which BF16 kernels the CPU runs (the AMX tiles or AVX512_BF16 alone), as the figures depend on it.
+  std::string precision_label = precision_name(segmenter.net().precision());
+  if (backend.device() == Device::Cpu && segmenter.net().precision() == Precision::BF16)
+    precision_label += fmt::format(" ({})", cpu::bf16_kernels_name(cpu::native_bf16_kernels()));
   fmt::print("pillarseg bench: device {}, precision {}, {} threads, grid {} x {}, C {}, b {}, {} upsampling, "
              "occupancy {}{}\n",
-             backend.name(), precision_name(segmenter.net().precision()), num_threads(), model.grid.width(), model.grid.height(), model.pillar_channels,
+             backend.name(), precision_label, num_threads(), model.grid.width(), model.grid.height(), model.pillar_channels,
              model.base_width, model.transposed ? "transposed" : "bilinear", occupancy_name(model.occupancy),
              model.grid_map_input ? ", grid-map input" : "");
   fmt::print("scan: {} ({} points); median of {} runs after one warm-up, each stage timed on the backend's "

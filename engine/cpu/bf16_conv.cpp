@@ -2,8 +2,16 @@
 // GEMM descriptions for the micro-kernel, the run-time choice of its instructions, threads.
 #include "engine/cpu/bf16_conv.hpp"
 
+#if defined(__x86_64__)
+#include <cpuid.h>
+#include <sys/syscall.h>
+#include <unistd.h>
+#endif
+
 #include <algorithm>
+#include <cerrno>
 #include <cmath>
+#include <cstring>
 #include <string>
 #include <type_traits>
 #include <vector>
@@ -11,6 +19,7 @@
 #include "core/error.hpp"
 #include "core/ops.hpp"
 #include "core/parallel.hpp"
+#include "engine/cpu/bf16_amx.hpp"
 #include "engine/cpu/bf16_isa_emulated.hpp"
 #include "engine/cpu/bf16_microkernel.hpp"
 #include "engine/cpu/bf16_winograd.hpp"
@@ -65,14 +74,19 @@ std::vector<KTap> k_taps(std::int64_t channels, const std::vector<TapOffset>& of
   return taps;
 }
 
+// Whether `kernels` run the AVX-512 instructions (checked here) rather than their model.
+bool native(Bf16Kernels kernels) {
+  if (kernels == Bf16Kernels::Emulated || kernels == Bf16Kernels::AmxEmulated) return false;
+  std::string why;
+  PS_CHECK(avx512_bf16_available(&why), "BF16 convolutions on the CPU: {}", why);
+  return true;
+}
+
 void run_gemm(Bf16Kernels kernels, const Bf16Gemm& g) {
-  if (kernels == Bf16Kernels::Avx512) {
-    std::string why;
-    PS_CHECK(avx512_bf16_available(&why), "BF16 convolutions on the CPU: {}", why);
-  }
+  const bool on_avx512 = native(kernels);  // the AMX path's direct convolutions are AVX-512's
   parallel_chunks(gemm_items(g), [&](std::int64_t begin, std::int64_t end, int) {
 #if defined(PILLARSEG_HAVE_AVX512_BF16_KERNELS)
-    if (kernels == Bf16Kernels::Avx512) {
+    if (on_avx512) {
       bf16_gemm_rows_avx512(g, begin, end);
       return;
     }
@@ -115,8 +129,61 @@ bool avx512_bf16_available(std::string* why_not) {
 #endif
 }
 
+namespace {
+
+// The AMX check's answer, worked out once: "" where the AMX path runs, else what is missing.
+std::string amx_missing() {
+  std::string why;
+  if (!avx512_bf16_available(&why)) return why;
+#if defined(PILLARSEG_HAVE_AMX_BF16_KERNELS) && defined(__x86_64__) && defined(__linux__)
+  unsigned eax = 0, ebx = 0, ecx = 0, edx = 0;
+  if (__get_cpuid_count(7, 0, &eax, &ebx, &ecx, &edx) == 0) return "this CPU has no CPUID leaf 7";
+  std::string missing;
+  if (((edx >> 24) & 1u) == 0) missing = "AMX-TILE";
+  if (((edx >> 22) & 1u) == 0) missing += missing.empty() ? "AMX-BF16" : ", AMX-BF16";
+  if (!missing.empty()) return "this CPU lacks " + missing;
+  unsigned xcr0_lo = 0, xcr0_hi = 0;
+  __asm__ volatile("xgetbv" : "=a"(xcr0_lo), "=d"(xcr0_hi) : "c"(0));  // OSXSAVE: AVX-512 above
+  if (((xcr0_lo >> 17) & 3u) != 3u)
+    return "the OS does not enable the AMX tile state (XCR0 bits 17, 18)";
+  constexpr long kArchReqXcompPerm = 0x1023, kXfeatureXtiledata = 18;  // <asm/prctl.h>
+  if (::syscall(SYS_arch_prctl, kArchReqXcompPerm, kXfeatureXtiledata) != 0) {
+    return std::string(
+               "Linux did not grant this process the AMX tile state (arch_prctl "
+               "ARCH_REQ_XCOMP_PERM: ") +
+           std::strerror(errno) + "; Linux 5.16 or later grants it)";
+  }
+  return "";
+#else
+  return "this build has no AMX-BF16 tiles (not x86-64 Linux, or the compiler lacks -mamx-bf16)";
+#endif
+}
+
+}  // namespace
+
+bool amx_bf16_available(std::string* why_not) {
+  static const std::string missing = amx_missing();
+  if (missing.empty()) return true;
+  if (why_not != nullptr) *why_not = missing;
+  return false;
+}
+
+Bf16Kernels native_bf16_kernels() {
+  return amx_bf16_available() ? Bf16Kernels::Amx : Bf16Kernels::Avx512;
+}
+
 const char* bf16_kernels_name(Bf16Kernels kernels) {
-  return kernels == Bf16Kernels::Avx512 ? "avx512_bf16" : "emulated";
+  switch (kernels) {
+    case Bf16Kernels::Avx512:
+      return "avx512_bf16";
+    case Bf16Kernels::Emulated:
+      return "emulated";
+    case Bf16Kernels::Amx:
+      return "amx_bf16";
+    case Bf16Kernels::AmxEmulated:
+      return "amx_bf16 (emulated)";
+  }
+  return "?";
 }
 
 void prepare_conv_weights(const Ref& w, const Ref* bias, const BatchNormRefs* bn, Precision p,
@@ -202,19 +269,26 @@ void conv3x3_winograd_forward(Bf16Kernels kernels, const HRef& x, const HRef& w1
   require_output(op, y, y_shape);
   require_shape(op, "w16", w16, op::half16_conv_weights(weight, false));
   require_shape(op, "bias_out", bias_out, {weight[0]});
-  if (kernels == Bf16Kernels::Avx512) {
+  const bool on_native = native(kernels);
+  const bool amx = kernels == Bf16Kernels::Amx || kernels == Bf16Kernels::AmxEmulated;
+  if (kernels == Bf16Kernels::Amx) {
     std::string why;
-    PS_CHECK(avx512_bf16_available(&why), "BF16 convolutions on the CPU: {}", why);
+    PS_CHECK(amx_bf16_available(&why), "BF16 convolutions on AMX tiles: {}", why);
   }
-  const std::int64_t out = weight[0], in = weight[1], pairs = (in + 1) / 2, kp = w16.dim(1);
+  const std::int64_t out = weight[0], in = weight[1], kp = w16.dim(1);
+  // AMX's tiles take 16 channel pairs and 16 output channels at a time: U and V zero padded.
+  const auto round_up = [](std::int64_t n, std::int64_t to) { return (n + to - 1) / to * to; };
+  const std::int64_t pairs = amx ? round_up((in + 1) / 2, kAmxPairs) : (in + 1) / 2;
+  const std::int64_t u_rows = amx ? round_up(out, kAmxGroupColumns) : out;
   // U[p][o][c / 2][c % 2] = (G g G^T)[p] of the prepared BF16 kernel g of (o, c), in double,
-  // rounded once; zero for the partner of an odd channel count.
-  workspace.u.resize(static_cast<size_t>(16 * out * pairs * 2));
+  // rounded once; zero for the channels past C (an odd count's partner, AMX's padding) and the
+  // rows past O.
+  workspace.u.resize(static_cast<size_t>(16 * u_rows * pairs * 2));
   std::uint16_t* u = workspace.u.data();
-  parallel_for(out, [&](std::int64_t o) {
+  parallel_for(u_rows, [&](std::int64_t o) {
     for (std::int64_t c = 0; c < 2 * pairs; ++c) {
       double gg[4][3] = {};  // G g
-      if (c < in) {
+      if (c < in && o < out) {
         double k[3][3];
         for (int t = 0; t < 9; ++t)
           k[t / 3][t % 3] = weights::bf16_bits_to_float(w16.data[o * kp + c * 9 + t]);
@@ -229,7 +303,7 @@ void conv3x3_winograd_forward(Bf16Kernels kernels, const HRef& x, const HRef& w1
         const double row[4] = {gg[i][0], 0.5 * (gg[i][0] + gg[i][1] + gg[i][2]),
                                0.5 * (gg[i][0] - gg[i][1] + gg[i][2]), gg[i][2]};
         for (int j = 0; j < 4; ++j) {
-          u[((static_cast<std::int64_t>(4 * i + j) * out + o) * pairs + c / 2) * 2 + c % 2] =
+          u[((static_cast<std::int64_t>(4 * i + j) * u_rows + o) * pairs + c / 2) * 2 + c % 2] =
               EmulatedBf16Isa::float_to_bf16(static_cast<float>(row[j]));
         }
       }
@@ -237,7 +311,8 @@ void conv3x3_winograd_forward(Bf16Kernels kernels, const HRef& x, const HRef& w1
   });
   Bf16Winograd g;
   g.x = x.data, g.batch = x.dim(0), g.channels = in, g.height = x.dim(2), g.width = x.dim(3);
-  g.channel_pairs = pairs, g.u = u, g.out_channels = out, g.bias = bias_out.data, g.relu = relu;
+  g.channel_pairs = pairs, g.u = u, g.out_channels = out, g.u_rows = u_rows;
+  g.bias = bias_out.data, g.relu = relu;
   g.y = y.data, g.y_bf16 = y.half;
   g.tiles_h = (g.height + 1) / 2, g.tiles_w = (g.width + 1) / 2;
   // Blocks whose V (16 channel-pair rows of 4-byte pairs per tile) stays within 384 KiB of a
@@ -249,19 +324,29 @@ void conv3x3_winograd_forward(Bf16Kernels kernels, const HRef& x, const HRef& w1
                   kWinogradGroupTiles;
   const int threads = std::max(num_threads(), 1);
   g.v_stride = winograd_v_words(pairs, g.block_tiles);
-  g.m_stride = winograd_m_floats();
+  g.m_stride = winograd_m_floats(amx ? kAmxGroupColumns : kWinogradGroupColumns);
   workspace.v.resize(static_cast<size_t>(threads * g.v_stride));
   workspace.m.resize(static_cast<size_t>(threads * g.m_stride));
   g.v = workspace.v.data(), g.m = workspace.m.data();
   parallel_chunks(g.batch * winograd_blocks_per_image(g),
                   [&](std::int64_t begin, std::int64_t end, int thread) {
+#if defined(PILLARSEG_HAVE_AMX_BF16_KERNELS)
+                    if (on_native && amx) {
+                      bf16_winograd_blocks_amx(g, begin, end, thread);
+                      return;
+                    }
+#endif
 #if defined(PILLARSEG_HAVE_AVX512_BF16_KERNELS)
-                    if (kernels == Bf16Kernels::Avx512) {
+                    if (on_native && !amx) {
                       bf16_winograd_blocks_avx512(g, begin, end, thread);
                       return;
                     }
 #endif
-                    winograd_blocks<EmulatedBf16Isa>(g, begin, end, thread);
+                    if (amx) {
+                      winograd_blocks_amx<EmulatedBf16Isa, EmulatedAmxTiles>(g, begin, end, thread);
+                    } else {
+                      winograd_blocks<EmulatedBf16Isa>(g, begin, end, thread);
+                    }
                   });
 }
 

@@ -6,8 +6,13 @@
 // the 3x3 pad-1 convolutions, which the CPU backend runs; and the 16-bit activations' data
 // movement of kernels/half_ops.cuh on host memory, bit for bit the same.
 //
+// On CPUs with AMX-BF16 (Sapphire Rapids and later, Linux 5.16+), the Winograd convolutions'
+// products run on the AMX tiles (bf16_amx.hpp), the transforms and the other convolutions on
+// AVX512_BF16.
+//
 // Bf16Kernels::Emulated runs the same micro-kernel on an exact scalar model of the instructions
-// (bf16_isa_emulated.hpp): the tests' way to check it on CPUs without AVX512_BF16 (slow).
+// (bf16_isa_emulated.hpp), AmxEmulated the AMX path on its model: the tests' way to check them on
+// CPUs without AVX512_BF16 or AMX (slow).
 #pragma once
 
 #include <cstdint>
@@ -19,12 +24,19 @@
 
 namespace pillarseg::cpu {
 
-enum class Bf16Kernels { Avx512, Emulated };
+enum class Bf16Kernels { Avx512, Emulated, Amx, AmxEmulated };
 
 // Whether this CPU and its OS run the AVX512_BF16 micro-kernel (AVX512F, BW, VL and BF16, and
 // this build has it); else false with what is missing in why_not.
 bool avx512_bf16_available(std::string* why_not = nullptr);
-// "avx512_bf16" or "emulated".
+// Whether the AMX path runs here: AVX512_BF16 as above, AMX-TILE and AMX-BF16 (CPUID), the tile
+// state enabled by the OS (XCR0) and granted to this process (Linux's arch_prctl
+// ARCH_REQ_XCOMP_PERM, asked once); else false with what is missing in why_not.
+bool amx_bf16_available(std::string* why_not = nullptr);
+// The fastest kernels this CPU runs: Amx where amx_bf16_available, else Avx512 (which may itself
+// be unavailable: avx512_bf16_available says).
+Bf16Kernels native_bf16_kernels();
+// "avx512_bf16", "emulated", "amx_bf16" or "amx_bf16 (emulated)".
 const char* bf16_kernels_name(Bf16Kernels kernels);
 
 // The host version of the CUDA backend's weight preparation, the same arithmetic: w (O, I, k,

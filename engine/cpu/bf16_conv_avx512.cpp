@@ -5,10 +5,14 @@
 // includes no library header: its functions are called only after the run-time check
 // (avx512_bf16_available in bf16_conv.cpp), and nothing here may be shared with code that runs
 // on other CPUs. Its instruction-for-instruction model is EmulatedBf16Isa (bf16_isa_emulated.hpp).
+// Where the compiler has them (PILLARSEG_HAVE_AMX_BF16_KERNELS), it is also built with
+// -mamx-tile -mamx-bf16 for the Winograd products on AMX tiles (bf16_amx.hpp; their model is
+// EmulatedAmxTiles), called only after amx_bf16_available.
 #include <immintrin.h>
 
 #include <cstdint>
 
+#include "engine/cpu/bf16_amx.hpp"
 #include "engine/cpu/bf16_microkernel.hpp"
 #include "engine/cpu/bf16_winograd.hpp"
 
@@ -93,6 +97,44 @@ struct Avx512Bf16Isa {
   }
 };
 
+#if defined(PILLARSEG_HAVE_AMX_BF16_KERNELS)
+// The tile instructions for bf16_amx.hpp. The intrinsics take tile numbers as literals (they are
+// pasted into the instruction's text), hence one branch per tile the products use.
+struct AmxTiles {
+  static void configure(const AmxTileConfig& config) { _tile_loadconfig(&config); }
+  static void release() { _tile_release(); }
+  template <int T>
+  static void zero() {
+    static_assert(T >= 0 && T <= 2, "the accumulators are tmm0..tmm2");
+    if constexpr (T == 0) _tile_zero(0);
+    if constexpr (T == 1) _tile_zero(1);
+    if constexpr (T == 2) _tile_zero(2);
+  }
+  template <int T>
+  static void load(const void* base, std::int64_t stride_bytes) {
+    static_assert(T >= 3 && T <= 6, "the operands are tmm3..tmm6");
+    if constexpr (T == 3) _tile_loadd(3, base, stride_bytes);
+    if constexpr (T == 4) _tile_loadd(4, base, stride_bytes);
+    if constexpr (T == 5) _tile_loadd(5, base, stride_bytes);
+    if constexpr (T == 6) _tile_loadd(6, base, stride_bytes);
+  }
+  template <int T>
+  static void store(void* base, std::int64_t stride_bytes) {
+    static_assert(T >= 0 && T <= 2, "the accumulators are tmm0..tmm2");
+    if constexpr (T == 0) _tile_stored(0, base, stride_bytes);
+    if constexpr (T == 1) _tile_stored(1, base, stride_bytes);
+    if constexpr (T == 2) _tile_stored(2, base, stride_bytes);
+  }
+  template <int C, int A, int B>
+  static void dot() {
+    static_assert(A == 3 && B == C + 4 && C >= 0 && C <= 2, "C tmm0..2, A tmm3, B tmm4..6");
+    if constexpr (C == 0) _tile_dpbf16ps(0, 3, 4);
+    if constexpr (C == 1) _tile_dpbf16ps(1, 3, 5);
+    if constexpr (C == 2) _tile_dpbf16ps(2, 3, 6);
+  }
+};
+#endif
+
 }  // namespace
 
 void bf16_gemm_rows_avx512(const Bf16Gemm& g, std::int64_t begin, std::int64_t end) {
@@ -103,5 +145,12 @@ void bf16_winograd_blocks_avx512(const Bf16Winograd& g, std::int64_t begin, std:
                                  int thread) {
   winograd_blocks<Avx512Bf16Isa>(g, begin, end, thread);
 }
+
+#if defined(PILLARSEG_HAVE_AMX_BF16_KERNELS)
+void bf16_winograd_blocks_amx(const Bf16Winograd& g, std::int64_t begin, std::int64_t end,
+                              int thread) {
+  winograd_blocks_amx<Avx512Bf16Isa, AmxTiles>(g, begin, end, thread);
+}
+#endif
 
 }  // namespace pillarseg::cpu

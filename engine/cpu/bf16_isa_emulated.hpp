@@ -9,12 +9,17 @@
 //   masked loads  (vmovdqu16 with a zeroing mask) read only the lanes the mask names;
 //   the rest are plain moves, shifts and masks of words, FP32 adds and subtractions, max(v, 0) (NaN
 //   -> 0 as VMAXPS(v, 0) gives) and stores.
-// The AVX-512 implementation of the same interface is in bf16_conv_avx512.cpp.
+// The AVX-512 implementation of the same interface is in bf16_conv_avx512.cpp. And of the AMX
+// tile instructions the Winograd products use (bf16_amx.hpp), EmulatedAmxTiles:
+//   TDPBF16PS     C[m][n] += A[m].bf16[2k] B[k].bf16[2n], then the odd elements, for k in order,
+//                 each an FMA with one rounding to nearest even, denormals as in VDPBF16PS;
+//   TILELOADD, TILESTORED, TILEZERO on full tiles (16 rows of 64 bytes), one tile file a thread.
 #pragma once
 
 #include <bit>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 
 namespace pillarseg::cpu {
 
@@ -132,6 +137,62 @@ struct EmulatedBf16Isa {
                                      std::uint32_t mask) {
     for (int i = 0; i < 32; ++i)
       if ((mask >> i) & 1u) y[i] = float_to_bf16((i % 2 == 0 ? even : odd).v[i / 2]);
+  }
+};
+
+// The tile instructions (see above), the interface of AmxTiles in bf16_conv_avx512.cpp.
+struct EmulatedAmxTiles {
+  struct Tile {
+    std::uint32_t d[16][16];  // rows of 16 dwords: FP32 values or BF16 pairs
+  };
+  static Tile* file() {
+    thread_local Tile tiles[8];
+    return tiles;
+  }
+  template <class Config>
+  static void configure(const Config&) {}
+  static void release() {}
+  template <int T>
+  static void zero() {
+    std::memset(file()[T].d, 0, sizeof(Tile));
+  }
+  template <int T>
+  static void load(const void* base, std::int64_t stride_bytes) {
+    for (int r = 0; r < 16; ++r)
+      std::memcpy(file()[T].d[r], static_cast<const std::uint8_t*>(base) + r * stride_bytes, 64);
+  }
+  template <int T>
+  static void store(void* base, std::int64_t stride_bytes) {
+    for (int r = 0; r < 16; ++r)
+      std::memcpy(static_cast<std::uint8_t*>(base) + r * stride_bytes, file()[T].d[r], 64);
+  }
+  static float fp32(std::uint32_t bits) {
+    float f;
+    std::memcpy(&f, &bits, sizeof(f));
+    return f;
+  }
+  // C[m][n] += sum_k A[m].bf16[2k] B[k].bf16[2n] + A[m].bf16[2k + 1] B[k].bf16[2n + 1], k in order.
+  template <int C, int A, int B>
+  static void dot() {
+    Tile& c = file()[C];
+    const Tile& a = file()[A];
+    const Tile& b = file()[B];
+    for (int m = 0; m < 16; ++m) {
+      for (int n = 0; n < 16; ++n) {
+        float acc = EmulatedBf16Isa::flush_denormal(fp32(c.d[m][n]));
+        for (int k = 0; k < 16; ++k) {
+          for (int half = 0; half < 2; ++half) {
+            const int shift = 16 * half;
+            const float x =
+                EmulatedBf16Isa::bf16_to_float(static_cast<std::uint16_t>(a.d[m][k] >> shift));
+            const float y =
+                EmulatedBf16Isa::bf16_to_float(static_cast<std::uint16_t>(b.d[k][n] >> shift));
+            acc = EmulatedBf16Isa::flush_denormal(std::fma(x, y, acc));
+          }
+        }
+        std::memcpy(&c.d[m][n], &acc, sizeof(acc));
+      }
+    }
   }
 };
 

@@ -31,7 +31,9 @@
 // pairs (c, c + 1) interleaved as VDPBF16PS reads them, sized to stay in a core's L2; then for
 // each group of 8 output channels and 48 tiles, the 16 products in a register tile of 8 channels
 // x 3 vectors of 16 tiles (24 accumulators) into M (16, 8, 48) FP32 (in L1), and that group's
-// output transform. U (16, O, channel pairs, 2) is read from every block.
+// output transform. U (16, O, channel pairs, 2) is read from every block. On AMX-BF16 the
+// products of a group of 16 output channels run on the tiles instead (bf16_amx.hpp), the
+// transforms as here; U's rows and the channel pairs are then zero padded to multiples of 16.
 #pragma once
 
 #include <cstdint>
@@ -43,9 +45,10 @@ namespace pillarseg::cpu {
 struct Bf16Winograd {
   const std::uint16_t* x = nullptr;  // BF16 input (B, C, H, W)
   std::int64_t batch = 0, channels = 0, height = 0, width = 0;
-  std::int64_t channel_pairs = 0;    // ceil(C / 2)
-  const std::uint16_t* u = nullptr;  // (16, O, channel_pairs, 2) BF16, zero for c >= C
+  std::int64_t channel_pairs = 0;    // ceil(C / 2) (AMX: rounded up to 16)
+  const std::uint16_t* u = nullptr;  // (16, u_rows, channel_pairs, 2) BF16, zero for c >= C
   std::int64_t out_channels = 0;
+  std::int64_t u_rows = 0;      // O (AMX: rounded up to 16, the rows beyond O zero)
   const float* bias = nullptr;  // (O)
   bool relu = false;
   void* y = nullptr;  // (B, O, H, W), FP32 or (y_bf16) BF16
@@ -65,14 +68,18 @@ inline constexpr std::int64_t kWinogradGroupColumns = 8;
 inline std::int64_t winograd_v_words(std::int64_t channel_pairs, std::int64_t block_tiles) {
   return 16 * channel_pairs * block_tiles * 2;
 }
-inline std::int64_t winograd_m_floats() {  // with one vector of slack: see the output transform
-  return 16 * kWinogradGroupColumns * kWinogradGroupTiles + 16;
+inline std::int64_t winograd_m_floats(std::int64_t group_columns) {  // with one vector of slack
+  return 16 * group_columns * kWinogradGroupTiles + 16;
 }
 
 // Blocks [begin, end) of the batch's images (block j of image b is item b blocks + j) on the
 // AVX-512 instructions, with the scratch of thread `thread` (bf16_conv_avx512.cpp).
 void bf16_winograd_blocks_avx512(const Bf16Winograd& g, std::int64_t begin, std::int64_t end,
                                  int thread);
+// The same with the products on AMX-BF16 tiles (bf16_amx.hpp; channel_pairs and u_rows multiples
+// of 16, M groups of kAmxGroupColumns), in bf16_conv_avx512.cpp where the build has AMX.
+void bf16_winograd_blocks_amx(const Bf16Winograd& g, std::int64_t begin, std::int64_t end,
+                              int thread);
 
 namespace {
 
@@ -151,7 +158,9 @@ void winograd_input_pair(const Bf16Winograd& g, std::int64_t b, std::int64_t cp,
     }
   }
   const std::int64_t plane_size = g.height * g.width, c0 = 2 * cp;
-  const std::uint16_t* planes[2] = {g.x + (b * g.channels + c0) * plane_size, nullptr};
+  // Pairs past the channels (AMX's padding to 16 pairs) are zero, as is an odd count's partner.
+  const std::uint16_t* planes[2] = {nullptr, nullptr};
+  if (c0 < g.channels) planes[0] = g.x + (b * g.channels + c0) * plane_size;
   if (c0 + 1 < g.channels) planes[1] = planes[0] + plane_size;
   for (std::int64_t tl = 0; tl < count;) {
     // A run of tiles in one tile row: tiles tx0 .. tx0 + n - 1 of row ty.
@@ -198,7 +207,7 @@ void winograd_gemm_tile(const Bf16Winograd& g, const std::uint16_t* v, std::int6
 #pragma GCC unroll 4
       for (int px = 0; px < NPX; ++px) acc[c][px] = Isa::zero();
     const std::uint16_t* vp = v + p * pairs * pair_stride + 2 * tl0;
-    const std::uint16_t* up = g.u + (p * g.out_channels + o0) * pairs * 2;
+    const std::uint16_t* up = g.u + (p * g.u_rows + o0) * pairs * 2;
     for (std::int64_t cp = 0; cp < pairs; ++cp) {
       Pair a[NPX];
 #pragma GCC unroll 4
@@ -232,12 +241,12 @@ void winograd_gemm_tile_any(const Bf16Winograd& g, const std::uint16_t* v, std::
 // y of the output channels o0 .. o0 + columns - 1 over the block's tiles t0 + tl0 .. + count - 1
 // from M (winograd_gemm_tile), 16 tiles of a tile row at a time: Y = A^T M A, plus the bias,
 // then the ReLU; output rows 2 ty and 2 ty + 1 as the interleaved Y[i][0], Y[i][1].
-template <class Isa>
+template <class Isa, int GroupColumns>
 void winograd_output_group(const Bf16Winograd& g, std::int64_t b, std::int64_t o0,
                            std::int64_t columns, std::int64_t t0, std::int64_t tl0,
                            std::int64_t count, const float* m) {
   using Acc = typename Isa::Acc;
-  const std::int64_t group = kWinogradGroupColumns * kWinogradGroupTiles;  // floats per p
+  const std::int64_t group = GroupColumns * kWinogradGroupTiles;  // floats per p
   for (std::int64_t k = 0; k < count;) {
     const std::int64_t t = t0 + tl0 + k, ty = t / g.tiles_w, tx0 = t % g.tiles_w;
     const std::int64_t n = (g.tiles_w - tx0) < (count - k) ? (g.tiles_w - tx0) : (count - k);
@@ -278,9 +287,22 @@ void winograd_output_group(const Bf16Winograd& g, std::int64_t b, std::int64_t o
   }
 }
 
-// Items [begin, end) (winograd_blocks_per_image per image) with thread `thread`'s scratch.
+// The products of the VDPBF16PS register tiles: groups of 8 output channels.
 template <class Isa>
+struct WinogradVectorProducts {
+  static constexpr int kColumns = kWinogradGroupColumns;
+  static void run(const Bf16Winograd& g, const std::uint16_t* v, std::int64_t o0,
+                  std::int64_t columns, std::int64_t tl0, std::int64_t vectors, float* m) {
+    winograd_gemm_tile_any<Isa>(g, v, o0, columns, tl0, vectors, m);
+  }
+};
+
+// Items [begin, end) (winograd_blocks_per_image per image) with thread `thread`'s scratch: each
+// block's input transform, then for each group of Products::kColumns output channels and 48
+// tiles the products into M and the group's output transform.
+template <class Isa, class Products = WinogradVectorProducts<Isa>>
 void winograd_blocks(const Bf16Winograd& g, std::int64_t begin, std::int64_t end, int thread) {
+  constexpr std::int64_t kColumns = Products::kColumns;
   const std::int64_t blocks = winograd_blocks_per_image(g), tiles = g.tiles_h * g.tiles_w;
   std::uint16_t* v = g.v + thread * g.v_stride;
   float* m = g.m + thread * g.m_stride;
@@ -289,15 +311,14 @@ void winograd_blocks(const Bf16Winograd& g, std::int64_t begin, std::int64_t end
     const std::int64_t count = (tiles - t0) < g.block_tiles ? (tiles - t0) : g.block_tiles;
     for (std::int64_t cp = 0; cp < g.channel_pairs; ++cp)
       winograd_input_pair<Isa>(g, b, cp, t0, count, v);
-    for (std::int64_t o0 = 0; o0 < g.out_channels; o0 += kWinogradGroupColumns) {
-      const std::int64_t columns = (g.out_channels - o0) < kWinogradGroupColumns
-                                       ? (g.out_channels - o0)
-                                       : kWinogradGroupColumns;
+    for (std::int64_t o0 = 0; o0 < g.out_channels; o0 += kColumns) {
+      const std::int64_t columns =
+          (g.out_channels - o0) < kColumns ? (g.out_channels - o0) : kColumns;
       for (std::int64_t tl0 = 0; tl0 < count; tl0 += kWinogradGroupTiles) {
         const std::int64_t n =
             (count - tl0) < kWinogradGroupTiles ? (count - tl0) : kWinogradGroupTiles;
-        winograd_gemm_tile_any<Isa>(g, v, o0, columns, tl0, (n + 15) / 16, m);
-        winograd_output_group<Isa>(g, b, o0, columns, t0, tl0, n, m);
+        Products::run(g, v, o0, columns, tl0, (n + 15) / 16, m);
+        winograd_output_group<Isa, kColumns>(g, b, o0, columns, t0, tl0, n, m);
       }
     }
   }

@@ -287,9 +287,10 @@ std::unique_ptr<Backend> make_cpu_backend();
 // what the fast paths are tested and benchmarked against.
 std::unique_ptr<Backend> make_cpu_reference_backend();
 // The CPU backend with its BF16 convolutions' micro-kernel on the exact scalar model of the
-// AVX512_BF16 instructions (engine/cpu/bf16_isa_emulated.hpp), on any CPU: how the tests check
-// --precision bf16 on the CPU where it lacks them. Slow; otherwise make_cpu_backend().
-std::unique_ptr<Backend> make_cpu_backend_emulated_bf16();
+// AVX512_BF16 instructions (engine/cpu/bf16_isa_emulated.hpp), and with `amx` the Winograd
+// products on the model of the AMX tiles, on any CPU: how the tests check --precision bf16 on
+// the CPU where it lacks them. Slow; otherwise make_cpu_backend().
+std::unique_ptr<Backend> make_cpu_backend_emulated_bf16(bool amx = false);
 
 // How make_backend() makes a backend.
 struct BackendOptions {

@@ -65,20 +65,23 @@ class CpuBackend final : public Backend {
   std::string name() const override { return fast_paths_ ? "cpu" : "cpu-reference"; }
 
   // BF16 (engine/cpu/bf16_conv.hpp): the AVX512_BF16 micro-kernel where this CPU has it (asked
-  // at run time), or its exact scalar model for the tests; not in the reference backend, and no
-  // FP16 (the CPU's 16-bit type is BF16).
+  // at run time), with the Winograd products on AMX-BF16 tiles where it has those too, or their
+  // exact scalar models for the tests; not in the reference backend, and no FP16 (the CPU's
+  // 16-bit type is BF16).
   bool supports_precision(Precision p, std::string* why_not) const override {
     if (p == Precision::F32) return true;
     std::string why;
+    const bool emulated =
+        bf16_kernels_ == cpu::Bf16Kernels::Emulated || bf16_kernels_ == cpu::Bf16Kernels::AmxEmulated;
     if (!fast_paths_) {
       why = "the reference CPU backend computes in FP32 only";
     } else if (p == Precision::F16) {
       why = "the CPU backend has no FP16 convolutions (its 16-bit type is BF16, on AVX512_BF16; fp16 runs on "
             "--device cuda)";
-    } else if (bf16_kernels_ == cpu::Bf16Kernels::Emulated || cpu::avx512_bf16_available(&why)) {
+    } else if (emulated || cpu::avx512_bf16_available(&why)) {
       return true;
     } else {
-      why = "the CPU's BF16 convolutions need AVX512_BF16: " + why + " (AMX-BF16 tiles are not used)";
+      why = "the CPU's BF16 convolutions need AVX512_BF16: " + why + " (AMX-BF16 tiles are used where present too)";
     }
     if (why_not != nullptr) *why_not = why;
     return false;
@@ -502,13 +505,14 @@ class CpuBackend final : public Backend {
 }  // namespace
 
 std::unique_ptr<Backend> make_cpu_backend() {
-  return std::make_unique<CpuBackend>(/*fast_paths=*/true, cpu::Bf16Kernels::Avx512);
+  return std::make_unique<CpuBackend>(/*fast_paths=*/true, cpu::native_bf16_kernels());
 }
 std::unique_ptr<Backend> make_cpu_reference_backend() {
   return std::make_unique<CpuBackend>(/*fast_paths=*/false, cpu::Bf16Kernels::Avx512);
 }
-std::unique_ptr<Backend> make_cpu_backend_emulated_bf16() {
-  return std::make_unique<CpuBackend>(/*fast_paths=*/true, cpu::Bf16Kernels::Emulated);
+std::unique_ptr<Backend> make_cpu_backend_emulated_bf16(bool amx) {
+  return std::make_unique<CpuBackend>(/*fast_paths=*/true,
+                                      amx ? cpu::Bf16Kernels::AmxEmulated : cpu::Bf16Kernels::Emulated);
 }
 
 }  // namespace pillarseg
