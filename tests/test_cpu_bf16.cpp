@@ -14,6 +14,7 @@
 #include <algorithm>
 #include <bit>
 #include <cmath>
+#include <cstdlib>
 #include <cstring>
 #include <limits>
 #include <string>
@@ -189,6 +190,9 @@ TEST(CpuBf16Amx, AvailabilityAndTheNativeChoiceAgree) {
   const bool amx = cpu::amx_bf16_available(&why);
   ::testing::Test::RecordProperty("amx_bf16", amx ? "available" : "not run: " + why);
   EXPECT_EQ(cpu::native_bf16_kernels(), amx ? Bf16Kernels::Amx : Bf16Kernels::Avx512);
+  ::setenv("PILLARSEG_CPU_AMX", "0", 1);  // the AVX-512 path alone, asked for
+  EXPECT_EQ(cpu::native_bf16_kernels(), Bf16Kernels::Avx512);
+  ::unsetenv("PILLARSEG_CPU_AMX");
   if (amx) return;
   EXPECT_FALSE(why.empty());
   // Asked for where it cannot run: an error that says why, not a fault.

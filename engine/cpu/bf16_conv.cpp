@@ -11,8 +11,10 @@
 #include <algorithm>
 #include <cerrno>
 #include <cmath>
+#include <cstdlib>
 #include <cstring>
 #include <string>
+#include <string_view>
 #include <type_traits>
 #include <vector>
 
@@ -169,6 +171,8 @@ bool amx_bf16_available(std::string* why_not) {
 }
 
 Bf16Kernels native_bf16_kernels() {
+  const char* amx = std::getenv("PILLARSEG_CPU_AMX");
+  if (amx != nullptr && std::string_view(amx) == "0") return Bf16Kernels::Avx512;
   return amx_bf16_available() ? Bf16Kernels::Amx : Bf16Kernels::Avx512;
 }
 

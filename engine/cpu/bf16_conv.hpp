@@ -33,8 +33,9 @@ bool avx512_bf16_available(std::string* why_not = nullptr);
 // state enabled by the OS (XCR0) and granted to this process (Linux's arch_prctl
 // ARCH_REQ_XCOMP_PERM, asked once); else false with what is missing in why_not.
 bool amx_bf16_available(std::string* why_not = nullptr);
-// The fastest kernels this CPU runs: Amx where amx_bf16_available, else Avx512 (which may itself
-// be unavailable: avx512_bf16_available says).
+// The fastest kernels this CPU runs: Amx where amx_bf16_available (unless PILLARSEG_CPU_AMX=0 is
+// in the environment, read on each call: to compare the two paths), else Avx512 (which may
+// itself be unavailable: avx512_bf16_available says).
 Bf16Kernels native_bf16_kernels();
 // "avx512_bf16", "emulated", "amx_bf16" or "amx_bf16 (emulated)".
 const char* bf16_kernels_name(Bf16Kernels kernels);
