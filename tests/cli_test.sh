@@ -115,6 +115,8 @@ run bench --device emu --config "$work/tiny.yaml" --weights "$weights" --scan "$
 grep -q '^pillars ' "$work/bench.log" || fail "bench --device emu: no pillars stage (gather and decoration on the device)"
 grep -q 'pillarize' "$work/bench.log" && fail "bench --device emu: a host pillarize stage"
 grep -q '^bytes over the bus per scan' "$work/bench.log" || fail "bench --device emu: no bytes count"
+grep -qE '^host cpu: .+, [0-9]+ threads; (BF16 on|no BF16 kernels)' "$work/bench.log" ||
+  fail "bench: the host CPU and its BF16 kernels are not reported"
 
 # --precision bf16: the tensor-core convolutions on the emulation (a label map of the same size,
 # mostly the FP32 one); on the CPU the AVX512_BF16 micro-kernel where the CPU has it, else one

@@ -14,6 +14,7 @@
 #include <algorithm>
 #include <chrono>
 #include <filesystem>
+#include <fstream>
 
 #include "core/parallel.hpp"
 #include "engine/cli/cli_util.hpp"
@@ -49,6 +50,20 @@ double median(std::vector<double> v) {
 
 // Bytes over the bus for one scan whose inputs are prepared on the host (compute_scan_inputs)
 // and uploaded, and whose labels come back: what --device cuda did before the device pipeline.
+// The CPU's model name (/proc/cpuinfo), "unknown" where it is not there: figures say which CPU
+// ran them.
+std::string cpu_model_name() {
+  std::ifstream in("/proc/cpuinfo");
+  for (std::string line; std::getline(in, line);) {
+    if (line.rfind("model name", 0) != 0) continue;
+    const size_t colon = line.find(':');
+    if (colon == std::string::npos) break;
+    const size_t start = line.find_first_not_of(" \t", colon + 1);
+    return start == std::string::npos ? "unknown" : line.substr(start);
+  }
+  return "unknown";
+}
+
 int64_t host_inputs_bytes(ScanSegmenter& segmenter, const Scan& scan) {
   Backend& backend = segmenter.backend();
   const ModelConfig& model = segmenter.model();
@@ -141,6 +156,15 @@ void run_bench(const BenchArgs& a) {
              backend.name(), precision_label, num_threads(), model.grid.width(), model.grid.height(), model.pillar_channels,
              model.base_width, model.transposed ? "transposed" : "bilinear", occupancy_name(model.occupancy),
              model.grid_map_input ? ", grid-map input" : "");
+  std::string bf16_line, why;
+  if (!cpu::avx512_bf16_available(&why)) {
+    bf16_line = "no BF16 kernels (" + why + ")";
+  } else if (!cpu::amx_bf16_available(&why)) {
+    bf16_line = "BF16 on avx512_bf16 (no AMX: " + why + ")";
+  } else {
+    bf16_line = fmt::format("BF16 on {}", cpu::bf16_kernels_name(cpu::native_bf16_kernels()));
+  }
+  fmt::print("host cpu: {}, {} threads; {}\n", cpu_model_name(), num_threads(), bf16_line);
   fmt::print("scan: {} ({} points); median of {} runs after one warm-up, each stage timed on the backend's "
              "clock\n",
              scan_path.string(), points, a.repeat);
