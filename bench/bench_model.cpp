@@ -22,7 +22,8 @@
 // shared machine it varies less with the load than the wall time does), and the peak RSS of
 // the case (ours: getrusage ru_maxrss after resetting the process's high-water mark through
 // /proc/self/clear_refs; PyTorch: VmHWM of its own process). Tables at the end: ours vs PyTorch,
-// where our time goes per backend op (a timing decorator around the CpuBackend) and, with
+// where our time goes per op of the model's op graph (PillarSegNet::set_op_timing) and in the
+// optimiser, and, with
 // --peer_profile, where PyTorch's goes. The per-layer comparison is bench_conv_layers.
 //
 // Flags: bench/support/model_options.hpp.
@@ -43,7 +44,6 @@
 #include "bench/support/pytorch_peer.hpp"
 #include "bench/support/report.hpp"
 #include "bench/support/step_timing.hpp"
-#include "bench/support/timed_backend.hpp"
 #include "core/parallel.hpp"
 #include "engine/model/backend.hpp"
 #include "engine/model/pillarsegnet.hpp"
@@ -62,7 +62,7 @@ struct CaseResult {
   int64_t params = 0, pillars = 0;
   StepTimes ours, torch;
   std::optional<double> ours_rss_mb, torch_rss_mb;
-  std::map<std::string, OpTotal> ours_ops;  // mean per step
+  std::map<std::string, PillarSegNet::OpTime> ours_ops;  // mean per step
   std::string peer_note, peer_profile;
 };
 
@@ -79,9 +79,14 @@ struct ModelCase {
 std::map<std::string, CaseResult> g_cases;  // by ModelCase::key()
 // ---- the model ----
 
-// One step: eval forward, or training forward + loss + backward + clip + Adam.
+// The optimiser's part of a training step (clip + Adam), outside the op graph: its time is added
+// to the model's op times under this name.
+constexpr const char* kOptimizerOp = "optimizer: clip + adam";
+
+// One step: eval forward, or training forward + loss + backward + clip + Adam (timed into
+// optimizer when given).
 void model_step(PillarSegNet& net, Backend& backend, const SizeSetup& s, bool training,
-                int64_t& adam_steps) {
+                int64_t& adam_steps, PillarSegNet::OpTime* optimizer = nullptr) {
   if (!training) {
     net.forward(s.inputs, false);
     return;
@@ -89,6 +94,7 @@ void model_step(PillarSegNet& net, Backend& backend, const SizeSetup& s, bool tr
   net.forward(s.inputs, true);
   net.loss(s.labels, LossKind::CrossEntropy, kCoefficients);
   net.backward();
+  const double start = backend.clock_ms();
   ParameterSet& ps = net.parameters();
   Ref grads = ps.grads();
   const double norm = std::sqrt(backend.sum_of_squares(grads));
@@ -97,6 +103,10 @@ void model_step(PillarSegNet& net, Backend& backend, const SizeSetup& s, bool tr
   adam.beta2 = 0.99;  // the paper's
   Ref values = ps.values(), m = ps.adam_m(), v = ps.adam_v();
   backend.adam_step(values, grads, m, v, ++adam_steps, adam);
+  if (optimizer) {
+    optimizer->ms += backend.clock_ms() - start;
+    ++optimizer->calls;
+  }
 }
 
 std::vector<std::string> peer_model_arguments(const ModelCase& c, const SizeSetup& s) {
@@ -132,7 +142,8 @@ void BM_Model(benchmark::State& state, const ModelCase& c) {
   std::optional<PeerProcess> peer;
   if (options().peer) peer.emplace(peer_model_arguments(c, s));
   const bool rss_reset = reset_peak_rss();
-  TimedBackend backend(make_cpu_backend());
+  const std::unique_ptr<Backend> backend_owner = make_cpu_backend();
+  Backend& backend = *backend_owner;
   PillarSegNet net(config_of(c.size, c.transposed), backend, /*seed=*/1);
   const double step_flops =
       (c.training ? 3.0 : 1.0) *
@@ -140,14 +151,15 @@ void BM_Model(benchmark::State& state, const ModelCase& c) {
   int64_t adam_steps = 0;
   model_step(net, backend, s, c.training,
              adam_steps);  // warm-up: plans and first-touches the arenas
-  backend.clear_totals();
+  net.set_op_timing(true);
+  PillarSegNet::OpTime optimizer;
   int64_t pair = 0;
   for (auto _ : state) {
     // The order alternates so that a load rising or falling through the run weighs on both.
     const bool ours_first = pair++ % 2 == 0;
     if (peer && !ours_first) peer->step("step", r.torch);
-    state.SetIterationTime(
-        time_once(r.ours, [&] { model_step(net, backend, s, c.training, adam_steps); }));
+    state.SetIterationTime(time_once(
+        r.ours, [&] { model_step(net, backend, s, c.training, adam_steps, &optimizer); }));
     if (peer && ours_first) peer->step("step", r.torch);
   }
   const double rss = peak_rss_mb();
@@ -156,8 +168,10 @@ void BM_Model(benchmark::State& state, const ModelCase& c) {
   r.pillars = s.inputs.pillar_points.dim(0);
   if (rss_reset) r.ours_rss_mb = rss;
   const double steps = static_cast<double>(r.ours.wall.size());
-  for (auto [op, total] : backend.totals()) {
-    total.seconds /= steps, total.flops /= steps;
+  std::map<std::string, PillarSegNet::OpTime> totals = net.op_times();
+  if (optimizer.calls > 0) totals[kOptimizerOp] = optimizer;
+  for (auto [op, total] : totals) {
+    total.ms /= steps, total.flops /= steps;
     total.calls = static_cast<int64_t>(static_cast<double>(total.calls) / steps);
     r.ours_ops[op] = total;
   }
@@ -219,20 +233,20 @@ void print_cases() {
     const double mean_ms = 1e3 * std::accumulate(r.ours.wall.begin(), r.ours.wall.end(), 0.0) /
                            static_cast<double>(r.ours.wall.size());
     fmt::print("\nWhere our time goes: {} (mean of the timed steps: {:.0f} ms)\n", key, mean_ms);
-    fmt::print("  {:<30} {:>7} {:>10} {:>7} {:>9}\n", "backend op", "calls", "ms/step", "share",
-               "GFLOP/s");
-    std::vector<std::pair<std::string, OpTotal>> ops(r.ours_ops.begin(), r.ours_ops.end());
+    fmt::print("  {:<30} {:>7} {:>10} {:>7} {:>9}\n", "op", "calls", "ms/step", "share", "GFLOP/s");
+    std::vector<std::pair<std::string, PillarSegNet::OpTime>> ops(r.ours_ops.begin(),
+                                                                  r.ours_ops.end());
     std::sort(ops.begin(), ops.end(),
-              [](const auto& a, const auto& b) { return a.second.seconds > b.second.seconds; });
+              [](const auto& a, const auto& b) { return a.second.ms > b.second.ms; });
     double accounted_ms = 0.0;
     for (const auto& [op, t] : ops) {
-      accounted_ms += t.seconds * 1e3;
-      const std::string op_rate =
-          t.flops > 0 ? fmt::format("{:.1f}", t.flops * 1e-9 / t.seconds) : "";
-      fmt::print("  {:<30} {:>7} {:>10.1f} {:>6.1f}% {:>9}\n", op, t.calls, t.seconds * 1e3,
-                 100.0 * t.seconds * 1e3 / mean_ms, op_rate);
+      accounted_ms += t.ms;
+      const std::string op_rate = t.flops > 0 ? fmt::format("{:.1f}", t.flops * 1e-6 / t.ms) : "";
+      fmt::print("  {:<30} {:>7} {:>10.1f} {:>6.1f}% {:>9}\n", op, t.calls, t.ms,
+                 100.0 * t.ms / mean_ms, op_rate);
     }
-    fmt::print("  {:<30} {:>7} {:>10.1f}\n", "(the model's own code)", "", mean_ms - accounted_ms);
+    fmt::print("  {:<30} {:>7} {:>10.1f}\n", "(uploads, the model's own code)", "",
+               mean_ms - accounted_ms);
   }
   for (const auto& [key, r] : g_cases) {
     if (r.peer_profile.empty()) continue;

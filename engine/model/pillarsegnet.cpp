@@ -720,6 +720,7 @@ double PillarSegNet::execute(const GraphPlan& p, size_t begin, size_t end) {
   };
   for (size_t i = begin; i < end; ++i) {
     const GraphNode& n = nodes[i];
+    const double op_start = time_ops_ ? be.clock_ms() : 0.0;
     const auto& a = n.args;
     const auto f = [&](size_t k) { return bind<float>(p, a[k]); };
     const auto ints = [&](size_t k) { return bind<int32_t>(p, a[k]); };
@@ -917,6 +918,12 @@ double PillarSegNet::execute(const GraphPlan& p, size_t begin, size_t end) {
         break;
       }
     }
+    if (time_ops_) {
+      OpTime& t = op_times_[op_name(n.op)];
+      t.ms += be.clock_ms() - op_start;
+      t.flops += n.flops;
+      ++t.calls;
+    }
     if (time_stages_ && (i + 1 == end || nodes[i + 1].stage != n.stage)) lap(n.stage);
   }
   return loss_value;
@@ -1042,12 +1049,12 @@ void PillarSegNet::forward(const ModelBatch& batch, bool training) {
   // Stage clock: the upload's time; run() times the stages after it.
   const double start = time_stages_ ? be.clock_ms() : 0.0;
   // The evaluation forward replays a recorded graph where the backend records them (and stage
-  // timing, which waits between stages, is off). The graph runs the pillar stream at the pillar
+  // and op timing, which wait between stages and ops, are off). The graph runs the pillar stream at the pillar
   // capacity: rows past this batch's P hold zero points and cells (-1, -1, -1), which the scatter
   // skips, so one recording serves every pillar count up to the capacity, the count itself never
   // reaching the device work; a re-plan (another batch size, more pillars than the capacity)
   // records again.
-  const bool replay = !training && !time_stages_ && be.supports_capture();
+  const bool replay = !training && !time_stages_ && !time_ops_ && be.supports_capture();
 
   int64_t P = 0;
   if (config_.pillar_input) {

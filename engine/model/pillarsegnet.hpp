@@ -17,6 +17,7 @@
 
 #include <array>
 #include <cstdint>
+#include <map>
 #include <memory>
 #include <string>
 #include <vector>
@@ -62,6 +63,18 @@ class PillarSegNet {
   };
   void set_stage_timing(bool on) { time_stages_ = on; }
   const StageTimes& stage_times() const { return stage_times_; }
+  // Per-op timing (where a benchmark's time goes): while on, every node of the op graph that a
+  // forward, loss or backward runs is timed by Backend::clock_ms() and added, with the node's
+  // FLOPs, to the total of its op (op_name(), engine/model/graph.hpp), until cleared. It waits
+  // for the device after every node, and the evaluation forward is not replayed from a recorded
+  // graph meanwhile.
+  struct OpTime {
+    double ms = 0, flops = 0;
+    int64_t calls = 0;
+  };
+  void set_op_timing(bool on) { time_ops_ = on; }
+  const std::map<std::string, OpTime>& op_times() const { return op_times_; }
+  void clear_op_times() { op_times_.clear(); }
 
   // The arithmetic of the evaluation forward's U-Net: BF16 or FP16 convolutions and activations
   // on a backend that supports_precision() it (the CUDA backend on compute capability 8.0 or
@@ -164,6 +177,8 @@ class PillarSegNet {
   Ref logits_;
   bool time_stages_ = false;
   StageTimes stage_times_;
+  bool time_ops_ = false;
+  std::map<std::string, OpTime> op_times_;
   double run_started_ms_ = 0;  // the backend clock when run() started (stage timing)
 };
 
