@@ -340,9 +340,10 @@ std::vector<Case> cases() {
            be.add_inplace(a, t.f(1));
          }});
   }
-  // Pillars: PFN forward (eval, training) and backward, scatter and its backward.
+  // Pillars: PFN forward (eval, training) and backward, scatter and its backward; 70 pillars of
+  // 20 points are three of the CPU backend's blocks of 32, the last one short.
   for (const auto& [p, n, c] :
-       std::vector<std::tuple<int64_t, int64_t, int64_t>>{{5, 3, 4}, {37, 8, 16}}) {
+       std::vector<std::tuple<int64_t, int64_t, int64_t>>{{5, 3, 4}, {37, 8, 16}, {70, 20, 64}}) {
     const std::string shapes = "points=" + shape_name({p, n, 10}) + ",c=" + std::to_string(c);
     for (bool training : {false, true}) {
       std::vector<Arg> args = {in_f("points", {p, n, 10}), in_f("weight", {c, 10})};
@@ -355,7 +356,7 @@ std::vector<Case> cases() {
                        BatchNormRefs bn = t.bn(2, training);
                        Ref y = t.f(o);
                        IRef am = training ? t.i32(o + 1) : IRef{};
-                       be.pfn_forward(t.f(0), t.f(1), bn, training, am, y, Ref{});
+                       be.pfn_forward(t.f(0), t.f(1), bn, training, am, y);
                      },
                      1e-9});
     }
@@ -363,18 +364,15 @@ std::vector<Case> cases() {
     std::vector<Arg> args = {in_f("points", {p, n, 10}), in_f("weight", {c, 10})};
     add_bn(args, c, true, true);
     for (Arg a : {out("out", {p, c}), out("argmax", {p, c}, Kind::I32)}) args.push_back(a);
-    for (Arg a : {in_f("dout", {p, c}), out("d_points", {p, n, 10}), out("dweight", {c, 10}),
-                  out("dgamma", {c}), out("dbeta", {c})})
+    for (Arg a : {in_f("dout", {p, c}), out("dweight", {c, 10}), out("dgamma", {c}), out("dbeta", {c})})
       args.push_back(a);
-    args[11].role = Role::InOut;  // d_points: scratch by the interface, not compared
-    args[11].fill = [](Rng&, void* d, int64_t k) { std::memset(d, 0, static_cast<size_t>(k) * 4); };
     all.push_back({"pfn_backward/" + shapes, args,
                    [](Backend& be, Bound& t) {
                      BatchNormRefs bn = t.bn(2, true);
-                     Ref y = t.f(8), dp = t.f(11), dw = t.f(12), dg = t.f(13), db = t.f(14);
+                     Ref y = t.f(8), dw = t.f(11), dg = t.f(12), db = t.f(13);
                      IRef am = t.i32(9);
-                     be.pfn_forward(t.f(0), t.f(1), bn, true, am, y, Ref{});
-                     be.pfn_backward(t.f(0), t.f(1), bn, am, t.f(10), dp, dw, dg, db, Ref{});
+                     be.pfn_forward(t.f(0), t.f(1), bn, true, am, y);
+                     be.pfn_backward(t.f(0), t.f(1), bn, am, t.f(10), dw, dg, db);
                    },
                    1e-9});
     const int64_t b = 2, h = 6, w = 7, cc = c + 3;
@@ -515,7 +513,6 @@ TEST_P(BackendOps, MatchesTheReference) {
         EXPECT_EQ(g, data[i]) << b.name << " changed its input " << a.name;
         continue;
       }
-      if (c.name.rfind("pfn_backward", 0) == 0 && a.name == "d_points") continue;
       if (a.kind == Kind::F32) {
         const double e = nmse(g, r);
         EXPECT_LE(e, c.max_nmse) << b.name << " " << a.name << ": NMSE " << e;

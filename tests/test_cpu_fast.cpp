@@ -1,17 +1,22 @@
 // The CPU fast paths against the host/ reference they replace: the Winograd F(4x4, 3x3)
 // convolution (forward with its epilogue, input and weight gradients) against host::conv2d at
-// odd shapes, and the same bits for any thread count.
+// odd shapes, and the same bits for any thread count; the PFN per block of pillars
+// (engine/cpu/pfn_blocked) against host/pfn, also with synchronised BatchNorm's replica sums.
 #include <gtest/gtest.h>
 
 #include <algorithm>
 #include <cmath>
 #include <tuple>
+#include <vector>
 
 #include "core/error.hpp"
 #include "core/parallel.hpp"
+#include "core/replicas.hpp"
 #include "core/rng.hpp"
+#include "engine/cpu/pfn_blocked.hpp"
 #include "host/conv2d.hpp"
 #include "host/conv2d_winograd.hpp"
+#include "host/pfn.hpp"
 #include "tests/support/test_support.hpp"
 
 using namespace pillarseg;
@@ -143,3 +148,180 @@ TEST(WinogradConv, RejectsWrongShapes) {
 }
 
 }  // namespace
+
+namespace {
+
+// ---- the PFN per block of pillars ----
+
+template <class T>
+RefT<T> ref_of(Tensor<T>& t) {
+  return {t.data(), t.shape()};
+}
+
+// P pillars of N slots with 1..N points each (the rest zero rows, as decorated pillars are),
+// weight (C, 10), BatchNorm parameters and running statistics, and the gradient reaching out.
+struct PfnCase {
+  Tensor<float> points, weight, gamma, beta, running_mean, running_var, dout;
+  PfnCase(int64_t P, int64_t N, int64_t C, uint64_t seed) {
+    Rng rng(seed);
+    points = random_tensor<float>({P, N, 10}, rng, -2, 2);
+    for (int64_t p = 0; p < P; ++p) {
+      const int64_t kept = 1 + static_cast<int64_t>(rng.uniform(0, static_cast<double>(N)));
+      for (int64_t i = std::min(kept, N) * 10; i < N * 10; ++i) points[p * N * 10 + i] = 0.0f;
+    }
+    weight = random_tensor<float>({C, 10}, rng);
+    gamma = random_tensor<float>({C}, rng, 0.5, 1.5);
+    beta = random_tensor<float>({C}, rng, -0.5, 0.5);
+    running_mean = random_tensor<float>({C}, rng);
+    running_var = random_tensor<float>({C}, rng, 0.5, 2);
+    dout = random_tensor<float>({P, C}, rng);
+  }
+};
+
+// What a training forward and its backward give.
+struct PfnResults {
+  Tensor<float> out, mean, inv_std, running_mean, running_var, dweight, dgamma, dbeta;
+  Tensor<int32_t> argmax;
+};
+
+PfnResults blocked_pfn(const PfnCase& c, ReplicaSum* replicas = nullptr) {
+  const int64_t P = c.points.dim(0), C = c.weight.dim(0);
+  PfnResults r{Tensor<float>({P, C}), Tensor<float>({C}), Tensor<float>({C}),
+               c.running_mean,        c.running_var,      Tensor<float>({C, 10}),
+               Tensor<float>({C}),    Tensor<float>({C}), Tensor<int32_t>({P, C})};
+  Tensor<float> points = c.points, weight = c.weight, gamma = c.gamma, beta = c.beta, dout = c.dout;
+  BatchNormRefs bn{ref_of(gamma),         ref_of(beta),   ref_of(r.running_mean),
+                   ref_of(r.running_var), ref_of(r.mean), ref_of(r.inv_std)};
+  bn.eps = 1e-3f, bn.momentum = 0.01f, bn.replicas = replicas;
+  IRef argmax = ref_of(r.argmax);
+  Ref out = ref_of(r.out), dweight = ref_of(r.dweight), dgamma = ref_of(r.dgamma),
+      dbeta = ref_of(r.dbeta);
+  cpu::pfn_forward_train(ref_of(points), ref_of(weight), bn, argmax, out);
+  cpu::pfn_backward(ref_of(points), ref_of(weight), bn, argmax, ref_of(dout), dweight, dgamma,
+                    dbeta);
+  return r;
+}
+
+PfnResults reference_pfn(const PfnCase& c, ReplicaSum* replicas = nullptr) {
+  PfnResults r;
+  r.running_mean = c.running_mean, r.running_var = c.running_var;
+  int64_t batches = 0;
+  host::PfnSaved<float> saved;
+  host::BatchNormOptions options{static_cast<double>(1e-3f), static_cast<double>(0.01f), replicas};
+  host::pfn_forward_train(c.points, c.weight, c.gamma, c.beta, options, r.running_mean,
+                          r.running_var, batches, r.out, saved);
+  Tensor<float> d_points;
+  host::pfn_backward(c.dout, c.points, c.weight, c.gamma, saved, d_points, r.dweight, r.dgamma,
+                     r.dbeta, static_cast<float*>(nullptr), replicas);
+  r.mean = saved.norm.mean, r.inv_std = saved.norm.inv_std, r.argmax = saved.max_slot;
+  return r;
+}
+
+// The reference sums z in one pass over all rows and dweight in one float GEMM; the blocks sum
+// per block (in double) and then in order, so results differ by float rounding: statistics by a
+// few float ulps, dweight (sums of P N products of dz and points) by ~1e-6 of its scale.
+void expect_pfn_close(const PfnResults& got, const PfnResults& ref) {
+  EXPECT_TRUE(test::all_close(got.mean, ref.mean, 1e-6, 1e-6));
+  EXPECT_TRUE(test::all_close(got.inv_std, ref.inv_std, 0, 1e-6));
+  EXPECT_TRUE(test::all_close(got.running_mean, ref.running_mean, 1e-6, 1e-6));
+  EXPECT_TRUE(test::all_close(got.running_var, ref.running_var, 0, 1e-6));
+  EXPECT_TRUE(test::all_close(got.out, ref.out, 1e-5, 1e-5));
+  EXPECT_EQ(got.argmax, ref.argmax);
+  double scale = 0;
+  for (int64_t i = 0; i < ref.dweight.numel(); ++i)
+    scale = std::max(scale, std::abs(double{ref.dweight[i]}));
+  EXPECT_TRUE(test::all_close(got.dweight, ref.dweight, 1e-5 * scale, 1e-5));
+  EXPECT_TRUE(test::all_close(got.dgamma, ref.dgamma, 1e-5, 1e-5));
+  EXPECT_TRUE(test::all_close(got.dbeta, ref.dbeta, 1e-5, 1e-5));
+}
+
+// Two replicas holding the same batch: every sum doubles. Records the sizes of the sums asked
+// for, which every replica must ask in the same order.
+class TwinReplicas final : public ReplicaSum {
+ public:
+  void sum(double* values, int64_t n) override {
+    for (int64_t i = 0; i < n; ++i) values[i] *= 2;
+    sizes.push_back(n);
+  }
+  std::vector<int64_t> sizes;
+};
+
+}  // namespace
+
+TEST(CpuPfn, TrainingForwardAndBackwardMatchTheReference) {
+  for (const auto& [P, N, C] :
+       {std::tuple<int64_t, int64_t, int64_t>{100, 20, 64}, {33, 7, 5}, {1, 3, 2}}) {
+    SCOPED_TRACE(testing::Message() << "P " << P << " N " << N << " C " << C);
+    const PfnCase c(P, N, C, 7);
+    expect_pfn_close(blocked_pfn(c), reference_pfn(c));
+  }
+}
+
+TEST(CpuPfn, SameBitsForAnyThreadCount) {
+  const PfnCase c(301, 20, 64, 11);
+  const int saved = num_threads();
+  set_num_threads(1);
+  const PfnResults one = blocked_pfn(c);
+  set_num_threads(2);
+  const PfnResults two = blocked_pfn(c);
+  set_num_threads(saved);
+  EXPECT_EQ(one.out, two.out);
+  EXPECT_EQ(one.argmax, two.argmax);
+  EXPECT_EQ(one.running_var, two.running_var);
+  EXPECT_EQ(one.dweight, two.dweight);
+  EXPECT_EQ(one.dgamma, two.dgamma);
+}
+
+// Synchronised BatchNorm: the same sums asked for as the reference asks, and with two replicas
+// of the same batch the statistics of the doubled batch: the same mean, variance and dz (so the
+// same out and dweight), the running variance's unbiased factor of 2 P N values.
+TEST(CpuPfn, ReplicaSumsAsTheReference) {
+  const PfnCase c(70, 20, 16, 3);
+  TwinReplicas blocked_twins, reference_twins;
+  const PfnResults twins = blocked_pfn(c, &blocked_twins);
+  expect_pfn_close(twins, reference_pfn(c, &reference_twins));
+  EXPECT_EQ(blocked_twins.sizes, reference_twins.sizes);
+  EXPECT_EQ(blocked_twins.sizes, (std::vector<int64_t>{1, 16, 16, 2 * 16 + 1}));
+  const PfnResults alone = blocked_pfn(c);
+  EXPECT_TRUE(test::all_close(twins.out, alone.out, 1e-6, 1e-6));
+  EXPECT_TRUE(test::all_close(twins.dweight, alone.dweight, 1e-6, 1e-5));
+  EXPECT_EQ(twins.dgamma, alone.dgamma);  // each replica's own share
+  const double n = 70 * 20;
+  for (int64_t k = 0; k < 16; ++k) {
+    const double variance = 1.0 / (double{alone.inv_std[k]} * alone.inv_std[k]) - 1e-3;
+    const double expected = 0.99 * c.running_var[k] + 0.01 * variance * (2 * n) / (2 * n - 1);
+    EXPECT_NEAR(twins.running_var[k], expected, 1e-5 * expected) << "channel " << k;
+  }
+}
+
+TEST(CpuPfn, NoPillarsLeavesTheRunningStatistics) {
+  const PfnCase c(0, 20, 8, 1);
+  const PfnResults r = blocked_pfn(c);
+  EXPECT_EQ(r.running_mean, c.running_mean);
+  EXPECT_EQ(r.running_var, c.running_var);
+  EXPECT_EQ(r.dweight, Tensor<float>({8, 10}));
+  EXPECT_EQ(r.dgamma, Tensor<float>({8}));
+}
+
+TEST(CpuPfn, RejectsAnArgmaxThatIsNoSlot) {
+  PfnCase c(40, 4, 3, 5);
+  Tensor<float> out({40, 3}), mean({3}), inv_std({3}), dweight({3, 10}), dgamma({3}), dbeta({3});
+  Tensor<int32_t> argmax({40, 3});
+  BatchNormRefs bn{ref_of(c.gamma),       ref_of(c.beta), ref_of(c.running_mean),
+                   ref_of(c.running_var), ref_of(mean),   ref_of(inv_std)};
+  IRef am = ref_of(argmax);
+  Ref o = ref_of(out), dw = ref_of(dweight), dg = ref_of(dgamma), db = ref_of(dbeta);
+  cpu::pfn_forward_train(ref_of(c.points), ref_of(c.weight), bn, am, o);
+  argmax[35 * 3 + 2] = 4;
+  const std::string message = test::error_of([&] {
+    cpu::pfn_backward(ref_of(c.points), ref_of(c.weight), bn, am, ref_of(c.dout), dw, dg, db);
+  });
+  EXPECT_NE(message.find("argmax(35, 2) = 4 is neither -1 nor a slot of N = 4"), std::string::npos)
+      << message;
+  EXPECT_NE(test::error_of([&] {
+              Tensor<float> wrong({40, 4});
+              Ref w = ref_of(wrong);
+              cpu::pfn_forward_train(ref_of(c.points), ref_of(c.weight), bn, am, w);
+            }).find("pfn_forward"),
+            std::string::npos);
+}

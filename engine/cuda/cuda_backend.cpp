@@ -497,10 +497,10 @@ void CudaBackend::mask_unobserved(const URef& transmissions, const URef& detecti
 
 // ---- pillar feature net and scatter ----
 
-// The PFN kernels keep no (P N, C) tensor whole (they recompute the linear output per block of
-// pillars), so they use no scratch.
+// The PFN kernels keep no (P N, C) tensor whole: they recompute the linear output per block of
+// pillars.
 void CudaBackend::pfn_forward(const Ref& points, const Ref& weight, BatchNormRefs& bn,
-                              bool training, IRef& argmax, Ref& out, const Ref& /*scratch*/) {
+                              bool training, IRef& argmax, Ref& out) {
   const char* op = "pfn_forward";
   require_shape(op, "out", out, op::pfn(points.shape, weight.shape, op));
   const cuda::PfnShape shape{points.dim(0), points.dim(1), weight.dim(0)};
@@ -520,16 +520,15 @@ void CudaBackend::pfn_forward(const Ref& points, const Ref& weight, BatchNormRef
 }
 
 void CudaBackend::pfn_backward(const Ref& points, const Ref& weight, const BatchNormRefs& bn,
-                               const IRef& argmax, const Ref& dout, Ref& d_points, Ref& dweight,
-                               Ref& dgamma, Ref& dbeta, const Ref& /*scratch*/) {
+                               const IRef& argmax, const Ref& dout, Ref& dweight, Ref& dgamma,
+                               Ref& dbeta) {
   const char* op = "pfn_backward";
   require_shape(op, "dout", dout, op::pfn(points.shape, weight.shape, op));
   const cuda::PfnShape shape{points.dim(0), points.dim(1), weight.dim(0)};
   require_shape(op, "argmax", argmax, {shape.pillars, shape.channels});
-  require_shape(op, "d_points", d_points, points.shape);
   require_shape(op, "dweight", dweight, weight.shape);
   double* workspace = double_workspace(cuda::pfn_workspace_doubles(shape));
-  // The points are inputs: their gradient (d_points, scratch by the interface) is not computed.
+  // The points are the network's input: their gradient is not computed.
   cuda::pfn_backward(dout.data, points.data, weight.data, shape, bn.gamma.data, bn.save_mean.data,
                      bn.save_invstd.data, argmax.data, nullptr, dweight.data, dgamma.data,
                      dbeta.data, workspace, stream_.get(), bn.replicas);

@@ -123,10 +123,10 @@ class CudaBackend final : public Backend {
                        Ref* probabilities) override;
 
   void pfn_forward(const Ref& points, const Ref& weight, BatchNormRefs& bn, bool training,
-                   IRef& argmax, Ref& out, const Ref& scratch) override;
+                   IRef& argmax, Ref& out) override;
   void pfn_backward(const Ref& points, const Ref& weight, const BatchNormRefs& bn,
-                    const IRef& argmax, const Ref& dout, Ref& d_points, Ref& dweight, Ref& dgamma,
-                    Ref& dbeta, const Ref& scratch) override;
+                    const IRef& argmax, const Ref& dout, Ref& dweight, Ref& dgamma,
+                    Ref& dbeta) override;
   void scatter_forward(const Ref& features, const IRef& cells, int channel0, Ref& canvas) override;
   void scatter_backward(const Ref& dcanvas, const IRef& cells, int channel0,
                         Ref& dfeatures) override;

@@ -172,16 +172,13 @@ class Backend {
   // Pillar feature net: decorated points (P, N, 10), W (C, 10) -> BN -> ReLU -> max over N
   // -> (P, C). Training uses batch statistics over all P*N rows and saves what backward needs
   // (the batch statistics in bn.save_*, the arg-max slot (P, C) in `argmax`, -1 where the
-  // output is 0). Backward recomputes the linear output; d_points (P, N, 10) is scratch.
-  // `scratch` is memory the caller plans for what a backend keeps whole during the op: room for
-  // P N C floats in the training forward (the activations before the max) and 2 P N C in the
-  // backward (the linear output and its gradient); a null scratch makes such a backend allocate
-  // them itself, and a backend that works in smaller blocks ignores it.
+  // output is 0). The backward recomputes the linear output and gives the parameters'
+  // gradients (the points are the network's input: none for them).
   virtual void pfn_forward(const Ref& points, const Ref& weight, BatchNormRefs& bn, bool training,
-                           IRef& argmax, Ref& out, const Ref& scratch) = 0;
+                           IRef& argmax, Ref& out) = 0;
   virtual void pfn_backward(const Ref& points, const Ref& weight, const BatchNormRefs& bn,
-                            const IRef& argmax, const Ref& dout, Ref& d_points, Ref& dweight,
-                            Ref& dgamma, Ref& dbeta, const Ref& scratch) = 0;
+                            const IRef& argmax, const Ref& dout, Ref& dweight, Ref& dgamma,
+                            Ref& dbeta) = 0;
   // Pillar features (P, C) + cells (P, 3: batch, iy, ix) -> canvas (B, C, H, W) at channel
   // offset `channel0` of a canvas with more channels (the other channels are untouched).
   virtual void scatter_forward(const Ref& features, const IRef& cells, int channel0, Ref& canvas) = 0;

@@ -2,8 +2,9 @@
 // host pointers; each op wraps them as Tensor views (no copies) and calls host/. The 3x3 / pad 1
 // convolutions (forward, input and weight gradients, and eval-mode Conv -> BatchNorm -> ReLU in
 // one pass) run on the Winograd fast path host/conv2d_winograd, which is tested against
-// host/conv2d; the eval PFN runs fused per block of pillars; --precision bf16 runs the U-Net on
-// engine/cpu/bf16_conv (AVX512_BF16). make_cpu_reference_backend() has none of these.
+// host/conv2d; the PFN runs per block of pillars (engine/cpu/pfn_blocked, tested against
+// host/pfn); --precision bf16 runs the U-Net on engine/cpu/bf16_conv (AVX512_BF16).
+// make_cpu_reference_backend() has none of these.
 #include <algorithm>
 #include <cmath>
 #include <cstdlib>
@@ -15,6 +16,7 @@
 #include "core/error.hpp"
 #include "core/parallel.hpp"
 #include "engine/cpu/bf16_conv.hpp"
+#include "engine/cpu/pfn_blocked.hpp"
 #include "engine/model/backend.hpp"
 #include "host/adam.hpp"
 #include "host/batchnorm.hpp"
@@ -136,27 +138,35 @@ class CpuBackend final : public Backend {
   void fill_zero(void* dst, size_t bytes) override { std::memset(dst, 0, bytes); }
 
   void pfn_forward(const Ref& points, const Ref& weight, BatchNormRefs& bn, bool training,
-                   IRef& argmax, Ref& out, const Ref& scratch) override {
+                   IRef& argmax, Ref& out) override {
+    if (fast_paths_) {
+      if (training) {
+        cpu::pfn_forward_train(points, weight, bn, argmax, out);
+      } else {
+        cpu::pfn_forward_eval(points, weight, bn, out);
+      }
+      return;
+    }
     Tensor<float> y = view(out), mean = view(bn.running_mean), var = view(bn.running_var);
     if (training) {
       host::PfnSaved<float> saved{bn_saved(bn), view(argmax)};
       int64_t counted = 0;  // the model keeps num_batches_tracked
       host::pfn_forward_train(view(points), view(weight), view(bn.gamma), view(bn.beta),
-                              bn_options(bn), mean, var, counted, y, saved,
-                              pfn_scratch(scratch, 1, points, weight));
-    } else if (fast_paths_) {
-      pfn_forward_eval_blocked(points, weight, bn, out);
+                              bn_options(bn), mean, var, counted, y, saved);
     } else {
       host::pfn_forward_eval(view(points), view(weight), view(bn.gamma), view(bn.beta), mean, var, bn_options(bn), y);
     }
   }
   void pfn_backward(const Ref& points, const Ref& weight, const BatchNormRefs& bn,
-                    const IRef& argmax, const Ref& dout, Ref& d_points, Ref& dweight, Ref& dgamma,
-                    Ref& dbeta, const Ref& scratch) override {
+                    const IRef& argmax, const Ref& dout, Ref& dweight, Ref& dgamma, Ref& dbeta) override {
+    if (fast_paths_) {
+      cpu::pfn_backward(points, weight, bn, argmax, dout, dweight, dgamma, dbeta);
+      return;
+    }
     const host::PfnSaved<float> saved{bn_saved(bn), view(argmax)};
-    Tensor<float> dp = view(d_points), dw = view(dweight), dg = view(dgamma), db = view(dbeta);
-    host::pfn_backward(view(dout), view(points), view(weight), view(bn.gamma), saved, dp, dw, dg,
-                       db, pfn_scratch(scratch, 2, points, weight), bn.replicas);
+    Tensor<float> d_points, dw = view(dweight), dg = view(dgamma), db = view(dbeta);
+    host::pfn_backward(view(dout), view(points), view(weight), view(bn.gamma), saved, d_points, dw, dg,
+                       db, static_cast<float*>(nullptr), bn.replicas);
   }
 
   void scatter_forward(const Ref& features, const IRef& cells, int channel0, Ref& canvas) override {
@@ -407,60 +417,9 @@ class CpuBackend final : public Backend {
   }
 
  private:
-  // The caller's scratch for `copies` (P N, C) tensors of the PFN, points (P, N, 10) and weight
-  // (C, 10), or null (host/ allocates them) when none is given.
-  static float* pfn_scratch(const Ref& scratch, int64_t copies, const Ref& points,
-                            const Ref& weight) {
-    if (!scratch.data) return nullptr;
-    const int64_t needed = copies * points.dim(0) * points.dim(1) * weight.dim(0);
-    PS_CHECK(scratch.numel() >= needed,
-             "pfn: scratch of {} floats given, {} needed for points {} and weight {}",
-             scratch.numel(), needed, shape_str(points.shape), shape_str(weight.shape));
-    return scratch.data;
-  }
-
   // The Winograd fast path covers the U-Net's 3x3 / pad 1 convolutions.
   bool winograd_applies(const Ref& w, int pad) const {
     return fast_paths_ && w.shape.size() == 4 && w.dim(2) == 3 && w.dim(3) == 3 && pad == 1;
-  }
-
-  // Eval PFN, fused per block of pillars so that the (P N, C) linear output never exists whole
-  // (host::pfn_forward_eval's is 200 MB on a real scan): points (P, N, 10), weight (C, 10) ->
-  // out (P, C) = max over n of relu(z s + t), z = the linear output, s and t BatchNorm's
-  // running statistics folded (in double, as host/batchnorm does).
-  void pfn_forward_eval_blocked(const Ref& points, const Ref& weight, const BatchNormRefs& bn, Ref& out) {
-    PS_CHECK(points.shape.size() == 3 && points.dim(2) == 10 && weight.shape == (Shape{out.dim(1), 10}) &&
-                 out.dim(0) == points.dim(0),
-             "pfn_forward: points (P, N, 10) {}, weight (C, 10) {} and out (P, C) {} do not fit",
-             shape_str(points.shape), shape_str(weight.shape), shape_str(out.shape));
-    using RowMatrix = Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
-    constexpr int64_t kPillarsPerBlock = 64;
-    const int64_t P = points.dim(0), N = points.dim(1), C = weight.dim(0);
-    std::vector<float> scale(static_cast<size_t>(C)), shift(static_cast<size_t>(C));
-    for (int64_t c = 0; c < C; ++c) {
-      const double sc = bn.gamma.data[c] / std::sqrt(static_cast<double>(bn.running_var.data[c]) + bn.eps);
-      scale[static_cast<size_t>(c)] = static_cast<float>(sc);
-      shift[static_cast<size_t>(c)] = static_cast<float>(bn.beta.data[c] - bn.running_mean.data[c] * sc);
-    }
-    const Eigen::Map<const RowMatrix> w(weight.data, C, 10);
-    const int64_t blocks = (P + kPillarsPerBlock - 1) / kPillarsPerBlock;
-    parallel_chunks(blocks, [&](int64_t block_begin, int64_t block_end, int) {
-      RowMatrix z;
-      for (int64_t blk = block_begin; blk < block_end; ++blk) {
-        const int64_t p0 = blk * kPillarsPerBlock, p1 = std::min(P, p0 + kPillarsPerBlock);
-        const Eigen::Map<const RowMatrix> x(points.data + p0 * N * 10, (p1 - p0) * N, 10);
-        z.noalias() = x * w.transpose();
-        for (int64_t p = p0; p < p1; ++p) {
-          float* best = out.data + p * C;
-          for (int64_t c = 0; c < C; ++c) best[c] = 0.0f;  // relu: the max is at least 0
-          for (int64_t n = 0; n < N; ++n) {
-            const float* row = z.data() + ((p - p0) * N + n) * C;
-            for (int64_t c = 0; c < C; ++c)
-              best[c] = std::max(best[c], row[c] * scale[static_cast<size_t>(c)] + shift[static_cast<size_t>(c)]);
-          }
-        }
-      }
-    });
   }
 
   void require_precision(Precision p) const {

@@ -167,9 +167,9 @@ ModelMemoryEstimate estimate_model_memory(const ModelConfig& config, int batch, 
     const int64_t N = config.max_points_per_pillar, C = config.pillar_channels;
     // A row: N decorated points (10 floats), its cell (3 int32) and the PFN's output (C).
     int64_t row = N * 10 + 3 + C;
-    // Training: the PFN's arg-max (C int32), the output's and the points' gradients, and its
-    // working memory (2 N C in the backward, N C in the forward, which the backward's reuses).
-    if (training) row += C + C + N * 10 + 2 * N * C;
+    // Training: the PFN's arg-max (C int32) and the output's gradient (the backends keep no
+    // (N, C) working memory a pillar: they recompute the linear output per block).
+    if (training) row += C + C;
     e.pillars = s.mul({kFloat, row, rows});
   }
 

@@ -375,7 +375,7 @@ void PillarSegNet::build_graph(GraphPlan& p, int batch, bool training) {
 
   // Inputs: the canvas, the pillar buffers and the input maps (uploaded or prepared on the device).
   const int canvas = g.tensor("canvas", {batch, config_.input_channels(), H, W});
-  int pfn_out = -1, pfn_argmax = -1, pfn_mean = -1, pfn_invstd = -1, pfn_forward_scratch = -1;
+  int pfn_out = -1, pfn_argmax = -1, pfn_mean = -1, pfn_invstd = -1;
   if (pillars) {
     p.pillar_points = g.tensor("pillar_points", {cap, N, 10});
     p.pillar_cells = g.tensor("pillar_cells", {cap, 3}, DType::I32);
@@ -386,8 +386,6 @@ void PillarSegNet::build_graph(GraphPlan& p, int batch, bool training) {
       pfn_argmax = g.tensor("pfn.argmax", {cap, C}, DType::I32);
       g.at(pfn_argmax).dynamic_rows = true;
       std::tie(pfn_mean, pfn_invstd) = bld.saved_stats("pfn", static_cast<int>(C));
-      // The PFN's working memory of the backend (Backend::pfn_forward), at the capacity.
-      pfn_forward_scratch = g.tensor("pfn.forward_scratch", {cap, N, C});
     }
   }
   if (occupancy) {
@@ -405,9 +403,9 @@ void PillarSegNet::build_graph(GraphPlan& p, int batch, bool training) {
   int channel = 0;
   if (pillars) {
     const int w = bld.param(m.pfn_weight);
-    GraphNode& pfn = bld.node(OpKind::PfnForward, "pfn", {p.pillar_points, w, pfn_argmax, pfn_out, pfn_mean,
-                                                           pfn_invstd, pfn_forward_scratch},
-                              {p.pillar_points, w}, {pfn_argmax, pfn_out, pfn_mean, pfn_invstd, pfn_forward_scratch});
+    GraphNode& pfn =
+        bld.node(OpKind::PfnForward, "pfn", {p.pillar_points, w, pfn_argmax, pfn_out, pfn_mean, pfn_invstd},
+                 {p.pillar_points, w}, {pfn_argmax, pfn_out, pfn_mean, pfn_invstd});
     pfn.batchnorm = m.pfn_bn;
     pfn.training = training;
     pfn.flops = op::pfn_flops({cap, N, 10}, {C, 10});
@@ -623,20 +621,17 @@ void PillarSegNet::build_graph(GraphPlan& p, int batch, bool training) {
     const int d_canvas = dx[0];
     if (pillars) {
       const int pfn_dout = g.tensor("pfn.dout", {cap, C});
-      const int pfn_dpoints = g.tensor("pfn.dpoints", {cap, N, 10});
-      g.at(pfn_dout).dynamic_rows = g.at(pfn_dpoints).dynamic_rows = true;
-      const int pfn_backward_scratch = g.tensor("pfn.backward_scratch", {2, cap, N, C});
+      g.at(pfn_dout).dynamic_rows = true;
       bld.node(OpKind::ScatterBackward, "pfn", {d_canvas, p.pillar_cells, pfn_dout}, {d_canvas, p.pillar_cells},
                {pfn_dout});
       const int w = bld.param(m.pfn_weight);
       const BnParams& bn = m.bns[static_cast<size_t>(m.pfn_bn)];
       GraphNode& n = bld.node(OpKind::PfnBackward, "pfn",
-                              {p.pillar_points, w, pfn_argmax, pfn_dout, pfn_dpoints, bld.grad(m.pfn_weight),
-                               bld.grad(bn.gamma), bld.grad(bn.beta), pfn_mean, pfn_invstd, pfn_backward_scratch},
-                              {p.pillar_points, w, pfn_argmax, pfn_dout, pfn_mean, pfn_invstd},
-                              {pfn_dpoints, pfn_backward_scratch});
+                              {p.pillar_points, w, pfn_argmax, pfn_dout, bld.grad(m.pfn_weight), bld.grad(bn.gamma),
+                               bld.grad(bn.beta), pfn_mean, pfn_invstd},
+                              {p.pillar_points, w, pfn_argmax, pfn_dout, pfn_mean, pfn_invstd}, {});
       n.batchnorm = m.pfn_bn;
-      n.writes.push_back(n.args[5]), n.writes.push_back(n.args[6]), n.writes.push_back(n.args[7]);
+      n.writes.push_back(n.args[4]), n.writes.push_back(n.args[5]), n.writes.push_back(n.args[6]);
       n.flops = 2.0 * op::pfn_flops({cap, N, 10}, {C, 10});
     }
     if (occupancy) {
@@ -740,7 +735,7 @@ double PillarSegNet::execute(const GraphPlan& p, size_t begin, size_t end) {
         BatchNormRefs r = batchnorm_refs(p, n, a[4], a[5]);
         IRef argmax = ints(2);
         Ref out = f(3);
-        be.pfn_forward(f(0), f(1), r, n.training, argmax, out, f(6));
+        be.pfn_forward(f(0), f(1), r, n.training, argmax, out);
         if (n.training) ps.counters()[m.bns[static_cast<size_t>(n.batchnorm)].counter] += 1;
         break;
       }
@@ -907,14 +902,13 @@ double PillarSegNet::execute(const GraphPlan& p, size_t begin, size_t end) {
         break;
       }
       case OpKind::PfnBackward: {
-        Ref dweight = f(5), dgamma = f(6), dbeta = f(7);
+        Ref dweight = f(4), dgamma = f(5), dbeta = f(6);
         if (!have_pillars) {
           for (const Ref& g : {dweight, dgamma, dbeta}) be.fill_zero(g.data, g.bytes());
           break;
         }
-        const BatchNormRefs r = batchnorm_refs(p, n, a[8], a[9]);
-        Ref d_points = f(4);
-        be.pfn_backward(f(0), f(1), r, ints(2), f(3), d_points, dweight, dgamma, dbeta, f(10));
+        const BatchNormRefs r = batchnorm_refs(p, n, a[7], a[8]);
+        be.pfn_backward(f(0), f(1), r, ints(2), f(3), dweight, dgamma, dbeta);
         break;
       }
     }
