@@ -29,6 +29,7 @@
 #include <vector>
 
 #include "bench/support/cuda_bench.hpp"
+#include "core/ops.hpp"
 #include "core/rng.hpp"
 #if defined(PILLARSEG_BENCH_VENDOR_CONV)
 #include "engine/cuda/vendor_conv.hpp"
@@ -285,8 +286,9 @@ void BM_Conv2dForwardHalf(benchmark::State& state, const ConvLayer& l, cuda::Hal
     return;
   }
   ConvBuffers b(l.shape);
-  const std::int64_t k = l.shape.in_channels * l.shape.kernel * l.shape.kernel;
-  DeviceBuffer<std::uint16_t> w16(static_cast<size_t>(l.shape.out_channels * cuda::mma_padded_k(k)));
+  DeviceBuffer<std::uint16_t> w16(static_cast<size_t>(
+      l.shape.out_channels *
+      op::half16_weight_k(l.shape.in_channels, l.shape.kernel * l.shape.kernel)));
   DeviceBuffer<float> bias(static_cast<size_t>(l.shape.out_channels));
   cuda::prepare_conv_weights(b.w.data(), l.bias ? b.bias.data() : nullptr, cuda::FoldedBatchNorm{}, l.shape, type,
                              w16.data(), bias.data(), nullptr);

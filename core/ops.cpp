@@ -134,12 +134,17 @@ Shape add(const Shape& a, const Shape& b) {
   return a;
 }
 
-int64_t half16_padded_k(int64_t k) { return (k + kHalf16WeightK - 1) / kHalf16WeightK * kHalf16WeightK; }
+int64_t half16_padded_channels(int64_t channels) {
+  return (channels + kHalf16WeightK - 1) / kHalf16WeightK * kHalf16WeightK;
+}
+int64_t half16_weight_k(int64_t channels, int64_t taps) {
+  return taps * half16_padded_channels(channels);
+}
 
 Shape half16_conv_weights(const Shape& weight, bool transposed) {
   PS_CHECK(weight.size() == 4, "16-bit weights: weight must have 4 dimensions, got shape {}", shape_str(weight));
-  if (transposed) return {4 * weight[1], half16_padded_k(weight[0])};
-  return {weight[0], half16_padded_k(weight[1] * weight[2] * weight[3])};
+  if (transposed) return {4 * weight[1], half16_weight_k(weight[0], 1)};
+  return {weight[0], half16_weight_k(weight[1], weight[2] * weight[3])};
 }
 
 double conv2d_flops(const Shape& y, const Shape& weight) {

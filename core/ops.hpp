@@ -53,11 +53,15 @@ Shape loss(const Shape& logits, const Shape& labels, const Shape& coefficients);
 // a += b: b must have a's shape. Returns it.
 Shape add(const Shape& a, const Shape& b);
 
-// The 16-bit weights of a tensor-core convolution (kernels/conv2d_mma.cuh): the GEMM's K (I k k
-// for weight (O, I, k, k); I for a transposed one's (I, O, 2, 2)) rounded up to a multiple of
-// kHalf16WeightK, and the shape (O, Kp) or (4 O, Kp) of the prepared weights.
+// The 16-bit weights of a tensor-core convolution (kernels/conv2d_mma.cuh), the GEMM's K in
+// tap-major order: k = t Ip + c for the kernel's spatial taps t (k k of them; one for a
+// transposed convolution) and its I input channels c, Ip = I rounded up to a multiple of
+// kHalf16WeightK (the kernels' K step, which so lies within one tap), zero for c >= I. The
+// prepared weights are (O, k k Ip) for weight (O, I, k, k), (4 O, Ip) for a transposed one's
+// (I, O, 2, 2).
 inline constexpr int64_t kHalf16WeightK = 32;
-int64_t half16_padded_k(int64_t k);
+int64_t half16_padded_channels(int64_t channels);
+int64_t half16_weight_k(int64_t channels, int64_t taps);  // taps * Ip
 Shape half16_conv_weights(const Shape& weight, bool transposed);
 
 // Multiply-adds x 2 of the ops that do arithmetic on weights (for FLOP counts): a convolution

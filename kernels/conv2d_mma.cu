@@ -1,19 +1,33 @@
-// The tensor-core convolutions of conv2d_mma.cuh. One kernel serves the forward of both kinds and
-// the input gradients (the convolution's: a convolution of dy with flipped weights; the
-// transposed one's: a gather of dy's sub-pixels): a block of 128 threads (4 warps in a 2 x 2
-// arrangement) computes a 64 x 64 tile of D (64 output pixels by 64 GEMM columns) in steps of 32
-// along K:
-//   - staging: each thread owns one pixel m of the tile (tid % 64) and gathers its 16 values of
-//     the step's A (rows k = tid / 64 + 2 j), zero outside the image, rounded to the 16-bit type,
-//     into As[k][m] (pixels contiguous, as NCHW reads them); the weights' 64 x 32 block goes to
-//     Bs[n][k] in 16-byte vectors. Rows are padded by 8 elements against bank conflicts, and stay
-//     16-byte aligned for ldmatrix;
-//   - compute: per 16 of K, each warp loads its two 16 x 16 A fragments with ldmatrix.x4.trans
-//     (As holds A transposed) and its four 16 x 8 B fragments with two ldmatrix.x4, and issues
-//     8 mma.sync m16n8k16;
-//   - epilogue: bias, ReLU, and the FP32 store of each accumulator to its (pixel, column), for
-//     the transposed kind at its sub-pixel (2 h + dy, 2 w + dx).
-// The weight gradients have their own kernel on the same compute step (mma_weight_grad_kernel):
+// The tensor-core convolutions of conv2d_mma.cuh. One kernel, conv_gemm_kernel, serves the
+// forward of both kinds and the input gradients: each is an implicit GEMM D (pixels x columns) =
+// A (pixels x K) B (K x columns) whose A gathers, for output pixel (oy, ox) and K element
+// k = t Ip + c (tap-major, op::half16_weight_k), the value of channel c of the gathered tensor at
+// (oy S + t / KS - pad, ox S + t % KS - pad), zero outside it:
+//   - convolution forward: x (B, I, H, W), KS = k, S = 1; y (B, O, Ho, Wo);
+//   - convolution input gradient: dy (B, O, Ho, Wo) with the flipped weights, KS = k, S = 1,
+//     pad k - 1 - pad; dx (B, I, H, W);
+//   - transposed forward: x (B, I, H, W), KS = 1, S = 1, pad 0; column (o, dy, dx) of D goes to
+//     y's sub-pixel (2 h + dy, 2 w + dx);
+//   - transposed input gradient: dy (B, O, 2H, 2W) as O channels of 4 taps, KS = 2, S = 2, pad 0.
+// A block of 128 threads (4 warps, 2 x 2) computes a 128 x BN tile of D (BN = 128, or 64 for at
+// most 64 columns; a warp 64 x BN / 2) in steps of 32 along K, through a pipeline of 3 stages in
+// dynamic shared memory:
+//   - A: each thread owns one pixel of the tile; a K step lies within one tap (Ip is a multiple
+//     of 32), so the thread checks the tap's position once and reads its 32 channels plane after
+//     plane (a warp reads 32 neighbouring pixels of each plane), rounds them to the 16-bit type
+//     and stores them as its pixel's row As[m][0..32) in four 16-byte stores. The loads for step
+//     s + 2 are issued before step s is computed and stored after it, so their latency hides
+//     behind the tensor cores;
+//   - B: the weights' BN x 32 block, rows (N, Kp) contiguous along K, by cp.async in 16-byte
+//     pieces (zero-filled past the last column), committed per step and waited for two steps
+//     later;
+//   - compute: per 16 of K, each warp loads its four 16 x 16 A fragments (ldmatrix.x4 of As, rows
+//     = pixels) and its BN / 16 B fragment pairs (ldmatrix.x4 of Bs, rows = columns), and issues
+//     4 x BN / 16 mma.sync m16n8k16. Rows of 32 elements are padded to 40 (80 bytes) so that
+//     stores and ldmatrix rows fall in distinct banks;
+//   - epilogue: bias, ReLU, and the store of each accumulator (FP32 or rounded once to 16 bits)
+//     to its pixel and column, for the transposed forward at its sub-pixel.
+// The weight gradients have their own kernel (mma_weight_grad_kernel, 64 x 64 tiles, one stage):
 // D (weights x columns) over the pixels, split over blocks, the parts summed in order.
 #include "kernels/conv2d_mma.cuh"
 
@@ -30,33 +44,244 @@
 namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 namespace {
 
-constexpr int kTileM = 64, kTileN = 64, kTileK = 32, kThreads = 128;
+constexpr int kTileM = 64, kTileN = 64, kTileK = 32, kThreads = 128;  // the weight gradients' tile
 constexpr int kPadA = kTileM + 8, kPadB = kTileK + 8;  // shared row lengths, in 16-bit elements
 
-// How row m (a pixel) and column k of A come from x, and where D's (pixel, n) goes.
-enum class Gather {
-  Conv,        // x (B, I, H, W): k = (channel, tap) at the pixel + tap - pad; y (B, N, Ho, Wo)
-  Transposed,  // x (B, I, H, W): k = channel at the pixel; y's sub-pixel (2 h + dy, 2 w + dx) of n
-  SubPixels,   // x (B, I / 4.., 2 H, 2 W): k = (channel, dy, dx) at (2 h + dy, 2 w + dx); as Conv
-};
-
-struct MmaGemm {
-  std::int64_t batch, in_channels, height, width;  // x (SubPixels: height, width of the pixels)
-  std::int64_t columns;                            // N: O, or 4 O for the transposed kind
-  std::int64_t out_height, out_width;              // of the pixels D's rows are (conv: y's)
-  std::int64_t k, k_padded;                        // I k k (I, 4 I), and rounded up to 32
-  int kernel, pad;
-  Gather gather;
+// The implicit GEMM of conv_gemm_kernel (see the top of the file).
+struct ConvGemm {
+  std::int64_t batch;
+  std::int64_t channels;               // C of the gathered tensor (I, or O for the gradients)
+  std::int64_t channels_padded;        // Ip: C rounded up to 32, the K step
+  std::int64_t in_height, in_width;    // the gathered tensor's planes
+  std::int64_t out_height, out_width;  // the pixels D's rows are
+  std::int64_t columns;                // N: O, I, or 4 O for the transposed forward
+  std::int64_t k_padded;               // taps x Ip
+  int kernel, stride, pad;             // KS, S, pad of the gather
+  bool sub_pixels;                     // D's column (o, dy, dx) goes to y's sub-pixel
   bool relu;
 };
 
-// 16 bytes, both ends 16-byte aligned.
-__device__ __forceinline__ void copy16(void* dst, const void* src) {
-#if defined(__CUDA_ARCH__)
-  *static_cast<uint4*>(dst) = *static_cast<const uint4*>(src);
-#else
-  std::memcpy(dst, src, 16);
-#endif
+// The block tile: 128 pixels x BN columns, 4 warps of 64 x BN / 2, 3 stages of 32 along K.
+template <int BN>
+struct ConvTile {
+  static constexpr int kM = 128, kN = BN, kK = 32, kThreads = 128, kStages = 3;
+  static constexpr int kWarpN = BN / 2;
+  static constexpr int kFragsM = 4, kFragsN = kWarpN / 8;  // m16 and n8 fragments of a warp
+  static constexpr int kPitch = kK + 8;                    // 80-byte rows
+  static constexpr int kStageElements = (kM + kN) * kPitch;
+  static constexpr std::size_t kSharedBytes = std::size_t{kStages} * kStageElements * 2;
+  static_assert(kM == kThreads, "a thread stages one pixel's row of A");
+};
+
+// The 16-bit bits of an activation: rounded from FP32, or as stored.
+template <Half16 H, class T>
+__device__ __forceinline__ std::uint16_t half_bits_of(T value) {
+  if constexpr (std::is_same_v<T, float>)
+    return to_half16<H>(value);
+  else
+    return value;
+}
+
+// One thread's pixel of A and the K step it stages next: steps are staged in order, so the tap
+// (ky, kx) and the first channel c0 of the step advance by 32 channels at a time, without a
+// division.
+template <class TIn>
+struct PixelGather {
+  const TIn* image = nullptr;  // the pixel's image of the gathered tensor
+  std::int64_t oy = 0, ox = 0;
+  bool valid = false;
+  std::int64_t c0 = 0;
+  int ky = 0, kx = 0;
+
+  // The next step's 32 values, channels c0 .. c0 + 31 at tap (ky, kx), as 16 words of two 16-bit
+  // values each (the lower channel in the low half), zero outside the tensor and past C.
+  template <Half16 H>
+  __device__ __forceinline__ void load_next(const ConvGemm& g, std::uint32_t (&words)[16]) {
+    const std::int64_t iy = oy * g.stride + ky - g.pad, ix = ox * g.stride + kx - g.pad;
+    const bool inside = valid && iy >= 0 && iy < g.in_height && ix >= 0 && ix < g.in_width;
+    const std::int64_t plane = g.in_height * g.in_width;
+    const TIn* p = image + c0 * plane + iy * g.in_width + ix;
+    const std::int64_t channels_here = g.channels - c0;  // > 0; < 32 only in a tap's last step
+    if (!inside) {
+#pragma unroll
+      for (int j = 0; j < 16; ++j) words[j] = 0;  // +0 in both types
+    } else if (channels_here >= 32) {
+#pragma unroll
+      for (int j = 0; j < 16; ++j)
+        words[j] = half_bits_of<H>(p[(2 * j) * plane]) |
+                   std::uint32_t{half_bits_of<H>(p[(2 * j + 1) * plane])} << 16;
+    } else {
+#pragma unroll
+      for (int j = 0; j < 16; ++j) {
+        const std::uint32_t lo = 2 * j < channels_here ? half_bits_of<H>(p[(2 * j) * plane]) : 0u;
+        const std::uint32_t hi =
+            2 * j + 1 < channels_here ? half_bits_of<H>(p[(2 * j + 1) * plane]) : 0u;
+        words[j] = lo | hi << 16;
+      }
+    }
+    c0 += 32;
+    if (c0 == g.channels_padded) {
+      c0 = 0;
+      if (++kx == g.kernel) kx = 0, ++ky;
+    }
+  }
+};
+
+template <class Tile>
+struct ConvStage {
+  std::uint16_t* a;  // [kM][kPitch]: a pixel's 32 K values per row
+  std::uint16_t* b;  // [kN][kPitch]: a column's 32 K values per row
+  __device__ ConvStage(std::uint16_t* shared, int stage)
+      : a(shared + stage * Tile::kStageElements), b(a + Tile::kM * Tile::kPitch) {}
+};
+
+// The weights' kN x 32 block of step k0 into the stage by cp.async, zero past the last column.
+template <class Tile>
+__device__ __forceinline__ void issue_weights(const ConvStage<Tile>& s, const std::uint16_t* w16,
+                                              const ConvGemm& g, std::int64_t n0, std::int64_t k0,
+                                              int tid) {
+#pragma unroll
+  for (int v = tid; v < Tile::kN * 4; v += Tile::kThreads) {
+    const int row = v / 4, part = v % 4;
+    const bool fill = n0 + row < g.columns;
+    const std::uint16_t* source = fill ? w16 + (n0 + row) * g.k_padded + k0 + part * 8 : w16;
+    cp_async_16(s.b + row * Tile::kPitch + part * 8, source, fill);
+  }
+}
+
+// One stage's 32 of K for a warp: per 16 of K, its 4 A fragments (rows = pixels) and its
+// kFragsN B fragments (ldmatrix.x4 of two n8 tiles: (n 0-7, k 0-7), (n 0-7, k 8-15), (n 8-15,
+// k 0-7), (n 8-15, k 8-15)), and 4 kFragsN mma.sync.
+template <Half16 H, class Tile>
+__device__ __forceinline__ void compute_stage(const ConvStage<Tile>& s,
+                                              float (&acc)[4][Tile::kFragsN][4], int warp_m,
+                                              int warp_n, int lane) {
+  const int j = lane / 8, r = lane % 8;
+#pragma unroll
+  for (int kk = 0; kk < Tile::kK; kk += 16) {
+    std::uint32_t a[4][4], b[Tile::kFragsN][2];
+#pragma unroll
+    for (int mt = 0; mt < 4; ++mt) {
+      // Matrices (pixels 0-7, k 0-7), (8-15, 0-7), (0-7, 8-15), (8-15, 8-15): a0..a3.
+      const int row = warp_m * 64 + mt * 16 + lane % 16;
+      ldmatrix_x4<false>(a[mt], s.a + row * Tile::kPitch + kk + (lane / 16) * 8);
+    }
+#pragma unroll
+    for (int np = 0; np < Tile::kFragsN / 2; ++np) {
+      const int row = warp_n * Tile::kWarpN + np * 16 + (j / 2) * 8 + r;
+      std::uint32_t regs[4];
+      ldmatrix_x4<false>(regs, s.b + row * Tile::kPitch + kk + (j % 2) * 8);
+      b[2 * np][0] = regs[0], b[2 * np][1] = regs[1], b[2 * np + 1][0] = regs[2],
+            b[2 * np + 1][1] = regs[3];
+    }
+#pragma unroll
+    for (int mt = 0; mt < 4; ++mt)
+#pragma unroll
+      for (int nt = 0; nt < Tile::kFragsN; ++nt)
+        mma_m16n8k16<H>(acc[mt][nt], a[mt], b[nt], acc[mt][nt]);
+  }
+}
+
+// TIn, TOut: float (FP32 activations) or std::uint16_t (16-bit activations of type H).
+template <Half16 H, class TIn, class TOut, class Tile>
+__global__ void __launch_bounds__(Tile::kThreads, 2)
+    conv_gemm_kernel(const TIn* __restrict__ x, const std::uint16_t* __restrict__ w16,
+                     const float* __restrict__ bias, ConvGemm g, TOut* __restrict__ y) {
+  std::uint16_t* shared = dynamic_shared<std::uint16_t>();
+  const int tid = static_cast<int>(threadIdx.x), lane = tid % 32, warp = tid / 32;
+  const int warp_m = warp % 2, warp_n = warp / 2;
+  const std::int64_t pixels_per_image = g.out_height * g.out_width;
+  const std::int64_t rows = g.batch * pixels_per_image;
+  const std::int64_t m0 = static_cast<std::int64_t>(blockIdx.x) * Tile::kM;
+  const std::int64_t n0 = static_cast<std::int64_t>(blockIdx.y) * Tile::kN;
+
+  PixelGather<TIn> pixel;
+  {
+    const std::int64_t m = m0 + tid;
+    pixel.valid = m < rows;
+    const std::int64_t image = pixel.valid ? m / pixels_per_image : 0;
+    const std::int64_t p = pixel.valid ? m % pixels_per_image : 0;
+    pixel.oy = p / g.out_width, pixel.ox = p % g.out_width;
+    pixel.image = x + image * g.channels * g.in_height * g.in_width;
+  }
+  const auto store_pixel = [&](const ConvStage<Tile>& s, const std::uint32_t(&words)[16]) {
+    auto* row = reinterpret_cast<uint4*>(s.a + tid * Tile::kPitch);  // 80-byte rows: aligned
+#pragma unroll
+    for (int q = 0; q < 4; ++q)
+      row[q] = make_uint4(words[4 * q], words[4 * q + 1], words[4 * q + 2], words[4 * q + 3]);
+  };
+
+  float acc[4][Tile::kFragsN][4];
+#pragma unroll
+  for (int mt = 0; mt < 4; ++mt)
+#pragma unroll
+    for (int nt = 0; nt < Tile::kFragsN; ++nt)
+#pragma unroll
+      for (int e = 0; e < 4; ++e) acc[mt][nt][e] = 0.0f;
+
+  const std::int64_t steps = g.k_padded / Tile::kK;
+  // Prologue: steps 0 .. kStages - 2 staged (an empty group where there are fewer steps).
+#pragma unroll
+  for (int s = 0; s < Tile::kStages - 1; ++s) {
+    if (s < steps) {
+      const ConvStage<Tile> stage(shared, s);
+      std::uint32_t words[16];
+      pixel.template load_next<H>(g, words);
+      store_pixel(stage, words);
+      issue_weights(stage, w16, g, n0, s * Tile::kK, tid);
+    }
+    cp_async_commit();
+  }
+  for (std::int64_t step = 0; step < steps; ++step) {
+    cp_async_wait<Tile::kStages - 2>();  // this step's weights have landed
+    __syncthreads();  // ... and every thread's, and its pixels; the oldest stage is free
+    const std::int64_t next = step + Tile::kStages - 1;
+    const ConvStage<Tile> next_stage(shared, static_cast<int>(next % Tile::kStages));
+    std::uint32_t words[16];
+    if (next < steps) {
+      pixel.template load_next<H>(g, words);
+      issue_weights(next_stage, w16, g, n0, next * Tile::kK, tid);
+    }
+    cp_async_commit();
+    compute_stage<H, Tile>(ConvStage<Tile>(shared, static_cast<int>(step % Tile::kStages)), acc,
+                           warp_m, warp_n, lane);
+    if (next < steps) store_pixel(next_stage, words);
+  }
+
+  // Epilogue: accumulator i of (mt, nt) is D[row group + 8 (i >= 2)][column 2 t + (i & 1)].
+  const int group = lane / 4, t = lane % 4;
+#pragma unroll
+  for (int mt = 0; mt < 4; ++mt) {
+#pragma unroll
+    for (int half = 0; half < 2; ++half) {
+      const std::int64_t row = m0 + warp_m * 64 + mt * 16 + group + 8 * half;
+      if (row >= rows) continue;
+      const std::int64_t img = row / pixels_per_image, px = row % pixels_per_image;
+      const std::int64_t py = px / g.out_width, pxx = px % g.out_width;
+#pragma unroll
+      for (int nt = 0; nt < Tile::kFragsN; ++nt) {
+#pragma unroll
+        for (int e = 0; e < 2; ++e) {
+          const std::int64_t n = n0 + warp_n * Tile::kWarpN + nt * 8 + 2 * t + e;
+          if (n >= g.columns) continue;
+          float value = acc[mt][nt][2 * half + e] + (bias != nullptr ? bias[n] : 0.0f);
+          if (g.relu) value = value > 0.0f ? value : 0.0f;
+          std::int64_t index = 0;
+          if (g.sub_pixels) {
+            const std::int64_t o = n / 4, dy = (n % 4) / 2, dx = n % 2;
+            const std::int64_t yh = 2 * g.out_height, yw = 2 * g.out_width;
+            index = ((img * (g.columns / 4) + o) * yh + 2 * py + dy) * yw + 2 * pxx + dx;
+          } else {
+            index = (img * g.columns + n) * pixels_per_image + px;
+          }
+          if constexpr (std::is_same_v<TOut, float>)
+            y[index] = value;
+          else
+            y[index] = to_half16<H>(value);
+        }
+      }
+    }
+  }
 }
 
 // A warp's 2 x 4 accumulator fragments of mma_tile_step = 0.
@@ -69,9 +294,10 @@ __device__ __forceinline__ void zero_accumulators(float (&acc)[2][4][4]) {
       for (int c = 0; c < 4; ++c) acc[a][b][c] = 0.0f;
 }
 
-// One step of 32 along K for a warp of the 2 x 2 arrangement: per 16 of K, its two 16 x 16 A
-// fragments with ldmatrix.x4.trans (as holds A transposed: as[k][m]) and its four 16 x 8 B
-// fragments with two ldmatrix.x4 (bs[n][k]), and 8 mma.sync m16n8k16 into acc.
+// One step of 32 along K of the weight gradients' 64 x 64 tile for a warp of the 2 x 2
+// arrangement: per 16 of K, its two 16 x 16 A fragments with ldmatrix.x4.trans (as holds A
+// transposed: as[k][m]) and its four 16 x 8 B fragments with two ldmatrix.x4 (bs[n][k]), and 8
+// mma.sync m16n8k16 into acc.
 template <Half16 H>
 __device__ __forceinline__ void mma_tile_step(const std::uint16_t (&as)[kTileK][kPadA],
                                               const std::uint16_t (&bs)[kTileN][kPadB],
@@ -100,115 +326,6 @@ __device__ __forceinline__ void mma_tile_step(const std::uint16_t (&as)[kTileK][
     for (int mt = 0; mt < 2; ++mt)
 #pragma unroll
       for (int nt = 0; nt < 4; ++nt) mma_m16n8k16<H>(acc[mt][nt], a[mt], b[nt], acc[mt][nt]);
-  }
-}
-
-// TIn, TOut: float (FP32 activations) or std::uint16_t (16-bit activations of type H).
-template <Half16 H, class TIn, class TOut>
-__global__ void __launch_bounds__(kThreads)
-    mma_gemm_kernel(const TIn* __restrict__ x, const std::uint16_t* __restrict__ w16,
-                    const float* __restrict__ bias, MmaGemm g, TOut* __restrict__ y) {
-  __shared__ __align__(16) std::uint16_t as[kTileK][kPadA];
-  __shared__ __align__(16) std::uint16_t bs[kTileN][kPadB];
-  const int tid = static_cast<int>(threadIdx.x), lane = tid % 32, warp = tid / 32;
-  const int warp_m = warp % 2, warp_n = warp / 2;
-  const std::int64_t pixels_per_image = g.out_height * g.out_width;
-  const std::int64_t rows = g.batch * pixels_per_image;
-  const std::int64_t m0 = static_cast<std::int64_t>(blockIdx.x) * kTileM;
-  const std::int64_t n0 = static_cast<std::int64_t>(blockIdx.y) * kTileN;
-
-  // This thread's staging pixel.
-  const int sm = tid % kTileM;
-  const std::int64_t m = m0 + sm;
-  const bool m_valid = m < rows;
-  const std::int64_t image = m_valid ? m / pixels_per_image : 0;
-  const std::int64_t pixel = m_valid ? m % pixels_per_image : 0;
-  const std::int64_t oy = pixel / g.out_width, ox = pixel % g.out_width;
-  const std::int64_t plane = g.height * g.width;
-  const TIn* x_image = x + image * g.in_channels * (g.gather == Gather::SubPixels ? 4 * plane : plane);
-  const int taps = g.kernel * g.kernel;
-
-  float acc[2][4][4];
-  zero_accumulators(acc);
-
-  for (std::int64_t k0 = 0; k0 < g.k_padded; k0 += kTileK) {
-// A: rows k0 + tid / 64 + 2 j of this thread's pixel.
-#pragma unroll
-    for (int j = 0; j < kTileK * kTileM / kThreads; ++j) {
-      const int sk = tid / kTileM + 2 * j;
-      const std::int64_t k = k0 + sk;
-      std::int64_t index = -1;
-      if (m_valid && k < g.k) {
-        if (g.gather == Gather::Transposed) {
-          index = k * plane + oy * g.width + ox;
-        } else if (g.gather == Gather::SubPixels) {
-          const std::int64_t channel = k / 4, dy = (k % 4) / 2, dx = k % 2;
-          index = (channel * 2 * g.height + 2 * oy + dy) * 2 * g.width + 2 * ox + dx;
-        } else {
-          const std::int64_t channel = k / taps;
-          const int tap = static_cast<int>(k % taps);
-          const std::int64_t iy = oy + tap / g.kernel - g.pad, ix = ox + tap % g.kernel - g.pad;
-          if (iy >= 0 && iy < g.height && ix >= 0 && ix < g.width)
-            index = channel * plane + iy * g.width + ix;
-        }
-      }
-      std::uint16_t bits = 0;  // +0 in both types
-      if (index >= 0) {
-        if constexpr (std::is_same_v<TIn, float>)
-          bits = to_half16<H>(x_image[index]);
-        else
-          bits = x_image[index];
-      }
-      as[sk][sm] = bits;
-    }
-    // B: 64 rows n of 32 k, as 256 vectors of 8 elements.
-    for (int v = tid; v < kTileN * kTileK / 8; v += kThreads) {
-      const int sn = v / (kTileK / 8), sk = v % (kTileK / 8) * 8;
-      const std::int64_t n = n0 + sn;
-      if (n < g.columns) {
-        copy16(&bs[sn][sk], w16 + n * g.k_padded + k0 + sk);
-      } else {
-        for (int e = 0; e < 8; ++e) bs[sn][sk + e] = 0;
-      }
-    }
-    __syncthreads();
-    mma_tile_step<H>(as, bs, acc, warp_m, warp_n, lane);
-    __syncthreads();
-  }
-
-  // Epilogue: accumulator i of (mt, nt) is D[row g + 8 (i >= 2)][column 2 t + (i & 1)].
-  const int group = lane / 4, t = lane % 4;
-#pragma unroll
-  for (int mt = 0; mt < 2; ++mt) {
-#pragma unroll
-    for (int half = 0; half < 2; ++half) {
-      const std::int64_t row = m0 + warp_m * 32 + mt * 16 + group + 8 * half;
-      if (row >= rows) continue;
-      const std::int64_t img = row / pixels_per_image, px = row % pixels_per_image;
-      const std::int64_t py = px / g.out_width, pxx = px % g.out_width;
-#pragma unroll
-      for (int nt = 0; nt < 4; ++nt) {
-#pragma unroll
-        for (int e = 0; e < 2; ++e) {
-          const std::int64_t n = n0 + warp_n * 32 + nt * 8 + 2 * t + e;
-          if (n >= g.columns) continue;
-          float value = acc[mt][nt][2 * half + e] + (bias != nullptr ? bias[n] : 0.0f);
-          if (g.relu) value = value > 0.0f ? value : 0.0f;
-          std::int64_t index = 0;
-          if (g.gather == Gather::Transposed) {
-            const std::int64_t o = n / 4, dy = (n % 4) / 2, dx = n % 2;
-            const std::int64_t yh = 2 * g.out_height, yw = 2 * g.out_width;
-            index = ((img * (g.columns / 4) + o) * yh + 2 * py + dy) * yw + 2 * pxx + dx;
-          } else {
-            index = (img * g.columns + n) * pixels_per_image + px;
-          }
-          if constexpr (std::is_same_v<TOut, float>)
-            y[index] = value;
-          else
-            y[index] = to_half16<H>(value);
-        }
-      }
-    }
   }
 }
 
@@ -349,36 +466,46 @@ __global__ void __launch_bounds__(kBiasThreads)
 // values.
 template <Half16 H>
 __global__ void prepare_data_weights_kernel(const float* __restrict__ w, std::int64_t rows,
-                                            std::int64_t k, std::int64_t k_padded, int taps,
-                                            bool transposed, std::uint16_t* __restrict__ w16t) {
+                                            std::int64_t channels, std::int64_t channels_padded,
+                                            int taps, bool transposed,
+                                            std::uint16_t* __restrict__ w16t) {
+  const std::int64_t k_padded = taps * channels_padded;
   const std::int64_t i = static_cast<std::int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (i >= rows * k_padded) return;
-  const std::int64_t r = i / k_padded, c = i % k_padded;
+  const std::int64_t r = i / k_padded, kk = i % k_padded;
+  const std::int64_t tap = kk / channels_padded, o = kk % channels_padded;
   float value = 0.0f;
-  if (c < k) {
-    value = transposed ? w[r * k + c] : w[((c / taps) * rows + r) * taps + (taps - 1 - c % taps)];
+  if (o < channels) {
+    // Convolution w (O, I, k, k): the flipped tap; transposed w (I, O, 2, 2): sub-pixel `tap`.
+    value =
+        transposed ? w[(r * channels + o) * 4 + tap] : w[(o * rows + r) * taps + (taps - 1 - tap)];
   }
   w16t[i] = to_half16<H>(value);
 }
 
+// w16 row n, column t Ip + c = w[n][c][t] (transposed: w[c][n / 4][n % 4]), the BatchNorm scale
+// multiplied in; bias_out[n] with its shift.
 template <Half16 H>
 __global__ void prepare_weights_kernel(const float* __restrict__ w, const float* __restrict__ bias,
-                                       FoldedBatchNorm bn, std::int64_t rows, std::int64_t k,
-                                       std::int64_t k_padded, bool transposed,
+                                       FoldedBatchNorm bn, std::int64_t rows, std::int64_t channels,
+                                       std::int64_t channels_padded, int taps, bool transposed,
                                        std::int64_t out_channels, std::uint16_t* __restrict__ w16,
                                        float* __restrict__ bias_out) {
+  const std::int64_t k_padded = taps * channels_padded;
   const std::int64_t i = static_cast<std::int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (i >= rows * k_padded) return;
   const std::int64_t n = i / k_padded, kk = i % k_padded;
+  const std::int64_t tap = kk / channels_padded, c = kk % channels_padded;
   float scale = 1.0f, shift = 0.0f;
-  // Transposed: row n = o 4 + s of column kk = i reads w[i, o, s]; no BatchNorm.
   const std::int64_t o = transposed ? n / 4 : n;
   if (!transposed && bn.gamma != nullptr) {
     scale = bn.gamma[o] / sqrtf(bn.running_var[o] + bn.eps);
     shift = bn.beta[o] - scale * bn.running_mean[o];
   }
   float value = 0.0f;
-  if (kk < k) value = transposed ? w[(kk * out_channels + o) * 4 + n % 4] : w[n * k + kk] * scale;
+  if (c < channels)
+    value = transposed ? w[(c * out_channels + o) * 4 + n % 4]
+                       : w[(n * channels + c) * taps + tap] * scale;
   w16[i] = to_half16<H>(value);
   if (kk == 0) bias_out[n] = scale * (bias != nullptr ? bias[o] : 0.0f) + shift;
 }
@@ -440,54 +567,104 @@ __global__ void ldmatrix_probe_kernel(std::uint32_t* out) {
   }
 }
 
-template <Half16 H>
-void launch_gemm(dim3 grid, const void* x, bool x_half, const std::uint16_t* w16, const float* bias,
-                 const MmaGemm& g, void* y, bool y_half, cudaStream_t stream) {
+__global__ void cp_async_probe_kernel(const std::uint32_t* source, std::uint32_t* out,
+                                      bool misalign) {
+  __shared__ __align__(16)
+      std::uint32_t stages[3][32 * 4 + 4];  // rows of 16-byte multiples, room to misalign
+  const int lane = static_cast<int>(threadIdx.x);
+  for (int s = 0; s < 3; ++s)
+    for (int w = 0; w < 4; ++w) stages[s][lane * 4 + w] = 0xDEADBEEFu;
+  __syncwarp();
+  for (int s = 0; s < 3; ++s) {
+    cp_async_16(&stages[s][lane * 4 + (misalign ? 1 : 0)], source + (s * 32 + lane) * 4, s != 1);
+    cp_async_commit();
+  }
+  cp_async_wait<2>();
+  for (int s = 0; s < 3; ++s)
+    for (int w = 0; w < 4; ++w) out[lane * 24 + s * 4 + w] = stages[s][lane * 4 + w];
+  cp_async_wait<0>();
+  for (int s = 0; s < 3; ++s)
+    for (int w = 0; w < 4; ++w) out[lane * 24 + 12 + s * 4 + w] = stages[s][lane * 4 + w];
+}
+
+// Raises the kernel's dynamic shared memory limit to `bytes` on the current device, once per
+// device (the default limit is 48 KiB).
+template <auto Kernel>
+void allow_dynamic_shared(std::size_t bytes) {
+  static std::array<std::atomic<bool>, 64> allowed{};
+  int device = 0;
+  PS_CUDA_CHECK(cudaGetDevice(&device));
+  const bool cached = device >= 0 && device < 64;
+  if (cached && allowed[static_cast<std::size_t>(device)].load()) return;
+  PS_CUDA_CHECK(cudaFuncSetAttribute(Kernel, cudaFuncAttributeMaxDynamicSharedMemorySize,
+                                     static_cast<int>(bytes)));
+  if (cached) allowed[static_cast<std::size_t>(device)].store(true);
+}
+
+template <Half16 H, class Tile, class TIn, class TOut>
+void launch_conv_gemm(const void* x, const std::uint16_t* w16, const float* bias, const ConvGemm& g,
+                      void* y, cudaStream_t stream) {
+  constexpr auto kernel = conv_gemm_kernel<H, TIn, TOut, Tile>;
+  allow_dynamic_shared<kernel>(Tile::kSharedBytes);
+  const dim3 grid(
+      static_cast<unsigned>(ceil_div(g.batch * g.out_height * g.out_width, std::int64_t{Tile::kM})),
+      static_cast<unsigned>(ceil_div(g.columns, std::int64_t{Tile::kN})));
+  launch_kernel(kernel, grid, dim3(Tile::kThreads), Tile::kSharedBytes, stream,
+                static_cast<const TIn*>(x), w16, bias, g, static_cast<TOut*>(y));
+}
+
+template <Half16 H, class Tile>
+void launch_conv_gemm(const void* x, bool x_half, const std::uint16_t* w16, const float* bias,
+                      const ConvGemm& g, void* y, bool y_half, cudaStream_t stream) {
   using U = std::uint16_t;
   if (x_half && y_half)
-    launch_kernel(mma_gemm_kernel<H, U, U>, grid, dim3(kThreads), 0, stream,
-                  static_cast<const U*>(x), w16, bias, g, static_cast<U*>(y));
+    launch_conv_gemm<H, Tile, U, U>(x, w16, bias, g, y, stream);
   else if (x_half)
-    launch_kernel(mma_gemm_kernel<H, U, float>, grid, dim3(kThreads), 0, stream,
-                  static_cast<const U*>(x), w16, bias, g, static_cast<float*>(y));
+    launch_conv_gemm<H, Tile, U, float>(x, w16, bias, g, y, stream);
   else if (y_half)
-    launch_kernel(mma_gemm_kernel<H, float, U>, grid, dim3(kThreads), 0, stream,
-                  static_cast<const float*>(x), w16, bias, g, static_cast<U*>(y));
+    launch_conv_gemm<H, Tile, float, U>(x, w16, bias, g, y, stream);
   else
-    launch_kernel(mma_gemm_kernel<H, float, float>, grid, dim3(kThreads), 0, stream,
-                  static_cast<const float*>(x), w16, bias, g, static_cast<float*>(y));
+    launch_conv_gemm<H, Tile, float, float>(x, w16, bias, g, y, stream);
 }
 
 void run_gemm(const void* x, bool x_half, const std::uint16_t* w16, const float* bias,
-              const MmaGemm& g, Half16 type, void* y, bool y_half, cudaStream_t stream) {
+              const ConvGemm& g, Half16 type, void* y, bool y_half, cudaStream_t stream) {
   const std::int64_t rows = g.batch * g.out_height * g.out_width;
   if (rows == 0 || g.columns == 0) return;
   std::string why;
   PS_CHECK(mma_supported(&why), "conv2d_mma: {}", why);
-  const dim3 grid(static_cast<unsigned>(ceil_div(rows, kTileM)),
-                  static_cast<unsigned>(ceil_div(g.columns, kTileN)));
+  PS_CHECK(
+      g.channels_padded % 32 == 0 && g.k_padded % g.channels_padded == 0,
+      "conv2d_mma: the prepared weights' K ({}) must be whole taps of {} channels padded to 32",
+      g.k_padded, g.channels);
   with_half16(type, [&](auto h) {
-    launch_gemm<decltype(h)::value>(grid, x, x_half, w16, bias, g, y, y_half, stream);
+    // Layers of at most 64 columns (the U-Net's widest-resolution ones) in 128 x 64 tiles.
+    if (g.columns <= 64)
+      launch_conv_gemm<decltype(h)::value, ConvTile<64>>(x, x_half, w16, bias, g, y, y_half,
+                                                         stream);
+    else
+      launch_conv_gemm<decltype(h)::value, ConvTile<128>>(x, x_half, w16, bias, g, y, y_half,
+                                                          stream);
   });
 }
 
 void run_prepare(const float* w, const float* bias, const FoldedBatchNorm& bn, std::int64_t rows,
-                 std::int64_t k, bool transposed, std::int64_t out_channels, Half16 type,
-                 std::uint16_t* w16, float* bias_out, cudaStream_t stream) {
-  const std::int64_t total = rows * mma_padded_k(k);
+                 std::int64_t channels, int taps, bool transposed, std::int64_t out_channels,
+                 Half16 type, std::uint16_t* w16, float* bias_out, cudaStream_t stream) {
+  const std::int64_t total = rows * op::half16_weight_k(channels, taps);
   if (total == 0) return;
   const dim3 grid(static_cast<unsigned>(ceil_div(total, 256)));
   with_half16(type, [&](auto h) {
     launch_kernel(prepare_weights_kernel<decltype(h)::value>, grid, dim3(256), 0, stream, w, bias,
-                  bn, rows, k, mma_padded_k(k), transposed, out_channels, w16, bias_out);
+                  bn, rows, channels, op::half16_padded_channels(channels), taps, transposed,
+                  out_channels, w16, bias_out);
   });
 }
 
 }  // namespace
 
-static_assert(kTileK == op::kHalf16WeightK, "the prepared weights' K padding is the kernel's K step");
-
-std::int64_t mma_padded_k(std::int64_t k) { return op::half16_padded_k(k); }
+static_assert(ConvTile<64>::kK == op::kHalf16WeightK && ConvTile<128>::kK == op::kHalf16WeightK,
+              "the prepared weights' channel padding is the kernel's K step");
 
 bool mma_supported(std::string* why_not) {
 #if defined(PILLARSEG_CUDA_EMULATION)
@@ -522,28 +699,42 @@ bool mma_supported(std::string* why_not) {
 void prepare_conv_weights(const float* w, const float* bias, const FoldedBatchNorm& bn,
                           const Conv2dShape& shape, Half16 type, std::uint16_t* w16,
                           float* bias_out, cudaStream_t stream) {
-  run_prepare(w, bias, bn, shape.out_channels, shape.in_channels * shape.kernel * shape.kernel,
-              false, shape.out_channels, type, w16, bias_out, stream);
+  run_prepare(w, bias, bn, shape.out_channels, shape.in_channels,
+              static_cast<int>(shape.kernel * shape.kernel), false, shape.out_channels, type, w16,
+              bias_out, stream);
 }
 
 void prepare_conv_transpose_weights(const float* w, const float* bias, std::int64_t in_channels,
                                     std::int64_t out_channels, Half16 type, std::uint16_t* w16,
                                     float* bias_out, cudaStream_t stream) {
-  run_prepare(w, bias, FoldedBatchNorm{}, 4 * out_channels, in_channels, true, out_channels, type,
-              w16, bias_out, stream);
+  run_prepare(w, bias, FoldedBatchNorm{}, 4 * out_channels, in_channels, 1, true, out_channels,
+              type, w16, bias_out, stream);
 }
+
+namespace {
+
+// The gather of a stride-1 convolution of x (B, C, H, W) with a k x k kernel: D's rows are the
+// output pixels, its columns the weights' rows.
+ConvGemm conv_gather(std::int64_t batch, std::int64_t channels, std::int64_t height,
+                     std::int64_t width, std::int64_t kernel, std::int64_t pad,
+                     std::int64_t columns) {
+  ConvGemm g{};
+  g.batch = batch, g.channels = channels, g.channels_padded = op::half16_padded_channels(channels);
+  g.in_height = height, g.in_width = width;
+  g.out_height = height + 2 * pad - kernel + 1, g.out_width = width + 2 * pad - kernel + 1;
+  g.columns = columns, g.k_padded = op::half16_weight_k(channels, kernel * kernel);
+  g.kernel = static_cast<int>(kernel), g.stride = 1, g.pad = static_cast<int>(pad);
+  return g;
+}
+
+}  // namespace
 
 void conv2d_mma_forward(const void* x, bool x_half, const std::uint16_t* w16, const float* bias,
                         const Conv2dShape& shape, Half16 type, bool relu, void* y, bool y_half,
                         cudaStream_t stream) {
-  const std::int64_t k = shape.in_channels * shape.kernel * shape.kernel;
-  MmaGemm g{};
-  g.batch = shape.batch, g.in_channels = shape.in_channels, g.height = shape.height;
-  g.width = shape.width, g.columns = shape.out_channels;
-  g.out_height = shape.out_height(), g.out_width = shape.out_width();
-  g.k = k, g.k_padded = mma_padded_k(k);
-  g.kernel = static_cast<int>(shape.kernel), g.pad = static_cast<int>(shape.pad);
-  g.gather = Gather::Conv, g.relu = relu;
+  ConvGemm g = conv_gather(shape.batch, shape.in_channels, shape.height, shape.width, shape.kernel,
+                           shape.pad, shape.out_channels);
+  g.relu = relu;
   run_gemm(x, x_half, w16, bias, g, type, y, y_half, stream);
 }
 
@@ -552,12 +743,9 @@ void conv_transpose2x2_mma_forward(const void* x, bool x_half, const std::uint16
                                    std::int64_t height, std::int64_t width,
                                    std::int64_t out_channels, Half16 type, void* y, bool y_half,
                                    cudaStream_t stream) {
-  // The pixels are x's; each of the 4 O columns writes its sub-pixel of y.
-  MmaGemm g{};
-  g.batch = batch, g.in_channels = in_channels, g.height = height, g.width = width;
-  g.columns = 4 * out_channels, g.out_height = height, g.out_width = width;
-  g.k = in_channels, g.k_padded = mma_padded_k(in_channels);
-  g.kernel = 1, g.pad = 0, g.gather = Gather::Transposed, g.relu = false;
+  // The pixels are x's (a 1 x 1 gather); each of the 4 O columns writes its sub-pixel of y.
+  ConvGemm g = conv_gather(batch, in_channels, height, width, 1, 0, 4 * out_channels);
+  g.sub_pixels = true;
   run_gemm(x, x_half, w16, bias, g, type, y, y_half, stream);
 }
 
@@ -629,13 +817,14 @@ void run_bias_grad(const float* dy, std::int64_t batch, std::int64_t channels, s
                 channels, plane, dbias);
 }
 
-void run_prepare_data(const float* w, std::int64_t rows, std::int64_t k, int taps, bool transposed, Half16 type,
-                      std::uint16_t* w16t, cudaStream_t stream) {
-  const std::int64_t total = rows * mma_padded_k(k);
+void run_prepare_data(const float* w, std::int64_t rows, std::int64_t channels, int taps,
+                      bool transposed, Half16 type, std::uint16_t* w16t, cudaStream_t stream) {
+  const std::int64_t total = rows * op::half16_weight_k(channels, taps);
   if (total == 0) return;
   with_half16(type, [&](auto h) {
-    launch_kernel(prepare_data_weights_kernel<decltype(h)::value>, dim3(static_cast<unsigned>(ceil_div(total, 256))),
-                  dim3(256), 0, stream, w, rows, k, mma_padded_k(k), taps, transposed, w16t);
+    launch_kernel(prepare_data_weights_kernel<decltype(h)::value>,
+                  dim3(static_cast<unsigned>(ceil_div(total, 256))), dim3(256), 0, stream, w, rows,
+                  channels, op::half16_padded_channels(channels), taps, transposed, w16t);
   });
 }
 
@@ -644,20 +833,15 @@ void run_prepare_data(const float* w, std::int64_t rows, std::int64_t k, int tap
 void prepare_conv_data_weights(const float* w, const Conv2dShape& shape, Half16 type, std::uint16_t* w16t,
                                cudaStream_t stream) {
   const int taps = static_cast<int>(shape.kernel * shape.kernel);
-  run_prepare_data(w, shape.in_channels, shape.out_channels * taps, taps, false, type, w16t, stream);
+  run_prepare_data(w, shape.in_channels, shape.out_channels, taps, false, type, w16t, stream);
 }
 
 void conv2d_mma_backward_data(const float* dy, const std::uint16_t* w16t, const Conv2dShape& shape, Half16 type,
                               float* dx, cudaStream_t stream) {
   // dx = the convolution of dy (B, O, Ho, Wo) with the flipped weights, padding k - 1 - pad.
-  const std::int64_t k = shape.out_channels * shape.kernel * shape.kernel;
-  MmaGemm g{};
-  g.batch = shape.batch, g.in_channels = shape.out_channels, g.height = shape.out_height();
-  g.width = shape.out_width(), g.columns = shape.in_channels;
-  g.out_height = shape.height, g.out_width = shape.width;
-  g.k = k, g.k_padded = mma_padded_k(k);
-  g.kernel = static_cast<int>(shape.kernel), g.pad = static_cast<int>(shape.kernel - 1 - shape.pad);
-  g.gather = Gather::Conv, g.relu = false;
+  const ConvGemm g =
+      conv_gather(shape.batch, shape.out_channels, shape.out_height(), shape.out_width(),
+                  shape.kernel, shape.kernel - 1 - shape.pad, shape.in_channels);
   run_gemm(dy, false, w16t, nullptr, g, type, dx, false, stream);
 }
 
@@ -674,17 +858,20 @@ void conv2d_mma_backward_weights(const float* x, const float* dy, const Conv2dSh
 
 void prepare_conv_transpose_data_weights(const float* w, const ConvTranspose2dShape& shape, Half16 type,
                                          std::uint16_t* w16t, cudaStream_t stream) {
-  run_prepare_data(w, shape.in_channels, 4 * shape.out_channels, 1, true, type, w16t, stream);
+  run_prepare_data(w, shape.in_channels, shape.out_channels, 4, true, type, w16t, stream);
 }
 
 void conv_transpose2x2_mma_backward_data(const float* dy, const std::uint16_t* w16t, const ConvTranspose2dShape& shape,
                                          Half16 type, float* dx, cudaStream_t stream) {
-  // dx (B, I, H, W): pixels of x, K = the 4 O sub-pixel values of dy above each.
-  MmaGemm g{};
-  g.batch = shape.batch, g.in_channels = shape.out_channels, g.height = shape.height, g.width = shape.width;
-  g.columns = shape.in_channels, g.out_height = shape.height, g.out_width = shape.width;
-  g.k = 4 * shape.out_channels, g.k_padded = mma_padded_k(g.k);
-  g.kernel = 1, g.pad = 0, g.gather = Gather::SubPixels, g.relu = false;
+  // dx (B, I, H, W): pixels of x, K = the O channels of dy (B, O, 2H, 2W) at the 4 sub-pixels
+  // above each, a 2 x 2 gather of stride 2.
+  ConvGemm g{};
+  g.batch = shape.batch, g.channels = shape.out_channels;
+  g.channels_padded = op::half16_padded_channels(shape.out_channels);
+  g.in_height = 2 * shape.height, g.in_width = 2 * shape.width;
+  g.out_height = shape.height, g.out_width = shape.width;
+  g.columns = shape.in_channels, g.k_padded = op::half16_weight_k(shape.out_channels, 4);
+  g.kernel = 2, g.stride = 2, g.pad = 0;
   run_gemm(dy, false, w16t, nullptr, g, type, dx, false, stream);
 }
 
@@ -711,6 +898,13 @@ void mma_fragment_probe(const float* a, const float* b, const float* c, Half16 t
 
 void ldmatrix_probe(std::uint32_t* out, cudaStream_t stream) {
   launch_kernel(ldmatrix_probe_kernel, dim3(1), dim3(32), 0, stream, out);
+}
+
+void cp_async_probe(const std::uint32_t* source, std::uint32_t* out, bool misalign,
+                    cudaStream_t stream) {
+  std::string why;
+  PS_CHECK(mma_supported(&why), "cp_async_probe: {}", why);
+  launch_kernel(cp_async_probe_kernel, dim3(1), dim3(32), 0, stream, source, out, misalign);
 }
 
 }  // namespace pillarseg::cuda

@@ -7,11 +7,12 @@
 //   - ConvTranspose2d kernel 2 stride 2, x (B, I, H, W), weight (I, O, 2, 2) -> y (B, O, 2H, 2W),
 //     as D (pixels x 4 O) = x^T B, each column (o, dy, dx) written to its sub-pixel.
 // The weights go through prepare_*_weights once per set of values: rounded to the 16-bit type
-// (after the BatchNorm scale is multiplied in, in FP32), laid out (N, Kp) with Kp the GEMM's K
-// rounded up to a multiple of 32 and zero-filled, and the bias (with the BatchNorm shift) in
-// FP32. Activations are FP32 (rounded to the 16-bit type as they are staged in shared memory) or
-// already 16-bit, and so is y (rounded once from the FP32 result). So y = act(sum_k half(w'[n,
-// k]) half(a[m, k]) + b'[n]) with the products exact and the sum in FP32.
+// (after the BatchNorm scale is multiplied in, in FP32), laid out (N, Kp) with K tap-major,
+// column t Ip + c for tap t and input channel c, the channels padded to Ip, a multiple of 32,
+// with zeros (op::half16_weight_k: Kp = k k Ip, or Ip for the transposed kind), and the bias
+// (with the BatchNorm shift) in FP32. Activations are FP32 (rounded to the 16-bit type as they are
+// staged in shared memory) or already 16-bit, and so is y (rounded once from the FP32 result). So y
+// = act(sum_k half(w'[n, k]) half(a[m, k]) + b'[n]) with the products exact and the sum in FP32.
 //
 // Needs compute capability 8.0 or later on a GPU (mma_supported()); the emulation runs it
 // everywhere. Pointers are device memory; the work is queued on `stream`.
@@ -28,9 +29,6 @@
 
 namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 
-// K of the prepared weights: I k k (convolution) or I (transposed), rounded up to 32.
-std::int64_t mma_padded_k(std::int64_t k);
-
 // Whether the current device runs these kernels (compute capability >= 8.0; always in the
 // emulation), and a sentence saying why not.
 bool mma_supported(std::string* why_not = nullptr);
@@ -45,11 +43,12 @@ struct FoldedBatchNorm {
   float eps = 1e-5f;
 };
 
-// w (O, I, k, k) [, bias (O) or nullptr] [, BatchNorm] -> w16 (O, Kp) 16-bit, bias_out (O) FP32.
+// w (O, I, k, k) [, bias (O) or nullptr] [, BatchNorm] -> w16 (O, k k Ip) 16-bit, bias_out (O)
+// FP32.
 void prepare_conv_weights(const float* w, const float* bias, const FoldedBatchNorm& bn,
                           const Conv2dShape& shape, Half16 type, std::uint16_t* w16,
                           float* bias_out, cudaStream_t stream);
-// w (I, O, 2, 2) [, bias (O)] -> w16 (4 O, Kp) with row o 4 + dy 2 + dx, bias_out (4 O).
+// w (I, O, 2, 2) [, bias (O)] -> w16 (4 O, Ip) with row o 4 + dy 2 + dx, bias_out (4 O).
 void prepare_conv_transpose_weights(const float* w, const float* bias, std::int64_t in_channels,
                                     std::int64_t out_channels, Half16 type, std::uint16_t* w16,
                                     float* bias_out, cudaStream_t stream);
@@ -70,13 +69,14 @@ void conv_transpose2x2_mma_forward(const void* x, bool x_half, const std::uint16
 // to `type` as they are staged, FP32 accumulation, dbias (or nullptr) summed in double from the
 // FP32 dy.
 //   - dx (B, I, H, W) of a stride-1 convolution = the convolution of dy (B, O, Ho, Wo) with the
-//     flipped weights w16t (I, Kp(O k k)), row i column (o, tap) = w[o][i][k k - 1 - tap]
-//     (prepare_conv_data_weights), padding k - 1 - pad;
+//     flipped weights w16t (I, k k Op), row i column t Op + o = w[o][i][k k - 1 - t]
+//     (prepare_conv_data_weights; Op = O padded to 32), padding k - 1 - pad;
 //   - dw (O, I, k, k) = sum over the pixels of dy x im2col(x), split over the pixels in a fixed
 //     number of parts summed in order (the same bits on every run and GPU), `workspace` of
 //     conv2d_mma_backward_weights_workspace(shape) floats;
 //   - the transposed 2x2: dx (B, I, H, W) from the 4 O sub-pixel values of dy (B, O, 2H, 2W) and
-//     w16t (I, Kp(4 O)) = w (I, O, 2, 2) row by row; dw (I, O, 2, 2).
+//     w16t (I, 4 Op), row i column s Op + o = w[i][o][s] for the sub-pixel s = 2 dy + dx;
+//     dw (I, O, 2, 2).
 void prepare_conv_data_weights(const float* w, const Conv2dShape& shape, Half16 type,
                                std::uint16_t* w16t, cudaStream_t stream);
 void conv2d_mma_backward_data(const float* dy, const std::uint16_t* w16t, const Conv2dShape& shape,
@@ -104,5 +104,13 @@ void conv_transpose2x2_mma_backward_weights(const float* x, const float* dy,
 void mma_fragment_probe(const float* a, const float* b, const float* c, Half16 type, float* d,
                         cudaStream_t stream);
 void ldmatrix_probe(std::uint32_t* out, cudaStream_t stream);
+// Self-check of cp.async, one warp: each lane fills its 16 bytes of three shared stages with
+// 0xDEADBEEF words, copies its 16 bytes of source[s] (3 x 32 x 4 words) into stage s by
+// cp_async_16 (stage 1 zero-filled: fill = false), one group each, and writes the three stages'
+// words to out (32 lanes x 24 words) after cp_async_wait<2> (words 0..11) and after
+// cp_async_wait<0> (12..23). `misalign` moves the destinations by 4 bytes (the emulation
+// refuses that; never on a GPU, where it faults).
+void cp_async_probe(const std::uint32_t* source, std::uint32_t* out, bool misalign,
+                    cudaStream_t stream);
 
 }  // namespace pillarseg::cuda

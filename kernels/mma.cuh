@@ -6,7 +6,12 @@
 //                            emulation's are exact bit manipulations; on a GPU the cvt.rn
 //                            instructions, which round the same way);
 //   mma_m16n8k16<H>          D = A B + C on one warp's fragments, FP32 accumulation;
-//   ldmatrix_x4/_x2<Trans>   one warp's fragments from shared memory (row addresses per lane).
+//   ldmatrix_x4/_x2<Trans>   one warp's fragments from shared memory (row addresses per lane);
+//   cp_async_16, cp_async_commit, cp_async_wait<N>
+//                            asynchronous 16-byte copies from global to shared memory (sm_80),
+//                            zero-filled when not `fill`, in groups: wait<N> returns once all
+//                            but the N newest committed groups have landed (a __syncthreads
+//                            then makes them visible to the block).
 #pragma once
 
 #include <cstdint>
@@ -173,6 +178,40 @@ __device__ inline void ldmatrix_x2(std::uint32_t r[2], const void* row_address) 
                  : "=r"(r[0]), "=r"(r[1])
                  : "r"(address));
   }
+#else
+  __trap();
+#endif
+}
+
+// `source` must be a valid 16-byte aligned global address even when !fill (nothing is read then).
+__device__ inline void cp_async_16(void* shared_destination, const void* source, bool fill) {
+#if defined(PILLARSEG_CUDA_EMULATION)
+  emu::cp_async_16(shared_destination, source, fill);
+#elif defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800
+  const unsigned address = static_cast<unsigned>(__cvta_generic_to_shared(shared_destination));
+  asm volatile("cp.async.cg.shared.global [%0], [%1], 16, %2;\n" ::"r"(address), "l"(source),
+               "r"(fill ? 16 : 0));
+#else
+  __trap();
+#endif
+}
+
+__device__ inline void cp_async_commit() {
+#if defined(PILLARSEG_CUDA_EMULATION)
+  emu::cp_async_commit_group();
+#elif defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800
+  asm volatile("cp.async.commit_group;\n" ::);
+#else
+  __trap();
+#endif
+}
+
+template <int Pending>
+__device__ inline void cp_async_wait() {
+#if defined(PILLARSEG_CUDA_EMULATION)
+  emu::cp_async_wait_group(Pending);
+#elif defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800
+  asm volatile("cp.async.wait_group %0;\n" ::"n"(Pending));
 #else
   __trap();
 #endif

@@ -196,13 +196,14 @@ TEST(CpuBf16Amx, AvailabilityAndTheNativeChoiceAgree) {
   if (amx) return;
   EXPECT_FALSE(why.empty());
   // Asked for where it cannot run: an error that says why, not a fault.
-  std::vector<std::uint16_t> x(1 * 2 * 4 * 4), w16(2 * 32);
+  std::vector<std::uint16_t> x(1 * 2 * 4 * 4), w16(2 * 9 * 32);
   std::vector<float> bias(2), y(1 * 2 * 4 * 4);
   cpu::Bf16WinogradWorkspace workspace;
   try {
     cpu::conv3x3_winograd_forward(Bf16Kernels::Amx, HRef{x.data(), {1, 2, 4, 4}},
-                                  HRef{w16.data(), {2, 32}}, Ref{bias.data(), {2}}, {2, 2, 3, 3},
-                                  false, ActRef{y.data(), {1, 2, 4, 4}, false}, workspace);
+                                  HRef{w16.data(), {2, 9 * 32}}, Ref{bias.data(), {2}},
+                                  {2, 2, 3, 3}, false, ActRef{y.data(), {1, 2, 4, 4}, false},
+                                  workspace);
     FAIL() << "the AMX kernels where the CPU lacks them must throw";
   } catch (const Error& e) {
     EXPECT_NE(std::string(e.what()).find("BF16 convolutions on"), std::string::npos) << e.what();
@@ -322,7 +323,8 @@ TEST_P(CpuBf16Conv, MatchesTheDoubleReference) {
                      mean = random_floats(c.out, rng), var = random_floats(c.out, rng, 0.5, 2.0);
   std::vector<float> xf = random_floats(c.batch * c.in * c.height * c.width, rng, -2, 2);
   const Shape weight = {c.out, c.in, c.kernel, c.kernel};
-  std::vector<std::uint16_t> w16(static_cast<size_t>(c.out * op::half16_padded_k(k)));
+  std::vector<std::uint16_t> w16(
+      static_cast<size_t>(shape_numel(op::half16_conv_weights(weight, false))));
   std::vector<float> bias_out(static_cast<size_t>(c.out));
   Ref w_ref{w.data(), weight}, b_ref{bias.data(), {c.out}};
   BatchNormRefs bn;
@@ -332,13 +334,19 @@ TEST_P(CpuBf16Conv, MatchesTheDoubleReference) {
   Ref bias_out_ref{bias_out.data(), {c.out}};
   cpu::prepare_conv_weights(w_ref, &b_ref, c.batchnorm ? &bn : nullptr, Precision::BF16, w16_ref,
                             bias_out_ref);
-  // The folding: w' = bf16(w gamma / sqrt(var + eps)), b' = scale b + beta - scale mean.
+  // The folding: w' = bf16(w gamma / sqrt(var + eps)), b' = scale b + beta - scale mean, in
+  // column t Ip + i of row o (tap-major, the channels padded with zeros to Ip).
+  const std::int64_t kp = w16_ref.dim(1), padded = kp / kk;
+  ASSERT_EQ(padded, (c.in + 31) / 32 * 32);
   for (std::int64_t o = 0; o < c.out; ++o) {
     const float scale = c.batchnorm ? gamma[o] / std::sqrt(var[o] + bn.eps) : 1.0f;
-    ASSERT_EQ(w16[static_cast<size_t>(o * w16_ref.dim(1))],
-              bf16(w[static_cast<size_t>(o * k)] * scale));
-    ASSERT_EQ(w16[static_cast<size_t>(o * w16_ref.dim(1) + w16_ref.dim(1) - 1)], 0)
-        << "K padding is zero";
+    for (std::int64_t t = 0; t < kk; ++t) {
+      for (std::int64_t i = 0; i < padded; ++i) {
+        ASSERT_EQ(w16[static_cast<size_t>(o * kp + t * padded + i)],
+                  i < c.in ? bf16(w[static_cast<size_t>((o * c.in + i) * kk + t)] * scale) : 0)
+            << "row " << o << " tap " << t << " channel " << i;
+      }
+    }
     const float shift = c.batchnorm ? beta[o] - scale * mean[o] : 0.0f;
     ASSERT_EQ(bias_out[static_cast<size_t>(o)], scale * bias[o] + shift);
   }
@@ -358,8 +366,7 @@ TEST_P(CpuBf16Conv, MatchesTheDoubleReference) {
                 const std::int64_t iy = y + ky - c.pad, ix = xx + kx - c.pad;
                 if (iy < 0 || iy >= c.height || ix < 0 || ix >= c.width) continue;
                 const double term =
-                    value(w16[static_cast<size_t>(o * w16_ref.dim(1) + i * kk + ky * c.kernel +
-                                                  kx)]) *
+                    value(w16[static_cast<size_t>(o * kp + (ky * c.kernel + kx) * padded + i)]) *
                     value(
                         x16[static_cast<size_t>(((b * c.in + i) * c.height + iy) * c.width + ix)]);
                 sum += term, mag += std::abs(term);
@@ -397,7 +404,8 @@ INSTANTIATE_TEST_SUITE_P(
         ConvCase{1, 8, 4, 50, 20, 1, 0, true, true, false},   // 1 x 1, 48 + 2 pixels
         ConvCase{1, 5, 6, 6, 9, 3, 0, false, false, false},   // no padding
         ConvCase{1, 7, 3, 17, 70, 3, 1, true, false, true},   // two column blocks
-        ConvCase{1, 4, 2, 16, 8, 3, 1, false, true, false}),  // exactly one vector
+        ConvCase{1, 4, 2, 16, 8, 3, 1, false, true, false},   // exactly one vector
+        ConvCase{1, 37, 4, 9, 6, 3, 1, true, false, true}),   // channels past one step of 32, odd
     [](const ::testing::TestParamInfo<ConvCase>& param) {
       std::string s = case_name(param.param);
       for (char& ch : s)
@@ -469,12 +477,12 @@ INSTANTIATE_TEST_SUITE_P(
     });
 
 TEST(CpuBf16Conv, WrongShapesAndPrecisionsSayWhat) {
-  std::vector<std::uint16_t> x(2 * 3 * 4 * 4), w16(4 * 32);
+  std::vector<std::uint16_t> x(2 * 3 * 4 * 4), w16(4 * 9 * 32);
   std::vector<float> bias(4), y(2 * 4 * 4 * 4);
   const HRef x_ref{x.data(), {2, 3, 4, 4}};
   const Ref bias_ref{bias.data(), {4}};
   try {
-    cpu::conv2d_forward(Bf16Kernels::Emulated, x_ref, HRef{w16.data(), {4, 32}}, bias_ref,
+    cpu::conv2d_forward(Bf16Kernels::Emulated, x_ref, HRef{w16.data(), {4, 288}}, bias_ref,
                         {4, 3, 3, 3}, 1, false, ActRef{y.data(), {2, 4, 4, 5}, false});
     FAIL() << "a wrong y shape must throw";
   } catch (const Error& e) {
@@ -487,7 +495,8 @@ TEST(CpuBf16Conv, WrongShapesAndPrecisionsSayWhat) {
                         {4, 3, 3, 3}, 1, false, ActRef{y.data(), {2, 4, 4, 4}, false});
     FAIL() << "unpadded weights must throw";
   } catch (const Error& e) {
-    EXPECT_NE(std::string(e.what()).find("w16 must be (4, 32)"), std::string::npos) << e.what();
+    // 9 taps of the 3 channels padded to 32 (tap-major).
+    EXPECT_NE(std::string(e.what()).find("w16 must be (4, 288)"), std::string::npos) << e.what();
   }
   auto backend = make_cpu_backend();
   std::string why;
@@ -539,7 +548,7 @@ TEST_P(CpuBf16Winograd, MatchesTheDoubleReference) {
   cpu::to_half(Ref{xf.data(), x_ref.shape}, Precision::BF16, x_ref);
   const std::int64_t kp = w16_ref.dim(1), H = c.height, W = c.width;
   const auto g = [&](std::int64_t o, std::int64_t i, int ky, int kx) {
-    return value(w16[static_cast<size_t>(o * kp + i * 9 + ky * 3 + kx)]);
+    return value(w16[static_cast<size_t>(o * kp + (ky * 3 + kx) * (kp / 9) + i)]);
   };
   const auto xv = [&](std::int64_t b, std::int64_t i, std::int64_t y, std::int64_t x) {
     if (y < 0 || y >= H || x < 0 || x >= W) return 0.0;

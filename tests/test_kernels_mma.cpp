@@ -22,10 +22,10 @@
 #include <string>
 #include <vector>
 
+#include "core/ops.hpp"
 #include "core/rng.hpp"
 #include "kernels/common.cuh"
 #include "kernels/conv2d_mma.cuh"
-#include "tests/kernel_test_helpers.hpp"
 #include "kernels/device_buffer.hpp"
 #include "kernels/elementwise.cuh"
 #include "kernels/half_ops.cuh"
@@ -33,6 +33,7 @@
 #include "kernels/mma.cuh"
 #include "kernels/pad_concat.cuh"
 #include "kernels/upsample_bilinear.cuh"
+#include "tests/kernel_test_helpers.hpp"
 
 using namespace pillarseg;
 using cuda::DeviceBuffer;
@@ -154,6 +155,47 @@ TEST(Mma, LdmatrixMatchesTheIsaLayout) {
   }
 }
 
+// cp_async_probe (conv2d_mma.cuh): each stage holds its source after its group's wait, stage 1
+// zeros; on the emulation, the stages whose groups are still pending after wait<2> still hold
+// what was there before (the copies land at the wait), and a misaligned copy is refused.
+TEST(Mma, CpAsyncGroupsLandAtTheirWait) {
+  std::string why;
+  if (!cuda::mma_supported(&why)) GTEST_SKIP() << why;
+  std::vector<std::uint32_t> source(3 * 32 * 4);
+  for (size_t i = 0; i < source.size(); ++i) source[i] = static_cast<std::uint32_t>(0x1000 + 7 * i);
+  auto d_source = DeviceBuffer<std::uint32_t>::from_host(source);
+  DeviceBuffer<std::uint32_t> out(32 * 24);
+  cuda::cp_async_probe(d_source.data(), out.data(), false, nullptr);
+  PS_CUDA_CHECK(cudaDeviceSynchronize());
+  const std::vector<std::uint32_t> got = out.to_host();
+  for (int lane = 0; lane < 32; ++lane) {
+    for (int s = 0; s < 3; ++s) {
+      for (int w = 0; w < 4; ++w) {
+        const std::uint32_t landed =
+            s == 1 ? 0u : source[static_cast<size_t>((s * 32 + lane) * 4 + w)];
+        const std::uint32_t after_first = got[static_cast<size_t>(lane * 24 + s * 4 + w)];
+        if (s == 0) EXPECT_EQ(after_first, landed) << "lane " << lane << " stage 0 after wait<2>";
+#if defined(PILLARSEG_CUDA_EMULATION)
+        if (s > 0)
+          EXPECT_EQ(after_first, 0xDEADBEEFu)
+              << "lane " << lane << " stage " << s << " before its wait";
+#endif
+        EXPECT_EQ(got[static_cast<size_t>(lane * 24 + 12 + s * 4 + w)], landed)
+            << "lane " << lane << " stage " << s << " after wait<0>";
+      }
+    }
+  }
+#if defined(PILLARSEG_CUDA_EMULATION)
+  try {
+    cuda::cp_async_probe(d_source.data(), out.data(), true, nullptr);
+    PS_CUDA_CHECK(cudaDeviceSynchronize());
+    ADD_FAILURE() << "a misaligned cp.async was not refused";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("16-byte aligned"), std::string::npos) << e.what();
+  }
+#endif
+}
+
 // ---- the convolutions ----
 
 float round_half(float x, Half16 type) {
@@ -194,7 +236,8 @@ void check_conv(const ConvCase& cc, Half16 type) {
        dv = DeviceBuffer<float>::from_host(var);
   cuda::FoldedBatchNorm bn;
   if (cc.batchnorm) bn = {dg.data(), dbeta.data(), dm.data(), dv.data(), 1e-5f};
-  DeviceBuffer<std::uint16_t> w16(static_cast<size_t>(s.out_channels * cuda::mma_padded_k(k)));
+  DeviceBuffer<std::uint16_t> w16(static_cast<size_t>(
+      s.out_channels * op::half16_weight_k(s.in_channels, s.kernel * s.kernel)));
   DeviceBuffer<float> b_out(static_cast<size_t>(s.out_channels));
   DeviceBuffer<float> dy(static_cast<size_t>(s.batch * s.out_channels * ho * wo));
   cuda::prepare_conv_weights(dw.data(), dbias.data(), bn, s, type, w16.data(), b_out.data(),
@@ -267,6 +310,10 @@ TEST(ConvMma, Conv1x1HeadBf16) {
 TEST(ConvMma, ManyChannelsBf16) {
   check_conv({1, 96, 4, 5, 130, 3, 1, true, true}, Half16::BF16);
 }
+// One K step (12 channels padded to 32): fewer steps than the pipeline's stages.
+TEST(ConvMma, OneKStepBf16) {
+  check_conv({1, 12, 3, 50, 20, 1, 0, false, true}, Half16::BF16);
+}
 
 void check_transposed(Half16 type) {
   std::string why;
@@ -278,7 +325,7 @@ void check_transposed(Half16 type) {
   const std::vector<float> bias = uniform(static_cast<size_t>(O), rng, -1, 1);
   auto dx = DeviceBuffer<float>::from_host(x), dw = DeviceBuffer<float>::from_host(w),
        dbias = DeviceBuffer<float>::from_host(bias);
-  DeviceBuffer<std::uint16_t> w16(static_cast<size_t>(4 * O * cuda::mma_padded_k(I)));
+  DeviceBuffer<std::uint16_t> w16(static_cast<size_t>(4 * O * op::half16_weight_k(I, 1)));
   DeviceBuffer<float> b_out(static_cast<size_t>(4 * O)), dy(static_cast<size_t>(B * O * 4 * H * W));
   cuda::prepare_conv_transpose_weights(dw.data(), dbias.data(), I, O, type, w16.data(),
                                        b_out.data(), nullptr);
@@ -329,7 +376,8 @@ void check_conv_backward(const ConvCase& cc, Half16 type) {
   const std::vector<float> g = uniform(static_cast<size_t>(s.batch * s.out_channels * ho * wo), rng, -1, 1);
   auto d_x = DeviceBuffer<float>::from_host(x), d_w = DeviceBuffer<float>::from_host(w),
        d_g = DeviceBuffer<float>::from_host(g);
-  DeviceBuffer<std::uint16_t> w16t(static_cast<size_t>(s.in_channels * cuda::mma_padded_k(s.out_channels * kk)));
+  DeviceBuffer<std::uint16_t> w16t(
+      static_cast<size_t>(s.in_channels * op::half16_weight_k(s.out_channels, kk)));
   DeviceBuffer<float> workspace(static_cast<size_t>(std::max<std::int64_t>(1, cuda::conv2d_mma_backward_weights_workspace(s))));
   std::vector<std::vector<float>> runs;
   for (int run = 0; run < 2; ++run) {
@@ -433,7 +481,7 @@ void check_transposed_backward(std::int64_t B, std::int64_t I, std::int64_t O, s
   const std::vector<float> g = uniform(static_cast<size_t>(B * O * 4 * H * W), rng, -1, 1);
   auto d_x = DeviceBuffer<float>::from_host(x), d_w = DeviceBuffer<float>::from_host(w),
        d_g = DeviceBuffer<float>::from_host(g);
-  DeviceBuffer<std::uint16_t> w16t(static_cast<size_t>(I * cuda::mma_padded_k(4 * O)));
+  DeviceBuffer<std::uint16_t> w16t(static_cast<size_t>(I * op::half16_weight_k(O, 4)));
   DeviceBuffer<float> workspace(
       static_cast<size_t>(std::max<std::int64_t>(1, cuda::conv_transpose2x2_mma_backward_weights_workspace(s))));
   GuardedArray<float> dx(static_cast<std::int64_t>(x.size())), dw(static_cast<std::int64_t>(w.size())), db(O);
@@ -593,7 +641,7 @@ void check_half_ops(Half16 type) {
   const std::vector<float> w = uniform(static_cast<size_t>(9 * C * 9), rng, -0.5, 0.5);
   const std::vector<float> bias = uniform(9, rng, -1, 1);
   auto dw = DeviceBuffer<float>::from_host(w), dbias = DeviceBuffer<float>::from_host(bias);
-  DeviceBuffer<std::uint16_t> w16(static_cast<size_t>(9 * cuda::mma_padded_k(C * 9)));
+  DeviceBuffer<std::uint16_t> w16(static_cast<size_t>(9 * op::half16_weight_k(C, 9)));
   DeviceBuffer<float> b_out(9);
   cuda::prepare_conv_weights(dw.data(), dbias.data(), cuda::FoldedBatchNorm{}, s, type, w16.data(),
                              b_out.data(), nullptr);

@@ -60,19 +60,23 @@ void require_half(const char* op, Precision p) {
            "{}: 16-bit activations need bf16 or fp16, got {}", op, precision_name(p));
 }
 
-// K's elements (c, t) for c < channels and the spatial taps t, plus the partner of the last
-// element when K is odd (bf16_microkernel.hpp).
+// K's elements (t, c) for the spatial taps t and the channels c < channels, tap-major, each in
+// its column t Ip + c of the prepared weights, and a zero partner after a tap's last channel
+// when their count is odd (bf16_microkernel.hpp).
 std::vector<KTap> k_taps(std::int64_t channels, const std::vector<TapOffset>& offsets,
                          std::int64_t height, std::int64_t width) {
+  const std::int64_t padded = op::half16_padded_channels(channels);
+  const auto zero_tap = static_cast<std::int32_t>(offsets.size());
   std::vector<KTap> taps;
-  taps.reserve(static_cast<size_t>(channels) * offsets.size() + 1);
-  for (std::int64_t c = 0; c < channels; ++c) {
-    for (size_t t = 0; t < offsets.size(); ++t) {
-      taps.push_back({c * height * width + offsets[t].dy * width + offsets[t].dx,
+  taps.reserve(static_cast<size_t>(channels + 1) * offsets.size());
+  for (size_t t = 0; t < offsets.size(); ++t) {
+    const std::int64_t column0 = static_cast<std::int64_t>(t) * padded;
+    for (std::int64_t c = 0; c < channels; ++c) {
+      taps.push_back({c * height * width + offsets[t].dy * width + offsets[t].dx, column0 + c,
                       static_cast<std::int32_t>(t)});
     }
+    if (channels % 2 == 1) taps.push_back({0, column0 + channels, zero_tap});
   }
-  if (taps.size() % 2 == 1) taps.push_back({0, static_cast<std::int32_t>(offsets.size())});
   return taps;
 }
 
@@ -203,7 +207,7 @@ void prepare_conv_weights(const Ref& w, const Ref* bias, const BatchNormRefs* bn
     for (const Ref* r : {&bn->gamma, &bn->beta, &bn->running_mean, &bn->running_var})
       require_shape(op, "BatchNorm", *r, {out});
   }
-  const std::int64_t kp = w16.dim(1);
+  const std::int64_t kp = w16.dim(1), in = w.dim(1), taps = w.dim(2) * w.dim(3), padded = kp / taps;
   parallel_for(out, [&](std::int64_t n) {
     // The CUDA backend's arithmetic (prepare_weights_kernel in kernels/conv2d_mma.cu).
     float scale = 1.0f, shift = 0.0f;
@@ -211,8 +215,11 @@ void prepare_conv_weights(const Ref& w, const Ref* bias, const BatchNormRefs* bn
       scale = bn->gamma.data[n] / std::sqrt(bn->running_var.data[n] + bn->eps);
       shift = bn->beta.data[n] - scale * bn->running_mean.data[n];
     }
-    for (std::int64_t i = 0; i < kp; ++i)
-      w16.data[n * kp + i] = to_bits(i < k ? w.data[n * k + i] * scale : 0.0f, p);
+    for (std::int64_t t = 0; t < taps; ++t) {
+      for (std::int64_t c = 0; c < padded; ++c)
+        w16.data[n * kp + t * padded + c] =
+            to_bits(c < in ? w.data[n * k + c * taps + t] * scale : 0.0f, p);
+    }
     bias_out.data[n] = scale * (bias != nullptr ? bias->data[n] : 0.0f) + shift;
   });
 }
@@ -254,7 +261,7 @@ void conv2d_forward(Bf16Kernels kernels, const HRef& x, const HRef& w16, const R
   const std::vector<KTap> taps = k_taps(in, offsets, h, w);
   Bf16Gemm g;
   g.x = x.data, g.batch = x.dim(0), g.x_batch_stride = in * h * w, g.height = h, g.width = w;
-  g.k_taps = taps.data(), g.k = in * kh * kw, g.offsets = offsets.data(),
+  g.k_taps = taps.data(), g.k = static_cast<std::int64_t>(taps.size()), g.offsets = offsets.data(),
   g.taps = static_cast<int>(offsets.size());
   g.w = w16.data, g.kp = w16.dim(1), g.columns = weight[0], g.bias = bias_out.data, g.relu = relu;
   g.y = y.data, g.y_bf16 = y.half;
@@ -295,7 +302,7 @@ void conv3x3_winograd_forward(Bf16Kernels kernels, const HRef& x, const HRef& w1
       if (c < in && o < out) {
         double k[3][3];
         for (int t = 0; t < 9; ++t)
-          k[t / 3][t % 3] = weights::bf16_bits_to_float(w16.data[o * kp + c * 9 + t]);
+          k[t / 3][t % 3] = weights::bf16_bits_to_float(w16.data[o * kp + t * (kp / 9) + c]);
         for (int b = 0; b < 3; ++b) {
           gg[0][b] = k[0][b];
           gg[1][b] = 0.5 * (k[0][b] + k[1][b] + k[2][b]);
@@ -366,7 +373,8 @@ void conv_transpose2x2_forward(Bf16Kernels kernels, const HRef& x, const HRef& w
   const std::vector<KTap> taps = k_taps(in, offsets, h, w);
   Bf16Gemm g;
   g.x = x.data, g.batch = x.dim(0), g.x_batch_stride = in * h * w, g.height = h, g.width = w;
-  g.k_taps = taps.data(), g.k = in, g.offsets = offsets.data(), g.taps = 1;
+  g.k_taps = taps.data(), g.k = static_cast<std::int64_t>(taps.size()), g.offsets = offsets.data(),
+  g.taps = 1;
   g.w = w16.data, g.kp = w16.dim(1), g.columns = 4 * weight[1], g.bias = bias_out.data;
   g.transposed = true;
   g.y = y.data, g.y_bf16 = y.half;

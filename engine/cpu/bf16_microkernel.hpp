@@ -7,13 +7,16 @@
 // The GEMM: y[n, pixel] = act(sum_k w16[n, k] a[k, pixel] + bias[n]) over the K values of each
 // output pixel, taken two at a time (k, k + 1) as VDPBF16PS does: a register holds 16 pixels of
 // one output column, each lane the two BF16 inputs (a[k], a[k + 1]) of its pixel; the weight
-// pair (w16[n, k], w16[n, k + 1]) is broadcast to every lane. Element k of the pixel (row, col)
-// is the input x[k_taps[k].offset + row W + col] of its batch, where offset = c H W + dy W + dx
-// for the channel c and the spatial tap (dy, dx) = offsets[k_taps[k].tap], and zero where (row +
-// dy, col + dx) is outside the image (masked loads: nothing outside x is read; each tile works
-// out the masks of every spatial tap once). A register tile is NCO <= 8 columns x NPX <= 3
-// vectors of 16 pixels (24 accumulators, 3 operands and a broadcast in the 32 registers).
-//   - Convolution (stride 1): rows are output rows; k = (c, ky, kx), tap ky kw + kx with offset
+// pair (w16[n, j], w16[n, j + 1]) of the weights' column j = k_taps[k].column is broadcast to
+// every lane. Element k of the pixel (row, col) is the input x[k_taps[k].offset + row W + col] of
+// its batch, where offset = c H W + dy W + dx for the channel c and the spatial tap (dy, dx) =
+// offsets[k_taps[k].tap], and zero where (row + dy, col + dx) is outside the image (masked loads:
+// nothing outside x is read; each tile works out the masks of every spatial tap once). The
+// weights are tap-major (op::half16_weight_k): the elements of tap t are the channels c, in
+// column t Ip + c, and an odd channel count's last pair has a zero partner. A register tile is NCO
+// <= 8 columns x NPX <= 3 vectors of 16 pixels (24 accumulators, 3 operands and a broadcast in the
+// 32 registers).
+//   - Convolution (stride 1): rows are output rows; k = (ky, kx, c), tap ky kw + kx with offset
 //     (ky - pad, kx - pad); y (B, N, Ho, Wo).
 //   - Transposed 2x2 stride 2: rows are input rows, k = c, one tap (0, 0); column n = o 4 + 2 dy
 //     + dx goes to y[b, o, 2 row + dy, 2 col + dx]; columns n (dx = 0) and n + 1 (dx = 1) are
@@ -28,10 +31,11 @@
 
 namespace pillarseg::cpu {
 
-// Element k of the GEMM's K: see above. tap == the number of spatial taps marks the partner of
-// the last element when K is odd (always zero).
+// Element k of the GEMM's K: see above. tap == the number of spatial taps marks the partner of a
+// tap's last channel when the channel count is odd (always zero).
 struct KTap {
   std::int64_t offset = 0;
+  std::int64_t column = 0;  // in the weights' rows; even for the first of a pair
   std::int32_t tap = 0;
 };
 // A spatial tap (dy, dx): the input pixel (row + dy, col + dx) of the output pixel (row, col).
@@ -46,11 +50,11 @@ inline constexpr int kMaxTaps = 49;  // kernels up to 7 x 7
 struct Bf16Gemm {
   const std::uint16_t* x = nullptr;  // BF16 input (B, C, H, W)
   std::int64_t batch = 0, x_batch_stride = 0, height = 0, width = 0;
-  const KTap* k_taps = nullptr;  // k entries, plus one (tap = taps) when k is odd
+  const KTap* k_taps = nullptr;  // k entries, an even count
   std::int64_t k = 0;
   const TapOffset* offsets = nullptr;  // taps <= kMaxTaps entries
   int taps = 0;
-  const std::uint16_t* w = nullptr;  // (columns, kp) BF16, zero beyond k
+  const std::uint16_t* w = nullptr;  // (columns, kp) BF16, tap-major
   std::int64_t kp = 0, columns = 0;
   const float* bias = nullptr;  // (columns)
   bool relu = false;
@@ -130,7 +134,7 @@ void gemm_tile(const Bf16Gemm& g, std::int64_t b, std::int64_t row, std::int64_t
     }
 #pragma GCC unroll 8
     for (int c = 0; c < NCO; ++c) {
-      const Pair weights = Isa::broadcast_pair(w + c * kp + k);
+      const Pair weights = Isa::broadcast_pair(w + c * kp + t0.column);
 #pragma GCC unroll 4
       for (int p = 0; p < NPX; ++p) acc[c][p] = Isa::dot(acc[c][p], a[p], weights);
     }

@@ -912,7 +912,7 @@ void CudaBackend::conv2d_backward_half(const Ref& x, const Ref& w, const Ref& dy
   const cuda::Half16 type = half_type(op, p);
   if (dx) {
     const size_t halves = static_cast<size_t>(
-        shape.in_channels * cuda::mma_padded_k(shape.out_channels * shape.kernel * shape.kernel));
+        shape.in_channels * op::half16_weight_k(shape.out_channels, shape.kernel * shape.kernel));
     std::uint16_t* w16t = half_workspace(halves);
     cuda::prepare_conv_data_weights(w.data, shape, type, w16t, stream_.get());
     cuda::conv2d_mma_backward_data(dy.data, w16t, shape, type, dx->data, stream_.get());
@@ -927,7 +927,8 @@ void CudaBackend::conv_transpose2x2_backward_half(const Ref& x, const Ref& w, co
   const char* op = "conv_transpose2x2_backward_half";
   const cuda::ConvTranspose2dShape shape = conv_transpose_backward_shape(op, x, w, dy, dx, dw, dbias);
   const cuda::Half16 type = half_type(op, p);
-  std::uint16_t* w16t = half_workspace(static_cast<size_t>(shape.in_channels * cuda::mma_padded_k(4 * shape.out_channels)));
+  std::uint16_t* w16t = half_workspace(
+      static_cast<size_t>(shape.in_channels * op::half16_weight_k(shape.out_channels, 4)));
   cuda::prepare_conv_transpose_data_weights(w.data, shape, type, w16t, stream_.get());
   cuda::conv_transpose2x2_mma_backward_data(dy.data, w16t, shape, type, dx.data, stream_.get());
   float* workspace =

@@ -14,6 +14,12 @@
 //   float. A GPU adds in an order and with internal rounding the ISA does not specify, so results
 //   there may differ from these in the last bits of the float accumulator.
 //
+//   cp.async.cg.shared.global [dst], [src], 16, src_size (src_size 16, or 0: 16 zero bytes),
+//     cp.async.commit_group, cp.async.wait_group N: per thread; the source is read when the copy
+//     is issued, the destination written when its group completes (emu_scheduler.hpp,
+//     AsyncCopies), so that reading a stage before its wait fails here as it may on a GPU. Both
+//     addresses 16-byte aligned (checked).
+//
 //   ldmatrix.sync.aligned.m8n8.{x1,x2,x4}{,.trans}.shared.b16: lanes 8 j .. 8 j + 7 give the row
 //   addresses of matrix j (x1: lanes 0-7; x2: 0-15; x4: all); register j of lane l receives row
 //   l / 4, elements 2 (l % 4) and 2 (l % 4) + 1 of matrix j, or with .trans those of its
@@ -129,6 +135,35 @@ void ldmatrix_collective(std::uint32_t* r, const void* row_address) {
   warp_matrix(Transposed ? "ldmatrix.trans" : "ldmatrix", 0xffffffffu, &lane,
               &ldmatrix_compute<Matrices, Transposed>);
   for (int j = 0; j < Matrices; ++j) r[j] = lane.r[j];
+}
+
+// cp.async of 16 bytes (zeros when !fill), cp.async.commit_group, cp.async.wait_group.
+inline void cp_async_16(void* shared_destination, const void* global_source, bool fill) {
+  PS_CHECK(
+      reinterpret_cast<std::uintptr_t>(shared_destination) % 16 == 0 &&
+          reinterpret_cast<std::uintptr_t>(global_source) % 16 == 0,
+      "CUDA emulation: cp.async of 16 bytes from {} to {}: both addresses must be 16-byte aligned",
+      global_source, shared_destination);
+  AsyncCopy copy;
+  copy.destination = static_cast<std::byte*>(shared_destination);
+  if (fill) std::memcpy(copy.bytes.data(), global_source, 16);
+  thread_async_copies().open.push_back(copy);
+}
+
+inline void cp_async_commit_group() {
+  AsyncCopies& copies = thread_async_copies();
+  copies.committed.push_back(std::move(copies.open));
+  copies.open.clear();
+}
+
+// Completes the committed groups but the `pending` newest.
+inline void cp_async_wait_group(int pending) {
+  AsyncCopies& copies = thread_async_copies();
+  while (copies.committed.size() > static_cast<std::size_t>(pending)) {
+    for (const AsyncCopy& copy : copies.committed.front())
+      std::memcpy(copy.destination, copy.bytes.data(), 16);
+    copies.committed.pop_front();
+  }
 }
 
 }  // namespace pillarseg::emu

@@ -200,6 +200,7 @@ struct ThreadState {
   ThreadStatus status = ThreadStatus::NotStarted;
   Fiber* fiber = nullptr;
   std::uint64_t warp_result = 0;
+  AsyncCopies async_copies;
 };
 
 // Lanes of one warp meeting in one warp-synchronous operation with one mask.
@@ -242,6 +243,9 @@ class BlockRunner {
   std::uint64_t warp_exchange(WarpOp op, unsigned mask, std::uint64_t value, int lane_argument,
                               int width, void (*compute)(void* const* lanes) = nullptr);
   std::byte* dynamic_shared() const { return dynamic_shared_; }
+  AsyncCopies& async_copies() {
+    return threads_[static_cast<std::size_t>(current_->thread)].async_copies;
+  }
 
   // Body of every fiber: start threads while some are left, then wait idle for the next block.
   [[noreturn]] void fiber_loop();
@@ -455,6 +459,8 @@ void BlockRunner::run_block(const GridLaunch& launch, uint3 block_index,
                         linear / (launch.block.x * launch.block.y)};
     state.status = ThreadStatus::NotStarted;
     state.fiber = nullptr;
+    state.async_copies.open.clear();
+    state.async_copies.committed.clear();
   }
   warp_groups_.resize(static_cast<std::size_t>((num_threads_ + kWarpSize - 1) / kWarpSize));
   for (auto& groups : warp_groups_) groups.clear();
@@ -766,6 +772,10 @@ void warp_matrix(const char* name, unsigned mask, void* lane_block, void (*compu
 
 std::byte* dynamic_shared_memory() {
   return runner_in_kernel("dynamic_shared()").dynamic_shared();
+}
+
+AsyncCopies& thread_async_copies() {
+  return runner_in_kernel("cp.async").async_copies();
 }
 
 }  // namespace pillarseg::emu

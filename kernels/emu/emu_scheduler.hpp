@@ -10,8 +10,11 @@
 // block, thread and operation.
 #pragma once
 
+#include <array>
 #include <cstddef>
 #include <cstdint>
+#include <deque>
+#include <vector>
 
 #include "kernels/emu/emu_types.hpp"
 
@@ -69,5 +72,21 @@ void warp_matrix(const char* name, unsigned mask, void* lane_block, void (*compu
 // The current block's dynamic shared memory (the launch's dynamic_shared_bytes, 256-byte
 // aligned; nullptr when the launch asked for none).
 std::byte* dynamic_shared_memory();
+
+// The asynchronous copies (cp.async, emu_mma.hpp) of the current thread: each holds the 16 bytes
+// it read from global memory when it was issued and writes them to its shared-memory
+// destination only when its group completes (cp.async.wait_group), so that a kernel reading a
+// stage before waiting for it reads what was there before, as it may on a GPU. `open`: issued
+// since the last commit; `committed`: the committed groups, oldest first. Empty when a thread
+// starts; what a thread leaves pending is dropped when it returns.
+struct AsyncCopy {
+  std::byte* destination = nullptr;
+  std::array<std::byte, 16> bytes{};
+};
+struct AsyncCopies {
+  std::vector<AsyncCopy> open;
+  std::deque<std::vector<AsyncCopy>> committed;
+};
+AsyncCopies& thread_async_copies();
 
 }  // namespace pillarseg::emu
