@@ -14,7 +14,10 @@
 // Beside them, the BF16 and FP16 tensor-core forward (Conv2dForwardBF16/..., FP16), with its
 // percentage of the device's dense 16-bit peak and its speed-up over our FP32 forward, and with
 // CUDA cuDNN's 16-bit forward and cuBLAS's 16-bit GEMM of the same sizes (..._cudnn,
-// ..._cublas_gemm) with the same share of the peak and ours_ms/peer_ms.
+// ..._cublas_gemm) with the same share of the peak and ours_ms/peer_ms; and the tensor-core
+// training gradients of 16-bit training (Conv2dBackwardDataBF16/..., Conv2dBackwardWeightsBF16/...,
+// FP16, and ConvTranspose2dBackward{Data,Weights}{BF16,FP16}/...), with the same share of the peak
+// and their speed-up over our FP32 pass (fp32_ms/half_ms).
 //
 // Without a CUDA device, and in the emulated build (whose times say nothing about a GPU), it
 // prints "skipped: no CUDA device" and runs nothing.
@@ -243,18 +246,20 @@ void BM_ConvTranspose2dForward(benchmark::State& state, const ConvTransposeLayer
 
 void BM_ConvTranspose2dBackwardData(benchmark::State& state, const ConvTransposeLayer& l) {
   ConvTransposeBuffers b(l.shape);
-  time_pass(state, conv_transpose_flops(l.shape), [&](cudaStream_t stream) {
-    cuda::conv_transpose2d_backward_data(b.dy.data(), b.w.data(), b.dx.data(), l.shape, stream);
-  });
+  our_ms()[std::string("transpose_backward_data/") + l.name] =
+      time_pass(state, conv_transpose_flops(l.shape), [&](cudaStream_t stream) {
+        cuda::conv_transpose2d_backward_data(b.dy.data(), b.w.data(), b.dx.data(), l.shape, stream);
+      });
 }
 
 void BM_ConvTranspose2dBackwardWeights(benchmark::State& state, const ConvTransposeLayer& l) {
   ConvTransposeBuffers b(l.shape);
-  time_pass(state, conv_transpose_flops(l.shape), [&](cudaStream_t stream) {
-    cuda::conv_transpose2d_backward_weights(b.x.data(), b.dy.data(), b.dw.data(), b.db.data(),
-                                            l.shape, b.workspace.data(), b.workspace.size(),
-                                            stream);
-  });
+  our_ms()[std::string("transpose_backward_weights/") + l.name] =
+      time_pass(state, conv_transpose_flops(l.shape), [&](cudaStream_t stream) {
+        cuda::conv_transpose2d_backward_weights(b.x.data(), b.dy.data(), b.dw.data(), b.db.data(),
+                                                l.shape, b.workspace.data(), b.workspace.size(),
+                                                stream);
+      });
   state.counters["workspace_MiB"] = static_cast<double>(b.workspace.bytes()) / (1 << 20);
 }
 
@@ -279,6 +284,15 @@ double dense_half_peak_flops() {
 #endif
 }
 
+// A 16-bit pass's share of the dense 16-bit peak, and our FP32 pass's time (our_ms()[fp32_key],
+// when it ran before in this process) over its own.
+void half_counters(benchmark::State& state, double flops, double ms, const std::string& fp32_key) {
+  const double peak = dense_half_peak_flops();
+  if (ms > 0 && peak > 0) state.counters["pct_of_peak"] = 100.0 * flops / (ms * 1e-3) / peak;
+  const auto ours = our_ms().find(fp32_key);
+  if (ours != our_ms().end() && ms > 0.0) state.counters["fp32_ms/half_ms"] = ours->second / ms;
+}
+
 void BM_Conv2dForwardHalf(benchmark::State& state, const ConvLayer& l, cuda::Half16 type) {
   std::string why;
   if (!cuda::mma_supported(&why)) {
@@ -297,11 +311,99 @@ void BM_Conv2dForwardHalf(benchmark::State& state, const ConvLayer& l, cuda::Hal
     cuda::conv2d_mma_forward(b.x.data(), false, w16.data(), bias.data(), l.shape, type, false, b.y.data(), false,
                              stream);
   });
-  const double peak = dense_half_peak_flops();
-  if (ms > 0 && peak > 0) state.counters["pct_of_peak"] = 100.0 * flops / (ms * 1e-3) / peak;
-  const auto ours = our_ms().find(std::string("forward/") + l.name);
-  if (ours != our_ms().end() && ms > 0.0) state.counters["fp32_ms/half_ms"] = ours->second / ms;
+  half_counters(state, flops, ms, std::string("forward/") + l.name);
   our_ms()[std::string(type == cuda::Half16::BF16 ? "forward_bf16/" : "forward_fp16/") + l.name] = ms;
+}
+
+// The flipped 16-bit weights of the input gradients, in halves: (I, Kp(O k k)) for a convolution,
+// (I, Kp(4 O)) for the transposed 2x2, as CudaBackend's 16-bit backward sizes them.
+std::int64_t data_weight_halves(const cuda::Conv2dShape& s) {
+  return s.in_channels * cuda::mma_padded_k(s.out_channels * s.kernel * s.kernel);
+}
+
+std::int64_t data_weight_halves(const cuda::ConvTranspose2dShape& s) {
+  return s.in_channels * cuda::mma_padded_k(4 * s.out_channels);
+}
+
+// The training gradients on the tensor cores, timed as a 16-bit training step runs them: the
+// input gradient with its flipped 16-bit weights prepared in every run (the weights change every
+// step), the weight gradient (dw, and db where the layer has a bias) with its partial sums over
+// the pixels in its workspace. The same FLOPs as the forward's.
+void BM_Conv2dBackwardDataHalf(benchmark::State& state, const ConvLayer& l, cuda::Half16 type) {
+  std::string why;
+  if (!cuda::mma_supported(&why)) {
+    state.SkipWithError(why.c_str());
+    return;
+  }
+  const cuda::Conv2dShape& s = l.shape;
+  ConvBuffers b(s);
+  DeviceBuffer<std::uint16_t> w16t(static_cast<size_t>(data_weight_halves(s)));
+  const double flops = conv_flops(s);
+  const double ms = time_pass(state, flops, [&](cudaStream_t stream) {
+    cuda::prepare_conv_data_weights(b.w.data(), s, type, w16t.data(), stream);
+    cuda::conv2d_mma_backward_data(b.dy.data(), w16t.data(), s, type, b.dx.data(), stream);
+  });
+  half_counters(state, flops, ms, std::string("backward_data/") + l.name);
+}
+
+void BM_Conv2dBackwardWeightsHalf(benchmark::State& state, const ConvLayer& l, cuda::Half16 type) {
+  std::string why;
+  if (!cuda::mma_supported(&why)) {
+    state.SkipWithError(why.c_str());
+    return;
+  }
+  const cuda::Conv2dShape& s = l.shape;
+  ConvBuffers b(s);
+  DeviceBuffer<float> workspace(
+      static_cast<size_t>(cuda::conv2d_mma_backward_weights_workspace(s)));
+  const double flops = conv_flops(s);
+  const double ms = time_pass(state, flops, [&](cudaStream_t stream) {
+    cuda::conv2d_mma_backward_weights(b.x.data(), b.dy.data(), s, type, b.dw.data(),
+                                      l.bias ? b.db.data() : nullptr, workspace.data(), stream);
+  });
+  half_counters(state, flops, ms, std::string("backward_weights/") + l.name);
+  state.counters["workspace_MiB"] = static_cast<double>(workspace.bytes()) / (1 << 20);
+}
+
+// The transposed 2x2's gradients on the tensor cores, as above: the input gradient with its
+// 16-bit weights (rows of w, (I, 4 O)) prepared in every run, and dw, db.
+void BM_ConvTranspose2dBackwardDataHalf(benchmark::State& state, const ConvTransposeLayer& l,
+                                        cuda::Half16 type) {
+  std::string why;
+  if (!cuda::mma_supported(&why)) {
+    state.SkipWithError(why.c_str());
+    return;
+  }
+  const cuda::ConvTranspose2dShape& s = l.shape;
+  ConvTransposeBuffers b(s);
+  DeviceBuffer<std::uint16_t> w16t(static_cast<size_t>(data_weight_halves(s)));
+  const double flops = conv_transpose_flops(s);
+  const double ms = time_pass(state, flops, [&](cudaStream_t stream) {
+    cuda::prepare_conv_transpose_data_weights(b.w.data(), s, type, w16t.data(), stream);
+    cuda::conv_transpose2x2_mma_backward_data(b.dy.data(), w16t.data(), s, type, b.dx.data(),
+                                              stream);
+  });
+  half_counters(state, flops, ms, std::string("transpose_backward_data/") + l.name);
+}
+
+void BM_ConvTranspose2dBackwardWeightsHalf(benchmark::State& state, const ConvTransposeLayer& l,
+                                           cuda::Half16 type) {
+  std::string why;
+  if (!cuda::mma_supported(&why)) {
+    state.SkipWithError(why.c_str());
+    return;
+  }
+  const cuda::ConvTranspose2dShape& s = l.shape;
+  ConvTransposeBuffers b(s);
+  DeviceBuffer<float> workspace(
+      static_cast<size_t>(cuda::conv_transpose2x2_mma_backward_weights_workspace(s)));
+  const double flops = conv_transpose_flops(s);
+  const double ms = time_pass(state, flops, [&](cudaStream_t stream) {
+    cuda::conv_transpose2x2_mma_backward_weights(b.x.data(), b.dy.data(), s, type, b.dw.data(),
+                                                 b.db.data(), workspace.data(), stream);
+  });
+  half_counters(state, flops, ms, std::string("transpose_backward_weights/") + l.name);
+  state.counters["workspace_MiB"] = static_cast<double>(workspace.bytes()) / (1 << 20);
 }
 
 #if defined(PILLARSEG_BENCH_VENDOR_CONV)
@@ -337,6 +439,14 @@ void register_pass(const std::string& name, Function function, const Layer& laye
       ->UseManualTime();
 }
 
+template <class Function, class Layer>
+void register_half_pass(const std::string& name, Function function, const Layer& layer,
+                        cuda::Half16 type) {
+  benchmark::RegisterBenchmark(name.c_str(), function, layer, type)
+      ->Unit(benchmark::kMillisecond)
+      ->UseManualTime();
+}
+
 void register_benchmarks() {
   for (const ConvLayer& l : kConvLayers) {
     register_pass(std::string("Conv2dForward/") + l.name, BM_Conv2dForward, l);
@@ -347,6 +457,10 @@ void register_benchmarks() {
                                    BM_Conv2dForwardHalf, l, type)
           ->Unit(benchmark::kMillisecond)
           ->UseManualTime();
+      register_half_pass(std::string("Conv2dBackwardData") + type_name + "/" + l.name,
+                         BM_Conv2dBackwardDataHalf, l, type);
+      register_half_pass(std::string("Conv2dBackwardWeights") + type_name + "/" + l.name,
+                         BM_Conv2dBackwardWeightsHalf, l, type);
 #if defined(PILLARSEG_BENCH_VENDOR_CONV)
       const bool bf16 = type == cuda::Half16::BF16;
       std::vector<std::pair<const char*, ConvolutionImpl>> peers = {{"cublas_gemm", ConvolutionImpl::Cublas}};
@@ -374,6 +488,13 @@ void register_benchmarks() {
                   BM_ConvTranspose2dBackwardData, l);
     register_pass(std::string("ConvTranspose2dBackwardWeights/") + l.name,
                   BM_ConvTranspose2dBackwardWeights, l);
+    for (const auto& [type_name, type] :
+         {std::pair{"BF16", cuda::Half16::BF16}, std::pair{"FP16", cuda::Half16::F16}}) {
+      register_half_pass(std::string("ConvTranspose2dBackwardData") + type_name + "/" + l.name,
+                         BM_ConvTranspose2dBackwardDataHalf, l, type);
+      register_half_pass(std::string("ConvTranspose2dBackwardWeights") + type_name + "/" + l.name,
+                         BM_ConvTranspose2dBackwardWeightsHalf, l, type);
+    }
   }
 }
 

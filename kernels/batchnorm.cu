@@ -9,6 +9,10 @@
 //                     [apply] y = (x - mean) * scale + beta (then ReLU).
 //   backward:         [partials] per block: sums of g and g * xhat; [finalize] dgamma, dbeta;
 //                     [input gradient] dx.
+//   synchronised:     between [partials] and [finalize], each channel's parts added in order,
+//                     summed over the replicas (twice in the forward: the values' sums and count,
+//                     then the squares about their common mean) and finalized as one part; on the
+//                     host for a ReplicaSum, in one thread per channel for a DeviceReplicaSum.
 #include "kernels/batchnorm.cuh"
 
 #include <cmath>
@@ -19,6 +23,7 @@
 
 #include "kernels/block_reduce.cuh"
 #include "kernels/common.cuh"
+#include "kernels/replica_sum.cuh"
 
 namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 namespace {
@@ -163,12 +168,14 @@ static __global__ void __launch_bounds__(kBlockSize)
   }
 }
 
-// One warp per channel: partials -> mean, biased variance -> saved and running statistics.
+// One warp per channel: partials -> mean, biased variance -> saved and running statistics. The
+// values' count is `count`, or *total_count where that is given (a synchronised BatchNorm's count
+// of all replicas' values, summed on the device).
 static __global__ void __launch_bounds__(kBlockSize)
     finalize_statistics_kernel(const double* shifts, const double* partials, std::int64_t channels,
-                               std::int64_t parts, std::int64_t count, float eps, float momentum,
-                               float* running_mean, float* running_var, float* save_mean,
-                               float* save_inv_std) {
+                               std::int64_t parts, std::int64_t count, const double* total_count,
+                               float eps, float momentum, float* running_mean, float* running_var,
+                               float* save_mean, float* save_inv_std) {
   const std::int64_t channel =
       std::int64_t{blockIdx.x} * kChannelsPerFinalizeBlock + threadIdx.x / kWarpSize;
   const int lane = static_cast<int>(threadIdx.x % kWarpSize);
@@ -179,8 +186,8 @@ static __global__ void __launch_bounds__(kBlockSize)
   if (lane != 0) return;
   double mean = 0.0;
   double variance = 0.0;
-  if (count > 0) {
-    const auto n = static_cast<double>(count);
+  const double n = total_count != nullptr ? *total_count : static_cast<double>(count);
+  if (n > 0) {
     mean = shifts[channel] + sum / n;
     // sum (v - mean)^2 = sum (v - shift)^2 - (sum (v - shift))^2 / n, which rounding can push
     // a little below 0 for a constant channel; NaN stays NaN.
@@ -317,6 +324,154 @@ static __global__ void __launch_bounds__(kBlockSize)
       });
 }
 
+// ---- synchronised BatchNorm: this replica's sums combined with the other replicas' ----
+// The per-channel steps below run on the host after the sums are brought there, for a
+// ReplicaSum, or in one thread per channel on the device, for a DeviceReplicaSum (nothing leaves
+// the device): the same code, so the same bits. On a GPU the products and sums are rounded one
+// at a time (nvcc would fuse them into fmas, which the host code of the GPU build, compiled for
+// baseline x86-64, has none of); in the emulation both paths are the same host code.
+
+static __host__ __device__ __forceinline__ double rounded_product(double a, double b) {
+#if defined(__CUDA_ARCH__)
+  return __dmul_rn(a, b);
+#else
+  return a * b;
+#endif
+}
+
+static __host__ __device__ __forceinline__ double rounded_sum(double a, double b) {
+#if defined(__CUDA_ARCH__)
+  return __dadd_rn(a, b);
+#else
+  return a + b;
+#endif
+}
+
+static __host__ __device__ __forceinline__ double rounded_difference(double a, double b) {
+#if defined(__CUDA_ARCH__)
+  return __dsub_rn(a, b);
+#else
+  return a - b;
+#endif
+}
+
+namespace {
+
+// The pairs of a channel's parts added in part order j = 0, 1, ... (none for parts = 0).
+struct PairSum {
+  double first = 0.0;
+  double second = 0.0;
+};
+
+}  // namespace
+
+static __host__ __device__ __forceinline__ PairSum add_parts_in_order(const double* partials,
+                                                                      std::int64_t channel,
+                                                                      std::int64_t parts) {
+  const double* pairs = partials + 2 * channel * parts;
+  PairSum total;
+  for (std::int64_t j = 0; j < parts; ++j) {
+    total.first = rounded_sum(total.first, pairs[2 * j]);
+    total.second = rounded_sum(total.second, pairs[2 * j + 1]);
+  }
+  return total;
+}
+
+// Statistics, step 1: this replica's sum of the channel's `count` values, count * shift +
+// sum (v - shift) (0 without values: parts = 0). Summed over the replicas with the count.
+static __host__ __device__ __forceinline__ double local_sum(const double* shifts,
+                                                            const double* partials,
+                                                            std::int64_t channel,
+                                                            std::int64_t parts, double count) {
+  if (parts == 0) return 0.0;
+  return rounded_sum(rounded_product(count, shifts[channel]),
+                     add_parts_in_order(partials, channel, parts).first);
+}
+
+// Statistics, step 2, from totals (C + 1: step 1's sums over the replicas, then their count):
+// the mean of all replicas' values, written to shifts[channel], and this replica's
+// sum (v - mean)^2 = S2 - 2 d S1 + count d^2 with d = mean - shift (exact algebra that keeps the
+// shift's precision), written as one part about the mean: pair = (0, that). Summed over the
+// replicas, the pairs are the statistics of all values.
+static __host__ __device__ __forceinline__ void squares_about_mean(
+    double* shifts, const double* partials, std::int64_t channel, std::int64_t channels,
+    std::int64_t parts, double count, const double* totals, double* pair) {
+  const double n = totals[channels];
+  const double mean = n > 0 ? totals[channel] / n : 0.0;
+  double squares = 0.0;
+  if (parts > 0) {
+    const PairSum s = add_parts_in_order(partials, channel, parts);
+    const double d = rounded_difference(mean, shifts[channel]);
+    squares =
+        rounded_sum(rounded_difference(s.second, rounded_product(rounded_product(2.0, d), s.first)),
+                    rounded_product(rounded_product(count, d), d));
+  }
+  shifts[channel] = mean;
+  pair[0] = 0.0;
+  pair[1] = squares;
+}
+
+// Backward, step 1: this replica's sums of g and of g * xhat over the channel, written to
+// totals[channel] and totals[channels + channel]; totals[2 C] holds the count.
+static __host__ __device__ __forceinline__ void local_backward_sums(const double* partials,
+                                                                    std::int64_t channel,
+                                                                    std::int64_t channels,
+                                                                    std::int64_t parts,
+                                                                    double* totals) {
+  const PairSum s = add_parts_in_order(partials, channel, parts);
+  totals[channel] = s.first;
+  totals[channels + channel] = s.second;
+}
+
+// Backward, step 2, from the totals summed over the replicas: the coefficients of all replicas'
+// values (a count of 0 divides by 1, as the single-process finalize does).
+static __host__ __device__ __forceinline__ void combined_coefficients(const double* totals,
+                                                                      std::int64_t channel,
+                                                                      std::int64_t channels,
+                                                                      double* coefficients) {
+  const double n = totals[2 * channels] > 0 ? totals[2 * channels] : 1.0;
+  coefficients[2 * channel] = totals[channel] / n;
+  coefficients[2 * channel + 1] = totals[channels + channel] / n;
+}
+
+// The steps on the device, one thread per channel.
+static __device__ __forceinline__ std::int64_t channel_of_thread() {
+  return std::int64_t{blockIdx.x} * kBlockSize + threadIdx.x;
+}
+
+static __global__ void __launch_bounds__(kBlockSize)
+    local_sums_kernel(const double* shifts, const double* partials, std::int64_t channels,
+                      std::int64_t parts, double count, double* totals) {
+  const std::int64_t channel = channel_of_thread();
+  if (channel == 0) totals[channels] = count;
+  if (channel < channels) totals[channel] = local_sum(shifts, partials, channel, parts, count);
+}
+
+static __global__ void __launch_bounds__(kBlockSize)
+    squares_about_mean_kernel(double* shifts, const double* partials, std::int64_t channels,
+                              std::int64_t parts, double count, const double* totals,
+                              double* pairs) {
+  const std::int64_t channel = channel_of_thread();
+  if (channel >= channels) return;
+  squares_about_mean(shifts, partials, channel, channels, parts, count, totals,
+                     pairs + 2 * channel);
+}
+
+static __global__ void __launch_bounds__(kBlockSize)
+    local_backward_sums_kernel(const double* partials, std::int64_t channels, std::int64_t parts,
+                               double count, double* totals) {
+  const std::int64_t channel = channel_of_thread();
+  if (channel == 0) totals[2 * channels] = count;
+  if (channel < channels) local_backward_sums(partials, channel, channels, parts, totals);
+}
+
+static __global__ void __launch_bounds__(kBlockSize)
+    combined_coefficients_kernel(const double* totals, std::int64_t channels,
+                                 double* coefficients) {
+  const std::int64_t channel = channel_of_thread();
+  if (channel < channels) combined_coefficients(totals, channel, channels, coefficients);
+}
+
 std::int64_t batchnorm_workspace_doubles(const PlanarShape& shape) {
   check_shape(shape, "batchnorm_workspace_doubles");
   // At least one part: synchronised statistics are written back as one (see finalize).
@@ -326,7 +481,11 @@ std::int64_t batchnorm_workspace_doubles(const PlanarShape& shape) {
 
 namespace {
 
-// Synchronised BatchNorm: the host side of the sums over the replicas (core/replicas.hpp).
+dim3 channel_grid(std::int64_t channels) {
+  return dim3(static_cast<unsigned>(ceil_div(channels, std::int64_t{kBlockSize})));
+}
+
+// A ReplicaSum's path: the sums brought to the host, combined there and written back.
 template <class T>
 std::vector<T> to_host(const T* device, std::int64_t n, cudaStream_t stream) {
   std::vector<T> host(static_cast<std::size_t>(n));
@@ -345,55 +504,84 @@ void to_device(const std::vector<T>& host, T* device, cudaStream_t stream) {
   PS_CUDA_CHECK(cudaStreamSynchronize(stream));
 }
 
-// Per channel, the pairs of its parts added in part order (this replica's sums).
-void add_parts(const std::vector<double>& pairs, std::int64_t channels, std::int64_t parts,
-               std::vector<double>& first, std::vector<double>& second) {
-  first.assign(static_cast<std::size_t>(channels), 0.0);
-  second.assign(static_cast<std::size_t>(channels), 0.0);
-  for (std::int64_t c = 0; c < channels; ++c) {
-    for (std::int64_t j = 0; j < parts; ++j) {
-      first[static_cast<std::size_t>(c)] += pairs[static_cast<std::size_t>(2 * (c * parts + j))];
-      second[static_cast<std::size_t>(c)] += pairs[static_cast<std::size_t>(2 * (c * parts + j) + 1)];
-    }
-  }
-}
-
 // This replica's shifted sums -> the statistics of all replicas' values, written back as one
-// part about the common mean: shifts = mean, pair 0 = (0, sum (v - mean)^2); count becomes the
-// count of all replicas. The means first (sum v = count shift + sum (v - shift)), then
-// sum (v - mean)^2 = S2 - 2 d S1 + count d^2 with d = mean - shift, exact algebra that keeps
-// the shift's precision.
+// part about the common mean (shifts = mean, pair 0 = (0, sum (v - mean)^2)); count becomes the
+// count of all replicas' values. `parts` is 0 when this replica has no values.
 void combine_statistics(double* shifts, double* partials, std::int64_t channels,
                         std::int64_t parts, std::int64_t& count, ReplicaSum& replicas,
                         cudaStream_t stream) {
-  const bool has_values = count > 0 && parts > 0;
-  const std::vector<double> shift =
-      has_values ? to_host(shifts, channels, stream) : std::vector<double>(static_cast<std::size_t>(channels), 0.0);
-  const std::vector<double> pairs = has_values ? to_host(partials, 2 * channels * parts, stream) : std::vector<double>();
-  std::vector<double> s1, s2;
-  add_parts(pairs, channels, has_values ? parts : 0, s1, s2);
+  const auto c_count = static_cast<std::size_t>(channels);
+  std::vector<double> shift =
+      parts > 0 ? to_host(shifts, channels, stream) : std::vector<double>(c_count, 0.0);
+  const std::vector<double> pairs = to_host(partials, 2 * channels * parts, stream);
   const auto n_local = static_cast<double>(count);
-  std::vector<double> totals(static_cast<std::size_t>(channels) + 1);
+  std::vector<double> totals(c_count + 1);
   for (std::int64_t c = 0; c < channels; ++c) {
-    const auto k = static_cast<std::size_t>(c);
-    totals[k] = has_values ? n_local * shift[k] + s1[k] : 0.0;
+    totals[static_cast<std::size_t>(c)] = local_sum(shift.data(), pairs.data(), c, parts, n_local);
   }
-  totals[static_cast<std::size_t>(channels)] = n_local;
+  totals[c_count] = n_local;
   replicas.sum(totals.data(), channels + 1);
-  const double n = totals[static_cast<std::size_t>(channels)];
-  std::vector<double> mean(static_cast<std::size_t>(channels)), squares(static_cast<std::size_t>(channels));
+  std::vector<double> one_part(2 * c_count);
   for (std::int64_t c = 0; c < channels; ++c) {
-    const auto k = static_cast<std::size_t>(c);
-    mean[k] = n > 0 ? totals[k] / n : 0.0;
-    const double d = mean[k] - shift[k];
-    squares[k] = has_values ? s2[k] - 2.0 * d * s1[k] + n_local * d * d : 0.0;
+    squares_about_mean(shift.data(), pairs.data(), c, channels, parts, n_local, totals.data(),
+                       one_part.data() + 2 * c);
   }
-  replicas.sum(squares.data(), channels);
-  std::vector<double> one_part(static_cast<std::size_t>(2 * channels), 0.0);
-  for (std::int64_t c = 0; c < channels; ++c) one_part[static_cast<std::size_t>(2 * c + 1)] = squares[static_cast<std::size_t>(c)];
-  to_device(mean, shifts, stream);
+  replicas.sum(one_part.data(), 2 * channels);
+  to_device(shift, shifts, stream);
   to_device(one_part, partials, stream);
-  count = static_cast<std::int64_t>(n);
+  count = static_cast<std::int64_t>(totals[c_count]);
+}
+
+// A DeviceReplicaSum's path: the same steps as kernels, the sums on the device, all queued on
+// `stream`. The totals and the one part live in the sum's scratch; the returned pointers are the
+// part's pairs and the count of all replicas' values.
+struct CombinedOnDevice {
+  double* pairs;
+  const double* count;
+};
+
+CombinedOnDevice combine_statistics_on_device(double* shifts, const double* partials,
+                                              std::int64_t channels, std::int64_t parts,
+                                              std::int64_t count, DeviceReplicaSum& replicas,
+                                              cudaStream_t stream) {
+  double* totals = replicas.scratch(3 * channels + 1);
+  double* pairs = totals + channels + 1;
+  const auto n_local = static_cast<double>(count);
+  launch_kernel(local_sums_kernel, channel_grid(channels), dim3(kBlockSize), 0, stream, shifts,
+                partials, channels, parts, n_local, totals);
+  replicas.sum(totals, channels + 1, stream);
+  launch_kernel(squares_about_mean_kernel, channel_grid(channels), dim3(kBlockSize), 0, stream,
+                shifts, partials, channels, parts, n_local, totals, pairs);
+  replicas.sum(pairs, 2 * channels, stream);
+  return {pairs, totals + channels};
+}
+
+// The backward's coefficients of all replicas' values, from this replica's partials (parts = 0
+// without values), on the host for a ReplicaSum and on the device for a DeviceReplicaSum.
+void combine_backward_sums(const double* partials, std::int64_t channels, std::int64_t parts,
+                           std::int64_t count, double* coefficients, ReplicaSum& replicas,
+                           cudaStream_t stream) {
+  if (auto* on_device = dynamic_cast<DeviceReplicaSum*>(&replicas)) {
+    double* totals = on_device->scratch(2 * channels + 1);
+    launch_kernel(local_backward_sums_kernel, channel_grid(channels), dim3(kBlockSize), 0, stream,
+                  partials, channels, parts, static_cast<double>(count), totals);
+    on_device->sum(totals, 2 * channels + 1, stream);
+    launch_kernel(combined_coefficients_kernel, channel_grid(channels), dim3(kBlockSize), 0, stream,
+                  totals, channels, coefficients);
+    return;
+  }
+  const std::vector<double> pairs = to_host(partials, 2 * channels * parts, stream);
+  std::vector<double> totals(static_cast<std::size_t>(2 * channels) + 1);
+  for (std::int64_t c = 0; c < channels; ++c) {
+    local_backward_sums(pairs.data(), c, channels, parts, totals.data());
+  }
+  totals[static_cast<std::size_t>(2 * channels)] = static_cast<double>(count);
+  replicas.sum(totals.data(), 2 * channels + 1);
+  std::vector<double> all(static_cast<std::size_t>(2 * channels));
+  for (std::int64_t c = 0; c < channels; ++c) {
+    combined_coefficients(totals.data(), c, channels, all.data());
+  }
+  to_device(all, coefficients, stream);
 }
 
 }  // namespace
@@ -407,15 +595,27 @@ void batchnorm_finalize_statistics(double* shifts, double* partials, std::int64_
   PS_CHECK(channels >= 1 && parts >= 0 && count >= 0,
            "{}: expected channels >= 1, parts >= 0, count >= 0, given {}, {}, {}", op, channels,
            parts, count);
+  // With replicas: the statistics of all replicas' values, as one part.
+  const double* total_count = nullptr;  // on the device, with a DeviceReplicaSum
   if (replicas != nullptr) {
     PS_CHECK(shifts != nullptr && partials != nullptr,
              "{}: synchronised BatchNorm needs the shifts ({} doubles) and room for one part of "
              "partials ({} doubles) in device memory",
              op, channels, 2 * channels);
-    combine_statistics(shifts, partials, channels, parts, count, *replicas, stream);
+    const std::int64_t own_parts = count > 0 ? parts : 0;
+    if (auto* on_device = dynamic_cast<DeviceReplicaSum*>(replicas)) {
+      const CombinedOnDevice combined = combine_statistics_on_device(
+          shifts, partials, channels, own_parts, count, *on_device, stream);
+      partials = combined.pairs;
+      total_count = combined.count;
+    } else {
+      combine_statistics(shifts, partials, channels, own_parts, count, *replicas, stream);
+    }
     parts = 1;
   }
-  PS_CHECK(count != 1,
+  // The device's total count cannot be checked without waiting for it: there a total of 1 value
+  // gives a NaN running variance (n / (n - 1) = Inf times a variance of 0).
+  PS_CHECK(total_count != nullptr || count != 1,
            "{}: a channel needs more than 1 value when training (its unbiased variance is "
            "undefined otherwise), given 1",
            op);
@@ -426,8 +626,8 @@ void batchnorm_finalize_statistics(double* shifts, double* partials, std::int64_
            channels);
   launch_kernel(finalize_statistics_kernel,
                 dim3(static_cast<unsigned>(ceil_div(channels, kChannelsPerFinalizeBlock))),
-                dim3(kBlockSize), 0, stream, shifts, partials, channels, parts, count, eps,
-                momentum, running_mean, running_var, save_mean, save_inv_std);
+                dim3(kBlockSize), 0, stream, shifts, partials, channels, parts, count, total_count,
+                eps, momentum, running_mean, running_var, save_mean, save_inv_std);
 }
 
 void batchnorm_finalize_backward(const double* partials, std::int64_t channels, std::int64_t parts,
@@ -447,23 +647,10 @@ void batchnorm_finalize_backward(const double* partials, std::int64_t channels, 
                 dim3(static_cast<unsigned>(ceil_div(channels, kChannelsPerFinalizeBlock))),
                 dim3(kBlockSize), 0, stream, partials, channels, parts, count, dgamma, dbeta,
                 coefficients);
-  if (replicas == nullptr) return;
-  // The coefficients of all replicas' values: their sums (and counts) added over the replicas.
-  std::vector<double> sum_g, sum_g_xhat;
-  add_parts(count > 0 ? to_host(partials, 2 * channels * parts, stream) : std::vector<double>(), channels,
-            count > 0 ? parts : 0, sum_g, sum_g_xhat);
-  std::vector<double> totals(static_cast<std::size_t>(2 * channels) + 1);
-  std::copy(sum_g.begin(), sum_g.end(), totals.begin());
-  std::copy(sum_g_xhat.begin(), sum_g_xhat.end(), totals.begin() + channels);
-  totals[static_cast<std::size_t>(2 * channels)] = static_cast<double>(count);
-  replicas->sum(totals.data(), 2 * channels + 1);
-  const double n = totals[static_cast<std::size_t>(2 * channels)] > 0 ? totals[static_cast<std::size_t>(2 * channels)] : 1.0;
-  std::vector<double> all(static_cast<std::size_t>(2 * channels));
-  for (std::int64_t c = 0; c < channels; ++c) {
-    all[static_cast<std::size_t>(2 * c)] = totals[static_cast<std::size_t>(c)] / n;
-    all[static_cast<std::size_t>(2 * c + 1)] = totals[static_cast<std::size_t>(channels + c)] / n;
+  if (replicas != nullptr) {
+    combine_backward_sums(partials, channels, count > 0 ? parts : 0, count, coefficients, *replicas,
+                          stream);
   }
-  to_device(all, coefficients, stream);
 }
 
 void batchnorm_forward_train(const float* x, const PlanarShape& shape, const float* gamma,

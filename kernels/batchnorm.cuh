@@ -11,8 +11,10 @@
 // the same inputs give the same bits on every run. The PFN (kernels/pfn.cu), whose BatchNorm
 // runs over its linear outputs computed on the fly, reuses the second passes below.
 // Pointers are device memory; the work is queued on `stream`; nothing waits for the device,
-// except for synchronised BatchNorm (`replicas`, a data-parallel run), whose statistics are
-// summed over the replicas on the host.
+// except for synchronised BatchNorm (`replicas`, a data-parallel run) with a ReplicaSum that sums
+// on the host: its statistics are brought there. With a DeviceReplicaSum
+// (kernels/replica_sum.cuh; NCCL's on a GPU) they are summed on the device, queued on `stream`
+// too, with the same formulas and the same bits as the host path.
 #pragma once
 
 #include <cstdint>
@@ -68,10 +70,15 @@ void batchnorm_backward(const float* dy, const float* x, const float* y, const P
 // (v - shift[c])^2). Writes save_mean, save_inv_std and, when count > 0, updates the running
 // statistics as batchnorm_forward_train does. shifts (C) and partials are doubles.
 // With replicas (synchronised BatchNorm of a data-parallel run, core/replicas.hpp) the statistics
-// are those of the values of all replicas: this replica's are brought to the host, combined with
-// the others' (their means first, then the squares about the common mean), and written back into
-// shifts and the first part of partials (so partials must have room for one part even when
-// parts = 0); the stream is synchronised.
+// are those of the values of all replicas: this replica's parts are added in part order and
+// combined with the others' (their sums and counts first, then the squares about the common
+// mean), and the finalize reads them as one part. With a plain ReplicaSum that happens on the
+// host: the sums are brought there and written back into shifts and the first part of partials
+// (so partials must have room for one part even when parts = 0), and the stream is
+// synchronised. With a DeviceReplicaSum it happens on the device, in kernels and the sum's own
+// scratch, queued on `stream` (shifts is overwritten with the common mean): nothing waits, and
+// a total count of 1, which the host then cannot see, gives a NaN running variance instead of
+// the error the host path raises.
 void batchnorm_finalize_statistics(double* shifts, double* partials, std::int64_t channels,
                                    std::int64_t parts, std::int64_t count, float eps,
                                    float momentum, float* running_mean, float* running_var,
@@ -84,8 +91,9 @@ void batchnorm_finalize_statistics(double* shifts, double* partials, std::int64_
 // coefficients[2 c] = sum g / count, coefficients[2 c + 1] = sum g * xhat / count, with which
 // dx = gamma * inv_std * (g - coefficients[2 c] - xhat * coefficients[2 c + 1]).
 // With replicas, dbeta and dgamma stay this replica's own sums (its share of the parameters'
-// gradient) while the coefficients are those of all replicas' values (the sums brought to the
-// host and summed over the replicas; the stream is synchronised).
+// gradient) while the coefficients are those of all replicas' values: the sums (parts added in
+// part order) and counts summed over the replicas, on the host for a plain ReplicaSum (the
+// stream is synchronised) and on the device for a DeviceReplicaSum (nothing waits).
 void batchnorm_finalize_backward(const double* partials, std::int64_t channels, std::int64_t parts,
                                  std::int64_t count, float* dgamma, float* dbeta,
                                  double* coefficients, cudaStream_t stream,

@@ -13,9 +13,12 @@
 
 #include <algorithm>
 #include <array>
+#include <atomic>
+#include <chrono>
 #include <cmath>
 #include <cstring>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include "core/replicas.hpp"
@@ -658,6 +661,142 @@ TEST(CudaBackendReplicas, OneRankNcclSumRunsBehindTheComputeStream) {
   }
   backend.deallocate(values);
   backend.deallocate(big);
+}
+
+// Synchronised BatchNorm over NCCL with one rank: the backend given the run's Replicas sums the
+// statistics with an ncclAllGather to itself and the replica-order add, between the combine's
+// kernels, on the compute stream; given a ReplicaSum that is not a Replicas it keeps the host
+// path (the sums brought to the host). Both run the combine's same per-channel code, so every
+// output is bit for bit the host path's. Against no replicas: dgamma and dbeta are this
+// replica's own sums from the same kernel, bit for bit; the statistics come from the same sums
+// added in another order (parts in order rather than the finalize's warp tree) and the mean as
+// (n shift + S1) / n rather than shift + S1 / n, equal in exact arithmetic, so in double they
+// differ by a few units of 1e-16 relative and as floats by at most one ulp; y and dx follow from
+// those floats within 2e-6 here (|x| and gamma of order 1). And nothing waits for the device: a
+// host function holds the compute stream while the forward and backward are queued, and they
+// return before the test lets it go (a watchdog lets it go after 10 s otherwise), the stream
+// still busy; what the held run computes is again the same bits. Skips where NCCL cannot be
+// loaded.
+TEST(CudaBackendReplicas, OneRankNcclBatchNormStaysOnTheDevice) {
+  CudaBackend backend;
+  SingleProcess one_rank;
+  struct OnlyASum final : ReplicaSum {  // one replica, summed on the host
+    void sum(double*, int64_t) override {}
+  } host_sum;
+  const Shape shape{2, 40, 72, 64};
+  const int64_t n = shape_numel(shape), channels = shape[1];
+  Rng rng(2024);
+  const Tensor<float> x = test::random_tensor<float>(shape, rng, -1.5, 2.5);
+  const Tensor<float> dy = test::random_tensor<float>(shape, rng);
+  const Tensor<float> gamma = test::random_tensor<float>({channels}, rng, 0.5, 1.5);
+  const Tensor<float> beta = test::random_tensor<float>({channels}, rng);
+  const Tensor<float> initial_mean = test::random_tensor<float>({channels}, rng);
+  const Tensor<float> initial_var = test::random_tensor<float>({channels}, rng, 0.5, 2.0);
+  std::vector<void*> owned;
+  const auto tensor = [&](const Shape& s) {
+    owned.push_back(backend.allocate(static_cast<size_t>(shape_numel(s)) * sizeof(float)));
+    return Ref{static_cast<float*>(owned.back()), s};
+  };
+  Ref dx = tensor(shape), y = tensor(shape), dgamma = tensor({channels}),
+      dbeta = tensor({channels});
+  Ref x_ref = tensor(shape), dy_ref = tensor(shape);
+  BatchNormRefs bn;
+  bn.gamma = tensor({channels}), bn.beta = tensor({channels});
+  bn.running_mean = tensor({channels}), bn.running_var = tensor({channels});
+  bn.save_mean = tensor({channels}), bn.save_invstd = tensor({channels});
+  const auto upload = [&](Ref& r, const Tensor<float>& t) {
+    backend.upload(r.data, t.data(), static_cast<size_t>(t.numel()) * sizeof(float));
+  };
+  upload(x_ref, x), upload(dy_ref, dy), upload(bn.gamma, gamma), upload(bn.beta, beta);
+  // A training forward and backward from the initial running statistics.
+  const auto restart = [&] {
+    upload(bn.running_mean, initial_mean), upload(bn.running_var, initial_var);
+  };
+  const auto queue_step = [&](ReplicaSum* replicas) {
+    bn.replicas = replicas;
+    backend.batchnorm_relu_forward(x_ref, bn, true, y);
+    backend.batchnorm_relu_backward(x_ref, y, dy_ref, bn, dx, dgamma, dbeta);
+  };
+  const auto download = [&](const Ref& r) {
+    std::vector<float> host(static_cast<size_t>(r.numel()));
+    backend.download(host.data(), r.data, host.size() * sizeof(float));
+    return host;
+  };
+  const auto outputs = [&] {
+    return std::vector<std::vector<float> >{download(y),
+                                            download(bn.save_mean),
+                                            download(bn.save_invstd),
+                                            download(bn.running_mean),
+                                            download(bn.running_var),
+                                            download(dx),
+                                            download(dgamma),
+                                            download(dbeta)};
+  };
+  const char* names[] = {"y",           "save_mean", "save_invstd", "running_mean",
+                         "running_var", "dx",        "dgamma",      "dbeta"};
+  const auto release = [&] {
+    for (void* p : owned) backend.deallocate(p);
+  };
+  try {
+    restart();
+    queue_step(&one_rank);  // makes the communicator and the NCCL sum's scratch
+  } catch (const Error& e) {
+    release();
+    if (std::string(e.what()).find("cannot be loaded") != std::string::npos)
+      GTEST_SKIP() << e.what();
+    FAIL() << e.what();
+  }
+  const std::vector<std::vector<float> > on_device = outputs();
+  restart();
+  queue_step(&host_sum);
+  const std::vector<std::vector<float> > on_host = outputs();
+  restart();
+  queue_step(nullptr);
+  const std::vector<std::vector<float> > alone = outputs();
+  const auto same_bits = [](const std::vector<float>& a, const std::vector<float>& b) {
+    return a.size() == b.size() && std::memcmp(a.data(), b.data(), a.size() * sizeof(float)) == 0;
+  };
+  const auto within_one_ulp = [](const std::vector<float>& a, const std::vector<float>& b) {
+    for (size_t i = 0; i < a.size(); ++i) {
+      if (a[i] != b[i] && std::nextafter(b[i], a[i]) != a[i]) return false;
+    }
+    return a.size() == b.size();
+  };
+  for (size_t i = 0; i < on_device.size(); ++i) {
+    EXPECT_TRUE(same_bits(on_device[i], on_host[i])) << names[i] << ": NCCL path against host path";
+  }
+  EXPECT_TRUE(same_bits(on_device[6], alone[6])) << "dgamma: this replica's own sums";
+  EXPECT_TRUE(same_bits(on_device[7], alone[7])) << "dbeta: this replica's own sums";
+  for (size_t i = 1; i <= 4; ++i) EXPECT_TRUE(within_one_ulp(on_device[i], alone[i])) << names[i];
+  EXPECT_TRUE(test::all_close(on_device[0].data(), alone[0].data(), n, 2e-6, 2e-6)) << "y";
+  EXPECT_TRUE(test::all_close(on_device[5].data(), alone[5].data(), n, 2e-6, 2e-6)) << "dx";
+
+  restart();
+  std::atomic<bool> open{false}, queued{false};
+  PS_CUDA_CHECK(cudaLaunchHostFunc(
+      backend.stream(),
+      [](void* gate) {
+        while (!static_cast<std::atomic<bool>*>(gate)->load()) {
+          std::this_thread::sleep_for(std::chrono::milliseconds(1));
+        }
+      },
+      &open));
+  std::thread watchdog([&] {
+    for (int i = 0; i < 1000 && !queued.load(); ++i)
+      std::this_thread::sleep_for(std::chrono::milliseconds(10));
+    open = true;
+  });
+  queue_step(&one_rank);
+  const bool returned_while_held = !open.load();
+  const cudaError_t stream_state = cudaStreamQuery(backend.stream());
+  queued = true;
+  watchdog.join();
+  EXPECT_TRUE(returned_while_held) << "a BatchNorm waited for the device";
+  EXPECT_EQ(stream_state, cudaErrorNotReady);
+  const std::vector<std::vector<float> > held = outputs();
+  for (size_t i = 0; i < held.size(); ++i)
+    EXPECT_TRUE(same_bits(held[i], on_device[i])) << names[i];
+  release();
 }
 
 #endif  // PILLARSEG_CUDA_EMULATION

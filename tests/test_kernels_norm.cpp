@@ -3,7 +3,8 @@
 // of 4 (float4 and scalar paths) and of the 4096-value chunk, misaligned arrays, C = 1, S = 1,
 // an empty batch, 0 and 1 pillar, channel counts that are not multiples of the 32-channel tile,
 // NaN and Inf inputs, a large mean against a small spread, in-place use, guard words after every
-// output and workspace, bitwise determinism across runs and thread counts, and argument checks.
+// output and workspace, bitwise determinism across runs and thread counts, and argument checks;
+// synchronised BatchNorm with its sums over the replicas on the host and on the device.
 // Backward passes get the reference forward's saved statistics (and ReLU output and max slots),
 // so each kernel is compared on identical inputs.
 #include <gtest/gtest.h>
@@ -12,13 +13,16 @@
 #include <cmath>
 #include <cstdint>
 #include <limits>
+#include <memory>
 #include <string>
 #include <vector>
 
 #include "host/batchnorm.hpp"
 #include "host/pfn.hpp"
 #include "kernels/batchnorm.cuh"
+#include "kernels/cuda_handles.hpp"
 #include "kernels/pfn.cuh"
+#include "kernels/replica_sum.cuh"
 #include "tests/kernel_test_helpers.hpp"
 #include "tests/support/test_support.hpp"
 
@@ -70,7 +74,8 @@ struct DeviceTrain {
   std::vector<float> y, running_mean, running_var, save_mean, save_inv_std;
 };
 
-DeviceTrain device_train(const BatchNormInputs& in, bool relu, std::int64_t offset) {
+DeviceTrain device_train(const BatchNormInputs& in, bool relu, std::int64_t offset,
+                         ReplicaSum* replicas = nullptr) {
   const Shape& shape = in.x.shape();
   const std::int64_t n = in.x.numel(), c = shape[1];
   GuardedArray<float> x(in.x, offset), y(n, offset), gamma(in.gamma), beta(in.beta);
@@ -79,7 +84,8 @@ DeviceTrain device_train(const BatchNormInputs& in, bool relu, std::int64_t offs
   GuardedArray<double> workspace(cuda::batchnorm_workspace_doubles(planar(shape)));
   cuda::batchnorm_forward_train(x.data(), planar(shape), gamma.data(), beta.data(), kEps, kMomentum,
                                 running_mean.data(), running_var.data(), relu, y.data(),
-                                save_mean.data(), save_inv_std.data(), workspace.data(), nullptr);
+                                save_mean.data(), save_inv_std.data(), workspace.data(), nullptr,
+                                replicas);
   for (const GuardedArray<float>* a :
        {&y, &running_mean, &running_var, &save_mean, &save_inv_std}) {
     EXPECT_TRUE(a->guards_intact());
@@ -124,7 +130,8 @@ struct BackwardResult {
 
 // The device backward on the host forward's saved statistics and output.
 BackwardResult device_backward(const BatchNormInputs& in, const HostTrain& forward,
-                               const Tensor<float>& dy_values, bool relu, std::int64_t offset) {
+                               const Tensor<float>& dy_values, bool relu, std::int64_t offset,
+                               ReplicaSum* replicas = nullptr) {
   const Shape& shape = in.x.shape();
   const std::int64_t n = in.x.numel(), c = shape[1];
   GuardedArray<float> x(in.x, offset), y(forward.y, offset), dy(dy_values, offset), dx(n, offset);
@@ -133,7 +140,7 @@ BackwardResult device_backward(const BatchNormInputs& in, const HostTrain& forwa
   GuardedArray<double> workspace(cuda::batchnorm_workspace_doubles(planar(shape)));
   cuda::batchnorm_backward(dy.data(), x.data(), relu ? y.data() : nullptr, planar(shape),
                            gamma.data(), mean.data(), inv_std.data(), dx.data(), dgamma.data(),
-                           dbeta.data(), workspace.data(), nullptr);
+                           dbeta.data(), workspace.data(), nullptr, replicas);
   EXPECT_TRUE(dx.guards_intact());
   EXPECT_TRUE(dgamma.guards_intact());
   EXPECT_TRUE(dbeta.guards_intact());
@@ -379,7 +386,7 @@ struct PfnDeviceForward {
   std::vector<std::int32_t> max_slot;
 };
 
-PfnDeviceForward device_pfn_train(const PfnInputs& in) {
+PfnDeviceForward device_pfn_train(const PfnInputs& in, ReplicaSum* replicas = nullptr) {
   const cuda::PfnShape s = in.shape();
   GuardedArray<float> points(in.points), weight(in.weight), gamma(in.gamma), beta(in.beta);
   GuardedArray<float> running_mean(in.running_mean), running_var(in.running_var);
@@ -389,7 +396,7 @@ PfnDeviceForward device_pfn_train(const PfnInputs& in) {
   cuda::pfn_forward_train(points.data(), weight.data(), s, gamma.data(), beta.data(), kPfnEps,
                           kPfnMomentum, running_mean.data(), running_var.data(), out.data(),
                           max_slot.data(), save_mean.data(), save_inv_std.data(), workspace.data(),
-                          nullptr);
+                          nullptr, replicas);
   for (const GuardedArray<float>* a :
        {&out, &running_mean, &running_var, &save_mean, &save_inv_std}) {
     EXPECT_TRUE(a->guards_intact());
@@ -418,7 +425,8 @@ struct PfnGradients {
 };
 
 PfnGradients device_pfn_backward(const PfnInputs& in, const PfnHostForward& forward,
-                                 const Tensor<float>& d_out_values, bool with_d_points) {
+                                 const Tensor<float>& d_out_values, bool with_d_points,
+                                 ReplicaSum* replicas = nullptr) {
   const cuda::PfnShape s = in.shape();
   GuardedArray<float> points(in.points), weight(in.weight), gamma(in.gamma), d_out(d_out_values);
   GuardedArray<float> save_mean(forward.saved.norm.mean), save_inv_std(forward.saved.norm.inv_std);
@@ -431,7 +439,7 @@ PfnGradients device_pfn_backward(const PfnInputs& in, const PfnHostForward& forw
   cuda::pfn_backward(d_out.data(), points.data(), weight.data(), s, gamma.data(), save_mean.data(),
                      save_inv_std.data(), max_slot.data(),
                      with_d_points ? d_points.data() : nullptr, d_weight.data(), d_gamma.data(),
-                     d_beta.data(), workspace.data(), nullptr);
+                     d_beta.data(), workspace.data(), nullptr, replicas);
   for (const GuardedArray<float>* a : {&d_points, &d_weight, &d_gamma, &d_beta}) {
     EXPECT_TRUE(a->guards_intact());
   }
@@ -611,4 +619,279 @@ TEST(PfnKernels, LaunchersCheckTheirArguments) {
   EXPECT_NE(null_slots.find("out and max_slot (4 values each) must be device memory"),
             std::string::npos)
       << null_slots;
+}
+
+// ---------------------------------------------------------------------------------------------
+// Synchronised BatchNorm: this replica's sums combined with the other replicas' on the host (a
+// ReplicaSum: the sums brought there) or on the device (a DeviceReplicaSum; NCCL's on a GPU is
+// checked in tests/test_cuda_backend.cpp). The replicas here are R copies of this one, summed in
+// replica order as MPI and NCCL sum R replicas (v + v + ... + v), by the host loop or by
+// device copies and kernels/replica_sum.cu. The two paths must give the same bits (they run the
+// same per-channel code); the statistics must be those of the batch of R copies (a wrong
+// formula or a count left unsummed fails that); the device path must queue everything without
+// waiting for the device (it runs inside a stream capture, which a synchronisation invalidates);
+// the PFN, whose kernels/pfn.cu hands its ReplicaSum to the same finalize, takes the device path
+// too.
+
+namespace {
+
+class CopiesOnHost final : public ReplicaSum {
+ public:
+  explicit CopiesOnHost(int copies) : copies_(copies) {}
+  void sum(double* values, std::int64_t n) override {
+    for (std::int64_t i = 0; i < n; ++i) {
+      double total = values[i];
+      for (int r = 1; r < copies_; ++r) total += values[i];
+      values[i] = total;
+    }
+  }
+
+ private:
+  int copies_;
+};
+
+class CopiesOnDevice final : public cuda::DeviceReplicaSum {
+ public:
+  explicit CopiesOnDevice(int copies) : copies_(copies) {}
+  void sum(double*, std::int64_t) override { throw Error("the device path summed host memory"); }
+  // Exactly n doubles between guard words, so that a write past what the caller asked for shows.
+  double* scratch(std::int64_t n) override {
+    if (!scratch_ || scratch_->size() < n) scratch_ = std::make_unique<GuardedArray<double>>(n);
+    return scratch_->data();
+  }
+  void sum(double* values, std::int64_t n, cudaStream_t stream) override {
+    const auto bytes = static_cast<std::size_t>(n) * sizeof(double);
+    if (gathered_.size() < static_cast<std::size_t>(copies_ * n)) {
+      gathered_ = cuda::DeviceBuffer<double>(static_cast<std::size_t>(copies_ * n));
+    }
+    for (int r = 0; r < copies_; ++r) {
+      PS_CUDA_CHECK(cudaMemcpyAsync(gathered_.data() + r * n, values, bytes,
+                                    cudaMemcpyDeviceToDevice, stream));
+    }
+    cuda::sum_replica_chunks(gathered_.data(), copies_, n, values, stream);
+    ++sums_;
+  }
+  int sums() const { return sums_; }
+  ::testing::AssertionResult scratch_guards_intact() const {
+    return scratch_ ? scratch_->guards_intact() : ::testing::AssertionFailure() << "no scratch";
+  }
+
+ private:
+  int copies_;
+  int sums_ = 0;
+  std::unique_ptr<GuardedArray<double>> scratch_;
+  cuda::DeviceBuffer<double> gathered_;
+};
+
+// R copies of x (B, C, H, W) along the batch: (R B, C, H, W).
+Tensor<float> copies_along_batch(const Tensor<float>& x, std::int64_t copies) {
+  Shape shape = x.shape();
+  shape[0] *= copies;
+  Tensor<float> all(shape);
+  for (std::int64_t r = 0; r < copies; ++r)
+    std::copy(x.begin(), x.end(), all.begin() + r * x.numel());
+  return all;
+}
+
+// The first `numel` values of t as a tensor of `shape`.
+Tensor<float> leading(const Tensor<float>& t, const Shape& shape) {
+  Tensor<float> part(shape);
+  std::copy(t.begin(), t.begin() + part.numel(), part.begin());
+  return part;
+}
+
+const std::vector<BatchNormCase> kSynchronisedCases = {
+    {{2, 4, 72, 64}, 0},  // float4, 4 parts per channel
+    {{2, 5, 67, 65}, 1},  // scalar and misaligned, 4 parts
+    {{3, 2, 1, 1}, 0},    // 3 values per channel: the unbiased variance's n / (n - 1) is large
+    {{1, 33, 3, 4}, 0},   // C = 33: a second block of the one-thread-per-channel kernels
+    {{0, 4, 5, 5}, 0},    // this replica holds no values
+};
+
+}  // namespace
+
+TEST(SynchronisedBatchNormKernels, DeviceSumGivesTheHostPathsBits) {
+  std::uint64_t seed = 1600;
+  for (const BatchNormCase& c : kSynchronisedCases) {
+    for (const bool relu : {false, true}) {
+      for (const int copies : {1, 3}) {
+        SCOPED_TRACE(case_name(c, relu) + ", " + std::to_string(copies) + " replicas");
+        const BatchNormInputs in = batchnorm_inputs(c.shape, seed++);
+        CopiesOnHost on_host(copies);
+        CopiesOnDevice on_device(copies);
+        const DeviceTrain host_path = device_train(in, relu, c.offset, &on_host);
+        const DeviceTrain device_path = device_train(in, relu, c.offset, &on_device);
+        EXPECT_EQ(on_device.sums(), 2) << "the sums and count, then the squares about the mean";
+        EXPECT_TRUE(on_device.scratch_guards_intact());
+        EXPECT_TRUE(same_bits(device_path.y, host_path.y)) << "y";
+        EXPECT_TRUE(same_bits(device_path.save_mean, host_path.save_mean)) << "save_mean";
+        EXPECT_TRUE(same_bits(device_path.save_inv_std, host_path.save_inv_std)) << "save_inv_std";
+        EXPECT_TRUE(same_bits(device_path.running_mean, host_path.running_mean)) << "running_mean";
+        EXPECT_TRUE(same_bits(device_path.running_var, host_path.running_var)) << "running_var";
+
+        const HostTrain forward = host_train(in, relu);
+        const Tensor<float> dy = normal_tensor(in.x.shape(), seed++);
+        const BackwardResult host_backward =
+            device_backward(in, forward, dy, relu, c.offset, &on_host);
+        const BackwardResult device_backward_path =
+            device_backward(in, forward, dy, relu, c.offset, &on_device);
+        EXPECT_EQ(on_device.sums(), 3);
+        EXPECT_TRUE(on_device.scratch_guards_intact());
+        EXPECT_TRUE(same_bits(device_backward_path.dx, host_backward.dx)) << "dx";
+        EXPECT_TRUE(same_bits(device_backward_path.dgamma, host_backward.dgamma)) << "dgamma";
+        EXPECT_TRUE(same_bits(device_backward_path.dbeta, host_backward.dbeta)) << "dbeta";
+      }
+    }
+  }
+}
+
+// R = 3 replicas holding the same values: their statistics are those of the batch of 3 copies,
+// their input gradients those of that batch's first copy and their dgamma, dbeta a third of that
+// batch's (each replica's share), as the host reference computes over the whole batch.
+TEST(SynchronisedBatchNormKernels, StatisticsAreThoseOfAllReplicasValues) {
+  constexpr int kCopies = 3;
+  std::uint64_t seed = 1700;
+  for (const BatchNormCase& c : kSynchronisedCases) {
+    if (c.shape[0] == 0) continue;
+    SCOPED_TRACE(case_name(c, true));
+    const BatchNormInputs in = batchnorm_inputs(c.shape, seed++);
+    BatchNormInputs all = in;
+    all.x = copies_along_batch(in.x, kCopies);
+    const HostTrain expected = host_train(all, true);
+    for (const bool on_device : {false, true}) {
+      SCOPED_TRACE(on_device ? "device sum" : "host sum");
+      CopiesOnHost host_sum(kCopies);
+      CopiesOnDevice device_sum(kCopies);
+      ReplicaSum* replicas = on_device ? static_cast<ReplicaSum*>(&device_sum) : &host_sum;
+      const DeviceTrain actual = device_train(in, true, c.offset, replicas);
+      EXPECT_TRUE(close(actual.y, leading(expected.y, in.x.shape()), 1e-5, 1e-5)) << "y";
+      EXPECT_TRUE(close(actual.save_mean, expected.saved.mean, 1e-6, 1e-6)) << "save_mean";
+      EXPECT_TRUE(close(actual.save_inv_std, expected.saved.inv_std, 0.0, 1e-6)) << "save_inv_std";
+      EXPECT_TRUE(close(actual.running_mean, expected.running_mean, 1e-7, 1e-6)) << "running_mean";
+      EXPECT_TRUE(close(actual.running_var, expected.running_var, 1e-7, 1e-6)) << "running_var";
+
+      const Tensor<float> dy = normal_tensor(in.x.shape(), seed);
+      Tensor<float> dx_all, dgamma_all, dbeta_all;
+      host::batchnorm_relu_backward(copies_along_batch(dy, kCopies), all.x, expected.y, in.gamma,
+                                    expected.saved, dx_all, dgamma_all, dbeta_all);
+      const HostTrain first_copy{leading(expected.y, in.x.shape()), expected.running_mean,
+                                 expected.running_var, expected.saved};
+      const BackwardResult gradients =
+          device_backward(in, first_copy, dy, true, c.offset, replicas);
+      EXPECT_TRUE(close(gradients.dx, leading(dx_all, in.x.shape()), 1e-5, 1e-5)) << "dx";
+      for (float& g : dgamma_all) g /= kCopies;
+      for (float& g : dbeta_all) g /= kCopies;
+      EXPECT_TRUE(close(gradients.dgamma, dgamma_all, 1e-5, 1e-5)) << "dgamma";
+      EXPECT_TRUE(close(gradients.dbeta, dbeta_all, 1e-5, 1e-5)) << "dbeta";
+    }
+    if (c.shape[0] * c.shape[2] * c.shape[3] == 3) {
+      // What the comparisons above tell apart: one replica's own statistics (3 values, not 9).
+      const DeviceTrain alone = device_train(in, true, c.offset);
+      EXPECT_FALSE(close(alone.running_var, expected.running_var, 1e-7, 1e-6));
+    }
+    ++seed;
+  }
+}
+
+// The device path inside a stream capture (global mode: any synchronisation or allocation fails
+// and invalidates it), replayed: the same bits as outside. The host path inside a capture fails.
+TEST(SynchronisedBatchNormKernels, DevicePathQueuesWithoutWaiting) {
+  constexpr int kCopies = 3;
+  const BatchNormInputs in = batchnorm_inputs({2, 4, 72, 64}, 1800);
+  const Shape& shape = in.x.shape();
+  const std::int64_t n = in.x.numel(), c = shape[1];
+  const HostTrain forward = host_train(in, true);
+  const Tensor<float> dy_values = normal_tensor(shape, 1801);
+  GuardedArray<float> x(in.x), y(n), gamma(in.gamma), beta(in.beta), running_mean(c),
+      running_var(c), save_mean(c), save_inv_std(c);
+  GuardedArray<float> forward_y(forward.y), mean(forward.saved.mean),
+      inv_std(forward.saved.inv_std), dy(dy_values), dx(n), dgamma(c), dbeta(c);
+  GuardedArray<double> workspace(cuda::batchnorm_workspace_doubles(planar(shape)));
+  cuda::Stream stream;
+  CopiesOnDevice on_device(kCopies);
+  const auto run = [&](ReplicaSum* replicas) {
+    cuda::batchnorm_forward_train(x.data(), planar(shape), gamma.data(), beta.data(), kEps,
+                                  kMomentum, running_mean.data(), running_var.data(), true,
+                                  y.data(), save_mean.data(), save_inv_std.data(), workspace.data(),
+                                  stream.get(), replicas);
+    cuda::batchnorm_backward(dy.data(), x.data(), forward_y.data(), planar(shape), gamma.data(),
+                             mean.data(), inv_std.data(), dx.data(), dgamma.data(), dbeta.data(),
+                             workspace.data(), stream.get(), replicas);
+  };
+  const auto outputs = [&] {
+    PS_CUDA_CHECK(cudaStreamSynchronize(stream.get()));
+    return std::vector<std::vector<float>>{
+        y.download(),         running_mean.download(), running_var.download(),
+        save_mean.download(), save_inv_std.download(), dx.download(),
+        dgamma.download(),    dbeta.download()};
+  };
+  const auto restart = [&] {
+    running_mean.upload(std::vector<float>(in.running_mean.begin(), in.running_mean.end()));
+    running_var.upload(std::vector<float>(in.running_var.begin(), in.running_var.end()));
+    for (GuardedArray<float>* a : {&y, &save_mean, &save_inv_std, &dx, &dgamma, &dbeta}) {
+      a->upload(std::vector<float>(static_cast<std::size_t>(a->size()), -1.0f));
+    }
+  };
+  restart();
+  run(&on_device);  // also sizes the sum's scratch: a capture may not allocate
+  const std::vector<std::vector<float>> direct = outputs();
+
+  restart();
+  PS_CUDA_CHECK(cudaStreamBeginCapture(stream.get(), cudaStreamCaptureModeGlobal));
+  run(&on_device);
+  cudaGraph_t graph = nullptr;
+  PS_CUDA_CHECK(cudaStreamEndCapture(stream.get(), &graph));
+  EXPECT_EQ(on_device.sums(), 6);
+  EXPECT_TRUE(same_bits(running_var.download(), in.running_var)) << "captured, not yet run";
+  cudaGraphExec_t executable = nullptr;
+  PS_CUDA_CHECK(cudaGraphInstantiate(&executable, graph, 0));
+  PS_CUDA_CHECK(cudaGraphLaunch(executable, stream.get()));
+  const std::vector<std::vector<float>> replayed = outputs();
+  for (std::size_t i = 0; i < direct.size(); ++i) {
+    EXPECT_TRUE(same_bits(replayed[i], direct[i])) << "output " << i;
+  }
+  EXPECT_TRUE(on_device.scratch_guards_intact());
+  PS_CUDA_CHECK(cudaGraphExecDestroy(executable));
+  PS_CUDA_CHECK(cudaGraphDestroy(graph));
+
+  // The host path waits for the stream, which a capture refuses.
+  CopiesOnHost on_host(kCopies);
+  PS_CUDA_CHECK(cudaStreamBeginCapture(stream.get(), cudaStreamCaptureModeGlobal));
+  const std::string waited = kernel_test::error_message([&] { run(&on_host); });
+  EXPECT_FALSE(waited.empty()) << "the host path ran inside a capture";
+  cudaGraph_t invalidated = nullptr;
+  EXPECT_EQ(cudaStreamEndCapture(stream.get(), &invalidated), cudaErrorStreamCaptureInvalidated);
+  static_cast<void>(cudaGetLastError());
+}
+
+TEST(SynchronisedPfnKernels, DeviceSumGivesTheHostPathsBits) {
+  std::uint64_t seed = 1900;
+  for (const PfnCase& c : {PfnCase{37, 20, 64}, PfnCase{300, 20, 33}, PfnCase{0, 20, 8}}) {
+    for (const int copies : {1, 3}) {
+      SCOPED_TRACE(pfn_case_name(c) + ", " + std::to_string(copies) + " replicas");
+      const PfnInputs in = pfn_inputs(c.pillars, c.slots, c.channels, seed++);
+      CopiesOnHost on_host(copies);
+      CopiesOnDevice on_device(copies);
+      const PfnDeviceForward host_path = device_pfn_train(in, &on_host);
+      const PfnDeviceForward device_path = device_pfn_train(in, &on_device);
+      EXPECT_EQ(on_device.sums(), 2);
+      EXPECT_TRUE(same_bits(device_path.out, host_path.out)) << "out";
+      EXPECT_TRUE(same_bits(device_path.max_slot, host_path.max_slot)) << "max_slot";
+      EXPECT_TRUE(same_bits(device_path.save_mean, host_path.save_mean)) << "save_mean";
+      EXPECT_TRUE(same_bits(device_path.save_inv_std, host_path.save_inv_std)) << "save_inv_std";
+      EXPECT_TRUE(same_bits(device_path.running_var, host_path.running_var)) << "running_var";
+
+      const PfnHostForward forward = host_pfn_train(in);
+      const Tensor<float> d_out = normal_tensor({c.pillars, c.channels}, seed++);
+      const PfnGradients host_gradients = device_pfn_backward(in, forward, d_out, true, &on_host);
+      const PfnGradients device_gradients =
+          device_pfn_backward(in, forward, d_out, true, &on_device);
+      EXPECT_EQ(on_device.sums(), 3);
+      EXPECT_TRUE(on_device.scratch_guards_intact());
+      EXPECT_TRUE(same_bits(device_gradients.d_weight, host_gradients.d_weight)) << "d_weight";
+      EXPECT_TRUE(same_bits(device_gradients.d_gamma, host_gradients.d_gamma)) << "d_gamma";
+      EXPECT_TRUE(same_bits(device_gradients.d_beta, host_gradients.d_beta)) << "d_beta";
+      EXPECT_TRUE(same_bits(device_gradients.d_points, host_gradients.d_points)) << "d_points";
+    }
+  }
 }

@@ -11,6 +11,7 @@
 #include <bit>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 #include <functional>
 #include <limits>
 #include <string>
@@ -341,32 +342,47 @@ TEST(ReduceKernels, LauncherChecksItsArguments) {
 }
 
 // The replicas' chunks added in replica order: the same bits as the host loop in that order,
-// which for these values differ from another order's (1 + 3e-8 + 3e-8 != 1 + (3e-8 + 3e-8)).
-TEST(ReplicaSumKernels, AddsInReplicaOrder) {
+// which for these values differ from another order's (1 + 3e-8 + 3e-8 != 1 + (3e-8 + 3e-8) in
+// float, 1 + 1e-16 + 1e-16 != 1 + (1e-16 + 1e-16) in double); floats are the gradients', doubles
+// the BatchNorm statistics'.
+template <class T>
+void expect_sums_in_replica_order(const T (&scale)[4]) {
   for (const std::int64_t n : {std::int64_t{1}, std::int64_t{33}, std::int64_t{1000}, std::int64_t{(1 << 20) + 3}}) {
     for (const int replicas : {1, 3, 4}) {
       SCOPED_TRACE("n " + std::to_string(n) + ", replicas " + std::to_string(replicas));
-      std::vector<float> chunks(static_cast<size_t>(n * replicas));
-      const float scale[] = {1.0f, 3e-8f, 3e-8f, -0.5f};
+      std::vector<T> chunks(static_cast<size_t>(n * replicas));
       for (int r = 0; r < replicas; ++r) {
         for (std::int64_t i = 0; i < n; ++i) {
-          chunks[static_cast<size_t>(r * n + i)] = scale[r] * (1.0f + static_cast<float>(i % 5) * 0.25f);
+          chunks[static_cast<size_t>(r * n + i)] =
+              scale[r] * (T(1) + static_cast<T>(i % 5) * T(0.25));
         }
       }
-      auto device_chunks = DeviceBuffer<float>::from_host(chunks);
-      auto out = DeviceBuffer<float>::from_host(std::vector<float>(static_cast<size_t>(n) + 1, -7.0f));
+      auto device_chunks = DeviceBuffer<T>::from_host(chunks);
+      auto out = DeviceBuffer<T>::from_host(std::vector<T>(static_cast<size_t>(n) + 1, T(-7)));
       cuda::sum_replica_chunks(device_chunks.data(), replicas, n, out.data(), nullptr);
-      const std::vector<float> host = out.to_host();
+      const std::vector<T> host = out.to_host();
       for (std::int64_t i = 0; i < n; ++i) {
-        float expected = chunks[static_cast<size_t>(i)];
+        T expected = chunks[static_cast<size_t>(i)];
         for (int r = 1; r < replicas; ++r) expected += chunks[static_cast<size_t>(r * n + i)];
-        ASSERT_EQ(std::bit_cast<std::uint32_t>(host[static_cast<size_t>(i)]), std::bit_cast<std::uint32_t>(expected))
-            << "i " << i;
+        ASSERT_EQ(std::memcmp(&host[static_cast<size_t>(i)], &expected, sizeof(T)), 0)
+            << "i " << i << ": " << host[static_cast<size_t>(i)] << " != expected " << expected;
       }
-      EXPECT_EQ(host[static_cast<size_t>(n)], -7.0f) << "guard after the output";
+      EXPECT_EQ(host[static_cast<size_t>(n)], T(-7)) << "guard after the output";
     }
   }
-  EXPECT_NE(1.0f + 3e-8f + 3e-8f, 1.0f + (3e-8f + 3e-8f)) << "the values above must tell the order apart";
-  const std::string bad = error_message([] { cuda::sum_replica_chunks(nullptr, 0, 4, nullptr, nullptr); });
+  EXPECT_NE(T(1) + scale[1] + scale[2], T(1) + (scale[1] + scale[2]))
+      << "the values above must tell the order apart";
+  const std::string bad = error_message(
+      [] { cuda::sum_replica_chunks(static_cast<const T*>(nullptr), 0, 4, nullptr, nullptr); });
   EXPECT_NE(bad.find("expected replicas >= 1"), std::string::npos) << bad;
+}
+
+TEST(ReplicaSumKernels, AddsFloatsInReplicaOrder) {
+  const float scale[] = {1.0f, 3e-8f, 3e-8f, -0.5f};
+  expect_sums_in_replica_order(scale);
+}
+
+TEST(ReplicaSumKernels, AddsDoublesInReplicaOrder) {
+  const double scale[] = {1.0, 1e-16, 1e-16, -0.5};
+  expect_sums_in_replica_order(scale);
 }

@@ -516,7 +516,7 @@ void CudaBackend::pfn_forward(const Ref& points, const Ref& weight, BatchNormRef
   cuda::pfn_forward_train(points.data, weight.data, shape, bn.gamma.data, bn.beta.data, bn.eps,
                           bn.momentum, bn.running_mean.data, bn.running_var.data, out.data,
                           argmax.data, bn.save_mean.data, bn.save_invstd.data, workspace, stream_.get(),
-                          bn.replicas);
+                          batchnorm_sum(bn.replicas));
 }
 
 void CudaBackend::pfn_backward(const Ref& points, const Ref& weight, const BatchNormRefs& bn,
@@ -531,7 +531,7 @@ void CudaBackend::pfn_backward(const Ref& points, const Ref& weight, const Batch
   // The points are the network's input: their gradient is not computed.
   cuda::pfn_backward(dout.data, points.data, weight.data, shape, bn.gamma.data, bn.save_mean.data,
                      bn.save_invstd.data, argmax.data, nullptr, dweight.data, dgamma.data,
-                     dbeta.data, workspace, stream_.get(), bn.replicas);
+                     dbeta.data, workspace, stream_.get(), batchnorm_sum(bn.replicas));
 }
 
 void CudaBackend::scatter_forward(const Ref& features, const IRef& cells, int channel0,
@@ -690,7 +690,7 @@ void CudaBackend::batchnorm_relu_forward(const Ref& x, BatchNormRefs& bn, bool t
   cuda::batchnorm_forward_train(x.data, shape, bn.gamma.data, bn.beta.data, bn.eps, bn.momentum,
                                 bn.running_mean.data, bn.running_var.data, /*relu=*/true, y.data,
                                 bn.save_mean.data, bn.save_invstd.data, workspace, stream_.get(),
-                                bn.replicas);
+                                batchnorm_sum(bn.replicas));
 }
 
 void CudaBackend::batchnorm_relu_backward(const Ref& x, const Ref& y, const Ref& dy,
@@ -707,7 +707,7 @@ void CudaBackend::batchnorm_relu_backward(const Ref& x, const Ref& y, const Ref&
   double* workspace = double_workspace(cuda::batchnorm_workspace_doubles(shape));
   cuda::batchnorm_backward(dy.data, x.data, y.data, shape, bn.gamma.data, bn.save_mean.data,
                            bn.save_invstd.data, dx.data, dgamma.data, dbeta.data, workspace,
-                           stream_.get(), bn.replicas);
+                           stream_.get(), batchnorm_sum(bn.replicas));
 }
 
 void CudaBackend::maxpool2x2_forward(const Ref& x, Ref& y, IRef& argmax) {
@@ -811,15 +811,37 @@ double CudaBackend::sum_of_squares(const Ref& x) {
 }
 
 #if !defined(PILLARSEG_CUDA_EMULATION)
+NcclCommunicator& CudaBackend::nccl_communicator(Replicas& replicas) {
+  if (!nccl_) nccl_ = std::make_unique<NcclCommunicator>(replicas);
+  return *nccl_;
+}
+
 void CudaBackend::begin_sum_over_replicas(Ref& values, Replicas& replicas) {
-  if (!nccl_) nccl_ = std::make_unique<NcclGradientSum>(replicas, stream_.get());
-  nccl_->begin(values.data, values.numel());
+  if (!nccl_gradients_) {
+    nccl_gradients_ = std::make_unique<NcclGradientSum>(nccl_communicator(replicas), stream_.get());
+  }
+  nccl_gradients_->begin(values.data, values.numel());
 }
 
 void CudaBackend::end_sums_over_replicas(Replicas&) {
-  if (nccl_) nccl_->end();
+  if (nccl_gradients_) nccl_gradients_->end();
 }
 #endif
+
+ReplicaSum* CudaBackend::batchnorm_sum(ReplicaSum* replicas) {
+#if defined(PILLARSEG_CUDA_EMULATION)
+  return replicas;
+#else
+  // A ReplicaSum that is not the run's Replicas (none, or one that cannot make a communicator)
+  // keeps the host path.
+  auto* run = dynamic_cast<Replicas*>(replicas);
+  if (run == nullptr) return replicas;
+  if (!nccl_statistics_) {
+    nccl_statistics_ = std::make_unique<NcclStatisticsSum>(nccl_communicator(*run), *run);
+  }
+  return nccl_statistics_.get();
+#endif
+}
 
 void CudaBackend::scale(Ref& x, float factor) {
   cuda::scale(x.data, factor, x.numel(), stream_.get());

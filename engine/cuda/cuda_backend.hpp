@@ -41,7 +41,10 @@
 #include "kernels/losses.cuh"
 
 namespace pillarseg {
-class NcclGradientSum;  // engine/cuda/nccl_sum.hpp (the GPU build only)
+// engine/cuda/nccl_sum.hpp (the GPU build only)
+class NcclCommunicator;
+class NcclGradientSum;
+class NcclStatisticsSum;
 }  // namespace pillarseg
 
 namespace pillarseg::inline PILLARSEG_CUDA_NAMESPACE {
@@ -167,13 +170,17 @@ class CudaBackend final : public Backend {
   void conv_transpose2x2_half_forward(const ActRef& x, const HRef& w16, const Ref& bias_out, const Shape& weight,
                                       Precision p, const ActRef& y) override;
   bool supports_training_precision(Precision p, std::string* why_not) const override;
-  // Synchronised BatchNorm: the kernels' statistics summed over the replicas on the host.
+  // Synchronised BatchNorm: the kernels' statistics summed over the replicas. On a GPU, when
+  // BatchNormRefs::replicas is the run's Replicas, in device memory over NCCL on the compute
+  // stream (engine/cuda/nccl_sum.hpp's NcclStatisticsSum, a DeviceReplicaSum): no BatchNorm
+  // waits for the device. In the emulation, or with a ReplicaSum that is not a Replicas, on the
+  // host.
   bool supports_synchronized_batchnorm(std::string*) const override { return true; }
 #if !defined(PILLARSEG_CUDA_EMULATION)
-  // On a GPU the gradients are summed in device memory over NCCL (engine/cuda/nccl_sum.hpp; the
-  // communicator is made on the first call) on a stream of their own that waits for the backward
-  // to reach each piece, and the compute stream waits for it at the end; the emulation sums
-  // through the host.
+  // On a GPU the gradients are summed in device memory over NCCL (engine/cuda/nccl_sum.hpp) on a
+  // stream of their own that waits for the backward to reach each piece, and the compute stream
+  // waits for it at the end; the emulation sums through the host. The gradients and the
+  // BatchNorm statistics share one communicator, made when either first needs it.
   void begin_sum_over_replicas(Ref& values, Replicas& replicas) override;
   void end_sums_over_replicas(Replicas& replicas) override;
 #endif
@@ -218,6 +225,12 @@ class CudaBackend final : public Backend {
   void require_not_capturing(const char* op) const;
   // The vendor engine for `shape`, or nullptr where our kernels run it (Own, or an empty shape).
   cuda::Conv2dEngine* vendor_engine(const cuda::Conv2dShape& shape);
+  // What the BatchNorm kernels sum their statistics with: `replicas`, or on a GPU, where it is
+  // the run's Replicas, the NCCL statistics sum (made on the first call).
+  ReplicaSum* batchnorm_sum(ReplicaSum* replicas);
+#if !defined(PILLARSEG_CUDA_EMULATION)
+  NcclCommunicator& nccl_communicator(Replicas& replicas);  // made on the first call
+#endif
 
   CudaBackendOptions options_;
   std::string name_;
@@ -234,7 +247,10 @@ class CudaBackend final : public Backend {
   bool capturing_ = false;
   std::unique_ptr<cuda::Conv2dEngine> vendor_conv_;  // null with ConvolutionImpl::Own
 #if !defined(PILLARSEG_CUDA_EMULATION)
-  std::unique_ptr<NcclGradientSum> nccl_;  // data-parallel training
+  // Data-parallel training: the communicator, then the sums over it (destroyed before it).
+  std::unique_ptr<NcclCommunicator> nccl_;
+  std::unique_ptr<NcclGradientSum> nccl_gradients_;
+  std::unique_ptr<NcclStatisticsSum> nccl_statistics_;
 #endif
   CudaBackendStats stats_;
 };

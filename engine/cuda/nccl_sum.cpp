@@ -5,15 +5,11 @@
 
 #include <string>
 
-#include "kernels/cuda_handles.hpp"
-#include "kernels/device_buffer.hpp"
-#include "kernels/replica_sum.cuh"
-
 namespace pillarseg {
 
 namespace {
 
-// The NCCL entry points this sum calls, from the library dlopen() found.
+// The NCCL entry points these sums call, from the library dlopen() found.
 struct NcclApi {
   ncclResult_t (*get_unique_id)(ncclUniqueId*) = nullptr;
   ncclResult_t (*comm_init_rank)(ncclComm_t*, int, ncclUniqueId, int) = nullptr;
@@ -69,74 +65,128 @@ class NcclLibrary {
 
 }  // namespace
 
-struct NcclGradientSum::State {
+// ---- the communicator ----
+
+struct NcclCommunicator::State {
   NcclLibrary library;
   ncclComm_t comm = nullptr;
   int rank = 0, size = 1;
-  cudaStream_t compute = nullptr;  // the backend's
-  cuda::Stream stream;             // the sums'
-  cuda::Event reached, summed;     // compute reached a piece; the sums queued so far are done
-  cuda::DeviceBuffer<float> padded, chunks;  // (R x chunk) each
 
   void check(ncclResult_t result, const char* call) const {
     PS_CHECK(result == ncclSuccess, "{} failed: {}", call, library.api.error_string(result));
   }
   ~State() {
-    // The communicator before the members (buffers, events, stream, the library) go.
-    if (comm != nullptr) library.api.comm_destroy(comm);
+    if (comm != nullptr) library.api.comm_destroy(comm);  // before the library is closed
   }
 };
 
-NcclGradientSum::NcclGradientSum(Replicas& replicas, cudaStream_t compute)
-    : state_(std::make_unique<State>()) {
+NcclCommunicator::NcclCommunicator(Replicas& replicas) : state_(std::make_unique<State>()) {
   State& s = *state_;
-  s.rank = replicas.rank(), s.size = replicas.size(), s.compute = compute;
+  s.rank = replicas.rank(), s.size = replicas.size();
   ncclUniqueId id{};
   if (replicas.leader()) s.check(s.library.api.get_unique_id(&id), "ncclGetUniqueId");
   replicas.broadcast(&id, sizeof id);
   s.check(s.library.api.comm_init_rank(&s.comm, s.size, id, s.rank), "ncclCommInitRank");
 }
 
-NcclGradientSum::~NcclGradientSum() = default;
+NcclCommunicator::~NcclCommunicator() = default;
 
-void NcclGradientSum::begin(float* values, int64_t n) {
-  State& s = *state_;
-  if (n == 0) return;
+int NcclCommunicator::rank() const {
+  return state_->rank;
+}
+
+int NcclCommunicator::size() const {
+  return state_->size;
+}
+
+void NcclCommunicator::exchange_chunks(const float* send, float* receive, size_t chunk,
+                                       cudaStream_t stream) {
+  const State& s = *state_;
   const NcclApi& api = s.library.api;
-  const auto R = static_cast<size_t>(s.size);
-  const size_t chunk = (static_cast<size_t>(n) + R - 1) / R;
-  if (s.padded.size() < R * chunk) {
-    PS_CUDA_CHECK(cudaStreamSynchronize(s.stream.get()));  // earlier pieces use the scratch
-    s.padded = cuda::DeviceBuffer<float>(R * chunk);
-    s.chunks = cuda::DeviceBuffer<float>(R * chunk);
-  }
-  PS_CUDA_CHECK(cudaEventRecord(s.reached.get(), s.compute));
-  PS_CUDA_CHECK(cudaStreamWaitEvent(s.stream.get(), s.reached.get(), 0));
-  cudaStream_t stream = s.stream.get();
-  const size_t bytes = static_cast<size_t>(n) * sizeof(float);
-  PS_CUDA_CHECK(cudaMemsetAsync(s.padded.data(), 0, R * chunk * sizeof(float), stream));
-  PS_CUDA_CHECK(cudaMemcpyAsync(s.padded.data(), values, bytes, cudaMemcpyDeviceToDevice, stream));
-  // Chunk p of this replica to replica p; chunk `rank` of replica p into row p of chunks.
   s.check(api.group_start(), "ncclGroupStart");
-  for (size_t p = 0; p < R; ++p) {
-    s.check(api.send(s.padded.data() + p * chunk, chunk, ncclFloat, static_cast<int>(p), s.comm,
-                     stream),
-            "ncclSend");
-    s.check(api.recv(s.chunks.data() + p * chunk, chunk, ncclFloat, static_cast<int>(p), s.comm,
-                     stream),
-            "ncclRecv");
+  for (int p = 0; p < s.size; ++p) {
+    const size_t offset = static_cast<size_t>(p) * chunk;
+    s.check(api.send(send + offset, chunk, ncclFloat, p, s.comm, stream), "ncclSend");
+    s.check(api.recv(receive + offset, chunk, ncclFloat, p, s.comm, stream), "ncclRecv");
   }
   s.check(api.group_end(), "ncclGroupEnd");
-  float* mine = s.padded.data() + static_cast<size_t>(s.rank) * chunk;
-  cuda::sum_replica_chunks(s.chunks.data(), s.size, static_cast<int64_t>(chunk), mine, stream);
-  s.check(api.all_gather(mine, s.padded.data(), chunk, ncclFloat, s.comm, stream), "ncclAllGather");
-  PS_CUDA_CHECK(cudaMemcpyAsync(values, s.padded.data(), bytes, cudaMemcpyDeviceToDevice, stream));
+}
+
+void NcclCommunicator::all_gather(const float* mine, float* all, size_t count,
+                                  cudaStream_t stream) {
+  const State& s = *state_;
+  s.check(s.library.api.all_gather(mine, all, count, ncclFloat, s.comm, stream), "ncclAllGather");
+}
+
+void NcclCommunicator::all_gather(const double* mine, double* all, size_t count,
+                                  cudaStream_t stream) {
+  const State& s = *state_;
+  s.check(s.library.api.all_gather(mine, all, count, ncclDouble, s.comm, stream), "ncclAllGather");
+}
+
+// ---- the gradients ----
+
+NcclGradientSum::NcclGradientSum(NcclCommunicator& communicator, cudaStream_t compute)
+    : communicator_(communicator), compute_(compute) {}
+
+void NcclGradientSum::begin(float* values, int64_t n) {
+  if (n == 0) return;
+  const auto R = static_cast<size_t>(communicator_.size());
+  const size_t chunk = (static_cast<size_t>(n) + R - 1) / R;
+  if (padded_.size() < R * chunk) {
+    PS_CUDA_CHECK(cudaStreamSynchronize(stream_.get()));  // earlier pieces use the scratch
+    padded_ = cuda::DeviceBuffer<float>(R * chunk);
+    chunks_ = cuda::DeviceBuffer<float>(R * chunk);
+  }
+  PS_CUDA_CHECK(cudaEventRecord(reached_.get(), compute_));
+  PS_CUDA_CHECK(cudaStreamWaitEvent(stream_.get(), reached_.get(), 0));
+  cudaStream_t stream = stream_.get();
+  const size_t bytes = static_cast<size_t>(n) * sizeof(float);
+  PS_CUDA_CHECK(cudaMemsetAsync(padded_.data(), 0, R * chunk * sizeof(float), stream));
+  PS_CUDA_CHECK(cudaMemcpyAsync(padded_.data(), values, bytes, cudaMemcpyDeviceToDevice, stream));
+  // Chunk p of this replica to replica p; chunk `rank` of replica p into row p of chunks.
+  communicator_.exchange_chunks(padded_.data(), chunks_.data(), chunk, stream);
+  float* mine = padded_.data() + static_cast<size_t>(communicator_.rank()) * chunk;
+  cuda::sum_replica_chunks(chunks_.data(), communicator_.size(), static_cast<int64_t>(chunk), mine,
+                           stream);
+  communicator_.all_gather(mine, padded_.data(), chunk, stream);
+  PS_CUDA_CHECK(cudaMemcpyAsync(values, padded_.data(), bytes, cudaMemcpyDeviceToDevice, stream));
 }
 
 void NcclGradientSum::end() {
-  State& s = *state_;
-  PS_CUDA_CHECK(cudaEventRecord(s.summed.get(), s.stream.get()));
-  PS_CUDA_CHECK(cudaStreamWaitEvent(s.compute, s.summed.get(), 0));
+  PS_CUDA_CHECK(cudaEventRecord(summed_.get(), stream_.get()));
+  PS_CUDA_CHECK(cudaStreamWaitEvent(compute_, summed_.get(), 0));
+}
+
+// ---- the BatchNorm statistics ----
+
+NcclStatisticsSum::NcclStatisticsSum(NcclCommunicator& communicator, Replicas& replicas)
+    : communicator_(communicator), replicas_(replicas) {}
+
+void NcclStatisticsSum::sum(double* values, int64_t n) {
+  replicas_.sum(values, n);
+}
+
+double* NcclStatisticsSum::scratch(int64_t n) {
+  if (scratch_.size() < static_cast<size_t>(n)) {
+    PS_CUDA_CHECK(cudaDeviceSynchronize());
+    scratch_ = cuda::DeviceBuffer<double>();  // freed first: its values are scratch
+    scratch_ = cuda::DeviceBuffer<double>(static_cast<size_t>(n));
+  }
+  return scratch_.data();
+}
+
+void NcclStatisticsSum::sum(double* values, int64_t n, cudaStream_t stream) {
+  if (n == 0) return;
+  const auto R = static_cast<size_t>(communicator_.size());
+  const auto count = static_cast<size_t>(n);
+  if (gathered_.size() < R * count) {
+    PS_CUDA_CHECK(cudaDeviceSynchronize());  // earlier sums may still use it
+    gathered_ = cuda::DeviceBuffer<double>();
+    gathered_ = cuda::DeviceBuffer<double>(R * count);
+  }
+  communicator_.all_gather(values, gathered_.data(), count, stream);
+  cuda::sum_replica_chunks(gathered_.data(), communicator_.size(), n, values, stream);
 }
 
 }  // namespace pillarseg
