@@ -318,11 +318,11 @@ void BM_Conv2dForwardHalf(benchmark::State& state, const ConvLayer& l, cuda::Hal
 // The flipped 16-bit weights of the input gradients, in halves: (I, Kp(O k k)) for a convolution,
 // (I, Kp(4 O)) for the transposed 2x2, as CudaBackend's 16-bit backward sizes them.
 std::int64_t data_weight_halves(const cuda::Conv2dShape& s) {
-  return s.in_channels * cuda::mma_padded_k(s.out_channels * s.kernel * s.kernel);
+  return s.in_channels * op::half16_weight_k(s.out_channels, s.kernel * s.kernel);
 }
 
 std::int64_t data_weight_halves(const cuda::ConvTranspose2dShape& s) {
-  return s.in_channels * cuda::mma_padded_k(4 * s.out_channels);
+  return s.in_channels * op::half16_weight_k(s.out_channels, 4);
 }
 
 // The training gradients on the tensor cores, timed as a 16-bit training step runs them: the
