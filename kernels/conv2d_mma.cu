@@ -65,12 +65,14 @@ struct ConvGemm {
 template <int BN>
 struct ConvTile {
   static constexpr int kM = 128, kN = BN, kK = 32, kThreads = 128, kStages = 3;
-  static constexpr int kWarpN = BN / 2;
-  static constexpr int kFragsM = 4, kFragsN = kWarpN / 8;  // m16 and n8 fragments of a warp
-  static constexpr int kPitch = kK + 8;                    // 80-byte rows
+  // A warp's kWarpM x kWarpN: kFragsM m16 by kFragsN n8 fragments.
+  static constexpr int kWarpM = 64, kWarpN = BN / 2;
+  static constexpr int kFragsM = kWarpM / 16, kFragsN = kWarpN / 8;
+  static constexpr int kPitch = kK + 8;  // 80-byte rows
   static constexpr int kStageElements = (kM + kN) * kPitch;
   static constexpr std::size_t kSharedBytes = std::size_t{kStages} * kStageElements * 2;
   static_assert(kM == kThreads, "a thread stages one pixel's row of A");
+  static_assert(2 * kWarpM == kM && kThreads == 4 * 32, "four warps, 2 x 2 over the tile");
 };
 
 // The 16-bit bits of an activation: rounded from FP32, or as stored.
@@ -154,16 +156,16 @@ __device__ __forceinline__ void issue_weights(const ConvStage<Tile>& s, const st
 // k 0-7), (n 8-15, k 8-15)), and 4 kFragsN mma.sync.
 template <Half16 H, class Tile>
 __device__ __forceinline__ void compute_stage(const ConvStage<Tile>& s,
-                                              float (&acc)[4][Tile::kFragsN][4], int warp_m,
-                                              int warp_n, int lane) {
+                                              float (&acc)[Tile::kFragsM][Tile::kFragsN][4],
+                                              int warp_m, int warp_n, int lane) {
   const int j = lane / 8, r = lane % 8;
 #pragma unroll
   for (int kk = 0; kk < Tile::kK; kk += 16) {
-    std::uint32_t a[4][4], b[Tile::kFragsN][2];
+    std::uint32_t a[Tile::kFragsM][4], b[Tile::kFragsN][2];
 #pragma unroll
-    for (int mt = 0; mt < 4; ++mt) {
+    for (int mt = 0; mt < Tile::kFragsM; ++mt) {
       // Matrices (pixels 0-7, k 0-7), (8-15, 0-7), (0-7, 8-15), (8-15, 8-15): a0..a3.
-      const int row = warp_m * 64 + mt * 16 + lane % 16;
+      const int row = warp_m * Tile::kWarpM + mt * 16 + lane % 16;
       ldmatrix_x4<false>(a[mt], s.a + row * Tile::kPitch + kk + (lane / 16) * 8);
     }
 #pragma unroll
@@ -175,7 +177,7 @@ __device__ __forceinline__ void compute_stage(const ConvStage<Tile>& s,
             b[2 * np + 1][1] = regs[3];
     }
 #pragma unroll
-    for (int mt = 0; mt < 4; ++mt)
+    for (int mt = 0; mt < Tile::kFragsM; ++mt)
 #pragma unroll
       for (int nt = 0; nt < Tile::kFragsN; ++nt)
         mma_m16n8k16<H>(acc[mt][nt], a[mt], b[nt], acc[mt][nt]);
@@ -211,9 +213,9 @@ __global__ void __launch_bounds__(Tile::kThreads, 2)
       row[q] = make_uint4(words[4 * q], words[4 * q + 1], words[4 * q + 2], words[4 * q + 3]);
   };
 
-  float acc[4][Tile::kFragsN][4];
+  float acc[Tile::kFragsM][Tile::kFragsN][4];
 #pragma unroll
-  for (int mt = 0; mt < 4; ++mt)
+  for (int mt = 0; mt < Tile::kFragsM; ++mt)
 #pragma unroll
     for (int nt = 0; nt < Tile::kFragsN; ++nt)
 #pragma unroll
@@ -237,7 +239,7 @@ __global__ void __launch_bounds__(Tile::kThreads, 2)
     __syncthreads();  // ... and every thread's, and its pixels; the oldest stage is free
     const std::int64_t next = step + Tile::kStages - 1;
     const ConvStage<Tile> next_stage(shared, static_cast<int>(next % Tile::kStages));
-    std::uint32_t words[16];
+    std::uint32_t words[16] = {};  // loaded and stored under the same condition
     if (next < steps) {
       pixel.template load_next<H>(g, words);
       issue_weights(next_stage, w16, g, n0, next * Tile::kK, tid);
@@ -251,10 +253,10 @@ __global__ void __launch_bounds__(Tile::kThreads, 2)
   // Epilogue: accumulator i of (mt, nt) is D[row group + 8 (i >= 2)][column 2 t + (i & 1)].
   const int group = lane / 4, t = lane % 4;
 #pragma unroll
-  for (int mt = 0; mt < 4; ++mt) {
+  for (int mt = 0; mt < Tile::kFragsM; ++mt) {
 #pragma unroll
     for (int half = 0; half < 2; ++half) {
-      const std::int64_t row = m0 + warp_m * 64 + mt * 16 + group + 8 * half;
+      const std::int64_t row = m0 + warp_m * Tile::kWarpM + mt * 16 + group + 8 * half;
       if (row >= rows) continue;
       const std::int64_t img = row / pixels_per_image, px = row % pixels_per_image;
       const std::int64_t py = px / g.out_width, pxx = px % g.out_width;

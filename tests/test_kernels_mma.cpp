@@ -174,11 +174,14 @@ TEST(Mma, CpAsyncGroupsLandAtTheirWait) {
         const std::uint32_t landed =
             s == 1 ? 0u : source[static_cast<size_t>((s * 32 + lane) * 4 + w)];
         const std::uint32_t after_first = got[static_cast<size_t>(lane * 24 + s * 4 + w)];
-        if (s == 0) EXPECT_EQ(after_first, landed) << "lane " << lane << " stage 0 after wait<2>";
+        if (s == 0) {
+          EXPECT_EQ(after_first, landed) << "lane " << lane << " stage 0 after wait<2>";
+        }
 #if defined(PILLARSEG_CUDA_EMULATION)
-        if (s > 0)
+        if (s > 0) {
           EXPECT_EQ(after_first, 0xDEADBEEFu)
               << "lane " << lane << " stage " << s << " before its wait";
+        }
 #endif
         EXPECT_EQ(got[static_cast<size_t>(lane * 24 + 12 + s * 4 + w)], landed)
             << "lane " << lane << " stage " << s << " after wait<0>";

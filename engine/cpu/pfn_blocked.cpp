@@ -211,8 +211,8 @@ void pfn_backward(const Ref& points, const Ref& weight, const BatchNormRefs& bn,
   // The routed rows' sums: g = dout(p, c) at row (p, argmax(p, c)) of every pillar's block.
   std::vector<double> g_parts(static_cast<size_t>(blocks * C), 0.0),
       g_xhat_parts(g_parts.size(), 0.0);
-  std::vector<int64_t> bad_slot(static_cast<size_t>(blocks),
-                                -1);  // per block, its first bad (p, c)
+  // Per block, the first (p, c) whose argmax is no slot, p C + c, or -1.
+  std::vector<int64_t> bad_slot(static_cast<size_t>(blocks), -1);
   for_each_block(d, points, weight,
                  [&](int64_t b, int64_t p0, int64_t p1, const Points&, const RowMatrix& z) {
                    double* sum_g = g_parts.data() + b * C;
