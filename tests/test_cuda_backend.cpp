@@ -977,3 +977,68 @@ TEST(CudaBackendPrecision, HalfEvaluationTracksFp32) {
         << e.what();
   }
 }
+
+// The evaluation forward prepares its 16-bit weights once (into tensors of its plan that persist)
+// and again only when the parameters change: a second forward runs no preparation and gives the
+// same logits, also when replayed from the recorded graph; after a training step (Adam writing
+// through values()), an upload of one tensor, or a precision change, the logits are those of a
+// fresh model holding the same parameters.
+TEST(CudaBackendPrecision, PreparedWeightsFollowTheParameters) {
+  const ModelConfig c = tiny_config(OccupancyInput::Observability2D, /*transposed=*/true);
+  const TinyData d = tiny_data(c, 1, 31, 0.4);
+  CudaBackend backend;
+  const auto fresh_logits = [&](const PillarSegNet& like, Precision precision) {
+    PillarSegNet fresh(c, backend, 99);
+    fresh.parameters().copy_values_from(like.parameters());
+    fresh.set_precision(precision);
+    fresh.forward(d.batch, false);
+    return fresh.download_logits();
+  };
+  PillarSegNet net(c, backend, 3);
+  net.set_precision(Precision::BF16);
+  net.set_op_timing(true);  // runs the nodes one by one (no recording) and counts them
+  net.forward(d.batch, false);
+  const int64_t preparations = net.op_times().at("16-bit weights").calls;
+  EXPECT_GT(preparations, 0);
+  const Tensor<float> first = net.download_logits();
+  net.forward(d.batch, false);
+  EXPECT_EQ(net.op_times().at("16-bit weights").calls, preparations) << "prepared again, unchanged weights";
+  EXPECT_EQ(net.download_logits(), first);
+  net.set_op_timing(false);
+  net.forward(d.batch, false);  // recorded
+  net.forward(d.batch, false);  // replayed
+  EXPECT_EQ(net.download_logits(), first);
+  EXPECT_EQ(first, fresh_logits(net, Precision::BF16));
+
+  const auto train_step = [&](int64_t step) {
+    net.parameters().zero_grads();
+    net.forward(d.batch, true);
+    net.loss(d.labels, LossKind::CrossEntropy, kCoefficients);
+    net.backward();
+    adam(backend, net.parameters(), step);
+  };
+  train_step(1);  // plans the training step too
+  net.forward(d.batch, false);
+  const Tensor<float> trained_once = net.download_logits();
+  EXPECT_NE(trained_once, first);
+  EXPECT_EQ(trained_once, fresh_logits(net, Precision::BF16));
+  train_step(2);  // nothing planned again: only the parameters' generation tells
+  net.forward(d.batch, false);  // replayed after a preparation outside the recording
+  const Tensor<float> trained = net.download_logits();
+  EXPECT_NE(trained, trained_once);
+  EXPECT_EQ(trained, fresh_logits(net, Precision::BF16));
+
+  const int conv = net.parameters().find("segmentation_head.down1.maxpool_conv.1.double_conv.0.weight");
+  ASSERT_GE(conv, 0);
+  Tensor<float> doubled = net.parameters().download(conv);
+  for (int64_t i = 0; i < doubled.numel(); ++i) doubled.data()[i] *= 2.0f;
+  net.parameters().upload(conv, doubled);
+  net.forward(d.batch, false);
+  const Tensor<float> uploaded = net.download_logits();
+  EXPECT_NE(uploaded, trained);
+  EXPECT_EQ(uploaded, fresh_logits(net, Precision::BF16));
+
+  net.set_precision(Precision::F16);
+  net.forward(d.batch, false);
+  EXPECT_EQ(net.download_logits(), fresh_logits(net, Precision::F16));
+}

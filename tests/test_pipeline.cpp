@@ -195,9 +195,11 @@ std::unique_ptr<ScanSegmenter> cpu_segmenter(const ModelConfig& c, bool mask) {
   return std::make_unique<ScanSegmenter>(c, make_cpu_reference_backend(), o, /*seed=*/7);
 }
 
-std::unique_ptr<ScanSegmenter> cuda_segmenter(const ModelConfig& c, bool mask, bool graphs = true) {
+std::unique_ptr<ScanSegmenter> cuda_segmenter(const ModelConfig& c, bool mask, bool graphs = true,
+                                              Precision precision = Precision::F32) {
   SegmenterOptions o;
   o.mask_unobserved = mask;
+  o.precision = precision;
   CudaBackendOptions options;
   options.graphs = graphs;
   return std::make_unique<ScanSegmenter>(c, std::make_unique<CudaBackend>(options), o, /*seed=*/7);
@@ -249,6 +251,31 @@ TEST(Segmenter, RecordedGraphEqualsTheDirectRunBitForBit) {
   EXPECT_EQ(counters.graphs_captured, 4);
   EXPECT_EQ(counters.graph_replays, 2);
   EXPECT_EQ(direct->backend().counters().graphs_captured, 0);
+}
+
+// The 16-bit weights are prepared outside the recorded graph, once: after the weights change,
+// the replayed recording runs on weights prepared again (the same result as a segmenter that
+// records nothing).
+TEST(Segmenter, ReplayedBf16FollowsChangedWeights) {
+  const ModelConfig c = pipeline_config(kVariants[0]);
+  auto graphed = cuda_segmenter(c, false, /*graphs=*/true, Precision::BF16);
+  auto direct = cuda_segmenter(c, false, /*graphs=*/false, Precision::BF16);
+  const std::vector<Point> points = test::random_scan(1500, c.grid, 700);
+  const Segmented before = segment(*graphed, points);  // records
+  EXPECT_EQ(segment(*graphed, points).probabilities, before.probabilities);  // replays
+  EXPECT_EQ(segment(*direct, points).probabilities, before.probabilities);
+  for (ScanSegmenter* s : {graphed.get(), direct.get()}) {
+    ParameterSet& ps = s->net().parameters();
+    const int conv = ps.find("segmentation_head.up1.conv.double_conv.3.weight");
+    ASSERT_GE(conv, 0);
+    Tensor<float> w = ps.download(conv);
+    for (int64_t i = 0; i < w.numel(); ++i) w.data()[i] = -w.data()[i];
+    ps.upload(conv, w);
+  }
+  const Segmented after = segment(*graphed, points);  // replays
+  EXPECT_EQ(graphed->backend().counters().graph_replays, 2);
+  EXPECT_NE(after.probabilities, before.probabilities);
+  EXPECT_EQ(after.probabilities, segment(*direct, points).probabilities);
 }
 
 TEST(Segmenter, SteadyStateAllocatesNothingAndMovesOnlyPointsAndLabels) {

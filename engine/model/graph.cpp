@@ -181,8 +181,8 @@ size_t Graph::plan() {
   for (size_t id = 0; id < n; ++id) {
     const GraphTensor& t = tensors_[id];
     std::pair<int, int>& life = lifetimes_[static_cast<size_t>(root(static_cast<int>(id)))];
-    if (t.input) life.first = -1;
-    if (t.output) life.second = kAlive;
+    if (t.input || t.persistent) life.first = -1;
+    if (t.output || t.persistent) life.second = kAlive;
   }
   std::vector<size_t> order;
   for (size_t id = 0; id < n; ++id) {

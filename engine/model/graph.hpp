@@ -3,7 +3,8 @@
 // op's shape function (core/ops.hpp). PillarSegNet builds one graph for the evaluation forward
 // and one for the training step (forward, loss, backward); everything else reads these lists:
 //   - the lifetime planner (plan()): every planned tensor lives from the first node that touches
-//     it to the last (or to the end, for outputs), and tensors whose lifetimes are disjoint share
+//     it to the last (or to the end, for outputs; the whole graph, for persistent tensors such as
+//     the evaluation's prepared 16-bit weights), and tensors whose lifetimes are disjoint share
 //     bytes (greedy by size, lowest offset that overlaps no tensor alive at the same time); views
 //     lie inside another tensor and share its lifetime; external tensors (parameters, gradients)
 //     are bound by the model;
@@ -50,8 +51,9 @@ enum class OpKind {
   PadConcatBackward,  // r: dy | w: dskip, dup
   AddInplace,         // r: a, b | w: a
   Loss,               // r: logits, labels, coefficients | w: dlogits
-  // Mixed precision (eval): 16-bit weights prepared from the FP32 parameters on every run, then
-  // the tensor-core convolution.
+  // Mixed precision: 16-bit weights prepared from the FP32 parameters (in the evaluation forward
+  // into persistent tensors, again only when the parameters changed), then the tensor-core
+  // convolution.
   PrepareConvWeights,           // r: w, bias, BatchNorm | w: w16, bias_out
   PrepareConvTransposeWeights,  // r: w, bias | w: w16, bias_out
   Conv2dHalf,                   // r: x, w16, bias_out | w: y (relu: + ReLU)
@@ -80,6 +82,7 @@ struct GraphTensor {
   bool gradient = false;
   bool input = false;         // written before the graph runs (an upload): alive from the start
   bool output = false;        // read after the graph ran: alive to the end
+  bool persistent = false;    // kept from one run to the next: alive from the start to the end
   bool dynamic_rows = false;  // dim 0 is the pillar rows of the current batch (planned: capacity)
   size_t offset = 0;          // planned: bytes into the block
   size_t bytes() const { return static_cast<size_t>(shape_numel(shape)) * dtype_bytes(dtype); }

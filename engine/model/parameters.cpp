@@ -73,6 +73,11 @@ int ParameterSet::find(const std::string& name) const {
 }
 
 Ref ParameterSet::value(int index) {
+  mark_changed();
+  return graph_value(index);
+}
+
+Ref ParameterSet::graph_value(int index) const {
   const ParamEntry& e = entries_.at(static_cast<size_t>(index));
   return {(e.trainable ? values_.data : buffers_.data) + e.offset, e.shape};
 }
@@ -137,6 +142,7 @@ void ParameterSet::upload(int index, const Tensor<float>& t) {
            shape_str(e.shape));
   float* dst = (e.trainable ? values_.data : buffers_.data) + e.offset;
   backend_.upload(dst, t.data(), static_cast<size_t>(t.numel()) * sizeof(float));
+  mark_changed();
 }
 
 void ParameterSet::copy_values_from(const ParameterSet& other) {
@@ -167,6 +173,7 @@ void ParameterSet::upload_flat(const Ref& r, const std::vector<float>& data) {
   PS_CHECK(static_cast<int64_t>(data.size()) == r.numel(), "flat parameter array has {} values, expected {}",
            data.size(), r.numel());
   if (!data.empty()) backend_.upload(r.data, data.data(), r.bytes());
+  mark_changed();
 }
 
 void ParameterSet::zero_grads() {

@@ -39,9 +39,26 @@ class ParameterSet {
   // 1/sqrt(fan_in)) (PyTorch's default for Linear/Conv), constants elsewhere.
   void finalize(uint64_t seed);
 
+  // The memory of a value, of all trainable values (flat) and of all buffers, to read or to write:
+  // each call counts as a change (see generation()).
   Ref value(int index);
-  Ref values() const { return values_; }  // all trainable values (flat)
-  Ref buffers() const { return buffers_; }
+  Ref values() const {
+    mark_changed();
+    return values_;
+  }
+  Ref buffers() const {
+    mark_changed();
+    return buffers_;
+  }
+  // Which values and buffers the set holds: it changes whenever they may have changed (finalize(),
+  // every upload, every call of value(), values() or buffers(), which hand out memory a caller
+  // may write), so that what a model derives from them (the evaluation's prepared 16-bit weights)
+  // is made again. Code that keeps such a Ref and writes through it later calls mark_changed().
+  uint64_t generation() const { return generation_; }
+  void mark_changed() const { ++generation_; }
+  // value(index) for the model's op graph, without counting as a change: the model marks the
+  // changes its own nodes make (a training forward's running statistics).
+  Ref graph_value(int index) const;
   // Gradients and Adam moments (flat, num_trainable()), allocated and zero-filled on the first
   // call that asks for them.
   Ref grad(int index);
@@ -92,6 +109,7 @@ class ParameterSet {
   void *value_block_ = nullptr, *grad_block_ = nullptr, *moment_block_ = nullptr;
   size_t value_bytes_ = 0, grad_bytes_ = 0, moment_bytes_ = 0;
   Ref values_, grads_, m_, v_, buffers_;
+  mutable uint64_t generation_ = 0;
   bool finalized_ = false;
 };
 

@@ -108,6 +108,11 @@ struct PillarSegNet::Impl {
   // The resolved outputs of the current plan.
   Ref logits, d_logits, probs, coefficients;
   LRef labels, predicted;
+  // The evaluation plan's prepared 16-bit weights (its persistent tensors) are those of the
+  // parameters at generation prepared_parameters, in the plan of memory generation
+  // prepared_memory (-1: none prepared).
+  uint64_t prepared_parameters = 0;
+  int64_t prepared_memory = -1;
   // The evaluation forward recorded as a graph (backends with supports_capture()), valid until
   // the next re-plan; cells (capacity, 3) of -1, the padding rows' cells (outside every canvas).
   std::unique_ptr<CapturedGraph> eval_graph;
@@ -141,6 +146,7 @@ class Builder {
     const Shape w_shape = shape(w);
     const int w16 = g_.tensor(name + ".w16", op::half16_conv_weights(w_shape, false), DType::U16);
     const int b16 = g_.tensor(name + ".bias16", {w_shape[0]});
+    keep_prepared(w16, b16);
     GraphNode& prep = node(OpKind::PrepareConvWeights, name, {w, b, w16, b16}, {w, b}, {w16, b16});
     prep.batchnorm = bn;
     GraphNode& n = node(OpKind::Conv2dHalf, name, {x, w16, b16, y}, {x, w16, b16}, {y});
@@ -154,10 +160,17 @@ class Builder {
     const Shape w_shape = shape(w);
     const int w16 = g_.tensor(name + ".w16", op::half16_conv_weights(w_shape, true), DType::U16);
     const int b16 = g_.tensor(name + ".bias16", {4 * w_shape[1]});
+    keep_prepared(w16, b16);
     node(OpKind::PrepareConvTransposeWeights, name, {w, b, w16, b16}, {w, b}, {w16, b16});
     GraphNode& n = node(OpKind::ConvTranspose2x2Half, name, {x, w16, b16, y}, {x, w16, b16}, {y});
     n.weight = w_shape;
     n.flops = op::conv_transpose2x2_flops(shape(x), w_shape);
+  }
+
+  // The evaluation forward's prepared weights persist from run to run (PillarSegNet::run prepares
+  // them again only when the parameters changed); training prepares them every step.
+  void keep_prepared(int w16, int b16) {
+    if (!training_) g_.at(w16).persistent = g_.at(b16).persistent = true;
   }
 
   int param(int index) { return index < 0 ? -1 : g_.parameter(index, ps_.entries()[static_cast<size_t>(index)].shape, false); }
@@ -662,7 +675,7 @@ RefT<T> PillarSegNet::bind(const GraphPlan& p, int id) {
   Shape shape = t.shape;
   if (t.dynamic_rows) shape[0] = impl_->pillar_rows;
   if (t.parameter >= 0) {
-    const Ref r = t.gradient ? params_.grad(t.parameter) : params_.value(t.parameter);
+    const Ref r = t.gradient ? params_.grad(t.parameter) : params_.graph_value(t.parameter);
     return typed<T>(r.data, std::move(shape));
   }
   size_t offset = 0;
@@ -677,10 +690,10 @@ RefT<T> PillarSegNet::bind(const GraphPlan& p, int id) {
 BatchNormRefs PillarSegNet::batchnorm_refs(const GraphPlan& p, const GraphNode& n, int save_mean, int save_invstd) {
   const BnParams& b = impl_->bns[static_cast<size_t>(n.batchnorm)];
   BatchNormRefs r;
-  r.gamma = params_.value(b.gamma);
-  r.beta = params_.value(b.beta);
-  r.running_mean = params_.value(b.mean);
-  r.running_var = params_.value(b.var);
+  r.gamma = params_.graph_value(b.gamma);
+  r.beta = params_.graph_value(b.beta);
+  r.running_mean = params_.graph_value(b.mean);
+  r.running_var = params_.graph_value(b.var);
   r.save_mean = bind<float>(p, save_mean);
   r.save_invstd = bind<float>(p, save_invstd);
   r.eps = b.eps;
@@ -689,8 +702,18 @@ BatchNormRefs PillarSegNet::batchnorm_refs(const GraphPlan& p, const GraphNode& 
   return r;
 }
 
-// Runs nodes [begin, end) of plan p on the backend (the loss node returns its value).
-double PillarSegNet::execute(const GraphPlan& p, size_t begin, size_t end) {
+namespace {
+
+bool prepares_weights(OpKind op) {
+  return op == OpKind::PrepareConvWeights || op == OpKind::PrepareConvTransposeWeights;
+}
+
+}  // namespace
+
+// Runs nodes [begin, end) of plan p on the backend (the loss node returns its value). In the
+// evaluation plan the weight preparations run only with prepared_weights_only, which runs nothing
+// else (refresh_prepared_weights()).
+double PillarSegNet::execute(const GraphPlan& p, size_t begin, size_t end, bool prepared_weights_only) {
   Impl& m = *impl_;
   Backend& be = backend_;
   ParameterSet& ps = params_;
@@ -715,6 +738,10 @@ double PillarSegNet::execute(const GraphPlan& p, size_t begin, size_t end) {
   };
   for (size_t i = begin; i < end; ++i) {
     const GraphNode& n = nodes[i];
+    if (&p == &m.eval && prepares_weights(n.op) != prepared_weights_only) {
+      if (time_stages_ && (i + 1 == end || nodes[i + 1].stage != n.stage)) lap(n.stage);
+      continue;
+    }
     const double op_start = time_ops_ ? be.clock_ms() : 0.0;
     const auto& a = n.args;
     const auto f = [&](size_t k) { return bind<float>(p, a[k]); };
@@ -1105,6 +1132,9 @@ void PillarSegNet::forward(const ModelBatch& batch, bool training) {
     run(training);
     return;
   }
+  // The weights are prepared outside the recording, which so holds none, and only when they
+  // changed.
+  refresh_prepared_weights();
   if (!m.eval_graph || !m.eval_graph->valid()) m.eval_graph = be.capture([&] { run(false); });
   m.eval_graph->replay();
 }
@@ -1117,7 +1147,21 @@ void PillarSegNet::run(bool training) {
   stage_times_ = StageTimes{};
   m.loss_gradient_ready = false;
   run_started_ms_ = time_stages_ ? backend_.clock_ms() : 0.0;
+  if (training) {
+    params_.mark_changed();  // the BatchNorms' running statistics
+  } else {
+    refresh_prepared_weights();
+  }
   execute(*m.current, 0, m.current->forward_end);
+}
+
+void PillarSegNet::refresh_prepared_weights() {
+  Impl& m = *impl_;
+  if (!m.eval.built()) return;
+  if (m.prepared_memory == m.memory_generation && m.prepared_parameters == params_.generation()) return;
+  execute(m.eval, 0, m.eval.forward_end, /*prepared_weights_only=*/true);
+  m.prepared_memory = m.memory_generation;
+  m.prepared_parameters = params_.generation();
 }
 
 void PillarSegNet::queue_predictions(bool probabilities) {

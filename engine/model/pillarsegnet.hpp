@@ -110,6 +110,12 @@ class PillarSegNet {
   };
   Inputs prepare(int batch, int64_t pillar_rows, bool training);
   void run(bool training);
+  // Queues the evaluation plan's weight preparation (the 16-bit weights, BatchNorm folded in, of
+  // a mixed-precision plan, kept in the plan from run to run) when the parameters
+  // (ParameterSet::generation()) or the plan changed since it last ran; run(false) calls it
+  // first. A caller that replays a recorded evaluation forward calls it before each replay: a
+  // recording made while the weights were current holds no preparation.
+  void refresh_prepared_weights();
   // Changes whenever the model moves memory that its Refs (inputs, activations, outputs) name.
   int64_t memory_generation() const;
 
@@ -168,7 +174,7 @@ class PillarSegNet {
   template <class T>
   RefT<T> bind(const GraphPlan& p, int id);
   BatchNormRefs batchnorm_refs(const GraphPlan& p, const GraphNode& n, int save_mean, int save_invstd);
-  double execute(const GraphPlan& p, size_t begin, size_t end);
+  double execute(const GraphPlan& p, size_t begin, size_t end, bool prepared_weights_only = false);
 
   ModelConfig config_;
   Backend& backend_;

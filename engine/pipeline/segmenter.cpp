@@ -93,6 +93,7 @@ void ScanSegmenter::segment(std::span<const Point> points, uint8_t* labels, floa
     const bool current = r.graph && r.graph->valid() && r.buffer_generation == pipeline_.buffer_generation() &&
                          r.model_generation == net_->memory_generation();
     if (current) {
+      net_->refresh_prepared_weights();  // the recording holds no weight preparation
       r.graph->replay();
     } else {
       // Once uncaptured: every buffer and workspace grows to this capacity (and this scan's
