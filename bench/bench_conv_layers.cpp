@@ -144,10 +144,19 @@ void BM_Conv3x3(benchmark::State& state, const Layer& l) {
   HRef w16_ref{w16.data(), op::half16_conv_weights(weight, false)}, x16_ref{x16.data(), x.shape()};
   Ref bias16_ref{bias16.data(), {l.out}};
   cpu::Bf16WinogradWorkspace bf16_workspace;
+  // And the Winograd-transformed weights, made once with them (as the model does) for each
+  // kernel set.
+  std::vector<uint16_t> u_avx512, u_amx;
   if (bf16) {
     cpu::prepare_conv_weights(Ref{w.data(), weight}, &bias_ref, nullptr, Precision::BF16, w16_ref,
                               bias16_ref);
     cpu::to_half(Ref{const_cast<float*>(x.data()), x.shape()}, Precision::BF16, x16_ref);
+    u_avx512.resize(static_cast<size_t>(cpu::winograd_weight_elements(cpu::Bf16Kernels::Avx512, weight)));
+    cpu::winograd_transform_weights(cpu::Bf16Kernels::Avx512, w16_ref, weight, u_avx512.data());
+  }
+  if (amx) {
+    u_amx.resize(static_cast<size_t>(cpu::winograd_weight_elements(cpu::Bf16Kernels::Amx, weight)));
+    cpu::winograd_transform_weights(cpu::Bf16Kernels::Amx, w16_ref, weight, u_amx.data());
   }
   if (options().peer && !conv_peer() && g_layer_peer_note.empty()) {
     conv_peer().emplace(std::vector<std::string>{"--case", "conv3x3"});
@@ -172,8 +181,8 @@ void BM_Conv3x3(benchmark::State& state, const Layer& l) {
     });
     if (amx) {
       time_once(r.amx_winograd, [&] {
-        cpu::conv3x3_winograd_forward(cpu::Bf16Kernels::Amx, x16_ref, w16_ref, bias16_ref, weight, false,
-                                      ActRef{y16.data(), y.shape(), true}, bf16_workspace);
+        cpu::conv3x3_winograd_forward(cpu::Bf16Kernels::Amx, x16_ref, w16_ref, u_amx.data(), bias16_ref, weight,
+                                      false, ActRef{y16.data(), y.shape(), true}, bf16_workspace);
         benchmark::DoNotOptimize(y16.data());
       });
     }
@@ -184,8 +193,8 @@ void BM_Conv3x3(benchmark::State& state, const Layer& l) {
         benchmark::DoNotOptimize(y16.data());
       });
       time_once(r.bf16_winograd, [&] {
-        cpu::conv3x3_winograd_forward(cpu::Bf16Kernels::Avx512, x16_ref, w16_ref, bias16_ref, weight, false,
-                                      ActRef{y16.data(), y.shape(), true}, bf16_workspace);
+        cpu::conv3x3_winograd_forward(cpu::Bf16Kernels::Avx512, x16_ref, w16_ref, u_avx512.data(), bias16_ref,
+                                      weight, false, ActRef{y16.data(), y.shape(), true}, bf16_workspace);
         benchmark::DoNotOptimize(y16.data());
       });
     }

@@ -201,7 +201,7 @@ TEST(CpuBf16Amx, AvailabilityAndTheNativeChoiceAgree) {
   cpu::Bf16WinogradWorkspace workspace;
   try {
     cpu::conv3x3_winograd_forward(Bf16Kernels::Amx, HRef{x.data(), {1, 2, 4, 4}},
-                                  HRef{w16.data(), {2, 9 * 32}}, Ref{bias.data(), {2}},
+                                  HRef{w16.data(), {2, 9 * 32}}, nullptr, Ref{bias.data(), {2}},
                                   {2, 2, 3, 3}, false, ActRef{y.data(), {1, 2, 4, 4}, false},
                                   workspace);
     FAIL() << "the AMX kernels where the CPU lacks them must throw";
@@ -615,9 +615,19 @@ TEST_P(CpuBf16Winograd, MatchesTheDoubleReference) {
                                std::to_string(threads) + " threads";
       Guarded y(static_cast<std::int64_t>(ref.size()), c.y_bf16 ? 2 : 4);
       cpu::Bf16WinogradWorkspace workspace;
-      cpu::conv3x3_winograd_forward(kernels, x_ref, w16_ref, bias_out_ref, weight, c.relu,
+      cpu::conv3x3_winograd_forward(kernels, x_ref, w16_ref, nullptr, bias_out_ref, weight, c.relu,
                                     ActRef{y.data(), {c.batch, c.out, H, W}, c.y_bf16}, workspace);
       expect_within(ref, bound, y, c.y_bf16, false, what);
+      // The same with the transformed weights made beforehand (as the model makes them once):
+      // the same bits.
+      std::vector<std::uint16_t> u16(
+          static_cast<size_t>(cpu::winograd_weight_elements(kernels, weight)));
+      cpu::winograd_transform_weights(kernels, w16_ref, weight, u16.data());
+      Guarded y_prepared(static_cast<std::int64_t>(ref.size()), c.y_bf16 ? 2 : 4);
+      cpu::conv3x3_winograd_forward(
+          kernels, x_ref, w16_ref, u16.data(), bias_out_ref, weight, c.relu,
+          ActRef{y_prepared.data(), {c.batch, c.out, H, W}, c.y_bf16}, workspace);
+      EXPECT_EQ(y_prepared.bytes, y.bytes) << what << ": with U made beforehand";
       results.emplace_back(kernels, y.bytes);
     }
   }
@@ -751,9 +761,16 @@ TEST(CpuBf16Model, TracksFp32AndTheCudaBackend) {
     const Tensor<float> fp32 = net.download_logits();
     const Tensor<uint8_t> labels32 = net.predict_labels();
     net.set_precision(Precision::BF16);
+    net.set_op_timing(true);
     net.forward(d.batch, false);
     const Tensor<float> bf16_cpu = net.download_logits();
     const Tensor<uint8_t> labels16 = net.predict_labels();
+    // Again: the weights (w16 and the Winograd-transformed U) as prepared the first time.
+    const int64_t preparations = net.op_times().at("16-bit weights").calls;
+    net.forward(d.batch, false);
+    net.set_op_timing(false);
+    EXPECT_EQ(net.op_times().at("16-bit weights").calls, preparations);
+    EXPECT_EQ(net.download_logits(), bf16_cpu);
     const auto nmse = [](const Tensor<float>& a, const Tensor<float>& r) {
       double num = 0, den = 0;
       for (int64_t i = 0; i < r.numel(); ++i) {

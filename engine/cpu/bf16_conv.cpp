@@ -270,34 +270,48 @@ void conv2d_forward(Bf16Kernels kernels, const HRef& x, const HRef& w16, const R
   run_gemm(kernels, g);
 }
 
-void conv3x3_winograd_forward(Bf16Kernels kernels, const HRef& x, const HRef& w16,
-                              const Ref& bias_out, const Shape& weight, bool relu, const ActRef& y,
-                              Bf16WinogradWorkspace& workspace) {
-  const char* op = "CpuBackend::conv2d_half_forward (Winograd)";
-  PS_CHECK(weight.size() == 4 && weight[2] == 3 && weight[3] == 3,
-           "{}: needs a 3 x 3 kernel, got {}", op, shape_str(weight));
-  const Shape y_shape = op::conv2d(x.shape, weight, 1, nullptr, op);
-  require_output(op, y, y_shape);
-  require_shape(op, "w16", w16, op::half16_conv_weights(weight, false));
-  require_shape(op, "bias_out", bias_out, {weight[0]});
-  const bool on_native = native(kernels);
+namespace {
+
+// U's layout: U[p][o][c / 2][c % 2] for the 16 Winograd points p, `rows` output channels and
+// `pairs` input channel pairs; AMX's tiles take 16 channel pairs and 16 output channels at a time,
+// so there U is zero padded to those.
+struct WinogradWeightLayout {
+  std::int64_t pairs, rows;
+  std::int64_t elements() const { return 16 * rows * pairs * 2; }
+};
+
+WinogradWeightLayout winograd_layout(Bf16Kernels kernels, const Shape& weight) {
   const bool amx = kernels == Bf16Kernels::Amx || kernels == Bf16Kernels::AmxEmulated;
-  if (kernels == Bf16Kernels::Amx) {
-    std::string why;
-    PS_CHECK(amx_bf16_available(&why), "BF16 convolutions on AMX tiles: {}", why);
-  }
-  const std::int64_t out = weight[0], in = weight[1], kp = w16.dim(1);
-  // AMX's tiles take 16 channel pairs and 16 output channels at a time: U and V zero padded.
   const auto round_up = [](std::int64_t n, std::int64_t to) { return (n + to - 1) / to * to; };
-  const std::int64_t pairs = amx ? round_up((in + 1) / 2, kAmxPairs) : (in + 1) / 2;
-  const std::int64_t u_rows = amx ? round_up(out, kAmxGroupColumns) : out;
+  const std::int64_t out = weight[0], in = weight[1];
+  return {amx ? round_up((in + 1) / 2, kAmxPairs) : (in + 1) / 2,
+          amx ? round_up(out, kAmxGroupColumns) : out};
+}
+
+void require_3x3(const char* op, const Shape& weight) {
+  PS_CHECK(weight.size() == 4 && weight[2] == 3 && weight[3] == 3, "{}: needs a 3 x 3 kernel, got {}",
+           op, shape_str(weight));
+}
+
+}  // namespace
+
+std::int64_t winograd_weight_elements(Bf16Kernels kernels, const Shape& weight) {
+  require_3x3("winograd_weight_elements", weight);
+  return winograd_layout(kernels, weight).elements();
+}
+
+void winograd_transform_weights(Bf16Kernels kernels, const HRef& w16, const Shape& weight,
+                                std::uint16_t* u) {
+  const char* op = "winograd_transform_weights";
+  require_3x3(op, weight);
+  require_shape(op, "w16", w16, op::half16_conv_weights(weight, false));
+  const std::int64_t out = weight[0], in = weight[1], kp = w16.dim(1);
+  const WinogradWeightLayout l = winograd_layout(kernels, weight);
   // U[p][o][c / 2][c % 2] = (G g G^T)[p] of the prepared BF16 kernel g of (o, c), in double,
   // rounded once; zero for the channels past C (an odd count's partner, AMX's padding) and the
   // rows past O.
-  workspace.u.resize(static_cast<size_t>(16 * u_rows * pairs * 2));
-  std::uint16_t* u = workspace.u.data();
-  parallel_for(u_rows, [&](std::int64_t o) {
-    for (std::int64_t c = 0; c < 2 * pairs; ++c) {
+  parallel_for(l.rows, [&](std::int64_t o) {
+    for (std::int64_t c = 0; c < 2 * l.pairs; ++c) {
       double gg[4][3] = {};  // G g
       if (c < in && o < out) {
         double k[3][3];
@@ -314,12 +328,37 @@ void conv3x3_winograd_forward(Bf16Kernels kernels, const HRef& x, const HRef& w1
         const double row[4] = {gg[i][0], 0.5 * (gg[i][0] + gg[i][1] + gg[i][2]),
                                0.5 * (gg[i][0] - gg[i][1] + gg[i][2]), gg[i][2]};
         for (int j = 0; j < 4; ++j) {
-          u[((static_cast<std::int64_t>(4 * i + j) * u_rows + o) * pairs + c / 2) * 2 + c % 2] =
+          u[((static_cast<std::int64_t>(4 * i + j) * l.rows + o) * l.pairs + c / 2) * 2 + c % 2] =
               EmulatedBf16Isa::float_to_bf16(static_cast<float>(row[j]));
         }
       }
     }
   });
+}
+
+void conv3x3_winograd_forward(Bf16Kernels kernels, const HRef& x, const HRef& w16,
+                              const std::uint16_t* u, const Ref& bias_out, const Shape& weight,
+                              bool relu, const ActRef& y, Bf16WinogradWorkspace& workspace) {
+  const char* op = "CpuBackend::conv2d_half_forward (Winograd)";
+  require_3x3(op, weight);
+  const Shape y_shape = op::conv2d(x.shape, weight, 1, nullptr, op);
+  require_output(op, y, y_shape);
+  require_shape(op, "w16", w16, op::half16_conv_weights(weight, false));
+  require_shape(op, "bias_out", bias_out, {weight[0]});
+  const bool on_native = native(kernels);
+  const bool amx = kernels == Bf16Kernels::Amx || kernels == Bf16Kernels::AmxEmulated;
+  if (kernels == Bf16Kernels::Amx) {
+    std::string why;
+    PS_CHECK(amx_bf16_available(&why), "BF16 convolutions on AMX tiles: {}", why);
+  }
+  const std::int64_t out = weight[0], in = weight[1];
+  const WinogradWeightLayout l = winograd_layout(kernels, weight);
+  const std::int64_t pairs = l.pairs, u_rows = l.rows;
+  if (u == nullptr) {
+    workspace.u.resize(static_cast<size_t>(l.elements()));
+    winograd_transform_weights(kernels, w16, weight, workspace.u.data());
+    u = workspace.u.data();
+  }
   Bf16Winograd g;
   g.x = x.data, g.batch = x.dim(0), g.channels = in, g.height = x.dim(2), g.width = x.dim(3);
   g.channel_pairs = pairs, g.u = u, g.out_channels = out, g.u_rows = u_rows;

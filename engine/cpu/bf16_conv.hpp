@@ -61,11 +61,18 @@ struct Bf16WinogradWorkspace {
 };
 
 // The same convolution for 3 x 3 kernels with pad 1 by Winograd F(2x2, 3x3)
-// (bf16_winograd.hpp): x (B, I, H, W) BF16, the same w16 and bias_out -> y (B, O, H, W). The
-// transformed weights are computed from w16 on every call (w16 is prepared on every run).
+// (bf16_winograd.hpp): x (B, I, H, W) BF16, the same w16 and bias_out -> y (B, O, H, W). `u`:
+// the transformed weights that winograd_transform_weights made from w16 for these kernels, or
+// nullptr to make them here (in the workspace).
 void conv3x3_winograd_forward(Bf16Kernels kernels, const HRef& x, const HRef& w16,
-                              const Ref& bias_out, const Shape& weight, bool relu, const ActRef& y,
-                              Bf16WinogradWorkspace& workspace);
+                              const std::uint16_t* u, const Ref& bias_out, const Shape& weight,
+                              bool relu, const ActRef& y, Bf16WinogradWorkspace& workspace);
+// The Winograd-transformed weights of a 3 x 3 convolution of weight (O, I, 3, 3): U = G g G^T
+// of each prepared BF16 kernel g of w16 (in double, rounded once), laid out for `kernels` (AMX's
+// tiles pad the channel pairs and rows): their element count, and U itself.
+std::int64_t winograd_weight_elements(Bf16Kernels kernels, const Shape& weight);
+void winograd_transform_weights(Bf16Kernels kernels, const HRef& w16, const Shape& weight,
+                                std::uint16_t* u);
 // x (B, I, H, W) BF16 -> y (B, O, 2H, 2W), the transposed 2x2 stride-2 convolution for `weight`
 // (I, O, 2, 2).
 void conv_transpose2x2_forward(Bf16Kernels kernels, const HRef& x, const HRef& w16,

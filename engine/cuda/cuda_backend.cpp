@@ -873,8 +873,9 @@ bool CudaBackend::supports_precision(Precision p, std::string* why_not) const {
 }
 
 void CudaBackend::prepare_conv_weights(const Ref& w, const Ref* bias, const BatchNormRefs* bn, Precision p,
-                                       HRef& w16, Ref& bias_out) {
+                                       HRef& w16, Ref& bias_out, const HRef& transformed) {
   const char* op = "prepare_conv_weights";
+  PS_CHECK(transformed.data == nullptr, "{}: the CUDA backend has no transformed weights", op);
   require_rank(op, "w", w, 4);
   const cuda::Conv2dShape shape{1, w.dim(1), w.dim(2), w.dim(3), w.dim(0), w.dim(2), 0};
   if (bias) require_shape(op, "bias", *bias, {w.dim(0)});
@@ -900,9 +901,10 @@ void CudaBackend::prepare_conv_transpose_weights(const Ref& w, const Ref* bias, 
                                        w16.data, bias_out.data, stream_.get());
 }
 
-void CudaBackend::conv2d_half_forward(const ActRef& x, const HRef& w16, const Ref& bias_out, const Shape& weight,
-                                      int pad, bool relu, Precision p, const ActRef& y) {
+void CudaBackend::conv2d_half_forward(const ActRef& x, const HRef& w16, const HRef& transformed, const Ref& bias_out,
+                                      const Shape& weight, int pad, bool relu, Precision p, const ActRef& y) {
   const char* op = "conv2d_half_forward";
+  PS_CHECK(transformed.data == nullptr, "{}: the CUDA backend has no transformed weights", op);
   const Shape y_shape = op::conv2d(x.shape, weight, pad, nullptr, op);
   PS_CHECK(y.shape == y_shape, "{}: y must be {}, got {}", op, shape_str(y_shape), shape_str(y.shape));
   require_shape(op, "w16", w16, op::half16_conv_weights(weight, false));

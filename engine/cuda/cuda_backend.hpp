@@ -162,11 +162,12 @@ class CudaBackend final : public Backend {
   // BF16 / FP16 evaluation convolutions on the tensor cores (kernels/conv2d_mma.cuh): compute
   // capability 8.0 or later, or the emulation.
   bool supports_precision(Precision p, std::string* why_not = nullptr) const override;
+  // (No transformed form of the weights: prepared_conv_transform_elements is 0.)
   void prepare_conv_weights(const Ref& w, const Ref* bias, const BatchNormRefs* bn, Precision p, HRef& w16,
-                            Ref& bias_out) override;
+                            Ref& bias_out, const HRef& transformed) override;
   void prepare_conv_transpose_weights(const Ref& w, const Ref* bias, Precision p, HRef& w16, Ref& bias_out) override;
-  void conv2d_half_forward(const ActRef& x, const HRef& w16, const Ref& bias_out, const Shape& weight, int pad,
-                           bool relu, Precision p, const ActRef& y) override;
+  void conv2d_half_forward(const ActRef& x, const HRef& w16, const HRef& transformed, const Ref& bias_out,
+                           const Shape& weight, int pad, bool relu, Precision p, const ActRef& y) override;
   void conv_transpose2x2_half_forward(const ActRef& x, const HRef& w16, const Ref& bias_out, const Shape& weight,
                                       Precision p, const ActRef& y) override;
   bool supports_training_precision(Precision p, std::string* why_not) const override;

@@ -59,14 +59,16 @@ bool Backend::supports_precision(Precision p, std::string* why_not) const {
   return false;
 }
 
-void Backend::prepare_conv_weights(const Ref&, const Ref*, const BatchNormRefs*, Precision p, HRef&, Ref&) {
+int64_t Backend::prepared_conv_transform_elements(const Shape&, int, Precision) const { return 0; }
+void Backend::prepare_conv_weights(const Ref&, const Ref*, const BatchNormRefs*, Precision p, HRef&, Ref&,
+                                   const HRef&) {
   PS_FAIL("backend {}: no {} convolutions (supports_precision)", name(), precision_name(p));
 }
 void Backend::prepare_conv_transpose_weights(const Ref&, const Ref*, Precision p, HRef&, Ref&) {
   PS_FAIL("backend {}: no {} convolutions (supports_precision)", name(), precision_name(p));
 }
-void Backend::conv2d_half_forward(const ActRef&, const HRef&, const Ref&, const Shape&, int, bool, Precision p,
-                                  const ActRef&) {
+void Backend::conv2d_half_forward(const ActRef&, const HRef&, const HRef&, const Ref&, const Shape&, int, bool,
+                                  Precision p, const ActRef&) {
   PS_FAIL("backend {}: no {} convolutions (supports_precision)", name(), precision_name(p));
 }
 void Backend::conv_transpose2x2_half_forward(const ActRef&, const HRef&, const Ref&, const Shape&, Precision p,

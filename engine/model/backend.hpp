@@ -243,16 +243,20 @@ class Backend {
   // Whether this backend runs them in `p` (F32 always); else false with the reason in why_not.
   virtual bool supports_precision(Precision p, std::string* why_not = nullptr) const;
   // weight (O, I, k, k) [, bias (O)] [, eval BatchNorm] -> w16 (O, Kp) (op::half16_conv_weights)
-  // rounded to `p` with the
-  // BatchNorm scale multiplied in, bias_out (O) with its shift added.
+  // rounded to `p` with the BatchNorm scale multiplied in, bias_out (O) with its shift added; and
+  // where the backend has one, `transformed`: a form of the same weights of its own (the CPU's
+  // Winograd-transformed U), made here once rather than in every convolution, of
+  // prepared_conv_transform_elements() 16-bit elements (the caller plans it beside w16; data null
+  // when there is none).
+  virtual int64_t prepared_conv_transform_elements(const Shape& weight, int pad, Precision p) const;
   virtual void prepare_conv_weights(const Ref& w, const Ref* bias, const BatchNormRefs* bn, Precision p, HRef& w16,
-                                    Ref& bias_out);
+                                    Ref& bias_out, const HRef& transformed);
   // weight (I, O, 2, 2) [, bias (O)] -> w16 (4 O, Kp), bias_out (4 O).
   virtual void prepare_conv_transpose_weights(const Ref& w, const Ref* bias, Precision p, HRef& w16, Ref& bias_out);
   // y = act(conv(x, w16) + bias_out) for the weight shape `weight` (O, I, k, k) and `pad`; x
-  // and y FP32 or 16-bit.
-  virtual void conv2d_half_forward(const ActRef& x, const HRef& w16, const Ref& bias_out, const Shape& weight, int pad,
-                                   bool relu, Precision p, const ActRef& y);
+  // and y FP32 or 16-bit; `transformed` as prepare_conv_weights made it with w16 (or data null).
+  virtual void conv2d_half_forward(const ActRef& x, const HRef& w16, const HRef& transformed, const Ref& bias_out,
+                                   const Shape& weight, int pad, bool relu, Precision p, const ActRef& y);
   // y (B, O, 2H, 2W) = the transposed convolution of x (B, I, H, W) for weight (I, O, 2, 2).
   virtual void conv_transpose2x2_half_forward(const ActRef& x, const HRef& w16, const Ref& bias_out,
                                               const Shape& weight, Precision p, const ActRef& y);

@@ -88,20 +88,32 @@ class CpuBackend final : public Backend {
     if (why_not != nullptr) *why_not = why;
     return false;
   }
+  // The 3 x 3 pad-1 convolutions run by Winograd; their transformed weights U are made with w16.
+  int64_t prepared_conv_transform_elements(const Shape& weight, int pad, Precision p) const override {
+    if (!supports_precision(p, nullptr) || p == Precision::F32 || !winograd_half_applies(weight, pad)) return 0;
+    return cpu::winograd_weight_elements(bf16_kernels_, weight);
+  }
   void prepare_conv_weights(const Ref& w, const Ref* bias, const BatchNormRefs* bn, Precision p, HRef& w16,
-                            Ref& bias_out) override {
+                            Ref& bias_out, const HRef& transformed) override {
     require_precision(p);
     cpu::prepare_conv_weights(w, bias, bn, p, w16, bias_out);
+    if (transformed.data == nullptr) return;
+    require_shape("CpuBackend::prepare_conv_weights", "transformed", transformed,
+                  {cpu::winograd_weight_elements(bf16_kernels_, w.shape)});
+    cpu::winograd_transform_weights(bf16_kernels_, w16, w.shape, transformed.data);
   }
   void prepare_conv_transpose_weights(const Ref& w, const Ref* bias, Precision p, HRef& w16, Ref& bias_out) override {
     require_precision(p);
     cpu::prepare_conv_transpose_weights(w, bias, p, w16, bias_out);
   }
-  void conv2d_half_forward(const ActRef& x, const HRef& w16, const Ref& bias_out, const Shape& weight, int pad,
-                           bool relu, Precision p, const ActRef& y) override {
+  void conv2d_half_forward(const ActRef& x, const HRef& w16, const HRef& transformed, const Ref& bias_out,
+                           const Shape& weight, int pad, bool relu, Precision p, const ActRef& y) override {
     require_precision(p);
-    if (weight.size() == 4 && weight[2] == 3 && weight[3] == 3 && pad == 1) {  // the U-Net's: Winograd F(2x2, 3x3)
-      cpu::conv3x3_winograd_forward(bf16_kernels_, half_input(x, p), w16, bias_out, weight, relu, y,
+    if (winograd_half_applies(weight, pad)) {  // the U-Net's: Winograd F(2x2, 3x3)
+      if (transformed.data != nullptr)
+        require_shape("CpuBackend::conv2d_half_forward", "transformed", transformed,
+                      {cpu::winograd_weight_elements(bf16_kernels_, weight)});
+      cpu::conv3x3_winograd_forward(bf16_kernels_, half_input(x, p), w16, transformed.data, bias_out, weight, relu, y,
                                     bf16_winograd_);
     } else {
       cpu::conv2d_forward(bf16_kernels_, half_input(x, p), w16, bias_out, weight, pad, relu, y);
@@ -417,6 +429,9 @@ class CpuBackend final : public Backend {
   }
 
  private:
+  static bool winograd_half_applies(const Shape& weight, int pad) {
+    return weight.size() == 4 && weight[2] == 3 && weight[3] == 3 && pad == 1;
+  }
   // The Winograd fast path covers the U-Net's 3x3 / pad 1 convolutions.
   bool winograd_applies(const Ref& w, int pad) const {
     return fast_paths_ && w.shape.size() == 4 && w.dim(2) == 3 && w.dim(3) == 3 && pad == 1;

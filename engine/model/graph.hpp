@@ -54,9 +54,9 @@ enum class OpKind {
   // Mixed precision: 16-bit weights prepared from the FP32 parameters (in the evaluation forward
   // into persistent tensors, again only when the parameters changed), then the tensor-core
   // convolution.
-  PrepareConvWeights,           // r: w, bias, BatchNorm | w: w16, bias_out
+  PrepareConvWeights,           // r: w, bias, BatchNorm | w: w16, bias_out, transformed
   PrepareConvTransposeWeights,  // r: w, bias | w: w16, bias_out
-  Conv2dHalf,                   // r: x, w16, bias_out | w: y (relu: + ReLU)
+  Conv2dHalf,                   // r: x, w16, bias_out, transformed | w: y (relu: + ReLU)
   ConvTranspose2x2Half,         // r: x, w16, bias_out | w: y
   // Mixed precision (training): the gradients on the tensor cores from the FP32 tensors.
   Conv2dBackwardHalf,            // r: x, w, dy | w: dx, dw, dbias

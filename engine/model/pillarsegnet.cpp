@@ -8,6 +8,7 @@
 #include <fmt/format.h>
 
 #include <algorithm>
+#include <initializer_list>
 #include <string>
 #include <utility>
 #include <vector>
@@ -126,9 +127,10 @@ class Builder {
  public:
   // `precision`: the convolutions'; the evaluation forward also keeps the U-Net's activations in
   // it, training keeps them (and BatchNorm, the loss, gradients) in FP32.
-  Builder(Graph& g, ParameterSet& ps, const std::vector<BnParams>& bns, bool training, Precision precision)
-      : g_(g), ps_(ps), bns_(bns), training_(training), half_(training ? Precision::F32 : precision),
-        conv_precision_(precision) {}
+  Builder(Graph& g, ParameterSet& ps, const Backend& backend, const std::vector<BnParams>& bns, bool training,
+          Precision precision)
+      : g_(g), ps_(ps), backend_(backend), bns_(bns), training_(training),
+        half_(training ? Precision::F32 : precision), conv_precision_(precision) {}
 
   Stage stage = Stage::UNet;
   // 16-bit activations (the evaluation forward in bf16 / fp16).
@@ -146,10 +148,13 @@ class Builder {
     const Shape w_shape = shape(w);
     const int w16 = g_.tensor(name + ".w16", op::half16_conv_weights(w_shape, false), DType::U16);
     const int b16 = g_.tensor(name + ".bias16", {w_shape[0]});
-    keep_prepared(w16, b16);
-    GraphNode& prep = node(OpKind::PrepareConvWeights, name, {w, b, w16, b16}, {w, b}, {w16, b16});
+    // The backend's own transformed form of the weights, where it has one (the CPU's Winograd U).
+    const int64_t transform = backend_.prepared_conv_transform_elements(w_shape, pad, conv_precision_);
+    const int wt = transform > 0 ? g_.tensor(name + ".w16_transformed", {transform}, DType::U16) : -1;
+    keep_prepared({w16, b16, wt});
+    GraphNode& prep = node(OpKind::PrepareConvWeights, name, {w, b, w16, b16, wt}, {w, b}, {w16, b16, wt});
     prep.batchnorm = bn;
-    GraphNode& n = node(OpKind::Conv2dHalf, name, {x, w16, b16, y}, {x, w16, b16}, {y});
+    GraphNode& n = node(OpKind::Conv2dHalf, name, {x, w16, b16, y, wt}, {x, w16, b16, wt}, {y});
     n.pad = pad;
     n.relu = relu;
     n.weight = w_shape;
@@ -160,7 +165,7 @@ class Builder {
     const Shape w_shape = shape(w);
     const int w16 = g_.tensor(name + ".w16", op::half16_conv_weights(w_shape, true), DType::U16);
     const int b16 = g_.tensor(name + ".bias16", {4 * w_shape[1]});
-    keep_prepared(w16, b16);
+    keep_prepared({w16, b16});
     node(OpKind::PrepareConvTransposeWeights, name, {w, b, w16, b16}, {w, b}, {w16, b16});
     GraphNode& n = node(OpKind::ConvTranspose2x2Half, name, {x, w16, b16, y}, {x, w16, b16}, {y});
     n.weight = w_shape;
@@ -169,8 +174,10 @@ class Builder {
 
   // The evaluation forward's prepared weights persist from run to run (PillarSegNet::run prepares
   // them again only when the parameters changed); training prepares them every step.
-  void keep_prepared(int w16, int b16) {
-    if (!training_) g_.at(w16).persistent = g_.at(b16).persistent = true;
+  void keep_prepared(std::initializer_list<int> prepared) {
+    if (training_) return;
+    for (int id : prepared)
+      if (id >= 0) g_.at(id).persistent = true;
   }
 
   int param(int index) { return index < 0 ? -1 : g_.parameter(index, ps_.entries()[static_cast<size_t>(index)].shape, false); }
@@ -273,6 +280,7 @@ class Builder {
  private:
   Graph& g_;
   ParameterSet& ps_;
+  const Backend& backend_;
   const std::vector<BnParams>& bns_;
   bool training_;
   Precision half_, conv_precision_;
@@ -380,7 +388,7 @@ void PillarSegNet::build_graph(GraphPlan& p, int batch, bool training) {
   p.graph = Graph();
   Graph& g = p.graph;
   p.precision = training ? m.train_precision : m.precision;
-  Builder bld(g, ps, m.bns, training, p.precision);
+  Builder bld(g, ps, backend_, m.bns, training, p.precision);
   const int H = config_.grid.height(), W = config_.grid.width(), depth = config_.depth;
   const int64_t N = config_.max_points_per_pillar, C = config_.pillar_channels, cap = m.pillar_capacity;
   const int K = config_.num_classes;
@@ -824,7 +832,7 @@ double PillarSegNet::execute(const GraphPlan& p, size_t begin, size_t end, bool 
         Ref bias_out = f(3);
         const BatchNormRefs bn = n.batchnorm >= 0 ? batchnorm_refs(p, n, -1, -1) : BatchNormRefs{};
         be.prepare_conv_weights(f(0), a[1] >= 0 ? &bias : nullptr, n.batchnorm >= 0 ? &bn : nullptr, p.precision, w16,
-                                bias_out);
+                                bias_out, h(4));
         break;
       }
       case OpKind::PrepareConvTransposeWeights: {
@@ -835,7 +843,7 @@ double PillarSegNet::execute(const GraphPlan& p, size_t begin, size_t end, bool 
         break;
       }
       case OpKind::Conv2dHalf:
-        be.conv2d_half_forward(activation(0), h(1), f(2), n.weight, n.pad, n.relu, p.precision, activation(3));
+        be.conv2d_half_forward(activation(0), h(1), h(4), f(2), n.weight, n.pad, n.relu, p.precision, activation(3));
         break;
       case OpKind::ConvTranspose2x2Half:
         be.conv_transpose2x2_half_forward(activation(0), h(1), f(2), n.weight, p.precision, activation(3));
