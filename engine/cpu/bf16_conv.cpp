@@ -289,8 +289,8 @@ WinogradWeightLayout winograd_layout(Bf16Kernels kernels, const Shape& weight) {
 }
 
 void require_3x3(const char* op, const Shape& weight) {
-  PS_CHECK(weight.size() == 4 && weight[2] == 3 && weight[3] == 3, "{}: needs a 3 x 3 kernel, got {}",
-           op, shape_str(weight));
+  PS_CHECK(weight.size() == 4 && weight[2] == 3 && weight[3] == 3,
+           "{}: needs a 3 x 3 kernel, got {}", op, shape_str(weight));
 }
 
 }  // namespace
