@@ -197,6 +197,10 @@ __global__ void __launch_bounds__(Tile::kThreads, 2)
   const std::int64_t m0 = static_cast<std::int64_t>(blockIdx.x) * Tile::kM;
   const std::int64_t n0 = static_cast<std::int64_t>(blockIdx.y) * Tile::kN;
 
+  // Where each pixel of the tile goes in y, but for its column's offset (column_offset below),
+  // -1 past the last pixel: worked out once, by the thread that stages the pixel, for the
+  // epilogue's threads.
+  __shared__ std::int64_t row_offset[Tile::kM];
   PixelGather<TIn> pixel;
   {
     const std::int64_t m = m0 + tid;
@@ -205,6 +209,11 @@ __global__ void __launch_bounds__(Tile::kThreads, 2)
     const std::int64_t p = pixel.valid ? m % pixels_per_image : 0;
     pixel.oy = p / g.out_width, pixel.ox = p % g.out_width;
     pixel.image = x + image * g.channels * g.in_height * g.in_width;
+    // Planar: y[image][n][p]; sub-pixels: y[image][o][2 oy + dy][2 ox + dx], n = 4 o + 2 dy + dx.
+    row_offset[tid] = !pixel.valid   ? -1
+                      : g.sub_pixels ? image * g.columns * pixels_per_image +
+                                           2 * pixel.oy * 2 * g.out_width + 2 * pixel.ox
+                                     : image * g.columns * pixels_per_image + p;
   }
   const auto store_pixel = [&](const ConvStage<Tile>& s, const std::uint32_t(&words)[16]) {
     auto* row = reinterpret_cast<uint4*>(s.a + tid * Tile::kPitch);  // 80-byte rows: aligned
@@ -250,32 +259,41 @@ __global__ void __launch_bounds__(Tile::kThreads, 2)
     if (next < steps) store_pixel(next_stage, words);
   }
 
-  // Epilogue: accumulator i of (mt, nt) is D[row group + 8 (i >= 2)][column 2 t + (i & 1)].
+  // Epilogue: accumulator i of (mt, nt) is D[row group + 8 (i >= 2)][column 2 t + (i & 1)], at
+  // row_offset[row] + column_offset[column] of y (planar: n pixel planes; sub-pixels: output
+  // channel o = n / 4's planes of 4 pixels each, and the sub-pixel's row and column).
   const int group = lane / 4, t = lane % 4;
+  // This thread's columns: their offsets in y (-1 past the last) and biases.
+  std::int64_t column_offset[Tile::kFragsN][2];
+  float column_bias[Tile::kFragsN][2];
+#pragma unroll
+  for (int nt = 0; nt < Tile::kFragsN; ++nt) {
+#pragma unroll
+    for (int e = 0; e < 2; ++e) {
+      const std::int64_t n = n0 + warp_n * Tile::kWarpN + nt * 8 + 2 * t + e;  // >= 0
+      const bool valid = n < g.columns;
+      column_offset[nt][e] =
+          !valid         ? -1
+          : g.sub_pixels ? (n / 4) * 4 * pixels_per_image + (n % 4) / 2 * 2 * g.out_width + n % 2
+                         : n * pixels_per_image;
+      column_bias[nt][e] = valid && bias != nullptr ? bias[n] : 0.0f;
+    }
+  }
+  __syncthreads();  // row_offset
 #pragma unroll
   for (int mt = 0; mt < Tile::kFragsM; ++mt) {
 #pragma unroll
     for (int half = 0; half < 2; ++half) {
-      const std::int64_t row = m0 + warp_m * Tile::kWarpM + mt * 16 + group + 8 * half;
-      if (row >= rows) continue;
-      const std::int64_t img = row / pixels_per_image, px = row % pixels_per_image;
-      const std::int64_t py = px / g.out_width, pxx = px % g.out_width;
+      const std::int64_t row = row_offset[warp_m * Tile::kWarpM + mt * 16 + group + 8 * half];
+      if (row < 0) continue;
 #pragma unroll
       for (int nt = 0; nt < Tile::kFragsN; ++nt) {
 #pragma unroll
         for (int e = 0; e < 2; ++e) {
-          const std::int64_t n = n0 + warp_n * Tile::kWarpN + nt * 8 + 2 * t + e;
-          if (n >= g.columns) continue;
-          float value = acc[mt][nt][2 * half + e] + (bias != nullptr ? bias[n] : 0.0f);
+          if (column_offset[nt][e] < 0) continue;
+          float value = acc[mt][nt][2 * half + e] + column_bias[nt][e];
           if (g.relu) value = value > 0.0f ? value : 0.0f;
-          std::int64_t index = 0;
-          if (g.sub_pixels) {
-            const std::int64_t o = n / 4, dy = (n % 4) / 2, dx = n % 2;
-            const std::int64_t yh = 2 * g.out_height, yw = 2 * g.out_width;
-            index = ((img * (g.columns / 4) + o) * yh + 2 * py + dy) * yw + 2 * pxx + dx;
-          } else {
-            index = (img * g.columns + n) * pixels_per_image + px;
-          }
+          const std::int64_t index = row + column_offset[nt][e];
           if constexpr (std::is_same_v<TOut, float>)
             y[index] = value;
           else
