@@ -293,12 +293,17 @@ void half_counters(benchmark::State& state, double flops, double ms, const std::
   if (ours != our_ms().end() && ms > 0.0) state.counters["fp32_ms/half_ms"] = ours->second / ms;
 }
 
-void BM_Conv2dForwardHalf(benchmark::State& state, const ConvLayer& l, cuda::Half16 type) {
+// Whether the device runs the tensor-core kernels; otherwise the benchmark is skipped, saying
+// why.
+bool tensor_cores_or_skip(benchmark::State& state) {
   std::string why;
-  if (!cuda::mma_supported(&why)) {
-    state.SkipWithError(why.c_str());
-    return;
-  }
+  if (cuda::mma_supported(&why)) return true;
+  state.SkipWithError(why.c_str());
+  return false;
+}
+
+void BM_Conv2dForwardHalf(benchmark::State& state, const ConvLayer& l, cuda::Half16 type) {
+  if (!tensor_cores_or_skip(state)) return;
   ConvBuffers b(l.shape);
   DeviceBuffer<std::uint16_t> w16(static_cast<size_t>(
       l.shape.out_channels *
@@ -330,11 +335,7 @@ std::int64_t data_weight_halves(const cuda::ConvTranspose2dShape& s) {
 // step), the weight gradient (dw, and db where the layer has a bias) with its partial sums over
 // the pixels in its workspace. The same FLOPs as the forward's.
 void BM_Conv2dBackwardDataHalf(benchmark::State& state, const ConvLayer& l, cuda::Half16 type) {
-  std::string why;
-  if (!cuda::mma_supported(&why)) {
-    state.SkipWithError(why.c_str());
-    return;
-  }
+  if (!tensor_cores_or_skip(state)) return;
   const cuda::Conv2dShape& s = l.shape;
   ConvBuffers b(s);
   DeviceBuffer<std::uint16_t> w16t(static_cast<size_t>(data_weight_halves(s)));
@@ -347,11 +348,7 @@ void BM_Conv2dBackwardDataHalf(benchmark::State& state, const ConvLayer& l, cuda
 }
 
 void BM_Conv2dBackwardWeightsHalf(benchmark::State& state, const ConvLayer& l, cuda::Half16 type) {
-  std::string why;
-  if (!cuda::mma_supported(&why)) {
-    state.SkipWithError(why.c_str());
-    return;
-  }
+  if (!tensor_cores_or_skip(state)) return;
   const cuda::Conv2dShape& s = l.shape;
   ConvBuffers b(s);
   DeviceBuffer<float> workspace(
@@ -369,11 +366,7 @@ void BM_Conv2dBackwardWeightsHalf(benchmark::State& state, const ConvLayer& l, c
 // 16-bit weights (rows of w, (I, 4 O)) prepared in every run, and dw, db.
 void BM_ConvTranspose2dBackwardDataHalf(benchmark::State& state, const ConvTransposeLayer& l,
                                         cuda::Half16 type) {
-  std::string why;
-  if (!cuda::mma_supported(&why)) {
-    state.SkipWithError(why.c_str());
-    return;
-  }
+  if (!tensor_cores_or_skip(state)) return;
   const cuda::ConvTranspose2dShape& s = l.shape;
   ConvTransposeBuffers b(s);
   DeviceBuffer<std::uint16_t> w16t(static_cast<size_t>(data_weight_halves(s)));
@@ -388,11 +381,7 @@ void BM_ConvTranspose2dBackwardDataHalf(benchmark::State& state, const ConvTrans
 
 void BM_ConvTranspose2dBackwardWeightsHalf(benchmark::State& state, const ConvTransposeLayer& l,
                                            cuda::Half16 type) {
-  std::string why;
-  if (!cuda::mma_supported(&why)) {
-    state.SkipWithError(why.c_str());
-    return;
-  }
+  if (!tensor_cores_or_skip(state)) return;
   const cuda::ConvTranspose2dShape& s = l.shape;
   ConvTransposeBuffers b(s);
   DeviceBuffer<float> workspace(
