@@ -385,46 +385,59 @@ __global__ void __launch_bounds__(kThreads)
   float acc[2][4][4];
   zero_accumulators(acc);
 
+  // A thread stages one pixel column q0 + sk of every step (a warp: 32 consecutive pixels) for
+  // the A rows sm = tid / 32 + 4 j and the B rows sn = tid / 32 + 4 j, j < 16. The A rows' input
+  // channel planes and tap offsets do not change from step to step: worked out once, into shared
+  // memory (a warp's lanes then read one row's entry at a time).
+  constexpr int kRowsPerThread = kTileK * kTileM / kThreads;
+  const int sk = tid % kTileK, row0 = tid / kTileK;
+  __shared__ std::int64_t row_plane[kTileM];  // channel plane offset in x's image; -1: past M
+  __shared__ int row_dy[kTileM], row_dx[kTileM];
+  if (tid < kTileM) {
+    const std::int64_t m = m0 + tid;
+    const std::int64_t channel = g.transposed ? m : m / taps;
+    const int tap = g.transposed ? 0 : static_cast<int>(m % taps);
+    row_plane[tid] = m < g.rows ? channel * plane : -1;
+    row_dy[tid] = tap / g.kernel - g.pad, row_dx[tid] = tap % g.kernel - g.pad;
+  }
+  __syncthreads();
+
   for (std::int64_t q0 = q_begin; q0 < q_end; q0 += kTileK) {
-    // A: as[sk][sm] = A[m0 + sm][q0 + sk]; a warp reads 32 consecutive pixels of one row m.
+    // This thread's pixel q of the step: its image and position, once per step.
+    const std::int64_t q = q0 + sk;
+    const bool q_valid = q < q_end;
+    const std::int64_t image = q_valid ? q / pixels : 0, p = q_valid ? q % pixels : 0;
+    const std::int64_t py = p / g.out_width, px = p % g.out_width;
+    const float* x_image = x + image * g.in_channels * plane;
+    // A: as[sk][sm] = A[m0 + sm][q]: x at the pixel + the row's tap (transposed: the pixel).
 #pragma unroll 4
-    for (int j = 0; j < kTileK * kTileM / kThreads; ++j) {
-      const int sk = tid % kTileK, sm = tid / kTileK + (kThreads / kTileK) * j;
-      const std::int64_t m = m0 + sm, q = q0 + sk;
+    for (int j = 0; j < kRowsPerThread; ++j) {
+      const int sm = row0 + (kThreads / kTileK) * j;
+      const std::int64_t channel_plane = row_plane[sm];
       std::uint16_t bits = 0;
-      if (m < g.rows && q < q_end) {
-        const std::int64_t image = q / pixels, p = q % pixels;
-        const std::int64_t channel = g.transposed ? m : m / taps;
-        std::int64_t index = -1;
-        if (g.transposed) {
-          index = (image * g.in_channels + channel) * plane + p;
-        } else {
-          const int tap = static_cast<int>(m % taps);
-          const std::int64_t iy = p / g.out_width + tap / g.kernel - g.pad;
-          const std::int64_t ix = p % g.out_width + tap % g.kernel - g.pad;
-          if (iy >= 0 && iy < g.height && ix >= 0 && ix < g.width)
-            index = (image * g.in_channels + channel) * plane + iy * g.width + ix;
-        }
-        if (index >= 0) bits = to_half16<H>(x[index]);
+      if (q_valid && channel_plane >= 0) {
+        const std::int64_t iy = py + row_dy[sm], ix = px + row_dx[sm];
+        if (g.transposed)
+          bits = to_half16<H>(x_image[channel_plane + p]);
+        else if (iy >= 0 && iy < g.height && ix >= 0 && ix < g.width)
+          bits = to_half16<H>(x_image[channel_plane + iy * g.width + ix]);
       }
       as[sk][sm] = bits;
     }
-    // B: bs[sn][sk] = B[q0 + sk][n0 + sn].
-    for (int v = tid; v < kTileN * kTileK; v += kThreads) {
-      const int sn = v / kTileK, sk = v % kTileK;
-      const std::int64_t n = n0 + sn, q = q0 + sk;
+    // B: bs[sn][sk] = B[q][n0 + sn]: dy[n] at the pixel (transposed: dy[o] at its sub-pixel
+    // (2 py + sy, 2 px + sx) for n = 4 o + 2 sy + sx).
+    const float* dy_image = dy + image * g.out_channels * (g.transposed ? 4 * pixels : pixels);
+#pragma unroll 4
+    for (int j = 0; j < kTileN * kTileK / kThreads; ++j) {
+      const int sn = row0 + (kThreads / kTileK) * j;
+      const std::int64_t n = n0 + sn;
       std::uint16_t bits = 0;
-      if (n < g.columns && q < q_end) {
-        const std::int64_t image = q / pixels, p = q % pixels;
-        std::int64_t index;
-        if (g.transposed) {
-          const std::int64_t o = n / 4, sy = (n % 4) / 2, sx = n % 2;
-          index = ((image * g.out_channels + o) * 2 * g.out_height + 2 * (p / g.out_width) + sy) * 2 * g.out_width +
-                  2 * (p % g.out_width) + sx;
-        } else {
-          index = (image * g.out_channels + n) * pixels + p;
-        }
-        bits = to_half16<H>(dy[index]);
+      if (q_valid && n < g.columns) {
+        const std::int64_t index =
+            g.transposed ? ((n / 4) * 2 * g.out_height + 2 * py + (n % 4) / 2) * 2 * g.out_width +
+                               2 * px + n % 2
+                         : n * pixels + p;
+        bits = to_half16<H>(dy_image[index]);
       }
       bs[sn][sk] = bits;
     }
