@@ -138,8 +138,15 @@ message=$(run infer --weights "$weights" --scan "$velodyne/000001.bin" --out "$w
   fail "infer --precision fp16 on the CPU: '$message'"
 cmp "$work/cpu_fp16.u8" "$work/one.u8" || fail "infer --precision fp16 on the CPU is not the fp32 label map"
 run bench --device emu --precision bf16 --config "$work/tiny.yaml" --weights "$weights" --scan "$velodyne/000001.bin" \
-  --repeat 1 > "$work/bench_bf16.log" 2>&1 || { cat "$work/bench_bf16.log"; fail "bench --precision bf16 failed"; }
+  --repeat 1 --ops --roofline h200 > "$work/bench_bf16.log" 2>&1 ||
+  { cat "$work/bench_bf16.log"; fail "bench --precision bf16 failed"; }
 grep -q 'precision bf16' "$work/bench_bf16.log" || fail "bench --precision bf16: precision not reported"
+# --ops: the tensor-core convolutions' row with the emulation's count of what they issued (at most
+# 100% of it useful) and their bound on the H200; the network's roofline bound.
+grep -qE '^conv 16-bit \(tensor cores\) +[0-9]+ +[0-9.]+ +[0-9.]+ +[0-9.]+ +[0-9.]+ +[0-9.]+ +([0-9]|[1-9][0-9]|100)\.[0-9]% +[0-9.]+ +[0-9.]+ +(memory|compute)$' \
+  "$work/bench_bf16.log" || { cat "$work/bench_bf16.log"; fail "bench --ops: no tensor-core row with counts and bound"; }
+grep -qE '^roofline bound on h200 .*: [0-9.]+ ms for the network' "$work/bench_bf16.log" ||
+  fail "bench --roofline h200: no bound for the network"
 
 # Errors name the argument and exit 1.
 expect_error() {
@@ -162,6 +169,8 @@ grep -v '"type": "step"' "$work/eval_run/metrics.jsonl" > "$work/stepless_run/me
 expect_error "$work/stepless_run/metrics.jsonl: no step lines" plot "$work/stepless_run"
 [[ ! -e $work/no_run/plots && ! -e $work/bad_run/plots && ! -e $work/stepless_run/plots ]] ||
   fail "plot wrote a plots directory for a bad log"
+expect_error "--roofline h300: unknown GPU; known: h200" bench --device emu --config "$work/tiny.yaml" --ops \
+  --roofline h300
 expect_error "--scan $work/none.bin: no such file" infer --weights "$weights" --scan "$work/none.bin" --out "$work/x"
 expect_error "is a file" infer --weights "$weights" --scan "$velodyne" --out "$work/one.u8"
 expect_error "train --precision bf16: backend cpu trains in fp32 only" train --data "$work/data" \

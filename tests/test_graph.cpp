@@ -8,6 +8,7 @@
 
 #include <climits>
 #include <cstring>
+#include <string>
 #include <tuple>
 #include <utility>
 #include <vector>
@@ -15,6 +16,7 @@
 #include "core/error.hpp"
 #include "engine/model/graph.hpp"
 #include "engine/model/pillarsegnet.hpp"
+#include "engine/model/roofline.hpp"
 #include "tests/support/tiny_model.hpp"
 
 using namespace pillarseg;
@@ -72,6 +74,58 @@ TEST(Graph, OutputsLiveToTheEndAndViewsShareTheirTensor) {
   EXPECT_NE(g.at(late).offset, g.at(whole).offset);
   EXPECT_NE(g.at(late).offset, g.at(a).offset);
   EXPECT_THROW(g.view("outside", whole, {32}, 160), Error);
+}
+
+// Least bytes of a node: distinct tensors read once plus distinct tensors written once, at their
+// dtypes; a view counts its own bytes; dynamic rows take the run's pillar rows.
+TEST(Graph, NodeBytesCountEachTensorReadAndWrittenOnce) {
+  Graph g;
+  const int x = g.tensor("x", {2, 3});                   // 24 bytes
+  const int h = g.tensor("h", {5}, DType::U16);          // 10
+  const int whole = g.tensor("whole", {8});              // 32
+  const int band = g.view("whole.band", whole, {2}, 8);  // 8
+  const int rows = g.tensor("rows", {100, 4});           // planned at 100 rows of 16 bytes
+  g.at(rows).dynamic_rows = true;
+  g.add(node({x, h, x}, {band}));  // x once: 24 + 10 + 8
+  g.add(node({band}, {band}));     // in place: read and written
+  g.add(node({rows, x}, {h}));     // 7 rows: 112 + 24 + 10
+  EXPECT_EQ(g.node_bytes(0, 7), 42u);
+  EXPECT_EQ(g.node_bytes(1, 7), 16u);
+  EXPECT_EQ(g.node_bytes(2, 7), 146u);
+  EXPECT_EQ(g.node_bytes(2, 100), 1634u);
+}
+
+// The roofline bound (engine/model/roofline.hpp) by hand: 2 GFLOP and 48 MB on custom peaks of
+// 10 TFLOP/s FP32, 100 TFLOP/s 16-bit and 2 TB/s: on the tensor cores compute 0.02 ms < memory
+// 0.024 ms (memory-bound); on the CUDA cores compute 0.2 ms (compute-bound).
+TEST(Roofline, BoundsAnOpByItsFlopsAndBytes) {
+  const GpuPeaks gpu = parse_gpu("custom:10:100:2");
+  EXPECT_DOUBLE_EQ(gpu.fp32_tflops, 10);
+  EXPECT_DOUBLE_EQ(gpu.half_tflops, 100);
+  EXPECT_DOUBLE_EQ(gpu.tb_per_s, 2);
+  const RooflineBound tc = roofline_bound(2e9, 48e6, true, gpu);
+  EXPECT_NEAR(tc.compute_ms, 0.02, 1e-12);
+  EXPECT_NEAR(tc.memory_ms, 0.024, 1e-12);
+  EXPECT_TRUE(tc.memory_bound());
+  EXPECT_NEAR(tc.ms(), 0.024, 1e-12);
+  const RooflineBound fp32 = roofline_bound(2e9, 48e6, false, gpu);
+  EXPECT_NEAR(fp32.ms(), 0.2, 1e-12);
+  EXPECT_FALSE(fp32.memory_bound());
+  EXPECT_EQ(parse_gpu("H200").half_tflops, 989);
+  EXPECT_TRUE(runs_on_tensor_cores(op_name(OpKind::Conv2dHalf)));
+  EXPECT_TRUE(runs_on_tensor_cores(op_name(OpKind::ConvTranspose2x2BackwardHalf)));
+  EXPECT_FALSE(runs_on_tensor_cores(op_name(OpKind::Conv2d)));
+  EXPECT_FALSE(runs_on_tensor_cores(op_name(OpKind::PfnForward)));
+  for (const char* bad :
+       {"h300", "custom:1:2", "custom:1:2:x", "custom:1:-2:3", "custom:1:2:3:4"}) {
+    try {
+      parse_gpu(bad);
+      ADD_FAILURE() << bad << " was accepted";
+    } catch (const Error& e) {
+      EXPECT_NE(std::string(e.what()).find(std::string("--roofline ") + bad), std::string::npos)
+          << e.what();
+    }
+  }
 }
 
 TEST(Graph, RefusesAPlannedTensorThatNoNodeTouches) {

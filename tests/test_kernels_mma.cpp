@@ -318,6 +318,48 @@ TEST(ConvMma, OneKStepBf16) {
   check_conv({1, 12, 3, 50, 20, 1, 0, false, true}, Half16::BF16);
 }
 
+#if defined(PILLARSEG_CUDA_EMULATION)
+// What the emulation counts a convolution issue (Backend::counters' tensor_core_flops and
+// async_copy_bytes): every block of 128 pixels x BN columns (BN 64 for at most 64 columns, else
+// 128) runs Kp / 32 steps, each 4 warps x (64 x BN / 2) / (16 x 8) x 2 mma.sync m16n8k16 of
+// 4,096 flops, so 2 x 128 x BN x Kp flops a block; and copies its BN x 32 16-bit weights a step
+// (4 x 16 bytes a row, zero-filled past the last column included).
+TEST(ConvMma, EmulationCountsTheIssuedInstructions) {
+  struct Case {
+    cuda::Conv2dShape shape;
+    std::int64_t blocks_m, blocks_n, bn, k_padded;
+  };
+  const Case cases[] = {
+      {{2, 40, 5, 13, 12, 1, 0}, 2, 1, 64, 64},       // 130 pixels, 40 -> 64 channels
+      {{1, 96, 4, 5, 130, 3, 1}, 1, 2, 128, 9 * 96},  // 130 columns in two tiles of 128
+  };
+  for (const Case& c : cases) {
+    const cuda::Conv2dShape& s = c.shape;
+    DeviceBuffer<float> x(static_cast<size_t>(s.batch * s.in_channels * s.height * s.width));
+    DeviceBuffer<std::uint16_t> w16(static_cast<size_t>(s.out_channels * c.k_padded));
+    DeviceBuffer<float> bias(static_cast<size_t>(s.out_channels));
+    DeviceBuffer<float> y(
+        static_cast<size_t>(s.batch * s.out_channels * s.out_height() * s.out_width()));
+    PS_CUDA_CHECK(cudaMemset(x.data(), 0, x.size() * sizeof(float)));
+    PS_CUDA_CHECK(cudaMemset(w16.data(), 0, w16.size() * sizeof(std::uint16_t)));
+    PS_CUDA_CHECK(cudaMemset(bias.data(), 0, bias.size() * sizeof(float)));
+    ASSERT_EQ(op::half16_weight_k(s.in_channels, s.kernel * s.kernel), c.k_padded);
+    const emu::InstructionCounts before = emu::instruction_counts();
+    cuda::conv2d_mma_forward(x.data(), false, w16.data(), bias.data(), s, Half16::BF16, false,
+                             y.data(), false, nullptr);
+    PS_CUDA_CHECK(cudaDeviceSynchronize());
+    const emu::InstructionCounts after = emu::instruction_counts();
+    const std::int64_t blocks = c.blocks_m * c.blocks_n, steps = c.k_padded / 32;
+    EXPECT_EQ(static_cast<std::int64_t>(after.mma_m16n8k16 - before.mma_m16n8k16) * 4096,
+              blocks * 2 * 128 * c.bn * c.k_padded)
+        << s.out_channels << " columns";
+    EXPECT_EQ(static_cast<std::int64_t>(after.cp_async_bytes - before.cp_async_bytes),
+              blocks * steps * c.bn * 64)
+        << s.out_channels << " columns";
+  }
+}
+#endif
+
 void check_transposed(Half16 type) {
   std::string why;
   if (!cuda::mma_supported(&why)) GTEST_SKIP() << why;

@@ -15,6 +15,7 @@
 #include <chrono>
 #include <filesystem>
 #include <fstream>
+#include <optional>
 
 #include "core/parallel.hpp"
 #include "engine/cli/cli_util.hpp"
@@ -22,6 +23,7 @@
 #include "engine/cpu/bf16_conv.hpp"
 #include "engine/data/semantickitti.hpp"
 #include "engine/model/pillarsegnet.hpp"
+#include "engine/model/roofline.hpp"
 #include "engine/pipeline/scan_inputs.hpp"
 #include "engine/pipeline/segmenter.hpp"
 #include "engine/render/label_map.hpp"
@@ -37,6 +39,8 @@ struct BenchArgs {
   DeviceArgs device;
   int repeat = 5;
   bool transposed = false, mask_unobserved = false;
+  bool ops = false;      // the network's time per op of its graph
+  std::string roofline;  // a GPU (engine/model/roofline.hpp) to bound each op's time on
 };
 
 double ms_since(std::chrono::steady_clock::time_point t0) {
@@ -76,8 +80,91 @@ int64_t host_inputs_bytes(ScanSegmenter& segmenter, const Scan& scan) {
   return (after.bytes_uploaded - before.bytes_uploaded) + (after.bytes_downloaded - before.bytes_downloaded);
 }
 
+// The network's time per op of its evaluation graph (PillarSegNet::set_op_timing: the device
+// waits after every node, no graph replay), mean per run over `repeat` runs, with each op's FLOPs
+// and least bytes, what the emulation counted its tensor cores issue, and, given a GPU, the
+// roofline bound of each op there (engine/model/roofline.hpp).
+void print_op_table(ScanSegmenter& segmenter, const Scan& scan, Tensor<uint8_t>& labels, int repeat,
+                    const std::optional<GpuPeaks>& roofline) {
+  PillarSegNet& net = segmenter.net();
+  net.clear_op_times();
+  net.set_op_timing(true);
+  segmenter.set_stage_timing(true);  // runs the pipeline op by op, not as a recorded graph
+  for (int r = 0; r < repeat; ++r) segmenter.segment(scan.points, labels.data());
+  segmenter.set_stage_timing(false);
+  net.set_op_timing(false);
+  std::vector<std::pair<std::string, PillarSegNet::OpTime>> ops(net.op_times().begin(),
+                                                                net.op_times().end());
+  net.clear_op_times();
+  std::sort(ops.begin(), ops.end(),
+            [](const auto& x, const auto& y) { return x.second.ms > y.second.ms; });
+  const bool counted = std::any_of(ops.begin(), ops.end(),
+                                   [](const auto& o) { return o.second.tensor_core_flops >= 0; });
+  const bool bounded = roofline.has_value();
+  const GpuPeaks gpu = roofline.value_or(GpuPeaks{});
+  fmt::print(
+      "the network per op of its graph, mean of {} runs ({}, waiting for the device after every "
+      "op):\n",
+      repeat, segmenter.backend().name());
+  std::string header = fmt::format("{:<36} {:>6} {:>9} {:>9} {:>9} {:>9}", "op", "calls", "ms",
+                                   "GFLOP", "MB", "GFLOP/s");
+  if (counted) header += fmt::format(" {:>10} {:>7} {:>9}", "TC GFLOP", "useful", "async MB");
+  if (bounded) header += fmt::format(" {:>10} {:>7}", fmt::format("{} ms", gpu.name), "bound");
+  fmt::print("{}\n", header);
+  const double runs = repeat;
+  PillarSegNet::OpTime total;
+  double compute_bound_ms = 0, memory_bound_ms = 0;  // the bounds of compute- and memory-bound ops
+  double tensor_core_flops = 0, async_bytes = 0;
+  for (const auto& [name, t] : ops) {
+    const double ms = t.ms / runs, flops = t.flops / runs, bytes = t.bytes / runs;
+    std::string line =
+        fmt::format("{:<36} {:>6} {:>9.3f} {:>9.3f} {:>9.2f} {:>9.1f}", name, t.calls / repeat, ms,
+                    flops * 1e-9, bytes * 1e-6, ms > 0 ? flops / (ms * 1e-3) * 1e-9 : 0.0);
+    if (counted) {
+      if (t.tensor_core_flops > 0) {
+        line +=
+            fmt::format(" {:>10.3f} {:>6.1f}% {:>9.2f}", t.tensor_core_flops / runs * 1e-9,
+                        100.0 * t.flops / t.tensor_core_flops, t.async_copy_bytes / runs * 1e-6);
+        tensor_core_flops += t.tensor_core_flops / runs;
+        async_bytes += t.async_copy_bytes / runs;
+      } else {
+        line += fmt::format(" {:>10} {:>7} {:>9}", "-", "-", "-");
+      }
+    }
+    if (bounded) {
+      const RooflineBound b = roofline_bound(flops, bytes, runs_on_tensor_cores(name), gpu);
+      (b.memory_bound() ? memory_bound_ms : compute_bound_ms) += b.ms();
+      line += fmt::format(" {:>10.4f} {:>7}", b.ms(), b.memory_bound() ? "memory" : "compute");
+    }
+    fmt::print("{}\n", line);
+    total.ms += ms, total.flops += flops, total.bytes += bytes;
+  }
+  fmt::print("{:<36} {:>6} {:>9.3f} {:>9.3f} {:>9.2f} {:>9.1f}\n", "total", "", total.ms,
+             total.flops * 1e-9, total.bytes * 1e-6,
+             total.ms > 0 ? total.flops / (total.ms * 1e-3) * 1e-9 : 0.0);
+  if (counted && tensor_core_flops > 0) {
+    fmt::print(
+        "tensor cores (counted by the emulation): {:.3f} GFLOP issued a run, {:.2f} MB copied by "
+        "cp.async\n",
+        tensor_core_flops * 1e-9, async_bytes * 1e-6);
+  }
+  if (bounded) {
+    fmt::print(
+        "roofline bound on {} ({} TFLOP/s FP32, {} TFLOP/s dense 16-bit tensor cores, {} TB/s; "
+        "{}): "
+        "{:.3f} ms for the network, PFN to head ({:.3f} ms in compute-bound ops, {:.3f} ms in "
+        "memory-bound "
+        "ones) - a lower bound, not a prediction: no kernel runs at a peak, and the pillar gather, "
+        "decoration, input maps and predictions are outside the graph\n",
+        gpu.name, gpu.fp32_tflops, gpu.half_tflops, gpu.tb_per_s, gpu.source,
+        compute_bound_ms + memory_bound_ms, compute_bound_ms, memory_bound_ms);
+  }
+}
+
 void run_bench(const BenchArgs& a) {
   namespace fs = std::filesystem;
+  std::optional<GpuPeaks> roofline;  // checked before anything runs
+  if (!a.roofline.empty()) roofline = parse_gpu(a.roofline);
   ModelConfig model;
   if (!a.weights.empty() && a.config.empty()) model = config_for(read_checkpoint(a.weights), "").model;
   if (!a.config.empty()) model = load_run_config(a.config).model;
@@ -186,6 +273,7 @@ void run_bench(const BenchArgs& a) {
                static_cast<double>(steady_bytes) / 1e6, static_cast<double>(host_bytes) / 1e6,
                static_cast<double>(host_bytes) / std::max<double>(static_cast<double>(steady_bytes), 1.0));
   }
+  if (a.ops || !a.roofline.empty()) print_op_table(segmenter, scan, labels, a.repeat, roofline);
   if (segmenter.net().precision() != Precision::F32) {
     // The same network in FP32 on another backend of the same kind, on the same scan: how far
     // the 16-bit convolutions move the result.
@@ -236,6 +324,14 @@ void add_bench(CLI::App& app) {
   cmd->add_option("--weights", a->weights, "checkpoint (default: random weights; timings do not depend on them)");
   cmd->add_option("--scan", a->scan, "scan file (.bin); default: a simulated scan");
   cmd->add_option("--repeat", a->repeat, "timed repetitions")->check(CLI::PositiveNumber);
+  cmd->add_flag(
+      "--ops", a->ops,
+      "also time the network per op of its graph, with each op's FLOPs and least bytes (and, on "
+      "--device emu, what its tensor cores issued)");
+  cmd->add_option(
+      "--roofline", a->roofline,
+      "with --ops: each op's roofline bound on this GPU (h200, h100-sxm, h100-pcie, a100-sxm, l4, "
+      "rtx4090, orin-agx-64, or custom:FP32_TFLOPS:HALF_TFLOPS:TB_PER_S)");
   cmd->callback([a] { run_bench(*a); });
 }
 

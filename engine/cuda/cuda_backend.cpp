@@ -185,6 +185,11 @@ Backend::Counters CudaBackend::counters() const {
   c.bytes_downloaded = stats_.bytes_downloaded;
   c.graphs_captured = stats_.graphs_captured;
   c.graph_replays = stats_.graph_replays;
+#if defined(PILLARSEG_CUDA_EMULATION)
+  const emu::InstructionCounts issued = emu::instruction_counts();
+  c.tensor_core_flops = static_cast<int64_t>(issued.mma_m16n8k16) * 4096;
+  c.async_copy_bytes = static_cast<int64_t>(issued.cp_async_bytes);
+#endif
   return c;
 }
 

@@ -124,6 +124,10 @@ class Backend {
     int64_t allocations = 0;  // device and pinned allocations, scratch growth included
     int64_t bytes_uploaded = 0, bytes_downloaded = 0;
     int64_t graphs_captured = 0, graph_replays = 0;
+    // Counted by the CUDA emulation only (-1 elsewhere): the flops the tensor-core instructions
+    // issued (mma.sync m16n8k16: 4,096 each, the padding of tiles and of K included) and the
+    // bytes cp.async copied into shared memory.
+    int64_t tensor_core_flops = -1, async_copy_bytes = -1;
   };
   virtual Counters counters() const { return {}; }
   // Makes this backend's device the calling thread's current one (the CUDA runtime keeps it per

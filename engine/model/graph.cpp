@@ -229,6 +229,24 @@ double Graph::flops(size_t begin, size_t end) const {
   return sum;
 }
 
+size_t Graph::node_bytes(size_t i, int64_t pillar_rows) const {
+  const GraphNode& n = nodes_.at(i);
+  const auto bytes = [&](const std::vector<int>& ids) {
+    std::vector<int> distinct = ids;
+    std::sort(distinct.begin(), distinct.end());
+    distinct.erase(std::unique(distinct.begin(), distinct.end()), distinct.end());
+    size_t sum = 0;
+    for (int id : distinct) {
+      const GraphTensor& t = at(id);
+      Shape shape = t.shape;
+      if (t.dynamic_rows && !shape.empty()) shape[0] = pillar_rows;
+      sum += static_cast<size_t>(shape_numel(shape)) * dtype_bytes(t.dtype);
+    }
+    return sum;
+  };
+  return bytes(n.reads) + bytes(n.writes);
+}
+
 std::vector<GradientBucket> Graph::gradient_buckets(const std::vector<int64_t>& offsets,
                                                     int64_t total, int64_t min_count) const {
   PS_CHECK(!nodes_.empty(), "graph: gradient buckets of an empty graph");

@@ -9,7 +9,8 @@
 //     lie inside another tensor and share its lifetime; external tensors (parameters, gradients)
 //     are bound by the model;
 //   - graph capture (the model records the evaluation forward's nodes);
-//   - FLOP counts (flops()) and per-op timing (the model's node timer) for the benchmarks;
+//   - FLOP and byte counts (flops(), node_bytes()) and per-op timing (the model's node timer)
+//     for the benchmarks;
 //   - the memory report (memory_report());
 //   - the gradient buckets of data-parallel training (gradient_buckets()).
 #pragma once
@@ -134,6 +135,10 @@ class Graph {
     return lifetimes_.at(static_cast<size_t>(root(id)));
   }
   double flops(size_t begin, size_t end) const;
+  // The bytes node i must move at the least: every distinct tensor it reads, once, and every
+  // one it writes, once (one it updates in place counts twice), at its dtype; dim 0 of
+  // dynamic-row tensors is `pillar_rows`.
+  size_t node_bytes(size_t i, int64_t pillar_rows) const;
   // The largest planned tensors with their offsets and lifetimes, and the total, as text.
   std::string memory_report(size_t largest = 12) const;
   // The flat gradient array [0, total) cut into buckets for a sum overlapped with the backward.

@@ -751,6 +751,7 @@ double PillarSegNet::execute(const GraphPlan& p, size_t begin, size_t end, bool 
       continue;
     }
     const double op_start = time_ops_ ? be.clock_ms() : 0.0;
+    const Backend::Counters counted_before = time_ops_ ? be.counters() : Backend::Counters{};
     const auto& a = n.args;
     const auto f = [&](size_t k) { return bind<float>(p, a[k]); };
     const auto ints = [&](size_t k) { return bind<int32_t>(p, a[k]); };
@@ -951,6 +952,14 @@ double PillarSegNet::execute(const GraphPlan& p, size_t begin, size_t end, bool 
       OpTime& t = op_times_[op_name(n.op)];
       t.ms += be.clock_ms() - op_start;
       t.flops += n.flops;
+      t.bytes += static_cast<double>(p.graph.node_bytes(i, m.pillar_rows));
+      const Backend::Counters counted = be.counters();
+      const auto add_counted = [](double& total, int64_t before, int64_t after) {
+        if (before < 0 || after < 0) return;
+        total = std::max(total, 0.0) + static_cast<double>(after - before);
+      };
+      add_counted(t.tensor_core_flops, counted_before.tensor_core_flops, counted.tensor_core_flops);
+      add_counted(t.async_copy_bytes, counted_before.async_copy_bytes, counted.async_copy_bytes);
       ++t.calls;
     }
     if (time_stages_ && (i + 1 == end || nodes[i + 1].stage != n.stage)) lap(n.stage);

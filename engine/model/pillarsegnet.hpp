@@ -65,11 +65,15 @@ class PillarSegNet {
   const StageTimes& stage_times() const { return stage_times_; }
   // Per-op timing (where a benchmark's time goes): while on, every node of the op graph that a
   // forward, loss or backward runs is timed by Backend::clock_ms() and added, with the node's
-  // FLOPs, to the total of its op (op_name(), engine/model/graph.hpp), until cleared. It waits
-  // for the device after every node, and the evaluation forward is not replayed from a recorded
-  // graph meanwhile.
+  // FLOPs and bytes, to the total of its op (op_name(), engine/model/graph.hpp), until cleared.
+  // It waits for the device after every node, and the evaluation forward is not replayed from a
+  // recorded graph meanwhile. bytes: what the node must move at the least, every tensor it reads
+  // or writes once (Graph::node_bytes, with the pillar rows of the run); tensor_core_flops and
+  // async_copy_bytes: what the backend counted the node's kernels issue (Backend::Counters; -1
+  // where it does not count).
   struct OpTime {
-    double ms = 0, flops = 0;
+    double ms = 0, flops = 0, bytes = 0;
+    double tensor_core_flops = -1, async_copy_bytes = -1;
     int64_t calls = 0;
   };
   void set_op_timing(bool on) { time_ops_ = on; }

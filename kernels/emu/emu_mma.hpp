@@ -61,6 +61,7 @@ struct MmaLane {
 
 template <float (*ToFloat)(std::uint16_t)>
 void mma_m16n8k16(void* const* lanes) {
+  count_mma_m16n8k16();  // once per warp instruction: this runs once for the 32 lanes
   double a[16][16], b[16][8], c[16][8];
   for (int lane = 0; lane < 32; ++lane) {
     const MmaLane& l = *static_cast<const MmaLane*>(lanes[lane]);
@@ -144,6 +145,7 @@ inline void cp_async_16(void* shared_destination, const void* global_source, boo
           reinterpret_cast<std::uintptr_t>(global_source) % 16 == 0,
       "CUDA emulation: cp.async of 16 bytes from {} to {}: both addresses must be 16-byte aligned",
       global_source, shared_destination);
+  count_cp_async_bytes(16);
   AsyncCopy copy;
   copy.destination = static_cast<std::byte*>(shared_destination);
   if (fill) std::memcpy(copy.bytes.data(), global_source, 16);

@@ -89,4 +89,16 @@ struct AsyncCopies {
 };
 AsyncCopies& thread_async_copies();
 
+// What the emulated kernels have issued since the process started, summed over every launch and
+// thread (atomic): warp-level mma.sync m16n8k16 instructions (4,096 flops each: 16 x 8 x 16
+// multiply-adds) and the bytes cp.async copied from global to shared memory (zero-filled copies
+// included: a GPU issues them too). The benchmarks read differences (Backend::counters()).
+struct InstructionCounts {
+  std::uint64_t mma_m16n8k16 = 0;
+  std::uint64_t cp_async_bytes = 0;
+};
+InstructionCounts instruction_counts();
+void count_mma_m16n8k16();
+void count_cp_async_bytes(std::uint64_t bytes);
+
 }  // namespace pillarseg::emu
