@@ -7,7 +7,8 @@
 #   kernels.log      the kernel benchmarks: ours against cuDNN and cuBLAS, the 16-bit training
 #                    gradients against our FP32 ones
 #   bench.log        pillarseg bench --device cuda at full size (bilinear, transposed, 2D and 3D
-#                    occupancy; --conv own, cudnn, cublas)
+#                    occupancy; --conv own, cudnn, cublas), and the bf16 network per op against
+#                    each op's roofline bound on an H200
 #   train.log        100 steps of the small config on cuda (fp32, bf16) and on cpu, their loss curves
 #   environment.txt  the libraries found, the bundle's commit
 #   report.md        the figures of all of them, and what failed
@@ -196,6 +197,26 @@ run_bench "pillar + 2D occupancy" own --config "$here/configs/pillar_2d_sparse.y
 run_bench "pillar + 3D occupancy" own --config "$here/configs/pillar_3d_sparse.yaml"
 rm -f "$out/.bench"
 note
+# The bf16 network op by op (the device waits after every op) beside each op's roofline bound on
+# an H200 (the machine lent to this project; engine/model/roofline.cpp): what share of the bound
+# each op reaches.
+if (( $(left) > 120 )); then
+  echo "=== bilinear bf16 --ops --roofline h200" >> "$bench_log"
+  if timeout 60 "$here/bin/pillarseg" bench --device cuda --precision bf16 --repeat 3 ${scan:+--scan "$scan"} \
+      --ops --roofline h200 > "$out/.ops" 2>&1; then
+    note "### The bf16 network per op against its roofline bound on an H200"
+    note
+    note '```'
+    sed -n '/^the network per op/,/^roofline bound/p' "$out/.ops" >> "$report"
+    note '```'
+  else
+    failures+=("bench --ops")
+    note "bench --ops failed: see bench.log"
+  fi
+  cat "$out/.ops" >> "$bench_log"
+  rm -f "$out/.ops"
+  note
+fi
 
 # ---- 5. 100 training steps on cuda (fp32, bf16) and on cpu ----
 train_log=$out/train.log
