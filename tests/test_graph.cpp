@@ -93,6 +93,22 @@ TEST(Graph, NodeBytesCountEachTensorReadAndWrittenOnce) {
   EXPECT_EQ(g.node_bytes(1, 7), 16u);
   EXPECT_EQ(g.node_bytes(2, 7), 146u);
   EXPECT_EQ(g.node_bytes(2, 100), 1634u);
+  // A channel copy and a scatter name the whole canvas but move a band or some cells: x (2 x 3
+  // FP32) into a 16-bit canvas: 24 read + 12 written; 7 rows of 4 features and 7 cells of 3
+  // int32 into the canvas: 112 + 84 read, 112 written.
+  const int canvas = g.tensor("canvas", {1000}, DType::U16);
+  const int cells = g.tensor("cells", {100, 3}, DType::I32);
+  g.at(cells).dynamic_rows = true;
+  GraphNode copy = node({x, canvas}, {canvas});
+  copy.op = OpKind::CopyChannelsHalf;
+  copy.args = {x, canvas};
+  g.add(copy);
+  GraphNode scatter = node({rows, cells, canvas}, {canvas});
+  scatter.op = OpKind::Scatter;
+  scatter.args = {rows, cells, canvas};
+  g.add(scatter);
+  EXPECT_EQ(g.node_bytes(3, 7), 36u);
+  EXPECT_EQ(g.node_bytes(4, 7), 308u);
 }
 
 // The roofline bound (engine/model/roofline.hpp) by hand: 2 GFLOP and 48 MB on custom peaks of

@@ -231,17 +231,35 @@ double Graph::flops(size_t begin, size_t end) const {
 
 size_t Graph::node_bytes(size_t i, int64_t pillar_rows) const {
   const GraphNode& n = nodes_.at(i);
+  const auto elements = [&](int id) {
+    const GraphTensor& t = at(id);
+    Shape shape = t.shape;
+    if (t.dynamic_rows && !shape.empty()) shape[0] = pillar_rows;
+    return static_cast<size_t>(shape_numel(shape));
+  };
+  const auto bytes_of = [&](int id) { return elements(id) * dtype_bytes(at(id).dtype); };
+  const auto arg = [&](size_t k) { return n.args.at(k); };
+  switch (n.op) {
+    // Ops that name a whole tensor of which they read or write a band or some rows (for its
+    // lifetime): what they move is the band's or the rows' bytes.
+    case OpKind::CopyChannels:
+    case OpKind::CopyChannelsHalf:  // x -> the band of y at y's dtype
+      return bytes_of(arg(0)) + elements(arg(0)) * dtype_bytes(at(arg(1)).dtype);
+    case OpKind::ExtractChannels:  // the band of y -> x
+      return 2 * bytes_of(arg(1));
+    case OpKind::Scatter:  // features and cells -> one canvas value per feature
+      return 2 * bytes_of(arg(0)) + bytes_of(arg(1));
+    case OpKind::ScatterBackward:  // one canvas value per feature and cells -> d_features
+      return 2 * bytes_of(arg(2)) + bytes_of(arg(1));
+    default:
+      break;
+  }
   const auto bytes = [&](const std::vector<int>& ids) {
     std::vector<int> distinct = ids;
     std::sort(distinct.begin(), distinct.end());
     distinct.erase(std::unique(distinct.begin(), distinct.end()), distinct.end());
     size_t sum = 0;
-    for (int id : distinct) {
-      const GraphTensor& t = at(id);
-      Shape shape = t.shape;
-      if (t.dynamic_rows && !shape.empty()) shape[0] = pillar_rows;
-      sum += static_cast<size_t>(shape_numel(shape)) * dtype_bytes(t.dtype);
-    }
+    for (int id : distinct) sum += bytes_of(id);
     return sum;
   };
   return bytes(n.reads) + bytes(n.writes);

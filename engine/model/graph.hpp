@@ -136,7 +136,9 @@ class Graph {
   }
   double flops(size_t begin, size_t end) const;
   // The bytes node i must move at the least: every distinct tensor it reads, once, and every
-  // one it writes, once (one it updates in place counts twice), at its dtype; dim 0 of
+  // one it writes, once (one it updates in place counts twice), at its dtype; but for the ops
+  // that name a whole tensor of which they move a band or some rows (channel copies and
+  // extractions, the scatter and its backward), that band's or those rows' bytes. Dim 0 of
   // dynamic-row tensors is `pillar_rows`.
   size_t node_bytes(size_t i, int64_t pillar_rows) const;
   // The largest planned tensors with their offsets and lifetimes, and the total, as text.
