@@ -154,10 +154,12 @@ static __global__ void __launch_bounds__(kBlockSize)
 static __global__ void __launch_bounds__(kBlockSize)
     apply_max_kernel(const float* points, const float* weight, PfnShape shape, const float* mean,
                      const float* inv_std_or_variance, bool from_variance, float eps,
-                     const float* gamma, const float* beta, float* out, std::int32_t* max_slot) {
+                     const float* gamma, const float* beta, float* out, std::int32_t* max_slot,
+                     const std::int32_t* live_pillars) {
   const std::int64_t c = std::int64_t{blockIdx.y} * kChannelTile + threadIdx.x;
   const std::int64_t p = std::int64_t{blockIdx.x} * kRowGroups + threadIdx.y;
   if (c >= shape.channels || p >= shape.pillars) return;
+  if (live_pillars != nullptr && p >= *live_pillars) return;  // inert: left as it is
   const ChannelWeights weights = load_weights(weight, c);
   const ChannelNorm norm = channel_norm(mean, inv_std_or_variance, from_variance, eps, gamma, c);
   const float shift = beta[c];
@@ -376,14 +378,14 @@ void pfn_forward_train(const float* points, const float* weight, const PfnShape&
         apply_max_kernel,
         dim3(static_cast<unsigned>(ceil_div(shape.pillars, kRowGroups)), channel_tiles(shape)),
         dim3(kChannelTile, kRowGroups), 0, stream, points, weight, shape, save_mean, save_inv_std,
-        false, eps, gamma, beta, out, max_slot);
+        false, eps, gamma, beta, out, max_slot, nullptr);
   }
 }
 
 void pfn_forward_eval(const float* points, const float* weight, const PfnShape& shape,
                       const float* gamma, const float* beta, const float* running_mean,
                       const float* running_var, float eps, float* out, std::int32_t* max_slot,
-                      cudaStream_t stream) {
+                      cudaStream_t stream, const std::int32_t* live_pillars) {
   const char* op = "pfn_forward_eval";
   check_shape(shape, op);
   PS_CHECK(eps > 0.0f, "{}: expected eps > 0, given {}", op, eps);
@@ -398,7 +400,7 @@ void pfn_forward_eval(const float* points, const float* weight, const PfnShape& 
       apply_max_kernel,
       dim3(static_cast<unsigned>(ceil_div(shape.pillars, kRowGroups)), channel_tiles(shape)),
       dim3(kChannelTile, kRowGroups), 0, stream, points, weight, shape, running_mean, running_var,
-      true, eps, gamma, beta, out, max_slot);
+      true, eps, gamma, beta, out, max_slot, live_pillars);
 }
 
 void pfn_backward(const float* d_out, const float* points, const float* weight,

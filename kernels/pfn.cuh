@@ -44,11 +44,13 @@ void pfn_forward_train(const float* points, const float* weight, const PfnShape&
                        cudaStream_t stream, ReplicaSum* replicas = nullptr);
 
 // Evaluation forward with the running statistics. Shapes as pfn_forward_train; max_slot may be
-// nullptr (not needed).
+// nullptr (not needed). live_pillars: nullptr, or one int32 of device memory (the gather's P',
+// read when the kernel runs): pillars at or past it are inert and their rows of out (and
+// max_slot) are left as they are.
 void pfn_forward_eval(const float* points, const float* weight, const PfnShape& shape,
                       const float* gamma, const float* beta, const float* running_mean,
                       const float* running_var, float eps, float* out, std::int32_t* max_slot,
-                      cudaStream_t stream);
+                      cudaStream_t stream, const std::int32_t* live_pillars = nullptr);
 
 // Backward of the training forward. d_out (P, C); points, weight, gamma, save_mean,
 // save_inv_std and max_slot as given to and written by the forward (a slot outside -1..N-1

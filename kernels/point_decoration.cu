@@ -33,10 +33,13 @@ static __global__ void __launch_bounds__(kBlockSize)
                            const std::int32_t* __restrict__ cell,
                            const std::int32_t* __restrict__ point_index,
                            const std::int32_t* __restrict__ count, std::int64_t pillars, int slots,
-                           PillarCentres centres, float* __restrict__ out) {
+                           const std::int32_t* __restrict__ live_pillars, PillarCentres centres,
+                           float* __restrict__ out) {
   __shared__ double mean[kPillarsPerBlock][3];
   __shared__ int kept[kPillarsPerBlock];  // count, or 0 for a pillar that is written all zero
   const std::int64_t p0 = std::int64_t{blockIdx.x} * kPillarsPerBlock;
+  if (live_pillars != nullptr && *live_pillars < pillars) pillars = *live_pillars;
+  if (p0 >= pillars) return;  // every pillar of the block is inert: left as it is
   const int block_pillars =
       pillars - p0 < kPillarsPerBlock ? static_cast<int>(pillars - p0) : kPillarsPerBlock;
   const int t = static_cast<int>(threadIdx.x);
@@ -94,7 +97,7 @@ static __global__ void __launch_bounds__(kBlockSize)
 void decorate_points(const float* points, std::int64_t num_points, const std::int32_t* cell,
                      const std::int32_t* point_index, const std::int32_t* count,
                      std::int64_t pillars, std::int64_t slots, const GridSpec& grid, float* out,
-                     cudaStream_t stream) {
+                     cudaStream_t stream, const std::int32_t* live_pillars) {
   constexpr const char* kOp = "decorate_points";
   PS_CHECK(num_points >= 0 && pillars >= 0,
            "{}: expected M >= 0 points and P >= 0 pillars, given M = {}, P = {}", kOp, num_points,
@@ -121,7 +124,7 @@ void decorate_points(const float* points, std::int64_t num_points, const std::in
   launch_kernel(decorate_points_kernel,
                 dim3(static_cast<unsigned>(ceil_div(pillars, std::int64_t{kPillarsPerBlock}))),
                 dim3(kBlockSize), 0, stream, points, num_points, cell, point_index, count, pillars,
-                static_cast<int>(slots), centres, out);
+                static_cast<int>(slots), live_pillars, centres, out);
 }
 
 }  // namespace pillarseg::cuda

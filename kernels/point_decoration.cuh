@@ -26,10 +26,12 @@ namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 inline constexpr std::int64_t kDecoratedFeatures = 10;
 
 // points (M, 4), cell (P, 2), point_index (P, N), count (P) -> out (P, N, 10); `grid` gives the
-// pillar centres (x_min, y_min, cell, z_min, z_max).
+// pillar centres (x_min, y_min, cell, z_min, z_max). live_pillars: nullptr, or one int32 of
+// device memory (the gather's P', read when the kernel runs): pillars at or past it are inert
+// and their rows of out are left as they are.
 void decorate_points(const float* points, std::int64_t num_points, const std::int32_t* cell,
                      const std::int32_t* point_index, const std::int32_t* count,
                      std::int64_t pillars, std::int64_t slots, const GridSpec& grid, float* out,
-                     cudaStream_t stream);
+                     cudaStream_t stream, const std::int32_t* live_pillars = nullptr);
 
 }  // namespace pillarseg::cuda

@@ -356,7 +356,28 @@ std::vector<Case> cases() {
                        BatchNormRefs bn = t.bn(2, training);
                        Ref y = t.f(o);
                        IRef am = training ? t.i32(o + 1) : IRef{};
-                       be.pfn_forward(t.f(0), t.f(1), bn, training, am, y);
+                       be.pfn_forward(t.f(0), t.f(1), bn, training, IRef{}, am, y);
+                     },
+                     1e-9});
+    }
+    // Evaluation with live rows (a device pipeline's P'): the rows from p / 2 on keep their
+    // random contents (the reference leaves them too), the others are computed; a live count
+    // past the rows (p + 5) computes every row.
+    for (const int64_t live : {p / 2, p + 5}) {
+      std::vector<Arg> eval_args = {in_f("points", {p, n, 10}), in_f("weight", {c, 10})};
+      add_bn(eval_args, c, false, false);
+      eval_args.push_back(inout_f("out", {p, c}, -9, -8));
+      Arg live_arg{"live_rows", {1}, Kind::I32, Role::Input, {}};
+      live_arg.fill = [live](Rng&, void* dst, int64_t) {
+        *static_cast<int32_t*>(dst) = static_cast<int32_t>(live);
+      };
+      eval_args.push_back(live_arg);
+      all.push_back({"pfn_forward/eval,live=" + std::to_string(live) + "," + shapes, eval_args,
+                     [](Backend& be, Bound& t) {
+                       BatchNormRefs bn = t.bn(2, false);
+                       Ref y = t.f(6);
+                       IRef am;
+                       be.pfn_forward(t.f(0), t.f(1), bn, false, t.i32(7), am, y);
                      },
                      1e-9});
     }
@@ -371,7 +392,7 @@ std::vector<Case> cases() {
                      BatchNormRefs bn = t.bn(2, true);
                      Ref y = t.f(8), dw = t.f(11), dg = t.f(12), db = t.f(13);
                      IRef am = t.i32(9);
-                     be.pfn_forward(t.f(0), t.f(1), bn, true, am, y);
+                     be.pfn_forward(t.f(0), t.f(1), bn, true, IRef{}, am, y);
                      be.pfn_backward(t.f(0), t.f(1), bn, am, t.f(10), dw, dg, db);
                    },
                    1e-9});

@@ -378,6 +378,24 @@ TEST(PointDecorationKernel, GatherThenDecorateOnTheDeviceEqualsTheHost) {
     ASSERT_EQ(actual[static_cast<std::size_t>(e)], 0.0f) << "unused row element " << e;
   }
   EXPECT_TRUE(out.guards_intact());
+
+  // With the gather's P' as the live pillars (read on the device): the same pillar rows, and the
+  // rows past P' left as they were (-5). The live count is the device's, so one past it or 0
+  // moves where the kernel stops.
+  for (const std::int32_t shift : {0, -1}) {
+    const std::int32_t live = static_cast<std::int32_t>(pillars.num_pillars()) + shift;
+    GuardedArray<std::int32_t> live_rows(std::vector<std::int32_t>{live});
+    out.upload(std::vector<float>(static_cast<std::size_t>(rows * slots * 10), -5.0f));
+    cuda::decorate_points(device_input.data(), m, cell.data(), point_index.data(), count.data(),
+                          rows, slots, grid, out.data(), nullptr, live_rows.data());
+    const std::vector<float> cut = out.download();
+    const std::int64_t live_floats = std::int64_t{live} * slots * 10;
+    EXPECT_TRUE(test::all_close(cut.data(), expected.data(), live_floats, 1e-6, 1.2e-7));
+    for (std::int64_t e = live_floats; e < rows * slots * 10; ++e) {
+      ASSERT_EQ(cut[static_cast<std::size_t>(e)], -5.0f) << "live " << live << ", element " << e;
+    }
+    EXPECT_TRUE(out.guards_intact());
+  }
 }
 
 // ---------------------------------------------------------------------------------------------

@@ -138,7 +138,8 @@ TEST_P(PipelineVariant, DeviceInputsEqualTheCpuBackend) {
       const PreparedInputs got = run_pipeline(c, cuda, points, recorded);
       ASSERT_EQ(got.pillars, expected.pillars);
       ASSERT_GE(got.rows, got.pillars);
-      // The first P' rows: the CPU's, bit for bit; the rows after: zero points, no cell.
+      // The first P' rows: the CPU's, bit for bit; the rows after: no cell (their points are
+      // left unwritten: the decoration stops at the device's P', ScanPipeline::live_pillar_rows).
       const auto P = static_cast<size_t>(expected.pillars);
       const size_t row_floats = static_cast<size_t>(c.max_points_per_pillar) * 10;
       const std::vector<float> head(got.pillar_points.begin(),
@@ -147,7 +148,6 @@ TEST_P(PipelineVariant, DeviceInputsEqualTheCpuBackend) {
       const std::vector<int32_t> cells(got.pillar_cells.begin(),
                                        got.pillar_cells.begin() + static_cast<std::ptrdiff_t>(3 * P));
       EXPECT_EQ(cells, expected.pillar_cells);
-      for (size_t i = P * row_floats; i < got.pillar_points.size(); ++i) ASSERT_EQ(got.pillar_points[i], 0.0f) << i;
       for (size_t i = 3 * P; i < got.pillar_cells.size(); ++i) ASSERT_EQ(got.pillar_cells[i], -1) << i;
       EXPECT_TRUE(within_ulps(got.occupancy, expected.occupancy, kMapUlps));
       EXPECT_TRUE(within_ulps(got.grid_map, expected.grid_map, kMapUlps));

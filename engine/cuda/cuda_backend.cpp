@@ -413,7 +413,8 @@ int64_t CudaBackend::pillar_gather(const Ref& points, const GridSpec& grid, int 
 }
 
 void CudaBackend::decorate_points(const Ref& points, const GridSpec& grid, const IRef& cell,
-                                  const IRef& point_index, const IRef& count, Ref& out) {
+                                  const IRef& point_index, const IRef& count, const IRef& live_rows,
+                                  Ref& out) {
   const char* op = "decorate_points";
   const int64_t M = point_count(op, points);
   require_rank(op, "point_index", point_index, 2);
@@ -422,7 +423,7 @@ void CudaBackend::decorate_points(const Ref& points, const GridSpec& grid, const
   require_shape(op, "count", count, {rows});
   require_shape(op, "out", out, {rows, N, cuda::kDecoratedFeatures});
   cuda::decorate_points(points.data, M, cell.data, point_index.data, count.data, rows, N, grid,
-                        out.data, stream_.get());
+                        out.data, stream_.get(), live_rows_data(op, live_rows));
 }
 
 void CudaBackend::batch_cells(const IRef& cell, int sample, IRef& cells) {
@@ -505,17 +506,19 @@ void CudaBackend::mask_unobserved(const URef& transmissions, const URef& detecti
 // The PFN kernels keep no (P N, C) tensor whole: they recompute the linear output per block of
 // pillars.
 void CudaBackend::pfn_forward(const Ref& points, const Ref& weight, BatchNormRefs& bn,
-                              bool training, IRef& argmax, Ref& out) {
+                              bool training, const IRef& live_rows, IRef& argmax, Ref& out) {
   const char* op = "pfn_forward";
   require_shape(op, "out", out, op::pfn(points.shape, weight.shape, op));
   const cuda::PfnShape shape{points.dim(0), points.dim(1), weight.dim(0)};
+  const int32_t* live = live_rows_data(op, live_rows);
   if (!training) {
     // Evaluation needs no arg-max slots (nothing flows back).
     cuda::pfn_forward_eval(points.data, weight.data, shape, bn.gamma.data, bn.beta.data,
                            bn.running_mean.data, bn.running_var.data, bn.eps, out.data, nullptr,
-                           stream_.get());
+                           stream_.get(), live);
     return;
   }
+  PS_CHECK(live == nullptr, "{}: live_rows in training (the batch statistics take every row)", op);
   require_shape(op, "argmax", argmax, {shape.pillars, shape.channels});
   double* workspace = double_workspace(cuda::pfn_workspace_doubles(shape));
   cuda::pfn_forward_train(points.data, weight.data, shape, bn.gamma.data, bn.beta.data, bn.eps,

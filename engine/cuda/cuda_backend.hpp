@@ -113,7 +113,8 @@ class CudaBackend final : public Backend {
   int64_t pillar_gather(const Ref& points, const GridSpec& grid, int max_pillars, IRef& cell,
                         IRef& point_index, IRef& count, IRef& num_pillars) override;
   void decorate_points(const Ref& points, const GridSpec& grid, const IRef& cell,
-                       const IRef& point_index, const IRef& count, Ref& out) override;
+                       const IRef& point_index, const IRef& count, const IRef& live_rows,
+                       Ref& out) override;
   void batch_cells(const IRef& cell, int sample, IRef& cells) override;
   void observability_2d(const Ref& points, const Eigen::Vector3d& origin, const GridSpec& grid,
                         URef& transmissions, URef& detections) override;
@@ -126,7 +127,7 @@ class CudaBackend final : public Backend {
                        Ref* probabilities) override;
 
   void pfn_forward(const Ref& points, const Ref& weight, BatchNormRefs& bn, bool training,
-                   IRef& argmax, Ref& out) override;
+                   const IRef& live_rows, IRef& argmax, Ref& out) override;
   void pfn_backward(const Ref& points, const Ref& weight, const BatchNormRefs& bn,
                     const IRef& argmax, const Ref& dout, Ref& dweight, Ref& dgamma,
                     Ref& dbeta) override;

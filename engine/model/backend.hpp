@@ -57,6 +57,14 @@ void require_rank(const char* op, const char* what, const RefT<T>& r, size_t ran
   PS_CHECK(r.shape.size() == rank, "{}: {} must have {} dimensions, got {}", op, what, rank, shape_str(r.shape));
 }
 
+// The live-rows argument of decorate_points and pfn_forward: nullptr when empty (every row is
+// live), else its one int32 (in the backend's memory).
+inline const int32_t* live_rows_data(const char* op, const IRef& live_rows) {
+  if (live_rows.data == nullptr) return nullptr;
+  require_shape(op, "live_rows", live_rows, {1});
+  return live_rows.data;
+}
+
 // An activation of the mixed-precision evaluation forward: FP32, or 16-bit (`half`).
 struct ActRef {
   void* data = nullptr;
@@ -150,9 +158,12 @@ class Backend {
   virtual int64_t pillar_gather(const Ref& points, const GridSpec& grid, int max_pillars, IRef& cell,
                                 IRef& point_index, IRef& count, IRef& num_pillars) = 0;
   // The decorated points (rows, N, 10) of the pillars (host/point_decoration.hpp): cell (rows, 2),
-  // point_index (rows, N), count (rows) from pillar_gather.
+  // point_index (rows, N), count (rows) from pillar_gather. live_rows: empty, or pillar_gather's
+  // num_pillars (1): the rows at or past its value are inert and may be left unwritten (a device
+  // reads it when the work runs, so a recorded graph stops at each scan's own P').
   virtual void decorate_points(const Ref& points, const GridSpec& grid, const IRef& cell,
-                               const IRef& point_index, const IRef& count, Ref& out) = 0;
+                               const IRef& point_index, const IRef& count, const IRef& live_rows,
+                               Ref& out) = 0;
   // cell (rows, 2) -> cells (rows, 3) = (sample, iy, ix), (-1, -1, -1) for an inert row.
   virtual void batch_cells(const IRef& cell, int sample, IRef& cells) = 0;
   // 2D ray counts (host/raywalk.hpp): points (M, 4), the sensor origin in their frame ->
@@ -177,9 +188,11 @@ class Backend {
   // -> (P, C). Training uses batch statistics over all P*N rows and saves what backward needs
   // (the batch statistics in bn.save_*, the arg-max slot (P, C) in `argmax`, -1 where the
   // output is 0). The backward recomputes the linear output and gives the parameters'
-  // gradients (the points are the network's input: none for them).
+  // gradients (the points are the network's input: none for them). live_rows (evaluation only;
+  // empty in training, whose statistics take every row): as decorate_points', the rows of out at
+  // or past its value may be left unwritten.
   virtual void pfn_forward(const Ref& points, const Ref& weight, BatchNormRefs& bn, bool training,
-                           IRef& argmax, Ref& out) = 0;
+                           const IRef& live_rows, IRef& argmax, Ref& out) = 0;
   virtual void pfn_backward(const Ref& points, const Ref& weight, const BatchNormRefs& bn,
                             const IRef& argmax, const Ref& dout, Ref& dweight, Ref& dgamma,
                             Ref& dbeta) = 0;

@@ -54,6 +54,23 @@ std::span<const Point> as_points(const Ref& points) {
   return {reinterpret_cast<const Point*>(points.data), static_cast<size_t>(points.dim(0))};
 }
 
+// Rows [0, rows) of a tensor whose dim 0 counts rows.
+template <class T>
+RefT<T> leading_rows(const char* op, const RefT<T>& r, int64_t rows) {
+  PS_CHECK(!r.shape.empty() && rows >= 0 && rows <= r.dim(0),
+           "{}: {} live rows of a tensor of shape {}", op, rows, shape_str(r.shape));
+  Shape shape = r.shape;
+  shape[0] = rows;
+  return RefT<T>{r.data, std::move(shape)};
+}
+
+// The live rows of `rows` that a live-rows argument (host memory here) leaves: its value,
+// clamped to [0, rows].
+int64_t live_row_count(const char* op, const IRef& live_rows, int64_t rows) {
+  const int64_t live = *live_rows_data(op, live_rows);
+  return std::clamp<int64_t>(live, 0, rows);
+}
+
 host::BatchNormOptions bn_options(const BatchNormRefs& bn) { return {bn.eps, bn.momentum, bn.replicas}; }
 
 host::BatchNormSaved<float> bn_saved(const BatchNormRefs& bn) {
@@ -150,12 +167,19 @@ class CpuBackend final : public Backend {
   void fill_zero(void* dst, size_t bytes) override { std::memset(dst, 0, bytes); }
 
   void pfn_forward(const Ref& points, const Ref& weight, BatchNormRefs& bn, bool training,
-                   IRef& argmax, Ref& out) override {
+                   const IRef& live_rows, IRef& argmax, Ref& out_rows) override {
+    const char* op = "pfn_forward";
+    const bool cut = live_rows_data(op, live_rows) != nullptr;
+    PS_CHECK(!training || !cut, "{}: live_rows in training (the batch statistics take every row)", op);
+    // Evaluation with live rows: the leading live pillars only.
+    const int64_t live = cut ? live_row_count(op, live_rows, out_rows.dim(0)) : 0;
+    const Ref in = cut ? leading_rows(op, points, live) : points;
+    Ref out = cut ? leading_rows(op, out_rows, live) : out_rows;
     if (fast_paths_) {
       if (training) {
         cpu::pfn_forward_train(points, weight, bn, argmax, out);
       } else {
-        cpu::pfn_forward_eval(points, weight, bn, out);
+        cpu::pfn_forward_eval(in, weight, bn, out);
       }
       return;
     }
@@ -166,7 +190,8 @@ class CpuBackend final : public Backend {
       host::pfn_forward_train(view(points), view(weight), view(bn.gamma), view(bn.beta),
                               bn_options(bn), mean, var, counted, y, saved);
     } else {
-      host::pfn_forward_eval(view(points), view(weight), view(bn.gamma), view(bn.beta), mean, var, bn_options(bn), y);
+      host::pfn_forward_eval(view(in), view(weight), view(bn.gamma), view(bn.beta), mean, var,
+                             bn_options(bn), y);
     }
   }
   void pfn_backward(const Ref& points, const Ref& weight, const BatchNormRefs& bn,
@@ -383,8 +408,18 @@ class CpuBackend final : public Backend {
     num_pillars.data[0] = static_cast<int32_t>(kept);
     return kept;
   }
-  void decorate_points(const Ref& points, const GridSpec& grid, const IRef& cell, const IRef& point_index,
-                       const IRef& count, Ref& out) override {
+  void decorate_points(const Ref& points, const GridSpec& grid, const IRef& cell,
+                       const IRef& point_index, const IRef& count, const IRef& live_rows,
+                       Ref& out) override {
+    const char* op = "decorate_points";
+    if (live_rows_data(op, live_rows) != nullptr) {
+      const int64_t live = live_row_count(op, live_rows, count.dim(0));
+      Ref live_out = leading_rows(op, out, live);
+      decorate_points(points, grid, leading_rows(op, cell, live),
+                      leading_rows(op, point_index, live), leading_rows(op, count, live), IRef{},
+                      live_out);
+      return;
+    }
     host::Pillars pillars{view(cell), view(point_index), view(count)};
     Tensor<float> decorated = view(out);
     host::decorate_points(as_points(points), pillars, grid, decorated);

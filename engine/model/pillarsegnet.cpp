@@ -105,6 +105,7 @@ struct PillarSegNet::Impl {
   int64_t pillar_capacity = 0, pillar_rows = 0;
   bool loss_gradient_ready = false;
   ReplicaSum* replicas = nullptr;  // set_replicas
+  IRef live_rows;                  // set_live_pillar_rows
   int64_t memory_generation = 0;
   // The resolved outputs of the current plan.
   Ref logits, d_logits, probs, coefficients;
@@ -771,7 +772,7 @@ double PillarSegNet::execute(const GraphPlan& p, size_t begin, size_t end, bool 
         BatchNormRefs r = batchnorm_refs(p, n, a[4], a[5]);
         IRef argmax = ints(2);
         Ref out = f(3);
-        be.pfn_forward(f(0), f(1), r, n.training, argmax, out);
+        be.pfn_forward(f(0), f(1), r, n.training, n.training ? IRef{} : m.live_rows, argmax, out);
         if (n.training) ps.counters()[m.bns[static_cast<size_t>(n.batchnorm)].counter] += 1;
         break;
       }
@@ -1058,6 +1059,11 @@ size_t PillarSegNet::activation_bytes() const {
 const Graph& PillarSegNet::graph(bool training) const { return training ? impl_->train.graph : impl_->eval.graph; }
 
 std::string PillarSegNet::memory_report(bool training) const { return graph(training).memory_report(); }
+
+void PillarSegNet::set_live_pillar_rows(const IRef& live_rows) {
+  impl_->live_rows = live_rows;
+  live_rows_data("set_live_pillar_rows", live_rows);  // empty or one int32
+}
 
 PillarSegNet::Inputs PillarSegNet::prepare(int batch, int64_t pillar_rows, bool training) {
   Impl& m = *impl_;

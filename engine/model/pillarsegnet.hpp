@@ -113,6 +113,11 @@ class PillarSegNet {
     Ref grid_map;
   };
   Inputs prepare(int batch, int64_t pillar_rows, bool training);
+  // The evaluation PFN's live pillar rows: empty (the default), every row; else one int32 in the
+  // backend's memory (a device pipeline's P', ScanPipeline::live_pillar_rows()), read when the
+  // work runs: rows at or past it are inert (their cells are (-1, -1, -1)) and not computed. The
+  // memory must stay valid while set; set it empty before the inputs are filled otherwise.
+  void set_live_pillar_rows(const IRef& live_rows);
   void run(bool training);
   // Queues the evaluation plan's weight preparation (the 16-bit weights, BatchNorm folded in, of
   // a mixed-precision plan, kept in the plan from run to run) when the parameters

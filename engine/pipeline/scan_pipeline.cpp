@@ -111,6 +111,7 @@ int64_t ScanPipeline::gather_pillars(const Ref& points) {
   const int64_t rows = pillar_rows(points.dim(0), config_.grid, config_.max_pillars);
   IRef cell = leading(cell_, rows), point_index = leading(point_index_, rows),
        count = leading(count_, rows);
+  gathered_ = true;
   return backend_.pillar_gather(points, config_.grid, config_.max_pillars, cell, point_index, count,
                                 num_pillars_);
 }
@@ -122,6 +123,7 @@ int64_t ScanPipeline::upload_pillars(const host::Pillars& pillars) {
            config_.max_points_per_pillar);
   PS_CHECK(P <= gather_rows_, "scan pipeline: {} host pillars, room for {} (reserve() the scan first)", P,
            gather_rows_);
+  gathered_ = false;
   if (P == 0) return 0;
   backend_.upload(cell_.data, pillars.cell.data(), static_cast<size_t>(pillars.cell.numel()) * sizeof(int32_t));
   backend_.upload(point_index_.data, pillars.point_index.data(),
@@ -138,7 +140,7 @@ void ScanPipeline::fill_pillars(const Ref& points, int64_t rows, int sample, int
     IRef cells = row_slice(inputs.pillar_cells, row_offset, rows);
     const IRef cell = leading(cell_, rows);
     backend_.decorate_points(points, grid, cell, leading(point_index_, rows), leading(count_, rows),
-                             decorated);
+                             live_pillar_rows(), decorated);
     backend_.batch_cells(cell, sample, cells);
   }
 }

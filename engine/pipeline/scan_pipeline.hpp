@@ -67,6 +67,11 @@ class ScanPipeline {
   const IRef& gathered_pillars() const { return num_pillars_; }
   // Copies pillars gathered on the host (P' <= R rows) into the gather's outputs; returns P'.
   int64_t upload_pillars(const host::Pillars& pillars);
+  // After gather_pillars(): P' (1) in the backend's memory, which the decoration (fill_pillars)
+  // and the evaluation PFN (PillarSegNet::set_live_pillar_rows) read so that they stop at the
+  // scan's own pillars, not at the R rows planned; after upload_pillars(): empty (every row
+  // given is a pillar).
+  IRef live_pillar_rows() const { return gathered_ ? num_pillars_ : IRef{}; }
 
   // Queues the decoration and the cells of the first `rows` gathered rows of the scan in `points`
   // into sample `sample` of `inputs`, its pillar rows from `row_offset`.
@@ -88,6 +93,7 @@ class ScanPipeline {
   bool needs_ray_counts_;
   int64_t capacity_ = -1, gather_rows_ = 0;
   int64_t buffer_generation_ = 0;
+  bool gathered_ = false;  // the gather's rows came from gather_pillars(), not upload_pillars()
   std::unique_ptr<Arena> arena_;
   Ref points_;
   IRef num_points_, cell_, point_index_, count_, num_pillars_;

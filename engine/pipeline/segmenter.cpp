@@ -42,8 +42,18 @@ void ScanSegmenter::queue_recordable(bool probabilities) {
   const PillarSegNet::Inputs inputs = net_->prepare(1, rows, /*training=*/false);
   pipeline_.fill_pillars(points, rows, 0, 0, inputs);
   pipeline_.fill_maps(points, Eigen::Vector3d::Zero(), 0, inputs);
-  net_->run(/*training=*/false);
+  run_network();
   queue_predictions(probabilities);
+}
+
+void ScanSegmenter::run_network() {
+  // Unset again however run() ends: the net's other callers give it inputs without a P'.
+  struct Unset {
+    PillarSegNet& net;
+    ~Unset() { net.set_live_pillar_rows(IRef{}); }
+  } unset{*net_};
+  net_->set_live_pillar_rows(pipeline_.live_pillar_rows());
+  net_->run(/*training=*/false);
 }
 
 void ScanSegmenter::queue_direct(const Ref& points, bool probabilities) {
@@ -62,7 +72,7 @@ void ScanSegmenter::queue_direct(const Ref& points, bool probabilities) {
   pipeline_.fill_maps(points, Eigen::Vector3d::Zero(), 0, inputs);
   lap(times_.maps);
   net_->set_stage_timing(time_stages_);
-  net_->run(/*training=*/false);
+  run_network();
   net_->set_stage_timing(false);
   if (time_stages_) {
     const PillarSegNet::StageTimes& net = net_->stage_times();

@@ -70,6 +70,8 @@ class ScanSegmenter {
   // The same on exactly the scan's points, with stage timing where it is on.
   void queue_direct(const Ref& points, bool probabilities);
   void queue_predictions(bool probabilities);
+  // The network's evaluation forward on the filled inputs, its PFN stopping at the gather's P'.
+  void run_network();
 
   ModelConfig model_;
   SegmenterOptions options_;
