@@ -8,8 +8,10 @@
 
 #include <cstdint>
 #include <limits>
+#include <type_traits>
 
 #include "kernels/common.cuh"
+#include "kernels/mma.cuh"
 
 namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 namespace {
@@ -50,10 +52,12 @@ static __device__ __forceinline__ std::int64_t cell_offset(const std::int32_t* c
 }
 
 // features (P, C) -> canvas: the tile of pillars [32 blockIdx.x, +32) and channels
-// [32 blockIdx.y, +32).
+// [32 blockIdx.y, +32). T: float, or std::uint16_t for a 16-bit canvas of type H (each value
+// rounded to nearest even as it is stored).
+template <class T, Half16 H>
 static __global__ void __launch_bounds__(kBlockSize)
     scatter_kernel(const float* features, const std::int32_t* cells, std::int64_t pillars,
-                   std::int64_t channels, ScatterCanvas canvas, float* out) {
+                   std::int64_t channels, ScatterCanvas canvas, T* out) {
   __shared__ float tile[kTile][kTile + 1];  // +1: the transposed reads hit distinct banks
   const std::int64_t p0 = std::int64_t{blockIdx.x} * kTile;
   const std::int64_t c0 = std::int64_t{blockIdx.y} * kTile;
@@ -69,7 +73,10 @@ static __global__ void __launch_bounds__(kBlockSize)
   if (offset < 0) return;
   const std::int64_t plane_size = canvas.height * canvas.width;
   for (int i = static_cast<int>(threadIdx.y); i < kTile && c0 + i < channels; i += kTileRows) {
-    out[offset + (c0 + i) * plane_size] = tile[threadIdx.x][i];
+    if constexpr (std::is_same_v<T, float>)
+      out[offset + (c0 + i) * plane_size] = tile[threadIdx.x][i];
+    else
+      out[offset + (c0 + i) * plane_size] = to_half16<H>(tile[threadIdx.x][i]);
   }
 }
 
@@ -98,35 +105,57 @@ static __global__ void __launch_bounds__(kBlockSize)
   }
 }
 
-void scatter_forward(const float* features, const std::int32_t* cells, std::int64_t pillars,
-                     std::int64_t channels, const ScatterCanvas& canvas_shape, float* canvas,
-                     cudaStream_t stream) {
-  const char* op = "scatter_forward";
+namespace {
+
+// scatter_forward into a canvas of T (see scatter_kernel), `what` naming the element for messages.
+template <class T, Half16 H>
+void scatter_into(const char* op, const char* what, const float* features,
+                  const std::int32_t* cells, std::int64_t pillars, std::int64_t channels,
+                  const ScatterCanvas& canvas_shape, T* canvas, cudaStream_t stream) {
   check_arguments(op, pillars, channels, canvas_shape);
   const std::int64_t plane_size = canvas_shape.height * canvas_shape.width;
   const std::int64_t band = channels * plane_size;
   if (band == 0 || canvas_shape.batch == 0) return;
-  PS_CHECK(canvas != nullptr, "{}: canvas must point to {} floats of device memory", op,
-           canvas_shape.batch * canvas_shape.channels * plane_size);
+  PS_CHECK(canvas != nullptr, "{}: canvas must point to {} {} of device memory", op,
+           canvas_shape.batch * canvas_shape.channels * plane_size, what);
   if (channels == canvas_shape.channels) {
     PS_CUDA_CHECK(cudaMemsetAsync(
-        canvas, 0, static_cast<std::size_t>(canvas_shape.batch * band) * sizeof(float), stream));
+        canvas, 0, static_cast<std::size_t>(canvas_shape.batch * band) * sizeof(T), stream));
   } else {
     for (std::int64_t b = 0; b < canvas_shape.batch; ++b) {
-      float* band_start = canvas + (b * canvas_shape.channels + canvas_shape.channel0) * plane_size;
+      T* band_start = canvas + (b * canvas_shape.channels + canvas_shape.channel0) * plane_size;
       PS_CUDA_CHECK(
-          cudaMemsetAsync(band_start, 0, static_cast<std::size_t>(band) * sizeof(float), stream));
+          cudaMemsetAsync(band_start, 0, static_cast<std::size_t>(band) * sizeof(T), stream));
     }
   }
   if (pillars == 0) return;
   PS_CHECK(features != nullptr && cells != nullptr,
            "{}: features ({} floats) and cells ({} int32) must be device memory", op,
            pillars * channels, 3 * pillars);
-  launch_kernel(scatter_kernel,
+  launch_kernel(scatter_kernel<T, H>,
                 dim3(static_cast<unsigned>(ceil_div(pillars, kTile)),
                      static_cast<unsigned>(ceil_div(channels, kTile))),
                 dim3(kTile, kTileRows), 0, stream, features, cells, pillars, channels, canvas_shape,
                 canvas);
+}
+
+}  // namespace
+
+void scatter_forward(const float* features, const std::int32_t* cells, std::int64_t pillars,
+                     std::int64_t channels, const ScatterCanvas& canvas_shape, float* canvas,
+                     cudaStream_t stream) {
+  scatter_into<float, Half16::BF16>("scatter_forward", "floats", features, cells, pillars, channels,
+                                    canvas_shape, canvas, stream);
+}
+
+void scatter_forward_half(const float* features, const std::int32_t* cells, std::int64_t pillars,
+                          std::int64_t channels, const ScatterCanvas& canvas_shape, Half16 type,
+                          std::uint16_t* canvas, cudaStream_t stream) {
+  with_half16(type, [&](auto h) {
+    scatter_into<std::uint16_t, decltype(h)::value>("scatter_forward_half", "16-bit values",
+                                                    features, cells, pillars, channels,
+                                                    canvas_shape, canvas, stream);
+  });
 }
 
 void scatter_backward(const float* d_canvas, const ScatterCanvas& canvas_shape,

@@ -16,6 +16,7 @@
 #include <cstdint>
 
 #include "kernels/emu/cuda_compat.cuh"
+#include "kernels/mma.cuh"
 
 namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 
@@ -32,6 +33,12 @@ struct ScatterCanvas {
 void scatter_forward(const float* features, const std::int32_t* cells, std::int64_t pillars,
                      std::int64_t channels, const ScatterCanvas& canvas_shape, float* canvas,
                      cudaStream_t stream);
+
+// The same into a 16-bit canvas of `type` (the mixed-precision evaluation's U-Net input): each
+// feature rounded to nearest even as it is stored, as to_half16 (half_ops.cuh) rounds it.
+void scatter_forward_half(const float* features, const std::int32_t* cells, std::int64_t pillars,
+                          std::int64_t channels, const ScatterCanvas& canvas_shape, Half16 type,
+                          std::uint16_t* canvas, cudaStream_t stream);
 
 // d_canvas (B, Cc, H, W), cells (P, 3) -> d_features (P, C) from channels [channel0, channel0 + C).
 void scatter_backward(const float* d_canvas, const ScatterCanvas& canvas_shape,

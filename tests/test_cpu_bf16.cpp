@@ -733,16 +733,73 @@ TEST(CpuHalfOps, BitForBitTheCudaBackends) {
   EXPECT_EQ(on_cpu[0], bf16(xf[0]));
 }
 
+// The scatter into a 16-bit canvas band (channels 2..4 of 6, batch 2, 5 x 7 cells): the band's
+// values are the FP32 scatter's rounded (what to_half makes of its canvas), the other channels
+// keep 0x1234, an inert row (-1, -1, -1) is skipped; the CPU's bits are the CUDA backend's.
+std::vector<std::uint16_t> run_half_scatter(Backend& be) {
+  Rng rng(17);
+  const std::int64_t pillars = 9, c = 3, b = 2, h = 5, w = 7, cc = 6;
+  const int channel0 = 2;
+  std::vector<std::int32_t> cells;
+  for (std::int64_t p = 0; p < pillars; ++p) {  // distinct cells
+    cells.push_back(static_cast<std::int32_t>(p % b));
+    cells.push_back(static_cast<std::int32_t>(p % h));
+    cells.push_back(static_cast<std::int32_t>((3 * p) % w));
+  }
+  const std::vector<float> features = random_floats(pillars * c, rng, -3, 3);
+  Device<float> f{be, {}};
+  Device<std::int32_t> i{be, {}};
+  Device<std::uint16_t> d{be, {}};
+  const Shape canvas_shape = {b, cc, h, w};
+  const std::int64_t n = shape_numel(canvas_shape);
+  // FP32: the valid rows, then rounded.
+  Ref canvas32{f.put(std::vector<float>(static_cast<size_t>(n), 0.0f)), canvas_shape};
+  be.scatter_forward(Ref{f.put(features), {pillars, c}}, IRef{i.put(cells), {pillars, 3}}, channel0,
+                     canvas32);
+  HRef rounded{d.put(std::vector<std::uint16_t>(static_cast<size_t>(n))), canvas_shape};
+  be.to_half(canvas32, Precision::BF16, rounded);
+  // 16-bit, with an inert row appended.
+  std::vector<float> more = features;
+  more.insert(more.end(), {7.0f, 7.0f, 7.0f});
+  std::vector<std::int32_t> more_cells = cells;
+  more_cells.insert(more_cells.end(), {-1, -1, -1});
+  HRef canvas16{d.put(std::vector<std::uint16_t>(static_cast<size_t>(n), 0x1234)), canvas_shape};
+  be.scatter_forward_half(Ref{f.put(more), {pillars + 1, c}},
+                          IRef{i.put(more_cells), {pillars + 1, 3}}, channel0, Precision::BF16,
+                          canvas16);
+  const std::vector<std::uint16_t> expected = d.get(rounded.data, n), got = d.get(canvas16.data, n);
+  for (std::int64_t e = 0; e < n; ++e) {
+    const std::int64_t channel = e / (h * w) % cc;
+    const bool in_band = channel >= channel0 && channel < channel0 + c;
+    EXPECT_EQ(got[static_cast<size_t>(e)], in_band ? expected[static_cast<size_t>(e)] : 0x1234)
+        << be.name() << ", element " << e;
+  }
+  return got;
+}
+
+TEST(CpuHalfOps, ScatterIsTheFp32ScatterRoundedBitForBitTheCudaBackends) {
+  auto cpu_backend = make_cpu_backend_emulated_bf16();
+  CudaBackend cuda_backend;
+  EXPECT_EQ(run_half_scatter(*cpu_backend), run_half_scatter(cuda_backend));
+}
+
 // ---- the whole model ----
 
 // A few training steps (BatchNorm statistics and weights away from their initial values), then
 // the evaluation forward in FP32 and in BF16 on the CPU (the instruction model, and the AVX-512
 // instructions where present), and in BF16 on the CUDA backend (emulation): the CPU's 3 x 3
-// convolutions are Winograd F(2x2, 3x3), the CUDA backend's direct.
+// convolutions are Winograd F(2x2, 3x3), the CUDA backend's direct. With the occupancy stream
+// the canvas is FP32 and rounded whole; with pillars alone they are scattered straight into the
+// 16-bit canvas (the third variant).
 TEST(CpuBf16Model, TracksFp32AndTheCudaBackend) {
-  for (const bool transposed : {false, true}) {
-    SCOPED_TRACE(transposed ? "transposed" : "bilinear");
-    const ModelConfig c = test::tiny_config(OccupancyInput::Occupancy3D, transposed);
+  const std::pair<OccupancyInput, bool> variants[] = {{OccupancyInput::Occupancy3D, false},
+                                                      {OccupancyInput::Occupancy3D, true},
+                                                      {OccupancyInput::None, false}};
+  for (const auto& [occupancy, transposed] : variants) {
+    const std::string variant = std::string(transposed ? "transposed" : "bilinear") +
+                                (occupancy == OccupancyInput::None ? "_pillars_alone" : "");
+    SCOPED_TRACE(variant);
+    const ModelConfig c = test::tiny_config(occupancy, transposed);
     const test::TinyData d = test::tiny_data(c, 2, 23, 0.4);
     auto emulated = make_cpu_backend_emulated_bf16();
     PillarSegNet net(c, *emulated, 3);
@@ -780,8 +837,7 @@ TEST(CpuBf16Model, TracksFp32AndTheCudaBackend) {
       return num / den;
     };
     const double against_fp32 = nmse(bf16_cpu, fp32);
-    RecordProperty(transposed ? "nmse_transposed" : "nmse_bilinear",
-                   fmt::format("{:.3g}", against_fp32));
+    RecordProperty("nmse_" + variant, fmt::format("{:.3g}", against_fp32));
     EXPECT_LT(against_fp32, 1e-5);  // the CUDA backend's BF16 measures 2.4e-7 here
     EXPECT_GT(against_fp32, 0.0) << "BF16 must round something";
     int64_t same = 0;
@@ -796,14 +852,12 @@ TEST(CpuBf16Model, TracksFp32AndTheCudaBackend) {
     on_cuda.set_precision(Precision::BF16);
     on_cuda.forward(d.batch, false);
     const double against_cuda = nmse(bf16_cpu, on_cuda.download_logits());
-    RecordProperty(transposed ? "nmse_vs_cuda_transposed" : "nmse_vs_cuda_bilinear",
-                   fmt::format("{:.3g}", against_cuda));
+    RecordProperty("nmse_vs_cuda_" + variant, fmt::format("{:.3g}", against_cuda));
     // The CPU runs its 3 x 3 convolutions by Winograd F(2x2, 3x3), whose rounding of U and V
     // to BF16 adds about half again to the direct convolution's error (RMS; bf16_winograd.hpp):
     // within 2x its RMS, 4x its NMSE, of the CUDA backend's direct BF16 against FP32.
     const double cuda_against_fp32 = nmse(on_cuda.download_logits(), fp32);
-    RecordProperty(transposed ? "nmse_cuda_transposed" : "nmse_cuda_bilinear",
-                   fmt::format("{:.3g}", cuda_against_fp32));
+    RecordProperty("nmse_cuda_" + variant, fmt::format("{:.3g}", cuda_against_fp32));
     EXPECT_LT(against_fp32, 4 * cuda_against_fp32);
     EXPECT_LT(against_cuda, 2 * (against_fp32 + cuda_against_fp32));
 
@@ -820,8 +874,7 @@ TEST(CpuBf16Model, TracksFp32AndTheCudaBackend) {
     auto amx_model = make_cpu_backend_emulated_bf16(/*amx=*/true);
     const Tensor<float> on_amx_model = bf16_logits(*amx_model);
     const double amx_against_vector = nmse(on_amx_model, bf16_cpu);
-    RecordProperty(transposed ? "nmse_amx_vs_avx512_transposed" : "nmse_amx_vs_avx512_bilinear",
-                   fmt::format("{:.3g}", amx_against_vector));
+    RecordProperty("nmse_amx_vs_avx512_" + variant, fmt::format("{:.3g}", amx_against_vector));
     EXPECT_LT(amx_against_vector, 1e-2 * against_fp32);
     if (cpu::avx512_bf16_available()) {  // the instructions: AVX-512 bit for bit its model
       auto native = make_cpu_backend();

@@ -93,6 +93,10 @@ TEST(Graph, NodeBytesCountEachTensorReadAndWrittenOnce) {
   EXPECT_EQ(g.node_bytes(1, 7), 16u);
   EXPECT_EQ(g.node_bytes(2, 7), 146u);
   EXPECT_EQ(g.node_bytes(2, 100), 1634u);
+  // What a FillZero of each clears: its own bytes, at its dtype.
+  EXPECT_EQ(g.tensor_bytes(h, 7), 10u);
+  EXPECT_EQ(g.tensor_bytes(band, 7), 8u);
+  EXPECT_EQ(g.tensor_bytes(rows, 7), 112u);
   // A channel copy and a scatter name the whole canvas but move a band or some cells: x (2 x 3
   // FP32) into a 16-bit canvas: 24 read + 12 written; 7 rows of 4 features and 7 cells of 3
   // int32 into the canvas: 112 + 84 read, 112 written.

@@ -431,6 +431,26 @@ void to_half(const Ref& x, Precision p, HRef& y) {
   });
 }
 
+void scatter_half(const Ref& features, const IRef& cells, int channel0, Precision p, HRef& canvas) {
+  const char* op = "CpuBackend::scatter_forward_half";
+  require_half(op, p);
+  op::scatter(features.shape, cells.shape, canvas.shape, channel0, op);
+  const std::int64_t batch = canvas.dim(0), channels = canvas.dim(1), height = canvas.dim(2),
+                     width = canvas.dim(3), plane = height * width, c_band = features.dim(1);
+  for (std::int64_t b = 0; b < batch; ++b)
+    std::fill_n(canvas.data + (b * channels + channel0) * plane, c_band * plane, std::uint16_t{0});
+  for (std::int64_t r = 0; r < features.dim(0); ++r) {
+    const std::int32_t* cell = cells.data + 3 * r;
+    if (cell[0] < 0 || cell[0] >= batch || cell[1] < 0 || cell[1] >= height || cell[2] < 0 ||
+        cell[2] >= width)
+      continue;
+    std::uint16_t* out =
+        canvas.data + (cell[0] * channels + channel0) * plane + cell[1] * width + cell[2];
+    for (std::int64_t c = 0; c < c_band; ++c)
+      out[c * plane] = to_bits(features.data[r * c_band + c], p);
+  }
+}
+
 void maxpool2x2_half(const HRef& x, Precision p, HRef& y) {
   const char* op = "CpuBackend::maxpool2x2_half";
   require_half(op, p);

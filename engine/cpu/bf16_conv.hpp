@@ -84,5 +84,9 @@ void maxpool2x2_half(const HRef& x, Precision p, HRef& y);
 void upsample2x_half(const HRef& x, Precision p, HRef& y);
 void pad_concat_half(const HRef& skip, const HRef& up, HRef& y);
 void copy_channels_half(const HRef& x, int channel0, HRef& y);
+// The pillar scatter into channels [channel0, channel0 + C) of a 16-bit canvas (B, Cc, H, W):
+// the band zeroed, then each feature rounded to nearest even at its cell; a cell outside the
+// canvas (an inert row's (-1, -1, -1)) is skipped (kernels/scatter.cuh).
+void scatter_half(const Ref& features, const IRef& cells, int channel0, Precision p, HRef& canvas);
 
 }  // namespace pillarseg::cpu

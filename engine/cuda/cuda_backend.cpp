@@ -993,6 +993,16 @@ void CudaBackend::pad_concat_half(const HRef& skip, const HRef& up, HRef& y) {
   cuda::pad_concat_half16(skip.data, up.data, shape, y.data, stream_.get());
 }
 
+void CudaBackend::scatter_forward_half(const Ref& features, const IRef& cells, int channel0,
+                                       Precision p, HRef& canvas) {
+  const char* op = "scatter_forward_half";
+  op::scatter(features.shape, cells.shape, canvas.shape, channel0, op);
+  const cuda::ScatterCanvas shape{canvas.dim(0), canvas.dim(1), canvas.dim(2), canvas.dim(3),
+                                  channel0};
+  cuda::scatter_forward_half(features.data, cells.data, features.dim(0), features.dim(1), shape,
+                             half_type(op, p), canvas.data, stream_.get());
+}
+
 void CudaBackend::copy_channels_half(const HRef& x, int channel0, HRef& y) {
   const char* op = "copy_channels_half";
   op::channel_band(x.shape, y.shape, channel0, op);

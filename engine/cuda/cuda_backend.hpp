@@ -195,6 +195,8 @@ class CudaBackend final : public Backend {
   void upsample2x_half(const HRef& x, Precision p, HRef& y) override;
   void pad_concat_half(const HRef& skip, const HRef& up, HRef& y) override;
   void copy_channels_half(const HRef& x, int channel0, HRef& y) override;
+  void scatter_forward_half(const Ref& features, const IRef& cells, int channel0, Precision p,
+                            HRef& canvas) override;
 
  private:
   // The kernels' scratch, in one place. `floats`, `doubles`, `gather` and `rays` grow to the

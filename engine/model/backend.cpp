@@ -126,6 +126,9 @@ void Backend::pad_concat_half(const HRef&, const HRef&, HRef&) {
 void Backend::copy_channels_half(const HRef&, int, HRef&) {
   PS_FAIL("backend {}: no 16-bit activations (supports_precision)", name());
 }
+void Backend::scatter_forward_half(const Ref&, const IRef&, int, Precision p, HRef&) {
+  PS_FAIL("backend {}: no {} activations (supports_precision)", name(), precision_name(p));
+}
 
 MemoryBudget Backend::memory_budget() const { return host_memory_budget(); }
 

@@ -298,6 +298,10 @@ class Backend {
   virtual void upsample2x_half(const HRef& x, Precision p, HRef& y);
   virtual void pad_concat_half(const HRef& skip, const HRef& up, HRef& y);
   virtual void copy_channels_half(const HRef& x, int channel0, HRef& y);
+  // scatter_forward into a 16-bit canvas: the band's values rounded to `p` (a cell outside the
+  // canvas, an inert row's, is skipped), so that the U-Net's 16-bit input needs no FP32 canvas.
+  virtual void scatter_forward_half(const Ref& features, const IRef& cells, int channel0,
+                                    Precision p, HRef& canvas);
 };
 
 std::unique_ptr<Backend> make_cpu_backend();

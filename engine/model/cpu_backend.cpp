@@ -155,6 +155,11 @@ class CpuBackend final : public Backend {
   }
   void pad_concat_half(const HRef& skip, const HRef& up, HRef& y) override { cpu::pad_concat_half(skip, up, y); }
   void copy_channels_half(const HRef& x, int channel0, HRef& y) override { cpu::copy_channels_half(x, channel0, y); }
+  void scatter_forward_half(const Ref& features, const IRef& cells, int channel0, Precision p,
+                            HRef& canvas) override {
+    require_precision(p);
+    cpu::scatter_half(features, cells, channel0, p, canvas);
+  }
 
   void* allocate(size_t bytes) override {
     void* p = std::aligned_alloc(64, (bytes + 63) / 64 * 64);

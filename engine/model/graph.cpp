@@ -113,6 +113,8 @@ const char* op_name(OpKind op) {
       return "pad+concat 16-bit";
     case OpKind::CopyChannelsHalf:
       return "channel copies 16-bit";
+    case OpKind::ScatterHalf:
+      return "scatter forward 16-bit";
   }
   return "?";
 }
@@ -229,15 +231,17 @@ double Graph::flops(size_t begin, size_t end) const {
   return sum;
 }
 
+size_t Graph::tensor_bytes(int id, int64_t pillar_rows) const {
+  const GraphTensor& t = at(id);
+  Shape shape = t.shape;
+  if (t.dynamic_rows && !shape.empty()) shape[0] = pillar_rows;
+  return static_cast<size_t>(shape_numel(shape)) * dtype_bytes(t.dtype);
+}
+
 size_t Graph::node_bytes(size_t i, int64_t pillar_rows) const {
   const GraphNode& n = nodes_.at(i);
-  const auto elements = [&](int id) {
-    const GraphTensor& t = at(id);
-    Shape shape = t.shape;
-    if (t.dynamic_rows && !shape.empty()) shape[0] = pillar_rows;
-    return static_cast<size_t>(shape_numel(shape));
-  };
-  const auto bytes_of = [&](int id) { return elements(id) * dtype_bytes(at(id).dtype); };
+  const auto bytes_of = [&](int id) { return tensor_bytes(id, pillar_rows); };
+  const auto elements = [&](int id) { return bytes_of(id) / dtype_bytes(at(id).dtype); };
   const auto arg = [&](size_t k) { return n.args.at(k); };
   switch (n.op) {
     // Ops that name a whole tensor of which they read or write a band or some rows (for its
@@ -249,6 +253,8 @@ size_t Graph::node_bytes(size_t i, int64_t pillar_rows) const {
       return 2 * bytes_of(arg(1));
     case OpKind::Scatter:  // features and cells -> one canvas value per feature
       return 2 * bytes_of(arg(0)) + bytes_of(arg(1));
+    case OpKind::ScatterHalf:  // the same, 16-bit canvas values
+      return bytes_of(arg(0)) + bytes_of(arg(1)) + elements(arg(0)) * dtype_bytes(DType::U16);
     case OpKind::ScatterBackward:  // one canvas value per feature and cells -> d_features
       return 2 * bytes_of(arg(2)) + bytes_of(arg(1));
     default:

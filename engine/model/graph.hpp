@@ -62,11 +62,12 @@ enum class OpKind {
   // Mixed precision (training): the gradients on the tensor cores from the FP32 tensors.
   Conv2dBackwardHalf,            // r: x, w, dy | w: dx, dw, dbias
   ConvTranspose2x2BackwardHalf,  // r: x, w, dy | w: dx, dw, dbias
-  ToHalf,                       // r: x (FP32) | w: y (16-bit)
-  MaxPool2x2Half,               // r: x | w: y (16-bit, no arg-max)
-  Upsample2xHalf,               // r: x | w: y
-  PadConcatHalf,                // r: skip, up | w: y
-  CopyChannelsHalf,             // r: x | w: band of y
+  ToHalf,                        // r: x (FP32) | w: y (16-bit)
+  MaxPool2x2Half,                // r: x | w: y (16-bit, no arg-max)
+  Upsample2xHalf,                // r: x | w: y
+  PadConcatHalf,                 // r: skip, up | w: y
+  CopyChannelsHalf,              // r: x | w: band of y
+  ScatterHalf,                   // r: features, cells | w: 16-bit canvas band
 };
 const char* op_name(OpKind op);
 
@@ -141,6 +142,8 @@ class Graph {
   // extractions, the scatter and its backward), that band's or those rows' bytes. Dim 0 of
   // dynamic-row tensors is `pillar_rows`.
   size_t node_bytes(size_t i, int64_t pillar_rows) const;
+  // A tensor's bytes at its dtype, dim 0 of a dynamic-row tensor being `pillar_rows`.
+  size_t tensor_bytes(int id, int64_t pillar_rows) const;
   // The largest planned tensors with their offsets and lifetimes, and the total, as text.
   std::string memory_report(size_t largest = 12) const;
   // The flat gradient array [0, total) cut into buckets for a sum overlapped with the backward.

@@ -396,7 +396,12 @@ void PillarSegNet::build_graph(GraphPlan& p, int batch, bool training) {
   const bool pillars = config_.pillar_input, occupancy = config_.occupancy != OccupancyInput::None;
 
   // Inputs: the canvas, the pillar buffers and the input maps (uploaded or prepared on the device).
-  const int canvas = g.tensor("canvas", {batch, config_.input_channels(), H, W});
+  // A mixed-precision evaluation of pillars alone scatters them straight into the U-Net's 16-bit
+  // input; with other streams the canvas is FP32 and rounded once it is whole.
+  const bool half_canvas = bld.half() && pillars && !occupancy && !config_.grid_map_input;
+  const int canvas =
+      g.tensor(half_canvas ? "canvas16" : "canvas", {batch, config_.input_channels(), H, W},
+               half_canvas ? DType::U16 : DType::F32);
   int pfn_out = -1, pfn_argmax = -1, pfn_mean = -1, pfn_invstd = -1;
   if (pillars) {
     p.pillar_points = g.tensor("pillar_points", {cap, N, 10});
@@ -432,8 +437,9 @@ void PillarSegNet::build_graph(GraphPlan& p, int batch, bool training) {
     pfn.training = training;
     pfn.flops = op::pfn_flops({cap, N, 10}, {C, 10});
     bld.stage = Stage::Scatter;
-    GraphNode& scatter = bld.node(OpKind::Scatter, "pfn", {pfn_out, p.pillar_cells, canvas},
-                                  {pfn_out, p.pillar_cells, canvas}, {canvas});
+    GraphNode& scatter =
+        bld.node(half_canvas ? OpKind::ScatterHalf : OpKind::Scatter, "pfn",
+                 {pfn_out, p.pillar_cells, canvas}, {pfn_out, p.pillar_cells, canvas}, {canvas});
     scatter.channel0 = 0;
     channel += config_.pillar_channels;
   }
@@ -454,7 +460,7 @@ void PillarSegNet::build_graph(GraphPlan& p, int batch, bool training) {
   }
   // Mixed precision: the U-Net runs on a 16-bit copy of the canvas.
   int unet_input = canvas;
-  if (bld.half()) {
+  if (bld.half() && !half_canvas) {
     unet_input = g.tensor("canvas16", g.at(canvas).shape, DType::U16);
     bld.node(OpKind::ToHalf, "canvas", {canvas, unet_input}, {canvas}, {unet_input});
   }
@@ -762,11 +768,9 @@ double PillarSegNet::execute(const GraphPlan& p, size_t begin, size_t end, bool 
       return ActRef{r.data, r.shape, p.graph.at(a[k]).dtype == DType::U16};
     };
     switch (n.op) {
-      case OpKind::FillZero: {
-        const Ref r = f(0);
-        be.fill_zero(r.data, r.bytes());
+      case OpKind::FillZero:  // of any dtype (the 16-bit canvas)
+        be.fill_zero(f(0).data, p.graph.tensor_bytes(a[0], m.pillar_rows));
         break;
-      }
       case OpKind::PfnForward: {
         if (!have_pillars) break;
         BatchNormRefs r = batchnorm_refs(p, n, a[4], a[5]);
@@ -780,6 +784,12 @@ double PillarSegNet::execute(const GraphPlan& p, size_t begin, size_t end, bool 
         if (!have_pillars) break;
         Ref canvas = f(2);
         be.scatter_forward(f(0), ints(1), n.channel0, canvas);
+        break;
+      }
+      case OpKind::ScatterHalf: {
+        if (!have_pillars) break;
+        HRef canvas = h(2);
+        be.scatter_forward_half(f(0), ints(1), n.channel0, p.precision, canvas);
         break;
       }
       case OpKind::CopyChannels: {
