@@ -33,10 +33,17 @@ def demangle(names):
 
 
 def short(signature):
-    """pillarseg::cuda::conv2d_forward_kernel<64, 64>(...) -> conv2d_forward_kernel<64, 64>"""
-    name = re.sub(r"^void ", "", signature.split("(")[0])
-    name = re.sub(r"^pillarseg::cuda::(\(anonymous namespace\)::)?", "", name)
-    return name.replace("pillarseg::cuda::", "")
+    """pillarseg::cuda::gpu::(anonymous namespace)::conv2d_forward_kernel<64, 64>(...)
+    -> conv2d_forward_kernel<64, 64> (gpu / emu: the inline namespace of the build)"""
+    signature = signature.replace("(anonymous namespace)::", "")
+    signature = re.sub(r"pillarseg::cuda::((gpu|emu)::)?", "", signature)
+    depth = 0  # the parameter list's "(" is the first outside the template arguments
+    for i, c in enumerate(signature):
+        depth += {"<": 1, ">": -1}.get(c, 0)
+        if c == "(" and depth == 0:
+            signature = signature[:i]
+            break
+    return re.sub(r"^void ", "", signature)
 
 
 def check_binary(library, kernels, names):
