@@ -147,6 +147,8 @@ grep -qE '^conv 16-bit \(tensor cores\) +[0-9]+ +[0-9.]+ +[0-9.]+ +[0-9.]+ +[0-9
   "$work/bench_bf16.log" || { cat "$work/bench_bf16.log"; fail "bench --ops: no tensor-core row with counts and bound"; }
 grep -qE '^roofline bound on h200 .*: [0-9.]+ ms for the network' "$work/bench_bf16.log" ||
   fail "bench --roofline h200: no bound for the network"
+grep -qE '^training step on h200 \(batch 2, [1-9][0-9]* pillar rows, bf16 convolutions\): bound [0-9.]+ ms .* at least [0-9.]+ h on one' \
+  "$work/bench_bf16.log" || fail "bench --roofline h200: no bound for a bf16 training step"
 
 # Errors name the argument and exit 1.
 expect_error() {

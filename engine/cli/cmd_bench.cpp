@@ -80,6 +80,52 @@ int64_t host_inputs_bytes(ScanSegmenter& segmenter, const Scan& scan) {
   return (after.bytes_uploaded - before.bytes_uploaded) + (after.bytes_downloaded - before.bytes_downloaded);
 }
 
+// The roofline bound of a training step (engine/model/roofline.hpp) for this config at batch 2
+// with twice this scan's pillars, in the bench's precision (the convolutions on the tensor cores,
+// the rest FP32, as the CUDA backend trains), plus the AdamW step (7 floats a parameter moved),
+// and what it makes of the paper's training: a model of the same config planned for training (no
+// step runs) on this backend, or on the emulated CUDA backend where this one trains in FP32 only.
+void print_training_bound(ScanSegmenter& segmenter, const Scan& scan, const GpuPeaks& gpu) {
+  const ModelConfig& model = segmenter.model();
+  std::vector<bool> with_points(static_cast<size_t>(model.grid.cells()), false);
+  int64_t pillars = 0;
+  for (const Point& p : scan.points) {
+    if (!model.grid.contains(p.x, p.y, p.z)) continue;
+    const auto cell = static_cast<size_t>(model.grid.cell_index(p.x, p.y));
+    pillars += with_points[cell] ? 0 : 1;
+    with_points[cell] = true;
+  }
+  if (model.max_pillars > 0) pillars = std::min<int64_t>(pillars, model.max_pillars);
+  // A backend that trains in the bench's precision: this one, or else (a CPU) the emulated CUDA
+  // backend where this program has it, only to plan the graph.
+  const Precision precision = segmenter.net().precision();
+  Backend* backend = &segmenter.backend();
+  std::unique_ptr<Backend> planner;
+  if (precision != Precision::F32 && !backend->supports_training_precision(precision) &&
+      available_devices().find("emu") != std::string::npos) {
+    planner = make_backend("emu");
+    backend = planner.get();
+  }
+  std::string why;
+  const bool trains_half =
+      precision != Precision::F32 && backend->supports_training_precision(precision, &why);
+  PillarSegNet net(model, *backend);
+  if (trains_half) net.set_training_precision(precision);
+  const int batch = 2;
+  net.prepare(batch, batch * pillars, /*training=*/true);
+  const GraphBound step = graph_bound(net.graph(true), batch * pillars, gpu);
+  const double adam_ms = 7.0 * 4.0 * static_cast<double>(net.parameters().values().numel()) /
+                         (gpu.tb_per_s * 1e12) * 1e3;
+  constexpr double kPaperSteps = 19130.0 * 30 / 2;  // the paper's scans x epochs, batch 2
+  fmt::print(
+      "training step on {} (batch {}, {} pillar rows, {} convolutions{}): bound {:.3f} ms ({:.3f} "
+      "compute, {:.3f} memory) + AdamW {:.3f} ms; the paper's {:.0f} steps (19,130 scans x 30 "
+      "epochs): at least {:.2f} h on one, the data loading aside\n",
+      gpu.name, batch, batch * pillars, precision_name(trains_half ? precision : Precision::F32),
+      precision == Precision::F32 || trains_half ? "" : ", " + why, step.ms(), step.compute_ms,
+      step.memory_ms, adam_ms, kPaperSteps, kPaperSteps * (step.ms() + adam_ms) / 3.6e6);
+}
+
 // The network's time per op of its evaluation graph (PillarSegNet::set_op_timing: the device
 // waits after every node, no graph replay), mean per run over `repeat` runs, with each op's FLOPs
 // and least bytes, what the emulation counted its tensor cores issue, and, given a GPU, the
@@ -151,13 +197,12 @@ void print_op_table(ScanSegmenter& segmenter, const Scan& scan, Tensor<uint8_t>&
   if (bounded) {
     fmt::print(
         "roofline bound on {} ({} TFLOP/s FP32, {} TFLOP/s dense 16-bit tensor cores, {} TB/s; "
-        "{}): "
-        "{:.3f} ms for the network, PFN to head ({:.3f} ms in compute-bound ops, {:.3f} ms in "
-        "memory-bound "
-        "ones) - a lower bound, not a prediction: no kernel runs at a peak, and the pillar gather, "
-        "decoration, input maps and predictions are outside the graph\n",
+        "{}): {:.3f} ms for the network, PFN to head ({:.3f} ms in compute-bound ops, {:.3f} ms "
+        "in memory-bound ones) - a lower bound, not a prediction: no kernel runs at a peak, and "
+        "the pillar gather, decoration, input maps and predictions are outside the graph\n",
         gpu.name, gpu.fp32_tflops, gpu.half_tflops, gpu.tb_per_s, gpu.source,
         compute_bound_ms + memory_bound_ms, compute_bound_ms, memory_bound_ms);
+    print_training_bound(segmenter, scan, gpu);
   }
 }
 
@@ -331,7 +376,8 @@ void add_bench(CLI::App& app) {
   cmd->add_option(
       "--roofline", a->roofline,
       "with --ops: each op's roofline bound on this GPU (h200, h100-sxm, h100-pcie, a100-sxm, l4, "
-      "rtx4090, orin-agx-64, or custom:FP32_TFLOPS:HALF_TFLOPS:TB_PER_S)");
+      "rtx4090, orin-agx-64, or custom:FP32_TFLOPS:HALF_TFLOPS:TB_PER_S), and a training step's "
+      "(its graph planned, not run: the plan's memory is allocated)");
   cmd->callback([a] { run_bench(*a); });
 }
 

@@ -86,4 +86,16 @@ RooflineBound roofline_bound(double flops, double bytes, bool tensor_cores, cons
   return b;
 }
 
+GraphBound graph_bound(const Graph& graph, int64_t pillar_rows, const GpuPeaks& gpu) {
+  GraphBound total;
+  for (size_t i = 0; i < graph.size(); ++i) {
+    const GraphNode& n = graph.nodes()[i];
+    const RooflineBound b =
+        roofline_bound(n.flops, static_cast<double>(graph.node_bytes(i, pillar_rows)),
+                       runs_on_tensor_cores(op_name(n.op)), gpu);
+    (b.memory_bound() ? total.memory_ms : total.compute_ms) += b.ms();
+  }
+  return total;
+}
+
 }  // namespace pillarseg

@@ -7,6 +7,7 @@
 // gaps come on top. `pillarseg bench --ops --roofline GPU` prints it beside the measured times.
 #pragma once
 
+#include <cstdint>
 #include <string>
 #include <vector>
 
@@ -36,5 +37,15 @@ struct RooflineBound {
   bool memory_bound() const { return memory_ms > compute_ms; }
 };
 RooflineBound roofline_bound(double flops, double bytes, bool tensor_cores, const GpuPeaks& gpu);
+
+class Graph;
+// The bound of a whole graph: every node's (its flops, Graph::node_bytes at `pillar_rows`, the
+// tensor cores for the 16-bit convolutions) summed, split into the nodes bound by compute and
+// those bound by memory.
+struct GraphBound {
+  double compute_ms = 0, memory_ms = 0;
+  double ms() const { return compute_ms + memory_ms; }
+};
+GraphBound graph_bound(const Graph& graph, int64_t pillar_rows, const GpuPeaks& gpu);
 
 }  // namespace pillarseg
