@@ -7,7 +7,9 @@
 // on a CUDA backend), which waits between stages; where the backend records graphs, the whole
 // pipeline is also timed as the steady state runs it (upload, one graph replay, download). On a
 // CUDA backend the bytes that cross the bus per scan are counted, and compared with inputs
-// prepared on the host and uploaded (the network's decorated pillars and maps).
+// prepared on the host and uploaded (the network's decorated pillars and maps). --ops adds the
+// network op by op (print_op_table), --roofline each op's and a training step's lower bound on a
+// GPU (engine/model/roofline.hpp).
 #include <fmt/format.h>
 #include <sys/resource.h>
 
@@ -375,7 +377,8 @@ void add_bench(CLI::App& app) {
       "--device emu, what its tensor cores issued)");
   cmd->add_option(
       "--roofline", a->roofline,
-      "with --ops: each op's roofline bound on this GPU (h200, h100-sxm, h100-pcie, a100-sxm, l4, "
+      "implies --ops: each op's roofline bound on this GPU (h200, h100-sxm, h100-pcie, a100-sxm, "
+      "l4, "
       "rtx4090, orin-agx-64, or custom:FP32_TFLOPS:HALF_TFLOPS:TB_PER_S), and a training step's "
       "(its graph planned, not run: the plan's memory is allocated)");
   cmd->callback([a] { run_bench(*a); });
