@@ -26,7 +26,10 @@
 //     4 x BN / 16 mma.sync m16n8k16. Rows of 32 elements are padded to 40 (80 bytes) so that
 //     stores and ldmatrix rows fall in distinct banks;
 //   - epilogue: bias, ReLU, and the store of each accumulator (FP32 or rounded once to 16 bits)
-//     to its pixel and column, for the transposed forward at its sub-pixel.
+//     to its pixel and column, for the transposed forward at its sub-pixel;
+//   - split K (gemm_splits, where the tiles are few and K long): block z runs its range of K
+//     steps and stores its FP32 sums, and split_reduce_kernel adds the splits in order and does
+//     the epilogue's work.
 // The weight gradients have their own kernel (mma_weight_grad_kernel, 64 x 64 tiles, one stage):
 // D (weights x columns) over the pixels, split over blocks, the parts summed in order.
 #include "kernels/conv2d_mma.cuh"
@@ -59,6 +62,11 @@ struct ConvGemm {
   int kernel, stride, pad;             // KS, S, pad of the gather
   bool sub_pixels;                     // D's column (o, dy, dx) goes to y's sub-pixel
   bool relu;
+  // Split K: block z runs steps [z split_steps, (z + 1) split_steps) and writes its FP32 sums to
+  // partial[z] (columns x rows, the pixel fastest) for split_reduce_kernel; unsplit: split_steps
+  // = k_padded / 32, partial = nullptr.
+  std::int64_t split_steps;
+  float* partial;
 };
 
 // The block tile: 128 pixels x BN columns, 4 warps of 64 x BN / 2, 3 stages of 32 along K.
@@ -94,6 +102,13 @@ struct PixelGather {
   bool valid = false;
   std::int64_t c0 = 0;
   int ky = 0, kx = 0;
+
+  // Starts at K step `step` (a split's first): its tap and first channel.
+  __device__ __forceinline__ void start_at(const ConvGemm& g, std::int64_t step) {
+    const std::int64_t k = step * 32, tap = k / g.channels_padded;
+    c0 = k % g.channels_padded;
+    ky = static_cast<int>(tap / g.kernel), kx = static_cast<int>(tap % g.kernel);
+  }
 
   // The next step's 32 values, channels c0 .. c0 + 31 at tap (ky, kx), as 16 words of two 16-bit
   // values each (the lower channel in the low half), zero outside the tensor and past C.
@@ -230,7 +245,11 @@ __global__ void __launch_bounds__(Tile::kThreads, 2)
 #pragma unroll
       for (int e = 0; e < 4; ++e) acc[mt][nt][e] = 0.0f;
 
-  const std::int64_t steps = g.k_padded / Tile::kK;
+  // This block's K steps: [first, first + steps) of the whole (all of them unless split).
+  const std::int64_t first = static_cast<std::int64_t>(blockIdx.z) * g.split_steps;
+  const std::int64_t all_steps = g.k_padded / Tile::kK;
+  const std::int64_t steps = all_steps - first < g.split_steps ? all_steps - first : g.split_steps;
+  pixel.start_at(g, first);
   // Prologue: steps 0 .. kStages - 2 staged (an empty group where there are fewer steps).
 #pragma unroll
   for (int s = 0; s < Tile::kStages - 1; ++s) {
@@ -239,7 +258,7 @@ __global__ void __launch_bounds__(Tile::kThreads, 2)
       std::uint32_t words[16];
       pixel.template load_next<H>(g, words);
       store_pixel(stage, words);
-      issue_weights(stage, w16, g, n0, s * Tile::kK, tid);
+      issue_weights(stage, w16, g, n0, (first + s) * Tile::kK, tid);
     }
     cp_async_commit();
   }
@@ -251,7 +270,7 @@ __global__ void __launch_bounds__(Tile::kThreads, 2)
     std::uint32_t words[16] = {};  // loaded and stored under the same condition
     if (next < steps) {
       pixel.template load_next<H>(g, words);
-      issue_weights(next_stage, w16, g, n0, next * Tile::kK, tid);
+      issue_weights(next_stage, w16, g, n0, (first + next) * Tile::kK, tid);
     }
     cp_async_commit();
     compute_stage<H, Tile>(ConvStage<Tile>(shared, static_cast<int>(step % Tile::kStages)), acc,
@@ -263,6 +282,24 @@ __global__ void __launch_bounds__(Tile::kThreads, 2)
   // row_offset[row] + column_offset[column] of y (planar: n pixel planes; sub-pixels: output
   // channel o = n / 4's planes of 4 pixels each, and the sub-pixel's row and column).
   const int group = lane / 4, t = lane % 4;
+  if (g.partial != nullptr) {  // split: this block's sums, for split_reduce_kernel
+    float* part = g.partial + static_cast<std::int64_t>(blockIdx.z) * g.columns * rows;
+#pragma unroll
+    for (int mt = 0; mt < Tile::kFragsM; ++mt)
+#pragma unroll
+      for (int half = 0; half < 2; ++half) {
+        const std::int64_t m = m0 + warp_m * Tile::kWarpM + mt * 16 + group + 8 * half;
+        if (m >= rows) continue;
+#pragma unroll
+        for (int nt = 0; nt < Tile::kFragsN; ++nt)
+#pragma unroll
+          for (int e = 0; e < 2; ++e) {
+            const std::int64_t n = n0 + warp_n * Tile::kWarpN + nt * 8 + 2 * t + e;
+            if (n < g.columns) part[n * rows + m] = acc[mt][nt][2 * half + e];
+          }
+      }
+    return;
+  }
   // This thread's columns: their offsets in y (-1 past the last) and biases.
   std::int64_t column_offset[Tile::kFragsN][2];
   float column_bias[Tile::kFragsN][2];
@@ -302,6 +339,36 @@ __global__ void __launch_bounds__(Tile::kThreads, 2)
       }
     }
   }
+}
+
+// Split K: y at pixel m (blockIdx.x, threadIdx.x) and column n (blockIdx.y) = act(the splits'
+// sums in split order + bias), stored as conv_gemm_kernel's epilogue stores it.
+template <Half16 H, class TOut>
+__global__ void __launch_bounds__(256)
+    split_reduce_kernel(const float* __restrict__ partial, std::int64_t splits,
+                        const float* __restrict__ bias, ConvGemm g, TOut* __restrict__ y) {
+  const std::int64_t pixels_per_image = g.out_height * g.out_width;
+  const std::int64_t rows = g.batch * pixels_per_image;
+  const std::int64_t m = static_cast<std::int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
+  const std::int64_t n = blockIdx.y;
+  if (m >= rows) return;
+  float value = 0.0f;
+  for (std::int64_t z = 0; z < splits; ++z) value += partial[(z * g.columns + n) * rows + m];
+  value += bias != nullptr ? bias[n] : 0.0f;
+  if (g.relu) value = value > 0.0f ? value : 0.0f;
+  const std::int64_t image = m / pixels_per_image, p = m % pixels_per_image;
+  std::int64_t index = image * g.columns * pixels_per_image;
+  if (g.sub_pixels) {
+    const std::int64_t oy = p / g.out_width, ox = p % g.out_width;
+    index += 2 * oy * 2 * g.out_width + 2 * ox + (n / 4) * 4 * pixels_per_image +
+             (n % 4) / 2 * 2 * g.out_width + n % 2;
+  } else {
+    index += n * pixels_per_image + p;
+  }
+  if constexpr (std::is_same_v<TOut, float>)
+    y[index] = value;
+  else
+    y[index] = to_half16<H>(value);
 }
 
 // A warp's 2 x 4 accumulator fragments of mma_tile_step = 0.
@@ -639,11 +706,19 @@ void launch_conv_gemm(const void* x, const std::uint16_t* w16, const float* bias
                       void* y, cudaStream_t stream) {
   constexpr auto kernel = conv_gemm_kernel<H, TIn, TOut, Tile>;
   allow_dynamic_shared<kernel>(Tile::kSharedBytes);
-  const dim3 grid(
-      static_cast<unsigned>(ceil_div(g.batch * g.out_height * g.out_width, std::int64_t{Tile::kM})),
-      static_cast<unsigned>(ceil_div(g.columns, std::int64_t{Tile::kN})));
+  const std::int64_t rows = g.batch * g.out_height * g.out_width;
+  const std::int64_t splits = ceil_div(g.k_padded / Tile::kK, g.split_steps);
+  const dim3 grid(static_cast<unsigned>(ceil_div(rows, std::int64_t{Tile::kM})),
+                  static_cast<unsigned>(ceil_div(g.columns, std::int64_t{Tile::kN})),
+                  static_cast<unsigned>(splits));
   launch_kernel(kernel, grid, dim3(Tile::kThreads), Tile::kSharedBytes, stream,
                 static_cast<const TIn*>(x), w16, bias, g, static_cast<TOut*>(y));
+  if (g.partial != nullptr) {
+    launch_kernel(split_reduce_kernel<H, TOut>,
+                  dim3(static_cast<unsigned>(ceil_div(rows, std::int64_t{256})),
+                       static_cast<unsigned>(g.columns)),
+                  dim3(256), 0, stream, g.partial, splits, bias, g, static_cast<TOut*>(y));
+  }
 }
 
 template <Half16 H, class Tile>
@@ -660,10 +735,39 @@ void launch_conv_gemm(const void* x, bool x_half, const std::uint16_t* w16, cons
     launch_conv_gemm<H, Tile, float, float>(x, w16, bias, g, y, stream);
 }
 
-void run_gemm(const void* x, bool x_half, const std::uint16_t* w16, const float* bias,
-              const ConvGemm& g, Half16 type, void* y, bool y_half, cudaStream_t stream) {
+// Where a GEMM's tiles are few (the U-Net's deepest layers: 31 x 62 pixels are 16 tiles of 128)
+// and K is long, K is split over blockIdx.z so that about kSplitTargetBlocks blocks run (a fixed
+// count, as the weight gradients' split, so that the bits do not depend on the GPU), each split
+// at least kMinSplitSteps steps of 32; the splits' FP32 sums are added in split order by
+// split_reduce_kernel. 1: unsplit.
+constexpr std::int64_t kSplitTargetBlocks = 256, kMinSplitSteps = 8;
+
+std::int64_t gemm_splits(const ConvGemm& g) {
+  const std::int64_t rows = g.batch * g.out_height * g.out_width;
+  const std::int64_t tile_n = g.columns <= 64 ? ConvTile<64>::kN : ConvTile<128>::kN;
+  const std::int64_t blocks =
+      ceil_div(rows, std::int64_t{ConvTile<64>::kM}) * ceil_div(g.columns, tile_n);
+  if (blocks == 0) return 1;
+  const std::int64_t splits =
+      std::min(kSplitTargetBlocks / blocks, g.k_padded / ConvTile<64>::kK / kMinSplitSteps);
+  return splits < 2 ? 1 : splits;
+}
+
+// The floats of run_gemm's workspace for g: the splits' sums, 0 unsplit.
+std::int64_t gemm_workspace(const ConvGemm& g) {
+  const std::int64_t splits = gemm_splits(g);
+  return splits > 1 ? splits * g.batch * g.out_height * g.out_width * g.columns : 0;
+}
+
+// workspace: nullptr (unsplit), or gemm_workspace(g) floats.
+void run_gemm(const void* x, bool x_half, const std::uint16_t* w16, const float* bias, ConvGemm g,
+              Half16 type, void* y, bool y_half, cudaStream_t stream, float* workspace) {
   const std::int64_t rows = g.batch * g.out_height * g.out_width;
   if (rows == 0 || g.columns == 0) return;
+  const std::int64_t steps = g.k_padded / ConvTile<64>::kK;
+  const std::int64_t splits = workspace != nullptr ? gemm_splits(g) : 1;
+  g.split_steps = ceil_div(steps, splits);
+  g.partial = splits > 1 ? workspace : nullptr;
   std::string why;
   PS_CHECK(mma_supported(&why), "conv2d_mma: {}", why);
   PS_CHECK(
@@ -762,24 +866,52 @@ ConvGemm conv_gather(std::int64_t batch, std::int64_t channels, std::int64_t hei
 
 }  // namespace
 
-void conv2d_mma_forward(const void* x, bool x_half, const std::uint16_t* w16, const float* bias,
-                        const Conv2dShape& shape, Half16 type, bool relu, void* y, bool y_half,
-                        cudaStream_t stream) {
+namespace {
+
+ConvGemm conv_forward_gemm(const Conv2dShape& shape, bool relu) {
   ConvGemm g = conv_gather(shape.batch, shape.in_channels, shape.height, shape.width, shape.kernel,
                            shape.pad, shape.out_channels);
   g.relu = relu;
-  run_gemm(x, x_half, w16, bias, g, type, y, y_half, stream);
+  return g;
+}
+
+// The pixels are x's (a 1 x 1 gather); each of the 4 O columns writes its sub-pixel of y.
+ConvGemm conv_transpose_forward_gemm(std::int64_t batch, std::int64_t in_channels,
+                                     std::int64_t height, std::int64_t width,
+                                     std::int64_t out_channels) {
+  ConvGemm g = conv_gather(batch, in_channels, height, width, 1, 0, 4 * out_channels);
+  g.sub_pixels = true;
+  return g;
+}
+
+}  // namespace
+
+std::int64_t conv2d_mma_forward_workspace(const Conv2dShape& shape) {
+  return gemm_workspace(conv_forward_gemm(shape, false));
+}
+
+void conv2d_mma_forward(const void* x, bool x_half, const std::uint16_t* w16, const float* bias,
+                        const Conv2dShape& shape, Half16 type, bool relu, void* y, bool y_half,
+                        cudaStream_t stream, float* workspace) {
+  run_gemm(x, x_half, w16, bias, conv_forward_gemm(shape, relu), type, y, y_half, stream,
+           workspace);
+}
+
+std::int64_t conv_transpose2x2_mma_forward_workspace(std::int64_t batch, std::int64_t in_channels,
+                                                     std::int64_t height, std::int64_t width,
+                                                     std::int64_t out_channels) {
+  return gemm_workspace(
+      conv_transpose_forward_gemm(batch, in_channels, height, width, out_channels));
 }
 
 void conv_transpose2x2_mma_forward(const void* x, bool x_half, const std::uint16_t* w16,
                                    const float* bias, std::int64_t batch, std::int64_t in_channels,
                                    std::int64_t height, std::int64_t width,
                                    std::int64_t out_channels, Half16 type, void* y, bool y_half,
-                                   cudaStream_t stream) {
-  // The pixels are x's (a 1 x 1 gather); each of the 4 O columns writes its sub-pixel of y.
-  ConvGemm g = conv_gather(batch, in_channels, height, width, 1, 0, 4 * out_channels);
-  g.sub_pixels = true;
-  run_gemm(x, x_half, w16, bias, g, type, y, y_half, stream);
+                                   cudaStream_t stream, float* workspace) {
+  run_gemm(x, x_half, w16, bias,
+           conv_transpose_forward_gemm(batch, in_channels, height, width, out_channels), type, y,
+           y_half, stream, workspace);
 }
 
 // ---- training gradients ----
@@ -869,13 +1001,36 @@ void prepare_conv_data_weights(const float* w, const Conv2dShape& shape, Half16 
   run_prepare_data(w, shape.in_channels, shape.out_channels, taps, false, type, w16t, stream);
 }
 
-void conv2d_mma_backward_data(const float* dy, const std::uint16_t* w16t, const Conv2dShape& shape, Half16 type,
-                              float* dx, cudaStream_t stream) {
-  // dx = the convolution of dy (B, O, Ho, Wo) with the flipped weights, padding k - 1 - pad.
-  const ConvGemm g =
-      conv_gather(shape.batch, shape.out_channels, shape.out_height(), shape.out_width(),
-                  shape.kernel, shape.kernel - 1 - shape.pad, shape.in_channels);
-  run_gemm(dy, false, w16t, nullptr, g, type, dx, false, stream);
+namespace {
+
+// dx = the convolution of dy (B, O, Ho, Wo) with the flipped weights, padding k - 1 - pad.
+ConvGemm conv_data_gemm(const Conv2dShape& shape) {
+  return conv_gather(shape.batch, shape.out_channels, shape.out_height(), shape.out_width(),
+                     shape.kernel, shape.kernel - 1 - shape.pad, shape.in_channels);
+}
+
+// dx (B, I, H, W): pixels of x, K = the O channels of dy (B, O, 2H, 2W) at the 4 sub-pixels
+// above each, a 2 x 2 gather of stride 2.
+ConvGemm conv_transpose_data_gemm(const ConvTranspose2dShape& shape) {
+  ConvGemm g{};
+  g.batch = shape.batch, g.channels = shape.out_channels;
+  g.channels_padded = op::half16_padded_channels(shape.out_channels);
+  g.in_height = 2 * shape.height, g.in_width = 2 * shape.width;
+  g.out_height = shape.height, g.out_width = shape.width;
+  g.columns = shape.in_channels, g.k_padded = op::half16_weight_k(shape.out_channels, 4);
+  g.kernel = 2, g.stride = 2, g.pad = 0;
+  return g;
+}
+
+}  // namespace
+
+std::int64_t conv2d_mma_backward_data_workspace(const Conv2dShape& shape) {
+  return gemm_workspace(conv_data_gemm(shape));
+}
+
+void conv2d_mma_backward_data(const float* dy, const std::uint16_t* w16t, const Conv2dShape& shape,
+                              Half16 type, float* dx, cudaStream_t stream, float* workspace) {
+  run_gemm(dy, false, w16t, nullptr, conv_data_gemm(shape), type, dx, false, stream, workspace);
 }
 
 std::int64_t conv2d_mma_backward_weights_workspace(const Conv2dShape& shape) {
@@ -894,18 +1049,15 @@ void prepare_conv_transpose_data_weights(const float* w, const ConvTranspose2dSh
   run_prepare_data(w, shape.in_channels, shape.out_channels, 4, true, type, w16t, stream);
 }
 
-void conv_transpose2x2_mma_backward_data(const float* dy, const std::uint16_t* w16t, const ConvTranspose2dShape& shape,
-                                         Half16 type, float* dx, cudaStream_t stream) {
-  // dx (B, I, H, W): pixels of x, K = the O channels of dy (B, O, 2H, 2W) at the 4 sub-pixels
-  // above each, a 2 x 2 gather of stride 2.
-  ConvGemm g{};
-  g.batch = shape.batch, g.channels = shape.out_channels;
-  g.channels_padded = op::half16_padded_channels(shape.out_channels);
-  g.in_height = 2 * shape.height, g.in_width = 2 * shape.width;
-  g.out_height = shape.height, g.out_width = shape.width;
-  g.columns = shape.in_channels, g.k_padded = op::half16_weight_k(shape.out_channels, 4);
-  g.kernel = 2, g.stride = 2, g.pad = 0;
-  run_gemm(dy, false, w16t, nullptr, g, type, dx, false, stream);
+std::int64_t conv_transpose2x2_mma_backward_data_workspace(const ConvTranspose2dShape& shape) {
+  return gemm_workspace(conv_transpose_data_gemm(shape));
+}
+
+void conv_transpose2x2_mma_backward_data(const float* dy, const std::uint16_t* w16t,
+                                         const ConvTranspose2dShape& shape, Half16 type, float* dx,
+                                         cudaStream_t stream, float* workspace) {
+  run_gemm(dy, false, w16t, nullptr, conv_transpose_data_gemm(shape), type, dx, false, stream,
+           workspace);
 }
 
 std::int64_t conv_transpose2x2_mma_backward_weights_workspace(const ConvTranspose2dShape& shape) {

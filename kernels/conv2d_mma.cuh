@@ -55,15 +55,23 @@ void prepare_conv_transpose_weights(const float* w, const float* bias, std::int6
 
 // x (B, I, H, W), prepared w16 and bias -> y (B, O, Ho, Wo), ReLU when `relu`. x and y are
 // FP32 (float) or, with x_half / y_half, 16-bit values of `type` (std::uint16_t bits).
+// workspace: nullptr, or *_workspace(shape) floats of device memory (0 for most shapes): with it,
+// a GEMM of few tiles and a long K (the deepest layers) splits K over blocks, about 256 in all,
+// whose FP32 sums a second kernel adds in split order (the same bits on every run and GPU; other
+// bits than unsplit, whose sum runs in another order).
+std::int64_t conv2d_mma_forward_workspace(const Conv2dShape& shape);
 void conv2d_mma_forward(const void* x, bool x_half, const std::uint16_t* w16, const float* bias,
                         const Conv2dShape& shape, Half16 type, bool relu, void* y, bool y_half,
-                        cudaStream_t stream);
-// x (B, I, H, W), prepared w16 and bias -> y (B, O, 2H, 2W); x, y as above.
+                        cudaStream_t stream, float* workspace = nullptr);
+// x (B, I, H, W), prepared w16 and bias -> y (B, O, 2H, 2W); x, y, workspace as above.
+std::int64_t conv_transpose2x2_mma_forward_workspace(std::int64_t batch, std::int64_t in_channels,
+                                                     std::int64_t height, std::int64_t width,
+                                                     std::int64_t out_channels);
 void conv_transpose2x2_mma_forward(const void* x, bool x_half, const std::uint16_t* w16,
                                    const float* bias, std::int64_t batch, std::int64_t in_channels,
                                    std::int64_t height, std::int64_t width,
                                    std::int64_t out_channels, Half16 type, void* y, bool y_half,
-                                   cudaStream_t stream);
+                                   cudaStream_t stream, float* workspace = nullptr);
 
 // Training gradients on the tensor cores, FP32 tensors throughout: x, dy and the weights rounded
 // to `type` as they are staged, FP32 accumulation, dbias (or nullptr) summed in double from the
@@ -79,17 +87,21 @@ void conv_transpose2x2_mma_forward(const void* x, bool x_half, const std::uint16
 //     dw (I, O, 2, 2).
 void prepare_conv_data_weights(const float* w, const Conv2dShape& shape, Half16 type,
                                std::uint16_t* w16t, cudaStream_t stream);
+// The input gradients split K as the forward does, given *_backward_data_workspace floats.
+std::int64_t conv2d_mma_backward_data_workspace(const Conv2dShape& shape);
 void conv2d_mma_backward_data(const float* dy, const std::uint16_t* w16t, const Conv2dShape& shape,
-                              Half16 type, float* dx, cudaStream_t stream);
+                              Half16 type, float* dx, cudaStream_t stream,
+                              float* workspace = nullptr);
 std::int64_t conv2d_mma_backward_weights_workspace(const Conv2dShape& shape);
 void conv2d_mma_backward_weights(const float* x, const float* dy, const Conv2dShape& shape,
                                  Half16 type, float* dw, float* dbias, float* workspace,
                                  cudaStream_t stream);
 void prepare_conv_transpose_data_weights(const float* w, const ConvTranspose2dShape& shape,
                                          Half16 type, std::uint16_t* w16t, cudaStream_t stream);
+std::int64_t conv_transpose2x2_mma_backward_data_workspace(const ConvTranspose2dShape& shape);
 void conv_transpose2x2_mma_backward_data(const float* dy, const std::uint16_t* w16t,
                                          const ConvTranspose2dShape& shape, Half16 type, float* dx,
-                                         cudaStream_t stream);
+                                         cudaStream_t stream, float* workspace = nullptr);
 std::int64_t conv_transpose2x2_mma_backward_weights_workspace(const ConvTranspose2dShape& shape);
 void conv_transpose2x2_mma_backward_weights(const float* x, const float* dy,
                                             const ConvTranspose2dShape& shape, Half16 type,

@@ -245,57 +245,65 @@ void check_conv(const ConvCase& cc, Half16 type) {
   DeviceBuffer<float> dy(static_cast<size_t>(s.batch * s.out_channels * ho * wo));
   cuda::prepare_conv_weights(dw.data(), dbias.data(), bn, s, type, w16.data(), b_out.data(),
                              nullptr);
-  cuda::conv2d_mma_forward(dx.data(), false, w16.data(), b_out.data(), s, type, cc.relu, dy.data(),
-                           false, nullptr);
-  PS_CUDA_CHECK(cudaDeviceSynchronize());
-  const std::vector<float> y = dy.to_host();
+  // Unsplit, then with the workspace that lets a GEMM of few tiles split K (where it does).
+  const std::int64_t workspace_floats = cuda::conv2d_mma_forward_workspace(s);
+  DeviceBuffer<float> workspace(static_cast<size_t>(std::max<std::int64_t>(workspace_floats, 1)));
+  for (const bool split : {false, true}) {
+    SCOPED_TRACE(split ? "split K" : "unsplit");
+    cuda::conv2d_mma_forward(dx.data(), false, w16.data(), b_out.data(), s, type, cc.relu,
+                             dy.data(), false, nullptr, split ? workspace.data() : nullptr);
+    PS_CUDA_CHECK(cudaDeviceSynchronize());
+    const std::vector<float> y = dy.to_host();
 
-  const double u = type == Half16::BF16 ? 0x1p-8 : 0x1p-11;
-  double worst_vs_fp32 = 0;
-  for (std::int64_t b = 0; b < s.batch; ++b) {
-    for (std::int64_t o = 0; o < s.out_channels; ++o) {
-      const size_t oi = static_cast<size_t>(o);
-      float scale = 1.0f, shift = 0.0f;
-      if (cc.batchnorm) {
-        scale = gamma[oi] / std::sqrt(var[oi] + 1e-5f);
-        shift = beta[oi] - scale * mean[oi];
-      }
-      for (std::int64_t oy = 0; oy < ho; ++oy) {
-        for (std::int64_t ox = 0; ox < wo; ++ox) {
-          double sum16 = 0, sum32 = 0, magnitude = 0;
-          for (std::int64_t i = 0; i < s.in_channels; ++i) {
-            for (std::int64_t ky = 0; ky < s.kernel; ++ky) {
-              for (std::int64_t kx = 0; kx < s.kernel; ++kx) {
-                const std::int64_t iy = oy + ky - s.pad, ix = ox + kx - s.pad;
-                if (iy < 0 || iy >= s.height || ix < 0 || ix >= s.width) continue;
-                const float xv = x[static_cast<size_t>(
-                    ((b * s.in_channels + i) * s.height + iy) * s.width + ix)];
-                const float wv = w[static_cast<size_t>(
-                    ((o * s.in_channels + i) * s.kernel + ky) * s.kernel + kx)];
-                const double p16 =
-                    static_cast<double>(round_half(wv * scale, type)) * round_half(xv, type);
-                sum16 += p16;
-                sum32 += static_cast<double>(wv) * scale * xv;
-                magnitude += std::abs(p16);
+    const double u = type == Half16::BF16 ? 0x1p-8 : 0x1p-11;
+    double worst_vs_fp32 = 0;
+    for (std::int64_t b = 0; b < s.batch; ++b) {
+      for (std::int64_t o = 0; o < s.out_channels; ++o) {
+        const size_t oi = static_cast<size_t>(o);
+        float scale = 1.0f, shift = 0.0f;
+        if (cc.batchnorm) {
+          scale = gamma[oi] / std::sqrt(var[oi] + 1e-5f);
+          shift = beta[oi] - scale * mean[oi];
+        }
+        for (std::int64_t oy = 0; oy < ho; ++oy) {
+          for (std::int64_t ox = 0; ox < wo; ++ox) {
+            double sum16 = 0, sum32 = 0, magnitude = 0;
+            for (std::int64_t i = 0; i < s.in_channels; ++i) {
+              for (std::int64_t ky = 0; ky < s.kernel; ++ky) {
+                for (std::int64_t kx = 0; kx < s.kernel; ++kx) {
+                  const std::int64_t iy = oy + ky - s.pad, ix = ox + kx - s.pad;
+                  if (iy < 0 || iy >= s.height || ix < 0 || ix >= s.width) continue;
+                  const float xv = x[static_cast<size_t>(
+                      ((b * s.in_channels + i) * s.height + iy) * s.width + ix)];
+                  const float wv = w[static_cast<size_t>(
+                      ((o * s.in_channels + i) * s.kernel + ky) * s.kernel + kx)];
+                  const double p16 =
+                      static_cast<double>(round_half(wv * scale, type)) * round_half(xv, type);
+                  sum16 += p16;
+                  sum32 += static_cast<double>(wv) * scale * xv;
+                  magnitude += std::abs(p16);
+                }
               }
             }
+            const double b_folded = static_cast<double>(scale) * bias[oi] + shift;
+            double ref16 = sum16 + b_folded, ref32 = sum32 + b_folded;
+            if (cc.relu) ref16 = std::max(0.0, ref16), ref32 = std::max(0.0, ref32);
+            const float got =
+                y[static_cast<size_t>(((b * s.out_channels + o) * ho + oy) * wo + ox)];
+            const double tol = static_cast<double>(k) * 0x1p-24 * (magnitude + std::abs(b_folded)) +
+                               0x1p-23 * std::abs(ref16) + 1e-7;
+            ASSERT_NEAR(got, ref16, tol)
+                << "y[" << b << "][" << o << "][" << oy << "][" << ox << "]";
+            const double tol32 = (2 * u + u * u) * magnitude * 1.01 + tol;
+            EXPECT_NEAR(got, ref32, tol32);
+            worst_vs_fp32 = std::max(worst_vs_fp32, std::abs(got - ref32) / (magnitude + 1e-30));
           }
-          const double b_folded = static_cast<double>(scale) * bias[oi] + shift;
-          double ref16 = sum16 + b_folded, ref32 = sum32 + b_folded;
-          if (cc.relu) ref16 = std::max(0.0, ref16), ref32 = std::max(0.0, ref32);
-          const float got = y[static_cast<size_t>(((b * s.out_channels + o) * ho + oy) * wo + ox)];
-          const double tol = static_cast<double>(k) * 0x1p-24 * (magnitude + std::abs(b_folded)) +
-                             0x1p-23 * std::abs(ref16) + 1e-7;
-          ASSERT_NEAR(got, ref16, tol) << "y[" << b << "][" << o << "][" << oy << "][" << ox << "]";
-          const double tol32 = (2 * u + u * u) * magnitude * 1.01 + tol;
-          EXPECT_NEAR(got, ref32, tol32);
-          worst_vs_fp32 = std::max(worst_vs_fp32, std::abs(got - ref32) / (magnitude + 1e-30));
         }
       }
     }
+    ::testing::Test::RecordProperty(split ? "worst_error_vs_fp32_split" : "worst_error_vs_fp32",
+                                    std::to_string(worst_vs_fp32));
   }
-  ::testing::Test::RecordProperty("worst_error_vs_fp32_relative_to_sum_abs_products",
-                                  std::to_string(worst_vs_fp32));
 }
 
 TEST(ConvMma, Conv3x3PaddedBatchNormReluBf16) {
@@ -316,6 +324,22 @@ TEST(ConvMma, ManyChannelsBf16) {
 // One K step (12 channels padded to 32): fewer steps than the pipeline's stages.
 TEST(ConvMma, OneKStepBf16) {
   check_conv({1, 12, 3, 50, 20, 1, 0, false, true}, Half16::BF16);
+}
+// Few tiles and a long K split K (kernels/conv2d_mma.cu, gemm_splits: about 256 blocks, at least
+// 8 steps of 32 a split): 20 pixels (one tile) x 130 columns (two) with K = 9 x 96 = 27 steps:
+// min(256 / 2, 27 / 8) = 3 splits of 20 x 130 sums; a 3 x 3 convolution of 64 -> 64 channels on
+// 400 x 400 pixels has 1,250 tiles: unsplit. The forward of ManyChannelsBf16 runs split.
+TEST(ConvMma, SplitsKWhereTheTilesAreFew) {
+  EXPECT_EQ(cuda::conv2d_mma_forward_workspace({1, 96, 4, 5, 130, 3, 1}), 3 * 20 * 130);
+  EXPECT_EQ(cuda::conv2d_mma_forward_workspace({1, 64, 400, 400, 64, 3, 1}), 0);
+  // 12 channels: one K step, nothing to split.
+  EXPECT_EQ(cuda::conv2d_mma_forward_workspace({1, 12, 3, 50, 20, 1, 0}), 0);
+  // The deepest layer at full size: 31 x 62 pixels (16 tiles) x 1024 columns (8): 128 blocks, 2
+  // splits of K = 9 x 1024 (288 steps).
+  EXPECT_EQ(cuda::conv2d_mma_forward_workspace({1, 1024, 31, 62, 1024, 3, 1}), 2 * 31 * 62 * 1024);
+  // The input gradient of ConvMmaBackward.Conv3x3PaddedBf16: dy's 70 channels (96 padded) x 9
+  // taps = 27 steps, 198 pixels (two tiles) x 5 columns (one): 3 splits.
+  EXPECT_EQ(cuda::conv2d_mma_backward_data_workspace({2, 5, 9, 11, 70, 3, 1}), 3 * 198 * 5);
 }
 
 #if defined(PILLARSEG_CUDA_EMULATION)
@@ -360,10 +384,12 @@ TEST(ConvMma, EmulationCountsTheIssuedInstructions) {
 }
 #endif
 
-void check_transposed(Half16 type) {
+// in_channels 512: K = 16 steps for one tile of 24 pixels x 20 columns: 2 splits with the
+// workspace, whose reduction writes the sub-pixels.
+void check_transposed(Half16 type, std::int64_t in_channels = 6) {
   std::string why;
   if (!cuda::mma_supported(&why)) GTEST_SKIP() << why;
-  const std::int64_t B = 2, I = 6, O = 5, H = 3, W = 4;
+  const std::int64_t B = 2, I = in_channels, O = 5, H = 3, W = 4;
   Rng rng(5);
   const std::vector<float> x = uniform(static_cast<size_t>(B * I * H * W), rng, -2, 2);
   const std::vector<float> w = uniform(static_cast<size_t>(I * O * 4), rng, -0.5, 0.5);
@@ -374,8 +400,14 @@ void check_transposed(Half16 type) {
   DeviceBuffer<float> b_out(static_cast<size_t>(4 * O)), dy(static_cast<size_t>(B * O * 4 * H * W));
   cuda::prepare_conv_transpose_weights(dw.data(), dbias.data(), I, O, type, w16.data(),
                                        b_out.data(), nullptr);
+  const std::int64_t workspace_floats =
+      cuda::conv_transpose2x2_mma_forward_workspace(B, I, H, W, O);
+  if (I == 512) {
+    EXPECT_EQ(workspace_floats, 2 * B * H * W * 4 * O);
+  }
+  DeviceBuffer<float> workspace(static_cast<size_t>(std::max<std::int64_t>(workspace_floats, 1)));
   cuda::conv_transpose2x2_mma_forward(dx.data(), false, w16.data(), b_out.data(), B, I, H, W, O,
-                                      type, dy.data(), false, nullptr);
+                                      type, dy.data(), false, nullptr, workspace.data());
   PS_CUDA_CHECK(cudaDeviceSynchronize());
   const std::vector<float> y = dy.to_host();
   for (std::int64_t b = 0; b < B; ++b)
@@ -404,6 +436,9 @@ TEST(ConvMma, Transposed2x2Bf16) {
 TEST(ConvMma, Transposed2x2F16) {
   check_transposed(Half16::F16);
 }
+TEST(ConvMma, Transposed2x2SplitKBf16) {
+  check_transposed(Half16::BF16, 512);
+}
 
 // ---- training gradients ----
 
@@ -424,12 +459,17 @@ void check_conv_backward(const ConvCase& cc, Half16 type) {
   DeviceBuffer<std::uint16_t> w16t(
       static_cast<size_t>(s.in_channels * op::half16_weight_k(s.out_channels, kk)));
   DeviceBuffer<float> workspace(static_cast<size_t>(std::max<std::int64_t>(1, cuda::conv2d_mma_backward_weights_workspace(s))));
+  // Run 0 unsplit, runs 1 and 2 with the workspace that lets dx's GEMM split K where its tiles
+  // are few (the same bits twice).
+  DeviceBuffer<float> split(
+      static_cast<size_t>(std::max<std::int64_t>(1, cuda::conv2d_mma_backward_data_workspace(s))));
   std::vector<std::vector<float>> runs;
-  for (int run = 0; run < 2; ++run) {
+  for (int run = 0; run < 3; ++run) {
     GuardedArray<float> dx(static_cast<std::int64_t>(x.size())), dw(static_cast<std::int64_t>(w.size())),
         db(s.out_channels);
     cuda::prepare_conv_data_weights(d_w.data(), s, type, w16t.data(), nullptr);
-    cuda::conv2d_mma_backward_data(d_g.data(), w16t.data(), s, type, dx.data(), nullptr);
+    cuda::conv2d_mma_backward_data(d_g.data(), w16t.data(), s, type, dx.data(), nullptr,
+                                   run > 0 ? split.data() : nullptr);
     cuda::conv2d_mma_backward_weights(d_x.data(), d_g.data(), s, type, dw.data(), db.data(), workspace.data(),
                                       nullptr);
     PS_CUDA_CHECK(cudaDeviceSynchronize());
@@ -441,8 +481,10 @@ void check_conv_backward(const ConvCase& cc, Half16 type) {
     all.insert(all.end(), bias.begin(), bias.end());
     runs.push_back(std::move(all));
   }
-  EXPECT_EQ(runs[0], runs[1]) << "two runs differ";
-  const std::vector<float>& got = runs[0];
+  EXPECT_EQ(runs[1], runs[2]) << "two runs differ";
+  const std::vector<float> unsplit_dx(runs[0].begin(),
+                                      runs[0].begin() + static_cast<std::ptrdiff_t>(x.size()));
+  const std::vector<float>& got = runs[1];
   const auto at_x = [&](std::int64_t b, std::int64_t i, std::int64_t y, std::int64_t xx) {
     return round_half(x[static_cast<size_t>(((b * s.in_channels + i) * s.height + y) * s.width + xx)], type);
   };
@@ -452,23 +494,26 @@ void check_conv_backward(const ConvCase& cc, Half16 type) {
   const auto at_w = [&](std::int64_t o, std::int64_t i, std::int64_t t) {
     return round_half(w[static_cast<size_t>((o * s.in_channels + i) * kk + t)], type);
   };
-  // dx
-  for (std::int64_t b = 0; b < s.batch; ++b)
-    for (std::int64_t i = 0; i < s.in_channels; ++i)
-      for (std::int64_t y = 0; y < s.height; ++y)
-        for (std::int64_t xx = 0; xx < s.width; ++xx) {
-          double sum = 0, magnitude = 0;
-          for (std::int64_t o = 0; o < s.out_channels; ++o)
-            for (std::int64_t t = 0; t < kk; ++t) {
-              const std::int64_t oy = y + s.pad - t / s.kernel, ox = xx + s.pad - t % s.kernel;
-              if (oy < 0 || oy >= ho || ox < 0 || ox >= wo) continue;
-              const double p = static_cast<double>(at_w(o, i, t)) * at_g(b, o, oy, ox);
-              sum += p, magnitude += std::abs(p);
-            }
-          const float v = got[static_cast<size_t>(((b * s.in_channels + i) * s.height + y) * s.width + xx)];
-          ASSERT_NEAR(v, sum, static_cast<double>(s.out_channels * kk) * 0x1p-24 * magnitude + 1e-7)
-              << "dx[" << b << "][" << i << "][" << y << "][" << xx << "]";
-        }
+  // dx, split and unsplit
+  for (const std::vector<float>* dx_run : {&got, &unsplit_dx})
+    for (std::int64_t b = 0; b < s.batch; ++b)
+      for (std::int64_t i = 0; i < s.in_channels; ++i)
+        for (std::int64_t y = 0; y < s.height; ++y)
+          for (std::int64_t xx = 0; xx < s.width; ++xx) {
+            double sum = 0, magnitude = 0;
+            for (std::int64_t o = 0; o < s.out_channels; ++o)
+              for (std::int64_t t = 0; t < kk; ++t) {
+                const std::int64_t oy = y + s.pad - t / s.kernel, ox = xx + s.pad - t % s.kernel;
+                if (oy < 0 || oy >= ho || ox < 0 || ox >= wo) continue;
+                const double p = static_cast<double>(at_w(o, i, t)) * at_g(b, o, oy, ox);
+                sum += p, magnitude += std::abs(p);
+              }
+            const float v = (*dx_run)[static_cast<size_t>(
+                ((b * s.in_channels + i) * s.height + y) * s.width + xx)];
+            ASSERT_NEAR(v, sum,
+                        static_cast<double>(s.out_channels * kk) * 0x1p-24 * magnitude + 1e-7)
+                << "dx[" << b << "][" << i << "][" << y << "][" << xx << "]";
+          }
   // dw, dbias
   const size_t dw0 = x.size(), db0 = x.size() + w.size();
   for (std::int64_t o = 0; o < s.out_channels; ++o) {

@@ -918,8 +918,10 @@ void CudaBackend::conv2d_half_forward(const ActRef& x, const HRef& w16, const HR
   require_shape(op, "w16", w16, op::half16_conv_weights(weight, false));
   require_shape(op, "bias_out", bias_out, {weight[0]});
   const cuda::Conv2dShape shape{x.dim(0), x.dim(1), x.dim(2), x.dim(3), weight[0], weight[2], pad};
-  cuda::conv2d_mma_forward(x.data, x.half, w16.data, bias_out.data, shape, half_type(op, p), relu, y.data, y.half,
-                           stream_.get());
+  float* workspace =
+      float_workspace(static_cast<size_t>(cuda::conv2d_mma_forward_workspace(shape)));
+  cuda::conv2d_mma_forward(x.data, x.half, w16.data, bias_out.data, shape, half_type(op, p), relu,
+                           y.data, y.half, stream_.get(), workspace);
 }
 
 void CudaBackend::conv_transpose2x2_half_forward(const ActRef& x, const HRef& w16, const Ref& bias_out,
@@ -929,8 +931,12 @@ void CudaBackend::conv_transpose2x2_half_forward(const ActRef& x, const HRef& w1
   PS_CHECK(y.shape == y_shape, "{}: y must be {}, got {}", op, shape_str(y_shape), shape_str(y.shape));
   require_shape(op, "w16", w16, op::half16_conv_weights(weight, true));
   require_shape(op, "bias_out", bias_out, {4 * weight[1]});
-  cuda::conv_transpose2x2_mma_forward(x.data, x.half, w16.data, bias_out.data, x.dim(0), x.dim(1), x.dim(2),
-                                      x.dim(3), weight[1], half_type(op, p), y.data, y.half, stream_.get());
+  float* workspace =
+      float_workspace(static_cast<size_t>(cuda::conv_transpose2x2_mma_forward_workspace(
+          x.dim(0), x.dim(1), x.dim(2), x.dim(3), weight[1])));
+  cuda::conv_transpose2x2_mma_forward(x.data, x.half, w16.data, bias_out.data, x.dim(0), x.dim(1),
+                                      x.dim(2), x.dim(3), weight[1], half_type(op, p), y.data,
+                                      y.half, stream_.get(), workspace);
 }
 
 bool CudaBackend::supports_training_precision(Precision p, std::string* why_not) const {
@@ -947,7 +953,9 @@ void CudaBackend::conv2d_backward_half(const Ref& x, const Ref& w, const Ref& dy
         shape.in_channels * op::half16_weight_k(shape.out_channels, shape.kernel * shape.kernel));
     std::uint16_t* w16t = half_workspace(halves);
     cuda::prepare_conv_data_weights(w.data, shape, type, w16t, stream_.get());
-    cuda::conv2d_mma_backward_data(dy.data, w16t, shape, type, dx->data, stream_.get());
+    float* split =
+        float_workspace(static_cast<size_t>(cuda::conv2d_mma_backward_data_workspace(shape)));
+    cuda::conv2d_mma_backward_data(dy.data, w16t, shape, type, dx->data, stream_.get(), split);
   }
   float* workspace = float_workspace(static_cast<size_t>(cuda::conv2d_mma_backward_weights_workspace(shape)));
   cuda::conv2d_mma_backward_weights(x.data, dy.data, shape, type, dw.data, dbias ? dbias->data : nullptr, workspace,
@@ -962,7 +970,10 @@ void CudaBackend::conv_transpose2x2_backward_half(const Ref& x, const Ref& w, co
   std::uint16_t* w16t = half_workspace(
       static_cast<size_t>(shape.in_channels * op::half16_weight_k(shape.out_channels, 4)));
   cuda::prepare_conv_transpose_data_weights(w.data, shape, type, w16t, stream_.get());
-  cuda::conv_transpose2x2_mma_backward_data(dy.data, w16t, shape, type, dx.data, stream_.get());
+  float* split = float_workspace(
+      static_cast<size_t>(cuda::conv_transpose2x2_mma_backward_data_workspace(shape)));
+  cuda::conv_transpose2x2_mma_backward_data(dy.data, w16t, shape, type, dx.data, stream_.get(),
+                                            split);
   float* workspace =
       float_workspace(static_cast<size_t>(cuda::conv_transpose2x2_mma_backward_weights_workspace(shape)));
   cuda::conv_transpose2x2_mma_backward_weights(x.data, dy.data, shape, type, dw.data, dbias ? dbias->data : nullptr,
