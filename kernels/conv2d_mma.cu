@@ -199,6 +199,21 @@ __device__ __forceinline__ void compute_stage(const ConvStage<Tile>& s,
   }
 }
 
+// Where D's row (pixel p of `image`) and column n go in y: y[pixel_offset + column_offset].
+// Planar: y[image][n][p]; sub-pixels: y[image][o][2 oy + dy][2 ox + dx], n = 4 o + 2 dy + dx.
+__device__ __forceinline__ std::int64_t pixel_offset(const ConvGemm& g, std::int64_t image,
+                                                     std::int64_t p) {
+  const std::int64_t pixels_per_image = g.out_height * g.out_width;
+  const std::int64_t start = image * g.columns * pixels_per_image;
+  return g.sub_pixels ? start + 2 * (p / g.out_width) * 2 * g.out_width + 2 * (p % g.out_width)
+                      : start + p;
+}
+__device__ __forceinline__ std::int64_t column_offset(const ConvGemm& g, std::int64_t n) {
+  const std::int64_t pixels_per_image = g.out_height * g.out_width;
+  return g.sub_pixels ? (n / 4) * 4 * pixels_per_image + (n % 4) / 2 * 2 * g.out_width + n % 2
+                      : n * pixels_per_image;
+}
+
 // TIn, TOut: float (FP32 activations) or std::uint16_t (16-bit activations of type H).
 template <Half16 H, class TIn, class TOut, class Tile>
 __global__ void __launch_bounds__(Tile::kThreads, 2)
@@ -224,11 +239,7 @@ __global__ void __launch_bounds__(Tile::kThreads, 2)
     const std::int64_t p = pixel.valid ? m % pixels_per_image : 0;
     pixel.oy = p / g.out_width, pixel.ox = p % g.out_width;
     pixel.image = x + image * g.channels * g.in_height * g.in_width;
-    // Planar: y[image][n][p]; sub-pixels: y[image][o][2 oy + dy][2 ox + dx], n = 4 o + 2 dy + dx.
-    row_offset[tid] = !pixel.valid   ? -1
-                      : g.sub_pixels ? image * g.columns * pixels_per_image +
-                                           2 * pixel.oy * 2 * g.out_width + 2 * pixel.ox
-                                     : image * g.columns * pixels_per_image + p;
+    row_offset[tid] = pixel.valid ? pixel_offset(g, image, p) : -1;
   }
   const auto store_pixel = [&](const ConvStage<Tile>& s, const std::uint32_t(&words)[16]) {
     auto* row = reinterpret_cast<uint4*>(s.a + tid * Tile::kPitch);  // 80-byte rows: aligned
@@ -279,8 +290,7 @@ __global__ void __launch_bounds__(Tile::kThreads, 2)
   }
 
   // Epilogue: accumulator i of (mt, nt) is D[row group + 8 (i >= 2)][column 2 t + (i & 1)], at
-  // row_offset[row] + column_offset[column] of y (planar: n pixel planes; sub-pixels: output
-  // channel o = n / 4's planes of 4 pixels each, and the sub-pixel's row and column).
+  // row_offset[row] + column_offsets[column] of y (pixel_offset, column_offset).
   const int group = lane / 4, t = lane % 4;
   if (g.partial != nullptr) {  // split: this block's sums, for split_reduce_kernel
     float* part = g.partial + static_cast<std::int64_t>(blockIdx.z) * g.columns * rows;
@@ -301,7 +311,7 @@ __global__ void __launch_bounds__(Tile::kThreads, 2)
     return;
   }
   // This thread's columns: their offsets in y (-1 past the last) and biases.
-  std::int64_t column_offset[Tile::kFragsN][2];
+  std::int64_t column_offsets[Tile::kFragsN][2];
   float column_bias[Tile::kFragsN][2];
 #pragma unroll
   for (int nt = 0; nt < Tile::kFragsN; ++nt) {
@@ -309,10 +319,7 @@ __global__ void __launch_bounds__(Tile::kThreads, 2)
     for (int e = 0; e < 2; ++e) {
       const std::int64_t n = n0 + warp_n * Tile::kWarpN + nt * 8 + 2 * t + e;  // >= 0
       const bool valid = n < g.columns;
-      column_offset[nt][e] =
-          !valid         ? -1
-          : g.sub_pixels ? (n / 4) * 4 * pixels_per_image + (n % 4) / 2 * 2 * g.out_width + n % 2
-                         : n * pixels_per_image;
+      column_offsets[nt][e] = valid ? column_offset(g, n) : -1;
       column_bias[nt][e] = valid && bias != nullptr ? bias[n] : 0.0f;
     }
   }
@@ -327,10 +334,10 @@ __global__ void __launch_bounds__(Tile::kThreads, 2)
       for (int nt = 0; nt < Tile::kFragsN; ++nt) {
 #pragma unroll
         for (int e = 0; e < 2; ++e) {
-          if (column_offset[nt][e] < 0) continue;
+          if (column_offsets[nt][e] < 0) continue;
           float value = acc[mt][nt][2 * half + e] + column_bias[nt][e];
           if (g.relu) value = value > 0.0f ? value : 0.0f;
-          const std::int64_t index = row + column_offset[nt][e];
+          const std::int64_t index = row + column_offsets[nt][e];
           if constexpr (std::is_same_v<TOut, float>)
             y[index] = value;
           else
@@ -356,15 +363,8 @@ __global__ void __launch_bounds__(256)
   for (std::int64_t z = 0; z < splits; ++z) value += partial[(z * g.columns + n) * rows + m];
   value += bias != nullptr ? bias[n] : 0.0f;
   if (g.relu) value = value > 0.0f ? value : 0.0f;
-  const std::int64_t image = m / pixels_per_image, p = m % pixels_per_image;
-  std::int64_t index = image * g.columns * pixels_per_image;
-  if (g.sub_pixels) {
-    const std::int64_t oy = p / g.out_width, ox = p % g.out_width;
-    index += 2 * oy * 2 * g.out_width + 2 * ox + (n / 4) * 4 * pixels_per_image +
-             (n % 4) / 2 * 2 * g.out_width + n % 2;
-  } else {
-    index += n * pixels_per_image + p;
-  }
+  const std::int64_t index =
+      pixel_offset(g, m / pixels_per_image, m % pixels_per_image) + column_offset(g, n);
   if constexpr (std::is_same_v<TOut, float>)
     y[index] = value;
   else
