@@ -57,6 +57,19 @@ void require_rank(const char* op, const char* what, const RefT<T>& r, size_t ran
   PS_CHECK(r.shape.size() == rank, "{}: {} must have {} dimensions, got {}", op, what, rank, shape_str(r.shape));
 }
 
+// Rows [offset, offset + rows) of a tensor whose first dimension counts rows (a view of the same
+// memory); `op` names the caller in the error when they lie outside it.
+template <class T>
+RefT<T> row_slice(const char* op, const RefT<T>& whole, int64_t offset, int64_t rows) {
+  PS_CHECK(!whole.shape.empty() && offset >= 0 && rows >= 0 && offset + rows <= whole.dim(0),
+           "{}: rows [{}, {}) outside the {} planned", op, offset, offset + rows,
+           whole.shape.empty() ? 0 : whole.dim(0));
+  Shape shape = whole.shape;
+  shape[0] = rows;
+  const int64_t row_size = whole.dim(0) > 0 ? whole.numel() / whole.dim(0) : 0;
+  return RefT<T>{whole.data + offset * row_size, std::move(shape)};
+}
+
 // The live-rows argument of decorate_points and pfn_forward: nullptr when empty (every row is
 // live), else its one int32 (in the backend's memory).
 inline const int32_t* live_rows_data(const char* op, const IRef& live_rows) {

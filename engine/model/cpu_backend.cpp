@@ -54,16 +54,6 @@ std::span<const Point> as_points(const Ref& points) {
   return {reinterpret_cast<const Point*>(points.data), static_cast<size_t>(points.dim(0))};
 }
 
-// Rows [0, rows) of a tensor whose dim 0 counts rows.
-template <class T>
-RefT<T> leading_rows(const char* op, const RefT<T>& r, int64_t rows) {
-  PS_CHECK(!r.shape.empty() && rows >= 0 && rows <= r.dim(0),
-           "{}: {} live rows of a tensor of shape {}", op, rows, shape_str(r.shape));
-  Shape shape = r.shape;
-  shape[0] = rows;
-  return RefT<T>{r.data, std::move(shape)};
-}
-
 // The live rows of `rows` that a live-rows argument (host memory here) leaves: its value,
 // clamped to [0, rows].
 int64_t live_row_count(const char* op, const IRef& live_rows, int64_t rows) {
@@ -178,8 +168,8 @@ class CpuBackend final : public Backend {
     PS_CHECK(!training || !cut, "{}: live_rows in training (the batch statistics take every row)", op);
     // Evaluation with live rows: the leading live pillars only.
     const int64_t live = cut ? live_row_count(op, live_rows, out_rows.dim(0)) : 0;
-    const Ref in = cut ? leading_rows(op, points, live) : points;
-    Ref out = cut ? leading_rows(op, out_rows, live) : out_rows;
+    const Ref in = cut ? row_slice(op, points, 0, live) : points;
+    Ref out = cut ? row_slice(op, out_rows, 0, live) : out_rows;
     if (fast_paths_) {
       if (training) {
         cpu::pfn_forward_train(points, weight, bn, argmax, out);
@@ -419,9 +409,9 @@ class CpuBackend final : public Backend {
     const char* op = "decorate_points";
     if (live_rows_data(op, live_rows) != nullptr) {
       const int64_t live = live_row_count(op, live_rows, count.dim(0));
-      Ref live_out = leading_rows(op, out, live);
-      decorate_points(points, grid, leading_rows(op, cell, live),
-                      leading_rows(op, point_index, live), leading_rows(op, count, live), IRef{},
+      Ref live_out = row_slice(op, out, 0, live);
+      decorate_points(points, grid, row_slice(op, cell, 0, live),
+                      row_slice(op, point_index, 0, live), row_slice(op, count, 0, live), IRef{},
                       live_out);
       return;
     }

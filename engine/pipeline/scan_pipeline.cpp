@@ -10,19 +10,11 @@ namespace pillarseg {
 
 namespace {
 
-// Rows [offset, offset + rows) of a tensor whose first dimension is rows.
+// Rows [offset, offset + rows) and the leading `rows` rows of a tensor (backend.hpp's row_slice).
 template <class T>
 RefT<T> row_slice(const RefT<T>& whole, int64_t offset, int64_t rows) {
-  PS_CHECK(!whole.shape.empty() && offset >= 0 && offset + rows <= whole.dim(0),
-           "scan pipeline: rows [{}, {}) outside the {} planned", offset, offset + rows,
-           whole.shape.empty() ? 0 : whole.dim(0));
-  Shape shape = whole.shape;
-  shape[0] = rows;
-  const int64_t row_size = whole.dim(0) > 0 ? whole.numel() / whole.dim(0) : 0;
-  return RefT<T>{whole.data + offset * row_size, std::move(shape)};
+  return row_slice("scan pipeline", whole, offset, rows);
 }
-
-// The leading `rows` rows of a tensor.
 template <class T>
 RefT<T> leading(const RefT<T>& whole, int64_t rows) {
   return row_slice(whole, 0, rows);
