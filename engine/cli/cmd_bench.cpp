@@ -82,6 +82,15 @@ int64_t host_inputs_bytes(ScanSegmenter& segmenter, const Scan& scan) {
   return (after.bytes_uploaded - before.bytes_uploaded) + (after.bytes_downloaded - before.bytes_downloaded);
 }
 
+// Which cells of the model's grid hold a point of the scan (H W, row-major).
+std::vector<bool> cells_with_points(const ModelConfig& model, const Scan& scan) {
+  std::vector<bool> with_points(static_cast<size_t>(model.grid.cells()), false);
+  for (const Point& p : scan.points)
+    if (model.grid.contains(p.x, p.y, p.z))
+      with_points[static_cast<size_t>(model.grid.cell_index(p.x, p.y))] = true;
+  return with_points;
+}
+
 // The roofline bound of a training step (engine/model/roofline.hpp) for this config at batch 2
 // with twice this scan's pillars, in the bench's precision (the convolutions on the tensor cores,
 // the rest FP32, as the CUDA backend trains), plus the AdamW step (7 floats a parameter moved),
@@ -89,14 +98,8 @@ int64_t host_inputs_bytes(ScanSegmenter& segmenter, const Scan& scan) {
 // step runs) on this backend, or on the emulated CUDA backend where this one trains in FP32 only.
 void print_training_bound(ScanSegmenter& segmenter, const Scan& scan, const GpuPeaks& gpu) {
   const ModelConfig& model = segmenter.model();
-  std::vector<bool> with_points(static_cast<size_t>(model.grid.cells()), false);
-  int64_t pillars = 0;
-  for (const Point& p : scan.points) {
-    if (!model.grid.contains(p.x, p.y, p.z)) continue;
-    const auto cell = static_cast<size_t>(model.grid.cell_index(p.x, p.y));
-    pillars += with_points[cell] ? 0 : 1;
-    with_points[cell] = true;
-  }
+  const std::vector<bool> with_points = cells_with_points(model, scan);
+  int64_t pillars = std::count(with_points.begin(), with_points.end(), true);
   if (model.max_pillars > 0) pillars = std::min<int64_t>(pillars, model.max_pillars);
   // A backend that trains in the bench's precision: this one, or else (a CPU) the emulated CUDA
   // backend where this program has it, only to plan the graph.
@@ -333,9 +336,7 @@ void run_bench(const BenchArgs& a) {
     Tensor<float> half_probs({12, model.grid.height(), model.grid.width()}), fp32_probs(half_probs.shape());
     segmenter.segment(scan.points, half_labels.data(), half_probs.data());
     reference.segment(scan.points, fp32_labels.data(), fp32_probs.data());
-    std::vector<bool> with_points(static_cast<size_t>(cells), false);
-    for (const Point& p : scan.points)
-      if (model.grid.contains(p.x, p.y, p.z)) with_points[static_cast<size_t>(model.grid.cell_index(p.x, p.y))] = true;
+    const std::vector<bool> with_points = cells_with_points(model, scan);
     int64_t occupied = 0, agree = 0;
     for (int64_t c = 0; c < cells; ++c) {
       if (!with_points[static_cast<size_t>(c)]) continue;
