@@ -106,6 +106,14 @@ cmp "$work/one.u8" "$work/two/000001.u8" || fail "infer over two files: 000001.u
 [[ -f $work/one.png && -f $work/two/000002.png && ! -e $work/dir/000001.png ]] || fail "infer: .png files (--no-png)"
 [[ $(ls "$work/dir" | wc -l) == 3 ]] || fail "infer over a directory: expected 3 label maps in $work/dir"
 grep -q 'scans/s end to end' "$work/dir.log" || fail "infer over a directory: no throughput line"
+# render: the four panels of a labelled scan, the tiny grid's 100 cells scaled by 10 to 1000 pixels
+# on 12-pixel margins (the layout's pixels are checked in test_render).
+run render --data "$work/data" --sequence 0 --scan 1 --weights "$weights" --out "$work/render.png" > "$work/render.log"
+grep -q 'points, observability, prediction, sparse ground truth, 1024 x [0-9]* pixels (10 a cell)' "$work/render.log" ||
+  fail "render: '$(cat "$work/render.log")' does not list four panels 1024 pixels wide at 10 a cell"
+check_pngs "$work/render.png" || fail "render: $work/render.png is not a valid PNG"
+python3 -c 'import struct, sys; w, h = struct.unpack(">II", open(sys.argv[1], "rb").read()[16:24]); sys.exit(w != 1024 or h < 4 * 500)' \
+  "$work/render.png" || fail "render: $work/render.png is not 1024 pixels wide with four 500-pixel panels"
 run infer --weights "$weights" --scan "$velodyne/000001.bin" --out "$work/emu_one" --device emu > /dev/null
 run eval --data "$work/data" --weights "$weights" --mode sparse --device emu --report "$work/eval_emu.json" > /dev/null 2>&1
 [[ -s $work/eval_emu.json ]] || fail "eval --device emu wrote no report"

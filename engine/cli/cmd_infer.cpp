@@ -1,8 +1,8 @@
 // pillarseg infer / render: scans through a trained model (label map PNG, class ids,
 // probabilities), and the paper's Fig. 3 panels (points, observability, prediction, ground
-// truth) for a scan of a sequence. Both run the whole pipeline on the chosen device
-// (engine/pipeline/segmenter.hpp). Over several scans, infer reads the next scan and writes the
-// last result while the current one runs.
+// truth) for a scan of a sequence, laid out by engine/render/figure.hpp. Both run the whole
+// pipeline on the chosen device (engine/pipeline/segmenter.hpp). Over several scans, infer reads
+// the next scan and writes the last result while the current one runs.
 #include <fmt/format.h>
 
 #include <algorithm>
@@ -18,6 +18,7 @@
 #include "engine/data/ground_truth.hpp"
 #include "engine/data/semantickitti.hpp"
 #include "engine/pipeline/segmenter.hpp"
+#include "engine/render/figure.hpp"
 #include "engine/render/label_map.hpp"
 #include "engine/render/render.hpp"
 #include "engine/util/progress.hpp"
@@ -152,6 +153,7 @@ void run_infer(const InferArgs& a) {
 
 void run_render(const RenderArgs& a) {
   require_extension(a.out, {".png"}, "--out");
+  const Font font(find_font());  // before any work: a missing font is reported first
   const Sequence seq(a.data, a.sequence);
   const size_t index = scan_index(seq, a.scan);
   const Scan scan = seq.load(index);
@@ -162,11 +164,15 @@ void run_render(const RenderArgs& a) {
     segmenter = open_for(a.weights, a.config, a.device, false);
     grid = segmenter->model().grid;
   }
-  std::vector<ImageRgb> panels;
-  panels.push_back(render_points(scan.points, scan.labels, classes, grid));
+  const std::string masked = a.mask_unobserved ? ", unobserved cells black" : "";
+  const bool labelled = !scan.labels.empty() && scan.labels.size() == scan.points.size();
+  std::vector<TitledPanel> panels;
+  panels.push_back({labelled ? "Points (class colours; unlabelled points grey)"
+                             : "Points (grey by height: darker lower)",
+                    render_points(scan.points, scan.labels, classes, grid)});
   const Tensor<uint32_t> observability =
       host::observability_map(host::observability_2d(scan.points, Eigen::Vector3d::Zero(), grid));
-  panels.push_back(render_observability(observability));
+  panels.push_back({"Observability (rays through or ending in a cell, log scale)", render_observability(observability)});
   Tensor<uint8_t> mask(observability.shape());
   for (int64_t i = 0; i < mask.numel(); ++i) mask[i] = observability[i] > 0;
   if (segmenter) {
@@ -174,7 +180,9 @@ void run_render(const RenderArgs& a) {
     segmenter->segment(scan.points, labels.data());
     ImageRgb prediction = render_label_map(labels, classes);
     if (a.mask_unobserved) apply_mask(prediction, mask);
-    panels.push_back(std::move(prediction));
+    panels.push_back({fmt::format("Prediction ({}, {}{})", fs::path(a.weights).filename().string(),
+                                  segmenter->backend().name(), masked),
+                      std::move(prediction)});
   }
   if (seq.has_labels(index)) {
     GroundTruthSettings settings;
@@ -184,11 +192,15 @@ void run_render(const RenderArgs& a) {
     const GroundTruthBuilder builder(seq, classes, settings, cache);
     ImageRgb truth = render_label_map(builder.map(index, parse_ground_truth_kind(a.mode)), classes);
     if (a.mask_unobserved) apply_mask(truth, mask);
-    panels.push_back(std::move(truth));
+    panels.push_back({fmt::format("{} ground truth{}", a.mode == "dense" ? "Dense" : "Sparse", masked),
+                      std::move(truth)});
   }
-  write_png_rgb(a.out, stack_panels(panels));
-  fmt::print("{}: panels (top to bottom) points, observability{}{} -> {}\n", seq.bin_path(index).string(),
-             segmenter ? ", prediction" : "", seq.has_labels(index) ? ", " + a.mode + " ground truth" : "", a.out);
+  const Figure figure = compose_figure(panels, classes, grid.cell, font);
+  write_png_rgb(a.out, figure.image);
+  fmt::print("{}: panels (top to bottom) points, observability{}{}, {} x {} pixels ({} a cell) -> {}\n",
+             seq.bin_path(index).string(), segmenter ? ", prediction" : "",
+             seq.has_labels(index) ? ", " + a.mode + " ground truth" : "", figure.image.width,
+             figure.image.height, figure.scale, a.out);
 }
 
 }  // namespace
@@ -214,8 +226,10 @@ void add_infer(CLI::App& app) {
   cmd->callback([a] { run_infer(*a); });
 
   auto r = std::make_shared<RenderArgs>();
-  CLI::App* rc = app.add_subcommand("render", "PNG panels like the paper's Fig. 3: points, observability, "
-                                              "prediction (with --weights), ground truth");
+  CLI::App* rc = app.add_subcommand("render",
+                                    "PNG panels like the paper's Fig. 3: points, observability, prediction (with "
+                                    "--weights), ground truth; titled, at least 1000 pixels wide, with a class "
+                                    "legend and a scale bar");
   rc->add_option("--data", r->data, "SemanticKITTI root")->required();
   rc->add_option("--sequence", r->sequence, "sequence number")->required();
   rc->add_option("--scan", r->scan, "scan (frame) number")->required();

@@ -79,22 +79,4 @@ void apply_mask(ImageRgb& image, const Tensor<uint8_t>& mask) {
       }
 }
 
-ImageRgb stack_panels(const std::vector<ImageRgb>& panels) {
-  PS_CHECK(!panels.empty(), "stack_panels: no panels");
-  const int W = panels[0].width, gap = 4;
-  int H = 0;
-  for (const ImageRgb& p : panels) {
-    PS_CHECK(p.width == W, "stack_panels: panel widths differ ({} and {})", W, p.width);
-    H += p.height + (H ? gap : 0);
-  }
-  ImageRgb out(W, H);
-  std::fill(out.pixels.begin(), out.pixels.end(), uint8_t{255});
-  int y0 = 0;
-  for (const ImageRgb& p : panels) {
-    std::copy(p.pixels.begin(), p.pixels.end(), out.pixels.begin() + static_cast<std::ptrdiff_t>(y0) * W * 3);
-    y0 += p.height + gap;
-  }
-  return out;
-}
-
 }  // namespace pillarseg

@@ -1,7 +1,8 @@
 // Top-view pictures, all W wide and H high with +x to the right and +y up (image row
 // H-1-iy), like the paper's Fig. 3: the points (class colours, or grey by height without
-// labels), the observability map (log scale), the occupancy map, label maps
-// (render_label_map in engine/data/ground_truth.hpp), and panels stacked into one image.
+// labels), the observability map (log scale), the occupancy map, and label maps
+// (engine/render/label_map.hpp); engine/render/figure.hpp lays panels out with titles, a class
+// legend and a scale bar.
 #pragma once
 
 #include <vector>
@@ -20,7 +21,5 @@ ImageRgb render_observability(const Tensor<uint32_t>& counts);  // (H, W)
 ImageRgb render_occupancy(const Tensor<float>& probability);     // (Z, H, W)
 // Cells where mask is 0 are drawn black (the paper's filtered predictions).
 void apply_mask(ImageRgb& image, const Tensor<uint8_t>& mask);
-// Panels of equal width, top to bottom, separated by 4-pixel white bars.
-ImageRgb stack_panels(const std::vector<ImageRgb>& panels);
 
 }  // namespace pillarseg
