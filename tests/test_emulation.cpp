@@ -259,6 +259,70 @@ static __global__ void bad_width_kernel(int* out) {
   out[threadIdx.x] = __shfl_sync(kFullMask, static_cast<int>(threadIdx.x), 0, 3);
 }
 
+// in, out (gridDim.x * blockDim.x): out[t] = tile[(t + 1) % n] with NO barrier between the
+// writes and the reads: a race, whose result depends on the order the threads run in.
+static __global__ void racy_rotate_kernel(const int* in, int* out) {
+  __shared__ int tile[1024];
+  const int n = static_cast<int>(blockDim.x);
+  const int t = static_cast<int>(threadIdx.x);
+  const int base = static_cast<int>(blockIdx.x) * n;
+  tile[t] = in[base + t];
+  out[base + t] = tile[(t + 1) % n];
+}
+
+// A warp-synchronous exchange through shared memory: each lane writes its slot and reads its
+// neighbour's; with `sync` a __syncwarp() separates the two (correct), without it they race.
+static __global__ void warp_exchange_kernel(const int* in, int* out, bool sync) {
+  __shared__ int slots[32];
+  const int lane = static_cast<int>(threadIdx.x);
+  slots[lane] = in[lane];
+  if (sync) __syncwarp();
+  out[lane] = slots[lane ^ 1];
+}
+
+// out[0] = the index of the block that ran last (every block writes it): the blocks' order.
+static __global__ void last_block_kernel(int* out) {
+  if (threadIdx.x == 0) out[0] = static_cast<int>(blockIdx.x);
+}
+
+// out (gridDim.x * blockDim.x * 2): what each thread reads from a static and a dynamic shared
+// slot before anything writes them; then every thread writes both (so that a block that
+// inherited them from the block before would read those values instead of the poison).
+static __global__ void read_before_write_kernel(std::uint32_t* out) {
+  __shared__ std::uint32_t slots[256];
+  std::uint32_t* dynamic_slots = cuda::dynamic_shared<std::uint32_t>();
+  const unsigned t = threadIdx.x;
+  const unsigned i = (blockIdx.x * blockDim.x + t) * 2;
+  out[i] = slots[t];
+  out[i + 1] = dynamic_slots[t];
+  __syncthreads();
+  slots[t] = 7;
+  dynamic_slots[t] = 9;
+}
+
+// Runs `launch` under `schedule` and returns what it left in `out`, restoring the schedule.
+template <class T>
+std::vector<T> run_under(const emu::Schedule& schedule, DeviceBuffer<T>& out,
+                         const std::function<void()>& launch) {
+  const emu::Schedule previous = emu::current_schedule();
+  emu::set_schedule(schedule);
+  PS_CUDA_CHECK(cudaMemset(out.data(), 0, out.size() * sizeof(T)));
+  try {
+    launch();
+  } catch (...) {
+    emu::set_schedule(previous);
+    throw;
+  }
+  emu::set_schedule(previous);
+  return out.to_host();
+}
+
+const emu::Schedule kForward{};
+const emu::Schedule kReverse{emu::Schedule::Order::Reverse, 0};
+emu::Schedule random_schedule(std::uint64_t seed) {
+  return emu::Schedule{emu::Schedule::Order::Random, seed};
+}
+
 // ---- tests ----
 
 TEST(EmulationBarrier, EveryThreadWritesBeforeAnyReads) {
@@ -748,4 +812,134 @@ TEST(EmulationMisuse, BadWarpMasksAreReported) {
 TEST(EmulationMisuse, DeviceFunctionsOutsideAKernelThrow) {
   const std::string message = error_message([] { __syncthreads(); });
   EXPECT_TRUE(contains(message, "__syncthreads() was called outside a kernel launch")) << message;
+}
+
+TEST(EmulationSchedule, ParsesTheThreeOrdersAndRefusesAnythingElse) {
+  EXPECT_EQ(emu::parse_schedule("forward", "V"), kForward);
+  EXPECT_EQ(emu::parse_schedule("reverse", "V"), kReverse);
+  EXPECT_EQ(emu::parse_schedule("random:0", "V"), random_schedule(0));
+  EXPECT_EQ(emu::parse_schedule("random:18446744073709551615", "V"),
+            random_schedule(18446744073709551615ull));
+  EXPECT_EQ(emu::to_string(random_schedule(42)), "random:42");
+  EXPECT_EQ(emu::parse_schedule(emu::to_string(kReverse), "V"), kReverse);
+  for (const char* bad : {"", "Forward", "backward", "random", "random:", "random:-1", "random:1x",
+                          "random:18446744073709551616", " reverse"}) {
+    const std::string message =
+        error_message([&] { emu::parse_schedule(bad, "PILLARSEG_EMU_SCHEDULE"); });
+    EXPECT_TRUE(contains(message, "PILLARSEG_EMU_SCHEDULE='" + std::string(bad) + "'")) << message;
+    EXPECT_TRUE(contains(message, "expected forward, reverse or random:SEED")) << message;
+  }
+}
+
+TEST(EmulationSchedule, APlantedRaceGivesDifferentResultsUnderTheOrders) {
+  const int block = 256;
+  const int blocks = 3;
+  const std::vector<int> in = distinct_values(block * blocks);
+  auto device_in = DeviceBuffer<int>::from_host(in);
+  DeviceBuffer<int> device_out(in.size());
+  auto launch = [&] {
+    launch_kernel(racy_rotate_kernel, dim3(blocks), dim3(block), 0, nullptr, device_in.data(),
+                  device_out.data());
+  };
+  const std::vector<int> forward = run_under(kForward, device_out, launch);
+  const std::vector<int> reverse = run_under(kReverse, device_out, launch);
+  const std::vector<int> random = run_under(random_schedule(7), device_out, launch);
+  // Forward: thread t reads slot t + 1 before thread t + 1 has written it, so it reads the poison
+  // (all bits set: -1), except the last thread, which reads slot 0. Reverse: every slot t + 1 is
+  // written before thread t reads it, except slot 0 for the last thread.
+  for (int b = 0; b < blocks; ++b) {
+    for (int t = 0; t < block; ++t) {
+      const auto i = static_cast<size_t>(b * block + t);
+      const int correct = in[static_cast<size_t>(b * block + (t + 1) % block)];
+      EXPECT_EQ(forward[i], t == block - 1 ? correct : -1) << "block " << b << " thread " << t;
+      EXPECT_EQ(reverse[i], t == block - 1 ? -1 : correct) << "block " << b << " thread " << t;
+    }
+  }
+  EXPECT_NE(random, forward);
+  EXPECT_NE(random, reverse);
+  // The same seed gives the same order; another seed another.
+  EXPECT_EQ(run_under(random_schedule(7), device_out, launch), random);
+  EXPECT_NE(run_under(random_schedule(8), device_out, launch), random);
+}
+
+TEST(EmulationSchedule, AWarpExchangeNeedsSyncwarp) {
+  std::vector<int> in(32);
+  std::iota(in.begin(), in.end(), 100);
+  auto device_in = DeviceBuffer<int>::from_host(in);
+  DeviceBuffer<int> device_out(32);
+  for (const bool sync : {true, false}) {
+    auto launch = [&] {
+      launch_kernel(warp_exchange_kernel, dim3(1), dim3(32), 0, nullptr, device_in.data(),
+                    device_out.data(), sync);
+    };
+    const std::vector<int> forward = run_under(kForward, device_out, launch);
+    const std::vector<int> reverse = run_under(kReverse, device_out, launch);
+    const std::vector<int> random = run_under(random_schedule(3), device_out, launch);
+    if (sync) {
+      for (int lane = 0; lane < 32; ++lane)
+        EXPECT_EQ(forward[static_cast<size_t>(lane)], 100 + (lane ^ 1));
+      EXPECT_EQ(reverse, forward);
+      EXPECT_EQ(random, forward);
+    } else {
+      EXPECT_NE(reverse, forward) << "without __syncwarp, even lanes read their neighbour's slot "
+                                     "before it is written under forward and after under reverse";
+    }
+  }
+}
+
+TEST(EmulationSchedule, CorrectKernelsGiveTheSameBitsUnderEveryOrder) {
+  for (const int block : {1, 33, 256}) {
+    const int blocks = 5;
+    const std::vector<int> in = distinct_values(block * blocks);
+    auto device_in = DeviceBuffer<int>::from_host(in);
+    DeviceBuffer<int> device_out(in.size());
+    for (const auto kernel : {rotate_in_block_kernel, inclusive_scan_kernel}) {
+      auto launch = [&] {
+        launch_kernel(kernel, dim3(blocks), dim3(block), 0, nullptr, device_in.data(),
+                      device_out.data());
+      };
+      const std::vector<int> forward = run_under(kForward, device_out, launch);
+      EXPECT_EQ(run_under(kReverse, device_out, launch), forward) << "block size " << block;
+      EXPECT_EQ(run_under(random_schedule(11), device_out, launch), forward)
+          << "block size " << block;
+    }
+  }
+}
+
+TEST(EmulationSchedule, BlocksRunInTheScheduleOrder) {
+  const int previous_threads = omp_get_max_threads();
+  omp_set_num_threads(1);  // one OS thread: the blocks run one after the other in the order
+  DeviceBuffer<int> device_out(1);
+  const int blocks = 97;
+  auto launch = [&] {
+    launch_kernel(last_block_kernel, dim3(blocks), dim3(32), 0, nullptr, device_out.data());
+  };
+  const std::vector<int> forward = run_under(kForward, device_out, launch);
+  const std::vector<int> reverse = run_under(kReverse, device_out, launch);
+  std::vector<int> random_last;
+  for (std::uint64_t seed = 1; seed <= 4; ++seed)
+    random_last.push_back(run_under(random_schedule(seed), device_out, launch)[0]);
+  omp_set_num_threads(previous_threads);
+  EXPECT_EQ(forward[0], blocks - 1);
+  EXPECT_EQ(reverse[0], 0);
+  EXPECT_TRUE(std::any_of(random_last.begin(), random_last.end(), [&](int last) {
+    return last != blocks - 1 && last != 0;
+  })) << "four seeds all ended with the first or the last block";
+}
+
+TEST(EmulationSharedMemory, EveryBlockStartsWithPoisonedSharedMemory) {
+  const int block = 256;
+  const int blocks = 9;
+  DeviceBuffer<std::uint32_t> device_out(static_cast<size_t>(block * blocks * 2));
+  for (const auto& schedule : {kForward, kReverse, random_schedule(5)}) {
+    const std::vector<std::uint32_t> out = run_under(schedule, device_out, [&] {
+      launch_kernel(read_before_write_kernel, dim3(blocks), dim3(block),
+                    block * sizeof(std::uint32_t), nullptr, device_out.data());
+    });
+    for (size_t i = 0; i < out.size(); ++i) {
+      ASSERT_EQ(out[i], 0xFFFFFFFFu)
+          << (i % 2 == 0 ? "static" : "dynamic") << " shared slot of thread " << i / 2 % block
+          << " of block " << i / 2 / block << " under " << emu::to_string(schedule);
+    }
+  }
 }

@@ -4,7 +4,10 @@
 //
 // Semantics (emu_scheduler.hpp): threads of a block are fibers on one OS thread, so
 // `__shared__` (a static thread_local) is shared by the threads of a block and private to it;
-// CUDA leaves shared memory uninitialised, so kernels must not rely on its content at block start.
+// CUDA leaves shared memory uninitialised, so kernels must not rely on its content at block start:
+// every `__shared__` variable lives in the TLS section pillarseg_emu_shared, which the scheduler
+// fills with 0xFF bytes at the start of every block (a kernel reading what it never wrote reads
+// NaN or -1).
 // threadIdx is the current fiber's, blockIdx/blockDim/gridDim the current block's. Shuffles and
 // votes return once every lane of their mask has called them. Atomics are relaxed, as in CUDA.
 #pragma once
@@ -25,7 +28,7 @@
 #define __forceinline__ inline
 #define __launch_bounds__(...)
 #define __align__(n) __attribute__((aligned(n)))
-#define __shared__ static thread_local
+#define __shared__ static thread_local __attribute__((section("pillarseg_emu_shared")))
 
 // ---- built-in variables ----
 inline thread_local uint3 threadIdx{0, 0, 0};

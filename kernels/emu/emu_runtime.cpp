@@ -7,6 +7,8 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <atomic>
+#include <bit>
 #include <chrono>
 #include <cstdint>
 #include <cstdio>
@@ -18,6 +20,7 @@
 #include <new>
 #include <thread>
 #include <unordered_map>
+#include <utility>
 #include <vector>
 
 #include <fmt/format.h>
@@ -207,6 +210,41 @@ cudaError_t check_side(const void* pointer, std::size_t bytes, bool want_device,
   return cudaSuccess;
 }
 
+struct CopyDigests {
+  std::mutex mutex;
+  std::atomic<bool> recording{false};
+  std::vector<std::uint64_t> digests;
+};
+CopyDigests& copy_digests() {
+  static CopyDigests digests;
+  return digests;
+}
+
+// A 64-bit hash of the bytes: eight at a time, multiplied and rotated (not cryptographic: it only
+// has to change when a bit changes).
+std::uint64_t hash_bytes(const void* data, std::size_t bytes) {
+  const auto* p = static_cast<const unsigned char*>(data);
+  std::uint64_t h = 0x9E3779B97F4A7C15ull ^ bytes;
+  std::size_t i = 0;
+  for (; i + 8 <= bytes; i += 8) {
+    std::uint64_t word;
+    std::memcpy(&word, p + i, 8);
+    h = std::rotl((h ^ word) * 0xBF58476D1CE4E5B9ull, 29);
+  }
+  std::uint64_t tail = 0;
+  std::memcpy(&tail, p + i, bytes - i);
+  h = std::rotl((h ^ tail) * 0x94D049BB133111EBull, 31);
+  return h ^ (h >> 32);
+}
+
+void append_copy_digest(const void* data, std::size_t bytes) {
+  CopyDigests& digests = copy_digests();
+  if (!digests.recording.load(std::memory_order_relaxed)) return;
+  const std::uint64_t digest = hash_bytes(data, bytes);
+  const std::lock_guard lock(digests.mutex);
+  digests.digests.push_back(digest);
+}
+
 cudaError_t copy_now(void* destination, const void* source, std::size_t bytes, cudaMemcpyKind kind,
                      const char* call) {
   if (bytes == 0) return cudaSuccess;
@@ -220,8 +258,11 @@ cudaError_t copy_now(void* destination, const void* source, std::size_t bytes, c
                 fmt::format("{}: the {} pointer is null with {} bytes to copy", call,
                             destination == nullptr ? "destination" : "source", bytes));
   }
+  bool device_to_host = false;
   {
     const std::lock_guard lock(runtime().mutex);
+    device_to_host =
+        runtime().device.find(source).second != 0 && runtime().device.find(destination).second == 0;
     if (kind != cudaMemcpyDefault) {
       const bool device_destination =
           kind == cudaMemcpyHostToDevice || kind == cudaMemcpyDeviceToDevice;
@@ -238,6 +279,7 @@ cudaError_t copy_now(void* destination, const void* source, std::size_t bytes, c
     }
   }
   std::memmove(destination, source, bytes);
+  if (device_to_host) append_copy_digest(destination, bytes);
   return cudaSuccess;
 }
 
@@ -357,6 +399,16 @@ cudaError_t launch(BoundKernel kernel, dim3 grid, dim3 block, std::size_t dynami
                         [kernel = std::move(kernel), grid, block, dynamic_shared_bytes] {
                           return run_now(kernel, grid, block, dynamic_shared_bytes);
                         });
+}
+
+void record_copy_digests(bool on) {
+  copy_digests().recording.store(on, std::memory_order_relaxed);
+}
+
+std::vector<std::uint64_t> take_copy_digests() {
+  CopyDigests& digests = copy_digests();
+  const std::lock_guard lock(digests.mutex);
+  return std::exchange(digests.digests, {});
 }
 
 }  // namespace pillarseg::emu

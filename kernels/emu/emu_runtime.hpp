@@ -11,10 +11,12 @@
 #pragma once
 
 #include <cstddef>
+#include <cstdint>
 #include <memory>
 #include <string>
 #include <tuple>
 #include <utility>
+#include <vector>
 
 #include "kernels/emu/emu_scheduler.hpp"
 #include "kernels/emu/emu_types.hpp"
@@ -127,5 +129,12 @@ BoundKernel bind_kernel(void (*kernel)(Params...), Args&&... args) {
 // misused barriers or warp operations. Sets the last error as CUDA does.
 cudaError_t launch(BoundKernel kernel, dim3 grid, dim3 block, std::size_t dynamic_shared_bytes,
                    cudaStream_t stream);
+
+// What came down from the device: while recording, every device-to-host copy appends a 64-bit
+// hash of its bytes, so that a test can compare all it read back under two schedules (a race
+// that a tolerance would hide still changes a bit). Copies from several host threads append in
+// the order they happen.
+void record_copy_digests(bool on);
+std::vector<std::uint64_t> take_copy_digests();
 
 }  // namespace pillarseg::emu

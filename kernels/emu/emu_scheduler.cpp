@@ -1,5 +1,11 @@
 // The block scheduler of the CUDA emulation (see emu_scheduler.hpp): fibers, barriers, warp
-// rendezvous, deadlock diagnosis, and the OpenMP loop over the blocks of a grid.
+// rendezvous, deadlock diagnosis, the schedule's orders, shared-memory poisoning, and the OpenMP
+// loop over the blocks of a grid.
+//
+// The order: a block's threads start in the schedule's order; when a barrier or a warp operation
+// completes, every thread it held, the one that completed it included, is queued again in the
+// schedule's order, so that no thread runs on past a synchronisation point ahead of the others
+// because it happened to arrive last.
 //
 // Fibers switch stacks with a few instructions on x86-64 (saving the callee-saved registers);
 // elsewhere, or with PILLARSEG_EMU_UCONTEXT defined, with ucontext's swapcontext, which also saves
@@ -17,12 +23,15 @@
 #include <array>
 #include <atomic>
 #include <bit>
+#include <cstdlib>
 #include <cstring>
 #include <exception>
 #include <limits>
 #include <memory>
 #include <mutex>
 #include <new>
+#include <numeric>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -93,10 +102,59 @@ pillarseg_emu_fiber_start:
 )");
 #endif
 
+// The bounds of this thread's copy of the section holding every `__shared__` variable
+// (emu_device.hpp), defined by the linker; the anchor makes sure the section exists.
+extern "C" {
+extern __thread unsigned char __start_pillarseg_emu_shared[] __attribute__((visibility("hidden")));
+extern __thread unsigned char __stop_pillarseg_emu_shared[] __attribute__((visibility("hidden")));
+}
+namespace {
+static thread_local
+    __attribute__((section("pillarseg_emu_shared"), used)) unsigned char shared_section_anchor[1];
+}  // namespace
+
 namespace pillarseg::emu {
 namespace {
 
 constexpr int kWarpSize = 32;
+// Shared memory at the start of a block: every byte 0xFF (a NaN as float, -1 as an integer).
+constexpr unsigned char kSharedPoison = 0xFF;
+
+std::uint64_t splitmix64(std::uint64_t& state) {
+  std::uint64_t z = (state += 0x9E3779B97F4A7C15ull);
+  z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ull;
+  z = (z ^ (z >> 27)) * 0x94D049BB133111EBull;
+  return z ^ (z >> 31);
+}
+
+// The seed's permutation of the threads of one synchronisation event of one block.
+std::uint64_t event_state(const Schedule& schedule, std::uint64_t block, std::uint64_t event) {
+  std::uint64_t state = schedule.seed;
+  std::uint64_t mixed = splitmix64(state) ^ block;
+  state = mixed;
+  mixed = splitmix64(state) ^ event;
+  state = mixed;
+  return splitmix64(state);
+}
+
+// Puts `items` in the schedule's order: ascending, descending, or shuffled by `state`.
+void order_items(std::vector<int>& items, const Schedule& schedule, std::uint64_t state) {
+  switch (schedule.order) {
+    case Schedule::Order::Forward:
+      std::sort(items.begin(), items.end());
+      return;
+    case Schedule::Order::Reverse:
+      std::sort(items.begin(), items.end(), std::greater<>());
+      return;
+    case Schedule::Order::Random:
+      std::sort(items.begin(), items.end());
+      for (std::size_t i = items.size(); i > 1; --i) {
+        const std::size_t j = splitmix64(state) % i;
+        std::swap(items[i - 1], items[j]);
+      }
+      return;
+  }
+}
 #if defined(PS_EMU_ASAN)
 // ASan's redzones make frames several times larger.
 constexpr std::size_t kFiberStackBytes = 512 * 1024;
@@ -179,6 +237,44 @@ std::string format_lanes(unsigned bits, int limit = 8) {
   return out;
 }
 
+uint3 block_index_of(std::uint64_t linear, dim3 grid) {
+  return uint3{static_cast<unsigned>(linear % grid.x),
+               static_cast<unsigned>(linear / grid.x % grid.y),
+               static_cast<unsigned>(linear / (std::uint64_t{grid.x} * grid.y))};
+}
+
+// The schedule's order of the blocks of a grid of `blocks`: the b-th block run is block
+// BlockOrder(b); random: b -> (a b + c) mod blocks with a coprime to blocks, from the seed.
+class BlockOrder {
+ public:
+  BlockOrder(const Schedule& schedule, std::uint64_t blocks)
+      : order_(schedule.order), blocks_(blocks) {
+    if (order_ != Schedule::Order::Random || blocks < 2) return;
+    std::uint64_t state = schedule.seed ^ (blocks * 0xD6E8FEB86659FD93ull);
+    multiplier_ = splitmix64(state) % blocks;
+    while (std::gcd(multiplier_, blocks) != 1) multiplier_ = (multiplier_ + 1) % blocks;
+    offset_ = splitmix64(state) % blocks;
+  }
+  std::uint64_t operator()(std::uint64_t b) const {
+    switch (order_) {
+      case Schedule::Order::Forward:
+        return b;
+      case Schedule::Order::Reverse:
+        return blocks_ - 1 - b;
+      case Schedule::Order::Random:
+        if (blocks_ < 2) return b;
+        return static_cast<std::uint64_t>(
+            (static_cast<unsigned __int128>(multiplier_) * b + offset_) % blocks_);
+    }
+    return b;
+  }
+
+ private:
+  Schedule::Order order_;
+  std::uint64_t blocks_;
+  std::uint64_t multiplier_ = 1, offset_ = 0;
+};
+
 enum class ThreadStatus : std::uint8_t { NotStarted, Running, AtBarrier, InWarpOp, Returned };
 
 struct Fiber {
@@ -237,7 +333,8 @@ class BlockRunner {
   BlockRunner(const BlockRunner&) = delete;
   BlockRunner& operator=(const BlockRunner&) = delete;
 
-  void run_block(const GridLaunch& launch, uint3 block_index, std::byte* dynamic_shared);
+  void run_block(const GridLaunch& launch, const Schedule& schedule, std::uint64_t block_linear,
+                 std::byte* dynamic_shared);
 
   int barrier(int predicate);
   std::uint64_t warp_exchange(WarpOp op, unsigned mask, std::uint64_t value, int lane_argument,
@@ -258,6 +355,7 @@ class BlockRunner {
   void wait();
   void run_threads_on_current_fiber();
   void wake(Fiber* fiber);
+  void release_in_order(std::vector<int>& threads);
   void abandon_waiting_fibers();
   [[noreturn]] void fail_here(const std::string& what) const;
   std::string describe_deadlock() const;
@@ -272,6 +370,11 @@ class BlockRunner {
 
   // The block being run.
   const GridLaunch* launch_ = nullptr;
+  Schedule schedule_;
+  std::uint64_t block_linear_ = 0;
+  std::uint64_t events_ = 0;      // synchronisation events completed in this block
+  std::vector<int> start_order_;  // the threads in the order they start
+  std::vector<int> released_;     // scratch: the threads an event releases
   uint3 block_index_{};
   std::byte* dynamic_shared_ = nullptr;
   int num_threads_ = 0;
@@ -280,7 +383,7 @@ class BlockRunner {
   std::vector<ThreadState> threads_;
   std::vector<Fiber*> runnable_;
   std::size_t runnable_head_ = 0;
-  std::vector<Fiber*> barrier_waiters_;
+  int barrier_arrived_ = 0;
   int barrier_predicates_ = 0;
   int barrier_result_ = 0;
   std::vector<std::vector<WarpGroup>> warp_groups_;  // per warp, the operations under way
@@ -397,7 +500,8 @@ Fiber* BlockRunner::next_fiber() {
 // The current thread waits: switch to another; resumes when someone wakes this fiber.
 void BlockRunner::wait() {
   Fiber* self = current_;
-  switch_to(next_fiber());
+  Fiber* next = next_fiber();
+  if (next != self) switch_to(next);
   threadIdx = threads_[static_cast<std::size_t>(self->thread)].index;
 }
 
@@ -406,10 +510,16 @@ void BlockRunner::wake(Fiber* fiber) {
   runnable_.push_back(fiber);
 }
 
+// Queues the threads a completed barrier or warp operation held, in the schedule's order.
+void BlockRunner::release_in_order(std::vector<int>& threads) {
+  order_items(threads, schedule_, event_state(schedule_, block_linear_, ++events_));
+  for (const int thread : threads) wake(threads_[static_cast<std::size_t>(thread)].fiber);
+}
+
 void BlockRunner::run_threads_on_current_fiber() {
   Fiber* self = current_;
   while (next_thread_ < num_threads_) {
-    const int thread = next_thread_++;
+    const int thread = start_order_[static_cast<std::size_t>(next_thread_++)];
     ThreadState& state = threads_[static_cast<std::size_t>(thread)];
     self->thread = thread;
     state.fiber = self;
@@ -443,12 +553,22 @@ void fiber_main() {
   BlockRunner::for_this_thread().fiber_loop();
 }
 
-void BlockRunner::run_block(const GridLaunch& launch, uint3 block_index,
-                            std::byte* dynamic_shared) {
+void BlockRunner::run_block(const GridLaunch& launch, const Schedule& schedule,
+                            std::uint64_t block_linear, std::byte* dynamic_shared) {
   launch_ = &launch;
-  block_index_ = block_index;
+  schedule_ = schedule;
+  block_linear_ = block_linear;
+  events_ = 0;
+  block_index_ = block_index_of(block_linear, launch.grid);
   dynamic_shared_ = dynamic_shared;
+  std::memset(__start_pillarseg_emu_shared, kSharedPoison,
+              static_cast<std::size_t>(__stop_pillarseg_emu_shared - __start_pillarseg_emu_shared));
+  if (dynamic_shared != nullptr)
+    std::memset(dynamic_shared, kSharedPoison, launch.dynamic_shared_bytes);
   num_threads_ = static_cast<int>(launch.block.x * launch.block.y * launch.block.z);
+  start_order_.resize(static_cast<std::size_t>(num_threads_));
+  for (int t = 0; t < num_threads_; ++t) start_order_[static_cast<std::size_t>(t)] = t;
+  order_items(start_order_, schedule_, event_state(schedule_, block_linear_, 0));
   next_thread_ = 0;
   returned_ = 0;
   threads_.resize(static_cast<std::size_t>(num_threads_));
@@ -467,10 +587,10 @@ void BlockRunner::run_block(const GridLaunch& launch, uint3 block_index,
   returned_lanes_.assign(warp_groups_.size(), 0u);
   runnable_.clear();
   runnable_head_ = 0;
-  barrier_waiters_.clear();
+  barrier_arrived_ = 0;
   barrier_predicates_ = 0;
   failure_ = nullptr;
-  blockIdx = block_index;
+  blockIdx = block_index_;
   blockDim = launch.block;
   gridDim = launch.grid;
 
@@ -493,7 +613,7 @@ void BlockRunner::abandon_waiting_fibers() {
   }
   runnable_.clear();
   runnable_head_ = 0;
-  barrier_waiters_.clear();
+  barrier_arrived_ = 0;
   failure_ = nullptr;
 }
 
@@ -506,15 +626,15 @@ void BlockRunner::fail_here(const std::string& what) const {
 
 int BlockRunner::barrier(int predicate) {
   barrier_predicates_ += predicate != 0 ? 1 : 0;
-  if (static_cast<int>(barrier_waiters_.size()) + 1 == num_threads_) {
+  threads_[static_cast<std::size_t>(current_->thread)].status = ThreadStatus::AtBarrier;
+  if (++barrier_arrived_ == num_threads_) {
     barrier_result_ = barrier_predicates_;
     barrier_predicates_ = 0;
-    for (Fiber* fiber : barrier_waiters_) wake(fiber);
-    barrier_waiters_.clear();
-    return barrier_result_;
+    barrier_arrived_ = 0;
+    released_.resize(static_cast<std::size_t>(num_threads_));
+    for (int t = 0; t < num_threads_; ++t) released_[static_cast<std::size_t>(t)] = t;
+    release_in_order(released_);
   }
-  threads_[static_cast<std::size_t>(current_->thread)].status = ThreadStatus::AtBarrier;
-  barrier_waiters_.push_back(current_);
   wait();
   // The next barrier cannot complete (and overwrite the result) before this thread arrives there.
   return barrier_result_;
@@ -594,7 +714,7 @@ std::uint64_t BlockRunner::warp_exchange(WarpOp op, unsigned mask, std::uint64_t
       if (group->values[static_cast<std::size_t>(other)] != 0) ballot |= 1u << other;
     }
   }
-  std::uint64_t own_result = 0;
+  released_.clear();
   for (unsigned bits = mask; bits != 0; bits &= bits - 1) {
     const int other = std::countr_zero(bits);
     std::uint64_t result = ballot;
@@ -608,17 +728,15 @@ std::uint64_t BlockRunner::warp_exchange(WarpOp op, unsigned mask, std::uint64_t
         result = kUndefinedLaneValue;
       }
     }
-    if (other == lane) {
-      own_result = result;
-      continue;
-    }
-    ThreadState& waiter = threads_[static_cast<std::size_t>(warp * kWarpSize + other)];
-    waiter.warp_result = result;
-    wake(waiter.fiber);
+    threads_[static_cast<std::size_t>(warp * kWarpSize + other)].warp_result = result;
+    released_.push_back(warp * kWarpSize + other);
   }
   *group = groups.back();
   groups.pop_back();
-  return own_result;
+  self.status = ThreadStatus::InWarpOp;
+  release_in_order(released_);
+  wait();
+  return self.warp_result;
 }
 
 std::string BlockRunner::describe_deadlock() const {
@@ -633,9 +751,9 @@ std::string BlockRunner::describe_deadlock() const {
   std::string message = fmt::format(
       "CUDA emulation: block {} (grid {}, block shape {}) cannot go on, a GPU would hang here:",
       format_dim(block_index_), format_dim(launch_->grid), format_dim(launch_->block));
-  if (!barrier_waiters_.empty()) {
+  if (barrier_arrived_ > 0) {
     message += fmt::format(" __syncthreads() was reached by {} of {} threads (first: thread {})",
-                           barrier_waiters_.size(), num_threads_, thread_name(first_at_barrier));
+                           barrier_arrived_, num_threads_, thread_name(first_at_barrier));
     if (first_returned >= 0) {
       message +=
           fmt::format(", while {} threads had returned without reaching it (first: thread {})",
@@ -678,13 +796,12 @@ BlockRunner& runner_in_kernel(const char* function) {
 }
 
 // The dynamic shared memory of the blocks one OS thread runs: exactly the launch's size (so that
-// AddressSanitizer sees accesses past it), filled with 0xFF bytes (NaN as float) because CUDA
-// leaves shared memory uninitialised.
+// AddressSanitizer sees accesses past it); run_block fills it with 0xFF bytes (NaN as float) at
+// the start of every block because CUDA leaves shared memory uninitialised.
 struct DynamicSharedMemory {
   explicit DynamicSharedMemory(std::size_t bytes) : size(bytes) {
     if (bytes == 0) return;
     data = static_cast<std::byte*>(::operator new (bytes, std::align_val_t{256}));
-    std::memset(data, 0xFF, bytes);
   }
   ~DynamicSharedMemory() {
     if (data != nullptr) ::operator delete (data, std::align_val_t{256});
@@ -695,30 +812,95 @@ struct DynamicSharedMemory {
   std::byte* data = nullptr;
 };
 
-uint3 block_index_of(std::uint64_t linear, dim3 grid) {
-  return uint3{static_cast<unsigned>(linear % grid.x),
-               static_cast<unsigned>(linear / grid.x % grid.y),
-               static_cast<unsigned>(linear / (std::uint64_t{grid.x} * grid.y))};
-}
+std::mutex schedule_mutex;
+std::optional<Schedule> chosen_schedule;
+std::string schedule_error;  // PILLARSEG_EMU_SCHEDULE's parse error, when it has one
 
 }  // namespace
+
+Schedule parse_schedule(std::string_view text, std::string_view source) {
+  if (text == "forward") return Schedule{};
+  if (text == "reverse") return Schedule{Schedule::Order::Reverse, 0};
+  constexpr std::string_view kRandom = "random:";
+  if (text.starts_with(kRandom)) {
+    const std::string_view digits = text.substr(kRandom.size());
+    std::uint64_t seed = 0;
+    bool valid = !digits.empty() && digits.size() <= 20;
+    for (const char c : digits) {
+      if (c < '0' || c > '9') {
+        valid = false;
+        break;
+      }
+      const auto digit = static_cast<std::uint64_t>(c - '0');
+      if (seed > (std::numeric_limits<std::uint64_t>::max() - digit) / 10) {
+        valid = false;
+        break;
+      }
+      seed = seed * 10 + digit;
+    }
+    if (valid) return Schedule{Schedule::Order::Random, seed};
+  }
+  throw Error(fmt::format(
+      "{}='{}': expected forward, reverse or random:SEED (SEED a decimal number below 2^64), "
+      "the order in which the CUDA emulation runs a block's threads between synchronisation points",
+      source, text));
+}
+
+std::string to_string(const Schedule& schedule) {
+  switch (schedule.order) {
+    case Schedule::Order::Forward:
+      return "forward";
+    case Schedule::Order::Reverse:
+      return "reverse";
+    case Schedule::Order::Random:
+      return fmt::format("random:{}", schedule.seed);
+  }
+  return "?";
+}
+
+Schedule current_schedule() {
+  const std::lock_guard lock(schedule_mutex);
+  if (!chosen_schedule && schedule_error.empty()) {
+    const char* variable = std::getenv("PILLARSEG_EMU_SCHEDULE");
+    if (variable == nullptr || *variable == '\0') {
+      chosen_schedule = Schedule{};
+    } else {
+      try {
+        chosen_schedule = parse_schedule(variable, "PILLARSEG_EMU_SCHEDULE");
+      } catch (const Error& e) {
+        schedule_error = e.what();
+      }
+    }
+  }
+  if (!chosen_schedule) throw Error(schedule_error);
+  return *chosen_schedule;
+}
+
+void set_schedule(const Schedule& schedule) {
+  const std::lock_guard lock(schedule_mutex);
+  chosen_schedule = schedule;
+  schedule_error.clear();
+}
 
 void run_grid(const GridLaunch& launch) {
   PS_CHECK(BlockRunner::in_kernel() == nullptr,
            "CUDA emulation: a kernel launched a kernel (dynamic parallelism is not emulated)");
+  const Schedule schedule = current_schedule();
   const std::uint64_t blocks = std::uint64_t{launch.grid.x} * launch.grid.y * launch.grid.z;
+  const BlockOrder block_order(schedule, blocks);
   const int threads = static_cast<int>(
       std::min<std::uint64_t>(static_cast<std::uint64_t>(omp_get_max_threads()), blocks));
   if (threads <= 1) {
     BlockRunner& runner = BlockRunner::for_this_thread();
     DynamicSharedMemory shared(launch.dynamic_shared_bytes);
     for (std::uint64_t b = 0; b < blocks; ++b)
-      runner.run_block(launch, block_index_of(b, launch.grid), shared.data);
+      runner.run_block(launch, schedule, block_order(b), shared.data);
     return;
   }
 
-  // Blocks are independent, so their order does not change results; a failure stops the others
-  // early and the failure of the lowest block index that failed is reported.
+  // Blocks are independent, so their order must not change results (the schedule permutes it to
+  // show where it does); a failure stops the others early and the failure of the block that comes
+  // first in the schedule's order is reported.
   std::atomic<bool> failed{false};
   std::mutex failure_mutex;
   std::exception_ptr failure;
@@ -735,7 +917,7 @@ void run_grid(const GridLaunch& launch) {
       try {
         if (!shared) shared = std::make_unique<DynamicSharedMemory>(launch.dynamic_shared_bytes);
         BlockRunner::for_this_thread().run_block(
-            launch, block_index_of(static_cast<std::uint64_t>(b), launch.grid), shared->data);
+            launch, schedule, block_order(static_cast<std::uint64_t>(b)), shared->data);
       } catch (...) {
         const std::lock_guard lock(failure_mutex);
         if (static_cast<std::uint64_t>(b) < failed_block) {

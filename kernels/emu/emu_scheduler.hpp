@@ -8,12 +8,21 @@
 // barrier some threads never reach, a warp mask naming lanes that returned or do not exist,
 // different warp operations with one mask) stops the launch with a pillarseg::Error saying which
 // block, thread and operation.
+//
+// The order is a choice, as on a GPU, where nothing orders the threads between synchronisation
+// points: the schedule (PILLARSEG_EMU_SCHEDULE=forward|reverse|random:SEED) says in which order
+// the threads of a block run in each interval between two synchronisation points (a barrier or a
+// warp operation) and in which order the blocks run. A kernel whose result depends on it has a
+// race. Every block starts with its shared memory, static and dynamic, filled with 0xFF bytes
+// (NaN as float, -1 as integer), as device memory is at allocation.
 #pragma once
 
 #include <array>
 #include <cstddef>
 #include <cstdint>
 #include <deque>
+#include <string>
+#include <string_view>
 #include <vector>
 
 #include "kernels/emu/emu_types.hpp"
@@ -29,6 +38,29 @@ struct GridLaunch {
   const void* bound_arguments = nullptr;
   void (*run_thread)(const void* bound_arguments) = nullptr;
 };
+
+// The order of a block's threads in each interval, and of a grid's blocks.
+//   forward:      ascending (thread 0 first, block 0 first)
+//   reverse:      descending
+//   random:SEED   a permutation per interval and per block, from SEED and the block's index (the
+//                 same for the same SEED); the blocks in a permuted order
+struct Schedule {
+  enum class Order : std::uint8_t { Forward, Reverse, Random };
+  Order order = Order::Forward;
+  std::uint64_t seed = 0;
+  bool operator==(const Schedule&) const = default;
+};
+
+// "forward", "reverse" or "random:SEED" (SEED a decimal unsigned 64-bit number); anything else
+// throws pillarseg::Error naming `source` (the variable or argument it came from).
+Schedule parse_schedule(std::string_view text, std::string_view source);
+std::string to_string(const Schedule& schedule);
+
+// The schedule of the launches that start from now on: PILLARSEG_EMU_SCHEDULE when set (read at
+// the first launch; a bad value fails that launch and every one after it with the parse error),
+// else forward, until set_schedule replaces it (tests compare orders in one process).
+Schedule current_schedule();
+void set_schedule(const Schedule& schedule);
 
 // Runs every thread of every block of `launch`; returns when all have returned. Throws
 // pillarseg::Error (naming the block and the thread) on misuse, and rethrows anything a kernel
