@@ -246,6 +246,8 @@ uint3 block_index_of(std::uint64_t linear, dim3 grid) {
 // The schedule's order of the blocks of a grid of `blocks`: the b-th block run is block
 // BlockOrder(b); random: b -> (a b + c) mod blocks with a coprime to blocks, from the seed.
 class BlockOrder {
+  __extension__ using Wide = unsigned __int128;  // a x b before the modulus: 128 bits
+
  public:
   BlockOrder(const Schedule& schedule, std::uint64_t blocks)
       : order_(schedule.order), blocks_(blocks) {
@@ -263,8 +265,7 @@ class BlockOrder {
         return blocks_ - 1 - b;
       case Schedule::Order::Random:
         if (blocks_ < 2) return b;
-        return static_cast<std::uint64_t>(
-            (static_cast<unsigned __int128>(multiplier_) * b + offset_) % blocks_);
+        return static_cast<std::uint64_t>((static_cast<Wide>(multiplier_) * b + offset_) % blocks_);
     }
     return b;
   }
@@ -641,7 +642,8 @@ int BlockRunner::barrier(int predicate) {
 }
 
 std::uint64_t BlockRunner::warp_exchange(WarpOp op, unsigned mask, std::uint64_t value,
-                                         int lane_argument, int width, void (*compute)(void* const* lanes)) {
+                                         int lane_argument, int width,
+                                         void (*compute)(void* const* lanes)) {
   const int thread = current_->thread;
   const int warp = thread / kWarpSize;
   const int lane = thread % kWarpSize;
@@ -702,8 +704,8 @@ std::uint64_t BlockRunner::warp_exchange(WarpOp op, unsigned mask, std::uint64_t
     std::array<void*, kWarpSize> lanes{};
     for (unsigned bits = mask; bits != 0; bits &= bits - 1) {
       const int other = std::countr_zero(bits);
-      lanes[static_cast<std::size_t>(other)] =
-          reinterpret_cast<void*>(static_cast<std::uintptr_t>(group->values[static_cast<std::size_t>(other)]));
+      lanes[static_cast<std::size_t>(other)] = reinterpret_cast<void*>(
+          static_cast<std::uintptr_t>(group->values[static_cast<std::size_t>(other)]));
     }
     group->compute(lanes.data());
   }
@@ -946,10 +948,12 @@ unsigned warp_vote(WarpOp op, unsigned mask, int predicate) {
           .warp_exchange(op, mask, predicate != 0 ? 1u : 0u, 0, kWarpSize));
 }
 
-void warp_matrix(const char* name, unsigned mask, void* lane_block, void (*compute)(void* const* lanes)) {
-  runner_in_kernel(name).warp_exchange(WarpOp::Matrix, mask,
-                                       static_cast<std::uint64_t>(reinterpret_cast<std::uintptr_t>(lane_block)), 0,
-                                       kWarpSize, compute);
+void warp_matrix(const char* name, unsigned mask, void* lane_block,
+                 void (*compute)(void* const* lanes)) {
+  runner_in_kernel(name).warp_exchange(
+      WarpOp::Matrix, mask,
+      static_cast<std::uint64_t>(reinterpret_cast<std::uintptr_t>(lane_block)), 0, kWarpSize,
+      compute);
 }
 
 std::byte* dynamic_shared_memory() {
