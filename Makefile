@@ -68,7 +68,7 @@ GPU_ARCH ?= 90
 gpu-bundle: deps
 	@cmake -S . -B build-gpu -DCMAKE_BUILD_TYPE=Release -DCMAKE_CUDA_ARCHITECTURES=$(GPU_ARCH) \
 	  -DPILLARSEG_ARCH=x86-64-v3 -DPILLARSEG_BENCH=ON -DPILLARSEG_TESTS=ON >/dev/null
-	@cmake --build build-gpu -j $(JOBS) --target pillarseg bench_kernels_conv bench_kernels_pipeline \
+	@cmake --build build-gpu -j $(JOBS) --target pillarseg bench_kernels_conv bench_kernels_pipeline bench_kernels_reference \
 	  $$(cmake --build build-gpu --target help | sed -n 's/^\.\.\. \(test_.*_gpu\)$$/\1/p')
 	@scripts/gpu_bundle.sh pack build-gpu build-gpu/bundle
 	@scripts/gpu_bundle.sh check build-gpu/bundle
