@@ -5,8 +5,8 @@
 // checkpoint written to a temporary file), or --config's. Benchmarks:
 //   Segment/capi       pillarseg_segment, labels only
 //   Segment/engine     ScanSegmenter::segment, labels only
-// Own flags: --scan=PATH.bin (default: a simulated 120k-point scan), --config=RUN.yaml,
-// --device=cpu|emu|cuda, --threads=T (0: all).
+// Own flags: --scan=PATH (a point file: .bin, .pcd, .ply, .npy, .pcd.bin; default: a simulated
+// 120k-point scan), --config=RUN.yaml, --device=cpu|emu|cuda, --threads=T (0: all).
 #include <benchmark/benchmark.h>
 #include <fmt/format.h>
 #include <unistd.h>
@@ -21,7 +21,7 @@
 
 #include "core/parallel.hpp"
 #include "engine/cuda/install.hpp"
-#include "engine/data/semantickitti.hpp"
+#include "engine/data/point_formats.hpp"
 #include "engine/pipeline/segmenter.hpp"
 #include "engine/sim/simulate.hpp"
 #include "engine/train/checkpoint.hpp"
@@ -97,7 +97,7 @@ Sides& sides(const Options& o) {
     if (o.scan.empty()) {
       made.points = sim::SequenceSimulator(sim::sequence_seed(1, 0), 1).scan(0).points;
     } else {
-      made.points = read_scan(o.scan).points;
+      made.points = read_points(o.scan).points;
     }
     for (const Point& p : made.points) made.xyzr.insert(made.xyzr.end(), {p.x, p.y, p.z, p.r});
     install_emulated_cuda_backend();

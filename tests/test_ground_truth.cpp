@@ -772,7 +772,7 @@ TEST_F(DenseTwoScans, TouchingTheScanIsACacheMissAndTheEntryIsRewritten) {
   Scan scan = builder.sequence().load(0);
   scan.points.push_back({-1.05f, -1.05f, -1.0f, 0});
   scan.labels.push_back(kBuilding);
-  write_bin(builder.sequence().bin_path(0), scan.points);
+  write_bin(builder.sequence().scan_path(0), scan.points);
   write_labels(builder.sequence().label_path(0), scan.labels);
   const Tensor<uint8_t> after = builder.map(0, GroundTruthKind::sparse, &from_cache);
   EXPECT_FALSE(from_cache);

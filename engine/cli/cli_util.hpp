@@ -11,11 +11,11 @@
 
 namespace pillarseg::cli {
 
-// Index within the sequence of the scan whose file is NNNNNN.bin for frame `frame`.
+// Index within the sequence of the scan whose point file is NNNNNN.<ext> for frame `frame`.
 inline size_t scan_index(const Sequence& seq, int frame) {
   for (size_t i = 0; i < seq.size(); ++i)
     if (seq.frame(i) == frame) return i;
-  PS_FAIL("--scan {}: no file {:06}.bin in {}", frame, frame, (seq.dir() / "velodyne").string());
+  PS_FAIL("--scan {}: no point file {:06}.* in {}", frame, frame, (seq.dir() / "velodyne").string());
 }
 
 // Checks that an output path has one of the given extensions (lower case, with the dot).

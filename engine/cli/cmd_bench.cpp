@@ -23,6 +23,7 @@
 #include "engine/cli/cli_util.hpp"
 #include "engine/cli/commands.hpp"
 #include "engine/cpu/bf16_conv.hpp"
+#include "engine/data/point_formats.hpp"
 #include "engine/data/semantickitti.hpp"
 #include "engine/model/pillarsegnet.hpp"
 #include "engine/model/roofline.hpp"
@@ -37,7 +38,7 @@ namespace pillarseg::cli {
 namespace {
 
 struct BenchArgs {
-  std::string config, weights, scan;
+  std::string config, weights, scan, format = "auto";
   DeviceArgs device;
   int repeat = 5;
   bool transposed = false, mask_unobserved = false;
@@ -226,11 +227,13 @@ void run_bench(const BenchArgs& a) {
   Backend& backend = segmenter.backend();
   const fs::path scratch = fs::temp_directory_path() / fmt::format("pillarseg_bench_{}", ::getpid());
   fs::path scan_path = a.scan;
+  PointFormat format = parse_point_format(a.format);
   if (scan_path.empty()) {
     // A simulated real-size scan (about 120k points).
     sim::SequenceSimulator simulator(sim::sequence_seed(1, 0), 1);
     scan_path = scratch / "scan.bin";
     write_bin(scan_path, simulator.scan(0).points);
+    format = PointFormat::Kitti;
   }
   if (!a.weights.empty()) load_weights(read_checkpoint(a.weights), segmenter.net(), false);
   const ClassTable classes = ClassTable::defaults();
@@ -252,7 +255,7 @@ void run_bench(const BenchArgs& a) {
   for (int r = 0; r < a.repeat + 1; ++r) {  // the first run plans memory and warms up
     std::vector<double> t(names.size(), 0.0);
     const auto start = std::chrono::steady_clock::now();
-    const Scan scan = read_scan(scan_path);
+    const Scan scan = read_points(scan_path, format);
     points = scan.points.size();
     t[0] = ms_since(start);
     segmenter.set_stage_timing(true);
@@ -279,7 +282,7 @@ void run_bench(const BenchArgs& a) {
       if (r > 0) steady.push_back(replay_ms);
     }
   }
-  const Scan scan = read_scan(scan_path);  // for the checks below, before the scratch folder goes
+  const Scan scan = read_points(scan_path, format);  // for the checks below, before the scratch folder goes
   std::error_code ec;
   fs::remove_all(scratch, ec);
   int64_t host_bytes = 0;
@@ -370,7 +373,11 @@ void add_bench(CLI::App& app) {
   cmd->add_flag("--transposed", a->transposed, "use the transposed-convolution U-Net");
   cmd->add_flag("--mask-unobserved", a->mask_unobserved, "mask cells no ray observed (ray walks for every model)");
   cmd->add_option("--weights", a->weights, "checkpoint (default: random weights; timings do not depend on them)");
-  cmd->add_option("--scan", a->scan, "scan file (.bin); default: a simulated scan");
+  cmd->add_option("--scan", a->scan,
+                  "point file (.bin KITTI, .pcd, .ply, .npy, .pcd.bin nuScenes: docs/formats.md); default: a "
+                  "simulated scan");
+  cmd->add_option("--format", a->format, "the point file's format: auto (by extension), kitti, pcd, ply, npy, nuscenes")
+      ->check(CLI::IsMember({"auto", "kitti", "pcd", "ply", "npy", "nuscenes"}));
   cmd->add_option("--repeat", a->repeat, "timed repetitions")->check(CLI::PositiveNumber);
   cmd->add_flag(
       "--ops", a->ops,

@@ -16,6 +16,8 @@
 #include "engine/cli/cli_util.hpp"
 #include "engine/cli/commands.hpp"
 #include "engine/data/ground_truth.hpp"
+#include "engine/data/input_mapping.hpp"
+#include "engine/data/point_formats.hpp"
 #include "engine/data/semantickitti.hpp"
 #include "engine/pipeline/segmenter.hpp"
 #include "engine/render/figure.hpp"
@@ -32,10 +34,15 @@ namespace {
 namespace fs = std::filesystem;
 
 struct InferArgs {
-  std::string weights, out, config;
+  std::string weights, out, config, format = "auto";
   std::vector<std::string> scans;
   DeviceArgs device;
   bool probabilities = false, mask_unobserved = false, no_png = false;
+  // The input mapping's parts set on the command line (the run config's input: section otherwise).
+  std::optional<float> reflectance_scale, reflectance_offset;
+  bool no_reflectance = false;
+  std::vector<double> transform;
+  std::optional<double> height, roll, pitch, yaw;
 };
 
 struct RenderArgs {
@@ -52,8 +59,28 @@ std::unique_ptr<ScanSegmenter> open_for(const std::string& weights, const std::s
   return open_segmenter(weights, config, options);
 }
 
-// The .bin files named on the command line: files as given, directories by their *.bin (or, for
-// a SemanticKITTI sequence directory, its velodyne/*.bin), sorted.
+// The input mapping of the run config with the parts the command line sets replaced.
+InputMapping input_mapping(const InferArgs& a, const InputMapping& from_config) {
+  InputMapping m = from_config;
+  const bool scaled = a.reflectance_scale || a.reflectance_offset;
+  PS_CHECK(!(a.no_reflectance && scaled), "--no-reflectance: cannot also scale the reflectance (--reflectance-scale, "
+                                          "--reflectance-offset)");
+  if (a.no_reflectance) m.reflectance = {ReflectanceMapping::Kind::None, 1, 0, true};
+  if (scaled)
+    m.reflectance = {ReflectanceMapping::Kind::Scale, a.reflectance_scale.value_or(1.0f),
+                     a.reflectance_offset.value_or(0.0f), true};
+  const bool angles = a.height || a.roll || a.pitch || a.yaw;
+  PS_CHECK(a.transform.empty() || !angles, "--transform: give either the 16 numbers or --height, --roll, --pitch, "
+                                           "--yaw, not both");
+  if (!a.transform.empty()) m.transform = transform_from_numbers(a.transform, "--transform");
+  if (angles)
+    m.transform = transform_from_angles(a.height.value_or(0), a.roll.value_or(0), a.pitch.value_or(0),
+                                        a.yaw.value_or(0));
+  return m;
+}
+
+// The point files named on the command line: files as given, directories by their files with a
+// point-file extension (or, for a SemanticKITTI sequence directory, its velodyne/'s), sorted.
 std::vector<fs::path> scan_files(const std::vector<std::string>& arguments) {
   std::vector<fs::path> files;
   for (const std::string& argument : arguments) {
@@ -66,8 +93,9 @@ std::vector<fs::path> scan_files(const std::vector<std::string>& arguments) {
     const fs::path dir = fs::is_directory(path / "velodyne") ? path / "velodyne" : path;
     std::vector<fs::path> found;
     for (const fs::directory_entry& e : fs::directory_iterator(dir))
-      if (e.is_regular_file() && lower_extension(e.path()) == ".bin") found.push_back(e.path());
-    PS_CHECK(!found.empty(), "--scan {}: no .bin files in {}", argument, dir.string());
+      if (e.is_regular_file() && !point_file_suffix(e.path()).empty()) found.push_back(e.path());
+    PS_CHECK(!found.empty(), "--scan {}: no point files (.bin, .pcd, .ply, .npy, .pcd.bin) in {}", argument,
+             dir.string());
     std::sort(found.begin(), found.end());
     files.insert(files.end(), found.begin(), found.end());
   }
@@ -100,7 +128,11 @@ void run_infer(const InferArgs& a) {
              "--out {}: several scans are written into a directory, and this is a file", a.out);
     fs::create_directories(a.out);
   }
+  const PointFormat format = parse_point_format(a.format);
   auto segmenter = open_for(a.weights, a.config, a.device, a.mask_unobserved);
+  segmenter->set_input_mapping(input_mapping(a, segmenter->input_mapping()));
+  if (!segmenter->input_mapping().is_identity())
+    fmt::print(stderr, "input mapping: {}\n", segmenter->input_mapping().describe());
   const GridSpec& grid = segmenter->model().grid;
   const auto prefix_of = [&](const fs::path& file) {
     return single ? a.out : (fs::path(a.out) / file.stem()).string();
@@ -116,11 +148,11 @@ void run_infer(const InferArgs& a) {
   const auto started = std::chrono::steady_clock::now();
   double segment_seconds = 0;
   int64_t points = 0;
-  std::future<Scan> next = std::async(std::launch::async, [&] { return read_scan(files[0]); });
+  std::future<Scan> next = std::async(std::launch::async, [&] { return read_points(files[0], format); });
   std::future<void> writing;
   for (size_t i = 0; i < files.size(); ++i) {
     const Scan scan = next.get();
-    if (i + 1 < files.size()) next = std::async(std::launch::async, [&, i] { return read_scan(files[i + 1]); });
+    if (i + 1 < files.size()) next = std::async(std::launch::async, [&, i] { return read_points(files[i + 1], format); });
     Result& result = slots[i % 2];
     const auto t0 = std::chrono::steady_clock::now();
     segmenter->segment(scan.points, result.labels.data(),
@@ -198,7 +230,7 @@ void run_render(const RenderArgs& a) {
   const Figure figure = compose_figure(panels, classes, grid.cell, font);
   write_png_rgb(a.out, figure.image);
   fmt::print("{}: panels (top to bottom) points, observability{}{}, {} x {} pixels ({} a cell) -> {}\n",
-             seq.bin_path(index).string(), segmenter ? ", prediction" : "",
+             seq.scan_path(index).string(), segmenter ? ", prediction" : "",
              seq.has_labels(index) ? ", " + a.mode + " ground truth" : "", figure.image.width,
              figure.image.height, figure.scale, a.out);
 }
@@ -213,8 +245,28 @@ void add_infer(CLI::App& app) {
       "files or directories -> OUT/NNNNNN.u8, .png, with progress and throughput");
   cmd->add_option("--weights", a->weights, "checkpoint (.safetensors); a weights-only one too")->required();
   cmd->add_option("--scan", a->scans,
-                  "scan file(s) (.bin), or directories of them (a sequence directory: its velodyne/)")
+                  "point file(s) (.bin KITTI, .pcd, .ply, .npy, .pcd.bin nuScenes: docs/formats.md), or directories "
+                  "of them (a sequence directory: its velodyne/)")
       ->required();
+  cmd->add_option("--format", a->format, "the point files' format: auto (by extension), kitti, pcd, ply, npy, nuscenes")
+      ->check(CLI::IsMember({"auto", "kitti", "pcd", "ply", "npy", "nuscenes"}));
+  const char* mapping = "Input mapping (replaces the run config's input: section)";
+  cmd->add_option("--reflectance-scale", a->reflectance_scale,
+                  "reflectance = clamp(scale x r + offset, 0, 1), e.g. 0.00392157 for 0..255 intensities")
+      ->group(mapping);
+  cmd->add_option("--reflectance-offset", a->reflectance_offset, "see --reflectance-scale (default 0)")->group(mapping);
+  cmd->add_flag("--no-reflectance", a->no_reflectance, "the sensor gives no reflectance: every point gets 0")
+      ->group(mapping);
+  cmd->add_option("--transform", a->transform,
+                  "\"16 numbers\": row-major 4 x 4 from the sensor's frame into the model's (x forward, z up)")
+      ->expected(16)
+      ->delimiter(' ')
+      ->group(mapping);
+  cmd->add_option("--height", a->height, "metres added to z (after the rotation)")->group(mapping);
+  cmd->add_option("--roll", a->roll, "degrees about x: p' = Rz(yaw) Ry(pitch) Rx(roll) p + (0, 0, height)")
+      ->group(mapping);
+  cmd->add_option("--pitch", a->pitch, "degrees about y")->group(mapping);
+  cmd->add_option("--yaw", a->yaw, "degrees about z")->group(mapping);
   cmd->add_option("--out", a->out, "output prefix (one scan) or directory (several)")->required();
   cmd->add_flag("--probabilities", a->probabilities, "also .f16: softmax probabilities, 12 x H x W float16");
   cmd->add_flag("--mask-unobserved", a->mask_unobserved, "label cells no ray observed as 0 (unlabeled)");

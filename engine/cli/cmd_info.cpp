@@ -50,7 +50,7 @@ void print_scan(const Sequence& seq, size_t index, const ClassTable& classes) {
       moving += classes.is_moving(scan.labels[i]);
     }
   }
-  fmt::print("{}\n", seq.bin_path(index).string());
+  fmt::print("{}\n", seq.scan_path(index).string());
   fmt::print("points: {} ({} dropped as non-finite), {} inside the default grid\n", scan.points.size(),
              scan.dropped_nonfinite, in_grid);
   if (!scan.points.empty())
@@ -84,7 +84,7 @@ void run_info(const InfoArgs& args) {
   size_t index = seq.size();
   for (size_t i = 0; i < seq.size(); ++i)
     if (seq.frame(i) == args.scan) index = i;
-  PS_CHECK(index < seq.size(), "--scan {}: no file {:06}.bin in {}", args.scan, args.scan,
+  PS_CHECK(index < seq.size(), "--scan {}: no point file {:06}.* in {}", args.scan, args.scan,
            (seq.dir() / "velodyne").string());
   print_scan(seq, index, classes);
 }

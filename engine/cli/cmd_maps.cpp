@@ -50,7 +50,7 @@ void run_observability(const MapArgs& args) {
   }
   int64_t observed = 0;
   for (uint32_t c : counts) observed += c > 0;
-  fmt::print("{}: {} of {} cells observed -> {}\n", seq.bin_path(scan_index(seq, args.scan)).string(), observed,
+  fmt::print("{}: {} of {} cells observed -> {}\n", seq.scan_path(scan_index(seq, args.scan)).string(), observed,
              counts.numel(), args.out);
 }
 
@@ -64,7 +64,7 @@ void run_occupancy(const MapArgs& args) {
   } else {
     write_png_rgb(args.out, render_occupancy(prob));
   }
-  fmt::print("{}: occupancy ({} layers x {} x {}) -> {}\n", seq.bin_path(scan_index(seq, args.scan)).string(),
+  fmt::print("{}: occupancy ({} layers x {} x {}) -> {}\n", seq.scan_path(scan_index(seq, args.scan)).string(),
              prob.dim(0), prob.dim(1), prob.dim(2), args.out);
 }
 

@@ -159,7 +159,7 @@ std::vector<size_t> select_dense_neighbours(const std::vector<Eigen::Vector3d>& 
 
 std::vector<size_t> dense_neighbours(const Sequence& sequence, size_t t, size_t max_scans) {
   check_index(sequence, t);
-  const Scan scan = read_scan(sequence.bin_path(t));
+  const Scan scan = sequence.load(t);
   return select_dense_neighbours(sensor_positions(sequence), t, max_horizontal_range(scan.points),
                                  max_scans);
 }
@@ -282,7 +282,7 @@ uint64_t GroundTruthBuilder::dense_inputs_hash(const std::vector<size_t>& scans)
   hash_file_stamp(inputs, sequence_.dir() / "calib.txt");
   for (size_t j : scans) {
     inputs.add(sequence_.frame(j));
-    hash_file_stamp(inputs, sequence_.bin_path(j));
+    hash_file_stamp(inputs, sequence_.scan_path(j));
     hash_file_stamp(inputs, sequence_.label_path(j));
   }
   return inputs.digest();
@@ -295,9 +295,10 @@ CacheKey GroundTruthBuilder::key(size_t i, GroundTruthKind kind) const {
   settings.add(kind_key(kind));
   add_grid(settings, settings_.grid);
   settings.add(table_.fingerprint());
+  sequence_.input().add_to(settings);
   if (kind == GroundTruthKind::sparse) {
     Hasher inputs;
-    hash_file_stamp(inputs, sequence_.bin_path(i));
+    hash_file_stamp(inputs, sequence_.scan_path(i));
     hash_file_stamp(inputs, sequence_.label_path(i));
     return make_key(i, kind_key(kind), settings.digest(), inputs.digest());
   }
@@ -314,8 +315,9 @@ CacheKey ray_map_key(const Sequence& seq, const std::string& path, size_t i, con
   settings.add(kGroundTruthVersion);
   settings.add(std::string_view(kind));
   add_grid(settings, grid);
+  seq.input().add_to(settings);
   Hasher inputs;
-  hash_file_stamp(inputs, seq.bin_path(i));
+  hash_file_stamp(inputs, seq.scan_path(i));
   return CacheKey{path, seq.frame(i), kind, settings.digest(), inputs.digest()};
 }
 
@@ -359,9 +361,10 @@ std::vector<size_t> GroundTruthBuilder::neighbours(size_t i) const {
   settings.add(kGroundTruthVersion);
   settings.add(static_cast<uint64_t>(settings_.max_scans));
   settings.add(kDenseDistanceFactor);
+  sequence_.input().add_to(settings);
   // Indices refer to the sequence's scan list, so the list is an input like the files.
   Hasher inputs;
-  hash_file_stamp(inputs, sequence_.bin_path(i));
+  hash_file_stamp(inputs, sequence_.scan_path(i));
   hash_file_stamp(inputs, sequence_.dir() / "poses.txt");
   hash_file_stamp(inputs, sequence_.dir() / "calib.txt");
   inputs.add(static_cast<uint64_t>(sequence_.size()));
@@ -422,6 +425,7 @@ LabelledPoints GroundTruthBuilder::dense_points(size_t i) const {
   settings.add(static_cast<uint64_t>(settings_.max_scans));
   settings.add(kDenseDistanceFactor);
   settings.add(table_.fingerprint());
+  sequence_.input().add_to(settings);
   for (double v : {crop.radius_xy, crop.z_min, crop.z_max}) settings.add(v);
   const CacheKey key = make_key(i, "gt-dense-points", settings.digest(), dense_inputs_hash(scans));
   if (const std::optional<std::vector<char>> bytes = cache_->load_bytes(key))

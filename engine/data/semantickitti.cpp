@@ -13,16 +13,13 @@
 #include "core/error.hpp"
 #include "core/io.hpp"
 #include "core/memory_budget.hpp"
+#include "engine/data/point_formats.hpp"
 
 namespace pillarseg {
 
 namespace fs = std::filesystem;
 
 namespace {
-
-bool finite_point(const Point& p) {
-  return std::isfinite(p.x) && std::isfinite(p.y) && std::isfinite(p.z) && std::isfinite(p.r);
-}
 
 // Parses whitespace-separated numbers of one line into out; returns false on a bad token.
 bool parse_numbers(std::string_view text, std::vector<double>& out) {
@@ -73,21 +70,6 @@ bool blank(std::string_view s) {
   return std::all_of(s.begin(), s.end(), [](unsigned char c) { return std::isspace(c); });
 }
 
-// A file of fixed-size records, its size known before it is read: the record count checked
-// against the 32-bit point indices, and the `bytes_in_memory` each record takes while it is read
-// against the host's memory. A file that cannot be stat'ed passes: reading it says why.
-void require_records(const fs::path& path, size_t record_bytes, uint64_t bytes_in_memory, const char* records) {
-  std::error_code error;
-  const uintmax_t size = fs::file_size(path, error);
-  if (error) return;
-  const uint64_t count = size / record_bytes;
-  PS_CHECK(count < static_cast<uint64_t>(kMaxInt32Index),
-           "{}: {} bytes are {} {}, which overflows the 32-bit point indices (at most {} a scan)", path.string(),
-           size, count, records, kMaxInt32Index - 1);
-  require_memory(checked_product({static_cast<int64_t>(count), static_cast<int64_t>(bytes_in_memory)}, path.string()),
-                 fmt::format("{}: reading its {} {} ({} bytes)", path.string(), count, records, size));
-}
-
 }  // namespace
 
 std::vector<uint32_t> read_labels(const fs::path& label_path) {
@@ -102,37 +84,7 @@ std::vector<uint32_t> read_labels(const fs::path& label_path) {
 }
 
 Scan read_scan(const fs::path& bin_path, const std::optional<fs::path>& label_path) {
-  // The file's bytes and the scan's points (the labels' own check follows in read_labels).
-  require_records(bin_path, sizeof(Point), 2 * sizeof(Point) + (label_path ? 2 * sizeof(uint32_t) : 0), "points");
-  const std::vector<char> bytes = read_file_bytes(bin_path);
-  PS_CHECK(bytes.size() % sizeof(Point) == 0,
-           "{}: size {} bytes is not a multiple of 16 (x y z reflectance float32 records); truncated file?",
-           bin_path.string(), bytes.size());
-  const size_t n = bytes.size() / sizeof(Point);
-
-  std::vector<uint32_t> raw_labels;
-  if (label_path) {
-    raw_labels = read_labels(*label_path);
-    PS_CHECK(raw_labels.size() == n, "{}: {} labels, but {} has {} points", label_path->string(), raw_labels.size(),
-             bin_path.string(), n);
-  }
-
-  Scan scan;
-  scan.points.reserve(n);
-  if (label_path) scan.labels.reserve(n);
-  for (size_t i = 0; i < n; ++i) {
-    Point p;
-    std::memcpy(&p, bytes.data() + i * sizeof(Point), sizeof(Point));
-    if (!finite_point(p)) {
-      ++scan.dropped_nonfinite;
-      continue;
-    }
-    scan.points.push_back(p);
-    if (label_path) scan.labels.push_back(raw_labels[i]);
-  }
-  if (scan.dropped_nonfinite)
-    spdlog::warn("{}: dropped {} of {} points with non-finite values", bin_path.string(), scan.dropped_nonfinite, n);
-  return scan;
+  return read_points(bin_path, PointFormat::Kitti, label_path);
 }
 
 void write_bin(const fs::path& path, const std::vector<Point>& points) {
@@ -220,22 +172,34 @@ std::vector<Pose> lidar_poses(const std::vector<Pose>& cam0_poses, const Calib& 
 
 std::string sequence_name(int id) { return fmt::format("{:02}", id); }
 
-Sequence::Sequence(const fs::path& root, int id) : dir_(root / "sequences" / sequence_name(id)), id_(id) {
+Sequence::Sequence(const fs::path& root, int id, const InputMapping& input)
+    : dir_(root / "sequences" / sequence_name(id)), id_(id), input_(input) {
   const fs::path velodyne = dir_ / "velodyne";
   PS_CHECK(fs::is_directory(velodyne), "{}: no such directory (expected ROOT/sequences/{}/velodyne)", velodyne.string(),
            sequence_name(id));
+  std::vector<std::pair<int, fs::path>> found;
   for (const auto& entry : fs::directory_iterator(velodyne)) {
-    if (entry.path().extension() != ".bin") continue;
-    const std::string stem = entry.path().stem().string();
+    const std::string_view suffix = point_file_suffix(entry.path());
+    if (suffix.empty()) continue;
+    const std::string name = entry.path().filename().string();
+    const std::string_view stem = std::string_view(name).substr(0, name.size() - suffix.size());
     int frame = -1;
     const auto [ptr, ec] = std::from_chars(stem.data(), stem.data() + stem.size(), frame);
     if (ec != std::errc() || ptr != stem.data() + stem.size() || frame < 0) {
-      spdlog::warn("{}: ignoring file not named NNNNNN.bin", entry.path().string());
+      spdlog::warn("{}: ignoring file not named NNNNNN.bin (or .pcd, .ply, .npy, .pcd.bin)", entry.path().string());
       continue;
     }
-    frames_.push_back(frame);
+    found.emplace_back(frame, entry.path());
   }
-  std::sort(frames_.begin(), frames_.end());
+  std::sort(found.begin(), found.end());
+  for (size_t k = 0; k < found.size(); ++k) {
+    PS_CHECK(k == 0 || found[k].first != found[k - 1].first, "{}: two point files of scan {:06}: {} and {}",
+             velodyne.string(), found[k].first, found[k - 1].second.filename().string(),
+             found[k].second.filename().string());
+    frames_.push_back(found[k].first);
+    scan_paths_.push_back(found[k].second);
+  }
+  check_transform(input_.transform, dir_.string() + ": the input mapping");
   const fs::path poses_file = dir_ / "poses.txt", calib_file = dir_ / "calib.txt";
   if (fs::exists(poses_file) && fs::exists(calib_file)) {
     const auto cam0 = read_poses(poses_file);
@@ -244,12 +208,15 @@ Sequence::Sequence(const fs::path& root, int id) : dir_(root / "sequences" / seq
     const int last = frames_.empty() ? -1 : frames_.back();
     PS_CHECK(static_cast<int>(cam0.size()) > last, "{}: {} poses, but the sequence has scan {:06}",
              poses_file.string(), cam0.size(), last);
+    // In the model's frame (points p' = M p) scan i's pose is T_i M^-1, so that relative(i, j)
+    // = M T_i^-1 T_j M^-1 moves mapped points as the original ones moved.
+    const Pose to_sensor = input_.transform.inverse();
     const auto all = lidar_poses(cam0, calib);
-    for (int f : frames_) poses_.push_back(all[static_cast<size_t>(f)]);
+    for (int f : frames_) poses_.push_back(all[static_cast<size_t>(f)] * to_sensor);
   }
 }
 
-fs::path Sequence::bin_path(size_t i) const { return dir_ / "velodyne" / fmt::format("{:06}.bin", frame(i)); }
+const fs::path& Sequence::scan_path(size_t i) const { return scan_paths_.at(i); }
 fs::path Sequence::label_path(size_t i) const { return dir_ / "labels" / fmt::format("{:06}.label", frame(i)); }
 bool Sequence::has_labels(size_t i) const { return fs::exists(label_path(i)); }
 
@@ -262,8 +229,10 @@ const Pose& Sequence::pose(size_t i) const {
 Pose Sequence::relative(size_t i, size_t j) const { return pose(i).inverse() * pose(j); }
 
 Scan Sequence::load(size_t i) const {
-  if (has_labels(i)) return read_scan(bin_path(i), label_path(i));
-  return read_scan(bin_path(i));
+  Scan scan = has_labels(i) ? read_points(scan_path(i), PointFormat::FromExtension, label_path(i))
+                            : read_points(scan_path(i));
+  input_.apply(scan.points);
+  return scan;
 }
 
 std::vector<int> list_sequences(const fs::path& root) {

@@ -14,7 +14,7 @@ SegmentationMetrics evaluate(ScanSegmenter& segmenter, const RunConfig& config,
   const int stride = options.scan_stride > 0 ? options.scan_stride : config.eval.scan_stride;
   const ClassTable classes = ClassTable::defaults();
   ScanDataset data(options.data_root, sequences, stride, 0, config.model, classes, options.mode,
-                   options.cache_dir, false);
+                   options.cache_dir, false, config.input);
   const bool dense = options.mode == GroundTruthKind::dense;
   PS_CHECK(options.shards >= 1 && options.shard >= 0 && options.shard < options.shards,
            "evaluate: shard {} of {} does not exist", options.shard, options.shards);
@@ -32,7 +32,7 @@ SegmentationMetrics evaluate(ScanSegmenter& segmenter, const RunConfig& config,
       predicted.reshape(s.labels.shape());
     } else {
       s = data.eval_targets(i, options.mode, dense);
-      segmenter.segment(data.scan(i).points, predicted.data());
+      segmenter.segment_mapped(data.scan(i).points, predicted.data());  // mapped by the data set
     }
     metrics.add(s.labels, predicted, dense ? &s.mask : nullptr);
     if (options.progress) progress.update(static_cast<int64_t>(++done));

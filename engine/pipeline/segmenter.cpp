@@ -85,6 +85,13 @@ void ScanSegmenter::queue_direct(const Ref& points, bool probabilities) {
 }
 
 void ScanSegmenter::segment(std::span<const Point> points, uint8_t* labels, float* probabilities) {
+  if (input_.is_identity()) return segment_mapped(points, labels, probabilities);
+  mapped_.assign(points.begin(), points.end());
+  input_.apply(mapped_);
+  segment_mapped(mapped_, labels, probabilities);
+}
+
+void ScanSegmenter::segment_mapped(std::span<const Point> points, uint8_t* labels, float* probabilities) {
   PS_CHECK(labels != nullptr, "segment: labels must point to H x W = {} bytes", model_.grid.cells());
   Backend& be = *backend_;
   be.make_current();
@@ -135,6 +142,7 @@ std::unique_ptr<ScanSegmenter> open_segmenter(const std::filesystem::path& weigh
   auto segmenter = std::make_unique<ScanSegmenter>(config.model, make_backend(options.device, options.backend),
                                                    options);
   load_weights(checkpoint, segmenter->net(), /*with_optimizer=*/false);
+  segmenter->set_input_mapping(config.input);
   return segmenter;
 }
 

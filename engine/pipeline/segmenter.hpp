@@ -19,8 +19,10 @@
 #include <memory>
 #include <span>
 #include <string>
+#include <vector>
 
 #include "core/point.hpp"
+#include "engine/data/input_mapping.hpp"
 #include "engine/model/backend.hpp"
 #include "engine/model/config.hpp"
 #include "engine/model/pillarsegnet.hpp"
@@ -50,9 +52,17 @@ class ScanSegmenter {
   PillarSegNet& net() { return *net_; }
   const SegmenterOptions& options() const { return options_; }
 
-  // points: the sweep in the sensor frame (one with a NaN or infinite value is ignored). labels: H x W class ids
-  // (row iy, column ix); probabilities: 12 x H x W softmax values, or null.
+  // The sensor's points into the model's frame and scale (engine/data/input_mapping.hpp), applied
+  // by segment() to a copy of the points; the identity (the default) passes them as given.
+  void set_input_mapping(const InputMapping& input) { input_ = input; }
+  const InputMapping& input_mapping() const { return input_; }
+
+  // points: the sweep in the sensor frame (one with a NaN or infinite value is ignored), mapped by
+  // input_mapping() first. labels: H x W class ids (row iy, column ix); probabilities: 12 x H x W
+  // softmax values, or null.
   void segment(std::span<const Point> points, uint8_t* labels, float* probabilities = nullptr);
+  // The same for points already in the model's frame and scale (a data set's mapped scans).
+  void segment_mapped(std::span<const Point> points, uint8_t* labels, float* probabilities = nullptr);
 
   // Stage timing (for pillarseg bench): each segment() then runs without the graph and reads the
   // backend's clock (CUDA events) between stages, in ms.
@@ -78,6 +88,8 @@ class ScanSegmenter {
   std::unique_ptr<Backend> backend_;
   std::unique_ptr<PillarSegNet> net_;
   ScanPipeline pipeline_;
+  InputMapping input_;
+  std::vector<Point> mapped_;  // the mapped copy of the last scan's points (its capacity kept)
   bool time_stages_ = false;
   StageTimes times_;
   // The recorded pipelines, without and with the probabilities, and what they were recorded on.
@@ -88,9 +100,10 @@ class ScanSegmenter {
   std::array<Recording, 2> recordings_;
 };
 
-// A segmenter for a checkpoint: the run config of config_path when given (its grid and model
-// win), else the checkpoint's, else (a weights-only file) the architecture of its tensor shapes on
-// the paper's grid; the weights loaded and checked. Errors name the file and what is wrong.
+// A segmenter for a checkpoint: the run config of config_path when given (its grid, model and
+// input mapping win), else the checkpoint's, else (a weights-only file) the architecture of its
+// tensor shapes on the paper's grid; the weights loaded and checked. Errors name the file and what
+// is wrong.
 std::unique_ptr<ScanSegmenter> open_segmenter(const std::filesystem::path& weights,
                                               const std::filesystem::path& config_path,
                                               const SegmenterOptions& options);

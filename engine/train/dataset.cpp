@@ -11,7 +11,8 @@ namespace fs = std::filesystem;
 
 ScanDataset::ScanDataset(const fs::path& root, const std::vector<int>& sequences, int stride, int max_per_sequence,
                          const ModelConfig& model, const ClassTable& classes, GroundTruthKind kind,
-                         const std::optional<fs::path>& cache_dir, bool augmented_dense)
+                         const std::optional<fs::path>& cache_dir, bool augmented_dense,
+                         const InputMapping& input)
     : model_(model), classes_(classes), kind_(kind) {
   PS_CHECK(stride >= 1, "scan stride must be >= 1, got {}", stride);
   const std::vector<int> present = list_sequences(root);
@@ -25,7 +26,7 @@ ScanDataset::ScanDataset(const fs::path& root, const std::vector<int>& sequences
     PS_CHECK(std::find(present.begin(), present.end(), id) != present.end(),
              "sequence {} not found under {}/sequences (present: {})", sequence_name(id), root.string(),
              fmt::join(present, ", "));
-    auto builder = std::make_unique<GroundTruthBuilder>(Sequence(root, id), classes, settings, Cache(cache_root));
+    auto builder = std::make_unique<GroundTruthBuilder>(Sequence(root, id, input), classes, settings, Cache(cache_root));
     const Sequence& seq = builder->sequence();
     size_t taken = 0;
     for (size_t i = 0; i < seq.size(); i += static_cast<size_t>(stride)) {

@@ -39,10 +39,12 @@ class ScanDataset {
     size_t scan;           // index within the Sequence
   };
 
-  // stride: every stride-th scan; max_per_sequence: 0 = all.
+  // stride: every stride-th scan; max_per_sequence: 0 = all; input: the run config's input
+  // mapping, applied to every scan (and pose) read.
   ScanDataset(const std::filesystem::path& root, const std::vector<int>& sequences, int stride, int max_per_sequence,
               const ModelConfig& model, const ClassTable& classes, GroundTruthKind kind,
-              const std::optional<std::filesystem::path>& cache_dir, bool augmented_dense);
+              const std::optional<std::filesystem::path>& cache_dir, bool augmented_dense,
+              const InputMapping& input = {});
 
   size_t size() const { return items_.size(); }
   const Item& item(size_t i) const { return items_.at(i); }

@@ -144,8 +144,8 @@ namespace {
 RunConfig run_config_from_yaml(const YAML::Node& root, const std::string& yaml_text, const std::string& source) {
   for (const auto& kv : root) {
     const std::string key = kv.first.as<std::string>();
-    PS_CHECK(key == "grid" || key == "model" || key == "train" || key == "eval",
-             "{}: unknown section '{}' (expected grid, model, train, eval)", source, key);
+    PS_CHECK(key == "grid" || key == "model" || key == "train" || key == "eval" || key == "input",
+             "{}: unknown section '{}' (expected grid, model, train, eval, input)", source, key);
   }
   RunConfig c;
   c.text = yaml_text;
@@ -172,6 +172,7 @@ RunConfig run_config_from_yaml(const YAML::Node& root, const std::string& yaml_t
     }
     PS_CHECK(c.eval.scan_stride >= 1, "{}: eval.scan_stride must be >= 1", source);
   }
+  if (const YAML::Node input = root["input"]) c.input = parse_input_mapping(input, source + ": input");
   return c;
 }
 

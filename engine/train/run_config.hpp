@@ -12,6 +12,7 @@
 
 #include "core/classes.hpp"
 #include "engine/data/augment.hpp"
+#include "engine/data/input_mapping.hpp"
 #include "engine/data/ground_truth.hpp"
 #include "engine/model/backend.hpp"
 #include "engine/model/config.hpp"
@@ -64,6 +65,9 @@ struct RunConfig {
   ModelConfig model;
   TrainConfig train;
   EvalConfig eval;
+  // The `input:` section: the data's sensor into the model's frame and scale, applied to every
+  // scan read for training, evaluation and inference (engine/data/input_mapping.hpp).
+  InputMapping input;
   std::string text;    // the YAML text it was read from
   std::string source;  // file name, for messages
 };

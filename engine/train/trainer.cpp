@@ -259,7 +259,7 @@ TrainResult train(const TrainOptions& options) {
   const ClassTable classes = ClassTable::defaults();
   const bool augmented_dense = tc.ground_truth == GroundTruthKind::dense && tc.augment;
   ScanDataset data(options.data_root, tc.sequences, tc.scan_stride, tc.max_scans_per_sequence,
-                   cfg.model, classes, tc.ground_truth, options.cache_dir, augmented_dense);
+                   cfg.model, classes, tc.ground_truth, options.cache_dir, augmented_dense, cfg.input);
   if (tc.ground_truth == GroundTruthKind::dense) {
     // Replica 0 builds the cache; the others then read (and check) its entries.
     if (leader) data.build_cache(GroundTruthKind::dense);
