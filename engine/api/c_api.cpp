@@ -4,11 +4,15 @@
 // library (engine/api/exports.map).
 #include "pillarseg/pillarseg.h"
 
+#include <algorithm>
+#include <cmath>
 #include <cstddef>
+#include <cstdlib>
 #include <cstring>
 #include <exception>
 #include <memory>
 #include <new>
+#include <optional>
 #include <span>
 #include <string>
 
@@ -17,6 +21,8 @@
 #include "core/memory_budget.hpp"
 #include "core/point.hpp"
 #include "engine/cuda/install.hpp"
+#include "engine/data/input_mapping.hpp"
+#include "engine/data/point_formats.hpp"
 #include "engine/pipeline/segmenter.hpp"
 
 struct pillarseg_segmenter {
@@ -71,6 +77,38 @@ void install_backends() {
 #define PS_OPTION_PRESENT(options, member) \
   ((options)->struct_size >= offsetof(pillarseg_options, member) + sizeof((options)->member))
 
+// The parts of the input mapping the options set: the reflectance when it is none, scaled or
+// offset; the transform when it is not the identity (an older, shorter struct sets neither).
+struct InputOverrides {
+  std::optional<pillarseg::ReflectanceMapping> reflectance;
+  std::optional<pillarseg::Pose> transform;
+};
+
+InputOverrides input_overrides(const pillarseg_options& o) {
+  InputOverrides out;
+  if (PS_OPTION_PRESENT(&o, reflectance_clip)) {
+    PS_CHECK(std::isfinite(o.reflectance_scale) && std::isfinite(o.reflectance_offset),
+             "options->reflectance_scale and reflectance_offset must be finite, got {} and {}", o.reflectance_scale,
+             o.reflectance_offset);
+    pillarseg::ReflectanceMapping r;
+    if (o.reflectance_none != 0) {
+      r.kind = pillarseg::ReflectanceMapping::Kind::None;
+      out.reflectance = r;
+    } else if (o.reflectance_scale != 1.0f || o.reflectance_offset != 0.0f) {
+      r.kind = pillarseg::ReflectanceMapping::Kind::Scale;
+      r.scale = o.reflectance_scale;
+      r.offset = o.reflectance_offset;
+      r.clip = o.reflectance_clip != 0;
+      out.reflectance = r;
+    }
+  }
+  if (PS_OPTION_PRESENT(&o, transform)) {
+    const pillarseg::Pose t = pillarseg::transform_from_numbers(o.transform, "options->transform");
+    if (t != pillarseg::Pose::Identity()) out.transform = t;
+  }
+  return out;
+}
+
 }  // namespace
 
 extern "C" {
@@ -87,6 +125,11 @@ void pillarseg_default_options(pillarseg_options* options) {
   options->mask_unobserved = 0;
   options->convolution = "own";
   options->precision = "fp32";
+  options->reflectance_none = 0;
+  options->reflectance_scale = 1.0f;
+  options->reflectance_offset = 0.0f;
+  options->reflectance_clip = 1;
+  for (int i = 0; i < 16; ++i) options->transform[i] = i % 5 == 0 ? 1.0 : 0.0;
 }
 
 pillarseg_segmenter* pillarseg_open(const char* weights_path, const char* config_path,
@@ -116,9 +159,14 @@ pillarseg_segmenter* pillarseg_open(const char* weights_path, const char* config
       so.precision = pillarseg::parse_precision(o->precision, "options->precision");
     PS_CHECK(so.device == "cpu" || so.device == "cuda" || so.device == "emu",
              "options->device must be \"cpu\", \"cuda\" or \"emu\", got \"{}\"", so.device);
+    const InputOverrides input = input_overrides(*o);
     install_backends();
     auto s = std::make_unique<pillarseg_segmenter>();
     s->engine = pillarseg::open_segmenter(weights_path, config_path ? config_path : "", so);
+    pillarseg::InputMapping mapping = s->engine->input_mapping();
+    if (input.reflectance) mapping.reflectance = *input.reflectance;
+    if (input.transform) mapping.transform = *input.transform;
+    s->engine->set_input_mapping(mapping);
     s->device_name = s->engine->backend().name();
     opened = s.release();
   });
@@ -175,5 +223,28 @@ void pillarseg_close(pillarseg_segmenter* s) {
   // A destructor of the engine cannot throw (buffers and handles free themselves).
   delete s;
 }
+
+int pillarseg_read_points(const char* path, const char* format, float** points_xyzr, size_t* num_points,
+                          char* error, size_t error_size) {
+  if (points_xyzr) *points_xyzr = nullptr;
+  if (num_points) *num_points = 0;
+  const bool ok = guarded("pillarseg_read_points", error, error_size, [&] {
+    PS_CHECK(path != nullptr && path[0] != '\0', "path is NULL or empty");
+    PS_CHECK(points_xyzr != nullptr && num_points != nullptr, "points_xyzr and num_points must not be NULL");
+    const pillarseg::PointFormat f =
+        format ? pillarseg::parse_point_format(format, "format") : pillarseg::PointFormat::FromExtension;
+    const pillarseg::Scan scan = pillarseg::read_points(path, f);
+    const size_t bytes = scan.points.size() * sizeof(pillarseg::Point);
+    // At least one byte: a successful read always hands back memory to free.
+    void* memory = std::malloc(std::max<size_t>(bytes, 1));
+    if (memory == nullptr) throw std::bad_alloc();
+    if (bytes > 0) std::memcpy(memory, scan.points.data(), bytes);
+    *points_xyzr = static_cast<float*>(memory);
+    *num_points = scan.points.size();
+  });
+  return ok ? 0 : 1;
+}
+
+void pillarseg_free(void* memory) { std::free(memory); }
 
 }  // extern "C"

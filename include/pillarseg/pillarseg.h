@@ -48,7 +48,7 @@ extern "C" {
 #endif
 
 #define PILLARSEG_VERSION_MAJOR 0
-#define PILLARSEG_VERSION_MINOR 3
+#define PILLARSEG_VERSION_MINOR 4
 #define PILLARSEG_VERSION_PATCH 0
 
 /* Classes of the map: 1 vehicle, 2 person, 3 two-wheel, 4 rider, 5 road, 6 sidewalk,
@@ -70,13 +70,24 @@ typedef struct pillarseg_options {
   const char* precision;    /* the convolutions: "fp32" (default), "bf16" or "fp16" (tensor cores
                                with "cuda" on compute capability 8.0+, or "emu"; elsewhere fp32
                                runs, see pillarseg_precision) */
+  /* The sensor's points into the model's frame and scale (docs/formats.md), applied by
+     pillarseg_segment before anything else; the identity (the defaults) leaves the points as given,
+     and then a run config's input: section (config_path) applies. */
+  int reflectance_none;       /* non-zero: the sensor gives no reflectance; every point gets 0 */
+  float reflectance_scale;    /* reflectance = clip(scale * r + offset) (default 1) */
+  float reflectance_offset;   /* (default 0) */
+  int reflectance_clip;       /* non-zero: clamp to [0, 1] (default 1) */
+  double transform[16];       /* row-major 4x4 from the sensor's frame into the model's
+                                 (identity by default) */
 } pillarseg_options;
 
-/* "0.3.0": the library's version (the header's is PILLARSEG_VERSION_*). */
+/* "0.4.0": the library's version (the header's is PILLARSEG_VERSION_*). */
 PILLARSEG_API const char* pillarseg_version(void);
 
 /* Fills *options with the defaults: device "cpu", threads 0, cuda_device 0, mask_unobserved 0,
- * convolution "own", precision "fp32". */
+ * convolution "own", precision "fp32", reflectance_none 0, reflectance_scale 1,
+ * reflectance_offset 0, reflectance_clip 1, transform the identity. With scale 1 and offset 0 the
+ * reflectance is passed as stored (clip applies to a scaled or offset one). */
 PILLARSEG_API void pillarseg_default_options(pillarseg_options* options);
 
 /* Opens a segmenter on `weights_path`, a safetensors checkpoint: one written by `pillarseg
@@ -118,6 +129,16 @@ PILLARSEG_API int pillarseg_segment(pillarseg_segmenter* s, const float* points_
 
 /* Frees the segmenter and its device memory; NULL is ignored. */
 PILLARSEG_API void pillarseg_close(pillarseg_segmenter* s);
+
+/* Reads a point file (KITTI .bin, .pcd, .ply, .npy, nuScenes .pcd.bin) into a new array of
+   num_points x 4 float32 (x, y, z, reflectance as stored; no mapping applied); format NULL:
+   by extension, else "kitti", "pcd", "ply", "npy", "nuscenes". Free it with pillarseg_free.
+   Returns 0, or non-zero with the reason in error (and *points_xyzr NULL). Points with a
+   non-finite value are left out. */
+PILLARSEG_API int pillarseg_read_points(const char* path, const char* format,
+                                       float** points_xyzr, size_t* num_points,
+                                       char* error, size_t error_size);
+PILLARSEG_API void pillarseg_free(void* memory);
 
 #ifdef __cplusplus
 }

@@ -9,8 +9,11 @@
 //   // labels[iy * segmenter.width() + ix]: class id of cell (ix, iy)
 #pragma once
 
+#include <algorithm>
+#include <array>
 #include <cstddef>
 #include <cstdint>
+#include <memory>
 #include <stdexcept>
 #include <string>
 #include <utility>
@@ -32,6 +35,11 @@ struct Options {
   bool mask_unobserved = false;  // cells no ray observed: class 0, probabilities 0
   std::string convolution = "own";  // with "cuda": "own", "cudnn" or "cublas"
   std::string precision = "fp32";   // "fp32", "bf16" or "fp16" (see pillarseg_options)
+  // The sensor's points into the model's frame and scale (see pillarseg_options).
+  bool reflectance_none = false;
+  float reflectance_scale = 1, reflectance_offset = 0;
+  bool reflectance_clip = true;
+  std::array<double, 16> transform = {1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1};  // row-major 4 x 4
 };
 
 class Segmenter {
@@ -48,6 +56,11 @@ class Segmenter {
     o.mask_unobserved = options.mask_unobserved ? 1 : 0;
     o.convolution = options.convolution.c_str();
     o.precision = options.precision.c_str();
+    o.reflectance_none = options.reflectance_none ? 1 : 0;
+    o.reflectance_scale = options.reflectance_scale;
+    o.reflectance_offset = options.reflectance_offset;
+    o.reflectance_clip = options.reflectance_clip ? 1 : 0;
+    std::copy(options.transform.begin(), options.transform.end(), o.transform);
     char error[1024];
     handle_ = pillarseg_open(weights.c_str(), config.empty() ? nullptr : config.c_str(), &o, error,
                              sizeof error);
@@ -105,5 +118,18 @@ inline std::string class_name(int class_id) {
 }
 
 inline std::string version() { return pillarseg_version(); }
+
+// A point file's points, 4 floats each (x, y, z, reflectance as stored); format empty: by the
+// extension, else "kitti", "pcd", "ply", "npy" or "nuscenes".
+inline std::vector<float> read_points(const std::string& path, const std::string& format = {}) {
+  float* points = nullptr;
+  std::size_t n = 0;
+  char error[1024];
+  if (pillarseg_read_points(path.c_str(), format.empty() ? nullptr : format.c_str(), &points, &n, error,
+                            sizeof error) != 0)
+    throw Error(error);
+  const std::unique_ptr<float, void (*)(void*)> owned(points, pillarseg_free);
+  return std::vector<float>(owned.get(), owned.get() + 4 * n);
+}
 
 }  // namespace pillarseg

@@ -5,13 +5,17 @@
 // PyTorch opened without a config.
 #include <gtest/gtest.h>
 
+#include <algorithm>
+#include <cstddef>
 #include <cstdint>
 #include <cstdlib>
 #include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <limits>
 #include <string>
 #include <thread>
+#include <utility>
 #include <vector>
 
 #include "core/point.hpp"
@@ -344,5 +348,110 @@ TEST(CApi, WeightsOnlyPyTorchCheckpointOpensWithoutAConfig) {
   // The 3D-occupancy file's stream reads 4 layers, which the paper's grid (20) does not have.
   const fs::path occupancy_3d = fs::path(PILLARSEG_SOURCE_DIR) / "tests/golden/weights_only_pillars_occ3d_transposed_ce.safetensors";
   EXPECT_NE(open_error(occupancy_3d.string().c_str(), nullptr, nullptr).find("occupancy.conv.weight has 4 input channels"),
+            std::string::npos);
+}
+
+// pillarseg_read_points: a point file's records as stored (here a KITTI .bin and the same points
+// as a .npy), freed with pillarseg_free; every failure a message with *points_xyzr NULL.
+TEST(CApi, ReadPointsAndFree) {
+  const fs::path dir = pillarseg::test::temp_dir();
+  const std::vector<float> xyzr = {1.5f, -2.0f, 0.25f, 0.5f, -30.0f, 12.5f, -1.75f, 200.0f};
+  { std::ofstream(dir / "two.bin", std::ios::binary).write(reinterpret_cast<const char*>(xyzr.data()), 32); }
+  std::string dict = "{'descr': '<f4', 'fortran_order': False, 'shape': (2, 4), }";
+  dict.resize(128 - 10 - 1, ' ');
+  dict += '\n';
+  std::string npy = std::string("\x93NUMPY\x01\x00", 8) + static_cast<char>(dict.size()) + '\0' + dict;
+  npy.append(reinterpret_cast<const char*>(xyzr.data()), 32);
+  { std::ofstream(dir / "two.npy", std::ios::binary) << npy; }
+  const std::vector<std::pair<const char*, const char*>> reads = {
+      {"two.bin", nullptr}, {"two.npy", nullptr}, {"two.bin", "kitti"}};
+  for (const auto& [file, format] : reads) {
+    SCOPED_TRACE(file);
+    float* points = nullptr;
+    size_t n = 0;
+    char error[256] = "untouched";
+    ASSERT_EQ(pillarseg_read_points((dir / file).c_str(), format, &points, &n, error, sizeof error), 0) << error;
+    EXPECT_STREQ(error, "");
+    ASSERT_EQ(n, 2u);
+    EXPECT_EQ(std::vector<float>(points, points + 8), xyzr);
+    pillarseg_free(points);
+  }
+  pillarseg_free(nullptr);
+  const auto read_error = [&](const char* path, const char* format) {
+    float sentinel = 0;
+    float* points = &sentinel;  // must come back NULL
+    size_t n = 7;
+    char error[512] = "";
+    EXPECT_NE(pillarseg_read_points(path, format, &points, &n, error, sizeof error), 0);
+    EXPECT_EQ(points, nullptr);
+    EXPECT_EQ(n, 0u);
+    return std::string(error);
+  };
+  EXPECT_NE(read_error((dir / "two.bin").c_str(), "npy").find("pillarseg_read_points: " + (dir / "two.bin").string() +
+                                                               ": not a NumPy .npy file"),
+            std::string::npos);
+  EXPECT_NE(read_error((dir / "two.bin").c_str(), "las").find("format 'las': unknown point format"), std::string::npos);
+  EXPECT_NE(read_error((dir / "none.pcd").c_str(), nullptr).find("none.pcd: cannot open"), std::string::npos);
+  EXPECT_NE(read_error(nullptr, nullptr).find("path is NULL"), std::string::npos);
+  char error[256];
+  EXPECT_NE(pillarseg_read_points((dir / "two.bin").c_str(), nullptr, nullptr, nullptr, error, sizeof error), 0);
+  EXPECT_NE(std::string(error).find("must not be NULL"), std::string::npos) << error;
+}
+
+// The options' input mapping: a segmenter opened with a transform and a reflectance scale gives
+// what the default one gives on the points mapped by hand; an options struct of the previous
+// version's size (without these fields) opens and segments as before, whatever follows it.
+TEST(CApi, InputMappingOptions) {
+  std::vector<float> xyzr = tiny_scan(3000, 8);
+  for (size_t i = 3; i < xyzr.size(); i += 4) xyzr[i] *= 255;  // an 8-bit sensor
+  std::vector<float> mapped = xyzr;
+  for (size_t i = 0; i < mapped.size(); i += 4) {
+    const float x = mapped[i], y = mapped[i + 1];
+    // Yaw 90 degrees, 0.5 m up (in double, as the library maps), reflectance / 255 (in float).
+    mapped[i] = -y, mapped[i + 1] = x, mapped[i + 2] = static_cast<float>(static_cast<double>(mapped[i + 2]) + 0.5);
+    mapped[i + 3] = std::min(1.0f, std::max(0.0f, (1.0f / 255.0f) * mapped[i + 3]));
+  }
+  pillarseg_options options;
+  pillarseg_default_options(&options);
+  EXPECT_EQ(options.reflectance_none, 0);
+  EXPECT_EQ(options.reflectance_scale, 1.0f);
+  EXPECT_EQ(options.reflectance_offset, 0.0f);
+  EXPECT_EQ(options.reflectance_clip, 1);
+  for (int k = 0; k < 16; ++k) EXPECT_EQ(options.transform[k], k % 5 == 0 ? 1.0 : 0.0);
+  const double yaw_up[16] = {0, -1, 0, 0, 1, 0, 0, 0, 0, 0, 1, 0.5, 0, 0, 0, 1};
+  std::copy(yaw_up, yaw_up + 16, options.transform);
+  options.reflectance_scale = 1.0f / 255.0f;
+  char error[512];
+  pillarseg_segmenter* with = pillarseg_open(tiny_checkpoint().c_str(), nullptr, &options, error, sizeof error);
+  ASSERT_NE(with, nullptr) << error;
+  pillarseg_segmenter* plain = open_tiny();
+  ASSERT_NE(plain, nullptr);
+  const Output by_options = segment(with, xyzr), by_hand = segment(plain, mapped), unmapped = segment(plain, xyzr);
+  EXPECT_EQ(by_options.labels, by_hand.labels);
+  EXPECT_EQ(by_options.probabilities, by_hand.probabilities);
+  EXPECT_NE(by_options.probabilities, unmapped.probabilities);
+  pillarseg_close(with);
+
+  // The previous version's struct: its size ends before reflectance_none; the bytes after it are
+  // not read.
+  pillarseg_options old;
+  std::memset(&old, 0x5a, sizeof old);
+  pillarseg_default_options(&old);
+  std::memset(&old.reflectance_none, 0x5a, sizeof old - offsetof(pillarseg_options, reflectance_none));
+  old.struct_size = offsetof(pillarseg_options, reflectance_none);
+  pillarseg_segmenter* previous = pillarseg_open(tiny_checkpoint().c_str(), nullptr, &old, error, sizeof error);
+  ASSERT_NE(previous, nullptr) << error;
+  EXPECT_EQ(segment(previous, xyzr).probabilities, unmapped.probabilities);
+  pillarseg_close(previous);
+  pillarseg_close(plain);
+
+  pillarseg_default_options(&options);
+  options.transform[15] = 2;
+  EXPECT_NE(open_error(tiny_checkpoint().c_str(), nullptr, &options)
+                .find("options->transform: the transform's bottom row is [0 0 0 2], expected [0 0 0 1]"),
+            std::string::npos);
+  pillarseg_default_options(&options);
+  options.reflectance_scale = std::numeric_limits<float>::infinity();
+  EXPECT_NE(open_error(tiny_checkpoint().c_str(), nullptr, &options).find("reflectance_offset must be finite"),
             std::string::npos);
 }

@@ -2,6 +2,9 @@
 // semantics, failures as pillarseg::Error with the C API's message.
 #include <gtest/gtest.h>
 
+#include <cmath>
+#include <cstddef>
+#include <cstdio>
 #include <string>
 #include <utility>
 #include <vector>
@@ -54,4 +57,37 @@ TEST(CppApi, MovesAndErrors) {
   options.device = "emu";
   pillarseg::Segmenter emu(pillarseg_test::tiny_checkpoint(), options);
   EXPECT_EQ(emu.device().rfind("emu:0 (", 0), 0u) << emu.device();
+}
+
+TEST(CppApi, ReadPointsAndTheInputMapping) {
+  const std::vector<float> scan = pillarseg_test::tiny_scan(500, 4);
+  const std::string file = std::string(PILLARSEG_BINARY_DIR) + "/tests/cpp_api_scan.bin";
+  {
+    std::FILE* f = std::fopen(file.c_str(), "wb");
+    ASSERT_NE(f, nullptr);
+    std::fwrite(scan.data(), sizeof(float), scan.size(), f);
+    std::fclose(f);
+  }
+  std::vector<float> finite;
+  for (size_t i = 0; i < scan.size(); i += 4)
+    if (std::isfinite(scan[i]) && std::isfinite(scan[i + 1]) && std::isfinite(scan[i + 2]) && std::isfinite(scan[i + 3]))
+      finite.insert(finite.end(), scan.begin() + static_cast<std::ptrdiff_t>(i),
+                    scan.begin() + static_cast<std::ptrdiff_t>(i + 4));
+  EXPECT_EQ(pillarseg::read_points(file), finite);
+  EXPECT_EQ(pillarseg::read_points(file, "kitti"), finite);
+  try {
+    pillarseg::read_points(file, "ply");
+    ADD_FAILURE() << "a KITTI file read as PLY";
+  } catch (const pillarseg::Error& e) {
+    EXPECT_NE(std::string(e.what()).find("not a PLY file"), std::string::npos) << e.what();
+  }
+  std::remove(file.c_str());
+  // No reflectance from the sensor: the same map as reflectance 0 given by hand.
+  pillarseg::Options options;
+  options.reflectance_none = true;
+  pillarseg::Segmenter none(pillarseg_test::tiny_checkpoint(), options);
+  pillarseg::Segmenter plain(pillarseg_test::tiny_checkpoint());
+  std::vector<float> zeroed = finite;
+  for (size_t i = 3; i < zeroed.size(); i += 4) zeroed[i] = 0;
+  EXPECT_EQ(none.segment(finite), plain.segment(zeroed));
 }
