@@ -3,7 +3,8 @@
 # shared library exports the C API alone, build the README's examples against the installed CMake
 # package (shared and static) and the C one with pkg-config, and check that every program's label
 # map equals what the installed `pillarseg infer` writes for the same scan and checkpoint, on the
-# CPU and on the emulated CUDA backend.
+# CPU and on the emulated CUDA backend; and that the Python module installed beside the library
+# gives the same labels.
 # Usage: tests/install_test.sh SOURCE_DIR BUILD_DIR WORK_DIR
 set -euo pipefail
 src=$1 build=$2 work=$3
@@ -70,3 +71,30 @@ for device in cpu emu; do
   done
   say "$device: the C, C++, static and pkg-config programs give pillarseg infer's labels ($(head -1 "$out.log"))"
 done
+
+# The Python module installed beside the library: it finds that library by itself (no
+# PILLARSEG_LIBRARY) and gives pillarseg infer's labels. It needs numpy (Debian's python3-numpy).
+python=
+for candidate in python3 /usr/bin/python3; do
+  if "$candidate" -c 'import numpy' 2> /dev/null; then python=$candidate; break; fi
+done
+if [[ -z $python ]]; then
+  say "python: no python3 with numpy here: the installed Python module is not checked"
+  exit 0
+fi
+package=$(ls -d "$prefix"/lib*/python3*/*-packages/pillarseg)
+env -u PILLARSEG_LIBRARY PYTHONPATH="$(dirname "$package")" "$python" - "$weights" "$scan" "$work/infer_cpu.u8" \
+    "$prefix" <<'PY'
+import os, sys
+import numpy as np
+import pillarseg
+weights, scan, expected, prefix = sys.argv[1:]
+library = os.path.realpath(pillarseg.library_path)
+if not library.startswith(os.path.realpath(prefix) + os.sep):
+    sys.exit(f"install_test: the installed module loaded {library}, not the library in {prefix}")
+with pillarseg.Segmenter(weights, threads=2) as segmenter:
+    labels = segmenter.segment(pillarseg.read_points(scan))
+if not np.array_equal(labels.ravel(), np.fromfile(expected, dtype=np.uint8)):
+    sys.exit("install_test: the installed Python module's labels differ from pillarseg infer's")
+print(f"install_test: python: {pillarseg.__file__} on {library} gives pillarseg infer's labels")
+PY
