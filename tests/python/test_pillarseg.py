@@ -106,6 +106,14 @@ class SegmenterTest(unittest.TestCase):
         np.testing.assert_array_equal(probabilities.argmax(axis=0) + 1, labels)
         self.assertGreater(len(np.unique(labels)), 1, "a map of one class tests little")
 
+    def test_emulated_cuda_backend_agrees(self):
+        with pillarseg.Segmenter(WEIGHTS, device="emu", threads=2) as emu:
+            self.assertTrue(emu.device_name.startswith("emu:0"), emu.device_name)
+            labels, probabilities = emu.segment(self.points, probabilities=True)
+        expected_labels, expected_probabilities = self.segmenter.segment(self.points, probabilities=True)
+        np.testing.assert_array_equal(labels, expected_labels)
+        np.testing.assert_allclose(probabilities, expected_probabilities, rtol=0, atol=1e-5)
+
     def test_masked_cells_are_unlabeled_with_zero_probabilities(self):
         with pillarseg.Segmenter(WEIGHTS, threads=2, mask_unobserved=True) as masked:
             labels, probabilities = masked.segment(self.points[:40], probabilities=True)
