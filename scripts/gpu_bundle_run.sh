@@ -1,9 +1,20 @@
 #!/usr/bin/env bash
 # run.sh of the GPU bundle (scripts/gpu_bundle.sh packs it): the whole GPU check on a bare CUDA
-# machine in one call of at most 8 minutes, writing report.md and its logs into $OUT (8 files):
+# machine in one call of at most 8 minutes, writing report.md and its logs into $OUT (8 files),
+# stage by stage, each appending what it measured as it goes (a call killed at its limit still
+# returns every figure measured until then, and the summary):
+#   smoke            at most 90 s, first: the device, the first test of each *_gpu test binary,
+#                    one full-size bench (its table heads the report)
+#   tests            every *_gpu test (kernels, CUDA backend, device pipeline against the CPU)
+#   sanitizer        compute-sanitizer memcheck, racecheck, synccheck, initcheck over the kernel tests
+#   kernels          the kernel benchmarks
+#   bench            pillarseg bench --device cuda at full size, every variant
+#   ops              the bf16 network per op against each op's roofline bound on an H200
+#   train            100 training steps on cuda (fp32, bf16) and on cpu
+# The files:
 #   nvidia-smi.txt   the device, driver and clocks
-#   tests.log        every *_gpu test (kernels, CUDA backend, device pipeline against the CPU)
-#   sanitizer.log    compute-sanitizer memcheck, racecheck and synccheck over the kernel tests
+#   tests.log        the smoke stage's and every *_gpu test's output
+#   sanitizer.log    compute-sanitizer over the kernel tests
 #   kernels.log      the kernel benchmarks: ours against cuDNN and cuBLAS, the 16-bit training
 #                    gradients against our FP32 ones
 #   bench.log        pillarseg bench --device cuda at full size (bilinear, transposed, 2D and 3D
@@ -12,11 +23,30 @@
 #   train.log        100 steps of the small config on cuda (fp32, bf16) and on cpu, their loss curves
 #   environment.txt  the libraries found, the bundle's commit
 #   report.md        the figures of all of them, and what failed
-# Usage: [OUT=dir] ./run.sh [SECONDS]   (SECONDS: the time budget, default 470)
+# Usage: [OUT=dir] ./run.sh [--only STAGES] [SECONDS]
+#   STAGES: a comma-separated list of smoke, tests, sanitizer, kernels, bench, ops, train (default:
+#   all, in that order); a second call after a fix reruns only the stages that failed.
+#   SECONDS: the time budget, default 470.
 set -uo pipefail
 here=$(cd "$(dirname "$0")" && pwd)
 out=${OUT:-$here/out}
-budget=${1:-470}
+all_stages=smoke,tests,sanitizer,kernels,bench,ops,train
+only=$all_stages
+budget=470
+while (($#)); do
+  case $1 in
+    --only) only=${2:?run.sh: --only needs a list of stages ($all_stages)}; shift 2 ;;
+    --only=*) only=${1#--only=}; shift ;;
+    -h|--help) sed -n '2,/^set -uo pipefail/{/^#/p}' "$0"; exit 0 ;;
+    *[!0-9]*|'') echo "run.sh: unknown argument '$1' (usage: run.sh [--only STAGES] [SECONDS])" >&2; exit 2 ;;
+    *) budget=$1; shift ;;
+  esac
+done
+for stage in ${only//,/ }; do
+  [[ ,$all_stages, == *,$stage,* ]] ||
+    { echo "run.sh: --only: unknown stage '$stage' (stages: $all_stages)" >&2; exit 2; }
+done
+wants() { [[ ,$only, == *,$1,* ]]; }
 mkdir -p "$out"
 start=$(date +%s)
 left() { echo $((budget - ($(date +%s) - start))); }
@@ -24,6 +54,29 @@ report=$out/report.md
 env_log=$out/environment.txt
 failures=()
 note() { echo "$*" >> "$report"; }
+stage_start=$start
+begin_stage() {
+  stage_start=$(date +%s)
+  note "<!-- stage $1 began at +$((stage_start - start)) s -->"
+}
+end_stage() {
+  note "_Stage $1: $(( $(date +%s) - stage_start )) s._"
+  note
+}
+summary() {
+  {
+    echo "## Summary"
+    echo
+    echo "Stages run: $only. Total time: $(( $(date +%s) - start )) s."
+    if ((${#failures[@]} == 0)); then
+      echo "Nothing failed."
+    else
+      echo "Failed: ${failures[*]}."
+    fi
+  } >> "$report"
+}
+# Killed at the call's limit: the summary of what ran still reaches the report.
+trap 'note; note "**Stopped by a signal at +$(( $(date +%s) - start )) s.**"; summary; exit 124' TERM INT
 
 # ---- the machine's CUDA libraries ----
 cuda_dirs=()
@@ -62,16 +115,76 @@ nvidia-smi > "$out/nvidia-smi.txt" 2>&1 || echo "nvidia-smi failed" >> "$out/nvi
 nvidia-smi --query-gpu=name,driver_version,memory.total,clocks.max.sm --format=csv >> "$out/nvidia-smi.txt" 2>&1
 gpu=$(nvidia-smi --query-gpu=name --format=csv,noheader 2>/dev/null | head -1)
 
+driver=$(nvidia-smi --query-gpu=driver_version --format=csv,noheader 2>/dev/null | head -1)
 {
   echo "# GPU check of pillarseg $(cat "$here/commit" 2>/dev/null)"
   echo
-  echo "Machine: ${gpu:-no GPU reported}; $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2- | xargs), $(nproc) CPU threads; $(date -u +%F)."
+  echo "Machine: ${gpu:-no GPU reported} (driver ${driver:-?}); $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2- | xargs), $(nproc) CPU threads; $(date -u +%F). Stages: $only."
   echo
 } > "$report"
+tests_log=$out/tests.log
+bench_log=$out/bench.log
+: > "$tests_log"
+: > "$bench_log"
+scan=$here/data/sequences/99/velodyne/000000.bin
+[[ -f $scan ]] || scan=""
+
+# ---- 0. smoke: at most 90 s, its table first ----
+if wants smoke; then
+  begin_stage smoke
+  note "## Smoke (at most 90 s): the first test of each test binary, one full-size bench"
+  note
+  note "| check | result | seconds |"
+  note "|---|---|---:|"
+  smoke_row() { note "| $1 | $2 | $3 |"; }
+  if [[ -n $gpu ]]; then smoke_row "device" "$gpu, driver $driver" 0; else smoke_row "device" "NONE (nvidia-smi found no GPU)" 0; failures+=("smoke: no GPU"); fi
+  for t in "$here"/bin/test_*_gpu; do
+    name=$(basename "$t")
+    first=$("$t" --gtest_list_tests 2>/dev/null | awk '/^[^ ]/ {suite=$1} /^  / {print suite $1; exit}')
+    [[ -n $first ]] || { smoke_row "$name" "no tests listed" 0; failures+=("smoke $name"); continue; }
+    t0=$(date +%s)
+    echo "=== smoke $name --gtest_filter=$first" >> "$tests_log"
+    timeout 20 "$t" --gtest_color=no --gtest_filter="$first" >> "$tests_log" 2>&1
+    rc=$?
+    result="passed ($first)"
+    ((rc == 0)) || { result="FAILED, exit $rc ($first)"; failures+=("smoke $name"); }
+    ((rc == 124)) && result="time limit 20 s ($first)"
+    smoke_row "$name" "$result" $(( $(date +%s) - t0 ))
+  done
+  # The two ceilings every figure is read against: cuBLAS's BF16 GEMM and the copy bandwidth.
+  if [[ -x $here/bin/bench_kernels_reference ]]; then
+    t0=$(date +%s)
+    echo "=== smoke: bench_kernels_reference" >> "$bench_log"
+    timeout 30 "$here/bin/bench_kernels_reference" --benchmark_counters_tabular=false > "$out/.smoke" 2>&1
+    rc=$?
+    cat "$out/.smoke" >> "$bench_log"
+    gemm=$(grep -m1 '^CublasGemmBF16' "$out/.smoke" | grep -o 'TFLOP/s=[0-9.]*[kMG]*' | cut -d= -f2)
+    copy=$(grep -m1 '^DeviceCopy' "$out/.smoke" | grep -o 'TB/s=[0-9.]*' | cut -d= -f2)
+    if ((rc == 0)) && [[ -n $gemm && -n $copy ]]; then
+      smoke_row "ceilings: cuBLAS bf16 GEMM 8192^3, 2 GiB device copy" "$gemm TFLOP/s, $copy TB/s (read + written)" $(( $(date +%s) - t0 ))
+    else
+      smoke_row "ceilings: cuBLAS bf16 GEMM 8192^3, 2 GiB device copy" "FAILED, exit $rc (see bench.log)" $(( $(date +%s) - t0 ))
+      failures+=("smoke bench_kernels_reference")
+    fi
+  fi
+  t0=$(date +%s)
+  echo "=== smoke: bench bilinear --conv own --repeat 3" >> "$bench_log"
+  if timeout 40 "$here/bin/pillarseg" bench --device cuda --repeat 3 ${scan:+--scan "$scan"} > "$out/.smoke" 2>&1; then
+    steady=$(sed -n 's/^steady state.*: \([0-9.]*\) ms; stage by stage above.*/\1/p' "$out/.smoke")
+    smoke_row "full-size bench, bilinear fp32" "steady state ${steady:-?} ms" $(( $(date +%s) - t0 ))
+  else
+    smoke_row "full-size bench, bilinear fp32" "FAILED (see bench.log)" $(( $(date +%s) - t0 ))
+    failures+=("smoke bench")
+  fi
+  cat "$out/.smoke" >> "$bench_log"
+  rm -f "$out/.smoke"
+  note
+  end_stage smoke
+fi
 
 # ---- 1. the GPU tests ----
-tests_log=$out/tests.log
-: > "$tests_log"
+if wants tests; then
+begin_stage tests
 note "## Tests (every *_gpu test)"
 note
 note "| test | passed | failed | seconds | note |"
@@ -92,8 +205,12 @@ for t in "$here"/bin/test_*_gpu; do
 done
 rm -f "$out/.one.log"
 note
+end_stage tests
+fi
 
 # ---- 2. compute-sanitizer over the kernel tests ----
+if wants sanitizer; then
+begin_stage sanitizer
 sanitizer_log=$out/sanitizer.log
 : > "$sanitizer_log"
 note "## compute-sanitizer"
@@ -101,7 +218,7 @@ note
 if command -v compute-sanitizer > /dev/null; then
   note "| tool | test | result |"
   note "|---|---|---|"
-  for tool in memcheck racecheck synccheck; do
+  for tool in memcheck racecheck synccheck initcheck; do
     for t in "$here"/bin/test_kernels_*_gpu; do
       (( $(left) > 240 )) || { note "| $tool | $(basename "$t") | not run: time budget |"; continue; }
       echo "=== $tool $(basename "$t")" >> "$sanitizer_log"
@@ -125,8 +242,12 @@ else
   note "compute-sanitizer not found on PATH."
 fi
 note
+end_stage sanitizer
+fi
 
 # ---- 3. kernel benchmarks: ours, cuDNN, cuBLAS ----
+if wants kernels; then
+begin_stage kernels
 # bench_kernels_conv's 16-bit training gradients (every layer, BF16 and FP16: 36 rows beside its
 # 132, each filling its layer's tensors) would lengthen its run by about a quarter, which could
 # take it past its 90 s (its time on a GPU is not measured yet): here they run in BF16 on the large
@@ -154,12 +275,12 @@ note
 note "See kernels.log (ours against cuDNN and cuBLAS per convolution pass and layer; the 16-bit"
 note "training gradients of two layers against our FP32 ones)."
 note
+end_stage kernels
+fi
 
 # ---- 4. pillarseg bench --device cuda at full size ----
-bench_log=$out/bench.log
-: > "$bench_log"
-scan=$here/data/sequences/99/velodyne/000000.bin
-[[ -f $scan ]] || scan=""
+if wants bench; then
+begin_stage bench
 note "## pillarseg bench --device cuda (full size, the real scan)"
 note
 note "| model | conv | steady state ms | stage sum ms | U-Net ms | MB over the bus (host inputs) | against fp32 |"
@@ -197,10 +318,15 @@ run_bench "pillar + 2D occupancy" own --config "$here/configs/pillar_2d_sparse.y
 run_bench "pillar + 3D occupancy" own --config "$here/configs/pillar_3d_sparse.yaml"
 rm -f "$out/.bench"
 note
+end_stage bench
+fi
+
+# ---- 5. the bf16 network op by op ----
 # The bf16 network op by op (the device waits after every op) beside each op's roofline bound on
 # an H200 (the machine lent to this project; engine/model/roofline.cpp): what share of the bound
 # each op reaches.
-if (( $(left) > 120 )); then
+if wants ops && (( $(left) > 120 )); then
+  begin_stage ops
   echo "=== bilinear bf16 --ops --roofline h200" >> "$bench_log"
   if timeout 60 "$here/bin/pillarseg" bench --device cuda --precision bf16 --repeat 3 ${scan:+--scan "$scan"} \
       --ops --roofline h200 > "$out/.ops" 2>&1; then
@@ -216,9 +342,12 @@ if (( $(left) > 120 )); then
   cat "$out/.ops" >> "$bench_log"
   rm -f "$out/.ops"
   note
+  end_stage ops
 fi
 
-# ---- 5. 100 training steps on cuda (fp32, bf16) and on cpu ----
+# ---- 6. 100 training steps on cuda (fp32, bf16) and on cpu ----
+if wants train; then
+begin_stage train
 train_log=$out/train.log
 : > "$train_log"
 note "## Training: 100 steps of configs/small_cpu.yaml on cuda (fp32 and bf16) and on cpu"
@@ -272,16 +401,8 @@ else
 fi
 rm -rf "$work"
 note
+end_stage train
+fi
 
-# ---- summary ----
-{
-  echo "## Summary"
-  echo
-  echo "Total time: $(( $(date +%s) - start )) s."
-  if ((${#failures[@]} == 0)); then
-    echo "Nothing failed."
-  else
-    echo "Failed: ${failures[*]}."
-  fi
-} >> "$report"
+summary
 cat "$report"
