@@ -203,5 +203,13 @@ PILLARSEG_MEMORY_LIMIT=1M \
 sed 's/cell: 0.4/cell: 0.0001/' "$work/tiny.yaml" > "$work/fine.yaml"
 expect_error "grid of 400000 x 200000 cells = 80000000000 overflows the 32-bit cell indices" \
   train --data "$work/data" --config "$work/fine.yaml" --out "$work/fine_run"
+# The emulation's schedule (PILLARSEG_EMU_SCHEDULE): another order gives the same label map; a
+# bad value fails the command with a message naming the variable.
+PILLARSEG_EMU_SCHEDULE=random:5 run infer --weights "$weights" --scan "$velodyne/000000.bin" \
+  --out "$work/emu_random" --device emu > /dev/null
+run infer --weights "$weights" --scan "$velodyne/000000.bin" --out "$work/emu_forward" --device emu > /dev/null
+cmp -s "$work/emu_random.u8" "$work/emu_forward.u8" || fail "--device emu: random:5 and forward label maps differ"
+PILLARSEG_EMU_SCHEDULE=sideways expect_error "PILLARSEG_EMU_SCHEDULE='sideways': expected forward, reverse or random:SEED" \
+  infer --weights "$weights" --scan "$velodyne/000000.bin" --out "$work/emu_bad" --device emu
 echo "cli_test: infer (one scan, a directory, two files), --device emu (infer, eval, bench, train)," \
   "--precision, plot, errors and size checks pass"
