@@ -23,6 +23,7 @@ constexpr double kMargin = 170.0;       // main street before and after the ego'
 constexpr double kBackyard = 25.0;      // depth of the backyard band behind the building line, m
 constexpr double kSceneCell = 2.0;      // static scene grid cell, m
 constexpr double kMaxEgoSpeed = 11.5;   // m/s
+constexpr double kCamberWidth = 4.0;    // the camber falls over this much road from the centre, m
 
 double deg(double d) {
   return d * kPi / 180.0;
@@ -33,16 +34,41 @@ double wrap(double u, double period) {
   return r < 0 ? r + period : r;
 }
 
-// Value in [-1, 1] fixed for each 0.6 m cell of the ground: the texture of worn asphalt, pavers
-// and grass, so that the reflectance of a surface varies in space and not only per point.
-double ground_texture(double x, double y) {
-  uint64_t h =
-      static_cast<uint64_t>(static_cast<int64_t>(std::floor(x / 0.6))) * 0x9E3779B97F4A7C15ull;
-  h ^= static_cast<uint64_t>(static_cast<int64_t>(std::floor(y / 0.6))) * 0xC2B2AE3D27D4EB4Full;
+// Hash of an integer lattice point and a salt, uniform in [-1, 1].
+double lattice_value(int64_t ix, int64_t iy, uint64_t salt) {
+  uint64_t h = static_cast<uint64_t>(ix) * 0x9E3779B97F4A7C15ull;
+  h ^= static_cast<uint64_t>(iy) * 0xC2B2AE3D27D4EB4Full;
+  h ^= salt * 0x165667B19E3779F9ull;
   h ^= h >> 31;
   h *= 0xBF58476D1CE4E5B9ull;
   h ^= h >> 29;
   return static_cast<double>(h >> 11) * 0x1.0p-52 - 1.0;
+}
+
+// Value in [-1, 1] fixed for each 0.6 m cell of the ground: the texture of worn asphalt, pavers
+// and grass, so that the reflectance of a surface varies in space and not only per point.
+double ground_texture(double x, double y, uint64_t salt) {
+  return lattice_value(static_cast<int64_t>(std::floor(x / 0.6)),
+                       static_cast<int64_t>(std::floor(y / 0.6)), salt);
+}
+
+// Smooth noise in [-1, 1] with features of about `scale` metres: the lattice's values
+// interpolated with a smoothstep, so the surface has no steps.
+double value_noise(double x, double y, double scale, uint64_t salt) {
+  const double fx = x / scale, fy = y / scale;
+  const double x0 = std::floor(fx), y0 = std::floor(fy);
+  const auto ease = [](double u) { return u * u * (3.0 - 2.0 * u); };
+  const double u = ease(fx - x0), v = ease(fy - y0);
+  const auto ix = static_cast<int64_t>(x0), iy = static_cast<int64_t>(y0);
+  const double a = lattice_value(ix, iy, salt), b = lattice_value(ix + 1, iy, salt);
+  const double c = lattice_value(ix, iy + 1, salt), d = lattice_value(ix + 1, iy + 1, salt);
+  return (1 - v) * ((1 - u) * a + u * b) + v * ((1 - u) * c + u * d);
+}
+
+double sum_waves(const std::vector<Relief::Wave>& waves, double x, double y) {
+  double z = 0;
+  for (const Relief::Wave& w : waves) z += w.amplitude * std::sin(w.kx * x + w.ky * y + w.phase);
+  return z;
 }
 
 double point_segment_distance(const Vector2d& q, const Vector2d& a, const Vector2d& b) {
@@ -159,6 +185,14 @@ Zone Street::zone(double s, double d) const {
   return Zone::kOutside;
 }
 
+double Relief::grade_at(double x, double y) const {
+  return sum_waves(grade, x, y);
+}
+
+double Relief::hills_at(double x, double y) const {
+  return sum_waves(hills, x, y);
+}
+
 double EgoDrive::s(double t) const {
   return s0 + v0 * t + (omega > 0 ? accel_amp / omega * (1.0 - std::cos(omega * t)) : 0.0);
 }
@@ -174,6 +208,7 @@ class CityBuilder {
   CityBuilder(uint64_t seed, int scans) : seed_(seed), scans_(scans) {}
 
   City build() {
+    plan_relief();
     plan_ego();
     plan_main_street();
     plan_side_streets();
@@ -227,6 +262,33 @@ class CityBuilder {
 
   // ---- layout ----
 
+  // The ground's relief, curb height and material albedos of this city.
+  void plan_relief() {
+    Rng rng = stage(13);
+    Relief& r = city_.relief_;
+    city_.curb_height_ = rng.uniform(0.10, 0.16);
+    r.camber = rng.uniform(0.01, 0.025);
+    r.walk_slope = rng.uniform(0.005, 0.025);
+    r.roughness = rng.uniform(0.02, 0.06);
+    // Waves of wavelength L and slope g have amplitude g L / (2 pi).
+    const auto wave = [&](double l0, double l1, double g0, double g1) {
+      Relief::Wave w;
+      const double length = rng.uniform(l0, l1), direction = rng.uniform(-kPi, kPi);
+      const double slope = rng.uniform(g0, g1);
+      w.kx = 2 * kPi / length * std::cos(direction);
+      w.ky = 2 * kPi / length * std::sin(direction);
+      w.amplitude = slope * length / (2 * kPi);
+      w.phase = rng.uniform(-kPi, kPi);
+      return w;
+    };
+    for (int i = 0; i < 3; ++i) r.grade.push_back(wave(60.0, 200.0, 0.005, 0.04));
+    for (int i = 0; i < 3; ++i) r.hills.push_back(wave(30.0, 100.0, 0.02, 0.07));
+    city_.texture_salt_ = static_cast<uint32_t>(rng.next_u64());
+    city_.walk_albedo_ = static_cast<float>(rng.uniform(0.32, 0.52));
+    city_.terrain_albedo_ = static_cast<float>(rng.uniform(0.36, 0.58));
+    city_.other_ground_albedo_ = static_cast<float>(rng.uniform(0.18, 0.45));
+  }
+
   void plan_ego() {
     Rng rng = stage(1);
     EgoDrive& e = city_.ego_;
@@ -275,7 +337,7 @@ class CityBuilder {
     Street main(std::move(pts));
     main.lanes = rng.bernoulli(0.35) ? 2 : 1;
     main.lane_width = rng.uniform(3.0, 3.5);
-    main.road_albedo = static_cast<float>(rng.uniform(0.14, 0.22));
+    main.road_albedo = static_cast<float>(rng.uniform(0.22, 0.4));
     // The main street always has bike lanes: cyclists ride there beside the ego's lane.
     const double bike = rng.uniform(1.3, 1.8);
     for (StreetSide& side : main.sides) {
@@ -339,7 +401,7 @@ class CityBuilder {
         Street st(std::move(pts));
         st.lanes = 1;
         st.lane_width = rng.uniform(2.9, 3.3);
-        st.road_albedo = static_cast<float>(rng.uniform(0.14, 0.24));
+        st.road_albedo = static_cast<float>(rng.uniform(0.22, 0.4));
         const double bike = rng.bernoulli(0.25) ? rng.uniform(1.3, 1.6) : 0.0;
         for (StreetSide& ss : st.sides) {
           ss.bike = bike;
@@ -415,7 +477,7 @@ class CityBuilder {
           const double depth = rng.uniform(8.0, 16.0);
           const double height = is_main ? rng.uniform(6.0, 22.0) : rng.uniform(5.0, 16.0);
           const double setback = rng.uniform(0.0, 1.5);
-          const float albedo = static_cast<float>(rng.uniform(0.1, 0.45));
+          const float albedo = static_cast<float>(rng.uniform(0.15, 0.5));
           if (!lot.building) continue;
           const double s_mid = 0.5 * (lot.s0 + lot.s1);
           if (width < 5.0 || s_mid > st.length()) {
@@ -435,10 +497,7 @@ class CityBuilder {
             lot.building = false;
             continue;
           }
-          const double z0 = city_.curb_height_;
-          static_.push_back(make_box({center.x(), center.y(), z0 + 0.5 * height},
-                                     {0.5 * width, 0.5 * depth, 0.5 * height}, heading(f.tangent),
-                                     raw::kBuilding, albedo));
+          emit_building(center, f.tangent, width, depth, height, albedo, rng);
         }
       }
       // A building closes the far end of a side street.
@@ -454,31 +513,80 @@ class CityBuilder {
             const Vector2d q = center + u * depth * f.tangent + v * width * f.normal;
             clear = clear && clear_of_streets(q, static_cast<int>(k), Zone::kRoad);
           }
-        if (clear)
-          static_.push_back(make_box({center.x(), center.y(), city_.curb_height_ + 0.5 * height},
-                                     {0.5 * depth, 0.5 * width, 0.5 * height}, heading(f.tangent),
-                                     raw::kBuilding, static_cast<float>(rng.uniform(0.1, 0.45))));
+        const float albedo = static_cast<float>(rng.uniform(0.15, 0.5));
+        if (clear) emit_building(center, f.normal, width, depth, height, albedo, rng);
+      }
+    }
+  }
+
+  // A building of the given footprint (width along `along`, depth across it) and height above
+  // the ground at its centre, standing in the ground down to below its lowest corner. Its
+  // facades are not plain boxes: the parts along its width step forward or back and differ in
+  // height, and ledges or balconies stick out of the long sides.
+  void emit_building(const Vector2d& center, const Vector2d& along, double width, double depth,
+                     double height, float albedo, Rng& rng) {
+    const Vector2d across(-along.y(), along.x());
+    double low = std::numeric_limits<double>::infinity();
+    for (double u : {-0.5, 0.5})
+      for (double v : {-0.5, 0.5}) {
+        const Vector2d q = center + u * width * along + v * depth * across;
+        low = std::min(low, city_.ground_z(q.x(), q.y()));
+      }
+    const double z0 = low - 0.3, top = city_.ground_z(center.x(), center.y()) + height;
+    const double yaw = heading(along);
+    // The body in two to four parts along the street, each with its own setback and height.
+    const int parts = 2 + static_cast<int>(rng.uniform_int(3));
+    for (int i = 0; i < parts; ++i) {
+      const double u0 = -0.5 + static_cast<double>(i) / parts, u1 = u0 + 1.0 / parts;
+      const double setback = rng.bernoulli(0.5) ? rng.uniform(-0.6, 0.6) : 0.0;
+      const double part_top = top - (rng.bernoulli(0.3) ? rng.uniform(0.0, 0.3) * height : 0.0);
+      const Vector2d c = center + 0.5 * (u0 + u1) * width * along + 0.5 * setback * across;
+      static_.push_back(make_box({c.x(), c.y(), 0.5 * (z0 + part_top)},
+                                 {0.5 * (u1 - u0) * width + 0.01, 0.5 * (depth - std::abs(setback)),
+                                  0.5 * (part_top - z0)},
+                                 yaw, raw::kBuilding,
+                                 albedo * static_cast<float>(rng.uniform(0.8, 1.2))));
+    }
+    // Ledges or balconies on both long sides: slabs 0.3-1.2 m deep every storey or so.
+    const float detail_albedo = static_cast<float>(rng.uniform(0.1, 0.5));
+    for (int face : {-1, 1}) {
+      if (!rng.bernoulli(0.5)) continue;
+      const double out = rng.uniform(0.3, 1.2), storey = rng.uniform(2.8, 3.4);
+      const double span = rng.uniform(0.3, 0.9) * width;
+      for (double z = low + storey; z < top - 1.0; z += storey) {
+        const Vector2d c = center + face * (0.5 * depth + 0.5 * out) * across;
+        static_.push_back(make_box({c.x(), c.y(), z}, {0.5 * span, 0.5 * out, 0.08}, yaw,
+                                   raw::kBuilding, detail_albedo));
       }
     }
   }
 
   // A thin wall (fence or hedge) along street k at distance a, from s0 to s1, in pieces of at
   // most 6 m that follow the curve; pieces that would cross another street are left out.
+  // Hedges (foliage) are irregular: pieces of at most 1.5 m, each of its own height and
+  // thickness, drawn from rng.
   void wall_along(int k, int side, double s0, double s1, double a, double half_thickness,
-                  double height, uint32_t label, float albedo, Surface surface) {
+                  double height, uint32_t label, float albedo, Surface surface, Rng& rng) {
     const Street& st = city_.streets_[static_cast<size_t>(k)];
     s1 = std::min(s1, st.length());
-    const int pieces = static_cast<int>(std::ceil((s1 - s0) / 6.0));
+    const bool hedge = surface == Surface::kFoliage;
+    const int pieces = static_cast<int>(std::ceil((s1 - s0) / (hedge ? 1.5 : 6.0)));
+    const double base_height = height, base_half = half_thickness;
     for (int i = 0; i < pieces; ++i) {
+      if (hedge) {
+        height = base_height * rng.uniform(0.75, 1.2);
+        half_thickness = base_half * rng.uniform(0.7, 1.25);
+      }
       const double a0 = s0 + (s1 - s0) * i / pieces, a1 = s0 + (s1 - s0) * (i + 1) / pieces;
       const Placement p = on_street(k, side, 0.5 * (a0 + a1), a);
       const Vector2d q0 = st.point(a0, side == 0 ? -a : a), q1 = st.point(a1, side == 0 ? -a : a);
       if (!clear_of_streets(q0, k, Zone::kFront) || !clear_of_streets(q1, k, Zone::kFront) ||
           !clear_of_streets({p.x, p.y}, k, Zone::kFront))
         continue;
-      static_.push_back(make_box({p.x, p.y, p.z + 0.5 * height},
-                                 {0.5 * (a1 - a0) + 0.02, half_thickness, 0.5 * height}, p.yaw,
-                                 label, albedo, surface));
+      // Down into the ground by 0.2 m: the ground under a piece is not level.
+      static_.push_back(make_box({p.x, p.y, p.z + 0.5 * height - 0.1},
+                                 {0.5 * (a1 - a0) + 0.02, half_thickness, 0.5 * height + 0.1},
+                                 p.yaw, label, albedo, surface));
     }
   }
 
@@ -507,11 +615,11 @@ class CityBuilder {
           // buildings sometimes by hedges.
           if (!lot.building && boundary < 0.35) {
             wall_along(ki, side, s0, s1, ss.e_walk + 0.05, 0.03, fence_height, raw::kFence,
-                       fence_albedo, wire ? Surface::kMesh : Surface::kSolid);
+                       fence_albedo, wire ? Surface::kMesh : Surface::kSolid, rng);
           } else if ((!lot.building && boundary < 0.8) ||
                      (lot.building && ss.front > 1.5 && boundary < 0.45)) {
             wall_along(ki, side, s0, s1, ss.e_walk + hedge_half + 0.05, hedge_half, hedge_height,
-                       raw::kVegetation, leaf_albedo, Surface::kFoliage);
+                       raw::kVegetation, leaf_albedo, Surface::kFoliage, rng);
           }
           // Trees and bushes in the yards.
           const int trees = lot.building ? (ss.front > 3.0 && rng.bernoulli(0.4) ? 1 : 0)
@@ -1035,16 +1143,38 @@ GroundSample City::ground_at(double x, double y) const {
   std::array<StreetCoord, 8> near;
   const int n = locate(x, y, &near);
   int owner = -1, roadlike = 0;
+  // Hills fade in beyond the sidewalks of every street near: the least of the streets' weights,
+  // continuous wherever the owner changes.
+  double hill_weight = 1.0;
   for (int i = 0; i < n; ++i) {
     const StreetCoord& c = near[static_cast<size_t>(i)];
     if (c.zone <= Zone::kParking) ++roadlike;
     if (owner < 0 || c.zone < near[static_cast<size_t>(owner)].zone) owner = i;
+    if (c.zone != Zone::kOutside) {
+      const StreetSide& side = streets_[static_cast<size_t>(c.street)].side_of(c.d);
+      hill_weight = std::min(
+          hill_weight, std::clamp((std::abs(c.d) - side.e_walk) / Relief::kHillFade, 0.0, 1.0));
+    }
   }
   GroundSample g;
-  const double texture = ground_texture(x, y);
+  const uint64_t salt = texture_salt_;
+  const double texture = ground_texture(x, y, salt);
+  // A few cells of every surface are much darker (patches, wet or dirty spots): real scans
+  // hold returns of reflectance near 0 on every kind of ground.
+  const double patch = lattice_value(static_cast<int64_t>(std::floor(x / 1.7)),
+                                     static_cast<int64_t>(std::floor(y / 1.7)), salt + 7) > 0.84
+                           ? 0.3
+                           : 1.0;
+  const double bumps = value_noise(x, y, 1.3, salt + 1) + 0.5 * value_noise(x, y, 0.45, salt + 2);
+  const double base = relief_.grade_at(x, y) + hill_weight * relief_.hills_at(x, y);
+  // Height of the raised side at the curb of the owner's street side, and of the terrain
+  // between streets (a typical street's).
+  const double road_edge = -relief_.camber * kCamberWidth;
+  const double curb_top = road_edge + curb_height_;
   if (owner < 0 || near[static_cast<size_t>(owner)].zone == Zone::kOutside) {
     g.label = raw::kTerrain;
-    g.albedo = static_cast<float>(0.42 + 0.08 * texture);
+    g.albedo = static_cast<float>(terrain_albedo_ * (1.0 + 0.35 * texture) * patch);
+    g.z = base + curb_top + relief_.roughness * bumps;
     return g;
   }
   const StreetCoord& c = near[static_cast<size_t>(owner)];
@@ -1053,6 +1183,11 @@ GroundSample City::ground_at(double x, double y) const {
   const double a = std::abs(c.d);
   g.raised = c.zone > Zone::kParking;
   double albedo = 0.3;
+  // Profile across the street: the camber down to the curb, the curb, then sidewalk and lawn
+  // rising away from it, flat from the back of the sidewalk on.
+  double profile = -relief_.camber * std::min(a, kCamberWidth);
+  if (g.raised) profile = curb_top + relief_.walk_slope * (std::min(a, side.e_walk) - side.e_curb);
+  double rough = 0.25 * relief_.roughness;  // paved: small waves
   switch (c.zone) {
     case Zone::kRoad:
     case Zone::kBikeLane:
@@ -1069,7 +1204,7 @@ GroundSample City::ground_at(double x, double y) const {
             side.stretch_end.begin());
         if (!marked && i < side.stretch_parking.size() && side.stretch_parking[i]) {
           g.label = raw::kParking;
-          albedo = 0.38;
+          albedo = other_ground_albedo_;
         }
       } else if (st.lanes == 1) {
         marked = marked || (a < 0.075 && wrap(c.s, 10.0) < 4.0);
@@ -1081,17 +1216,18 @@ GroundSample City::ground_at(double x, double y) const {
       marked = marked || (c.zone == Zone::kRoad && a > side.e_road - 0.15);
       if (marked) {
         g.label = raw::kLaneMarking;
-        albedo = 0.75;
+        albedo = 0.5 + 0.3 * lattice_value(c.street, 0, salt + 3);
       }
       break;
     }
     case Zone::kLawn:
       g.label = raw::kTerrain;
-      albedo = 0.42;
+      albedo = terrain_albedo_;
+      rough = relief_.roughness;
       break;
     case Zone::kSidewalk:
       g.label = raw::kSidewalk;
-      albedo = 0.3;
+      albedo = walk_albedo_;
       break;
     case Zone::kFront:
     case Zone::kBack: {
@@ -1099,13 +1235,16 @@ GroundSample City::ground_at(double x, double y) const {
                                        [](double s, const Lot& lot) { return s < lot.s1; });
       const Lot& lot = it == side.lots.end() ? side.lots.back() : *it;
       g.label = c.zone == Zone::kFront ? lot.front_label : lot.back_label;
-      albedo = g.label == raw::kTerrain ? 0.42 : 0.2;
+      const bool terrain = g.label == raw::kTerrain;
+      albedo = terrain ? terrain_albedo_ : other_ground_albedo_;
+      rough = terrain ? relief_.roughness : 0.4 * relief_.roughness;
       break;
     }
     case Zone::kOutside:
       break;
   }
-  g.albedo = static_cast<float>(std::clamp(albedo * (1.0 + 0.2 * texture), 0.0, 1.0));
+  g.albedo = static_cast<float>(std::clamp(albedo * (1.0 + 0.35 * texture) * patch, 0.0, 1.0));
+  g.z = base + profile + rough * bumps;
   return g;
 }
 
@@ -1160,14 +1299,21 @@ Eigen::Matrix4d City::lidar_pose(double t) const {
   const StreetFrame f = main.at(s);
   const Vector2d q = f.p + d * f.normal;
   const double yaw = std::atan2(f.tangent.y(), f.tangent.x()) + std::atan2(d_rate, ego_.speed(t));
-  const double pitch = ego_.pitch_amp * std::sin(1.3 * t + 0.4);
-  const double roll = ego_.roll_amp * std::sin(1.7 * t + 1.1);
+  // The car stands on the ground under its wheels (axles 1.4 m before and behind the sensor,
+  // wheels 0.8 m to each side): its pitch and roll follow the grade and the camber, plus the
+  // sway of its suspension.
+  const Vector2d ahead(std::cos(yaw), std::sin(yaw)), left(-ahead.y(), ahead.x());
+  const auto z_at = [&](const Vector2d& p) { return ground_z(p.x(), p.y()); };
+  const double grade = (z_at(q + 1.4 * ahead) - z_at(q - 1.4 * ahead)) / 2.8;
+  const double bank = (z_at(q + 0.8 * left) - z_at(q - 0.8 * left)) / 1.6;
+  const double pitch = -std::atan(grade) + ego_.pitch_amp * std::sin(1.3 * t + 0.4);
+  const double roll = std::atan(bank) + ego_.roll_amp * std::sin(1.7 * t + 1.1);
   Eigen::Matrix4d pose = Eigen::Matrix4d::Identity();
   pose.topLeftCorner<3, 3>() =
       (Eigen::AngleAxisd(yaw, Vector3d::UnitZ()) * Eigen::AngleAxisd(pitch, Vector3d::UnitY()) *
        Eigen::AngleAxisd(roll, Vector3d::UnitX()))
           .toRotationMatrix();
-  pose.topRightCorner<3, 1>() = Vector3d(q.x(), q.y(), kSensorHeight);
+  pose.topRightCorner<3, 1>() = Vector3d(q.x(), q.y(), z_at(q) + kSensorHeight);
   return pose;
 }
 

@@ -4,12 +4,16 @@
 // leave it every 55-100 m. Each street has a cross-section per side, from the centre line out:
 // driving lanes | bike lane | parking strip | curb | tree lawn | sidewalk | front yards |
 // building line | backyards. The ground is not made of primitives: ground_at(x, y) evaluates
-// this layout at a point (SemanticKITTI label, albedo, and whether the surface is raised to
-// curb height), which the LiDAR model intersects analytically. Lots along each side hold
-// buildings or gaps with fences, hedges and yards; street furniture, trees, parked vehicles,
-// bicycles and standing people are static primitives in one SceneGrid. Moving agents (traffic,
-// cyclists, walkers) follow routes along the streets at constant speed and are posed per time.
-// World frame: x, y horizontal, z up, road surface at z = 0. Units: metres, seconds.
+// this layout at a point (SemanticKITTI label, albedo, height, and whether the surface is on the
+// raised side of a curb), a height field that the LiDAR model marches along each pulse. The
+// height is not flat (Relief): long waves give the streets grades, shorter ones hills and
+// embankments away from the streets, roads have a camber down from the centre line, curbs
+// (10-16 cm) raise sidewalks and lawns, sidewalks slope up from the curb, and terrain is bumpy.
+// Lots along each side hold buildings or gaps with fences, hedges and yards; street furniture,
+// trees, parked vehicles, bicycles and standing people are static primitives in one SceneGrid.
+// Moving agents (traffic, cyclists, walkers) follow routes along the streets at constant speed and
+// are posed per time. World frame: x, y horizontal, z up, z = 0 the mean road level. Units: metres,
+// seconds.
 #pragma once
 
 #include <array>
@@ -88,7 +92,26 @@ struct StreetCoord {
 struct GroundSample {
   uint32_t label = raw::kTerrain;
   float albedo = 0.4f;
-  bool raised = true;  // at curb height (sidewalk, lawn, yards) rather than road level
+  bool raised = true;  // on the curb's upper side (sidewalk, lawn, yards) rather than the road's
+  double z = 0;        // height of the surface
+};
+
+// The smooth part of the ground's height: plane waves a sin(k . p + phase).
+struct Relief {
+  struct Wave {
+    double kx = 0, ky = 0, amplitude = 0, phase = 0;
+  };
+  std::vector<Wave> grade;    // long waves everywhere: the streets' grades (a few per cent)
+  std::vector<Wave> hills;    // shorter waves beyond the sidewalks (faded in over kHillFade m)
+  double camber = 0.02;       // the road's cross slope, down from the centre line
+  double walk_slope = 0.015;  // sidewalks and lawns rise away from the curb
+  double roughness = 0.04;    // amplitude of the terrain's bumps, m
+  // The largest slope of the smooth part (grades, hills, camber, bumps): the LiDAR's march
+  // along a pulse steps by the gap over this bound.
+  static constexpr double kMaxSlope = 0.2;
+  static constexpr double kHillFade = 8.0;  // m beyond the sidewalk over which hills fade in
+  double grade_at(double x, double y) const;
+  double hills_at(double x, double y) const;
 };
 
 // A moving agent's way: along one street between s0 and s1.
@@ -133,8 +156,9 @@ class City {
   // along each; returns how many were written.
   int locate(double x, double y, std::array<StreetCoord, 8>* out) const;
   double curb_height() const { return curb_height_; }
-  // Height of the ground surface at (x, y): 0 or curb_height().
-  double ground_z(double x, double y) const { return ground_at(x, y).raised ? curb_height_ : 0.0; }
+  const Relief& relief() const { return relief_; }
+  // Height of the ground surface at (x, y).
+  double ground_z(double x, double y) const { return ground_at(x, y).z; }
 
   const std::vector<Street>& streets() const { return streets_; }
   const SceneGrid& static_scene() const { return static_scene_; }
@@ -159,6 +183,10 @@ class City {
   std::vector<double>
       side_angle_;  // per street: angle between a side street and the main street's normal
   double curb_height_ = 0.12;
+  Relief relief_;
+  uint32_t texture_salt_ = 0;  // varies the ground's texture and bumps between cities
+  // Per-city means of the ground materials' albedo (sidewalk, lawn, yards' terrain, other ground).
+  float walk_albedo_ = 0.42f, terrain_albedo_ = 0.47f, other_ground_albedo_ = 0.3f;
   EgoDrive ego_;
   SceneGrid static_scene_;
   std::vector<MovingAgent> movers_;

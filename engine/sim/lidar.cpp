@@ -15,12 +15,16 @@ namespace {
 constexpr double kPi = std::numbers::pi;
 // Share of pulses that return in a simulated street (sky, the ego body and dropouts take the
 // rest), measured over simulated sequences; sets the pulses per revolution for a point target.
-constexpr double kReturnFraction = 0.89;
+constexpr double kReturnFraction = 0.84;
 constexpr double kGrassHeight = 0.07;  // pulses on grass return from within its top layer, m
 constexpr double kFoliagePath = 0.45;  // mean free path of a pulse in foliage, m
 constexpr double kMinRange = 0.9;      // nearer returns are not reported, m
 constexpr double kWeakPower = 0.02;    // below this relative power a return fades out
-constexpr float kCurbAlbedo = 0.32f;
+constexpr float kCurbAlbedo = 0.4f;
+// Intensities below kZeroFloor + kZeroFloorSlope * (range - 12 m), range in [12, 54] m, read 0.
+constexpr double kZeroFloor = 0.04, kZeroFloorSlope = 0.0085;
+constexpr double kMinStep = 0.25;     // the ground march's shortest step, m
+constexpr int kMaxGroundSteps = 400;  // a pulse grazing the ground this long is lost
 
 struct Return {
   double t = 0;
@@ -46,47 +50,56 @@ bool hits_body(const LidarModel& lidar, const Eigen::Vector3d& dir) {
   return t_enter <= t_exit && t_exit > 0;
 }
 
-// The pulse against the ground: road level z = 0, and raised surfaces at curb height. A pulse
-// that passes curb height over road-level ground and would reach road level under a raised
-// surface hits the curb face between; it is found by stepping along the ray and bisecting.
+// The pulse against the ground's height field. It marches along the pulse: from a point
+// `gap` above the ground, the ground cannot be reached within gap / (kMaxSlope * horizontal
+// - dz) (the smooth relief's slope bound); steps are at least kMinStep long, so that a curb,
+// which the bound does not cover, is found when a step ends on its raised side below its top.
+// The first step that ends below the ground is bisected to where the pulse meets it: on the
+// surface, or on a curb's face where the ground steps up by more than a few centimetres
+// within the last interval.
 bool ground_hit(const City& city, const Ray& ray, double t_max, Rng& rng, Return* out) {
-  const double dz = ray.dir.z();
-  if (dz > -1e-6) return false;
-  const double h = city.curb_height(), oz = ray.origin.z();
+  const double dz = ray.dir.z(), horizontal = std::hypot(ray.dir.x(), ray.dir.y());
+  const double closing = Relief::kMaxSlope * horizontal - dz;  // fastest the gap can shrink
   const auto ground = [&](double t) {
     return city.ground_at(ray.origin.x() + t * ray.dir.x(), ray.origin.y() + t * ray.dir.y());
   };
-  const double t_raised = (h - oz) / dz;
-  if (t_raised > t_max) return false;
-  GroundSample g = ground(t_raised);
-  if (g.raised) {
-    double t = t_raised;
-    if (g.label == raw::kTerrain) t -= rng.uniform() * (t_raised - (h + kGrassHeight - oz) / dz);
-    *out = {t, g.label, g.albedo, -dz};
+  const auto gap_at = [&](double t, const GroundSample& g) {
+    return ray.origin.z() + t * dz - g.z;
+  };
+  double t = 0, gap = gap_at(0.0, ground(0.0));
+  if (gap <= 0) return false;  // the sensor is below the ground
+  double t_prev = 0;
+  GroundSample g;
+  for (int step = 0;; ++step) {
+    if (closing <= 0 || t >= t_max || step >= kMaxGroundSteps) return false;
+    t_prev = t;
+    t = std::min(t_max, t + std::max(gap / closing, kMinStep));
+    g = ground(t);
+    gap = gap_at(t, g);
+    if (gap <= 0) break;
+  }
+  double lo = t_prev, hi = t;
+  GroundSample g_lo = ground(lo);
+  while (hi - lo > 2e-3) {
+    const double mid = 0.5 * (lo + hi);
+    const GroundSample gm = ground(mid);
+    if (gap_at(mid, gm) > 0) {
+      lo = mid, g_lo = gm;
+    } else {
+      hi = mid, g = gm;
+    }
+  }
+  if (g.z - g_lo.z > 0.04) {
+    // The face of a curb (or of a step between two streets' surfaces).
+    *out = {hi, g.label == raw::kTerrain ? raw::kTerrain : raw::kSidewalk,
+            g.label == raw::kTerrain ? g.albedo : kCurbAlbedo, horizontal};
     return true;
   }
-  const double t_road = -oz / dz;
-  const double horizontal = std::hypot(ray.dir.x(), ray.dir.y());
-  const int steps =
-      std::max(1, static_cast<int>(std::ceil((t_road - t_raised) * horizontal / 0.5)));
-  double prev = t_raised;
-  for (int i = 1; i <= steps; ++i) {
-    const double t = t_raised + (t_road - t_raised) * i / steps;
-    g = ground(t);
-    if (g.raised) {
-      double lo = prev, hi = t;
-      for (int it = 0; it < 12; ++it) {
-        const double mid = 0.5 * (lo + hi);
-        (ground(mid).raised ? hi : lo) = mid;
-      }
-      if (hi > t_max) return false;
-      *out = {hi, raw::kSidewalk, kCurbAlbedo, horizontal};
-      return true;
-    }
-    prev = t;
-  }
-  if (t_road > t_max) return false;
-  *out = {t_road, g.label, g.albedo, -dz};
+  double hit = hi;
+  // Grass: pulses return from within its top layer, at most kGrassHeight above the ground
+  // (which, by the slope bound, changes by at most `closing` per metre of the pulse).
+  if (g.label == raw::kTerrain) hit -= rng.uniform() * kGrassHeight / closing;
+  *out = {hit, g.label, g.albedo, std::max(-dz, 0.02)};
   return true;
 }
 
@@ -161,6 +174,20 @@ int LidarModel::azimuth_steps_for(int64_t points_per_scan) {
       std::lround(static_cast<double>(points_per_scan) / (64.0 * kReturnFraction)));
 }
 
+void LidarModel::vary(uint64_t seed) {
+  Rng rng = Rng::derive(seed, 0xBEA3);
+  gain = rng.uniform(0.8, 1.2);
+  beam_gains.resize(elevation_deg.size());
+  beam_dropouts.resize(elevation_deg.size());
+  for (size_t b = 0; b < elevation_deg.size(); ++b) {
+    beam_gains[b] = rng.uniform(0.85, 1.15);
+    beam_dropouts[b] = rng.bernoulli(0.1) ? rng.uniform(0.05, 0.2) : rng.uniform(0.005, 0.03);
+    // KITTI's lowest beams return about half as often as the others (their share of the
+    // returns below -20 deg is 8.7% in real scans against 13.7% for lossless beams).
+    if (elevation_deg[b] < -20.0) beam_dropouts[b] = rng.uniform(0.3, 0.55);
+  }
+}
+
 double LidarModel::azimuth(int k) const {
   return -kPi + (k + 0.5) * 2.0 * kPi / azimuth_steps;
 }
@@ -192,7 +219,7 @@ SimScan cast_scan(const LidarModel& lidar, const City& city, const SceneGrid& mo
         const Eigen::Vector3d dir(cos_el[static_cast<size_t>(b)] * ca,
                                   cos_el[static_cast<size_t>(b)] * sa,
                                   sin_el[static_cast<size_t>(b)]);
-        if (rng.bernoulli(lidar.dropout) || hits_body(lidar, dir)) continue;
+        if (rng.bernoulli(lidar.beam_dropout(b)) || hits_body(lidar, dir)) continue;
         Ray ray{origin, rotation * dir};
         Return ret;
         bool ok = first_return(lidar, city, moving, ray, rng, &ret);
@@ -208,8 +235,15 @@ SimScan cast_scan(const LidarModel& lidar, const City& city, const SceneGrid& mo
         }
         if (!ok) continue;
         const double range = ret.t + rng.normal(0.0, lidar.range_noise);
-        const double reflectance = std::clamp(
-            ret.albedo * (0.55 + 0.45 * ret.cos_incidence) + rng.normal(0.0, 0.02), 0.0, 1.0);
+        // The intensity: the surface's albedo, a little less at grazing incidence, through this
+        // sensor's and this beam's gain, with speckle; below a floor that rises with the range
+        // the HDL-64E reports 0 (most dark cars, far road, much far vegetation in KITTI).
+        double reflectance = lidar.gain * lidar.beam_gain(b) * ret.albedo *
+                                 (0.7 + 0.3 * ret.cos_incidence) * (1.0 + 0.15 * rng.normal()) +
+                             rng.normal(0.0, 0.02);
+        const double floor = kZeroFloor + kZeroFloorSlope * std::clamp(range - 12.0, 0.0, 42.0);
+        if (reflectance < floor) reflectance = 0.0;
+        reflectance = std::clamp(reflectance, 0.0, 1.0);
         const size_t slot =
             static_cast<size_t>(b) * static_cast<size_t>(steps) + static_cast<size_t>(k);
         points[slot] = {static_cast<float>(range * dir.x()), static_cast<float>(range * dir.y()),

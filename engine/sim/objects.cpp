@@ -1,6 +1,8 @@
 #include "engine/sim/objects.hpp"
 
+#include <algorithm>
 #include <cmath>
+#include <numbers>
 
 namespace pillarseg::sim {
 
@@ -41,10 +43,11 @@ class Builder {
 constexpr float kTyreAlbedo = 0.05f;
 
 float paint_albedo(Rng& rng) {
-  // Dark, mid and bright paints, as in KITTI where most cars return little light.
+  // Dark, mid and bright paints, as in KITTI where most cars return so little light that the
+  // sensor reads 0 (80% of the vehicle points of the real labelled scan).
   const double u = rng.uniform();
-  if (u < 0.4) return static_cast<float>(rng.uniform(0.03, 0.10));
-  if (u < 0.8) return static_cast<float>(rng.uniform(0.10, 0.30));
+  if (u < 0.75) return static_cast<float>(rng.uniform(0.0, 0.05));
+  if (u < 0.9) return static_cast<float>(rng.uniform(0.05, 0.30));
   return static_cast<float>(rng.uniform(0.30, 0.60));
 }
 
@@ -238,8 +241,16 @@ TreeShape sample_tree(Rng& rng) {
   t.crown_base = rng.uniform(1.3, 2.6);
   t.crown_radius = rng.uniform(1.5, 3.5);
   t.crown_half_height = rng.uniform(1.5, 3.0);
-  t.trunk_albedo = static_cast<float>(rng.uniform(0.22, 0.38));
+  t.trunk_albedo = static_cast<float>(rng.uniform(0.3, 0.5));
   t.crown_albedo = static_cast<float>(rng.uniform(0.3, 0.5));
+  const int lobes = 2 + static_cast<int>(rng.uniform_int(3));
+  for (int i = 0; i < lobes; ++i) {
+    const double angle = rng.uniform(-std::numbers::pi, std::numbers::pi);
+    const double reach = rng.uniform(0.4, 0.8) * t.crown_radius;
+    const double dz = rng.uniform(-0.5, 0.6) * t.crown_half_height;
+    const double radius = rng.uniform(0.35, 0.6) * t.crown_radius;
+    t.lobes.emplace_back(reach * std::cos(angle), reach * std::sin(angle), dz, radius);
+  }
   return t;
 }
 
@@ -249,9 +260,13 @@ void emit_tree(const TreeShape& tree, const Placement& at, uint32_t trunk_label,
   // The trunk reaches into the crown, so that pulses through the foliage still find it.
   const double top = tree.crown_base + 1.2 * tree.crown_half_height;
   b.cylinder(0, 0, 0, top, tree.trunk_radius, trunk_label, tree.trunk_albedo);
-  b.ellipsoid(0, 0, tree.crown_base + tree.crown_half_height, tree.crown_radius,
-              tree.crown_radius * 0.9, tree.crown_half_height, crown_label, tree.crown_albedo,
-              Surface::kFoliage);
+  const double mid = tree.crown_base + tree.crown_half_height;
+  b.ellipsoid(0, 0, mid, 0.85 * tree.crown_radius, 0.8 * tree.crown_radius, tree.crown_half_height,
+              crown_label, tree.crown_albedo, Surface::kFoliage);
+  for (const Eigen::Vector4d& lobe : tree.lobes)
+    b.ellipsoid(lobe.x(), lobe.y(), std::max(mid + lobe.z(), tree.crown_base + 0.5 * lobe.w()),
+                lobe.w(), lobe.w(), 0.8 * lobe.w(), crown_label, tree.crown_albedo,
+                Surface::kFoliage);
 }
 
 void emit_street_lamp(const Placement& at, double height, uint32_t pole_label,

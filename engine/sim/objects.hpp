@@ -66,11 +66,14 @@ Agent sample_agent(AgentKind kind, uint32_t label, uint32_t vehicle_label, Rng& 
 // person (legs and arms swing with sin(phase)); 0 for a standing one.
 void emit_agent(const Agent& agent, const Placement& at, double phase, std::vector<Primitive>& out);
 
-// A tree: a trunk (label trunk_label) up into an ellipsoidal crown of foliage (crown_label).
+// A tree: a trunk (label trunk_label) up into a crown of foliage (crown_label): an ellipsoid
+// with lobes of smaller ellipsoids around it, so that crowns are irregular.
 struct TreeShape {
   double trunk_radius = 0.2, crown_base = 2.5;  // crown starts at this height above the base
   double crown_radius = 2.5, crown_half_height = 2.0;
   float trunk_albedo = 0.3f, crown_albedo = 0.4f;
+  // Lobes: centre offset from the crown's centre (x, y, z) and radius, in metres.
+  std::vector<Eigen::Vector4d> lobes;
 };
 TreeShape sample_tree(Rng& rng);
 void emit_tree(const TreeShape& tree, const Placement& at, uint32_t trunk_label,

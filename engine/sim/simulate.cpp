@@ -67,7 +67,9 @@ SequenceSimulator::SequenceSimulator(uint64_t seed, int scans, int64_t points_pe
       scans_(scans),
       city_(City::generate(seed, scans)),
       lidar_(LidarModel::hdl64e(LidarModel::azimuth_steps_for(points_per_scan))),
-      calib_(kitti_like_calib(seed)) {}
+      calib_(kitti_like_calib(seed)) {
+  lidar_.vary(seed);
+}
 
 Pose SequenceSimulator::lidar_pose_world(int i) const {
   PS_CHECK(i >= 0 && i < scans_, "scan {} out of range: the sequence has {} scans", i, scans_);

@@ -1,0 +1,188 @@
+#!/usr/bin/python3
+"""Statistics of LiDAR scans (KITTI .bin, optional SemanticKITTI .label), to compare simulated
+scans with real HDL-64E ones (docs/simulator.md).
+
+Per scan: points, rings (a ring ends where the azimuth wraps, as KITTI's and the simulator's
+files are beam by beam), returns per ring, the share of returns by elevation, range
+percentiles, the ground's height (per-2 m-cell lowest point within 20 m of the sensor) and
+roughness (spread of the lowest points of 0.5 m cells within a 2 m cell), and reflectance
+percentiles. With labels: per class (DESIGN.md's table) the point count, z, reflectance and
+range percentiles, and how much the reflectance of road, sidewalk, terrain and vegetation
+overlap.
+
+Usage: scripts/scan_stats.py SCAN.bin [--labels SCAN.label] [SCAN.bin [--labels ...]] ...
+       scripts/scan_stats.py --sequence ROOT/sequences/SS [--scans N]   (each scan with labels)
+Needs python3-numpy.
+"""
+import argparse
+import os
+import sys
+
+try:
+    import numpy as np
+except ImportError:
+    sys.exit("scan_stats.py needs numpy (Debian: apt-get install python3-numpy)")
+
+CLASSES = ["unlabeled", "vehicle", "person", "two-wheel", "rider", "road", "sidewalk",
+           "other-ground", "building", "object", "vegetation", "trunk", "terrain"]
+RAW_TO_CLASS = {}
+for cls, ids in {1: [10, 13, 16, 18, 20, 252, 256, 257, 258, 259], 2: [30, 254], 3: [11, 15],
+                 4: [31, 32, 253, 255], 5: [40, 60], 6: [48], 7: [44, 49], 8: [50],
+                 9: [51, 80, 81], 10: [70], 11: [71], 12: [72]}.items():
+    for raw in ids:
+        RAW_TO_CLASS[raw] = cls
+
+
+def load_points(path):
+    size = os.path.getsize(path)
+    if size % 16:
+        sys.exit(f"{path}: size {size} is not a multiple of 16 (x y z r float32 records)")
+    pts = np.fromfile(path, dtype="<f4").reshape(-1, 4)
+    finite = np.isfinite(pts).all(axis=1)
+    return pts[finite]
+
+
+def load_classes(path, count):
+    raw = np.fromfile(path, dtype="<u4")
+    if raw.size != count:
+        sys.exit(f"{path}: {raw.size} labels for {count} points")
+    lut = np.zeros(65536, dtype=np.uint8)
+    for r, c in RAW_TO_CLASS.items():
+        lut[r] = c
+    return lut[raw & 0xFFFF]
+
+
+def pct(values, qs):
+    if values.size == 0:
+        return "-"
+    return " ".join(f"{v:6.2f}" for v in np.percentile(values, qs))
+
+
+def rings(pts):
+    az = np.arctan2(pts[:, 1], pts[:, 0])
+    jumps = np.abs(np.diff(az)) > np.pi
+    return np.concatenate([[0], np.cumsum(jumps)])
+
+
+def ground_profile(pts):
+    """Lowest point per 2 m cell within 20 m, and the spread of the 0.5 m cells' lowest points
+    inside each 2 m cell (only cells with at least 4 filled sub-cells)."""
+    r = np.hypot(pts[:, 0], pts[:, 1])
+    near = pts[(r < 20) & (r > 3)]
+    if near.size == 0:
+        return np.array([]), np.array([])
+    big = np.floor(near[:, :2] / 2.0).astype(np.int64)
+    small = np.floor(near[:, :2] / 0.5).astype(np.int64)
+    low_small = {}
+    for (sx, sy), z in zip(map(tuple, small), near[:, 2]):
+        if z < low_small.get((sx, sy), np.inf):
+            low_small[(sx, sy)] = z
+    per_big = {}
+    for (sx, sy), z in low_small.items():
+        per_big.setdefault((sx // 4, sy // 4), []).append(z)
+    lows = np.array([min(v) for v in per_big.values()])
+    spread = []
+    for v in per_big.values():
+        v = np.array(v)
+        # Only ground-like cells: the sub-cells within 0.4 m of the cell's lowest.
+        v = v[v < v.min() + 0.4]
+        if v.size >= 4:
+            spread.append(v.std())
+    del big
+    return lows, np.array(spread)
+
+
+def overlap(a, b):
+    """Overlap of two reflectance histograms (sum of the minimum of the normalised bins)."""
+    if a.size == 0 or b.size == 0:
+        return float("nan")
+    bins = np.linspace(0, 1, 51)
+    ha = np.histogram(a, bins)[0] / a.size
+    hb = np.histogram(b, bins)[0] / b.size
+    return float(np.minimum(ha, hb).sum())
+
+
+def report(path, label_path):
+    pts = load_points(path)
+    print(f"== {path}{' + ' + label_path if label_path else ''}")
+    print(f"points {len(pts)}")
+    ring = rings(pts)
+    per_ring = np.bincount(ring)
+    print(f"rings {len(per_ring)}; returns per ring: median {np.median(per_ring):.0f}, "
+          f"p10 {np.percentile(per_ring, 10):.0f}, p90 {np.percentile(per_ring, 90):.0f}, "
+          f"max {per_ring.max()}")
+    top = per_ring[: len(per_ring) // 2].sum() / max(1, per_ring.sum())
+    print(f"share of returns in the upper half of the rings: {top:.3f}")
+    r3 = np.linalg.norm(pts[:, :3], axis=1)
+    rh = np.hypot(pts[:, 0], pts[:, 1])
+    el = np.degrees(np.arctan2(pts[:, 2], rh))
+    edges = [-25, -20, -15, -10, -8, -6, -4, -2, 0, 3]
+    hist = np.histogram(el, edges)[0] / len(pts)
+    print("share by elevation (deg): " +
+          " ".join(f"[{a},{b}):{h:.3f}" for a, b, h in zip(edges[:-1], edges[1:], hist)))
+    print(f"range p5 p25 p50 p75 p95 (m): {pct(r3, [5, 25, 50, 75, 95])}")
+    print(f"share of returns beyond 40 m: {(r3 > 40).mean():.3f}, beyond 60 m: {(r3 > 60).mean():.3f}")
+    print(f"reflectance p10 p25 p50 p75 p90: {pct(pts[:, 3], [10, 25, 50, 75, 90])}; "
+          f"share == 0: {(pts[:, 3] == 0).mean():.3f}")
+    lows, spread = ground_profile(pts)
+    print(f"ground: lowest z per 2 m cell within 20 m, p5 p50 p95: {pct(lows, [5, 50, 95])}; "
+          f"0.5 m cells' spread within a 2 m cell p50 p90: {pct(spread, [50, 90])}")
+    if not label_path:
+        return
+    cls = load_classes(label_path, len(pts))
+    print(f"{'class':13s} {'points':>7s} | {'z p5   p50   p95':>20s} | "
+          f"{'refl p10 p50  p90':>20s} | {'range p10 p50 p90':>20s}")
+    for c in range(len(CLASSES)):
+        m = cls == c
+        if not m.any():
+            continue
+        print(f"{CLASSES[c]:13s} {m.sum():7d} | {pct(pts[m, 2], [5, 50, 95])} | "
+              f"{pct(pts[m, 3], [10, 50, 90])} | {pct(r3[m], [10, 50, 90])}")
+    names = {5: "road", 6: "sidewalk", 7: "other-ground", 12: "terrain", 10: "vegetation"}
+    keys = list(names)
+    print("reflectance histogram overlap (1 = same distribution):")
+    for i, a in enumerate(keys):
+        for b in keys[i + 1:]:
+            print(f"  {names[a]}/{names[b]}: {overlap(pts[cls == a, 3], pts[cls == b, 3]):.2f}")
+    road = pts[cls == 5]
+    if len(road):
+        rr = np.hypot(road[:, 0], road[:, 1])
+        near = road[rr < 20]
+        print(f"road within 20 m: z p5 p50 p95 {pct(near[:, 2], [5, 50, 95])}, "
+              f"std {near[:, 2].std():.3f}")
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("scans", nargs="*")
+    p.add_argument("--labels", action="append", default=[],
+                   help="labels of the scan before it (in order)")
+    p.add_argument("--sequence", help="a SemanticKITTI sequence directory")
+    p.add_argument("--scans", dest="count", type=int, default=0, help="with --sequence: at most N")
+    a = p.parse_args()
+    jobs = []
+    if a.sequence:
+        vel = os.path.join(a.sequence, "velodyne")
+        if not os.path.isdir(vel):
+            sys.exit(f"{a.sequence}: no velodyne/ directory")
+        names = sorted(n for n in os.listdir(vel) if n.endswith(".bin"))
+        if a.count > 0:
+            names = names[: a.count]
+        for n in names:
+            lab = os.path.join(a.sequence, "labels", n[:-4] + ".label")
+            jobs.append((os.path.join(vel, n), lab if os.path.exists(lab) else None))
+    if len(a.labels) > len(a.scans):
+        sys.exit("more --labels than scans")
+    for i, s in enumerate(a.scans):
+        jobs.append((s, a.labels[i] if i < len(a.labels) else None))
+    if not jobs:
+        p.error("no scans given")
+    for scan, lab in jobs:
+        if not os.path.exists(scan):
+            sys.exit(f"{scan}: no such file")
+        report(scan, lab)
+        print()
+
+
+if __name__ == "__main__":
+    main()
