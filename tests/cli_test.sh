@@ -106,6 +106,42 @@ cmp "$work/one.u8" "$work/two/000001.u8" || fail "infer over two files: 000001.u
 [[ -f $work/one.png && -f $work/two/000002.png && ! -e $work/dir/000001.png ]] || fail "infer: .png files (--no-png)"
 [[ $(ls "$work/dir" | wc -l) == 3 ]] || fail "infer over a directory: expected 3 label maps in $work/dir"
 grep -q 'scans/s end to end' "$work/dir.log" || fail "infer over a directory: no throughput line"
+# Other point formats (docs/formats.md): scan 1 as .npy, as a nuScenes .pcd.bin, and as .npy under
+# another name with --format give its label map; KITTI records named .npy are refused; the input
+# mapping's identity as 16 numbers changes nothing, --no-reflectance is the scan with reflectance 0.
+python3 - "$velodyne/000001.bin" "$work/formats" <<'PY'
+import os, struct, sys
+records, out = open(sys.argv[1], "rb").read(), sys.argv[2]
+os.makedirs(out)
+n = len(records) // 16
+text = "{'descr': '<f4', 'fortran_order': False, 'shape': (%d, 4), }" % n
+text += " " * ((64 - (10 + len(text) + 1) % 64) % 64) + "\n"
+npy = b"\x93NUMPY\x01\x00" + struct.pack("<H", len(text)) + text.encode() + records
+points = [struct.unpack_from("<4f", records, 16 * i) for i in range(n)]
+files = {"scan.npy": npy, "scan.data": npy, "records.npy": records,
+         "scan.pcd.bin": b"".join(struct.pack("<5f", *p, 0.0) for p in points),
+         "zero_r.bin": b"".join(struct.pack("<4f", *p[:3], 0.0) for p in points)}
+for name, data in files.items():
+    open(os.path.join(out, name), "wb").write(data)
+PY
+formats=$work/formats
+run infer --weights "$weights" --scan "$formats/scan.npy" --out "$formats/npy" --no-png > /dev/null
+run infer --weights "$weights" --scan "$formats/scan.data" --format npy --out "$formats/data" --no-png > /dev/null
+run infer --weights "$weights" --scan "$formats/scan.pcd.bin" --out "$formats/nuscenes" --no-png > /dev/null
+run infer --weights "$weights" --scan "$formats/scan.npy" --transform "1 0 0 0 0 1 0 0 0 0 1 0 0 0 0 1" \
+  --out "$formats/identity" --no-png > /dev/null 2>&1
+for f in npy data nuscenes identity; do
+  cmp "$work/one.u8" "$formats/$f.u8" || fail "infer of scan 1 as $f: the label map differs from the .bin's"
+done
+run infer --weights "$weights" --scan "$velodyne/000001.bin" --no-reflectance --out "$formats/none" --no-png \
+  > "$formats/none.log" 2>&1
+grep -q 'input mapping: reflectance none (0)' "$formats/none.log" || fail "infer --no-reflectance: no mapping line"
+run infer --weights "$weights" --scan "$formats/zero_r.bin" --out "$formats/zero_r" --no-png > /dev/null
+cmp "$formats/none.u8" "$formats/zero_r.u8" || fail "infer --no-reflectance: not the map of the scan with reflectance 0"
+message=$(run infer --weights "$weights" --scan "$formats/records.npy" --out "$formats/bad" 2>&1) &&
+  fail "infer of KITTI records named .npy succeeded"
+[[ $message == *"records.npy: not a NumPy .npy file"* ]] || fail "infer of KITTI records named .npy: '$message'"
+echo "cli_test: infer read scan 1 as .npy, .pcd.bin and --format npy with the same label map"
 # render: the four panels of a labelled scan, the tiny grid's 100 cells scaled by 10 to 1000 pixels
 # on 12-pixel margins (the layout's pixels are checked in test_render).
 run render --data "$work/data" --sequence 0 --scan 1 --weights "$weights" --out "$work/render.png" > "$work/render.log"

@@ -186,16 +186,17 @@ void run_infer(const InferArgs& a) {
 void run_render(const RenderArgs& a) {
   require_extension(a.out, {".png"}, "--out");
   const Font font(find_font());  // before any work: a missing font is reported first
-  const Sequence seq(a.data, a.sequence);
-  const size_t index = scan_index(seq, a.scan);
-  const Scan scan = seq.load(index);
-  const ClassTable classes = ClassTable::defaults();
   GridSpec grid;
   std::unique_ptr<ScanSegmenter> segmenter;
   if (!a.weights.empty()) {
     segmenter = open_for(a.weights, a.config, a.device, false);
     grid = segmenter->model().grid;
   }
+  // Every panel in the model's frame: the sequence maps its points and poses as the config says.
+  const Sequence seq(a.data, a.sequence, segmenter ? segmenter->input_mapping() : InputMapping{});
+  const size_t index = scan_index(seq, a.scan);
+  const Scan scan = seq.load(index);
+  const ClassTable classes = ClassTable::defaults();
   const std::string masked = a.mask_unobserved ? ", unobserved cells black" : "";
   const bool labelled = !scan.labels.empty() && scan.labels.size() == scan.points.size();
   std::vector<TitledPanel> panels;
@@ -209,7 +210,7 @@ void run_render(const RenderArgs& a) {
   for (int64_t i = 0; i < mask.numel(); ++i) mask[i] = observability[i] > 0;
   if (segmenter) {
     Tensor<uint8_t> labels({grid.height(), grid.width()});
-    segmenter->segment(scan.points, labels.data());
+    segmenter->segment_mapped(scan.points, labels.data());
     ImageRgb prediction = render_label_map(labels, classes);
     if (a.mask_unobserved) apply_mask(prediction, mask);
     panels.push_back({fmt::format("Prediction ({}, {}{})", fs::path(a.weights).filename().string(),
