@@ -1,15 +1,25 @@
 // Augmentation: flips, rotation, scaling and translation follow OpenPCDet's conventions and
 // order (checked stage by stage and composed), labels, origin and neighbour poses move with the
-// points, seeds reproduce, switches turn stages off, flips happen half of the time.
+// points, seeds reproduce, switches turn stages off, flips happen half of the time. Domain
+// randomisation: sensor tilt and height after the other stages, reflectance jitter and dropout,
+// point dropout with the labels, bad settings rejected; a model without reflectance
+// (model.reflectance: false) sees r = 0 on the host path and the backend pipeline.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <numbers>
+#include <string>
 #include <vector>
 
 #include "core/eigen.hpp"
 #include "core/error.hpp"
 #include "engine/data/augment.hpp"
+#include "engine/model/backend.hpp"
+#include "engine/pipeline/scan_inputs.hpp"
+#include "engine/pipeline/scan_pipeline.hpp"
+#include "engine/train/run_config.hpp"
+#include "tests/support/tiny_model.hpp"
 
 using namespace pillarseg;
 
@@ -271,4 +281,222 @@ TEST(Augment, RejectsBadConfig) {
   AugmentConfig negative_sigma;
   negative_sigma.translation_sigma.z() = -1.0;
   EXPECT_THROW(sample_augmentation(negative_sigma, rng), Error);
+}
+
+// ---- domain randomisation -------------------------------------------------------------------
+
+TEST(Augment, TiltAndHeightAreSmallRotationsAndLiftsAfterTheOtherDraws) {
+  AugmentConfig cfg = only(true, true, true, true, false);
+  cfg.tilt = 0.02;
+  cfg.height = 0.1;
+  const AugmentConfig plain = only(true, true, true, true, false);
+  AugmentConfig tilt_only = only(false, false, false, false, false);
+  tilt_only.tilt = 0.02;
+  const int trials = 3000;
+  double sum_sq_angle = 0, sum_lift = 0, sum_sq_lift = 0;
+  for (uint64_t seed = 0; seed < trials; ++seed) {
+    const AugmentTransform full = sample(cfg, seed);
+    const AugmentTransform without = sample(plain, seed);
+    const AugmentTransform tilt = sample(tilt_only, seed);
+    // A = s R F T: the other stages' values do not change when tilt and height are on.
+    EXPECT_TRUE(full.linear.isApprox(without.linear * tilt.linear, 1e-14));
+    EXPECT_EQ(full.translation.head<2>(), Eigen::Vector2d::Zero());
+    // The tilt is a rotation about a horizontal axis: orthonormal, and it turns z by its angle.
+    EXPECT_TRUE((tilt.linear * tilt.linear.transpose()).isIdentity(1e-12));
+    EXPECT_NEAR(tilt.linear.determinant(), 1.0, 1e-12);
+    const double angle = std::acos(std::clamp(tilt.linear(2, 2), -1.0, 1.0));
+    sum_sq_angle += angle * angle;
+    sum_lift += full.translation.z();
+    sum_sq_lift += full.translation.z() * full.translation.z();
+  }
+  // Pitch and roll each N(0, 0.02^2): the angle of z is about sqrt(pitch^2 + roll^2), mean
+  // square 2 * 0.02^2.
+  EXPECT_NEAR(std::sqrt(sum_sq_angle / trials), std::sqrt(2.0) * 0.02, 0.002);
+  const double mean = sum_lift / trials;
+  EXPECT_NEAR(mean, 0.0, 5 * 0.1 / std::sqrt(trials));
+  EXPECT_NEAR(std::sqrt(sum_sq_lift / trials - mean * mean), 0.1, 0.006);
+}
+
+TEST(Augment, RandomisationJittersReflectanceLinearlyPerScan) {
+  AugmentConfig cfg;
+  cfg.reflectance_jitter = true;
+  cfg.reflectance_noise = 0.0;
+  const std::vector<Point> original = random_points(400, 5);
+  for (uint64_t seed = 0; seed < 20; ++seed) {
+    Rng rng(seed);
+    const ScanRandomisation r = sample_randomisation(cfg, rng);
+    EXPECT_GE(r.scale, cfg.reflectance_scale_min);
+    EXPECT_LE(r.scale, cfg.reflectance_scale_max);
+    std::vector<Point> points = original;
+    std::vector<uint32_t> labels;
+    r.apply(points, labels);
+    ASSERT_EQ(points.size(), original.size());
+    for (size_t i = 0; i < points.size(); ++i) {
+      EXPECT_EQ(xyz(points[i]), xyz(original[i]));
+      const double expected = std::clamp(r.scale * original[i].r + r.offset, 0.0, 1.0);
+      EXPECT_NEAR(points[i].r, expected, 1e-6);
+    }
+  }
+  // With noise: r' - (a r + b) has the noise's spread where nothing is clipped.
+  cfg.reflectance_noise = 0.05;
+  Rng rng(77);
+  const ScanRandomisation r = sample_randomisation(cfg, rng);
+  std::vector<Point> points = original;
+  std::vector<uint32_t> labels;
+  r.apply(points, labels);
+  double sum = 0, sum_sq = 0;
+  int n = 0;
+  for (size_t i = 0; i < points.size(); ++i) {
+    const double clean = r.scale * original[i].r + r.offset;
+    if (clean < 0.2 || clean > 0.8) continue;
+    const double e = points[i].r - clean;
+    sum += e, sum_sq += e * e, ++n;
+  }
+  ASSERT_GT(n, 100);
+  EXPECT_NEAR(std::sqrt(sum_sq / n - (sum / n) * (sum / n)), 0.05, 0.01);
+}
+
+TEST(Augment, RandomisationDropsReflectanceAndPointsWithTheirLabels) {
+  const std::vector<Point> original = random_points(2000, 8);
+  std::vector<uint32_t> original_labels(original.size());
+  for (size_t i = 0; i < original.size(); ++i) original_labels[i] = static_cast<uint32_t>(i);
+  AugmentConfig cfg;
+  cfg.reflectance_dropout = 1.0;
+  cfg.point_dropout = 0.5;
+  double dropped_share = 0;
+  const int scans = 40;
+  for (uint64_t seed = 0; seed < scans; ++seed) {
+    Rng rng(seed);
+    const ScanRandomisation r = sample_randomisation(cfg, rng);
+    EXPECT_TRUE(r.zero_reflectance);
+    EXPECT_GE(r.drop, 0.0);
+    EXPECT_LT(r.drop, 0.5);
+    std::vector<Point> points = original;
+    std::vector<uint32_t> labels = original_labels;
+    r.apply(points, labels);
+    ASSERT_EQ(points.size(), labels.size());
+    // The kept points are in their order, with their labels, and every r is 0.
+    for (size_t i = 0; i < points.size(); ++i) {
+      EXPECT_EQ(xyz(points[i]), xyz(original[labels[i]]));
+      EXPECT_EQ(points[i].r, 0.0f);
+      if (i > 0) {
+        EXPECT_GT(labels[i], labels[i - 1]);
+      }
+    }
+    const double share = 1.0 - static_cast<double>(points.size()) / original.size();
+    EXPECT_NEAR(share, r.drop, 5 * std::sqrt(0.25 / original.size()) + 1e-9);
+    dropped_share += share / scans;
+    // Same randomisation, same result.
+    std::vector<Point> again = original;
+    std::vector<uint32_t> again_labels = original_labels;
+    r.apply(again, again_labels);
+    EXPECT_EQ(again_labels, labels);
+  }
+  EXPECT_NEAR(dropped_share, 0.25, 0.06) << "U(0, 0.5) per scan";
+  // Switched off: nothing changes, and the draws are the same.
+  AugmentConfig off;
+  EXPECT_FALSE(off.randomises_points());
+  EXPECT_TRUE(cfg.randomises_points());
+  Rng a(3), b(3);
+  const ScanRandomisation ra = sample_randomisation(off, a), rb = sample_randomisation(cfg, b);
+  EXPECT_TRUE(ra.is_identity());
+  EXPECT_EQ(ra.point_seed, rb.point_seed);
+  std::vector<Point> points = original;
+  std::vector<uint32_t> labels = original_labels;
+  ra.apply(points, labels);
+  EXPECT_EQ(labels, original_labels);
+}
+
+TEST(Augment, RejectsBadRandomisation) {
+  Rng rng(1);
+  const auto rejects = [&](auto change) {
+    AugmentConfig cfg;
+    change(cfg);
+    EXPECT_THROW(validate_augmentation(cfg), Error);
+    EXPECT_THROW(sample_augmentation(cfg, rng), Error);
+  };
+  rejects([](AugmentConfig& c) { c.tilt = -0.01; });
+  rejects([](AugmentConfig& c) { c.tilt = 0.6; });
+  rejects([](AugmentConfig& c) { c.height = -1; });
+  rejects([](AugmentConfig& c) { c.reflectance_scale_min = 0.0; });
+  rejects([](AugmentConfig& c) { c.reflectance_scale_max = 0.5; });
+  rejects([](AugmentConfig& c) { c.reflectance_noise = -0.1; });
+  rejects([](AugmentConfig& c) { c.reflectance_dropout = 1.5; });
+  rejects([](AugmentConfig& c) { c.point_dropout = 1.0; });
+  try {
+    AugmentConfig c;
+    c.point_dropout = 2.0;
+    validate_augmentation(c);
+    ADD_FAILURE() << "point_dropout 2 accepted";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("point_dropout"), std::string::npos) << e.what();
+  }
+}
+
+TEST(Augment, ModelWithoutReflectanceSeesZeroReflectance) {
+  ModelConfig with = test::tiny_config(OccupancyInput::None, false, /*grid_map=*/true);
+  ModelConfig without = with;
+  without.reflectance = false;
+  const GridSpec& g = with.grid;
+  Rng rng(12);
+  std::vector<Point> points(300);
+  for (Point& p : points)
+    p = {static_cast<float>(rng.uniform(g.x_min, g.x_max)),
+         static_cast<float>(rng.uniform(g.y_min, g.y_max)),
+         static_cast<float>(rng.uniform(g.z_min, g.z_max)),
+         static_cast<float>(rng.uniform(0.1, 1))};
+  std::vector<Point> dark = points;
+  for (Point& p : dark) p.r = 0.0f;
+  const Eigen::Vector3d origin = Eigen::Vector3d::Zero();
+  const ScanInputs seen =
+      compute_scan_inputs(points, origin, without, host::SampleMode::Inference, nullptr);
+  const ScanInputs expected =
+      compute_scan_inputs(dark, origin, with, host::SampleMode::Inference, nullptr);
+  const ScanInputs lit =
+      compute_scan_inputs(points, origin, with, host::SampleMode::Inference, nullptr);
+  ASSERT_GT(seen.pillar_points.numel(), 0);
+  ASSERT_EQ(seen.pillar_points.numel(), expected.pillar_points.numel());
+  for (int64_t i = 0; i < seen.pillar_points.numel(); ++i)
+    EXPECT_EQ(seen.pillar_points[i], expected.pillar_points[i]);
+  ASSERT_EQ(seen.grid_map.numel(), expected.grid_map.numel());
+  for (int64_t i = 0; i < seen.grid_map.numel(); ++i)
+    EXPECT_EQ(seen.grid_map[i], expected.grid_map[i]);
+  double lit_sum = 0;
+  for (int64_t i = 3; i < lit.pillar_points.numel(); i += 10) lit_sum += lit.pillar_points[i];
+  EXPECT_GT(lit_sum, 1.0) << "with reflectance the decoration carries it";
+  // The backend pipeline's points: r = 0 for the model without reflectance, the caller's intact.
+  const std::unique_ptr<Backend> backend = make_cpu_backend();
+  ScanPipeline pipeline(without, *backend);
+  const Ref loaded = pipeline.load_points(points);
+  ASSERT_EQ(loaded.dim(0), static_cast<int64_t>(points.size()));
+  for (size_t i = 0; i < points.size(); ++i) {
+    EXPECT_EQ(loaded.data[4 * i + 3], 0.0f);
+    EXPECT_EQ(loaded.data[4 * i], points[i].x);
+    EXPECT_GT(points[i].r, 0.0f);
+  }
+}
+
+TEST(Augment, RunConfigReadsTheRandomisationKeys) {
+  const RunConfig c = parse_run_config(
+      "model: {reflectance: false}\n"
+      "train:\n"
+      "  augmentation: {tilt_deg: 2.0, height: 0.07, reflectance_jitter: true,\n"
+      "                 reflectance_dropout: 0.25, point_dropout: 0.3}\n",
+      "dr.yaml");
+  EXPECT_FALSE(c.model.reflectance);
+  const AugmentConfig& a = c.train.augmentation;
+  EXPECT_NEAR(a.tilt, 2.0 * std::numbers::pi / 180.0, 1e-15);
+  EXPECT_EQ(a.height, 0.07);
+  EXPECT_TRUE(a.reflectance_jitter);
+  EXPECT_EQ(a.reflectance_dropout, 0.25);
+  EXPECT_EQ(a.point_dropout, 0.3);
+  EXPECT_TRUE(parse_run_config("train: {epochs: 1}\n", "plain.yaml").model.reflectance);
+  try {
+    parse_run_config("train: {augmentation: {point_dropout: 1.5}}\n", "bad.yaml");
+    ADD_FAILURE() << "point_dropout 1.5 accepted";
+  } catch (const Error& e) {
+    const std::string what = e.what();
+    EXPECT_NE(what.find("bad.yaml"), std::string::npos) << what;
+    EXPECT_NE(what.find("point_dropout"), std::string::npos) << what;
+  }
 }

@@ -1,7 +1,9 @@
-// Training augmentation: sampling of the flip / rotation / scaling / translation stages and
-// their composition into one affine transform A = s R F, t (see augment.hpp).
+// Training augmentation: sampling of the flip / rotation / scaling / translation / tilt / height
+// stages and their composition into one affine transform A = s R F T, t, and the per-point
+// domain randomisation (see augment.hpp).
 #include "engine/data/augment.hpp"
 
+#include <algorithm>
 #include <cmath>
 
 #include "core/error.hpp"
@@ -28,7 +30,7 @@ bool AugmentTransform::is_identity() const {
   return linear == Eigen::Matrix3d::Identity() && translation == Eigen::Vector3d::Zero();
 }
 
-AugmentTransform sample_augmentation(const AugmentConfig& cfg, Rng& rng) {
+void validate_augmentation(const AugmentConfig& cfg) {
   PS_CHECK(std::isfinite(cfg.rotation_max) && cfg.rotation_max >= 0.0,
            "augmentation: rotation_max must be a finite angle >= 0 (radians), given {}",
            cfg.rotation_max);
@@ -40,19 +42,50 @@ AugmentTransform sample_augmentation(const AugmentConfig& cfg, Rng& rng) {
            "augmentation: translation_sigma must be finite and >= 0, given ({}, {}, {})",
            cfg.translation_sigma.x(), cfg.translation_sigma.y(), cfg.translation_sigma.z());
 
-  // All draws first, in a fixed order, independent of the switches.
+  PS_CHECK(std::isfinite(cfg.tilt) && cfg.tilt >= 0.0 && cfg.tilt < 0.5,
+           "augmentation: tilt must be in [0, 0.5) radians (a sigma), given {}", cfg.tilt);
+  PS_CHECK(std::isfinite(cfg.height) && cfg.height >= 0.0 && cfg.height <= 1.0,
+           "augmentation: height must be in [0, 1] m (a sigma), given {}", cfg.height);
+  PS_CHECK(std::isfinite(cfg.reflectance_scale_min) && std::isfinite(cfg.reflectance_scale_max) &&
+               cfg.reflectance_scale_min > 0.0 &&
+               cfg.reflectance_scale_min <= cfg.reflectance_scale_max,
+           "augmentation: reflectance scale needs 0 < min <= max, given [{}, {}]",
+           cfg.reflectance_scale_min, cfg.reflectance_scale_max);
+  PS_CHECK(std::isfinite(cfg.reflectance_offset) && cfg.reflectance_offset >= 0.0 &&
+               std::isfinite(cfg.reflectance_noise) && cfg.reflectance_noise >= 0.0,
+           "augmentation: reflectance offset and noise must be sigmas >= 0, given {} and {}",
+           cfg.reflectance_offset, cfg.reflectance_noise);
+  PS_CHECK(cfg.reflectance_dropout >= 0.0 && cfg.reflectance_dropout <= 1.0,
+           "augmentation: reflectance_dropout must be a probability in [0, 1], given {}",
+           cfg.reflectance_dropout);
+  PS_CHECK(cfg.point_dropout >= 0.0 && cfg.point_dropout < 1.0,
+           "augmentation: point_dropout must be in [0, 1), given {}", cfg.point_dropout);
+}
+
+AugmentTransform sample_augmentation(const AugmentConfig& cfg, Rng& rng) {
+  validate_augmentation(cfg);
+
+  // All draws first, in a fixed order, independent of the switches; the tilt and height after
+  // the others', so that they leave the others' values as they were.
   const bool flip_along_x = rng.bernoulli(0.5);
   const bool flip_along_y = rng.bernoulli(0.5);
   const double angle = rng.uniform(-cfg.rotation_max, cfg.rotation_max);
   const double scale = rng.uniform(cfg.scale_min, cfg.scale_max);
   Eigen::Vector3d shift;
   for (int axis = 0; axis < 3; ++axis) shift[axis] = rng.normal(0.0, cfg.translation_sigma[axis]);
+  const double pitch = rng.normal(0.0, cfg.tilt);
+  const double roll = rng.normal(0.0, cfg.tilt);
+  const double lift = rng.normal(0.0, cfg.height);
 
   AugmentTransform transform;
   Eigen::Matrix3d flip = Eigen::Matrix3d::Identity();
   if (cfg.flip_x && flip_along_x) flip(1, 1) = -1.0;
   if (cfg.flip_y && flip_along_y) flip(0, 0) = -1.0;
   transform.linear = flip;
+  if (cfg.tilt > 0.0)
+    transform.linear = flip * (Eigen::AngleAxisd(pitch, Eigen::Vector3d::UnitY()) *
+                               Eigen::AngleAxisd(roll, Eigen::Vector3d::UnitX()))
+                                  .toRotationMatrix();
   if (cfg.rotate) {
     const double c = std::cos(angle), s = std::sin(angle);
     Eigen::Matrix3d rotation;
@@ -63,7 +96,53 @@ AugmentTransform sample_augmentation(const AugmentConfig& cfg, Rng& rng) {
   }
   if (cfg.scale) transform.linear *= scale;
   if (cfg.translate) transform.translation = shift;
+  if (cfg.height > 0.0) transform.translation.z() += lift;
   return transform;
+}
+
+ScanRandomisation sample_randomisation(const AugmentConfig& cfg, Rng& rng) {
+  validate_augmentation(cfg);
+  const double scale = rng.uniform(cfg.reflectance_scale_min, cfg.reflectance_scale_max);
+  const double offset = rng.normal(0.0, cfg.reflectance_offset);
+  const bool zero = rng.bernoulli(cfg.reflectance_dropout);
+  const double drop = rng.uniform(0.0, cfg.point_dropout);
+  const uint64_t seed = rng.next_u64();
+  ScanRandomisation r;
+  r.jitter = cfg.reflectance_jitter;
+  if (r.jitter) {
+    r.scale = scale;
+    r.offset = offset;
+    r.noise = cfg.reflectance_noise;
+  }
+  r.zero_reflectance = zero;
+  r.drop = drop;
+  r.point_seed = seed;
+  return r;
+}
+
+void ScanRandomisation::apply(std::vector<Point>& points, std::vector<uint32_t>& labels) const {
+  PS_CHECK(labels.empty() || labels.size() == points.size(),
+           "scan randomisation: {} labels for {} points", labels.size(), points.size());
+  if (is_identity()) return;
+  Rng rng(point_seed);
+  size_t kept = 0;
+  for (size_t i = 0; i < points.size(); ++i) {
+    // Two draws a point whatever is on, so a point's fate does not depend on the switches.
+    const double speckle = rng.normal();
+    const bool dropped = rng.bernoulli(drop);
+    if (dropped) continue;
+    Point p = points[i];
+    if (zero_reflectance) {
+      p.r = 0.0f;
+    } else if (jitter) {
+      p.r = static_cast<float>(std::clamp(scale * p.r + offset + noise * speckle, 0.0, 1.0));
+    }
+    points[kept] = p;
+    if (!labels.empty()) labels[kept] = labels[i];
+    ++kept;
+  }
+  points.resize(kept);
+  if (!labels.empty()) labels.resize(kept);
 }
 
 }  // namespace pillarseg

@@ -9,8 +9,19 @@
 // So A = s R F and t = the translation. Labels are per point and move with the points; the
 // sensor origin is moved with apply(origin) and an aggregated neighbour scan with
 // as_matrix() * relative_pose, so every map is built from the same augmented data.
+//
+// Domain randomisation (each off by default), so that a model trained on simulated scans does
+// not lean on what differs between sensors and mountings:
+//   5. sensor tilt: pitch and roll by N(0, tilt^2) before the stages above (A = s R F T), and
+//      sensor height: z shifted by N(0, height^2) (added to t);
+//   6. per scan, on the points (ScanRandomisation): reflectance jitter r -> a r + b + noise
+//      (a ~ U(reflectance_scale), b ~ N(0, reflectance_offset^2), per point
+//      N(0, reflectance_noise^2), clipped to [0, 1]); reflectance dropout, every r -> 0 with
+//      probability reflectance_dropout (a sensor without intensities); point dropout, each point
+//      removed with probability U(0, point_dropout) drawn per scan, with its label.
 #pragma once
 
+#include <cstdint>
 #include <numbers>
 #include <vector>
 
@@ -29,6 +40,32 @@ struct AugmentConfig {
   double rotation_max = std::numbers::pi / 4;  // radians, rotation in [-max, max)
   double scale_min = 0.95, scale_max = 1.05;
   Eigen::Vector3d translation_sigma{5.0, 5.0, 0.05};  // metres, per axis
+  double tilt = 0.0;    // radians, sigma of the sensor's pitch and roll; 0: off
+  double height = 0.0;  // metres, sigma of the sensor's height; 0: off
+  bool reflectance_jitter = false;
+  double reflectance_scale_min = 0.75, reflectance_scale_max = 1.3;
+  double reflectance_offset = 0.03, reflectance_noise = 0.03;  // sigmas
+  double reflectance_dropout = 0.0;  // probability that a scan's reflectance is all 0
+  double point_dropout = 0.0;        // largest share of points a scan loses
+
+  // Any per-point randomisation on (only then does a scan draw one).
+  bool randomises_points() const {
+    return reflectance_jitter || reflectance_dropout > 0.0 || point_dropout > 0.0;
+  }
+};
+
+// The per-point part of one scan's domain randomisation, drawn by sample_randomisation.
+struct ScanRandomisation {
+  bool jitter = false;
+  double scale = 1.0, offset = 0.0, noise = 0.0;  // r -> scale r + offset + N(0, noise^2)
+  bool zero_reflectance = false;
+  double drop = 0.0;        // probability of removing a point
+  uint64_t point_seed = 0;  // the per-point draws' stream
+
+  bool is_identity() const { return !jitter && !zero_reflectance && drop == 0.0; }
+  // Changes the reflectance and removes points (and the labels at the same index; labels may
+  // be empty). Same randomisation, same result.
+  void apply(std::vector<Point>& points, std::vector<uint32_t>& labels) const;
 };
 
 // An affine map p -> linear * p + translation in the LiDAR frame, double precision.
@@ -46,10 +83,18 @@ struct AugmentTransform {
   bool is_identity() const;
 };
 
+// Throws pillarseg::Error naming the first setting out of its range.
+void validate_augmentation(const AugmentConfig& cfg);
+
 // Draws one transform from `rng`. Every stage draws its random numbers whether it is switched
 // on or not (flip x, flip y, angle, scale, then the three translation normals), so switching
 // one stage off leaves the values of the others unchanged for a given seed (ablations compare
 // like with like); a stage switched off contributes the identity. Same seed, same transform.
 AugmentTransform sample_augmentation(const AugmentConfig& cfg, Rng& rng);
+
+// Draws the per-point randomisation of one scan from `rng`, after sample_augmentation: always
+// the same draws (scale, offset, the reflectance dropout's, the drop share's, the points'
+// seed), whatever is switched on.
+ScanRandomisation sample_randomisation(const AugmentConfig& cfg, Rng& rng);
 
 }  // namespace pillarseg

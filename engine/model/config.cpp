@@ -113,6 +113,7 @@ ModelConfig model_config_from_yaml(const YAML::Node& root, const std::string& so
         if (key == "max_points_per_pillar") c.max_points_per_pillar = v.as<int>();
         else if (key == "max_pillars") c.max_pillars = v.as<int>();
         else if (key == "pillars") c.pillar_input = v.as<bool>();
+        else if (key == "reflectance") c.reflectance = v.as<bool>();
         else if (key == "pillar_channels") c.pillar_channels = v.as<int>();
         else if (key == "occupancy") {
           const std::string o = v.as<std::string>();

@@ -21,6 +21,9 @@ struct ModelConfig {
   int max_points_per_pillar = 20;  // N
   int max_pillars = 0;             // P; 0 keeps every non-empty pillar
   bool pillar_input = true;        // the PointNet pillar stream (C channels)
+  // false: the network never sees reflectance (every point's r is taken as 0 in training and
+  // inference), for sensors that give none.
+  bool reflectance = true;
   int pillar_channels = 64;        // C
   OccupancyInput occupancy = OccupancyInput::None;
   int occupancy_channels = 16;  // Q

@@ -10,9 +10,15 @@
 
 namespace pillarseg {
 
-ScanInputs compute_scan_inputs(const std::vector<Point>& points, const Eigen::Vector3d& origin,
+ScanInputs compute_scan_inputs(const std::vector<Point>& scan_points, const Eigen::Vector3d& origin,
                                const ModelConfig& config, host::SampleMode mode, Rng* rng,
                                bool want_observability) {
+  std::vector<Point> without_reflectance;
+  if (!config.reflectance) {
+    without_reflectance = scan_points;
+    for (Point& p : without_reflectance) p.r = 0.0f;
+  }
+  const std::vector<Point>& points = config.reflectance ? scan_points : without_reflectance;
   ScanInputs in;
   const GridSpec& grid = config.grid;
   if (config.pillar_input) {

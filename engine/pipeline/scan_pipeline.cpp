@@ -78,7 +78,13 @@ bool ScanPipeline::reserve(int64_t points) {
   return true;
 }
 
-Ref ScanPipeline::load_points(std::span<const Point> points) {
+Ref ScanPipeline::load_points(std::span<const Point> scan_points) {
+  std::span<const Point> points = scan_points;
+  if (!config_.reflectance) {
+    without_reflectance_.assign(scan_points.begin(), scan_points.end());
+    for (Point& p : without_reflectance_) p.r = 0.0f;
+    points = without_reflectance_;
+  }
   const auto m = static_cast<int64_t>(points.size());
   reserve(m);
   if (backend_.device() == Device::Cpu) {

@@ -23,6 +23,7 @@
 #include <cstdint>
 #include <memory>
 #include <span>
+#include <vector>
 
 #include "core/eigen.hpp"
 #include "core/point.hpp"
@@ -52,7 +53,8 @@ class ScanPipeline {
 
   // Reserves room for the scan, copies its points into the point buffer and its count into
   // num_points; returns the points as (M, 4) on the backend. On the CPU backend no copy is
-  // needed: `points` is returned as it is (host memory, valid while the caller's are).
+  // needed: `points` is returned as it is (host memory, valid while the caller's are). A model
+  // without reflectance (ModelConfig::reflectance false) gets a copy with every r = 0.
   Ref load_points(std::span<const Point> points);
   // The whole point buffer (capacity, 4) and the count (1), for a recorded pipeline.
   Ref point_buffer() const { return points_; }
@@ -96,6 +98,7 @@ class ScanPipeline {
   bool gathered_ = false;  // the gather's rows came from gather_pillars(), not upload_pillars()
   std::unique_ptr<Arena> arena_;
   Ref points_;
+  std::vector<Point> without_reflectance_;  // the scan's points with r = 0, when the model has none
   IRef num_points_, cell_, point_index_, count_, num_pillars_;
   URef transmissions_, detections_;
 };

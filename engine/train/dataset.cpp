@@ -69,6 +69,8 @@ ScanDataset::AugmentedScan ScanDataset::augmented_scan(size_t i, uint64_t epoch,
   AugmentedScan a{builder.sequence().load(it.scan), Rng::derive(train.seed, epoch, i), {}, Eigen::Vector3d::Zero(), {}};
   if (train.augment) a.transform = sample_augmentation(train.augmentation, a.rng);
   if (!a.transform.is_identity()) a.transform.apply(a.scan.points);
+  if (train.augment && train.augmentation.randomises_points())
+    sample_randomisation(train.augmentation, a.rng).apply(a.scan.points, a.scan.labels);
   a.origin = a.transform.apply(Eigen::Vector3d::Zero());
   a.labels = training_labels(a.scan, builder, it.scan, kind_, a.transform, classes_, model_.grid);
   return a;

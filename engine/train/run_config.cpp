@@ -2,6 +2,8 @@
 
 #include <yaml-cpp/yaml.h>
 
+#include <numbers>
+
 #include "core/error.hpp"
 #include "core/io.hpp"
 #include "engine/model/memory_estimate.hpp"
@@ -81,6 +83,11 @@ void read_train(const YAML::Node& t, const ClassTable& classes, const std::strin
         else if (k == "rotate") c.augmentation.rotate = get<bool>(a.second, w);
         else if (k == "scale") c.augmentation.scale = get<bool>(a.second, w);
         else if (k == "translate") c.augmentation.translate = get<bool>(a.second, w);
+        else if (k == "tilt_deg") c.augmentation.tilt = get<double>(a.second, w) * std::numbers::pi / 180.0;
+        else if (k == "height") c.augmentation.height = get<double>(a.second, w);
+        else if (k == "reflectance_jitter") c.augmentation.reflectance_jitter = get<bool>(a.second, w);
+        else if (k == "reflectance_dropout") c.augmentation.reflectance_dropout = get<double>(a.second, w);
+        else if (k == "point_dropout") c.augmentation.point_dropout = get<double>(a.second, w);
         else PS_FAIL("{}: unknown key", w);
       }
     } else {
@@ -105,6 +112,11 @@ void read_train(const YAML::Node& t, const ClassTable& classes, const std::strin
            c.precise_bn_batches);
   PS_CHECK(c.lr > 0, "{}: train.optimizer.lr must be > 0, got {}", source, c.lr);
   PS_CHECK(c.pct_start > 0 && c.pct_start < 1, "{}: train.optimizer.pct_start must be in (0, 1)", source);
+  try {
+    validate_augmentation(c.augmentation);
+  } catch (const Error& e) {
+    PS_FAIL("{}: train.{}", source, e.what());
+  }
 }
 
 }  // namespace
