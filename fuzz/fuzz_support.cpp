@@ -4,6 +4,7 @@
 #include <spdlog/spdlog.h>
 #include <unistd.h>
 
+#include <cmath>
 #include <cstdio>
 #include <cstdlib>
 #include <fstream>
@@ -89,6 +90,13 @@ const fs::path& tiny_checkpoint() {
 
 void check(bool condition, std::string_view what) {
   if (!condition) harness_failure(fmt::format("invariant violated: {}", what));
+}
+
+void check_scan(const Scan& scan) {
+  check(scan.labels.empty(), "no labels without a .label file");
+  for (const Point& p : scan.points)
+    check(std::isfinite(p.x) && std::isfinite(p.y) && std::isfinite(p.z) && std::isfinite(p.r),
+          "kept points are finite");
 }
 
 void check_c_api_error(const char* function, const char* error) {

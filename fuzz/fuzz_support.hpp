@@ -16,6 +16,8 @@
 #include <string_view>
 #include <type_traits>
 
+#include "core/point.hpp"
+
 namespace pillarseg::fuzz {
 
 // Silences the engine's log (a warning per corrupt input would dominate the run time).
@@ -39,6 +41,8 @@ const std::filesystem::path& tiny_checkpoint();
 
 // Aborts, printing `what`, when an invariant of a reader's result does not hold.
 void check(bool condition, std::string_view what);
+// The invariants of a scan read from a point file without labels: every kept point finite, no labels.
+void check_scan(const Scan& scan);
 
 // Aborts, printing the message, when a C API error is not a clean pillarseg::Error (the API turns
 // any other exception into "unexpected error" and std::bad_alloc into "out of memory").

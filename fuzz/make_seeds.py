@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
 """Writes the seed corpora of the fuzz targets, fuzz/corpus/<reader>/: small valid and near-valid
 inputs of every format, built here from the formats' definitions (engine/data/semantickitti.hpp,
-engine/data/cache.hpp, weights_io/safetensors.hpp, the C API targets' input layouts). With
+engine/data/point_formats.hpp, engine/data/cache.hpp, weights_io/safetensors.hpp, the C API
+targets' input layouts). With
 --pillarseg BIN it also simulates two scans and trains the tiny model (fuzz/tiny_model.yaml) one
 epoch with a ground-truth cache, and adds what that wrote: a crop of a simulated scan, its labels,
 poses.txt and calib.txt, cache entries (their key set to the cache_entry target's) and the trained
@@ -144,6 +145,104 @@ def metrics_lines():
     ]
 
 
+def npy_file(descr, shape, data, major=1, order="False"):
+    """A NumPy .npy file: magic, version, header length, the dict padded to 64 bytes, the data."""
+    text = f"{{'descr': '{descr}', 'fortran_order': {order}, 'shape': {shape}, }}"
+    preamble = 10 if major == 1 else 12
+    text = (text + " " * ((64 - (preamble + len(text) + 1) % 64) % 64) + "\n").encode()
+    length = struct.pack("<H", len(text)) if major == 1 else struct.pack("<I", len(text))
+    return b"\x93NUMPY" + bytes([major, 0]) + length + text + data
+
+
+def pcd_header(fields, sizes, types, counts, points, data):
+    return (f"# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS {fields}\nSIZE {sizes}\n"
+            f"TYPE {types}\nCOUNT {counts}\nWIDTH {points}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\n"
+            f"POINTS {points}\nDATA {data}\n").encode()
+
+
+def lzf_literals(data):
+    """A valid LZF stream of literal runs only (up to 32 bytes each)."""
+    return b"".join(bytes([len(data[i:i + 32]) - 1]) + data[i:i + 32] for i in range(0, len(data), 32))
+
+
+def point_format_seeds(points):
+    """npy, nuscenes, pcd and ply files of the same points (x y z r), and near-valid variants."""
+    n = len(points)
+    xyzr = points_bytes(points)
+    by_field = b"".join(struct.pack(f"<{n}f", *(p[k] for p in points)) for k in range(4))
+    ply_head = ("ply\nformat {}\ncomment pillarseg fuzz seed\nelement vertex " + str(n) +
+                "\nproperty float x\nproperty float y\nproperty float z\nproperty float intensity\n"
+                "element face 1\nproperty list uchar int vertex_indices\nend_header\n")
+    # The LZF stream of the binary_compressed seed: literals and both back-reference forms.
+    xs, ys, zs, ints = [1.0, 1.0, 1.0, 2.0, 3.0], [4.0, 5.0, 6.0, 7.0, 8.0], [0.5] * 5, [10, 20, 30, 40, 50]
+    expanded = struct.pack("<5f", *xs) + struct.pack("<5f", *ys) + struct.pack("<5f", *zs) + bytes(ints)
+    lzf = (b"\x03" + expanded[0:4] + b"\xc0\x03" + bytes([27]) + expanded[12:40] + b"\x03" + expanded[40:44] +
+           b"\xe0\x07\x03" + b"\x04" + expanded[60:65])
+    padded = b"".join(struct.pack("<3f", 9, 9, 9) + struct.pack("<d", p[2]) + b"\xab\xcd\xef" +
+                      struct.pack("<H", int(p[3] * 1000)) + struct.pack("<2f", p[0], p[1]) for p in points)
+    return {
+        "npy": {
+            "f32_n4.npy": npy_file("<f4", f"({n}, 4)", xyzr),
+            "f64_n3.npy": npy_file("<f8", f"({n}, 3)", b"".join(struct.pack("<3d", *p[:3]) for p in points), major=2),
+            "be_f32_n5.npy": npy_file(">f4", f"({n}, 5)", b"".join(struct.pack(">5f", *p, 7.0) for p in points), major=3),
+            "empty.npy": npy_file("<f4", "(0, 4)", b""),
+            "fortran.npy": npy_file("<f4", f"({n}, 4)", xyzr, order="True"),
+            "int32.npy": npy_file("<i4", f"({n}, 4)", xyzr),
+            "truncated.npy": npy_file("<f4", f"({n}, 4)", xyzr)[:-5],
+            "kitti_records.npy": xyzr,
+        },
+        "nuscenes": {
+            "three_points.pcd.bin": b"".join(struct.pack("<5f", *p[:3], p[3] * 255, 31.0) for p in points),
+            "empty.pcd.bin": b"",
+            "bad_ring.pcd.bin": b"".join(struct.pack("<5f", *p, 0.5) for p in points),
+            "kitti_records.pcd.bin": xyzr + xyzr[:4 * 4],
+        },
+        "pcd": {
+            "binary.pcd": pcd_header("x y z intensity", "4 4 4 4", "F F F F", "1 1 1 1", n, "binary") + xyzr,
+            "ascii_odd_order.pcd": pcd_header("y normal x reflectance z", "4 4 8 1 4", "F F F U F", "1 3 1 1 1", 3,
+                                              "ascii") + b"-2.25 0 0 1 1.5 128 0.125\n12.5 0.5 0.5 0.5 -30 64 -1.75\r\n"
+                                                         b"nan nan nan nan nan 0 nan\n",
+            "binary_padding.pcd": pcd_header("normal z _ intensity x y", "4 8 1 2 4 4", "F F U U F F", "3 1 3 1 1 1",
+                                             n, "binary") + padded,
+            "compressed_backrefs.pcd": pcd_header("x y z intensity", "4 4 4 1", "F F F U", "1 1 1 1", 5,
+                                                  "binary_compressed") + struct.pack("<II", len(lzf), 65) + lzf,
+            "compressed_literals.pcd": pcd_header("x y z intensity", "4 4 4 4", "F F F F", "1 1 1 1", n,
+                                                  "binary_compressed") +
+                                       struct.pack("<II", len(lzf_literals(by_field)), len(by_field)) +
+                                       lzf_literals(by_field),
+            "no_z.pcd": pcd_header("x y w", "4 4 4", "F F F", "1 1 1", 0, "ascii"),
+            "truncated.pcd": (pcd_header("x y z intensity", "4 4 4 4", "F F F F", "1 1 1 1", n, "binary") + xyzr)[:-3],
+        },
+        "ply": {
+            "ascii.ply": (ply_head.format("ascii 1.0") + "".join(f"{p[0]!r} {p[1]!r} {p[2]!r} {p[3]!r}\n" for p in points) +
+                          "3 0 1 2\n").encode(),
+            "binary_le.ply": ply_head.format("binary_little_endian 1.0").encode() + xyzr + b"\x03" + struct.pack("<3i", 0, 1, 2),
+            "binary_be.ply": ply_head.format("binary_big_endian 1.0").encode() +
+                             b"".join(struct.pack(">4f", *p) for p in points) + b"\x03" + struct.pack(">3i", 0, 1, 2),
+            "element_before_vertex.ply": b"ply\nformat ascii 1.0\nelement camera 1\nproperty float fov\n"
+                                         b"property list uchar int ids\nelement vertex 2\nproperty double x\n"
+                                         b"property double y\nproperty double z\nproperty list uchar float extra\n"
+                                         b"property uchar i\nend_header\n60 2 7 8\n1 2 3 0 128\n-4 5 -6 2 0.5 0.5 64\n",
+            "truncated.ply": (ply_head.format("binary_little_endian 1.0").encode() + xyzr)[:-7],
+            "no_vertex.ply": b"ply\nformat ascii 1.0\nelement face 0\nproperty list uchar int v\nend_header\n",
+        },
+    }
+
+
+def converted_seeds(name, records):
+    """A KITTI scan's records (16 bytes a point) as .npy, binary PCD, binary PLY and .pcd.bin seeds."""
+    points = [struct.unpack_from("<4f", records, i) for i in range(0, len(records), 16)]
+    n = len(points)
+    return {
+        "npy": {f"{name}.npy": npy_file("<f4", f"({n}, 4)", records)},
+        "pcd": {f"{name}.pcd": pcd_header("x y z intensity", "4 4 4 4", "F F F F", "1 1 1 1", n, "binary") + records},
+        "ply": {f"{name}.ply": (f"ply\nformat binary_little_endian 1.0\nelement vertex {n}\nproperty float x\n"
+                                "property float y\nproperty float z\nproperty float intensity\nend_header\n").encode() +
+                               records},
+        "nuscenes": {f"{name}.pcd.bin": b"".join(struct.pack("<5f", *p, 5.0) for p in points)},
+    }
+
+
 def hand_written_seeds():
     tiny = (FUZZ_DIR / "tiny_model.yaml").read_bytes()
     three = [(1.0, 2.0, -1.0, 0.5), (-3.0, 0.25, 0.0, 0.0), (10.0, -5.0, 0.5, 1.0)]
@@ -172,6 +271,7 @@ def hand_written_seeds():
     labelled = struct.pack("<Q", 2) + points_bytes(three[:2]) + bytes([1, 12])
 
     return {
+        **point_format_seeds(three),
         "bin": {
             "three_points.bin": points_bytes(three),
             "empty.bin": b"",
@@ -317,7 +417,7 @@ def run(cmd):
 def engine_seeds(pillarseg):
     """Seeds from what `pillarseg simulate` and `pillarseg train` write (tiny_model.yaml)."""
     seeds = {k: {} for k in ("bin", "label", "poses", "calib", "cache_entry", "checkpoint", "c_api_segment",
-                             "metrics_log", "tensorboard")}
+                             "metrics_log", "tensorboard", "npy", "pcd", "ply", "nuscenes")}
     with tempfile.TemporaryDirectory(prefix="pillarseg-seeds-") as tmp:
         tmp = Path(tmp)
         data, cache, run_dir = tmp / "data", tmp / "cache", tmp / "run"
@@ -334,6 +434,8 @@ def engine_seeds(pillarseg):
         near = sorted(order[:64])
         seeds["bin"]["simulated_64.bin"] = b"".join(records[i] for i in near)
         seeds["label"]["simulated_64.label"] = b"".join(labels[4 * i:4 * i + 4] for i in near)
+        for reader, files in converted_seeds("simulated_64", seeds["bin"]["simulated_64.bin"]).items():
+            seeds[reader].update(files)
         seeds["poses"]["simulated.txt"] = (seq / "poses.txt").read_bytes()
         seeds["calib"]["simulated.txt"] = (seq / "calib.txt").read_bytes()
         seeds["c_api_segment"]["simulated_64"] = b"\x01" + seeds["bin"]["simulated_64.bin"]
