@@ -16,8 +16,8 @@
 //     reductions, by normalised mean squared error sum (a - r)^2 / sum r^2; NaN and Inf must
 //     match, and a failure names the worst element.
 //
-// The ops of backend.hpp and the cases that cover them (memory, clock, capture and counters are
-// the harness's own calls, not ops):
+// The ops of backend.hpp and the cases that cover them, FP32 unless a dtype is named (memory,
+// clock, capture and counters are the harness's own calls, not ops):
 //   pad_points                  pad_points/m=..,num=..          (0 and 1 point, none padded, all)
 //   pillar_gather               pillar_gather/m=..,n=..,max=..  (0 and 1 point, capped, uncapped)
 //   decorate_points             decorate_points/...             (live rows, and every row live)
@@ -27,43 +27,44 @@
 //   occupancy_3d                occupancy_3d/...
 //   grid_map_features           grid_map_features/...
 //   mask_unobserved             mask_unobserved/...             (with and without probabilities)
-//   pfn_forward                 pfn_forward/eval|train|live=..
-//   pfn_backward                pfn_backward/...
-//   scatter_forward             scatter_forward/...
+//   pfn_forward                 pfn_forward/eval|train|live=..   (1 pillar of 1 point, of 3)
+//   pfn_backward                pfn_backward/[twin_replicas,]... (synchronised BatchNorm)
+//   scatter_forward             scatter_forward/...               (0 and 1 pillar)
 //   scatter_backward            scatter_backward/...
 //   copy_channels               copy_channels/...
 //   extract_channels            extract_channels/...
-//   conv2d_forward              conv2d_forward/...
-//   conv2d_backward             conv2d_backward/...
-//   conv_transpose2d_forward    conv_transpose2d_forward/...
-//   conv_transpose2d_backward   conv_transpose2d_backward/...
-//   conv2d_bn_relu_eval         conv2d_bn_relu_eval/...
-//   batchnorm_relu_forward      batchnorm_relu_forward/eval|train
-//   batchnorm_relu_backward     batchnorm_relu_backward/...
-//   maxpool2x2_forward          maxpool2x2_forward/...
+//   conv2d_forward              conv2d_forward/[no_bias,]...
+//   conv2d_backward             conv2d_backward/[dw_only,]...
+//   conv_transpose2d_forward    conv_transpose2d_forward/[no_bias,]...
+//   conv_transpose2d_backward   conv_transpose2d_backward/[no_bias,]...
+//   conv2d_bn_relu_eval         conv2d_bn_relu_eval/[no_bias,]...
+//   batchnorm_relu_forward      batchnorm_relu_forward/eval|train|train,twin_replicas
+//   batchnorm_relu_backward     batchnorm_relu_backward/[twin_replicas,|in_place,]...
+//   maxpool2x2_forward          maxpool2x2_forward/...            (a 1 x 1 output)
 //   maxpool2x2_backward         maxpool2x2_backward/...
-//   upsample2x_forward          upsample2x_forward/...
+//   upsample2x_forward          upsample2x_forward/...            (a 1 x 1 input)
 //   upsample2x_backward         upsample2x_backward/...
-//   pad_concat_forward          pad_concat_forward/...
+//   pad_concat_forward          pad_concat_forward/...            (1 x 1 planes)
 //   pad_concat_backward         pad_concat_backward/...
-//   add_inplace                 add_inplace/...
-//   softmax                     softmax/...
+//   add_inplace                 add_inplace/...                   (0 and 1 element)
+//   softmax                     softmax/...                       (one cell)
 //   argmax                      argmax/...
 //   loss                        loss/ce|bce
 //   sum_of_squares              sum_of_squares/n=..             (0 and 1 element)
 //   scale                       scale/n=..                      (0 and 1 element)
-//   adam_step                   adam_step/n=..
+//   adam_step                   adam_step/n=..                    (1 element; AdamW, Adam)
 //   begin_sum_over_replicas,    sum_over_replicas/n=..          (one replica: the CPU and the
 //   end_sums_over_replicas                                       emulation's host path; a GPU's
 //                                                                NCCL path needs processes:
 //                                                                tests/mpi)
-//   supports_precision, supports_training_precision: every 16-bit case asks the backend first
+//   supports_precision, supports_training_precision, supports_synchronized_batchnorm: the cases
+//                               that need them ask the backend first (and record why not)
 //   prepared_conv_transform_elements  conv2d_half_forward/... (the CPU's Winograd U)
 //   prepare_conv_weights        prepare_conv_weights/bf16|fp16  (bias, BatchNorm folded, neither)
 //   prepare_conv_transpose_weights  prepare_conv_transpose_weights/bf16|fp16
 //   conv2d_half_forward         conv2d_half_forward/bf16|fp16   (x and y FP32 or 16-bit)
 //   conv_transpose2x2_half_forward  conv_transpose2x2_half_forward/bf16|fp16
-//   conv2d_backward_half        conv2d_backward_half/bf16|fp16
+//   conv2d_backward_half        conv2d_backward_half/bf16|fp16[,dw_only]
 //   conv_transpose2x2_backward_half conv_transpose2x2_backward_half/bf16|fp16
 //   to_half                     to_half/bf16|fp16               (ties, overflow, subnormals, NaN)
 //   maxpool2x2_half             maxpool2x2_half/bf16|fp16
@@ -510,6 +511,16 @@ class OneReplica final : public Replicas {
   int64_t begun = 0, ended = 0;
 };
 
+// Synchronised BatchNorm's statistics over two replicas that hold the same values: each sum
+// doubles (counts included, so the means stay and the unbiased variance's n - 1 grows).
+class TwinReplicas final : public ReplicaSum {
+ public:
+  void sum(double* values, int64_t n) override {
+    for (int64_t i = 0; i < n; ++i) values[i] *= 2;
+  }
+};
+bool synchronises_batchnorm(const Backend& be, std::string& why) { return be.supports_synchronized_batchnorm(&why); }
+
 const char* dtype(Precision p) { return precision_name(p); }
 
 // ---- the table ----
@@ -919,28 +930,35 @@ void add_half_ops(std::vector<Case>& all, Precision p) {
                    }});
   }
   // The 16-bit training gradients: the FP32 backward of the operands rounded to p, dbias of the
-  // FP32 dy.
+  // FP32 dy; for the first shape also dw alone (the first layer's).
   for (const auto& [x, w, pad] : std::vector<std::tuple<Shape, Shape, int>>{
            {{2, 3, 7, 5}, {4, 3, 3, 3}, 1}, {{1, 17, 9, 11}, {33, 17, 3, 3}, 1}, {{2, 6, 5, 4}, {12, 6, 1, 1}, 0}}) {
     const Shape y = op::conv2d(x, w, pad);
-    all.push_back({.name = "conv2d_backward_half/" + d + ",x=" + shape_name(x) + ",w=" + shape_name(w) +
-                           ",pad=" + std::to_string(pad),
-                   .args = {in_f("x", x), in_f("w", w), in_f("dy", y), out("dx", x), out("dw", w), out("dbias", {w[0]})},
-                   .run = [p, pad](Backend& be, Bound& t) {
-                     Ref dx = t.f(3), dw = t.f(4), db = t.f(5);
-                     be.conv2d_backward_half(t.f(0), t.f(1), t.f(2), pad, p, &dx, dw, &db);
-                   },
-                   .tol = nmse_within(1e-12),
-                   .precision = p,
-                   .training = true,
-                   .reference = [p, pad](Bound& t) {
-                     Tensor<float> dx = Tensor<float>::view(t.f(3).data, t.f(3).shape),
-                                   dw = Tensor<float>::view(t.f(4).data, t.f(4).shape);
-                     host::conv2d_backward(rounded_copy(t.f(0), p), rounded_copy(t.f(1), p), rounded_copy(t.f(2), p),
-                                           pad, &dx, &dw, nullptr);
-                     Ref db = t.f(5);
-                     define_bias_gradient(t.f(2), db);
-                   }});
+    for (const bool full : {true, false}) {
+      if (!full && x[1] != 3) continue;
+      std::vector<Arg> args = {in_f("x", x), in_f("w", w), in_f("dy", y), out("dw", w)};
+      if (full) args.push_back(out("dx", x)), args.push_back(out("dbias", {w[0]}));
+      all.push_back({.name = "conv2d_backward_half/" + d + (full ? "," : ",dw_only,") + "x=" + shape_name(x) +
+                             ",w=" + shape_name(w) + ",pad=" + std::to_string(pad),
+                     .args = args,
+                     .run = [p, pad, full](Backend& be, Bound& t) {
+                       Ref dw = t.f(3), dx = full ? t.f(4) : Ref{}, db = full ? t.f(5) : Ref{};
+                       be.conv2d_backward_half(t.f(0), t.f(1), t.f(2), pad, p, full ? &dx : nullptr, dw,
+                                               full ? &db : nullptr);
+                     },
+                     .tol = nmse_within(1e-12),
+                     .precision = p,
+                     .training = true,
+                     .reference = [p, pad, full](Bound& t) {
+                       Tensor<float> dw = Tensor<float>::view(t.f(3).data, t.f(3).shape), dx;
+                       if (full) dx = Tensor<float>::view(t.f(4).data, t.f(4).shape);
+                       host::conv2d_backward(rounded_copy(t.f(0), p), rounded_copy(t.f(1), p),
+                                             rounded_copy(t.f(2), p), pad, full ? &dx : nullptr, &dw, nullptr);
+                       if (!full) return;
+                       Ref db = t.f(5);
+                       define_bias_gradient(t.f(2), db);
+                     }});
+    }
   }
   for (const auto& [x, o] : std::vector<std::pair<Shape, int64_t>>{{{2, 6, 3, 4}, 3}, {{1, 16, 5, 7}, 8}}) {
     const Shape w{x[1], o, 2, 2}, y{x[0], o, 2 * x[2], 2 * x[3]};
@@ -968,7 +986,8 @@ std::vector<Case> cases() {
   std::vector<Case> all;
   add_input_ops(all);
   // Convolutions: 3x3 pad 1, 1x1 (the head), odd sizes, and channel counts that are not a
-  // multiple of a tile.
+  // multiple of a tile; for two shapes also without the optional tensors (no bias; the first
+  // layer's backward, dw alone).
   for (const auto& [x, w, pad] :
        std::vector<std::tuple<Shape, Shape, int>>{{{2, 3, 7, 5}, {4, 3, 3, 3}, 1},
                                                   {{1, 8, 6, 6}, {5, 8, 3, 3}, 1},
@@ -978,74 +997,96 @@ std::vector<Case> cases() {
     const std::string shapes =
         "x=" + shape_name(x) + ",w=" + shape_name(w) + ",pad=" + std::to_string(pad);
     const Shape y{x[0], w[0], x[2] + 2 * pad - w[2] + 1, x[3] + 2 * pad - w[3] + 1};
-    all.push_back({"conv2d_forward/" + shapes,
-                   {in_f("x", x), in_f("w", w), in_f("bias", {w[0]}), out("y", y)},
-                   [pad](Backend& be, Bound& t) {
-                     Ref bias = t.f(2), yy = t.f(3);
-                     be.conv2d_forward(t.f(0), t.f(1), &bias, pad, yy);
-                   },
-                   nmse_within(1e-9)});
-    all.push_back({"conv2d_backward/" + shapes,
-                   {in_f("x", x), in_f("w", w), in_f("dy", y), out("dx", x), out("dw", w),
-                    out("dbias", {w[0]})},
-                   [pad](Backend& be, Bound& t) {
-                     Ref dx = t.f(3), dw = t.f(4), db = t.f(5);
-                     be.conv2d_backward(t.f(0), t.f(1), t.f(2), pad, &dx, dw, &db);
-                   },
-                   nmse_within(1e-9)});
-    std::vector<Arg> args = {in_f("x", x), in_f("w", w), in_f("bias", {w[0]})};
-    add_bn(args, w[0], false, false);
-    args.push_back(out("y", y));
-    all.push_back({"conv2d_bn_relu_eval/" + shapes, args,
-                   [pad](Backend& be, Bound& t) {
-                     Ref bias = t.f(2), yy = t.f(7);
-                     be.conv2d_bn_relu_eval(t.f(0), t.f(1), &bias, t.bn(3, false), pad, yy);
-                   },
-                   nmse_within(1e-9)});
+    for (const bool full : {true, false}) {
+      if (!full && x[1] != 3 && x[1] != 6) continue;
+      all.push_back({std::string("conv2d_forward/") + (full ? "" : "no_bias,") + shapes,
+                     {in_f("x", x), in_f("w", w), in_f("bias", {w[0]}), out("y", y)},
+                     [pad, full](Backend& be, Bound& t) {
+                       Ref bias = t.f(2), yy = t.f(3);
+                       be.conv2d_forward(t.f(0), t.f(1), full ? &bias : nullptr, pad, yy);
+                     },
+                     nmse_within(1e-9)});
+      std::vector<Arg> args = {in_f("x", x), in_f("w", w), in_f("dy", y), out("dw", w)};
+      if (full) args.push_back(out("dx", x)), args.push_back(out("dbias", {w[0]}));
+      all.push_back({std::string("conv2d_backward/") + (full ? "" : "dw_only,") + shapes, args,
+                     [pad, full](Backend& be, Bound& t) {
+                       Ref dw = t.f(3), dx = full ? t.f(4) : Ref{}, db = full ? t.f(5) : Ref{};
+                       be.conv2d_backward(t.f(0), t.f(1), t.f(2), pad, full ? &dx : nullptr, dw,
+                                          full ? &db : nullptr);
+                     },
+                     nmse_within(1e-9)});
+      args = {in_f("x", x), in_f("w", w), in_f("bias", {w[0]})};
+      add_bn(args, w[0], false, false);
+      args.push_back(out("y", y));
+      all.push_back({std::string("conv2d_bn_relu_eval/") + (full ? "" : "no_bias,") + shapes, args,
+                     [pad, full](Backend& be, Bound& t) {
+                       Ref bias = t.f(2), yy = t.f(7);
+                       be.conv2d_bn_relu_eval(t.f(0), t.f(1), full ? &bias : nullptr, t.bn(3, false), pad, yy);
+                     },
+                     nmse_within(1e-9)});
+    }
   }
   for (const auto& [x, o] :
        std::vector<std::pair<Shape, int64_t>>{{{2, 6, 3, 4}, 3}, {{1, 16, 5, 7}, 8}}) {
-    const std::string shapes = "x=" + shape_name(x) + ",o=" + std::to_string(o);
     const Shape w{x[1], o, 2, 2}, y{x[0], o, 2 * x[2], 2 * x[3]};
-    all.push_back({"conv_transpose2d_forward/" + shapes,
-                   {in_f("x", x), in_f("w", w), in_f("bias", {o}), out("y", y)},
-                   [](Backend& be, Bound& t) {
-                     Ref bias = t.f(2), yy = t.f(3);
-                     be.conv_transpose2d_forward(t.f(0), t.f(1), &bias, yy);
-                   }});
-    // dy is an input: no backend may change it.
-    all.push_back({"conv_transpose2d_backward/" + shapes,
-                   {in_f("x", x), in_f("w", w), in_f("dy", y), out("dx", x), out("dw", w), out("dbias", {o})},
-                   [](Backend& be, Bound& t) {
-                     Ref dx = t.f(3), dw = t.f(4), db = t.f(5);
-                     be.conv_transpose2d_backward(t.f(0), t.f(1), t.f(2), dx, dw, &db);
-                   }});
+    for (const bool bias : {true, false}) {
+      const std::string shapes = (bias ? "" : "no_bias,") + ("x=" + shape_name(x) + ",o=" + std::to_string(o));
+      all.push_back({"conv_transpose2d_forward/" + shapes,
+                     {in_f("x", x), in_f("w", w), in_f("bias", {o}), out("y", y)},
+                     [bias](Backend& be, Bound& t) {
+                       Ref b = t.f(2), yy = t.f(3);
+                       be.conv_transpose2d_forward(t.f(0), t.f(1), bias ? &b : nullptr, yy);
+                     }});
+      // dy is an input: no backend may change it.
+      std::vector<Arg> args = {in_f("x", x), in_f("w", w), in_f("dy", y), out("dx", x), out("dw", w)};
+      if (bias) args.push_back(out("dbias", {o}));
+      all.push_back({"conv_transpose2d_backward/" + shapes, args,
+                     [bias](Backend& be, Bound& t) {
+                       Ref dx = t.f(3), dw = t.f(4), db = bias ? t.f(5) : Ref{};
+                       be.conv_transpose2d_backward(t.f(0), t.f(1), t.f(2), dx, dw, bias ? &db : nullptr);
+                     }});
+    }
   }
-  // BatchNorm + ReLU.
+  // BatchNorm + ReLU; training also synchronised over two replicas (TwinReplicas), and the
+  // backward in place (dx = dy).
   for (const Shape& x : std::vector<Shape>{{2, 3, 5, 4}, {1, 7, 9, 3}}) {
     const std::string shapes = "x=" + shape_name(x);
-    for (bool training : {false, true}) {
+    for (const char* mode : {"eval", "train", "train,twin_replicas"}) {
+      const bool training = mode[0] == 't', twins = mode[5] == ',';
       std::vector<Arg> args = {in_f("x", x)};
       add_bn(args, x[1], training, training);
       args.push_back(out("y", x));
       const size_t y = args.size() - 1;
-      all.push_back(
-          {std::string("batchnorm_relu_forward/") + (training ? "train," : "eval,") + shapes, args,
-           [training, y](Backend& be, Bound& t) {
-             BatchNormRefs bn = t.bn(1, training);
-             Ref yy = t.f(y);
-             be.batchnorm_relu_forward(t.f(0), bn, training, yy);
-           }});
+      all.push_back({.name = std::string("batchnorm_relu_forward/") + mode + "," + shapes,
+                     .args = args,
+                     .run = [training, twins, y](Backend& be, Bound& t) {
+                       TwinReplicas replicas;
+                       BatchNormRefs bn = t.bn(1, training);
+                       if (twins) bn.replicas = &replicas;
+                       Ref yy = t.f(y);
+                       be.batchnorm_relu_forward(t.f(0), bn, training, yy);
+                     },
+                     .runs_on = twins ? synchronises_batchnorm : nullptr});
     }
-    std::vector<Arg> args = {in_f("x", x), in_f("y", x, 0, 1), in_f("dy", x)};
-    add_bn(args, x[1], false, false, /*saved_in=*/true);
-    args.push_back(out("dx", x));
-    args.push_back(out("dgamma", {x[1]}));
-    args.push_back(out("dbeta", {x[1]}));
-    all.push_back({"batchnorm_relu_backward/" + shapes, args, [](Backend& be, Bound& t) {
-                     Ref dx = t.f(9), dg = t.f(10), db = t.f(11);
-                     be.batchnorm_relu_backward(t.f(0), t.f(1), t.f(2), t.bn(3, true), dx, dg, db);
-                   }});
+    for (const char* mode : {"", "twin_replicas,", "in_place,"}) {
+      const bool twins = mode[0] == 't', in_place = mode[0] == 'i';
+      std::vector<Arg> args = {in_f("x", x), in_f("y", x, 0, 1), in_place ? inout_f("dy", x) : in_f("dy", x)};
+      add_bn(args, x[1], false, false, /*saved_in=*/true);
+      if (!in_place) args.push_back(out("dx", x));
+      args.push_back(out("dgamma", {x[1]}));
+      args.push_back(out("dbeta", {x[1]}));
+      const size_t dgamma = args.size() - 2;
+      all.push_back({.name = std::string("batchnorm_relu_backward/") + mode + shapes,
+                     .args = args,
+                     .run = [twins, in_place, dgamma](Backend& be, Bound& t) {
+                       TwinReplicas replicas;
+                       BatchNormRefs bn = t.bn(3, true);
+                       if (twins) bn.replicas = &replicas;
+                       Ref dx = in_place ? t.f(2) : t.f(9), dg = t.f(dgamma), db = t.f(dgamma + 1);
+                       be.batchnorm_relu_backward(t.f(0), t.f(1), t.f(2), bn, dx, dg, db);
+                     },
+                     .runs_on = twins ? synchronises_batchnorm : nullptr});
+    }
   }
   // Pooling, upsampling, joins, channel copies: data movement, exact.
   for (const Shape& x : std::vector<Shape>{{2, 3, 6, 8}, {1, 4, 7, 5}, {1, 1, 2, 2}}) {
@@ -1172,22 +1213,29 @@ std::vector<Case> cases() {
                      },
                      nmse_within(1e-9)});
     }
-    if (!trains) continue;
-    // The backward after a training forward on the same backend (its arg-max slots).
-    std::vector<Arg> args = {in_f("points", {p, n, 10}), in_f("weight", {c, 10})};
-    add_bn(args, c, true, true);
-    for (Arg a : {out("out", {p, c}), out("argmax", {p, c}, Kind::I32)}) args.push_back(a);
-    for (Arg a : {in_f("dout", {p, c}), out("dweight", {c, 10}), out("dgamma", {c}), out("dbeta", {c})})
-      args.push_back(a);
-    all.push_back({"pfn_backward/" + shapes, args,
-                   [](Backend& be, Bound& t) {
-                     BatchNormRefs bn = t.bn(2, true);
-                     Ref y = t.f(8), dw = t.f(11), dg = t.f(12), db = t.f(13);
-                     IRef am = t.i32(9);
-                     be.pfn_forward(t.f(0), t.f(1), bn, true, IRef{}, am, y);
-                     be.pfn_backward(t.f(0), t.f(1), bn, am, t.f(10), dw, dg, db);
-                   },
-                   nmse_within(1e-9)});
+    // The backward after a training forward on the same backend (its arg-max slots), both also
+    // synchronised over two replicas.
+    for (const bool twins : {false, true}) {
+      if (!trains || (twins && p != 37)) continue;
+      std::vector<Arg> args = {in_f("points", {p, n, 10}), in_f("weight", {c, 10})};
+      add_bn(args, c, true, true);
+      for (Arg a : {out("out", {p, c}), out("argmax", {p, c}, Kind::I32)}) args.push_back(a);
+      for (Arg a : {in_f("dout", {p, c}), out("dweight", {c, 10}), out("dgamma", {c}), out("dbeta", {c})})
+        args.push_back(a);
+      all.push_back({.name = std::string("pfn_backward/") + (twins ? "twin_replicas," : "") + shapes,
+                     .args = args,
+                     .run = [twins](Backend& be, Bound& t) {
+                       TwinReplicas replicas;
+                       BatchNormRefs bn = t.bn(2, true);
+                       if (twins) bn.replicas = &replicas;
+                       Ref y = t.f(8), dw = t.f(11), dg = t.f(12), db = t.f(13);
+                       IRef am = t.i32(9);
+                       be.pfn_forward(t.f(0), t.f(1), bn, true, IRef{}, am, y);
+                       be.pfn_backward(t.f(0), t.f(1), bn, am, t.f(10), dw, dg, db);
+                     },
+                     .tol = nmse_within(1e-9),
+                     .runs_on = twins ? synchronises_batchnorm : nullptr});
+    }
   }
   for (const auto& [p, c] : std::vector<std::pair<int64_t, int64_t>>{{0, 4}, {1, 4}, {37, 16}, {70, 64}}) {
     const std::string shapes = "features=" + shape_name({p, c});
