@@ -21,6 +21,8 @@
 #include "engine/data/point_formats.hpp"
 #include "engine/data/semantickitti.hpp"
 #include "engine/pipeline/segmenter.hpp"
+#include "engine/train/checkpoint.hpp"
+#include "engine/train/dataset.hpp"
 #include "engine/train/run_config.hpp"
 #include "tests/support/scans.hpp"
 #include "tests/support/test_support.hpp"
@@ -574,4 +576,36 @@ TEST(InputMapping, SegmenterAppliesItFirst) {
   std::vector<float> p_unmapped(12 * cells);
   segmenter.segment_mapped(points, unmapped.data(), p_unmapped.data());
   EXPECT_NE(p_unmapped, p_direct);
+}
+
+// The run config's input: section reaches every reader of scans: a data set for training and
+// evaluation maps its scans, and a checkpoint stores it so that open_segmenter applies it (unless
+// another config is named).
+TEST(InputMapping, DataSetsAndCheckpointsCarryIt) {
+  const std::string tiny =
+      "grid: {x: [-6.4, 6.4], y: [-3.2, 3.2], z: [-2.5, 1.5], cell: 0.2, voxel_z: 0.5}\n"
+      "model: {max_points_per_pillar: 8, pillar_channels: 4, occupancy: 2d, occupancy_channels: 2, base_width: 4, "
+      "depth: 2}\n";
+  const RunConfig config =
+      parse_run_config(tiny + "input: {reflectance: none, transform: {height: 0.5, yaw: 90}}\n", "mapped.yaml");
+  const fs::path root = test::temp_dir();
+  write_bin(root / "sequences" / "00" / "velodyne" / "000000.bin", kPoints);
+  write_labels(root / "sequences" / "00" / "labels" / "000000.label", {40, 48, 70});
+  const ScanDataset data(root, {0}, 1, 0, config.model, ClassTable::defaults(), GroundTruthKind::sparse,
+                         root / "cache", false, config.input);
+  std::vector<Point> mapped = kPoints;
+  config.input.apply(mapped);
+  expect_points(data.scan(0).points, mapped);
+  EXPECT_EQ(data.scan(0).points[0].r, 0.0f);
+
+  auto backend = make_cpu_backend();
+  const PillarSegNet net(config.model, *backend, /*seed=*/3);
+  save_checkpoint(root / "mapped.safetensors", net, config, {}, /*with_optimizer=*/false);
+  const auto segmenter = open_segmenter(root / "mapped.safetensors", "", SegmenterOptions{});
+  EXPECT_EQ(segmenter->input_mapping().reflectance.kind, ReflectanceMapping::Kind::None);
+  EXPECT_TRUE(segmenter->input_mapping().transform.isApprox(config.input.transform));
+  std::ofstream(root / "plain.yaml") << tiny;
+  EXPECT_TRUE(open_segmenter(root / "mapped.safetensors", root / "plain.yaml", SegmenterOptions{})
+                  ->input_mapping()
+                  .is_identity());
 }
