@@ -341,7 +341,13 @@ train:
   precise_bn_batches: 4
   workers: 2
 eval: {sequences: [8, 9], scan_stride: 5, every_epochs: 1, mode: sparse}
+input:
+  reflectance: {scale: 0.00392157, offset: 0.1, clip: false}
+  transform: {height: 0.11, roll: 1, pitch: -2, yaw: -90}
 """,
+            "input_matrix.yaml": b"input: {reflectance: none, transform: [[0, 1, 0, 0], [-1, 0, 0, 0], [0, 0, 1, 0.11], "
+                                 b"[0, 0, 0, 1]]}\n",
+            "input_singular.yaml": b"input: {transform: [1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]}\n",
             "unknown_key.yaml": b"model: {base_widht: 8}\n",
             "empty.yaml": b"",
         },
