@@ -48,7 +48,7 @@
 //   pad_concat_backward         pad_concat_backward/...
 //   add_inplace                 add_inplace/...                   (0 and 1 element)
 //   softmax                     softmax/...                       (one cell)
-//   argmax                      argmax/...
+//   argmax                      argmax/[ties,]...
 //   loss                        loss/ce|bce
 //   sum_of_squares              sum_of_squares/n=..             (0 and 1 element)
 //   scale                       scale/n=..                      (0 and 1 element)
@@ -283,6 +283,23 @@ Arg in_h(std::string name, Shape shape, Precision p, double lo = -1, double hi =
   a.fill = [p, lo, hi](Rng& rng, void* dst, int64_t n) {
     uint16_t* h = static_cast<uint16_t*>(dst);
     for (int64_t i = 0; i < n; ++i) h[i] = to_bits(static_cast<float>(rng.uniform(lo, hi)), p);
+  };
+  return a;
+}
+// The max-pool's hard inputs among the random values: NaN (which wins), -Inf, and ties (which
+// keep the window's first element), at fixed positions.
+Arg with_nan_and_ties(Arg a, Precision p = Precision::F32) {
+  a.fill = [fill = a.fill, kind = a.kind, p](Rng& rng, void* dst, int64_t n) {
+    fill(rng, dst, n);
+    for (int64_t i = 0; i < n; ++i) {
+      const float special = i % 7 == 3    ? std::numeric_limits<float>::quiet_NaN()
+                            : i % 11 == 5 ? -std::numeric_limits<float>::infinity()
+                            : i % 3 == 1  ? 0.5f
+                                          : 0.0f;
+      if (i % 7 != 3 && i % 11 != 5 && i % 3 != 1) continue;
+      if (kind == Kind::H16) static_cast<uint16_t*>(dst)[i] = to_bits(special, p);
+      else static_cast<float*>(dst)[i] = special;
+    }
   };
   return a;
 }
@@ -697,7 +714,7 @@ void add_half_ops(std::vector<Case>& all, Precision p) {
   for (const Shape& x : std::vector<Shape>{{1, 1, 2, 2}, {2, 3, 7, 9}}) {
     const Shape y = op::maxpool2x2(x);
     all.push_back({.name = "maxpool2x2_half/" + d + ",x=" + shape_name(x),
-                   .args = {in_h("x", x, p), out("y", y, Kind::H16)},
+                   .args = {with_nan_and_ties(in_h("x", x, p), p), out("y", y, Kind::H16)},
                    .run = [p](Backend& be, Bound& t) {
                      HRef yy = t.h16(1);
                      be.maxpool2x2_half(t.h16(0), p, yy);
@@ -1088,11 +1105,12 @@ std::vector<Case> cases() {
                      .runs_on = twins ? synchronises_batchnorm : nullptr});
     }
   }
-  // Pooling, upsampling, joins, channel copies: data movement, exact.
+  // Pooling (NaN, -Inf and ties among the inputs), upsampling, joins, channel copies: data
+  // movement, exact.
   for (const Shape& x : std::vector<Shape>{{2, 3, 6, 8}, {1, 4, 7, 5}, {1, 1, 2, 2}}) {
     const Shape p{x[0], x[1], x[2] / 2, x[3] / 2};
     all.push_back({"maxpool2x2_forward/x=" + shape_name(x),
-                   {in_f("x", x), out("y", p), out("argmax", p, Kind::I32)},
+                   {with_nan_and_ties(in_f("x", x)), out("y", p), out("argmax", p, Kind::I32)},
                    [](Backend& be, Bound& t) {
                      Ref y = t.f(1);
                      IRef am = t.i32(2);
@@ -1101,7 +1119,7 @@ std::vector<Case> cases() {
                    bits()});
     all.push_back(
         {"maxpool2x2_backward/x=" + shape_name(x),
-         {in_f("x", x), in_f("dy", p), out("dx", x), out("y", p), out("argmax", p, Kind::I32)},
+         {with_nan_and_ties(in_f("x", x)), in_f("dy", p), out("dx", x), out("y", p), out("argmax", p, Kind::I32)},
          [](Backend& be, Bound& t) {
            Ref y = t.f(3), dx = t.f(2);
            IRef am = t.i32(4);
@@ -1269,6 +1287,17 @@ std::vector<Case> cases() {
                    }});
     all.push_back({"argmax/" + shapes,
                    {in_f("logits", logits, -4, 4), out("labels", map, Kind::U8)},
+                   [](Backend& be, Bound& t) {
+                     LRef labels = t.u8(1);
+                     be.argmax(t.f(0), labels);
+                   }});
+    // Logits of three values only: most cells tie, and the first class of the largest wins.
+    Arg tied = in_f("logits", logits);
+    tied.fill = [](Rng& rng, void* dst, int64_t n) {
+      for (int64_t i = 0; i < n; ++i) static_cast<float*>(dst)[i] = static_cast<float>(rng.uniform_int(3));
+    };
+    all.push_back({"argmax/ties," + shapes,
+                   {tied, out("labels", map, Kind::U8)},
                    [](Backend& be, Bound& t) {
                      LRef labels = t.u8(1);
                      be.argmax(t.f(0), labels);
