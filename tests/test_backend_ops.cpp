@@ -18,18 +18,18 @@
 //
 // The ops of backend.hpp and the cases that cover them, FP32 unless a dtype is named (memory,
 // clock, capture and counters are the harness's own calls, not ops):
-//   pad_points                  pad_points/m=..,num=..          (0 and 1 point, none padded, all)
+//   pad_points                  pad_points/m=..,num=..       (0 and 1 point, none padded, all)
 //   pillar_gather               pillar_gather/m=..,n=..,max=..  (0 and 1 point, capped, uncapped)
-//   decorate_points             decorate_points/...             (live rows, and every row live)
+//   decorate_points             decorate_points/...          (live rows, and every row live)
 //   batch_cells                 batch_cells/rows=..,sample=..   (0 and 1 row, inert rows)
-//   observability_2d            observability_2d/...            (origin on a corner, outside)
+//   observability_2d            observability_2d/...         (origin on a corner, outside)
 //   observability_input         observability_input/...
 //   occupancy_3d                occupancy_3d/...
 //   grid_map_features           grid_map_features/...
-//   mask_unobserved             mask_unobserved/...             (with and without probabilities)
+//   mask_unobserved             mask_unobserved/...          (with and without probabilities)
 //   pfn_forward                 pfn_forward/eval|train|live=..   (1 pillar of 1 point, of 3)
 //   pfn_backward                pfn_backward/[twin_replicas,]... (synchronised BatchNorm)
-//   scatter_forward             scatter_forward/...               (0 and 1 pillar)
+//   scatter_forward             scatter_forward/...          (0 and 1 pillar)
 //   scatter_backward            scatter_backward/...
 //   copy_channels               copy_channels/...
 //   extract_channels            extract_channels/...
@@ -40,23 +40,23 @@
 //   conv2d_bn_relu_eval         conv2d_bn_relu_eval/[no_bias,]...
 //   batchnorm_relu_forward      batchnorm_relu_forward/eval|train|train,twin_replicas
 //   batchnorm_relu_backward     batchnorm_relu_backward/[twin_replicas,|in_place,]...
-//   maxpool2x2_forward          maxpool2x2_forward/...            (a 1 x 1 output)
+//   maxpool2x2_forward          maxpool2x2_forward/...       (a 1 x 1 output; NaN, -Inf, ties)
 //   maxpool2x2_backward         maxpool2x2_backward/...
-//   upsample2x_forward          upsample2x_forward/...            (a 1 x 1 input)
+//   upsample2x_forward          upsample2x_forward/...       (a 1 x 1 input)
 //   upsample2x_backward         upsample2x_backward/...
-//   pad_concat_forward          pad_concat_forward/...            (1 x 1 planes)
+//   pad_concat_forward          pad_concat_forward/...       (1 x 1 planes)
 //   pad_concat_backward         pad_concat_backward/...
-//   add_inplace                 add_inplace/...                   (0 and 1 element)
-//   softmax                     softmax/...                       (one cell)
+//   add_inplace                 add_inplace/...              (0 and 1 element)
+//   softmax                     softmax/[large,]...          (one cell)
 //   argmax                      argmax/[ties,]...
-//   loss                        loss/ce|bce
-//   sum_of_squares              sum_of_squares/n=..             (0 and 1 element)
-//   scale                       scale/n=..                      (0 and 1 element)
-//   adam_step                   adam_step/n=..                    (1 element; AdamW, Adam)
-//   begin_sum_over_replicas,    sum_over_replicas/n=..          (one replica: the CPU and the
-//   end_sums_over_replicas                                       emulation's host path; a GPU's
-//                                                                NCCL path needs processes:
-//                                                                tests/mpi)
+//   loss                        loss/ce|bce[,large]          (logits up to +-100)
+//   sum_of_squares              sum_of_squares/n=..          (0 and 1 element)
+//   scale                       scale/n=..                   (0 and 1 element)
+//   adam_step                   adam_step/n=..               (1 element; AdamW, Adam)
+//   begin_sum_over_replicas,    sum_over_replicas/n=..       (one replica: the CPU's and the
+//   end_sums_over_replicas                                   emulation's host path; a GPU's
+//                                                            NCCL path needs processes:
+//                                                            tests/mpi)
 //   supports_precision, supports_training_precision, supports_synchronized_batchnorm: the cases
 //                               that need them ask the backend first (and record why not)
 //   prepared_conv_transform_elements  conv2d_half_forward/... (the CPU's Winograd U)
@@ -66,8 +66,8 @@
 //   conv_transpose2x2_half_forward  conv_transpose2x2_half_forward/bf16|fp16
 //   conv2d_backward_half        conv2d_backward_half/bf16|fp16[,dw_only]
 //   conv_transpose2x2_backward_half conv_transpose2x2_backward_half/bf16|fp16
-//   to_half                     to_half/bf16|fp16               (ties, overflow, subnormals, NaN)
-//   maxpool2x2_half             maxpool2x2_half/bf16|fp16
+//   to_half                     to_half/bf16|fp16            (ties, overflow, subnormals, NaN)
+//   maxpool2x2_half             maxpool2x2_half/bf16|fp16    (NaN, -Inf, ties)
 //   upsample2x_half             upsample2x_half/bf16|fp16
 //   pad_concat_half             pad_concat_half/bf16|fp16
 //   copy_channels_half          copy_channels_half/bf16|fp16
@@ -1291,6 +1291,24 @@ std::vector<Case> cases() {
                      LRef labels = t.u8(1);
                      be.argmax(t.f(0), labels);
                    }});
+    // Logits up to +-100: exp overflows FP32 unless the largest is subtracted first.
+    all.push_back({"softmax/large," + shapes,
+                   {in_f("logits", logits, -100, 100), out("probs", logits)},
+                   [](Backend& be, Bound& t) {
+                     Ref probs = t.f(1);
+                     be.softmax(t.f(0), probs);
+                   }});
+    for (LossKind kind : {LossKind::CrossEntropy, LossKind::Bce}) {
+      all.push_back({std::string("loss/") + (kind == LossKind::Bce ? "bce," : "ce,") + "large," + shapes,
+                     {in_f("logits", logits, -100, 100), labels_arg(map), in_f("coefficients", {13}, 0.5, 4),
+                      out("dlogits", logits)},
+                     [kind](Backend& be, Bound& t) {
+                       Ref dl = t.f(3);
+                       t.scalar = be.loss(kind, t.f(0), t.u8(1), t.f(2), dl);
+                     },
+                     nmse_within(1e-10),
+                     true});
+    }
     // Logits of three values only: most cells tie, and the first class of the largest wins.
     Arg tied = in_f("logits", logits);
     tied.fill = [](Rng& rng, void* dst, int64_t n) {
