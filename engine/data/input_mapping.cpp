@@ -64,9 +64,9 @@ std::string InputMapping::describe() const {
       break;
   }
   if (transform != Pose::Identity()) {
-    std::vector<double> values;
+    std::vector<double> values;  // cos(90 degrees) and the like as 0
     for (int r = 0; r < 3; ++r)
-      for (int c = 0; c < 4; ++c) values.push_back(transform(r, c));
+      for (int c = 0; c < 4; ++c) values.push_back(std::abs(transform(r, c)) < 1e-12 ? 0.0 : transform(r, c));
     text += fmt::format(", transform rows [{:.6g}]", fmt::join(values, " "));
   }
   return text;
