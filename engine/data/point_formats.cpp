@@ -590,39 +590,47 @@ Scalar ply_scalar(std::string_view word, const std::string& where) {
           where, word);
 }
 
+// Where a PLY value is: formatted only for an error message (not for every value read).
+struct PlyPlace {
+  const std::string& element;
+  uint64_t index;
+  const std::string& property;
+  std::string text() const { return fmt::format("{} {} property '{}'", element, index, property); }
+};
+
 // The bytes (binary) or words (ascii) of a PLY body, front to back, every read bounds-checked.
 class PlyBody {
  public:
   PlyBody(std::span<const char> bytes, bool ascii, bool big_endian, const std::string& name)
       : bytes_(bytes), ascii_(ascii), big_endian_(big_endian), name_(name) {}
 
-  double value(Scalar type, const std::string& what) {
+  double value(Scalar type, const PlyPlace& at) {
     if (ascii_) {
-      const std::string_view w = word(what);
+      const std::string_view w = word(at);
       double v = 0;
-      PS_CHECK(parse_double(w, v), "{}: {}: '{}' is not a number", name_, what, w);
+      PS_CHECK(parse_double(w, v), "{}: {}: '{}' is not a number", name_, at.text(), w);
       return v;
     }
     const size_t size = scalar_size(type);
-    PS_CHECK(size <= bytes_.size() - pos_, "{}: the data ends inside {} (truncated file?)", name_, what);
+    PS_CHECK(size <= bytes_.size() - pos_, "{}: the data ends inside {} (truncated file?)", name_, at.text());
     const double v = load_scalar(bytes_.data() + pos_, type, big_endian_);
     pos_ += size;
     return v;
   }
   // A list's length: a non-negative whole number.
-  uint64_t list_length(Scalar type, const std::string& what) {
-    const double v = value(type, what);
+  uint64_t list_length(Scalar type, const PlyPlace& at) {
+    const double v = value(type, at);
     PS_CHECK(v >= 0 && v == std::floor(v) && v < 4294967296.0, "{}: {}: list length {} is not a whole number >= 0",
-             name_, what, v);
+             name_, at.text(), v);
     return static_cast<uint64_t>(v);
   }
-  void skip(Scalar type, uint64_t count, const std::string& what) {
+  void skip(Scalar type, uint64_t count, const PlyPlace& at) {
     if (ascii_) {
-      for (uint64_t k = 0; k < count; ++k) value(type, what);
+      for (uint64_t k = 0; k < count; ++k) value(type, at);
       return;
     }
     const uint64_t bytes = count * scalar_size(type);
-    PS_CHECK(bytes <= bytes_.size() - pos_, "{}: the data ends inside {} (truncated file?)", name_, what);
+    PS_CHECK(bytes <= bytes_.size() - pos_, "{}: the data ends inside {} (truncated file?)", name_, at.text());
     pos_ += static_cast<size_t>(bytes);
   }
   size_t remaining() const { return bytes_.size() - pos_; }
@@ -631,9 +639,9 @@ class PlyBody {
   }
 
  private:
-  std::string_view word(const std::string& what) {
+  std::string_view word(const PlyPlace& at) {
     while (pos_ < bytes_.size() && is_space(bytes_[pos_])) ++pos_;
-    PS_CHECK(pos_ < bytes_.size(), "{}: the data ends before {} (truncated file?)", name_, what);
+    PS_CHECK(pos_ < bytes_.size(), "{}: the data ends before {} (truncated file?)", name_, at.text());
     const size_t start = pos_;
     while (pos_ < bytes_.size() && !is_space(bytes_[pos_])) ++pos_;
     return std::string_view(bytes_.data() + start, pos_ - start);
@@ -707,14 +715,14 @@ std::vector<Point> decode_ply(std::span<const char> bytes, const std::string& na
   const auto walk = [&](const PlyElement& e, uint64_t i, std::array<double, 4>* out) {
     for (size_t k = 0; k < e.properties.size(); ++k) {
       const PlyProperty& p = e.properties[k];
-      const std::string what = fmt::format("{} {} property '{}'", e.name, i, p.name);
+      const PlyPlace at{e.name, i, p.name};
       if (p.list) {
-        body.skip(p.type, body.list_length(p.count_type, what), what);
+        body.skip(p.type, body.list_length(p.count_type, at), at);
         continue;
       }
       const auto slot = std::find(used.begin(), used.end(), static_cast<int>(k));
-      if (out && slot != used.end()) (*out)[static_cast<size_t>(slot - used.begin())] = body.value(p.type, what);
-      else body.skip(p.type, 1, what);
+      if (out && slot != used.end()) (*out)[static_cast<size_t>(slot - used.begin())] = body.value(p.type, at);
+      else body.skip(p.type, 1, at);
     }
   };
   for (auto e = elements.begin(); e != vertex; ++e)
