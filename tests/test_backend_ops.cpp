@@ -16,8 +16,8 @@
 //     reductions, by normalised mean squared error sum (a - r)^2 / sum r^2; NaN and Inf must
 //     match, and a failure names the worst element.
 //
-// The ops of backend.hpp and the cases that cover them, FP32 unless a dtype is named (memory,
-// clock, capture and counters are the harness's own calls, not ops):
+// The ops of backend.hpp and the cases that cover them, FP32 unless a dtype is named; "empty,"
+// marks a batch of 0 (memory, clock, capture and counters are the harness's own calls, not ops):
 //   pad_points                  pad_points/m=..,num=..       (0 and 1 point, none padded, all)
 //   pillar_gather               pillar_gather/m=..,n=..,max=..  (0 and 1 point, capped, uncapped)
 //   decorate_points             decorate_points/...          (live rows, and every row live)
@@ -33,23 +33,24 @@
 //   scatter_backward            scatter_backward/...
 //   copy_channels               copy_channels/...
 //   extract_channels            extract_channels/...
-//   conv2d_forward              conv2d_forward/[no_bias,]...
+//   conv2d_forward              conv2d_forward/[no_bias,|empty,]...
 //   conv2d_backward             conv2d_backward/[dw_only,]...
 //   conv_transpose2d_forward    conv_transpose2d_forward/[no_bias,]...
 //   conv_transpose2d_backward   conv_transpose2d_backward/[no_bias,]...
 //   conv2d_bn_relu_eval         conv2d_bn_relu_eval/[no_bias,]...
-//   batchnorm_relu_forward      batchnorm_relu_forward/eval|train|train,twin_replicas
+//   batchnorm_relu_forward      batchnorm_relu_forward/eval[,empty]|train|train,twin_replicas
 //   batchnorm_relu_backward     batchnorm_relu_backward/[twin_replicas,|in_place,]...
-//   maxpool2x2_forward          maxpool2x2_forward/...       (a 1 x 1 output; NaN, -Inf, ties)
+//   maxpool2x2_forward          maxpool2x2_forward/[empty,]...  (a 1 x 1 output; NaN, -Inf, ties)
 //   maxpool2x2_backward         maxpool2x2_backward/...
-//   upsample2x_forward          upsample2x_forward/...       (a 1 x 1 input)
+//   upsample2x_forward          upsample2x_forward/[empty,]...  (a 1 x 1 input)
 //   upsample2x_backward         upsample2x_backward/...
-//   pad_concat_forward          pad_concat_forward/...       (1 x 1 planes)
+//   pad_concat_forward          pad_concat_forward/[empty,]...  (1 x 1 planes)
 //   pad_concat_backward         pad_concat_backward/...
 //   add_inplace                 add_inplace/...              (0 and 1 element)
-//   softmax                     softmax/[large,]...          (one cell)
-//   argmax                      argmax/[ties,]...
-//   loss                        loss/ce|bce[,large]          (logits up to +-100)
+//   softmax                     softmax/[large,|empty,]...  (one cell)
+//   argmax                      argmax/[ties,|empty,]...
+//   loss                        loss/ce|bce[,large|,unlabelled|,empty]  (logits up to +-100,
+//                                                            no labelled cell, a batch of 0)
 //   sum_of_squares              sum_of_squares/n=..          (0 and 1 element)
 //   scale                       scale/n=..                   (0 and 1 element)
 //   adam_step                   adam_step/n=..               (1 element; AdamW, Adam)
@@ -1334,6 +1335,79 @@ std::vector<Case> cases() {
                      nmse_within(1e-13),
                      true});
     }
+  }
+  // No labelled cell (every label 0): the loss and its gradient of an empty mean.
+  for (LossKind kind : {LossKind::CrossEntropy, LossKind::Bce}) {
+    Arg unlabelled = labels_arg({1, 4, 5});
+    unlabelled.fill = [](Rng&, void* dst, int64_t n) { std::memset(dst, 0, static_cast<size_t>(n)); };
+    all.push_back({std::string("loss/") + (kind == LossKind::Bce ? "bce," : "ce,") + "unlabelled,logits=1x12x4x5",
+                   {in_f("logits", {1, 12, 4, 5}, -4, 4), unlabelled, in_f("coefficients", {13}, 0.5, 4),
+                    out("dlogits", {1, 12, 4, 5})},
+                   [kind](Backend& be, Bound& t) {
+                     Ref dl = t.f(3);
+                     t.scalar = be.loss(kind, t.f(0), t.u8(1), t.f(2), dl);
+                   },
+                   bits(),
+                   true});
+  }
+  // An empty batch through the forward ops.
+  {
+    const Shape x{0, 3, 4, 6};
+    all.push_back({"conv2d_forward/empty,x=0x3x4x6,w=5x3x3x3,pad=1",
+                   {in_f("x", x), in_f("w", {5, 3, 3, 3}), in_f("bias", {5}), out("y", {0, 5, 4, 6})},
+                   [](Backend& be, Bound& t) {
+                     Ref bias = t.f(2), y = t.f(3);
+                     be.conv2d_forward(t.f(0), t.f(1), &bias, 1, y);
+                   }});
+    all.push_back({"maxpool2x2_forward/empty,x=0x3x4x6",
+                   {in_f("x", x), out("y", {0, 3, 2, 3}), out("argmax", {0, 3, 2, 3}, Kind::I32)},
+                   [](Backend& be, Bound& t) {
+                     Ref y = t.f(1);
+                     IRef am = t.i32(2);
+                     be.maxpool2x2_forward(t.f(0), y, am);
+                   }});
+    all.push_back({"upsample2x_forward/empty,x=0x3x4x6",
+                   {in_f("x", x), out("y", {0, 3, 8, 12})},
+                   [](Backend& be, Bound& t) {
+                     Ref y = t.f(1);
+                     be.upsample2x_forward(t.f(0), y);
+                   }});
+    all.push_back({"pad_concat_forward/empty,skip=0x3x4x6,up=0x2x3x5",
+                   {in_f("skip", x), in_f("up", {0, 2, 3, 5}), out("y", {0, 5, 4, 6})},
+                   [](Backend& be, Bound& t) {
+                     Ref y = t.f(2);
+                     be.pad_concat_forward(t.f(0), t.f(1), y);
+                   }});
+    std::vector<Arg> args = {in_f("x", x)};
+    add_bn(args, 3, false, false);
+    args.push_back(out("y", x));
+    all.push_back({"batchnorm_relu_forward/eval,empty,x=0x3x4x6", args, [](Backend& be, Bound& t) {
+                     BatchNormRefs bn = t.bn(1, false);
+                     Ref y = t.f(5);
+                     be.batchnorm_relu_forward(t.f(0), bn, false, y);
+                   }});
+    const Shape logits{0, 12, 4, 5};
+    all.push_back({"softmax/empty,logits=0x12x4x5",
+                   {in_f("logits", logits), out("probs", logits)},
+                   [](Backend& be, Bound& t) {
+                     Ref probs = t.f(1);
+                     be.softmax(t.f(0), probs);
+                   }});
+    all.push_back({"argmax/empty,logits=0x12x4x5",
+                   {in_f("logits", logits), out("labels", {0, 4, 5}, Kind::U8)},
+                   [](Backend& be, Bound& t) {
+                     LRef labels = t.u8(1);
+                     be.argmax(t.f(0), labels);
+                   }});
+    all.push_back({"loss/ce,empty,logits=0x12x4x5",
+                   {in_f("logits", logits), labels_arg({0, 4, 5}), in_f("coefficients", {13}, 0.5, 4),
+                    out("dlogits", logits)},
+                   [](Backend& be, Bound& t) {
+                     Ref dl = t.f(3);
+                     t.scalar = be.loss(LossKind::CrossEntropy, t.f(0), t.u8(1), t.f(2), dl);
+                   },
+                   bits(),
+                   true});
   }
   // The optimiser: AdamW with the defaults at step 3, and plain Adam at its first step; the
   // kernel's and the host's FP32 expressions round apart by an ulp or two (of the operands, where
