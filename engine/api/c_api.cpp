@@ -115,21 +115,29 @@ extern "C" {
 
 const char* pillarseg_version(void) { return PILLARSEG_VERSION_STRING; }
 
+void pillarseg_init_options(pillarseg_options* options, size_t struct_size) {
+  if (options == nullptr || struct_size < sizeof(options->struct_size)) return;
+  pillarseg_options defaults{};
+  defaults.struct_size = std::min(struct_size, sizeof(pillarseg_options));
+  defaults.device = "cpu";
+  defaults.threads = 0;
+  defaults.cuda_device = 0;
+  defaults.mask_unobserved = 0;
+  defaults.convolution = "own";
+  defaults.precision = "fp32";
+  defaults.reflectance_none = 0;
+  defaults.reflectance_scale = 1.0f;
+  defaults.reflectance_offset = 0.0f;
+  defaults.reflectance_clip = 1;
+  for (int i = 0; i < 16; ++i) defaults.transform[i] = i % 5 == 0 ? 1.0 : 0.0;
+  std::memcpy(options, &defaults, defaults.struct_size);
+}
+
+// The exported function of version 0.3 (the header maps the name to pillarseg_init_options):
+// its callers' struct ends after `precision`.
+#undef pillarseg_default_options
 void pillarseg_default_options(pillarseg_options* options) {
-  if (options == nullptr) return;
-  *options = pillarseg_options{};
-  options->struct_size = sizeof(pillarseg_options);
-  options->device = "cpu";
-  options->threads = 0;
-  options->cuda_device = 0;
-  options->mask_unobserved = 0;
-  options->convolution = "own";
-  options->precision = "fp32";
-  options->reflectance_none = 0;
-  options->reflectance_scale = 1.0f;
-  options->reflectance_offset = 0.0f;
-  options->reflectance_clip = 1;
-  for (int i = 0; i < 16; ++i) options->transform[i] = i % 5 == 0 ? 1.0 : 0.0;
+  pillarseg_init_options(options, offsetof(pillarseg_options, reflectance_none));
 }
 
 pillarseg_segmenter* pillarseg_open(const char* weights_path, const char* config_path,
@@ -139,7 +147,7 @@ pillarseg_segmenter* pillarseg_open(const char* weights_path, const char* config
   guarded("pillarseg_open", error, error_size, [&] {
     PS_CHECK(weights_path != nullptr && weights_path[0] != '\0', "weights_path is NULL or empty");
     pillarseg_options defaults;
-    pillarseg_default_options(&defaults);
+    pillarseg_init_options(&defaults, sizeof defaults);
     const pillarseg_options* o = options ? options : &defaults;
     PS_CHECK(o->struct_size >= offsetof(pillarseg_options, device) + sizeof(o->device),
              "options->struct_size is {}: set it with pillarseg_default_options()", o->struct_size);

@@ -84,11 +84,21 @@ typedef struct pillarseg_options {
 /* "0.4.0": the library's version (the header's is PILLARSEG_VERSION_*). */
 PILLARSEG_API const char* pillarseg_version(void);
 
-/* Fills *options with the defaults: device "cpu", threads 0, cuda_device 0, mask_unobserved 0,
- * convolution "own", precision "fp32", reflectance_none 0, reflectance_scale 1,
- * reflectance_offset 0, reflectance_clip 1, transform the identity. With scale 1 and offset 0 the
- * reflectance is passed as stored (clip applies to a scaled or offset one). */
+/* Fills the first struct_size bytes of *options with the defaults and sets options->struct_size
+ * to struct_size (at most this library's sizeof(pillarseg_options)): device "cpu", threads 0,
+ * cuda_device 0, mask_unobserved 0, convolution "own", precision "fp32", reflectance_none 0,
+ * reflectance_scale 1, reflectance_offset 0, reflectance_clip 1, transform the identity. With
+ * scale 1 and offset 0 the reflectance is passed as stored (clip applies to a scaled or offset
+ * one). Nothing past struct_size is written, so a program built against an older header, whose
+ * struct is shorter, is safe with a newer library. Call it through pillarseg_default_options. */
+PILLARSEG_API void pillarseg_init_options(pillarseg_options* options, size_t struct_size);
+
+/* The defaults in a struct of this header's size: pillarseg_init_options(options, sizeof
+ * *options), as zlib's deflateInit passes sizeof(z_stream). (The library also exports a function
+ * of this name, for programs built against version 0.3: it fills 0.3's struct, the members up to
+ * `precision`.) */
 PILLARSEG_API void pillarseg_default_options(pillarseg_options* options);
+#define pillarseg_default_options(options) pillarseg_init_options((options), sizeof(*(options)))
 
 /* Opens a segmenter on `weights_path`, a safetensors checkpoint: one written by `pillarseg
  * train`, or a weights-only file (for example exported from PyTorch with the authors' module

@@ -39,7 +39,7 @@ class Options(ctypes.Structure):
 # name: (result type, argument types)
 _SIGNATURES = {
     "pillarseg_version": (ctypes.c_char_p, []),
-    "pillarseg_default_options": (None, [ctypes.POINTER(Options)]),
+    "pillarseg_init_options": (None, [ctypes.POINTER(Options), ctypes.c_size_t]),
     "pillarseg_open": (ctypes.c_void_p, [ctypes.c_char_p, ctypes.c_char_p, ctypes.POINTER(Options),
                                          ctypes.c_char_p, ctypes.c_size_t]),
     "pillarseg_grid": (None, [ctypes.c_void_p, ctypes.POINTER(ctypes.c_int), ctypes.POINTER(ctypes.c_int)]),
@@ -102,12 +102,10 @@ lib, library_path = _load()
 
 
 def default_options():
-    """pillarseg_default_options' values in an Options of this module's size. The library writes its
-    own sizeof(pillarseg_options), which a later library makes larger: it writes into a roomy
-    buffer, of which this module's fields are taken."""
-    roomy = ctypes.create_string_buffer(max(4096, ctypes.sizeof(Options)))
-    lib.pillarseg_default_options(ctypes.cast(roomy, ctypes.POINTER(Options)))
-    options = Options.from_buffer_copy(roomy.raw[:ctypes.sizeof(Options)])
+    """The library's defaults in an Options of this module's size (pillarseg_init_options writes
+    no more than the size it is given; a newer library's longer struct is cut to this one)."""
+    options = Options()
+    lib.pillarseg_init_options(ctypes.byref(options), ctypes.sizeof(Options))
     options.struct_size = ctypes.sizeof(Options)
     return options
 

@@ -110,6 +110,48 @@ Output segment(pillarseg_segmenter* s, const std::vector<float>& xyzr) {
 
 }  // namespace
 
+// A program built against an older header has a shorter struct: the defaults never write past the
+// size it gives (pillarseg_default_options passes its sizeof; the exported function of that name is
+// what programs built against 0.3 call, with 0.3's struct).
+TEST(CApi, DefaultOptionsWriteNoMoreThanTheCallersStruct) {
+  constexpr unsigned char kCanary = 0xA5;
+  alignas(pillarseg_options) unsigned char buffer[sizeof(pillarseg_options) + 32];
+  auto* o = reinterpret_cast<pillarseg_options*>(buffer);
+  const auto untouched_from = [&](std::size_t first) {
+    for (std::size_t i = first; i < sizeof buffer; ++i) {
+      if (buffer[i] != kCanary) return ::testing::AssertionFailure() << "byte " << i << " was written";
+    }
+    return ::testing::AssertionSuccess();
+  };
+  constexpr std::size_t kSize03 = offsetof(pillarseg_options, reflectance_none);
+  std::memset(buffer, kCanary, sizeof buffer);
+  (pillarseg_default_options)(o);
+  EXPECT_TRUE(untouched_from(kSize03));
+  EXPECT_EQ(o->struct_size, kSize03);
+  EXPECT_STREQ(o->device, "cpu");
+  EXPECT_STREQ(o->precision, "fp32");
+
+  std::memset(buffer, kCanary, sizeof buffer);
+  pillarseg_init_options(o, offsetof(pillarseg_options, transform));
+  EXPECT_TRUE(untouched_from(offsetof(pillarseg_options, transform)));
+  EXPECT_EQ(o->struct_size, offsetof(pillarseg_options, transform));
+  EXPECT_EQ(o->reflectance_scale, 1.0f);
+  EXPECT_EQ(o->reflectance_clip, 1);
+
+  // A later header's longer struct: this library fills what it knows and says so in struct_size.
+  std::memset(buffer, kCanary, sizeof buffer);
+  pillarseg_init_options(o, sizeof buffer);
+  EXPECT_TRUE(untouched_from(sizeof(pillarseg_options)));
+  EXPECT_EQ(o->struct_size, sizeof(pillarseg_options));
+  EXPECT_EQ(o->transform[0], 1.0);
+  EXPECT_EQ(o->transform[15], 1.0);
+  EXPECT_EQ(o->transform[1], 0.0);
+
+  std::memset(buffer, kCanary, sizeof buffer);
+  pillarseg_init_options(o, sizeof(std::size_t) - 1);  // cannot even hold struct_size: ignored
+  EXPECT_TRUE(untouched_from(0));
+}
+
 TEST(CApi, VersionDefaultsAndClassNames) {
   EXPECT_EQ(std::string(pillarseg_version()),
             std::to_string(PILLARSEG_VERSION_MAJOR) + "." + std::to_string(PILLARSEG_VERSION_MINOR) + "." +
@@ -123,7 +165,8 @@ TEST(CApi, VersionDefaultsAndClassNames) {
   EXPECT_EQ(o.cuda_device, 0);
   EXPECT_EQ(o.mask_unobserved, 0);
   EXPECT_STREQ(o.convolution, "own");
-  pillarseg_default_options(nullptr);  // ignored
+  pillarseg_init_options(nullptr, sizeof(pillarseg_options));  // ignored
+  (pillarseg_default_options)(nullptr);                        // ignored
   EXPECT_STREQ(pillarseg_class_name(0), "unlabeled");
   EXPECT_STREQ(pillarseg_class_name(1), "vehicle");
   EXPECT_STREQ(pillarseg_class_name(12), "terrain");
