@@ -130,19 +130,29 @@ float from_bits(uint16_t h, Precision p) {
   return p == Precision::BF16 ? weights::bf16_bits_to_float(h) : weights::f16_bits_to_float(h);
 }
 // v rounded to the 16-bit type of p.
-float rounded(float v, Precision p) { return from_bits(to_bits(v, p), p); }
+float rounded(float v, Precision p) {
+  return from_bits(to_bits(v, p), p);
+}
 // One unit in the last place of a 16-bit value, relative: the most one rounding of the output
 // may move it.
-double half_ulp(Precision p) { return p == Precision::BF16 ? 0x1p-7 : 0x1p-10; }
+double half_ulp(Precision p) {
+  return p == Precision::BF16 ? 0x1p-7 : 0x1p-10;
+}
 
 // How an output compares with the reference's.
 struct Tolerance {
   enum class Mode { Bits, Nmse, Elementwise } mode = Mode::Nmse;
   double max_nmse = 1e-10, atol = 0, rtol = 0;
 };
-Tolerance bits() { return {Tolerance::Mode::Bits}; }
-Tolerance nmse_within(double max_nmse) { return {Tolerance::Mode::Nmse, max_nmse}; }
-Tolerance within(double atol, double rtol) { return {Tolerance::Mode::Elementwise, 0, atol, rtol}; }
+Tolerance bits() {
+  return {Tolerance::Mode::Bits};
+}
+Tolerance nmse_within(double max_nmse) {
+  return {Tolerance::Mode::Nmse, max_nmse};
+}
+Tolerance within(double atol, double rtol) {
+  return {Tolerance::Mode::Elementwise, 0, atol, rtol};
+}
 
 struct Arg {
   std::string name;
@@ -298,8 +308,10 @@ Arg with_nan_and_ties(Arg a, Precision p = Precision::F32) {
                             : i % 3 == 1  ? 0.5f
                                           : 0.0f;
       if (i % 7 != 3 && i % 11 != 5 && i % 3 != 1) continue;
-      if (kind == Kind::H16) static_cast<uint16_t*>(dst)[i] = to_bits(special, p);
-      else static_cast<float*>(dst)[i] = special;
+      if (kind == Kind::H16)
+        static_cast<uint16_t*>(dst)[i] = to_bits(special, p);
+      else
+        static_cast<float*>(dst)[i] = special;
     }
   };
   return a;
@@ -407,8 +419,8 @@ std::string origin_name(const Eigen::Vector3d& o) {
 // The prepared weights of a convolution (kernels/conv2d_mma.cuh's contract, its FP32
 // arithmetic): w16 (O, taps Ip) with w16[o][t Ip + c] = w[o][c][t] s rounded (0 for c >= I),
 // bias_out[o] = s bias[o] + beta - s mean, s = gamma / sqrt(var + eps) (1 without BatchNorm).
-void define_prepare_conv_weights(const Ref& w, const Ref* bias, const BatchNormRefs* bn, Precision p,
-                                 HRef& w16, Ref& bias_out) {
+void define_prepare_conv_weights(const Ref& w, const Ref* bias, const BatchNormRefs* bn,
+                                 Precision p, HRef& w16, Ref& bias_out) {
   const int64_t out_channels = w.dim(0), in = w.dim(1), taps = w.dim(2) * w.dim(3);
   const int64_t padded = op::half16_padded_channels(in), kp = w16.dim(1);
   for (int64_t o = 0; o < out_channels; ++o) {
@@ -419,7 +431,8 @@ void define_prepare_conv_weights(const Ref& w, const Ref* bias, const BatchNormR
     }
     for (int64_t t = 0; t < taps; ++t)
       for (int64_t c = 0; c < padded; ++c)
-        w16.data[o * kp + t * padded + c] = to_bits(c < in ? w.data[(o * in + c) * taps + t] * s : 0.0f, p);
+        w16.data[o * kp + t * padded + c] =
+            to_bits(c < in ? w.data[(o * in + c) * taps + t] * s : 0.0f, p);
     bias_out.data[o] = s * (bias != nullptr ? bias->data[o] : 0.0f) + shift;
   }
 }
@@ -445,15 +458,20 @@ std::vector<double> rounded_activation(const ActRef& x, Precision p) {
 // y[i] = value, FP32 or rounded to p.
 void store(const ActRef& y, int64_t i, double value, Precision p) {
   const float v = static_cast<float>(value);
-  if (y.half) static_cast<uint16_t*>(y.data)[i] = to_bits(v, p);
-  else static_cast<float*>(y.data)[i] = v;
+  if (y.half)
+    static_cast<uint16_t*>(y.data)[i] = to_bits(v, p);
+  else
+    static_cast<float*>(y.data)[i] = v;
 }
 // y = act(conv(x, w16) + bias_out), in double on the 16-bit operands.
-void define_conv2d_half_forward(const ActRef& x, const HRef& w16, const Ref& bias_out, const Shape& weight, int pad,
-                                bool relu, Precision p, const ActRef& y) {
+void define_conv2d_half_forward(const ActRef& x, const HRef& w16, const Ref& bias_out,
+                                const Shape& weight, int pad, bool relu, Precision p,
+                                const ActRef& y) {
   const std::vector<double> xv = rounded_activation(x, p);
-  const int64_t B = x.dim(0), I = x.dim(1), H = x.dim(2), W = x.dim(3), O = weight[0], k = weight[2];
-  const int64_t Ho = y.dim(2), Wo = y.dim(3), kp = w16.dim(1), padded = op::half16_padded_channels(I);
+  const int64_t B = x.dim(0), I = x.dim(1), H = x.dim(2), W = x.dim(3), O = weight[0],
+                k = weight[2];
+  const int64_t Ho = y.dim(2), Wo = y.dim(3), kp = w16.dim(1),
+                padded = op::half16_padded_channels(I);
   for (int64_t b = 0; b < B; ++b)
     for (int64_t o = 0; o < O; ++o)
       for (int64_t oy = 0; oy < Ho; ++oy)
@@ -475,14 +493,16 @@ void define_conv2d_half_forward(const ActRef& x, const HRef& w16, const Ref& bia
 void define_conv_transpose2x2_half_forward(const ActRef& x, const HRef& w16, const Ref& bias_out,
                                            const Shape& weight, Precision p, const ActRef& y) {
   const std::vector<double> xv = rounded_activation(x, p);
-  const int64_t B = x.dim(0), I = x.dim(1), H = x.dim(2), W = x.dim(3), O = weight[1], kp = w16.dim(1);
+  const int64_t B = x.dim(0), I = x.dim(1), H = x.dim(2), W = x.dim(3), O = weight[1],
+                kp = w16.dim(1);
   for (int64_t b = 0; b < B; ++b)
     for (int64_t n = 0; n < 4 * O; ++n)
       for (int64_t i = 0; i < H; ++i)
         for (int64_t j = 0; j < W; ++j) {
           double sum = bias_out.data[n];
           for (int64_t c = 0; c < I; ++c)
-            sum += xv[static_cast<size_t>(((b * I + c) * H + i) * W + j)] * from_bits(w16.data[n * kp + c], p);
+            sum += xv[static_cast<size_t>(((b * I + c) * H + i) * W + j)] *
+                   from_bits(w16.data[n * kp + c], p);
           const int64_t o = n / 4, dy = n % 4 / 2, dx = n % 2;
           store(y, ((b * O + o) * 2 * H + 2 * i + dy) * 2 * W + 2 * j + dx, sum, p);
         }
@@ -537,29 +557,34 @@ class TwinReplicas final : public ReplicaSum {
     for (int64_t i = 0; i < n; ++i) values[i] *= 2;
   }
 };
-bool synchronises_batchnorm(const Backend& be, std::string& why) { return be.supports_synchronized_batchnorm(&why); }
+bool synchronises_batchnorm(const Backend& be, std::string& why) {
+  return be.supports_synchronized_batchnorm(&why);
+}
 
 // ---- the table ----
 
 void add_input_ops(std::vector<Case>& all) {
   const GridSpec grid = small_grid();
   const int64_t H = grid.height(), W = grid.width(), Z = grid.layers();
-  for (const auto& [m, live] : std::vector<std::pair<int64_t, int64_t>>{{0, 0}, {1, 0}, {1, 1}, {37, 20}, {37, 37}}) {
+  for (const auto& [m, live] :
+       std::vector<std::pair<int64_t, int64_t>>{{0, 0}, {1, 0}, {1, 1}, {37, 20}, {37, 37}}) {
     all.push_back({.name = "pad_points/m=" + std::to_string(m) + ",num=" + std::to_string(live),
                    .args = {points_arg(m, grid, Role::InOut),
-                            in_i32("num_points", {1}, [live](Rng&, int64_t) { return static_cast<int32_t>(live); })},
-                   .run = [](Backend& be, Bound& t) {
-                     Ref points = t.f(0);
-                     be.pad_points(t.i32(1), points);
-                   },
+                            in_i32("num_points", {1},
+                                   [live](Rng&, int64_t) { return static_cast<int32_t>(live); })},
+                   .run =
+                       [](Backend& be, Bound& t) {
+                         Ref points = t.f(0);
+                         be.pad_points(t.i32(1), points);
+                       },
                    .tol = bits()});
   }
   // The gather's outputs past P' (num_pillars) are inert where a backend reports them written.
   const auto gather_args = [&](int64_t m, int64_t n, int max_pillars) {
     const int64_t rows = pillar_rows(m, grid, max_pillars);
     std::vector<Arg> args = {points_arg(m, grid), out("cell", {rows, 2}, Kind::I32),
-                             out("point_index", {rows, n}, Kind::I32), out("count", {rows}, Kind::I32),
-                             out("num_pillars", {1}, Kind::I32)};
+                             out("point_index", {rows, n}, Kind::I32),
+                             out("count", {rows}, Kind::I32), out("num_pillars", {1}, Kind::I32)};
     for (size_t i = 1; i <= 3; ++i) {
       args[i].live_rows_from = 4;
       args[i].inert = i == 3 ? 0 : -1;
@@ -568,13 +593,16 @@ void add_input_ops(std::vector<Case>& all) {
   };
   for (const auto& [m, n, max_pillars] : std::vector<std::tuple<int64_t, int64_t, int>>{
            {0, 4, 0}, {0, 4, 3}, {1, 1, 0}, {300, 5, 0}, {300, 20, 7}, {300, 3, 200}}) {
-    const std::string shapes = "m=" + std::to_string(m) + ",n=" + std::to_string(n) + ",max=" + std::to_string(max_pillars);
+    const std::string shapes = "m=" + std::to_string(m) + ",n=" + std::to_string(n) +
+                               ",max=" + std::to_string(max_pillars);
     all.push_back({.name = "pillar_gather/" + shapes,
                    .args = gather_args(m, n, max_pillars),
-                   .run = [grid, max_pillars](Backend& be, Bound& t) {
-                     IRef cell = t.i32(1), index = t.i32(2), count = t.i32(3), num = t.i32(4);
-                     t.rows = be.pillar_gather(t.f(0), grid, max_pillars, cell, index, count, num);
-                   },
+                   .run =
+                       [grid, max_pillars](Backend& be, Bound& t) {
+                         IRef cell = t.i32(1), index = t.i32(2), count = t.i32(3), num = t.i32(4);
+                         t.rows =
+                             be.pillar_gather(t.f(0), grid, max_pillars, cell, index, count, num);
+                       },
                    .tol = bits()});
     // Decoration after the gather, on the live rows (the pipeline's way: num_pillars is P').
     std::vector<Arg> args = gather_args(m, n, max_pillars);
@@ -582,43 +610,51 @@ void add_input_ops(std::vector<Case>& all) {
     args.back().live_rows_from = 4;
     all.push_back({.name = "decorate_points/live," + shapes,
                    .args = args,
-                   .run = [grid, max_pillars](Backend& be, Bound& t) {
-                     IRef cell = t.i32(1), index = t.i32(2), count = t.i32(3), num = t.i32(4);
-                     be.pillar_gather(t.f(0), grid, max_pillars, cell, index, count, num);
-                     Ref decorated = t.f(5);
-                     be.decorate_points(t.f(0), grid, cell, index, count, num, decorated);
-                   },
+                   .run =
+                       [grid, max_pillars](Backend& be, Bound& t) {
+                         IRef cell = t.i32(1), index = t.i32(2), count = t.i32(3), num = t.i32(4);
+                         be.pillar_gather(t.f(0), grid, max_pillars, cell, index, count, num);
+                         Ref decorated = t.f(5);
+                         be.decorate_points(t.f(0), grid, cell, index, count, num, decorated);
+                       },
                    .tol = bits()});
   }
   // Every row live: more pillars than P = 5 rows, so P' = R on every backend.
   {
-    std::vector<Arg> args = {points_arg(300, grid), out("cell", {5, 2}, Kind::I32),
-                             out("point_index", {5, 6}, Kind::I32), out("count", {5}, Kind::I32),
-                             out("num_pillars", {1}, Kind::I32), out("decorated", {5, 6, 10})};
+    std::vector<Arg> args = {points_arg(300, grid),
+                             out("cell", {5, 2}, Kind::I32),
+                             out("point_index", {5, 6}, Kind::I32),
+                             out("count", {5}, Kind::I32),
+                             out("num_pillars", {1}, Kind::I32),
+                             out("decorated", {5, 6, 10})};
     all.push_back({.name = "decorate_points/all,m=300,n=6,max=5",
                    .args = args,
-                   .run = [grid](Backend& be, Bound& t) {
-                     IRef cell = t.i32(1), index = t.i32(2), count = t.i32(3), num = t.i32(4);
-                     be.pillar_gather(t.f(0), grid, 5, cell, index, count, num);
-                     Ref decorated = t.f(5);
-                     be.decorate_points(t.f(0), grid, cell, index, count, IRef{}, decorated);
-                   },
+                   .run =
+                       [grid](Backend& be, Bound& t) {
+                         IRef cell = t.i32(1), index = t.i32(2), count = t.i32(3), num = t.i32(4);
+                         be.pillar_gather(t.f(0), grid, 5, cell, index, count, num);
+                         Ref decorated = t.f(5);
+                         be.decorate_points(t.f(0), grid, cell, index, count, IRef{}, decorated);
+                       },
                    .tol = bits()});
   }
-  for (const auto& [rows, sample] : std::vector<std::pair<int64_t, int>>{{0, 0}, {1, 2}, {45, 0}, {45, 3}}) {
+  for (const auto& [rows, sample] :
+       std::vector<std::pair<int64_t, int>>{{0, 0}, {1, 2}, {45, 0}, {45, 3}}) {
     all.push_back(
         {.name = "batch_cells/rows=" + std::to_string(rows) + ",sample=" + std::to_string(sample),
          .args = {in_i32("cell", {rows, 2},
                          [H, W](Rng& rng, int64_t i) {
                            // Every third row inert (-1, -1), as the gather leaves rows past P'.
                            if (i / 2 % 3 == 2) return -1;
-                           return static_cast<int32_t>(rng.uniform_int(static_cast<uint64_t>(i % 2 == 0 ? H : W)));
+                           return static_cast<int32_t>(
+                               rng.uniform_int(static_cast<uint64_t>(i % 2 == 0 ? H : W)));
                          }),
                   out("cells", {rows, 3}, Kind::I32)},
-         .run = [sample](Backend& be, Bound& t) {
-           IRef cells = t.i32(1);
-           be.batch_cells(t.i32(0), sample, cells);
-         },
+         .run =
+             [sample](Backend& be, Bound& t) {
+               IRef cells = t.i32(1);
+               be.batch_cells(t.i32(0), sample, cells);
+             },
          .tol = bits()});
   }
   const Eigen::Vector3d corner(0, 0, 0), outside(4.1, -2.9, 0.3);
@@ -628,27 +664,30 @@ void add_input_ops(std::vector<Case>& all) {
     all.push_back({.name = "observability_2d/" + shapes,
                    .args = {points_arg(m, grid), out("transmissions", {H, W}, Kind::U32),
                             out("detections", {H, W}, Kind::U32)},
-                   .run = [grid, origin](Backend& be, Bound& t) {
-                     URef tr = t.u32(1), de = t.u32(2);
-                     be.observability_2d(t.f(0), origin, grid, tr, de);
-                   },
+                   .run =
+                       [grid, origin](Backend& be, Bound& t) {
+                         URef tr = t.u32(1), de = t.u32(2);
+                         be.observability_2d(t.f(0), origin, grid, tr, de);
+                       },
                    .tol = bits()});
     all.push_back({.name = "occupancy_3d/" + shapes,
                    .args = {points_arg(m, grid), out("probability", {Z, H, W})},
-                   .run = [grid, origin](Backend& be, Bound& t) {
-                     Ref probability = t.f(1);
-                     be.occupancy_3d(t.f(0), origin, grid, probability);
-                   },
+                   .run =
+                       [grid, origin](Backend& be, Bound& t) {
+                         Ref probability = t.f(1);
+                         be.occupancy_3d(t.f(0), origin, grid, probability);
+                       },
                    .tol = bits()});
   }
   for (const int64_t m : {0, 1, 300}) {
     all.push_back({.name = "grid_map_features/m=" + std::to_string(m),
                    .args = {points_arg(m, grid), counts_arg("detections", {H, W}, 40),
                             counts_arg("transmissions", {H, W}, 1000), out("layers", {6, H, W})},
-                   .run = [grid](Backend& be, Bound& t) {
-                     Ref layers = t.f(3);
-                     be.grid_map_features(t.f(0), grid, t.u32(1), t.u32(2), layers);
-                   },
+                   .run =
+                       [grid](Backend& be, Bound& t) {
+                         Ref layers = t.f(3);
+                         be.grid_map_features(t.f(0), grid, t.u32(1), t.u32(2), layers);
+                       },
                    .tol = bits()});
   }
   // Counts up to 2^31 (a sum near the top of uint32), and a 1 x 1 grid; out (H, W) or (1, H, W).
@@ -656,27 +695,31 @@ void add_input_ops(std::vector<Case>& all) {
     for (const bool planar : {false, true}) {
       Shape out_shape = cells;
       if (planar) out_shape.insert(out_shape.begin(), 1);
-      all.push_back({.name = "observability_input/cells=" + shape_name(cells) + ",out=" + shape_name(out_shape),
-                     .args = {counts_arg("transmissions", cells, 1u << 31), counts_arg("detections", cells, 1000),
-                              out("input", out_shape)},
-                     .run = [](Backend& be, Bound& t) {
-                       Ref input = t.f(2);
-                       be.observability_input(t.u32(0), t.u32(1), input);
-                     },
+      all.push_back({.name = "observability_input/cells=" + shape_name(cells) +
+                             ",out=" + shape_name(out_shape),
+                     .args = {counts_arg("transmissions", cells, 1u << 31),
+                              counts_arg("detections", cells, 1000), out("input", out_shape)},
+                     .run =
+                         [](Backend& be, Bound& t) {
+                           Ref input = t.f(2);
+                           be.observability_input(t.u32(0), t.u32(1), input);
+                         },
                      .tol = bits()});
     }
   }
   for (const int64_t planes : {0, 3}) {
-    std::vector<Arg> args = {counts_arg("transmissions", {H, W}, 5), counts_arg("detections", {H, W}, 5),
-                             labels_arg({H, W}, Role::InOut)};
+    std::vector<Arg> args = {counts_arg("transmissions", {H, W}, 5),
+                             counts_arg("detections", {H, W}, 5), labels_arg({H, W}, Role::InOut)};
     if (planes > 0) args.push_back(inout_f("probabilities", {planes, H, W}, 0, 1));
     all.push_back({.name = "mask_unobserved/probability_planes=" + std::to_string(planes),
                    .args = args,
-                   .run = [planes](Backend& be, Bound& t) {
-                     LRef labels = t.u8(2);
-                     Ref probabilities = planes > 0 ? t.f(3) : Ref{};
-                     be.mask_unobserved(t.u32(0), t.u32(1), labels, planes > 0 ? &probabilities : nullptr);
-                   },
+                   .run =
+                       [planes](Backend& be, Bound& t) {
+                         LRef labels = t.u8(2);
+                         Ref probabilities = planes > 0 ? t.f(3) : Ref{};
+                         be.mask_unobserved(t.u32(0), t.u32(1), labels,
+                                            planes > 0 ? &probabilities : nullptr);
+                       },
                    .tol = bits()});
   }
 }
@@ -688,44 +731,65 @@ void add_half_ops(std::vector<Case>& all, Precision p) {
   for (const Shape& x : std::vector<Shape>{{0, 3, 4, 5}, {1, 1, 1, 1}, {2, 3, 5, 7}}) {
     Arg in = in_f("x", x, -4, 4);
     in.fill = [](Rng& rng, void* dst, int64_t n) {
-      const float special[] = {std::numeric_limits<float>::quiet_NaN(), std::numeric_limits<float>::infinity(),
-                               -std::numeric_limits<float>::infinity(), -0.0f, 65504.0f, 65519.0f, 65520.0f,
-                               -1e6f, 3.0e38f, 6.0e-8f, 2.98e-8f, 1e-7f, -3e-6f, 1.0f + 0x1p-8f,
-                               1.0f + 3 * 0x1p-8f, 1.0f + 0x1p-11f, 1.0f + 3 * 0x1p-11f, 1e-40f};
+      const float special[] = {std::numeric_limits<float>::quiet_NaN(),
+                               std::numeric_limits<float>::infinity(),
+                               -std::numeric_limits<float>::infinity(),
+                               -0.0f,
+                               65504.0f,
+                               65519.0f,
+                               65520.0f,
+                               -1e6f,
+                               3.0e38f,
+                               6.0e-8f,
+                               2.98e-8f,
+                               1e-7f,
+                               -3e-6f,
+                               1.0f + 0x1p-8f,
+                               1.0f + 3 * 0x1p-8f,
+                               1.0f + 0x1p-11f,
+                               1.0f + 3 * 0x1p-11f,
+                               1e-40f};
       float* f = static_cast<float*>(dst);
       for (int64_t i = 0; i < n; ++i)
-        f[i] = i < static_cast<int64_t>(std::size(special)) ? special[i] : static_cast<float>(rng.uniform(-4, 4));
+        f[i] = i < static_cast<int64_t>(std::size(special))
+                   ? special[i]
+                   : static_cast<float>(rng.uniform(-4, 4));
     };
     all.push_back({.name = "to_half/" + d + ",x=" + shape_name(x),
                    .args = {in, out("y", x, Kind::H16)},
-                   .run = [p](Backend& be, Bound& t) {
-                     HRef y = t.h16(1);
-                     be.to_half(t.f(0), p, y);
-                   },
+                   .run =
+                       [p](Backend& be, Bound& t) {
+                         HRef y = t.h16(1);
+                         be.to_half(t.f(0), p, y);
+                       },
                    .tol = bits(),
                    .precision = p,
-                   .reference = [p](Bound& t) {
-                     HRef y = t.h16(1);
-                     const Ref values = t.f(0);
-                     for (int64_t i = 0; i < values.numel(); ++i) y.data[i] = to_bits(values.data[i], p);
-                   }});
+                   .reference =
+                       [p](Bound& t) {
+                         HRef y = t.h16(1);
+                         const Ref values = t.f(0);
+                         for (int64_t i = 0; i < values.numel(); ++i)
+                           y.data[i] = to_bits(values.data[i], p);
+                       }});
   }
   for (const Shape& x : std::vector<Shape>{{1, 1, 2, 2}, {2, 3, 7, 9}}) {
     const Shape y = op::maxpool2x2(x);
     all.push_back({.name = "maxpool2x2_half/" + d + ",x=" + shape_name(x),
                    .args = {with_nan_and_ties(in_h("x", x, p), p), out("y", y, Kind::H16)},
-                   .run = [p](Backend& be, Bound& t) {
-                     HRef yy = t.h16(1);
-                     be.maxpool2x2_half(t.h16(0), p, yy);
-                   },
+                   .run =
+                       [p](Backend& be, Bound& t) {
+                         HRef yy = t.h16(1);
+                         be.maxpool2x2_half(t.h16(0), p, yy);
+                       },
                    .tol = bits(),
                    .precision = p,
-                   .reference = [p](Bound& t) {
-                     Tensor<float> pooled;
-                     host::maxpool2d_forward(decoded(t.h16(0), p), pooled, nullptr);
-                     HRef yy = t.h16(1);
-                     encode(pooled, p, yy);
-                   }});
+                   .reference =
+                       [p](Bound& t) {
+                         Tensor<float> pooled;
+                         host::maxpool2d_forward(decoded(t.h16(0), p), pooled, nullptr);
+                         HRef yy = t.h16(1);
+                         encode(pooled, p, yy);
+                       }});
   }
   // Bilinear x2 in FP32, rounded once: the host's FP32 taps and the kernel's may round the FP32
   // value differently in its last bit, which can move the 16-bit result by one unit.
@@ -733,79 +797,92 @@ void add_half_ops(std::vector<Case>& all, Precision p) {
     const Shape y = op::upsample2x(x);
     all.push_back({.name = "upsample2x_half/" + d + ",x=" + shape_name(x),
                    .args = {in_h("x", x, p), out("y", y, Kind::H16)},
-                   .run = [p](Backend& be, Bound& t) {
-                     HRef yy = t.h16(1);
-                     be.upsample2x_half(t.h16(0), p, yy);
-                   },
+                   .run =
+                       [p](Backend& be, Bound& t) {
+                         HRef yy = t.h16(1);
+                         be.upsample2x_half(t.h16(0), p, yy);
+                       },
                    .tol = within(0, ulp),
                    .precision = p,
-                   .reference = [p](Bound& t) {
-                     Tensor<float> up;
-                     host::upsample_bilinear_forward(decoded(t.h16(0), p), up);
-                     HRef yy = t.h16(1);
-                     encode(up, p, yy);
-                   }});
+                   .reference =
+                       [p](Bound& t) {
+                         Tensor<float> up;
+                         host::upsample_bilinear_forward(decoded(t.h16(0), p), up);
+                         HRef yy = t.h16(1);
+                         encode(up, p, yy);
+                       }});
   }
-  for (const auto& [skip, up] : std::vector<std::pair<Shape, Shape>>{{{2, 3, 6, 8}, {2, 4, 6, 8}},
-                                                                      {{1, 2, 7, 9}, {1, 3, 6, 8}},
-                                                                      {{1, 1, 1, 1}, {1, 1, 1, 1}}}) {
+  for (const auto& [skip, up] :
+       std::vector<std::pair<Shape, Shape>>{{{2, 3, 6, 8}, {2, 4, 6, 8}},
+                                            {{1, 2, 7, 9}, {1, 3, 6, 8}},
+                                            {{1, 1, 1, 1}, {1, 1, 1, 1}}}) {
     const Shape y = op::pad_concat(skip, up);
-    all.push_back({.name = "pad_concat_half/" + d + ",skip=" + shape_name(skip) + ",up=" + shape_name(up),
-                   .args = {in_h("skip", skip, p), in_h("up", up, p), out("y", y, Kind::H16)},
-                   .run = [](Backend& be, Bound& t) {
-                     HRef yy = t.h16(2);
-                     be.pad_concat_half(t.h16(0), t.h16(1), yy);
-                   },
-                   .tol = bits(),
-                   .precision = p,
-                   .reference = [p](Bound& t) {
-                     Tensor<float> joined;
-                     host::pad_concat_forward(decoded(t.h16(0), p), decoded(t.h16(1), p), joined);
-                     HRef yy = t.h16(2);
-                     encode(joined, p, yy);
-                   }});
+    all.push_back(
+        {.name = "pad_concat_half/" + d + ",skip=" + shape_name(skip) + ",up=" + shape_name(up),
+         .args = {in_h("skip", skip, p), in_h("up", up, p), out("y", y, Kind::H16)},
+         .run =
+             [](Backend& be, Bound& t) {
+               HRef yy = t.h16(2);
+               be.pad_concat_half(t.h16(0), t.h16(1), yy);
+             },
+         .tol = bits(),
+         .precision = p,
+         .reference =
+             [p](Bound& t) {
+               Tensor<float> joined;
+               host::pad_concat_forward(decoded(t.h16(0), p), decoded(t.h16(1), p), joined);
+               HRef yy = t.h16(2);
+               encode(joined, p, yy);
+             }});
   }
   all.push_back({.name = "copy_channels_half/" + d + ",x=2x3x4x5,y=2x8x4x5,c0=4",
                  .args = {in_h("x", {2, 3, 4, 5}, p), inout_h("y", {2, 8, 4, 5}, p)},
-                 .run = [](Backend& be, Bound& t) {
-                   HRef y = t.h16(1);
-                   be.copy_channels_half(t.h16(0), 4, y);
-                 },
+                 .run =
+                     [](Backend& be, Bound& t) {
+                       HRef y = t.h16(1);
+                       be.copy_channels_half(t.h16(0), 4, y);
+                     },
                  .tol = bits(),
                  .precision = p,
-                 .reference = [](Bound& t) {
-                   const HRef x = t.h16(0);
-                   HRef y = t.h16(1);
-                   for (int64_t b = 0; b < 2; ++b)
-                     std::memcpy(y.data + (b * 8 + 4) * 20, x.data + b * 3 * 20, 3 * 20 * sizeof(uint16_t));
-                 }});
+                 .reference =
+                     [](Bound& t) {
+                       const HRef x = t.h16(0);
+                       HRef y = t.h16(1);
+                       for (int64_t b = 0; b < 2; ++b)
+                         std::memcpy(y.data + (b * 8 + 4) * 20, x.data + b * 3 * 20,
+                                     3 * 20 * sizeof(uint16_t));
+                     }});
   // The band [2, 2 + C) of the canvas zeroed, then each live row's features rounded at its cell.
-  for (const auto& [pillars, c] : std::vector<std::pair<int64_t, int64_t>>{{0, 4}, {1, 4}, {37, 16}}) {
+  for (const auto& [pillars, c] :
+       std::vector<std::pair<int64_t, int64_t>>{{0, 4}, {1, 4}, {37, 16}}) {
     const int64_t b = 2, h = 6, w = 7, cc = c + 3;
-    all.push_back({.name = "scatter_forward_half/" + d + ",features=" + std::to_string(pillars) + "x" +
-                           std::to_string(c) + ",canvas=" + shape_name({b, cc, h, w}),
-                   .args = {in_f("features", {pillars, c}, -3, 3), cells_arg(pillars, b, h, w, /*inert=*/true),
-                            inout_h("canvas", {b, cc, h, w}, p)},
-                   .run = [p](Backend& be, Bound& t) {
-                     HRef canvas = t.h16(2);
-                     be.scatter_forward_half(t.f(0), t.i32(1), 2, p, canvas);
-                   },
-                   .tol = bits(),
-                   .precision = p,
-                   .reference = [p, c, h, w, cc](Bound& t) {
-                     const Ref features = t.f(0);
-                     const IRef cells = t.i32(1);
-                     HRef canvas = t.h16(2);
-                     for (int64_t s = 0; s < b; ++s)
-                       std::fill_n(canvas.data + (s * cc + 2) * h * w, c * h * w, uint16_t{0});
-                     for (int64_t r = 0; r < features.dim(0); ++r) {
-                       const int32_t* cell = cells.data + 3 * r;
-                       if (cell[0] < 0) continue;
-                       for (int64_t k = 0; k < c; ++k)
-                         canvas.data[((cell[0] * cc + 2 + k) * h + cell[1]) * w + cell[2]] =
-                             to_bits(features.data[r * c + k], p);
-                     }
-                   }});
+    all.push_back(
+        {.name = "scatter_forward_half/" + d + ",features=" + std::to_string(pillars) + "x" +
+                 std::to_string(c) + ",canvas=" + shape_name({b, cc, h, w}),
+         .args = {in_f("features", {pillars, c}, -3, 3),
+                  cells_arg(pillars, b, h, w, /*inert=*/true), inout_h("canvas", {b, cc, h, w}, p)},
+         .run =
+             [p](Backend& be, Bound& t) {
+               HRef canvas = t.h16(2);
+               be.scatter_forward_half(t.f(0), t.i32(1), 2, p, canvas);
+             },
+         .tol = bits(),
+         .precision = p,
+         .reference =
+             [p, c, h, w, cc](Bound& t) {
+               const Ref features = t.f(0);
+               const IRef cells = t.i32(1);
+               HRef canvas = t.h16(2);
+               for (int64_t s = 0; s < b; ++s)
+                 std::fill_n(canvas.data + (s * cc + 2) * h * w, c * h * w, uint16_t{0});
+               for (int64_t r = 0; r < features.dim(0); ++r) {
+                 const int32_t* cell = cells.data + 3 * r;
+                 if (cell[0] < 0) continue;
+                 for (int64_t k = 0; k < c; ++k)
+                   canvas.data[((cell[0] * cc + 2 + k) * h + cell[1]) * w + cell[2]] =
+                       to_bits(features.data[r * c + k], p);
+               }
+             }});
   }
   // Weight preparation: bias and BatchNorm folded, bias alone, neither.
   for (const auto& [w, folded] : std::vector<std::pair<Shape, int>>{
@@ -816,47 +893,56 @@ void add_half_ops(std::vector<Case>& all, Precision p) {
     args.push_back(out("w16", w16, Kind::H16));
     args.push_back(out("bias_out", {w[0]}));
     const bool with_bias = folded >= 1, with_bn = folded == 2;
-    all.push_back({.name = "prepare_conv_weights/" + d + ",w=" + shape_name(w) + (with_bias ? ",bias" : "") +
-                           (with_bn ? ",batchnorm" : ""),
+    all.push_back({.name = "prepare_conv_weights/" + d + ",w=" + shape_name(w) +
+                           (with_bias ? ",bias" : "") + (with_bn ? ",batchnorm" : ""),
                    .args = args,
-                   .run = [p, with_bias, with_bn](Backend& be, Bound& t) {
-                     const Ref bias = t.f(1);
-                     const BatchNormRefs bn = t.bn(2, false);
-                     HRef w16r = t.h16(6);
-                     Ref bias_out = t.f(7);
-                     be.prepare_conv_weights(t.f(0), with_bias ? &bias : nullptr, with_bn ? &bn : nullptr, p, w16r,
-                                             bias_out, HRef{});
-                   },
+                   .run =
+                       [p, with_bias, with_bn](Backend& be, Bound& t) {
+                         const Ref bias = t.f(1);
+                         const BatchNormRefs bn = t.bn(2, false);
+                         HRef w16r = t.h16(6);
+                         Ref bias_out = t.f(7);
+                         be.prepare_conv_weights(t.f(0), with_bias ? &bias : nullptr,
+                                                 with_bn ? &bn : nullptr, p, w16r, bias_out,
+                                                 HRef{});
+                       },
                    .tol = bits(),
                    .precision = p,
-                   .reference = [p, with_bias, with_bn](Bound& t) {
-                     const Ref bias = t.f(1);
-                     const BatchNormRefs bn = t.bn(2, false);
-                     HRef w16r = t.h16(6);
-                     Ref bias_out = t.f(7);
-                     define_prepare_conv_weights(t.f(0), with_bias ? &bias : nullptr, with_bn ? &bn : nullptr, p,
-                                                 w16r, bias_out);
-                   }});
+                   .reference =
+                       [p, with_bias, with_bn](Bound& t) {
+                         const Ref bias = t.f(1);
+                         const BatchNormRefs bn = t.bn(2, false);
+                         HRef w16r = t.h16(6);
+                         Ref bias_out = t.f(7);
+                         define_prepare_conv_weights(t.f(0), with_bias ? &bias : nullptr,
+                                                     with_bn ? &bn : nullptr, p, w16r, bias_out);
+                       }});
   }
   for (const auto& [w, with_bias] : std::vector<std::pair<Shape, bool>>{
            {{6, 3, 2, 2}, true}, {{16, 8, 2, 2}, false}, {{33, 5, 2, 2}, true}}) {
     const Shape w16 = op::half16_conv_weights(w, true);
-    all.push_back({.name = "prepare_conv_transpose_weights/" + d + ",w=" + shape_name(w) + (with_bias ? ",bias" : ""),
-                   .args = {in_f("w", w), in_f("bias", {w[1]}), out("w16", w16, Kind::H16), out("bias_out", {4 * w[1]})},
-                   .run = [p, with_bias](Backend& be, Bound& t) {
-                     const Ref bias = t.f(1);
-                     HRef w16r = t.h16(2);
-                     Ref bias_out = t.f(3);
-                     be.prepare_conv_transpose_weights(t.f(0), with_bias ? &bias : nullptr, p, w16r, bias_out);
-                   },
+    all.push_back({.name = "prepare_conv_transpose_weights/" + d + ",w=" + shape_name(w) +
+                           (with_bias ? ",bias" : ""),
+                   .args = {in_f("w", w), in_f("bias", {w[1]}), out("w16", w16, Kind::H16),
+                            out("bias_out", {4 * w[1]})},
+                   .run =
+                       [p, with_bias](Backend& be, Bound& t) {
+                         const Ref bias = t.f(1);
+                         HRef w16r = t.h16(2);
+                         Ref bias_out = t.f(3);
+                         be.prepare_conv_transpose_weights(t.f(0), with_bias ? &bias : nullptr, p,
+                                                           w16r, bias_out);
+                       },
                    .tol = bits(),
                    .precision = p,
-                   .reference = [p, with_bias](Bound& t) {
-                     const Ref bias = t.f(1);
-                     HRef w16r = t.h16(2);
-                     Ref bias_out = t.f(3);
-                     define_prepare_conv_transpose_weights(t.f(0), with_bias ? &bias : nullptr, p, w16r, bias_out);
-                   }});
+                   .reference =
+                       [p, with_bias](Bound& t) {
+                         const Ref bias = t.f(1);
+                         HRef w16r = t.h16(2);
+                         Ref bias_out = t.f(3);
+                         define_prepare_conv_transpose_weights(t.f(0), with_bias ? &bias : nullptr,
+                                                               p, w16r, bias_out);
+                       }});
   }
   // The convolutions: the weights prepared (BatchNorm folded) by the backend itself, then the
   // forward; x and y FP32 or 16-bit. FP32 y: the FP32 sums' rounding (a reduction); 16-bit y: at
@@ -875,8 +961,8 @@ void add_half_ops(std::vector<Case>& all, Precision p) {
                                           {{1, 2, 5, 5}, {3, 2, 3, 3}, 0, false, true, false},
                                           {{1, 40, 1, 1}, {5, 40, 1, 1}, 0, true, true, true}}) {
     const Shape y = op::conv2d(cv.x, cv.w, cv.pad), w16 = op::half16_conv_weights(cv.w, false);
-    std::vector<Arg> args = {cv.x_half ? in_h("x", cv.x, p, -2, 2) : in_f("x", cv.x, -2, 2), in_f("w", cv.w, -0.5, 0.5),
-                             in_f("bias", {cv.w[0]})};
+    std::vector<Arg> args = {cv.x_half ? in_h("x", cv.x, p, -2, 2) : in_f("x", cv.x, -2, 2),
+                             in_f("w", cv.w, -0.5, 0.5), in_f("bias", {cv.w[0]})};
     add_bn(args, cv.w[0], false, false);
     args.push_back(out("w16", w16, Kind::H16));
     args.back().tol = bits();
@@ -885,31 +971,36 @@ void add_half_ops(std::vector<Case>& all, Precision p) {
     args.push_back(out("y", y, cv.y_half ? Kind::H16 : Kind::F32));
     const Conv c = cv;
     const bool winograd = cv.w[2] == 3 && cv.pad == 1;
-    all.push_back({.name = "conv2d_half_forward/" + d + ",x=" + shape_name(cv.x) + (cv.x_half ? "h" : "f") +
-                           ",w=" + shape_name(cv.w) + ",pad=" + std::to_string(cv.pad) + ",y=" +
-                           (cv.y_half ? "h" : "f") + (cv.relu ? ",relu" : ""),
-                   .args = args,
-                   .run = [p, c](Backend& be, Bound& t) {
-                     const Ref bias = t.f(2);
-                     const BatchNormRefs bn = t.bn(3, false);
-                     HRef w16r = t.h16(7);
-                     Ref bias_out = t.f(8);
-                     const BackendScratch transformed(be, be.prepared_conv_transform_elements(c.w, c.pad, p));
-                     be.prepare_conv_weights(t.f(1), &bias, &bn, p, w16r, bias_out, transformed.ref());
-                     be.conv2d_half_forward(t.act(0), w16r, transformed.ref(), bias_out, c.w, c.pad, c.relu, p,
-                                            t.act(9));
-                   },
-                   .tol = cv.y_half ? within(1e-6, ulp) : nmse_within(1e-12),
-                   .precision = p,
-                   .reference = [p, c](Bound& t) {
-                     const Ref bias = t.f(2);
-                     const BatchNormRefs bn = t.bn(3, false);
-                     HRef w16r = t.h16(7);
-                     Ref bias_out = t.f(8);
-                     define_prepare_conv_weights(t.f(1), &bias, &bn, p, w16r, bias_out);
-                     define_conv2d_half_forward(t.act(0), w16r, bias_out, c.w, c.pad, c.relu, p, t.act(9));
-                   },
-                   .cpu_tol = winograd ? std::optional<Tolerance>(nmse_within(1e-4)) : std::nullopt});
+    all.push_back(
+        {.name = "conv2d_half_forward/" + d + ",x=" + shape_name(cv.x) + (cv.x_half ? "h" : "f") +
+                 ",w=" + shape_name(cv.w) + ",pad=" + std::to_string(cv.pad) +
+                 ",y=" + (cv.y_half ? "h" : "f") + (cv.relu ? ",relu" : ""),
+         .args = args,
+         .run =
+             [p, c](Backend& be, Bound& t) {
+               const Ref bias = t.f(2);
+               const BatchNormRefs bn = t.bn(3, false);
+               HRef w16r = t.h16(7);
+               Ref bias_out = t.f(8);
+               const BackendScratch transformed(be,
+                                                be.prepared_conv_transform_elements(c.w, c.pad, p));
+               be.prepare_conv_weights(t.f(1), &bias, &bn, p, w16r, bias_out, transformed.ref());
+               be.conv2d_half_forward(t.act(0), w16r, transformed.ref(), bias_out, c.w, c.pad,
+                                      c.relu, p, t.act(9));
+             },
+         .tol = cv.y_half ? within(1e-6, ulp) : nmse_within(1e-12),
+         .precision = p,
+         .reference =
+             [p, c](Bound& t) {
+               const Ref bias = t.f(2);
+               const BatchNormRefs bn = t.bn(3, false);
+               HRef w16r = t.h16(7);
+               Ref bias_out = t.f(8);
+               define_prepare_conv_weights(t.f(1), &bias, &bn, p, w16r, bias_out);
+               define_conv2d_half_forward(t.act(0), w16r, bias_out, c.w, c.pad, c.relu, p,
+                                          t.act(9));
+             },
+         .cpu_tol = winograd ? std::optional<Tolerance>(nmse_within(1e-4)) : std::nullopt});
   }
   struct ConvT {
     Shape x;
@@ -921,80 +1012,97 @@ void add_half_ops(std::vector<Case>& all, Precision p) {
                                             {{1, 40, 2, 3}, 5, true, false},
                                             {{1, 1, 1, 1}, 1, false, true}}) {
     const Shape w{cv.x[1], cv.o, 2, 2}, y{cv.x[0], cv.o, 2 * cv.x[2], 2 * cv.x[3]};
-    std::vector<Arg> args = {cv.x_half ? in_h("x", cv.x, p, -2, 2) : in_f("x", cv.x, -2, 2), in_f("w", w, -0.5, 0.5),
-                             in_f("bias", {cv.o}), out("w16", op::half16_conv_weights(w, true), Kind::H16),
-                             out("bias_out", {4 * cv.o}), out("y", y, cv.y_half ? Kind::H16 : Kind::F32)};
+    std::vector<Arg> args = {cv.x_half ? in_h("x", cv.x, p, -2, 2) : in_f("x", cv.x, -2, 2),
+                             in_f("w", w, -0.5, 0.5),
+                             in_f("bias", {cv.o}),
+                             out("w16", op::half16_conv_weights(w, true), Kind::H16),
+                             out("bias_out", {4 * cv.o}),
+                             out("y", y, cv.y_half ? Kind::H16 : Kind::F32)};
     args[3].tol = args[4].tol = bits();
-    all.push_back({.name = "conv_transpose2x2_half_forward/" + d + ",x=" + shape_name(cv.x) + (cv.x_half ? "h" : "f") +
-                           ",w=" + shape_name(w) + ",y=" + (cv.y_half ? "h" : "f"),
-                   .args = args,
-                   .run = [p, w](Backend& be, Bound& t) {
-                     const Ref bias = t.f(2);
-                     HRef w16r = t.h16(3);
-                     Ref bias_out = t.f(4);
-                     be.prepare_conv_transpose_weights(t.f(1), &bias, p, w16r, bias_out);
-                     be.conv_transpose2x2_half_forward(t.act(0), w16r, bias_out, w, p, t.act(5));
-                   },
-                   .tol = cv.y_half ? within(1e-6, ulp) : nmse_within(1e-12),
-                   .precision = p,
-                   .reference = [p, w](Bound& t) {
-                     const Ref bias = t.f(2);
-                     HRef w16r = t.h16(3);
-                     Ref bias_out = t.f(4);
-                     define_prepare_conv_transpose_weights(t.f(1), &bias, p, w16r, bias_out);
-                     define_conv_transpose2x2_half_forward(t.act(0), w16r, bias_out, w, p, t.act(5));
-                   }});
+    all.push_back(
+        {.name = "conv_transpose2x2_half_forward/" + d + ",x=" + shape_name(cv.x) +
+                 (cv.x_half ? "h" : "f") + ",w=" + shape_name(w) + ",y=" + (cv.y_half ? "h" : "f"),
+         .args = args,
+         .run =
+             [p, w](Backend& be, Bound& t) {
+               const Ref bias = t.f(2);
+               HRef w16r = t.h16(3);
+               Ref bias_out = t.f(4);
+               be.prepare_conv_transpose_weights(t.f(1), &bias, p, w16r, bias_out);
+               be.conv_transpose2x2_half_forward(t.act(0), w16r, bias_out, w, p, t.act(5));
+             },
+         .tol = cv.y_half ? within(1e-6, ulp) : nmse_within(1e-12),
+         .precision = p,
+         .reference =
+             [p, w](Bound& t) {
+               const Ref bias = t.f(2);
+               HRef w16r = t.h16(3);
+               Ref bias_out = t.f(4);
+               define_prepare_conv_transpose_weights(t.f(1), &bias, p, w16r, bias_out);
+               define_conv_transpose2x2_half_forward(t.act(0), w16r, bias_out, w, p, t.act(5));
+             }});
   }
   // The 16-bit training gradients: the FP32 backward of the operands rounded to p, dbias of the
   // FP32 dy; for the first shape also dw alone (the first layer's).
-  for (const auto& [x, w, pad] : std::vector<std::tuple<Shape, Shape, int>>{
-           {{2, 3, 7, 5}, {4, 3, 3, 3}, 1}, {{1, 17, 9, 11}, {33, 17, 3, 3}, 1}, {{2, 6, 5, 4}, {12, 6, 1, 1}, 0}}) {
+  for (const auto& [x, w, pad] :
+       std::vector<std::tuple<Shape, Shape, int>>{{{2, 3, 7, 5}, {4, 3, 3, 3}, 1},
+                                                  {{1, 17, 9, 11}, {33, 17, 3, 3}, 1},
+                                                  {{2, 6, 5, 4}, {12, 6, 1, 1}, 0}}) {
     const Shape y = op::conv2d(x, w, pad);
     for (const bool full : {true, false}) {
       if (!full && x[1] != 3) continue;
       std::vector<Arg> args = {in_f("x", x), in_f("w", w), in_f("dy", y), out("dw", w)};
       if (full) args.push_back(out("dx", x)), args.push_back(out("dbias", {w[0]}));
-      all.push_back({.name = "conv2d_backward_half/" + d + (full ? "," : ",dw_only,") + "x=" + shape_name(x) +
-                             ",w=" + shape_name(w) + ",pad=" + std::to_string(pad),
+      all.push_back({.name = "conv2d_backward_half/" + d + (full ? "," : ",dw_only,") + "x=" +
+                             shape_name(x) + ",w=" + shape_name(w) + ",pad=" + std::to_string(pad),
                      .args = args,
-                     .run = [p, pad, full](Backend& be, Bound& t) {
-                       Ref dw = t.f(3), dx = full ? t.f(4) : Ref{}, db = full ? t.f(5) : Ref{};
-                       be.conv2d_backward_half(t.f(0), t.f(1), t.f(2), pad, p, full ? &dx : nullptr, dw,
-                                               full ? &db : nullptr);
-                     },
+                     .run =
+                         [p, pad, full](Backend& be, Bound& t) {
+                           Ref dw = t.f(3), dx = full ? t.f(4) : Ref{}, db = full ? t.f(5) : Ref{};
+                           be.conv2d_backward_half(t.f(0), t.f(1), t.f(2), pad, p,
+                                                   full ? &dx : nullptr, dw, full ? &db : nullptr);
+                         },
                      .tol = nmse_within(1e-12),
                      .precision = p,
                      .training = true,
-                     .reference = [p, pad, full](Bound& t) {
-                       Tensor<float> dw = Tensor<float>::view(t.f(3).data, t.f(3).shape), dx;
-                       if (full) dx = Tensor<float>::view(t.f(4).data, t.f(4).shape);
-                       host::conv2d_backward(rounded_copy(t.f(0), p), rounded_copy(t.f(1), p),
-                                             rounded_copy(t.f(2), p), pad, full ? &dx : nullptr, &dw, nullptr);
-                       if (!full) return;
-                       Ref db = t.f(5);
-                       define_bias_gradient(t.f(2), db);
-                     }});
+                     .reference =
+                         [p, pad, full](Bound& t) {
+                           Tensor<float> dw = Tensor<float>::view(t.f(3).data, t.f(3).shape), dx;
+                           if (full) dx = Tensor<float>::view(t.f(4).data, t.f(4).shape);
+                           host::conv2d_backward(rounded_copy(t.f(0), p), rounded_copy(t.f(1), p),
+                                                 rounded_copy(t.f(2), p), pad, full ? &dx : nullptr,
+                                                 &dw, nullptr);
+                           if (!full) return;
+                           Ref db = t.f(5);
+                           define_bias_gradient(t.f(2), db);
+                         }});
     }
   }
-  for (const auto& [x, o] : std::vector<std::pair<Shape, int64_t>>{{{2, 6, 3, 4}, 3}, {{1, 16, 5, 7}, 8}}) {
+  for (const auto& [x, o] :
+       std::vector<std::pair<Shape, int64_t>>{{{2, 6, 3, 4}, 3}, {{1, 16, 5, 7}, 8}}) {
     const Shape w{x[1], o, 2, 2}, y{x[0], o, 2 * x[2], 2 * x[3]};
-    all.push_back({.name = "conv_transpose2x2_backward_half/" + d + ",x=" + shape_name(x) + ",o=" + std::to_string(o),
-                   .args = {in_f("x", x), in_f("w", w), in_f("dy", y), out("dx", x), out("dw", w), out("dbias", {o})},
-                   .run = [p](Backend& be, Bound& t) {
-                     Ref dx = t.f(3), dw = t.f(4), db = t.f(5);
-                     be.conv_transpose2x2_backward_half(t.f(0), t.f(1), t.f(2), p, dx, dw, &db);
-                   },
+    all.push_back({.name = "conv_transpose2x2_backward_half/" + d + ",x=" + shape_name(x) +
+                           ",o=" + std::to_string(o),
+                   .args = {in_f("x", x), in_f("w", w), in_f("dy", y), out("dx", x), out("dw", w),
+                            out("dbias", {o})},
+                   .run =
+                       [p](Backend& be, Bound& t) {
+                         Ref dx = t.f(3), dw = t.f(4), db = t.f(5);
+                         be.conv_transpose2x2_backward_half(t.f(0), t.f(1), t.f(2), p, dx, dw, &db);
+                       },
                    .tol = nmse_within(1e-12),
                    .precision = p,
                    .training = true,
-                   .reference = [p](Bound& t) {
-                     Tensor<float> dx = Tensor<float>::view(t.f(3).data, t.f(3).shape),
-                                   dw = Tensor<float>::view(t.f(4).data, t.f(4).shape);
-                     host::conv_transpose2d_backward(rounded_copy(t.f(0), p), rounded_copy(t.f(1), p),
-                                                     rounded_copy(t.f(2), p), &dx, &dw, nullptr);
-                     Ref db = t.f(5);
-                     define_bias_gradient(t.f(2), db);
-                   }});
+                   .reference =
+                       [p](Bound& t) {
+                         Tensor<float> dx = Tensor<float>::view(t.f(3).data, t.f(3).shape),
+                                       dw = Tensor<float>::view(t.f(4).data, t.f(4).shape);
+                         host::conv_transpose2d_backward(
+                             rounded_copy(t.f(0), p), rounded_copy(t.f(1), p),
+                             rounded_copy(t.f(2), p), &dx, &dw, nullptr);
+                         Ref db = t.f(5);
+                         define_bias_gradient(t.f(2), db);
+                       }});
   }
 }
 
@@ -1037,7 +1145,8 @@ std::vector<Case> cases() {
       all.push_back({std::string("conv2d_bn_relu_eval/") + (full ? "" : "no_bias,") + shapes, args,
                      [pad, full](Backend& be, Bound& t) {
                        Ref bias = t.f(2), yy = t.f(7);
-                       be.conv2d_bn_relu_eval(t.f(0), t.f(1), full ? &bias : nullptr, t.bn(3, false), pad, yy);
+                       be.conv2d_bn_relu_eval(t.f(0), t.f(1), full ? &bias : nullptr,
+                                              t.bn(3, false), pad, yy);
                      },
                      nmse_within(1e-11)});
     }
@@ -1046,7 +1155,8 @@ std::vector<Case> cases() {
        std::vector<std::pair<Shape, int64_t>>{{{2, 6, 3, 4}, 3}, {{1, 16, 5, 7}, 8}}) {
     const Shape w{x[1], o, 2, 2}, y{x[0], o, 2 * x[2], 2 * x[3]};
     for (const bool bias : {true, false}) {
-      const std::string shapes = (bias ? "" : "no_bias,") + ("x=" + shape_name(x) + ",o=" + std::to_string(o));
+      const std::string shapes =
+          (bias ? "" : "no_bias,") + ("x=" + shape_name(x) + ",o=" + std::to_string(o));
       all.push_back({"conv_transpose2d_forward/" + shapes,
                      {in_f("x", x), in_f("w", w), in_f("bias", {o}), out("y", y)},
                      [bias](Backend& be, Bound& t) {
@@ -1054,12 +1164,13 @@ std::vector<Case> cases() {
                        be.conv_transpose2d_forward(t.f(0), t.f(1), bias ? &b : nullptr, yy);
                      }});
       // dy is an input: no backend may change it.
-      std::vector<Arg> args = {in_f("x", x), in_f("w", w), in_f("dy", y), out("dx", x), out("dw", w)};
+      std::vector<Arg> args = {in_f("x", x), in_f("w", w), in_f("dy", y), out("dx", x),
+                               out("dw", w)};
       if (bias) args.push_back(out("dbias", {o}));
-      all.push_back({"conv_transpose2d_backward/" + shapes, args,
-                     [bias](Backend& be, Bound& t) {
+      all.push_back({"conv_transpose2d_backward/" + shapes, args, [bias](Backend& be, Bound& t) {
                        Ref dx = t.f(3), dw = t.f(4), db = bias ? t.f(5) : Ref{};
-                       be.conv_transpose2d_backward(t.f(0), t.f(1), t.f(2), dx, dw, bias ? &db : nullptr);
+                       be.conv_transpose2d_backward(t.f(0), t.f(1), t.f(2), dx, dw,
+                                                    bias ? &db : nullptr);
                      }});
     }
   }
@@ -1075,18 +1186,20 @@ std::vector<Case> cases() {
       const size_t y = args.size() - 1;
       all.push_back({.name = std::string("batchnorm_relu_forward/") + mode + "," + shapes,
                      .args = args,
-                     .run = [training, twins, y](Backend& be, Bound& t) {
-                       TwinReplicas replicas;
-                       BatchNormRefs bn = t.bn(1, training);
-                       if (twins) bn.replicas = &replicas;
-                       Ref yy = t.f(y);
-                       be.batchnorm_relu_forward(t.f(0), bn, training, yy);
-                     },
+                     .run =
+                         [training, twins, y](Backend& be, Bound& t) {
+                           TwinReplicas replicas;
+                           BatchNormRefs bn = t.bn(1, training);
+                           if (twins) bn.replicas = &replicas;
+                           Ref yy = t.f(y);
+                           be.batchnorm_relu_forward(t.f(0), bn, training, yy);
+                         },
                      .runs_on = twins ? synchronises_batchnorm : nullptr});
     }
     for (const char* mode : {"", "twin_replicas,", "in_place,"}) {
       const bool twins = mode[0] == 't', in_place = mode[0] == 'i';
-      std::vector<Arg> args = {in_f("x", x), in_f("y", x, 0, 1), in_place ? inout_f("dy", x) : in_f("dy", x)};
+      std::vector<Arg> args = {in_f("x", x), in_f("y", x, 0, 1),
+                               in_place ? inout_f("dy", x) : in_f("dy", x)};
       add_bn(args, x[1], false, false, /*saved_in=*/true);
       if (!in_place) args.push_back(out("dx", x));
       args.push_back(out("dgamma", {x[1]}));
@@ -1094,13 +1207,15 @@ std::vector<Case> cases() {
       const size_t dgamma = args.size() - 2;
       all.push_back({.name = std::string("batchnorm_relu_backward/") + mode + shapes,
                      .args = args,
-                     .run = [twins, in_place, dgamma](Backend& be, Bound& t) {
-                       TwinReplicas replicas;
-                       BatchNormRefs bn = t.bn(3, true);
-                       if (twins) bn.replicas = &replicas;
-                       Ref dx = in_place ? t.f(2) : t.f(9), dg = t.f(dgamma), db = t.f(dgamma + 1);
-                       be.batchnorm_relu_backward(t.f(0), t.f(1), t.f(2), bn, dx, dg, db);
-                     },
+                     .run =
+                         [twins, in_place, dgamma](Backend& be, Bound& t) {
+                           TwinReplicas replicas;
+                           BatchNormRefs bn = t.bn(3, true);
+                           if (twins) bn.replicas = &replicas;
+                           Ref dx = in_place ? t.f(2) : t.f(9), dg = t.f(dgamma),
+                               db = t.f(dgamma + 1);
+                           be.batchnorm_relu_backward(t.f(0), t.f(1), t.f(2), bn, dx, dg, db);
+                         },
                      .runs_on = twins ? synchronises_batchnorm : nullptr});
     }
   }
@@ -1116,16 +1231,16 @@ std::vector<Case> cases() {
                      be.maxpool2x2_forward(t.f(0), y, am);
                    },
                    bits()});
-    all.push_back(
-        {"maxpool2x2_backward/x=" + shape_name(x),
-         {with_nan_and_ties(in_f("x", x)), in_f("dy", p), out("dx", x), out("y", p), out("argmax", p, Kind::I32)},
-         [](Backend& be, Bound& t) {
-           Ref y = t.f(3), dx = t.f(2);
-           IRef am = t.i32(4);
-           be.maxpool2x2_forward(t.f(0), y, am);
-           be.maxpool2x2_backward(t.f(1), am, dx);
-         },
-         bits()});
+    all.push_back({"maxpool2x2_backward/x=" + shape_name(x),
+                   {with_nan_and_ties(in_f("x", x)), in_f("dy", p), out("dx", x), out("y", p),
+                    out("argmax", p, Kind::I32)},
+                   [](Backend& be, Bound& t) {
+                     Ref y = t.f(3), dx = t.f(2);
+                     IRef am = t.i32(4);
+                     be.maxpool2x2_forward(t.f(0), y, am);
+                     be.maxpool2x2_backward(t.f(1), am, dx);
+                   },
+                   bits()});
   }
   for (const Shape& x : std::vector<Shape>{{2, 3, 6, 8}, {1, 4, 7, 5}, {1, 1, 1, 1}}) {
     const Shape u{x[0], x[1], 2 * x[2], 2 * x[3]};
@@ -1144,8 +1259,10 @@ std::vector<Case> cases() {
                    },
                    within(1e-6, 1e-6)});
   }
-  for (const auto& [skip, up] : std::vector<std::pair<Shape, Shape>>{
-           {{2, 3, 6, 8}, {2, 4, 6, 8}}, {{1, 2, 7, 9}, {1, 3, 6, 8}}, {{1, 1, 1, 1}, {1, 1, 1, 1}}}) {
+  for (const auto& [skip, up] :
+       std::vector<std::pair<Shape, Shape>>{{{2, 3, 6, 8}, {2, 4, 6, 8}},
+                                            {{1, 2, 7, 9}, {1, 3, 6, 8}},
+                                            {{1, 1, 1, 1}, {1, 1, 1, 1}}}) {
     const Shape y{skip[0], skip[1] + up[1], skip[2], skip[3]};
     const std::string shapes = "skip=" + shape_name(skip) + ",up=" + shape_name(up);
     all.push_back({"pad_concat_forward/" + shapes,
@@ -1165,7 +1282,8 @@ std::vector<Case> cases() {
   }
   for (const auto& [x, y, c0] : std::vector<std::tuple<Shape, Shape, int>>{
            {{2, 3, 4, 5}, {2, 8, 4, 5}, 4}, {{1, 1, 1, 1}, {1, 2, 1, 1}, 1}}) {
-    const std::string shapes = "x=" + shape_name(x) + ",y=" + shape_name(y) + ",c0=" + std::to_string(c0);
+    const std::string shapes =
+        "x=" + shape_name(x) + ",y=" + shape_name(y) + ",c0=" + std::to_string(c0);
     all.push_back({"copy_channels/" + shapes,
                    {in_f("x", x), inout_f("y", y)},
                    [c0](Backend& be, Bound& t) {
@@ -1222,7 +1340,8 @@ std::vector<Case> cases() {
       std::vector<Arg> eval_args = {in_f("points", {p, n, 10}), in_f("weight", {c, 10})};
       add_bn(eval_args, c, false, false);
       eval_args.push_back(inout_f("out", {p, c}, -9, -8));
-      eval_args.push_back(in_i32("live_rows", {1}, [live](Rng&, int64_t) { return static_cast<int32_t>(live); }));
+      eval_args.push_back(
+          in_i32("live_rows", {1}, [live](Rng&, int64_t) { return static_cast<int32_t>(live); }));
       all.push_back({"pfn_forward/eval,live=" + std::to_string(live) + "," + shapes, eval_args,
                      [](Backend& be, Bound& t) {
                        BatchNormRefs bn = t.bn(2, false);
@@ -1239,24 +1358,28 @@ std::vector<Case> cases() {
       std::vector<Arg> args = {in_f("points", {p, n, 10}), in_f("weight", {c, 10})};
       add_bn(args, c, true, true);
       for (Arg a : {out("out", {p, c}), out("argmax", {p, c}, Kind::I32)}) args.push_back(a);
-      for (Arg a : {in_f("dout", {p, c}), out("dweight", {c, 10}), out("dgamma", {c}), out("dbeta", {c})})
+      for (Arg a :
+           {in_f("dout", {p, c}), out("dweight", {c, 10}), out("dgamma", {c}), out("dbeta", {c})})
         args.push_back(a);
-      all.push_back({.name = std::string("pfn_backward/") + (twins ? "twin_replicas," : "") + shapes,
-                     .args = args,
-                     .run = [twins](Backend& be, Bound& t) {
-                       TwinReplicas replicas;
-                       BatchNormRefs bn = t.bn(2, true);
-                       if (twins) bn.replicas = &replicas;
-                       Ref y = t.f(8), dw = t.f(11), dg = t.f(12), db = t.f(13);
-                       IRef am = t.i32(9);
-                       be.pfn_forward(t.f(0), t.f(1), bn, true, IRef{}, am, y);
-                       be.pfn_backward(t.f(0), t.f(1), bn, am, t.f(10), dw, dg, db);
-                     },
-                     .tol = nmse_within(1e-11),
-                     .runs_on = twins ? synchronises_batchnorm : nullptr});
+      all.push_back(
+          {.name = std::string("pfn_backward/") + (twins ? "twin_replicas," : "") + shapes,
+           .args = args,
+           .run =
+               [twins](Backend& be, Bound& t) {
+                 TwinReplicas replicas;
+                 BatchNormRefs bn = t.bn(2, true);
+                 if (twins) bn.replicas = &replicas;
+                 Ref y = t.f(8), dw = t.f(11), dg = t.f(12), db = t.f(13);
+                 IRef am = t.i32(9);
+                 be.pfn_forward(t.f(0), t.f(1), bn, true, IRef{}, am, y);
+                 be.pfn_backward(t.f(0), t.f(1), bn, am, t.f(10), dw, dg, db);
+               },
+           .tol = nmse_within(1e-11),
+           .runs_on = twins ? synchronises_batchnorm : nullptr});
     }
   }
-  for (const auto& [p, c] : std::vector<std::pair<int64_t, int64_t>>{{0, 4}, {1, 4}, {37, 16}, {70, 64}}) {
+  for (const auto& [p, c] :
+       std::vector<std::pair<int64_t, int64_t>>{{0, 4}, {1, 4}, {37, 16}, {70, 64}}) {
     const std::string shapes = "features=" + shape_name({p, c});
     const int64_t b = 2, h = 6, w = 7, cc = c + 3;
     all.push_back(
@@ -1303,27 +1426,28 @@ std::vector<Case> cases() {
                    },
                    within(1e-12, 2e-6)});
     for (LossKind kind : {LossKind::CrossEntropy, LossKind::Bce}) {
-      all.push_back({std::string("loss/") + (kind == LossKind::Bce ? "bce," : "ce,") + "large," + shapes,
-                     {in_f("logits", logits, -100, 100), labels_arg(map), in_f("coefficients", {13}, 0.5, 4),
-                      out("dlogits", logits)},
-                     [kind](Backend& be, Bound& t) {
-                       Ref dl = t.f(3);
-                       t.scalar = be.loss(kind, t.f(0), t.u8(1), t.f(2), dl);
-                     },
-                     nmse_within(1e-13),
-                     true});
+      all.push_back(
+          {std::string("loss/") + (kind == LossKind::Bce ? "bce," : "ce,") + "large," + shapes,
+           {in_f("logits", logits, -100, 100), labels_arg(map), in_f("coefficients", {13}, 0.5, 4),
+            out("dlogits", logits)},
+           [kind](Backend& be, Bound& t) {
+             Ref dl = t.f(3);
+             t.scalar = be.loss(kind, t.f(0), t.u8(1), t.f(2), dl);
+           },
+           nmse_within(1e-13),
+           true});
     }
     // Logits of three values only: most cells tie, and the first class of the largest wins.
     Arg tied = in_f("logits", logits);
     tied.fill = [](Rng& rng, void* dst, int64_t n) {
-      for (int64_t i = 0; i < n; ++i) static_cast<float*>(dst)[i] = static_cast<float>(rng.uniform_int(3));
+      for (int64_t i = 0; i < n; ++i)
+        static_cast<float*>(dst)[i] = static_cast<float>(rng.uniform_int(3));
     };
-    all.push_back({"argmax/ties," + shapes,
-                   {tied, out("labels", map, Kind::U8)},
-                   [](Backend& be, Bound& t) {
-                     LRef labels = t.u8(1);
-                     be.argmax(t.f(0), labels);
-                   }});
+    all.push_back(
+        {"argmax/ties," + shapes, {tied, out("labels", map, Kind::U8)}, [](Backend& be, Bound& t) {
+           LRef labels = t.u8(1);
+           be.argmax(t.f(0), labels);
+         }});
     for (LossKind kind : {LossKind::CrossEntropy, LossKind::Bce}) {
       all.push_back({std::string("loss/") + (kind == LossKind::Bce ? "bce," : "ce,") + shapes,
                      {in_f("logits", logits, -4, 4), labels_arg(map),
@@ -1339,10 +1463,13 @@ std::vector<Case> cases() {
   // No labelled cell (every label 0): the loss and its gradient of an empty mean.
   for (LossKind kind : {LossKind::CrossEntropy, LossKind::Bce}) {
     Arg unlabelled = labels_arg({1, 4, 5});
-    unlabelled.fill = [](Rng&, void* dst, int64_t n) { std::memset(dst, 0, static_cast<size_t>(n)); };
-    all.push_back({std::string("loss/") + (kind == LossKind::Bce ? "bce," : "ce,") + "unlabelled,logits=1x12x4x5",
-                   {in_f("logits", {1, 12, 4, 5}, -4, 4), unlabelled, in_f("coefficients", {13}, 0.5, 4),
-                    out("dlogits", {1, 12, 4, 5})},
+    unlabelled.fill = [](Rng&, void* dst, int64_t n) {
+      std::memset(dst, 0, static_cast<size_t>(n));
+    };
+    all.push_back({std::string("loss/") + (kind == LossKind::Bce ? "bce," : "ce,") +
+                       "unlabelled,logits=1x12x4x5",
+                   {in_f("logits", {1, 12, 4, 5}, -4, 4), unlabelled,
+                    in_f("coefficients", {13}, 0.5, 4), out("dlogits", {1, 12, 4, 5})},
                    [kind](Backend& be, Bound& t) {
                      Ref dl = t.f(3);
                      t.scalar = be.loss(kind, t.f(0), t.u8(1), t.f(2), dl);
@@ -1353,12 +1480,13 @@ std::vector<Case> cases() {
   // An empty batch through the forward ops.
   {
     const Shape x{0, 3, 4, 6};
-    all.push_back({"conv2d_forward/empty,x=0x3x4x6,w=5x3x3x3,pad=1",
-                   {in_f("x", x), in_f("w", {5, 3, 3, 3}), in_f("bias", {5}), out("y", {0, 5, 4, 6})},
-                   [](Backend& be, Bound& t) {
-                     Ref bias = t.f(2), y = t.f(3);
-                     be.conv2d_forward(t.f(0), t.f(1), &bias, 1, y);
-                   }});
+    all.push_back(
+        {"conv2d_forward/empty,x=0x3x4x6,w=5x3x3x3,pad=1",
+         {in_f("x", x), in_f("w", {5, 3, 3, 3}), in_f("bias", {5}), out("y", {0, 5, 4, 6})},
+         [](Backend& be, Bound& t) {
+           Ref bias = t.f(2), y = t.f(3);
+           be.conv2d_forward(t.f(0), t.f(1), &bias, 1, y);
+         }});
     all.push_back({"maxpool2x2_forward/empty,x=0x3x4x6",
                    {in_f("x", x), out("y", {0, 3, 2, 3}), out("argmax", {0, 3, 2, 3}, Kind::I32)},
                    [](Backend& be, Bound& t) {
@@ -1400,8 +1528,8 @@ std::vector<Case> cases() {
                      be.argmax(t.f(0), labels);
                    }});
     all.push_back({"loss/ce,empty,logits=0x12x4x5",
-                   {in_f("logits", logits), labels_arg({0, 4, 5}), in_f("coefficients", {13}, 0.5, 4),
-                    out("dlogits", logits)},
+                   {in_f("logits", logits), labels_arg({0, 4, 5}),
+                    in_f("coefficients", {13}, 0.5, 4), out("dlogits", logits)},
                    [](Backend& be, Bound& t) {
                      Ref dl = t.f(3);
                      t.scalar = be.loss(LossKind::CrossEntropy, t.f(0), t.u8(1), t.f(2), dl);
@@ -1417,14 +1545,15 @@ std::vector<Case> cases() {
       AdamOptions options;
       if (!decay) options.weight_decay = 0, options.lr = 0.05;
       const int64_t step = decay ? 3 : 1;
-      all.push_back({"adam_step/n=" + std::to_string(n) + (decay ? ",adamw,step=3" : ",adam,step=1"),
-                     {inout_f("param", {n}), in_f("grad", {n}), inout_f("m", {n}, -0.1, 0.1),
-                      inout_f("v", {n}, 0, 0.1)},
-                     [options, step](Backend& be, Bound& t) {
-                       Ref p = t.f(0), m = t.f(2), v = t.f(3);
-                       be.adam_step(p, t.f(1), m, v, step, options);
-                     },
-                     within(1e-8, 1e-6)});
+      all.push_back(
+          {"adam_step/n=" + std::to_string(n) + (decay ? ",adamw,step=3" : ",adam,step=1"),
+           {inout_f("param", {n}), in_f("grad", {n}), inout_f("m", {n}, -0.1, 0.1),
+            inout_f("v", {n}, 0, 0.1)},
+           [options, step](Backend& be, Bound& t) {
+             Ref p = t.f(0), m = t.f(2), v = t.f(3);
+             be.adam_step(p, t.f(1), m, v, step, options);
+           },
+           within(1e-8, 1e-6)});
     }
   }
   for (const int64_t n : {0, 1, 1000, 4099}) {
@@ -1446,26 +1575,30 @@ std::vector<Case> cases() {
   for (const int64_t n : {1, 1000}) {
     all.push_back({.name = "sum_over_replicas/n=" + std::to_string(n) + ",one_replica",
                    .args = {inout_f("values", {n})},
-                   .run = [](Backend& be, Bound& t) {
-                     OneReplica replicas;
-                     Ref values = t.f(0);
-                     be.begin_sum_over_replicas(values, replicas);
-                     be.end_sums_over_replicas(replicas);
-                     be.synchronize();
-                     t.scalar = static_cast<double>(replicas.begun);
-                   },
+                   .run =
+                       [](Backend& be, Bound& t) {
+                         OneReplica replicas;
+                         Ref values = t.f(0);
+                         be.begin_sum_over_replicas(values, replicas);
+                         be.end_sums_over_replicas(replicas);
+                         be.synchronize();
+                         t.scalar = static_cast<double>(replicas.begun);
+                       },
                    .tol = bits(),
                    .compare_scalar = true,
-                   .runs_on = [](const Backend& be, std::string& why) {
+                   .runs_on =
+                       [](const Backend& be, std::string& why) {
 #if defined(PILLARSEG_CUDA_EMULATION)
-                     static_cast<void>(be);
-                     static_cast<void>(why);
-                     return true;
+                         static_cast<void>(be);
+                         static_cast<void>(why);
+                         return true;
 #else
-                     why = "the CUDA backend on a GPU sums over NCCL between processes (tests/mpi)";
-                     return be.device() == Device::Cpu;
+                         why =
+                             "the CUDA backend on a GPU sums over NCCL between processes "
+                             "(tests/mpi)";
+                         return be.device() == Device::Cpu;
 #endif
-                   }});
+                       }});
   }
   add_half_ops(all, Precision::BF16);
   add_half_ops(all, Precision::F16);
@@ -1481,14 +1614,25 @@ std::vector<std::vector<uint8_t>> host_data(const Case& c, uint64_t seed) {
       // NaN floats (0xFFFF is a NaN as BF16 and FP16), -777 and 0xDEADBEEF integers, 0xEE class
       // ids: an element no op writes does not compare.
       const auto fill_with = [&bytes](auto junk) {
-        for (size_t i = 0; i < bytes.size() / sizeof junk; ++i) std::memcpy(bytes.data() + i * sizeof junk, &junk, sizeof junk);
+        for (size_t i = 0; i < bytes.size() / sizeof junk; ++i)
+          std::memcpy(bytes.data() + i * sizeof junk, &junk, sizeof junk);
       };
       switch (a.kind) {
-        case Kind::F32: fill_with(std::numeric_limits<float>::quiet_NaN()); break;
-        case Kind::I32: fill_with(int32_t{-777}); break;
-        case Kind::U32: fill_with(uint32_t{0xDEADBEEF}); break;
-        case Kind::H16: fill_with(uint16_t{0xFFFF}); break;
-        case Kind::U8: fill_with(uint8_t{0xEE}); break;
+        case Kind::F32:
+          fill_with(std::numeric_limits<float>::quiet_NaN());
+          break;
+        case Kind::I32:
+          fill_with(int32_t{-777});
+          break;
+        case Kind::U32:
+          fill_with(uint32_t{0xDEADBEEF});
+          break;
+        case Kind::H16:
+          fill_with(uint16_t{0xFFFF});
+          break;
+        case Kind::U8:
+          fill_with(uint8_t{0xEE});
+          break;
       }
     } else {
       a.fill(rng, bytes.data(), shape_numel(a.shape));
@@ -1521,15 +1665,16 @@ double element(const std::vector<uint8_t>& bytes, Kind kind, Precision p, size_t
       std::memcpy(&v, bytes.data() + 4 * i, 4);
       return v;
     }
-    case Kind::U8: return bytes[i];
+    case Kind::U8:
+      return bytes[i];
   }
   return 0;
 }
 
 // Elements [0, n) of `got` against `ref` by `tol`: an empty string, or what failed with the
 // worst element.
-std::string compare(const std::vector<uint8_t>& got, const std::vector<uint8_t>& ref, size_t n, Kind kind, Precision p,
-                    Tolerance tol) {
+std::string compare(const std::vector<uint8_t>& got, const std::vector<uint8_t>& ref, size_t n,
+                    Kind kind, Precision p, Tolerance tol) {
   const bool is_float = kind == Kind::F32 || kind == Kind::H16;
   if (!is_float) tol = bits();
   size_t failures = 0, worst = 0;
@@ -1553,7 +1698,8 @@ std::string compare(const std::vector<uint8_t>& got, const std::vector<uint8_t>&
       den += r * r;
     }
     if (!ok) ++failures;
-    if ((!ok || tol.mode == Tolerance::Mode::Nmse) && excess > worst_excess) worst_excess = excess, worst = i;
+    if ((!ok || tol.mode == Tolerance::Mode::Nmse) && excess > worst_excess)
+      worst_excess = excess, worst = i;
   }
   std::ostringstream message;
   if (tol.mode == Tolerance::Mode::Nmse && failures == 0) {
@@ -1563,7 +1709,7 @@ std::string compare(const std::vector<uint8_t>& got, const std::vector<uint8_t>&
   } else if (failures == 0) {
     return "";
   } else {
-    const char* how = tol.mode == Tolerance::Mode::Bits ? " in their bits"
+    const char* how = tol.mode == Tolerance::Mode::Bits   ? " in their bits"
                       : tol.mode == Tolerance::Mode::Nmse ? " in NaN or Inf"
                                                           : " beyond atol + rtol |ref|";
     message << failures << " of " << n << " elements differ" << how;
@@ -1577,14 +1723,16 @@ std::string compare(const std::vector<uint8_t>& got, const std::vector<uint8_t>&
 bool backend_runs(const Backend& be, const Case& c, std::string& why) {
   if (c.runs_on && !c.runs_on(be, why)) return false;
   if (c.precision == Precision::F32) return true;
-  return c.training ? be.supports_training_precision(c.precision, &why) : be.supports_precision(c.precision, &why);
+  return c.training ? be.supports_training_precision(c.precision, &why)
+                    : be.supports_precision(c.precision, &why);
 }
 
 // The CPU backend; for a BF16 case where this CPU lacks AVX512_BF16, the same kernels on the
 // model of its instructions.
 std::unique_ptr<Backend> cpu_backend_for(const Case& c) {
   auto be = make_cpu_backend();
-  if (c.precision == Precision::BF16 && !be->supports_precision(Precision::BF16)) return make_cpu_backend_emulated_bf16();
+  if (c.precision == Precision::BF16 && !be->supports_precision(Precision::BF16))
+    return make_cpu_backend_emulated_bf16();
   return be;
 }
 
@@ -1615,8 +1763,10 @@ TEST_P(BackendOps, MatchesTheReference) {
   const std::vector<std::vector<uint8_t>> data = host_data(c, 1000 + GetParam());
   auto reference = make_cpu_reference_backend();
   Bound ref(*reference, c.args, data);
-  if (c.reference) c.reference(ref);
-  else c.run(*reference, ref);
+  if (c.reference)
+    c.reference(ref);
+  else
+    c.run(*reference, ref);
   int ran = 0;
   for (const BackendUnderTest& b : backends()) {
     SCOPED_TRACE(std::string(b.name) + " " + c.name);
@@ -1646,16 +1796,20 @@ TEST_P(BackendOps, MatchesTheReference) {
       if (a.live_rows_from >= 0) {
         // The leading P' rows; the rest inert where the backend said it wrote them.
         bool intact = false;
-        const std::vector<uint8_t> live = ref.download(static_cast<size_t>(a.live_rows_from), intact);
+        const std::vector<uint8_t> live =
+            ref.download(static_cast<size_t>(a.live_rows_from), intact);
         const size_t rows = static_cast<size_t>(a.shape.at(0)), row = rows > 0 ? n / rows : 0;
-        const size_t kept = std::min(rows, static_cast<size_t>(std::max(0.0, element(live, Kind::I32, c.precision, 0))));
+        const size_t kept = std::min(
+            rows, static_cast<size_t>(std::max(0.0, element(live, Kind::I32, c.precision, 0))));
         compared = kept * row;
         const size_t written = got.rows < 0 ? kept : std::min(rows, static_cast<size_t>(got.rows));
         for (size_t e = compared; a.inert && e < written * row; ++e)
-          ASSERT_EQ(element(g, a.kind, c.precision, e), *a.inert) << b.name << " " << a.name << "[" << e / row
-                                                                  << "]: a row past P' = " << kept << " is not inert";
+          ASSERT_EQ(element(g, a.kind, c.precision, e), *a.inert)
+              << b.name << " " << a.name << "[" << e / row << "]: a row past P' = " << kept
+              << " is not inert";
       }
-      const std::string failed = compare(g, r, compared, a.kind, c.precision, a.tol ? *a.tol : case_tol);
+      const std::string failed =
+          compare(g, r, compared, a.kind, c.precision, a.tol ? *a.tol : case_tol);
       EXPECT_EQ(failed, "") << b.name << " " << a.name;
     }
     if (c.compare_scalar) {
@@ -1684,7 +1838,8 @@ TEST(BackendOpsHarness, GuardsAndUnwrittenOutputsFail) {
   Bound t(*be, args, data);
   bool intact = false;
   const std::vector<uint8_t> written(12 * 4, 0);  // twelve zeros, as a reference would hold
-  EXPECT_NE(compare(t.download(0, intact), written, 12, Kind::F32, Precision::F32, nmse_within(1)), "");
+  EXPECT_NE(compare(t.download(0, intact), written, 12, Kind::F32, Precision::F32, nmse_within(1)),
+            "");
   EXPECT_TRUE(intact);
   reinterpret_cast<uint8_t*>(t.f(0).data)[12 * 4] = 0;  // one byte past the end
   t.download(0, intact);
@@ -1700,19 +1855,26 @@ TEST(BackendOpsHarness, ComparisonsNameTheWorstElement) {
   const float nan = std::numeric_limits<float>::quiet_NaN();
   const std::vector<uint8_t> ref = floats({1.0f, 2.0f, nan, 4.0f});
   EXPECT_EQ(compare(ref, ref, 4, Kind::F32, Precision::F32, bits()), "");  // NaN matches NaN
-  const std::string one_bit =
-      compare(floats({1.0f, std::nextafter(2.0f, 3.0f), nan, 4.0f}), ref, 4, Kind::F32, Precision::F32, bits());
-  EXPECT_NE(one_bit.find("1 of 4 elements differ in their bits; worst element 1"), std::string::npos) << one_bit;
+  const std::string one_bit = compare(floats({1.0f, std::nextafter(2.0f, 3.0f), nan, 4.0f}), ref, 4,
+                                      Kind::F32, Precision::F32, bits());
+  EXPECT_NE(one_bit.find("1 of 4 elements differ in their bits; worst element 1"),
+            std::string::npos)
+      << one_bit;
   // |a - r| <= 0.01 + 0.1 |r|: 4.3 is within 0.41 of 4, 2.5 is not within 0.21 of 2.
   const std::vector<uint8_t> got = floats({1.0f, 2.5f, nan, 4.3f});
   const std::string far = compare(got, ref, 4, Kind::F32, Precision::F32, within(0.01, 0.1));
-  EXPECT_NE(far.find("1 of 4 elements differ beyond atol + rtol |ref|; worst element 1: 2.5 vs 2"), std::string::npos)
+  EXPECT_NE(far.find("1 of 4 elements differ beyond atol + rtol |ref|; worst element 1: 2.5 vs 2"),
+            std::string::npos)
       << far;
-  EXPECT_NE(compare(floats({1.0f, 2.0f, 3.0f, 4.0f}), ref, 4, Kind::F32, Precision::F32, within(1, 1)), "")
+  EXPECT_NE(
+      compare(floats({1.0f, 2.0f, 3.0f, 4.0f}), ref, 4, Kind::F32, Precision::F32, within(1, 1)),
+      "")
       << "a number where the reference has NaN";
-  EXPECT_EQ(compare(got, ref, 2, Kind::F32, Precision::F32, within(0, 0.25)), "");  // the first two only
+  EXPECT_EQ(compare(got, ref, 2, Kind::F32, Precision::F32, within(0, 0.25)),
+            "");  // the first two only
   // NMSE: (0.5^2 + 0.3^2) / (1 + 4 + 16) = 0.01619.
-  const std::string nmse_failure = compare(got, ref, 4, Kind::F32, Precision::F32, nmse_within(0.016));
+  const std::string nmse_failure =
+      compare(got, ref, 4, Kind::F32, Precision::F32, nmse_within(0.016));
   EXPECT_NE(nmse_failure.find("NMSE 0.0161"), std::string::npos) << nmse_failure;
   EXPECT_EQ(compare(got, ref, 4, Kind::F32, Precision::F32, nmse_within(0.0162)), "");
 }
