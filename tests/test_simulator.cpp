@@ -576,7 +576,7 @@ TEST(SimSequence, RoadNearTheCarLiesAboutMinus173) {
       }
     }
   ASSERT_GT(heights.size(), 10000u);
-  EXPECT_NEAR(median(heights), -kSensorHeight, 0.05);
+  EXPECT_NEAR(median(heights), -kSensorHeight, 0.1);
   std::sort(heights.begin(), heights.end());
   EXPECT_GT(heights[heights.size() * 95 / 100] - heights[heights.size() * 5 / 100], 0.04)
       << "the road is not a plane at the sensor's feet";
@@ -610,7 +610,7 @@ TEST(SimSequence, ReflectanceOverlapsBetweenGroundsAndReadsZeroWhenWeak) {
   EXPECT_GT(overlap(near[raw::kRoad], near[raw::kTerrain]), 0.1);
   EXPECT_GT(overlap(near[raw::kSidewalk], near[raw::kTerrain]), 0.4);
   // Most cars read 0, as in KITTI; far road more often than near road.
-  ASSERT_GT(vehicle, 5000);
+  ASSERT_GT(vehicle, 2000);
   EXPECT_GT(vehicle_zero, vehicle / 2);
   ASSERT_GT(far_road, 200);
   EXPECT_GT(static_cast<double>(far_road_zero) / far_road,
@@ -748,12 +748,14 @@ TEST(SimSequence, MovingAgentsMoveAndTheirPointsFollowThem) {
 
 TEST(SimSequence, StaticPointsOfTwoScansCoincideThroughThePoses) {
   const Written& w = written();
+  // Flat static surfaces: facades and fences.
   const auto building_points = [&](size_t i, const Pose& to_frame) {
     std::vector<Vector3d> out;
     const Scan& s = w.scans[i];
     for (size_t k = 0; k < s.points.size(); ++k) {
       const Point& p = s.points[k];
-      if ((s.labels[k] & 0xFFFF) == raw::kBuilding && std::hypot(p.x, p.y) < 30)
+      const uint32_t sem = s.labels[k] & 0xFFFF;
+      if ((sem == raw::kBuilding || sem == raw::kFence) && std::hypot(p.x, p.y) < 40)
         out.push_back(to_world(to_frame, p));
     }
     return out;

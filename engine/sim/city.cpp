@@ -284,9 +284,13 @@ class CityBuilder {
     for (int i = 0; i < 3; ++i) r.grade.push_back(wave(60.0, 200.0, 0.005, 0.04));
     for (int i = 0; i < 3; ++i) r.hills.push_back(wave(30.0, 100.0, 0.02, 0.07));
     city_.texture_salt_ = static_cast<uint32_t>(rng.next_u64());
-    city_.walk_albedo_ = static_cast<float>(rng.uniform(0.32, 0.52));
-    city_.terrain_albedo_ = static_cast<float>(rng.uniform(0.36, 0.58));
-    city_.other_ground_albedo_ = static_cast<float>(rng.uniform(0.18, 0.45));
+    // Materials overlap but keep their usual order, as in KITTI (road 0.20, sidewalk 0.31,
+    // terrain 0.34-0.36 at the median): asphalt darker than paving and grass, by a factor
+    // drawn per city.
+    city_.road_albedo_ = static_cast<float>(rng.uniform(0.2, 0.34));
+    city_.walk_albedo_ = city_.road_albedo_ * static_cast<float>(rng.uniform(1.15, 1.8));
+    city_.terrain_albedo_ = city_.road_albedo_ * static_cast<float>(rng.uniform(1.2, 2.0));
+    city_.other_ground_albedo_ = city_.road_albedo_ * static_cast<float>(rng.uniform(0.9, 1.6));
   }
 
   void plan_ego() {
@@ -335,17 +339,21 @@ class CityBuilder {
       straight = !straight;
     }
     Street main(std::move(pts));
-    main.lanes = rng.bernoulli(0.35) ? 2 : 1;
+    main.lanes = rng.bernoulli(0.2) ? 2 : 1;
     main.lane_width = rng.uniform(3.0, 3.5);
-    main.road_albedo = static_cast<float>(rng.uniform(0.22, 0.4));
-    // The main street always has bike lanes: cyclists ride there beside the ego's lane.
-    const double bike = rng.uniform(1.3, 1.8);
+    main.road_albedo = city_.road_albedo_ * static_cast<float>(rng.uniform(0.9, 1.1));
+    // Bike lanes, where cyclists ride beside the ego's lane; or, one main street in three, a
+    // narrow residential street (one lane each way, no bike lanes, no parking) whose curbs
+    // are 1-2 m from the ego, as in many KITTI scans.
+    const double bike = rng.uniform(1.0, 1.6);
+    const bool narrow = rng.bernoulli(0.35);
+    if (narrow) main.lanes = 1, main.lane_width = rng.uniform(2.75, 3.25);
     for (StreetSide& side : main.sides) {
-      side.bike = bike;
-      side.parking = rng.bernoulli(0.85) ? rng.uniform(2.1, 2.5) : 0.0;
-      side.lawn = rng.bernoulli(0.6) ? rng.uniform(1.2, 3.0) : 0.0;
-      side.sidewalk = rng.uniform(2.0, 4.0);
-      side.front = rng.bernoulli(0.6) ? rng.uniform(1.5, 7.0) : rng.uniform(0.0, 1.5);
+      side.bike = narrow ? 0.0 : bike;
+      side.parking = rng.bernoulli(0.6) && !narrow ? rng.uniform(2.1, 2.5) : 0.0;
+      side.lawn = rng.bernoulli(0.7) ? rng.uniform(1.2, 3.5) : 0.0;
+      side.sidewalk = rng.uniform(2.0, 5.5);
+      side.front = rng.bernoulli(0.75) ? rng.uniform(2.0, 8.0) : rng.uniform(0.0, 2.0);
       side.set_edges(main.lanes * main.lane_width, kBackyard);
     }
     city_.ego_.lane_offset = -(main.lanes - 0.5) * main.lane_width;
@@ -401,14 +409,14 @@ class CityBuilder {
         Street st(std::move(pts));
         st.lanes = 1;
         st.lane_width = rng.uniform(2.9, 3.3);
-        st.road_albedo = static_cast<float>(rng.uniform(0.22, 0.4));
+        st.road_albedo = city_.road_albedo_ * static_cast<float>(rng.uniform(0.9, 1.1));
         const double bike = rng.bernoulli(0.25) ? rng.uniform(1.3, 1.6) : 0.0;
         for (StreetSide& ss : st.sides) {
           ss.bike = bike;
-          ss.parking = rng.bernoulli(0.7) ? rng.uniform(2.1, 2.4) : 0.0;
-          ss.lawn = rng.bernoulli(0.4) ? rng.uniform(1.0, 2.5) : 0.0;
-          ss.sidewalk = rng.uniform(1.8, 3.2);
-          ss.front = rng.uniform(0.0, 6.0);
+          ss.parking = rng.bernoulli(0.5) ? rng.uniform(2.1, 2.4) : 0.0;
+          ss.lawn = rng.bernoulli(0.6) ? rng.uniform(1.0, 3.0) : 0.0;
+          ss.sidewalk = rng.uniform(1.8, 5.0);
+          ss.front = rng.uniform(0.0, 8.0);
           ss.set_edges(st.lane_width, kBackyard);
         }
         city_.streets_.push_back(std::move(st));
@@ -427,7 +435,7 @@ class CityBuilder {
         for (double s = 0; s < st.length();) {
           s += rng.uniform(15.0, 45.0);
           side.stretch_end.push_back(s);
-          side.stretch_parking.push_back(side.parking > 0 && rng.bernoulli(0.8) ? 1 : 0);
+          side.stretch_parking.push_back(side.parking > 0 && rng.bernoulli(0.35) ? 1 : 0);
         }
         for (double s = 0; s < st.length();) {
           Lot lot;
@@ -435,8 +443,8 @@ class CityBuilder {
           s += rng.uniform(8.0, 28.0);
           lot.s1 = s;
           lot.building = rng.bernoulli(is_main ? 0.72 : 0.65);
-          lot.front_label = rng.bernoulli(0.6) ? raw::kTerrain : raw::kOtherGround;
-          lot.back_label = rng.bernoulli(0.65) ? raw::kTerrain : raw::kOtherGround;
+          lot.front_label = rng.bernoulli(0.8) ? raw::kTerrain : raw::kOtherGround;
+          lot.back_label = rng.bernoulli(0.85) ? raw::kTerrain : raw::kOtherGround;
           side.lots.push_back(lot);
         }
       }
@@ -612,18 +620,19 @@ class CityBuilder {
           const double s0 = lot.s0 + 0.3, s1 = lot.s1 - 0.3 - gate;
           if (s1 - s0 < 2.0) continue;
           // Gaps between buildings are closed by fences or hedges; front gardens of
-          // buildings sometimes by hedges.
-          if (!lot.building && boundary < 0.35) {
+          // buildings often by hedges or fences too (SemanticKITTI: vegetation 27% and
+          // fences 7% of the points).
+          const bool garden = lot.building && ss.front > 1.5;
+          if ((!lot.building && boundary < 0.35) || (garden && boundary >= 0.6)) {
             wall_along(ki, side, s0, s1, ss.e_walk + 0.05, 0.03, fence_height, raw::kFence,
                        fence_albedo, wire ? Surface::kMesh : Surface::kSolid, rng);
-          } else if ((!lot.building && boundary < 0.8) ||
-                     (lot.building && ss.front > 1.5 && boundary < 0.45)) {
+          } else if ((!lot.building && boundary < 0.85) || (garden && boundary < 0.6)) {
             wall_along(ki, side, s0, s1, ss.e_walk + hedge_half + 0.05, hedge_half, hedge_height,
                        raw::kVegetation, leaf_albedo, Surface::kFoliage, rng);
           }
           // Trees and bushes in the yards.
-          const int trees = lot.building ? (ss.front > 3.0 && rng.bernoulli(0.4) ? 1 : 0)
-                                         : static_cast<int>(rng.uniform_int(3));
+          const int trees = lot.building ? (ss.front > 3.0 && rng.bernoulli(0.6) ? 1 : 0)
+                                         : 1 + static_cast<int>(rng.uniform_int(3));
           for (int i = 0; i < trees; ++i) {
             const double s = rng.uniform(lot.s0 + 1.0, lot.s1 - 1.0);
             const double a = lot.building ? ss.e_walk + 0.5 * ss.front
@@ -632,13 +641,13 @@ class CityBuilder {
             if (clear_of_streets({p.x, p.y}, ki, Zone::kFront) && occupancy_.free(p.x, p.y, 1.5))
               add_tree(p, rng);
           }
-          const int bushes = rng.bernoulli(0.5) ? 1 + static_cast<int>(rng.uniform_int(3)) : 0;
+          const int bushes = rng.bernoulli(0.7) ? 1 + static_cast<int>(rng.uniform_int(3)) : 0;
           for (int i = 0; i < bushes; ++i) {
             const double s = rng.uniform(lot.s0 + 1.0, lot.s1 - 1.0);
             const double a =
                 ss.e_walk + rng.uniform(1.0, std::max(1.2, lot.building ? ss.front - 0.5 : 10.0));
             const Placement p = on_street(ki, side, s, a);
-            const double r = rng.uniform(0.5, 1.2), rz = rng.uniform(0.4, 1.0);
+            const double r = rng.uniform(0.6, 1.6), rz = rng.uniform(0.5, 1.2);
             if (!clear_of_streets({p.x, p.y}, ki, Zone::kFront) || !occupancy_.free(p.x, p.y, r))
               continue;
             const double width = r * rng.uniform(0.7, 1.0);
@@ -751,7 +760,7 @@ class CityBuilder {
         const double along = side == 0 ? 0.0 : kPi;  // parked in the direction of traffic
         for (double s = rng.uniform(0.0, 5.0); s < st.length();) {
           const double u = rng.uniform();
-          const bool occupied = rng.bernoulli(0.6);
+          const bool occupied = rng.bernoulli(0.45);
           AgentKind kind = AgentKind::kCar;
           uint32_t semantic = raw::kCar;
           if (u > 0.88) {
@@ -1216,7 +1225,7 @@ GroundSample City::ground_at(double x, double y) const {
       marked = marked || (c.zone == Zone::kRoad && a > side.e_road - 0.15);
       if (marked) {
         g.label = raw::kLaneMarking;
-        albedo = 0.5 + 0.3 * lattice_value(c.street, 0, salt + 3);
+        albedo = std::min(0.9, st.road_albedo * (2.4 + 0.6 * lattice_value(c.street, 0, salt + 3)));
       }
       break;
     }

@@ -185,8 +185,10 @@ class City {
   double curb_height_ = 0.12;
   Relief relief_;
   uint32_t texture_salt_ = 0;  // varies the ground's texture and bumps between cities
-  // Per-city means of the ground materials' albedo (sidewalk, lawn, yards' terrain, other ground).
-  float walk_albedo_ = 0.42f, terrain_albedo_ = 0.47f, other_ground_albedo_ = 0.3f;
+  // Per-city means of the ground materials' albedo (road, sidewalk, lawns' and yards' terrain,
+  // other ground).
+  float road_albedo_ = 0.28f, walk_albedo_ = 0.42f, terrain_albedo_ = 0.47f,
+        other_ground_albedo_ = 0.3f;
   EgoDrive ego_;
   SceneGrid static_scene_;
   std::vector<MovingAgent> movers_;
