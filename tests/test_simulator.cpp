@@ -350,12 +350,20 @@ TEST(SimCity, GroundHasGradesCamberAndCurbs) {
     for (int side = 0; side < 2; ++side) {
       const StreetSide& ss = main.sides[static_cast<size_t>(side)];
       const double sign = side == 0 ? -1.0 : 1.0;
+      // The road at the curb against the sidewalk 0.3 m behind the lawn (if any), which rises
+      // from the curb's top at walk_slope.
       const Vector2d road = main.point(s, sign * (ss.e_curb - 0.05));
-      const Vector2d walk = main.point(s, sign * (ss.e_curb + 0.05));
+      const Vector2d walk = main.point(s, sign * (ss.e_lawn + 0.3));
       const GroundSample g_road = city.ground_at(road.x(), road.y());
       const GroundSample g_walk = city.ground_at(walk.x(), walk.y());
-      if (g_road.raised || !g_walk.raised) continue;  // a junction
-      curbs.push_back(g_walk.z - g_road.z);
+      if (g_road.raised || g_walk.label != raw::kSidewalk) continue;  // a junction
+      // Heights above the street's grade (no hills before the back of the sidewalk).
+      const double walk_z = g_walk.z - relief.grade_at(walk.x(), walk.y());
+      const double road_z = g_road.z - relief.grade_at(road.x(), road.y());
+      // The camber falls over the first 4 m: a road narrower than that ends higher.
+      const double camber_left = relief.camber * std::max(0.0, 4.0 - (ss.e_curb - 0.05));
+      curbs.push_back(walk_z - road_z - relief.walk_slope * (ss.e_lawn + 0.3 - ss.e_curb) +
+                      camber_left);
       // The camber: the lane beside the centre line lies higher than the road at the curb.
       const Vector2d lane = main.point(s, sign * 1.0);
       cambers.push_back(city.ground_z(lane.x(), lane.y()) - g_road.z);
@@ -363,12 +371,14 @@ TEST(SimCity, GroundHasGradesCamberAndCurbs) {
   }
   EXPECT_GT(high - low, 0.1) << "the street's grade varies";
   ASSERT_GT(curbs.size(), 100u);
-  // Curb height, give or take the bumps (terrain's where the lawn meets the curb).
+  // Curb height, give or take the paving's small bumps (a quarter of the terrain's, at most
+  // 1.5 times that on each side) and the camber's 5 cm of road.
   for (double d : curbs) {
-    EXPECT_GT(d, city.curb_height() - 2.5 * relief.roughness) << "a curb between road and walk";
-    EXPECT_LT(d, city.curb_height() + 2.5 * relief.roughness);
+    EXPECT_GT(d, city.curb_height() - 0.75 * relief.roughness - 0.05 * relief.camber)
+        << "a curb between road and sidewalk";
+    EXPECT_LT(d, city.curb_height() + 0.75 * relief.roughness);
   }
-  EXPECT_NEAR(median(curbs), city.curb_height(), 0.04);
+  EXPECT_NEAR(median(curbs), city.curb_height(), 0.02);
   // At least 2 m of the camber's fall from 1 m off the centre line to the curb.
   EXPECT_GT(median(cambers), 2.0 * relief.camber) << "the road falls towards the curb";
   // The ground is continuous away from curbs: neighbours 5 cm apart differ by little.

@@ -428,10 +428,13 @@ class CityBuilder {
   }
 
   void plan_stretches_and_lots() {
-    Rng rng = stage(4);
+    Rng rng = stage(4), levels = stage(14);
     for (Street& st : city_.streets_) {
       const bool is_main = &st == &city_.streets_[0];
       for (StreetSide& side : st.sides) {
+        // In the real labelled scan the grass lies 0.25 m below the sidewalk (median).
+        side.terrain_offset =
+            levels.bernoulli(0.65) ? levels.uniform(-0.4, 0.0) : levels.uniform(0.0, 0.15);
         for (double s = 0; s < st.length();) {
           s += rng.uniform(15.0, 45.0);
           side.stretch_end.push_back(s);
@@ -1233,6 +1236,7 @@ GroundSample City::ground_at(double x, double y) const {
       g.label = raw::kTerrain;
       albedo = terrain_albedo_;
       rough = relief_.roughness;
+      profile += std::max(0.5 * side.terrain_offset, 0.02 - curb_height_);
       break;
     case Zone::kSidewalk:
       g.label = raw::kSidewalk;
@@ -1247,6 +1251,7 @@ GroundSample City::ground_at(double x, double y) const {
       const bool terrain = g.label == raw::kTerrain;
       albedo = terrain ? terrain_albedo_ : other_ground_albedo_;
       rough = terrain ? relief_.roughness : 0.4 * relief_.roughness;
+      if (terrain) profile += side.terrain_offset;
       break;
     }
     case Zone::kOutside:

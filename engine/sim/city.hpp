@@ -43,6 +43,9 @@ struct Lot {
 
 struct StreetSide {
   double bike = 0, parking = 0, lawn = 0, sidewalk = 2, front = 0;  // band widths
+  // Height of the yards' terrain relative to the sidewalk (half of it, and not below the road,
+  // on the lawn): grass is often lower than the paving.
+  double terrain_offset = 0;
   // Outer edge of each band, distance from the centre line.
   double e_road = 0, e_bike = 0, e_curb = 0, e_lawn = 0, e_walk = 0, e_front = 0, e_back = 0;
   std::vector<double> stretch_end;       // parking stretches: arc length where each ends, ascending
