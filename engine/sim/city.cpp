@@ -342,11 +342,11 @@ class CityBuilder {
     main.lanes = rng.bernoulli(0.2) ? 2 : 1;
     main.lane_width = rng.uniform(3.0, 3.5);
     main.road_albedo = city_.road_albedo_ * static_cast<float>(rng.uniform(0.9, 1.1));
-    // Bike lanes, where cyclists ride beside the ego's lane; or, one main street in three, a
+    // Bike lanes, where cyclists ride beside the ego's lane; or, one main street in two, a
     // narrow residential street (one lane each way, no bike lanes, no parking) whose curbs
     // are 1-2 m from the ego, as in many KITTI scans.
     const double bike = rng.uniform(1.0, 1.6);
-    const bool narrow = rng.bernoulli(0.35);
+    const bool narrow = rng.bernoulli(0.5);
     if (narrow) main.lanes = 1, main.lane_width = rng.uniform(2.75, 3.25);
     for (StreetSide& side : main.sides) {
       side.bike = narrow ? 0.0 : bike;
@@ -811,7 +811,7 @@ class CityBuilder {
         const StreetSide& ss = st.sides[static_cast<size_t>(side)];
         // Bicycle racks: 3-6 bicycles side by side at an angle to the street, either in a
         // corral in the parking strip or on the sidewalk with the parking in front kept free.
-        for (double s = rng.uniform(5.0, 30.0); s < st.length(); s += rng.uniform(30.0, 70.0)) {
+        for (double s = rng.uniform(5.0, 60.0); s < st.length(); s += rng.uniform(60.0, 140.0)) {
           const int count = 3 + static_cast<int>(rng.uniform_int(4));
           // Racks stand on the sidewalk only where it is wide enough to walk past them.
           const bool corral = ss.parking > 0 && (rng.bernoulli(0.6) || ss.sidewalk < 3.0);
@@ -839,7 +839,7 @@ class CityBuilder {
         }
         // Bicycles leaning at the back of the sidewalk, along the street.
         for (const Lot& lot : ss.lots) {
-          if (!rng.bernoulli(0.25)) continue;
+          if (!rng.bernoulli(0.12)) continue;
           const double s = rng.uniform(lot.s0, lot.s1);
           const Placement p = on_street(ki, side, s, ss.e_walk - 0.35, rng.uniform(-0.1, 0.1));
           if (!on_ground(p, {raw::kSidewalk}) || !occupancy_.free(p.x, p.y, 0.4)) continue;
@@ -849,7 +849,7 @@ class CityBuilder {
           occupancy_.add(p.x, p.y, 0.6);
         }
         // Standing people: alone or in groups of two or three, on the sidewalk.
-        for (double s = rng.uniform(2.0, 20.0); s < st.length(); s += rng.uniform(20.0, 45.0)) {
+        for (double s = rng.uniform(2.0, 35.0); s < st.length(); s += rng.uniform(30.0, 70.0)) {
           const int group = rng.bernoulli(0.6) ? 1 : (rng.bernoulli(0.75) ? 2 : 3);
           const double a = ss.e_lawn + rng.uniform(0.4, std::max(0.5, ss.sidewalk - 0.4));
           const double face = rng.uniform(-kPi, kPi);
