@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
 # make demo: the main job on the built-in default data. Simulates a small SemanticKITTI-format
 # data set, builds its ground truth, trains a small PillarSegNet on the CPU, evaluates it on a
-# sequence it never saw (Sparse Eval and Dense Eval), and renders PNGs (the training curves too).
+# sequence it never saw (Sparse Eval and Dense Eval), and on the real labelled SemanticKITTI scan
+# in ../shared/data when it is there (PILLARSEG_SHARED_DATA: another data directory), and renders
+# PNGs (the training curves too).
 # Usage: scripts/demo.sh PILLARSEG_BINARY OUT_DIR
 set -euo pipefail
 bin=${1:?usage: demo.sh PILLARSEG_BINARY OUT_DIR}
@@ -48,6 +50,22 @@ step "5/6 evaluate on sequence 08 (never seen in training)"
 "$bin" eval --data "$data" --weights "$run/checkpoint.safetensors" --mode dense --cache "$cache" \
   --report "$out/eval_dense.json"
 
+# The real labelled SemanticKITTI scan beside the repository (../shared, or PILLARSEG_SHARED_DATA):
+# the simulator's model on real data it never saw. Its ground-truth cache goes under $out, never
+# into the shared data.
+real="${PILLARSEG_SHARED_DATA:-$here/../shared/data}/semantickitti"
+real_miou=""
+if [[ -f "$real/sequences/99/velodyne/000000.bin" && -f "$real/sequences/99/labels/000000.label" ]]; then
+  "$bin" eval --data "$real" --sequences 99 --weights "$run/checkpoint.safetensors" --mode sparse \
+    --cache "$out/cache_real" --report "$out/eval_real_sparse.json"
+  real_miou=$(sed -n 's/^ *"miou": \([-0-9.eE+]*\),$/\1/p' "$out/eval_real_sparse.json" |
+    awk '{ printf "%.1f", 100 * $1 }')
+  echo
+  echo "real SemanticKITTI scan (never seen): Sparse Eval mIoU ${real_miou}%"
+else
+  echo "no real labelled scan at $real/sequences/99 (set PILLARSEG_SHARED_DATA): real-data evaluation skipped"
+fi
+
 step "6/6 render points, observability, prediction and ground truth (the paper's Fig. 3 panels)"
 for scan in 0 10 19; do
   "$bin" render --data "$data" --sequence 8 --scan "$scan" --weights "$run/checkpoint.safetensors" \
@@ -61,4 +79,7 @@ echo "data:        $data"
 echo "checkpoint:  $run/checkpoint.safetensors (metrics log: $run/metrics.jsonl)"
 echo "curves:      $run/plots"
 echo "evaluation:  $out/eval_sparse.json, $out/eval_dense.json"
+if [[ -n "$real_miou" ]]; then
+  echo "real scan:   $out/eval_real_sparse.json (real SemanticKITTI scan (never seen): Sparse Eval mIoU ${real_miou}%)"
+fi
 echo "pictures:    $pictures"
