@@ -11,9 +11,12 @@
 #include "core/error.hpp"
 #include "engine/render/plot.hpp"
 #include "engine/util/metrics_log.hpp"
+#include "tests/support/image_checks.hpp"
 #include "tests/support/test_support.hpp"
 
 using namespace pillarseg;
+using pillarseg::test::count_dark;
+using pillarseg::test::is_white;
 namespace fs = std::filesystem;
 
 using pillarseg::test::error_of;
@@ -44,21 +47,7 @@ int64_t count_colour(const ImageRgb& image, Rgb c, int x0 = 0, int y0 = 0, int x
   return n;
 }
 
-// Pixels in the box darker than light grey: text or lines.
-int64_t count_dark(const ImageRgb& image, int x0, int y0, int x1, int y1) {
-  int64_t n = 0;
-  for (int y = y0; y < y1; ++y)
-    for (int x = x0; x < x1; ++x) {
-      const uint8_t* p = image.at(x, y);
-      n += p[0] + p[1] + p[2] < 3 * 128;
-    }
-  return n;
-}
 
-bool is_white(const ImageRgb& image, int x, int y) {
-  const uint8_t* p = image.at(x, y);
-  return p[0] == 255 && p[1] == 255 && p[2] == 255;
-}
 
 const std::string kIou =
     R"({"vehicle": 0.5, "person": null, "two-wheel": 0.1, "rider": 0.0, "road": 0.9, "sidewalk": 0.6, )"

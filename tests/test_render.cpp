@@ -8,9 +8,12 @@
 
 #include "core/classes.hpp"
 #include "engine/render/figure.hpp"
+#include "tests/support/image_checks.hpp"
 #include "tests/support/test_support.hpp"
 
 using namespace pillarseg;
+using pillarseg::test::count_dark;
+using pillarseg::test::is_white;
 using pillarseg::test::error_of;
 
 namespace {
@@ -31,19 +34,7 @@ bool has_colour(const ImageRgb& image, int x, int y, Rgb c) {
   return p[0] == c.r && p[1] == c.g && p[2] == c.b;
 }
 
-bool is_white(const ImageRgb& image, int x, int y) {
-  return has_colour(image, x, y, Rgb{255, 255, 255});
-}
 
-int64_t count_dark(const ImageRgb& image, int x0, int y0, int x1, int y1) {
-  int64_t n = 0;
-  for (int y = y0; y < y1; ++y)
-    for (int x = x0; x < x1; ++x) {
-      const uint8_t* p = image.at(x, y);
-      n += p[0] + p[1] + p[2] < 3 * 128;
-    }
-  return n;
-}
 
 // Every check of a composed figure that holds at any grid: the panels' pixels are the sources'
 // scaled by figure.scale, each title has ink above its panel, the swatches are their classes'
