@@ -128,6 +128,8 @@ bench_log=$out/bench.log
 : > "$bench_log"
 scan=$here/data/sequences/99/velodyne/000000.bin
 [[ -f $scan ]] || scan=""
+# The steady-state milliseconds of a `pillarseg bench` output.
+steady_ms() { sed -n 's/^steady state.*: \([0-9.]*\) ms; stage by stage above: \([0-9.]*\) ms.*/\1/p' "$1"; }
 
 # ---- 0. smoke: at most 90 s, its table first ----
 if wants smoke; then
@@ -170,7 +172,7 @@ if wants smoke; then
   t0=$(date +%s)
   echo "=== smoke: bench bilinear --conv own --repeat 3" >> "$bench_log"
   if timeout 40 "$here/bin/pillarseg" bench --device cuda --repeat 3 ${scan:+--scan "$scan"} > "$out/.smoke" 2>&1; then
-    steady=$(sed -n 's/^steady state.*: \([0-9.]*\) ms; stage by stage above.*/\1/p' "$out/.smoke")
+    steady=$(steady_ms "$out/.smoke")
     smoke_row "full-size bench, bilinear fp32" "steady state ${steady:-?} ms" $(( $(date +%s) - t0 ))
   else
     smoke_row "full-size bench, bilinear fp32" "FAILED (see bench.log)" $(( $(date +%s) - t0 ))
@@ -300,7 +302,7 @@ run_bench() {
     return
   fi
   local steady staged unet bytes agreement
-  steady=$(sed -n 's/^steady state.*: \([0-9.]*\) ms; stage by stage above: \([0-9.]*\) ms.*/\1/p' "$out/.bench")
+  steady=$(steady_ms "$out/.bench")
   staged=$(sed -n 's/^steady state.*stage by stage above: \([0-9.]*\) ms.*/\1/p' "$out/.bench")
   unet=$(awk '$1 == "U-Net" {print $2}' "$out/.bench")
   bytes=$(sed -n 's/^bytes over the bus per scan: \([0-9.]*\) MB.*: \([0-9.]*\) MB.*/\1 (\2)/p' "$out/.bench")
