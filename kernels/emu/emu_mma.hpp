@@ -14,6 +14,15 @@
 //   float. A GPU adds in an order and with internal rounding the ISA does not specify, so results
 //   there may differ from these in the last bits of the float accumulator.
 //
+//   mma.sync.aligned.m16n8k32.row.col.s32.s8.s8.s32  D = A B + C (section 9.7.14.5.10 "Matrix
+//     Fragments for mma.m16n8k32"), each register four 8-bit elements, the lowest byte first:
+//     A (16 x 32, 4 registers a0..a3 of elements 4 r .. 4 r + 3): row g (a0, a2) or g + 8 (a1,
+//       a3), column 4 t + byte, + 16 for a2 and a3;
+//     B (32 x 8, 2 registers): row 4 t + byte, + 16 for b1, column g;
+//     C, D (16 x 8 signed 32-bit integers): as the floats of m16n8k16.
+//   The emulation forms each element of D exactly, C plus the 32 products, and keeps its low 32
+//   bits (two's complement): without .satfinite the instruction wraps.
+//
 //   cp.async.cg.shared.global [dst], [src], 16, src_size (src_size 16, or 0: 16 zero bytes),
 //     cp.async.commit_group, cp.async.wait_group N: per thread; the source is read when the copy
 //     is issued, the destination written when its group completes (emu_scheduler.hpp,
@@ -97,6 +106,50 @@ inline void mma_m16n8k16_collective(bool bf16, float d[4], const std::uint32_t a
   std::memcpy(lane.c, c, sizeof lane.c);
   warp_matrix(bf16 ? "mma.sync.m16n8k16.bf16" : "mma.sync.m16n8k16.f16", 0xffffffffu, &lane,
               bf16 ? &mma_m16n8k16<bf16_bits_to_float> : &mma_m16n8k16<f16_bits_to_float>);
+  std::memcpy(d, lane.d, sizeof lane.d);
+}
+
+struct MmaS8Lane {
+  std::int32_t d[4];
+  std::uint32_t a[4], b[2];
+  std::int32_t c[4];
+};
+
+inline void mma_m16n8k32_s8(void* const* lanes) {
+  count_mma_m16n8k32();  // once per warp instruction
+  std::int64_t a[16][32], b[32][8], c[16][8];
+  const auto element = [](std::uint32_t reg, int byte) {
+    return static_cast<std::int64_t>(static_cast<std::int8_t>(reg >> (8 * byte)));
+  };
+  for (int lane = 0; lane < 32; ++lane) {
+    const MmaS8Lane& l = *static_cast<const MmaS8Lane*>(lanes[lane]);
+    const int g = lane / 4, t = lane % 4;
+    for (int r = 0; r < 4; ++r)
+      for (int byte = 0; byte < 4; ++byte)
+        a[g + (r % 2) * 8][4 * t + byte + (r / 2) * 16] = element(l.a[r], byte);
+    for (int r = 0; r < 2; ++r)
+      for (int byte = 0; byte < 4; ++byte) b[4 * t + byte + r * 16][g] = element(l.b[r], byte);
+    for (int i = 0; i < 4; ++i) c[g + (i >= 2 ? 8 : 0)][2 * t + (i & 1)] = l.c[i];
+  }
+  for (int lane = 0; lane < 32; ++lane) {
+    MmaS8Lane& l = *static_cast<MmaS8Lane*>(lanes[lane]);
+    const int g = lane / 4, t = lane % 4;
+    for (int i = 0; i < 4; ++i) {
+      const int row = g + (i >= 2 ? 8 : 0), col = 2 * t + (i & 1);
+      std::int64_t sum = c[row][col];
+      for (int k = 0; k < 32; ++k) sum += a[row][k] * b[k][col];
+      l.d[i] = static_cast<std::int32_t>(static_cast<std::uint32_t>(sum));  // the low 32 bits
+    }
+  }
+}
+
+inline void mma_m16n8k32_s8_collective(std::int32_t d[4], const std::uint32_t a[4],
+                                       const std::uint32_t b[2], const std::int32_t c[4]) {
+  MmaS8Lane lane;
+  std::memcpy(lane.a, a, sizeof lane.a);
+  std::memcpy(lane.b, b, sizeof lane.b);
+  std::memcpy(lane.c, c, sizeof lane.c);
+  warp_matrix("mma.sync.m16n8k32.s8", 0xffffffffu, &lane, &mma_m16n8k32_s8);
   std::memcpy(d, lane.d, sizeof lane.d);
 }
 

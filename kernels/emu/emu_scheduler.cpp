@@ -965,16 +965,21 @@ AsyncCopies& thread_async_copies() {
 }
 
 namespace {
-std::atomic<std::uint64_t> mma_count{0}, cp_async_byte_count{0};
+std::atomic<std::uint64_t> mma_count{0}, cp_async_byte_count{0}, mma_k32_count{0};
 }  // namespace
 
 InstructionCounts instruction_counts() {
   return InstructionCounts{mma_count.load(std::memory_order_relaxed),
-                           cp_async_byte_count.load(std::memory_order_relaxed)};
+                           cp_async_byte_count.load(std::memory_order_relaxed),
+                           mma_k32_count.load(std::memory_order_relaxed)};
 }
 
 void count_mma_m16n8k16() {
   mma_count.fetch_add(1, std::memory_order_relaxed);
+}
+
+void count_mma_m16n8k32() {
+  mma_k32_count.fetch_add(1, std::memory_order_relaxed);
 }
 
 void count_cp_async_bytes(std::uint64_t bytes) {

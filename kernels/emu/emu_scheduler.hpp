@@ -123,14 +123,19 @@ AsyncCopies& thread_async_copies();
 
 // What the emulated kernels have issued since the process started, summed over every launch and
 // thread (atomic): warp-level mma.sync m16n8k16 instructions (4,096 flops each: 16 x 8 x 16
-// multiply-adds) and the bytes cp.async copied from global to shared memory (zero-filled copies
-// included: a GPU issues them too). The benchmarks read differences (Backend::counters()).
+// multiply-adds), m16n8k32 s8 instructions (8,192 each: 16 x 8 x 32) and the bytes cp.async
+// copied from global to shared memory (zero-filled copies included: a GPU issues them too). The
+// benchmarks read differences (Backend::counters()).
 struct InstructionCounts {
   std::uint64_t mma_m16n8k16 = 0;
   std::uint64_t cp_async_bytes = 0;
+  std::uint64_t mma_m16n8k32 = 0;
+  // The tensor cores' operations: 2 x 16 x 8 x 16 per m16n8k16, 2 x 16 x 8 x 32 per m16n8k32.
+  std::uint64_t tensor_core_flops() const { return 4096 * mma_m16n8k16 + 8192 * mma_m16n8k32; }
 };
 InstructionCounts instruction_counts();
 void count_mma_m16n8k16();
+void count_mma_m16n8k32();
 void count_cp_async_bytes(std::uint64_t bytes);
 
 }  // namespace pillarseg::emu

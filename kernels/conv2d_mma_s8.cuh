@@ -1,0 +1,81 @@
+// INT8 convolutions on the tensor cores for inference: implicit GEMM with mma.sync m16n8k32 s8 x s8
+// (kernels/mma.cuh), exact 32-bit integer accumulation, requantization in the epilogue. The
+// forward of the two kinds of conv2d_mma.cuh:
+//   - a stride-1 convolution x (B, I, H, W), weight (O, I, k, k), pad -> y (B, O, Ho, Wo), with an
+//     eval BatchNorm folded into the weights and the bias, and an optional ReLU;
+//   - ConvTranspose2d kernel 2 stride 2, x (B, I, H, W), weight (I, O, 2, 2) -> y (B, O, 2H, 2W).
+//
+// Weights: prepare_conv_weights_s8 / prepare_conv_transpose_weights_s8 run once per set of values
+// on the device and give, for the GEMM's N columns (O for a convolution; 4 O for the transposed
+// kind, column 4 o + 2 dy + dx):
+//   w8 (N, Kp) int8, K tap-major as the 16-bit kernels' (column t Ip + c for tap t and input
+//     channel c, Ip = I padded to a multiple of 32 with zeros: Kp = op::half16_weight_k(I, k k),
+//     or Ip for the transposed kind): q = clamp(rint(w' / sw), -127, 127), w' the FP32 weight
+//     with the BatchNorm's scale gamma / sqrt(var + eps) multiplied in (rounded to FP32);
+//   w_scale (N) FP32: sw, per output channel and symmetric, max |w'| over the channel's I k k
+//     weights (transposed: I x 4) / 127; 0 for an all-zero channel (whose q are then 0);
+//   bias_out (N) FP32: the bias with the BatchNorm's shift beta - scale mean.
+// Activations: x FP32 or BF16 with a per-tensor scale sx > 0 (calibrated), quantized as they are
+//   staged in shared memory: q = clamp(rint(x r), -127, 127) with r = 1 / sx rounded to FP32
+//   and x r rounded once, to the nearest integer (ties to even): |x| beyond 127 sx clamps, NaN
+//   becomes -127. A multiply, not a division, per staged value: q differs from rint(x / sx) only
+//   where x / sx lies within an FP32 rounding of a half-integer.
+// Output: acc = sum over K of q_w q_x in 32 bits, exact (|acc| <= 127^2 Kp; wraps past 2^31,
+//   Kp > 133,000); y = act(fma(float(acc), s, bias_out[n])) with s = sx w_scale[n] rounded to
+//   FP32, stored FP32 or rounded once to BF16; act is ReLU or nothing.
+//
+// Needs compute capability 8.0 or later on a GPU (mma_supported(), conv2d_mma.cuh); the
+// emulation runs it everywhere. Pointers are device memory; the work is queued on `stream`.
+#pragma once
+
+#include <cstdint>
+
+#include "kernels/conv2d.cuh"
+#include "kernels/conv2d_mma.cuh"
+#include "kernels/emu/cuda_compat.cuh"
+
+namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
+
+// w (O, I, k, k) [, bias (O) or nullptr] [, BatchNorm] -> w8 (O, k k Ip), w_scale (O), bias_out
+// (O).
+void prepare_conv_weights_s8(const float* w, const float* bias, const FoldedBatchNorm& bn,
+                             const Conv2dShape& shape, std::int8_t* w8, float* w_scale,
+                             float* bias_out, cudaStream_t stream);
+// w (I, O, 2, 2) [, bias (O)] -> w8 (4 O, Ip), w_scale (4 O) and bias_out (4 O), row 4 o + 2 dy +
+// dx holding output channel o's scale and bias.
+void prepare_conv_transpose_weights_s8(const float* w, const float* bias, std::int64_t in_channels,
+                                       std::int64_t out_channels, std::int8_t* w8, float* w_scale,
+                                       float* bias_out, cudaStream_t stream);
+
+// x (B, I, H, W) with scale x_scale, prepared w8, w_scale and bias_out -> y (B, O, Ho, Wo), ReLU
+// when `relu`. x and y are FP32 (float) or, with x_bf16 / y_bf16, BF16 (std::uint16_t bits).
+// workspace: nullptr, or *_workspace(shape) 32-bit integers of device memory (0 for most
+// shapes): with it, a GEMM of few tiles and a long K (the deepest layers) splits K over blocks,
+// about 256 in all, whose integer sums a second kernel adds; integer sums are exact, so y has the
+// same bits split or not.
+std::int64_t conv2d_mma_s8_forward_workspace(const Conv2dShape& shape);
+void conv2d_mma_s8_forward(const void* x, bool x_bf16, float x_scale, const std::int8_t* w8,
+                           const float* w_scale, const float* bias_out, const Conv2dShape& shape,
+                           bool relu, void* y, bool y_bf16, cudaStream_t stream,
+                           std::int32_t* workspace = nullptr);
+// x (B, I, H, W), prepared w8, w_scale, bias_out -> y (B, O, 2H, 2W); the rest as above.
+std::int64_t conv_transpose2x2_mma_s8_forward_workspace(std::int64_t batch,
+                                                        std::int64_t in_channels,
+                                                        std::int64_t height, std::int64_t width,
+                                                        std::int64_t out_channels);
+void conv_transpose2x2_mma_s8_forward(const void* x, bool x_bf16, float x_scale,
+                                      const std::int8_t* w8, const float* w_scale,
+                                      const float* bias_out, std::int64_t batch,
+                                      std::int64_t in_channels, std::int64_t height,
+                                      std::int64_t width, std::int64_t out_channels, bool relu,
+                                      void* y, bool y_bf16, cudaStream_t stream,
+                                      std::int32_t* workspace = nullptr);
+
+// Self-check of the fragment layout, one warp (tests/test_kernels_int8.cpp, on the GPU from the
+// bundle): D (16 x 8) = A (16 x 32) B (32 x 8) + C, A and B row-major int8, C and D row-major
+// int32, with each lane's registers built from A and B by the PTX ISA's formulas and its results
+// stored by them.
+void mma_s8_fragment_probe(const std::int8_t* a, const std::int8_t* b, const std::int32_t* c,
+                           std::int32_t* d, cudaStream_t stream);
+
+}  // namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE
