@@ -1,0 +1,408 @@
+// The CPU's INT8 convolutions (int8_conv.hpp): feature checks, weight quantization and packing,
+// argument checks, the quantized input's layout, the run-time choice of instructions, threads.
+#include "engine/cpu/int8_conv.hpp"
+
+#if defined(__x86_64__)
+#include <cpuid.h>
+#include <sys/syscall.h>
+#include <unistd.h>
+#endif
+
+#include <algorithm>
+#include <cerrno>
+#include <cmath>
+#include <cstdlib>
+#include <cstring>
+#include <string>
+#include <string_view>
+
+#include "core/error.hpp"
+#include "core/ops.hpp"
+#include "core/parallel.hpp"
+#include "engine/cpu/int8_amx.hpp"
+#include "engine/cpu/int8_isa_emulated.hpp"
+#include "engine/cpu/int8_microkernel.hpp"
+
+namespace pillarseg::cpu {
+
+bool avx512_vnni_available(std::string* why_not) {
+#if defined(PILLARSEG_HAVE_AVX512_VNNI_KERNELS)
+  __builtin_cpu_init();
+  // libgcc reports AVX-512 features only where the OS saves the ZMM registers (XCR0).
+  std::string missing;
+  const auto need = [&](bool present, const char* feature) {
+    if (!present) missing += (missing.empty() ? "" : ", ") + std::string(feature);
+  };
+  need(__builtin_cpu_supports("avx512f") != 0, "AVX512F");
+  need(__builtin_cpu_supports("avx512bw") != 0, "AVX512BW");
+  need(__builtin_cpu_supports("avx512vl") != 0, "AVX512VL");
+  need(__builtin_cpu_supports("avx512vnni") != 0, "AVX512_VNNI");
+  if (missing.empty()) return true;
+  if (why_not != nullptr) *why_not = "this CPU (or its OS) lacks " + missing;
+  return false;
+#else
+  if (why_not != nullptr) {
+    *why_not =
+        "this build has no AVX512-VNNI micro-kernel (not an x86-64 target, or the compiler lacks "
+        "-mavx512vnni)";
+  }
+  return false;
+#endif
+}
+
+namespace {
+
+// The AMX-INT8 check's answer, worked out once: "" where the tiles run, else what is missing.
+std::string amx_int8_missing() {
+  std::string why;
+  if (!avx512_vnni_available(&why)) return why;
+#if defined(PILLARSEG_HAVE_AMX_INT8_KERNELS) && defined(__x86_64__) && defined(__linux__)
+  unsigned eax = 0, ebx = 0, ecx = 0, edx = 0;
+  if (__get_cpuid_count(7, 0, &eax, &ebx, &ecx, &edx) == 0) return "this CPU has no CPUID leaf 7";
+  std::string missing;
+  if (((edx >> 24) & 1u) == 0) missing = "AMX-TILE";
+  if (((edx >> 25) & 1u) == 0) missing += missing.empty() ? "AMX-INT8" : ", AMX-INT8";
+  if (!missing.empty()) return "this CPU lacks " + missing;
+  unsigned xcr0_lo = 0, xcr0_hi = 0;
+  __asm__ volatile("xgetbv" : "=a"(xcr0_lo), "=d"(xcr0_hi) : "c"(0));  // OSXSAVE: AVX-512 above
+  if (((xcr0_lo >> 17) & 3u) != 3u)
+    return "the OS does not enable the AMX tile state (XCR0 bits 17, 18)";
+  constexpr long kArchReqXcompPerm = 0x1023, kXfeatureXtiledata = 18;  // <asm/prctl.h>
+  if (::syscall(SYS_arch_prctl, kArchReqXcompPerm, kXfeatureXtiledata) != 0) {
+    return std::string(
+               "Linux did not grant this process the AMX tile state (arch_prctl "
+               "ARCH_REQ_XCOMP_PERM: ") +
+           std::strerror(errno) + "; Linux 5.16 or later grants it)";
+  }
+  return "";
+#else
+  return "this build has no AMX-INT8 tiles (not x86-64 Linux, or the compiler lacks -mamx-int8)";
+#endif
+}
+
+}  // namespace
+
+bool amx_int8_available(std::string* why_not) {
+  static const std::string missing = amx_int8_missing();
+  if (missing.empty()) return true;
+  if (why_not != nullptr) *why_not = missing;
+  return false;
+}
+
+Int8Kernels native_int8_kernels() {
+  const char* amx = std::getenv("PILLARSEG_CPU_AMX");
+  if (amx != nullptr && std::string_view(amx) == "0") return Int8Kernels::Vnni;
+  return amx_int8_available() ? Int8Kernels::Amx : Int8Kernels::Vnni;
+}
+
+const char* int8_kernels_name(Int8Kernels kernels) {
+  switch (kernels) {
+    case Int8Kernels::Vnni:
+      return "avx512_vnni";
+    case Int8Kernels::Emulated:
+      return "emulated";
+    case Int8Kernels::Amx:
+      return "amx_int8";
+    case Int8Kernels::AmxEmulated:
+      return "amx_int8 (emulated)";
+  }
+  return "?";
+}
+
+bool int8_amx_family(Int8Kernels kernels) {
+  return kernels == Int8Kernels::Amx || kernels == Int8Kernels::AmxEmulated;
+}
+
+std::int8_t quantize_int8(float x, float reciprocal) {
+  float r = x * reciprocal;
+  if (std::isnan(r)) return 0;
+  r = std::clamp(r, -127.0f, 127.0f);
+  return static_cast<std::int8_t>(std::nearbyint(r));
+}
+
+float int8_weight_scale(float max_abs) {
+  return max_abs / 127.0f;
+}
+
+namespace {
+
+std::int64_t round_up(std::int64_t n, std::int64_t to) {
+  return (n + to - 1) / to * to;
+}
+
+// Channel quads the input is stored in: every quad of the channels, and for AMX a multiple of 16.
+std::int64_t int8_quads(Int8Kernels kernels, std::int64_t channels) {
+  const std::int64_t quads = (channels + 3) / 4;
+  return int8_amx_family(kernels) ? round_up(quads, kInt8AmxQuads) : quads;
+}
+
+// q[(n, tap, c)] of GEMM column n -> the packing of `kernels`: Vnni w[n / 8][tap][cq][n % 8][i],
+// Amx w[n][tap][cq][i] (int8_microkernel.hpp, int8_amx.hpp), zero where c >= channels or n >=
+// columns. qw(n, tap, c) gives the value.
+template <class Qw>
+void pack_weights(Int8Kernels kernels, std::int64_t columns, std::int64_t taps,
+                  std::int64_t channels, Qw&& qw, std::vector<std::int8_t>& packed) {
+  const std::int64_t quads = int8_quads(kernels, channels);
+  const bool amx = int8_amx_family(kernels);
+  const std::int64_t padded = round_up(columns, amx ? kInt8AmxColumns : kInt8GroupColumns);
+  packed.assign(static_cast<size_t>(padded * taps * quads * 4), 0);
+  parallel_for(columns, [&](std::int64_t n) {
+    for (std::int64_t t = 0; t < taps; ++t) {
+      for (std::int64_t c = 0; c < channels; ++c) {
+        const std::int64_t cq = c / 4, i = c % 4;
+        const std::int64_t at =
+            amx ? ((n * taps + t) * quads + cq) * 4 + i
+                : (((n / kInt8GroupColumns * taps + t) * quads + cq) * kInt8GroupColumns +
+                   n % kInt8GroupColumns) *
+                          4 +
+                      i;
+        packed[static_cast<size_t>(at)] = qw(n, t, c);
+      }
+    }
+  });
+}
+
+// sw[o] and qw for the FP32 weights of output channel o at `index(o, j)`, j < per_channel.
+template <class Index>
+void quantize_weights(const float* w, std::int64_t out, std::int64_t per_channel, Index&& index,
+                      std::vector<float>& scale, std::vector<std::int8_t>& q) {
+  scale.assign(static_cast<size_t>(out), 0.0f);
+  parallel_for(out, [&](std::int64_t o) {
+    float max_abs = 0.0f;
+    for (std::int64_t j = 0; j < per_channel; ++j)
+      max_abs = std::max(max_abs, std::abs(w[index(o, j)]));
+    const float s = int8_weight_scale(max_abs);
+    scale[static_cast<size_t>(o)] = s;
+    for (std::int64_t j = 0; j < per_channel; ++j) {
+      const std::int64_t at = index(o, j);
+      q[static_cast<size_t>(at)] =
+          s > 0.0f
+              ? static_cast<std::int8_t>(std::clamp(std::nearbyint(w[at] / s), -127.0f, 127.0f))
+              : std::int8_t{0};
+    }
+  });
+}
+
+void require_finite(const char* op, const Ref& r, const char* what) {
+  for (std::int64_t i = 0; i < r.numel(); ++i)
+    PS_CHECK(std::isfinite(r.data[i]), "{}: {} must be finite, got {} at element {}", op, what,
+             r.data[i], i);
+}
+
+}  // namespace
+
+void prepare_int8_conv(Int8Kernels kernels, const Ref& w, const Ref& bias, Int8ConvWeights& out) {
+  const char* op = "prepare_int8_conv";
+  require_rank(op, "w", w, 4);
+  const std::int64_t o_count = w.dim(0), in = w.dim(1), taps = w.dim(2) * w.dim(3);
+  PS_CHECK(taps <= kInt8MaxTaps, "{}: kernels up to 7 x 7, got {}", op, shape_str(w.shape));
+  require_shape(op, "bias", bias, {o_count});
+  require_finite(op, w, "w");
+  require_finite(op, bias, "bias");
+  out.packed_for = int8_amx_family(kernels) ? Int8Kernels::Amx : Int8Kernels::Vnni;
+  out.weight = w.shape, out.transposed = false, out.columns = o_count;
+  out.q.assign(static_cast<size_t>(w.numel()), 0);
+  const std::int64_t k = in * taps;
+  quantize_weights(
+      w.data, o_count, k, [&](std::int64_t o, std::int64_t j) { return o * k + j; }, out.scale,
+      out.q);
+  out.bias.assign(bias.data, bias.data + o_count);
+  out.compensation.assign(static_cast<size_t>(o_count), 0);
+  for (std::int64_t o = 0; o < o_count; ++o) {
+    std::int32_t sum = 0;
+    for (std::int64_t j = 0; j < k; ++j) sum += out.q[static_cast<size_t>(o * k + j)];
+    out.compensation[static_cast<size_t>(o)] = 128 * sum;
+  }
+  pack_weights(
+      kernels, o_count, taps, in,
+      [&](std::int64_t n, std::int64_t t, std::int64_t c) {
+        return out.q[static_cast<size_t>((n * in + c) * taps + t)];
+      },
+      out.packed);
+}
+
+void prepare_int8_conv_transpose(Int8Kernels kernels, const Ref& w, const Ref& bias,
+                                 Int8ConvWeights& out) {
+  const char* op = "prepare_int8_conv_transpose";
+  require_rank(op, "w", w, 4);
+  const std::int64_t in = w.dim(0), o_count = w.dim(1);
+  PS_CHECK(w.dim(2) == 2 && w.dim(3) == 2, "{}: w must be (I, O, 2, 2), got {}", op,
+           shape_str(w.shape));
+  require_shape(op, "bias", bias, {o_count});
+  require_finite(op, w, "w");
+  require_finite(op, bias, "bias");
+  out.packed_for = int8_amx_family(kernels) ? Int8Kernels::Amx : Int8Kernels::Vnni;
+  out.weight = w.shape, out.transposed = true, out.columns = 4 * o_count;
+  out.q.assign(static_cast<size_t>(w.numel()), 0);
+  // Output channel o's weights: w[i][o][s] for every input channel i and sub-pixel s.
+  quantize_weights(
+      w.data, o_count, 4 * in,
+      [&](std::int64_t o, std::int64_t j) { return ((j / 4) * o_count + o) * 4 + j % 4; },
+      out.scale, out.q);
+  out.bias.resize(static_cast<size_t>(4 * o_count));
+  out.compensation.assign(static_cast<size_t>(4 * o_count), 0);
+  for (std::int64_t n = 0; n < 4 * o_count; ++n) {
+    const std::int64_t o = n / 4, s = n % 4;
+    out.bias[static_cast<size_t>(n)] = bias.data[o];
+    std::int32_t sum = 0;
+    for (std::int64_t i = 0; i < in; ++i)
+      sum += out.q[static_cast<size_t>((i * o_count + o) * 4 + s)];
+    out.compensation[static_cast<size_t>(n)] = 128 * sum;
+  }
+  pack_weights(
+      kernels, 4 * o_count, 1, in,
+      [&](std::int64_t n, std::int64_t, std::int64_t c) {
+        return out.q[static_cast<size_t>((c * o_count + n / 4) * 4 + n % 4)];
+      },
+      out.packed);
+}
+
+namespace {
+
+// Whether `kernels` run the native instructions (checked here) rather than their models.
+bool native(Int8Kernels kernels) {
+  if (kernels == Int8Kernels::Emulated || kernels == Int8Kernels::AmxEmulated) return false;
+  std::string why;
+  if (kernels == Int8Kernels::Amx) {
+    PS_CHECK(amx_int8_available(&why), "INT8 convolutions on AMX tiles: {}", why);
+  } else {
+    PS_CHECK(avx512_vnni_available(&why), "INT8 convolutions on the CPU: {}", why);
+  }
+  return true;
+}
+
+void require_activation(const char* op, const char* what, const ActRef& r) {
+  PS_CHECK(r.shape.size() == 4, "{}: {} must be (B, C, H, W), got {}", op, what,
+           shape_str(r.shape));
+  PS_CHECK(r.data != nullptr || r.numel() == 0, "{}: {} has no memory", op, what);
+}
+
+// The input quantized into the workspace (`pad` columns and rows of u = 128 around it), and the
+// GEMM's input fields.
+void quantize_input(Int8Kernels kernels, bool on_native, const ActRef& x, float sx, int pad,
+                    Int8ConvWorkspace& workspace, Int8Gemm& g) {
+  Int8Quantize q;
+  q.x = x.data, q.x_bf16 = x.half;
+  q.channels = x.dim(1), q.height = x.dim(2), q.width = x.dim(3);
+  q.reciprocal = 1.0f / sx;
+  q.pad = pad;
+  q.quads = int8_quads(kernels, q.channels);
+  q.padded_height = q.height + 2 * pad, q.padded_width = q.width + 2 * pad;
+  const std::int64_t bytes = x.dim(0) * q.padded_height * q.quads * q.padded_width * 4;
+  if (workspace.x.size() < static_cast<size_t>(bytes + kInt8Slack))
+    workspace.x.resize(static_cast<size_t>(bytes + kInt8Slack));
+  q.xq = workspace.x.data();
+  parallel_chunks(x.dim(0) * q.padded_height, [&](std::int64_t begin, std::int64_t end, int) {
+#if defined(PILLARSEG_HAVE_AVX512_VNNI_KERNELS)
+    if (on_native) {
+      int8_quantize_rows_avx512(q, begin, end);
+      return;
+    }
+#endif
+    quantize_rows<EmulatedVnniIsa>(q, begin, end);
+  });
+  g.xq = q.xq;
+  g.quad_stride = q.padded_width * 4;
+  g.row_stride = q.quads * g.quad_stride;
+  g.batch_stride = q.padded_height * g.row_stride;
+  g.quads = q.quads;
+  g.sx = sx;
+  g.batch = x.dim(0);
+}
+
+void run_gemm(Int8Kernels kernels, bool on_native, const Int8Gemm& g) {
+  const bool amx = int8_amx_family(kernels);
+  const std::int64_t items = int8_gemm_items(g, amx ? kInt8AmxColumns : kInt8ColumnBlock);
+  parallel_chunks(items, [&](std::int64_t begin, std::int64_t end, int) {
+#if defined(PILLARSEG_HAVE_AMX_INT8_KERNELS)
+    if (on_native && amx) {
+      int8_gemm_rows_amx(g, begin, end);
+      return;
+    }
+#endif
+#if defined(PILLARSEG_HAVE_AVX512_VNNI_KERNELS)
+    if (on_native && !amx) {
+      int8_gemm_rows_vnni(g, begin, end);
+      return;
+    }
+#endif
+    if (amx) {
+      amx_rows<EmulatedVnniIsa, EmulatedAmxInt8Tiles>(g, begin, end);
+    } else {
+      vnni_rows<EmulatedVnniIsa>(g, begin, end);
+    }
+  });
+}
+
+void check_common(const char* op, Int8Kernels kernels, const ActRef& x, float sx,
+                  const Int8ConvWeights& w, const ActRef& y) {
+  require_activation(op, "x", x);
+  require_activation(op, "y", y);
+  PS_CHECK(std::isfinite(sx) && sx > 0.0f && std::isfinite(1.0f / sx),
+           "{}: the input scale must be positive and finite with a finite reciprocal, got {}", op,
+           sx);
+  PS_CHECK(int8_amx_family(kernels) == int8_amx_family(w.packed_for),
+           "{}: the weights were packed for {}, not for {}: prepare them for the kernels that run",
+           op, int8_kernels_name(w.packed_for), int8_kernels_name(kernels));
+}
+
+void fill_weights(const Int8ConvWeights& w, Int8Gemm& g) {
+  g.w = w.packed.data();
+  g.columns = w.columns;
+  g.sw = w.scale.data();
+  g.bias = w.bias.data();
+  g.compensation = w.compensation.data();
+}
+
+}  // namespace
+
+void int8_conv2d_forward(Int8Kernels kernels, const ActRef& x, float sx, const Int8ConvWeights& w,
+                         int pad, bool relu, const ActRef& y, Int8ConvWorkspace& workspace) {
+  const char* op = "int8_conv2d_forward";
+  check_common(op, kernels, x, sx, w, y);
+  PS_CHECK(!w.transposed, "{}: the weights are a transposed convolution's", op);
+  const Shape y_shape = op::conv2d(x.shape, w.weight, pad, nullptr, op);
+  PS_CHECK(y.shape == y_shape, "{}: y must be {}, got {}", op, shape_str(y_shape),
+           shape_str(y.shape));
+  const bool on_native = native(kernels);
+  Int8Gemm g;
+  quantize_input(kernels, on_native, x, sx, pad, workspace, g);
+  const std::int64_t kh = w.weight[2], kw = w.weight[3];
+  g.taps = static_cast<int>(kh * kw);
+  for (std::int64_t ky = 0; ky < kh; ++ky) {
+    for (std::int64_t kx = 0; kx < kw; ++kx)
+      g.tap_offsets[ky * kw + kx] = ky * g.row_stride + 4 * kx;
+  }
+  fill_weights(w, g);
+  g.relu = relu, g.transposed = false;
+  g.y = y.data, g.y_bf16 = y.half;
+  g.rows = y_shape[2], g.row_pixels = y_shape[3];
+  g.out_height = y_shape[2], g.out_width = y_shape[3], g.out_planes = y_shape[1];
+  if (y.numel() == 0) return;
+  run_gemm(kernels, on_native, g);
+}
+
+void int8_conv_transpose2x2_forward(Int8Kernels kernels, const ActRef& x, float sx,
+                                    const Int8ConvWeights& w, const ActRef& y,
+                                    Int8ConvWorkspace& workspace) {
+  const char* op = "int8_conv_transpose2x2_forward";
+  check_common(op, kernels, x, sx, w, y);
+  PS_CHECK(w.transposed, "{}: the weights are a plain convolution's", op);
+  const Shape y_shape = op::conv_transpose2x2(x.shape, w.weight, nullptr, op);
+  PS_CHECK(y.shape == y_shape, "{}: y must be {}, got {}", op, shape_str(y_shape),
+           shape_str(y.shape));
+  const bool on_native = native(kernels);
+  Int8Gemm g;
+  quantize_input(kernels, on_native, x, sx, 0, workspace, g);
+  g.taps = 1;
+  g.tap_offsets[0] = 0;
+  fill_weights(w, g);
+  g.relu = false, g.transposed = true;
+  g.y = y.data, g.y_bf16 = y.half;
+  g.rows = x.dim(2), g.row_pixels = x.dim(3);
+  g.out_height = y_shape[2], g.out_width = y_shape[3], g.out_planes = y_shape[1];
+  if (y.numel() == 0) return;
+  run_gemm(kernels, on_native, g);
+}
+
+}  // namespace pillarseg::cpu

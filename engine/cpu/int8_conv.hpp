@@ -1,0 +1,99 @@
+// The CPU's INT8 evaluation convolutions (DESIGN.md section 10): FP32 weights with BatchNorm
+// folded in -> per-output-channel symmetric INT8 weights, prepared once; at run time the FP32 or
+// BF16 input (B, I, H, W) is quantized with a per-tensor scale into the convolution's own
+// workspace, multiplied into INT32 accumulators, and the epilogue writes FP32 or BF16 (B, O, ...).
+//
+// The contract, the same for every kernel choice (the tests hold each to it bit for bit):
+//   weights   sw[o] = max |w[o, ...]| / 127 (FP32; 0 for an all-zero channel), qw = clamp(
+//             round_half_even(w / sw[o]), -127, 127) (0 where sw[o] is 0);
+//   input     q = clamp(round_half_even(x * r), -127, 127) with r = 1 / sx rounded to FP32 once
+//             (a multiply, not a division: the same bits in the vector and scalar code, half the
+//             cost), NaN -> 0, +-inf -> +-127; the padding is q = 0;
+//   products  acc = sum over (tap, channel) of q qw in INT32, wrapping (the U-Net's layers stay far
+//             from 2^31: even the shifted sum below is at most 9 * 1536 * 255 * 127 < 2^29);
+//   epilogue  y = act(fma(float(acc), sx * sw[o], bias[o])), float() and the product sx * sw[o]
+//             each rounded to nearest even, act the ReLU max(y, 0) (NaN -> 0) or none, then BF16
+//             rounded to nearest even (weights::float_to_bf16_bits) or FP32.
+//
+// The instructions multiply unsigned by signed bytes, so the input is stored shifted, u = q + 128
+// (the padding 128), and the prepared weights carry comp[o] = 128 sum qw[o, ...] to take off:
+// acc = sum u qw - comp[o]. Kernels, chosen at run time:
+//   Vnni         AVX512-VNNI VPDPBUSD (int8_microkernel.hpp; AVX512F, BW, VL and VNNI: Cascade
+//                Lake, Ice Lake and later, Zen 4);
+//   Amx          AMX-INT8 TDPBSUD on tiles (int8_amx.hpp; Sapphire Rapids and later), the
+//                epilogue and the quantization on AVX-512 as in Vnni;
+//   Emulated, AmxEmulated  the same code on exact scalar models of the instructions
+//                (int8_isa_emulated.hpp): the tests' way to check both on any CPU (slow).
+// Vnni and Emulated share a weight packing, Amx and AmxEmulated another (prepare for the family
+// the forward will use). Threads: num_threads(); results do not depend on the thread count.
+#pragma once
+
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include "core/tensor.hpp"
+#include "engine/model/backend.hpp"
+
+namespace pillarseg::cpu {
+
+enum class Int8Kernels { Vnni, Emulated, Amx, AmxEmulated };
+
+// Whether this CPU and its OS run the VNNI micro-kernel (AVX512F, BW, VL and VNNI, and this build
+// has it); else false with what is missing in why_not.
+bool avx512_vnni_available(std::string* why_not = nullptr);
+// Whether the AMX-INT8 path runs here: VNNI as above, AMX-TILE and AMX-INT8 (CPUID leaf 7 EDX
+// bits 24 and 25; AMX-BF16 is bit 22, a separate feature), the tile state enabled by the OS (XCR0
+// bits 17 and 18) and granted to this process (Linux's arch_prctl ARCH_REQ_XCOMP_PERM, asked
+// once); else false with what is missing in why_not.
+bool amx_int8_available(std::string* why_not = nullptr);
+// The fastest kernels this CPU runs: Amx where amx_int8_available (unless PILLARSEG_CPU_AMX=0 is
+// in the environment, read on each call), else Vnni (which may itself be unavailable:
+// avx512_vnni_available says).
+Int8Kernels native_int8_kernels();
+// "avx512_vnni", "emulated", "amx_int8" or "amx_int8 (emulated)".
+const char* int8_kernels_name(Int8Kernels kernels);
+bool int8_amx_family(Int8Kernels kernels);  // Amx or AmxEmulated
+
+// The quantization rules above, one value at a time (the kernels' reference).
+std::int8_t quantize_int8(float x, float reciprocal);  // reciprocal = 1 / sx rounded to FP32
+float int8_weight_scale(float max_abs);                // max_abs / 127
+
+// A prepared convolution: `weight` is the FP32 weight's shape, (O, I, k, k) or transposed (I, O,
+// 2, 2). The GEMM's columns are the output channels o, or for the transposed convolution n = 4 o
+// + 2 dy + dx (the output pixel (2 row + dy, 2 col + dx) of input pixel (row, col)).
+struct Int8ConvWeights {
+  Int8Kernels packed_for = Int8Kernels::Vnni;  // the family its packing serves
+  Shape weight;
+  bool transposed = false;
+  std::int64_t columns = 0;
+  std::vector<std::int8_t> q;              // qw in the FP32 weight's layout and shape
+  std::vector<float> scale;                // sw, (O)
+  std::vector<float> bias;                 // (columns)
+  std::vector<std::int32_t> compensation;  // (columns): 128 times the sum of the column's qw
+  std::vector<std::int8_t> packed;         // qw laid out for the micro-kernel (int8_conv.cpp)
+};
+
+// w (O, I, k, k), bias (O) (BatchNorm already folded into both) -> `out`, packed for the family of
+// `kernels`.
+void prepare_int8_conv(Int8Kernels kernels, const Ref& w, const Ref& bias, Int8ConvWeights& out);
+// w (I, O, 2, 2), bias (O) of the transposed 2x2 stride-2 convolution -> `out`.
+void prepare_int8_conv_transpose(Int8Kernels kernels, const Ref& w, const Ref& bias,
+                                 Int8ConvWeights& out);
+
+// The quantized input in the micro-kernel's layout, kept by the caller between calls so that the
+// steady state allocates nothing (it only grows).
+struct Int8ConvWorkspace {
+  std::vector<std::uint8_t> x;
+};
+
+// x (B, I, H, W) FP32 or BF16 (x.half) -> y (B, O, Ho, Wo) = act(conv(x, w) + bias), stride 1,
+// zero padding `pad`, FP32 or BF16 (y.half), for the input scale sx > 0.
+void int8_conv2d_forward(Int8Kernels kernels, const ActRef& x, float sx, const Int8ConvWeights& w,
+                         int pad, bool relu, const ActRef& y, Int8ConvWorkspace& workspace);
+// x (B, I, H, W) -> y (B, O, 2H, 2W), the transposed 2x2 stride-2 convolution, no activation.
+void int8_conv_transpose2x2_forward(Int8Kernels kernels, const ActRef& x, float sx,
+                                    const Int8ConvWeights& w, const ActRef& y,
+                                    Int8ConvWorkspace& workspace);
+
+}  // namespace pillarseg::cpu

@@ -1,0 +1,158 @@
+// The INT8 micro-kernel and quantization (int8_microkernel.hpp) on AVX512-VNNI: VPDPBUSD for the
+// products, VCVTPS2DQ {rn-sae} for the quantization, integer rounding for BF16 outputs (so that
+// VNNI CPUs without AVX512_BF16, Cascade Lake and Ice Lake, run it too), AVX512BW masked loads and
+// stores for the row ends. This file alone is built with -mavx512f -mavx512bw -mavx512vl
+// -mavx512vnni and includes no library header: its functions are called only after the run-time
+// check (avx512_vnni_available in int8_conv.cpp), and nothing here may be shared with code that
+// runs on other CPUs. Its instruction-for-instruction model is EmulatedVnniIsa
+// (int8_isa_emulated.hpp). Where the compiler has them (PILLARSEG_HAVE_AMX_INT8_KERNELS), it is
+// also built with -mamx-tile -mamx-int8 for the products on tiles (int8_amx.hpp; their model is
+// EmulatedAmxInt8Tiles), called only after amx_int8_available.
+#include <immintrin.h>
+
+#include <cstdint>
+
+#include "engine/cpu/int8_amx.hpp"
+#include "engine/cpu/int8_microkernel.hpp"
+
+namespace pillarseg::cpu {
+namespace {
+
+alignas(64) constexpr std::uint32_t kInt8InterleaveLow[16] = {0, 16, 1, 17, 2, 18, 3, 19,
+                                                              4, 20, 5, 21, 6, 22, 7, 23};
+alignas(64) constexpr std::uint32_t kInt8InterleaveHigh[16] = {8,  24, 9,  25, 10, 26, 11, 27,
+                                                               12, 28, 13, 29, 14, 30, 15, 31};
+
+struct Avx512VnniIsa {
+  using Acc = __m512i;
+  using Bytes = __m512i;
+  using F = __m512;
+
+  static Acc zero() { return _mm512_setzero_si512(); }
+  static Bytes load(const std::uint8_t* p) { return _mm512_loadu_si512(p); }
+  static Bytes broadcast4(const std::int8_t* w) {
+    std::int32_t bits;
+    __builtin_memcpy(&bits, w, sizeof(bits));
+    return _mm512_set1_epi32(bits);
+  }
+  static Acc dot(Acc acc, Bytes a, Bytes b) { return _mm512_dpbusd_epi32(acc, a, b); }
+  static Acc load_acc(const std::int32_t* p) { return _mm512_loadu_si512(p); }
+  static F epilogue(Acc acc, std::int32_t comp, float scale, float bias, bool relu) {
+    const __m512 v = _mm512_cvtepi32_ps(_mm512_sub_epi32(acc, _mm512_set1_epi32(comp)));
+    const __m512 y = _mm512_fmadd_ps(v, _mm512_set1_ps(scale), _mm512_set1_ps(bias));
+    return relu ? _mm512_max_ps(y, _mm512_setzero_ps()) : y;
+  }
+  // Each lane's BF16 bits in its low word: nearest even, NaN quiet.
+  static __m512i bf16_dwords(F f) {
+    const __m512i bits = _mm512_castps_si512(f);
+    const __m512i lsb = _mm512_and_si512(_mm512_srli_epi32(bits, 16), _mm512_set1_epi32(1));
+    const __m512i rounded = _mm512_srli_epi32(
+        _mm512_add_epi32(_mm512_add_epi32(bits, _mm512_set1_epi32(0x7FFF)), lsb), 16);
+    const __m512i quiet = _mm512_or_si512(_mm512_srli_epi32(bits, 16), _mm512_set1_epi32(0x40));
+    return _mm512_mask_mov_epi32(rounded, _mm512_cmp_ps_mask(f, f, _CMP_UNORD_Q), quiet);
+  }
+  static void store_f32(float* y, F f, std::uint32_t mask) {
+    _mm512_mask_storeu_ps(y, static_cast<__mmask16>(mask), f);
+  }
+  static void store_bf16(std::uint16_t* y, F f, std::uint32_t mask) {
+    _mm256_mask_storeu_epi16(y, static_cast<__mmask16>(mask),
+                             _mm512_cvtepi32_epi16(bf16_dwords(f)));
+  }
+  static void store_f32_interleaved(float* y, F even, F odd, std::uint32_t mask) {
+    const __m512 low = _mm512_permutex2var_ps(even, _mm512_load_si512(kInt8InterleaveLow), odd);
+    const __m512 high = _mm512_permutex2var_ps(even, _mm512_load_si512(kInt8InterleaveHigh), odd);
+    _mm512_mask_storeu_ps(y, static_cast<__mmask16>(mask & 0xFFFFu), low);
+    _mm512_mask_storeu_ps(y + 16, static_cast<__mmask16>(mask >> 16), high);
+  }
+  static void store_bf16_interleaved(std::uint16_t* y, F even, F odd, std::uint32_t mask) {
+    // Dword i: even[i]'s bits in the low word, odd[i]'s in the high one: words 2 i, 2 i + 1.
+    const __m512i words =
+        _mm512_or_si512(bf16_dwords(even), _mm512_slli_epi32(bf16_dwords(odd), 16));
+    _mm512_mask_storeu_epi16(y, static_cast<__mmask32>(mask), words);
+  }
+
+  static F load_f32(const float* x, std::uint32_t mask) {
+    return _mm512_maskz_loadu_ps(static_cast<__mmask16>(mask), x);
+  }
+  static F load_bf16(const std::uint16_t* x, std::uint32_t mask) {
+    const __m256i words = _mm256_maskz_loadu_epi16(static_cast<__mmask16>(mask), x);
+    return _mm512_castsi512_ps(_mm512_slli_epi32(_mm512_cvtepu16_epi32(words), 16));
+  }
+  static Acc quantize_u8(F x, float reciprocal) {
+    __m512 r = _mm512_mul_ps(x, _mm512_set1_ps(reciprocal));
+    r = _mm512_maskz_mov_ps(_mm512_cmp_ps_mask(r, r, _CMP_ORD_Q), r);  // NaN -> 0
+    r = _mm512_min_ps(_mm512_max_ps(r, _mm512_set1_ps(-127.0f)), _mm512_set1_ps(127.0f));
+    const __m512i q = _mm512_cvt_roundps_epi32(r, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
+    return _mm512_add_epi32(q, _mm512_set1_epi32(128));
+  }
+  static Bytes pack_quads(Acc c0, Acc c1, Acc c2, Acc c3) {
+    const __m512i byte = _mm512_set1_epi32(0xFF);
+    __m512i v = _mm512_and_si512(c0, byte);
+    v = _mm512_or_si512(v, _mm512_slli_epi32(_mm512_and_si512(c1, byte), 8));
+    v = _mm512_or_si512(v, _mm512_slli_epi32(_mm512_and_si512(c2, byte), 16));
+    return _mm512_or_si512(v, _mm512_slli_epi32(c3, 24));
+  }
+  static Acc set1(std::int32_t v) { return _mm512_set1_epi32(v); }
+  static void store_quads(std::uint8_t* p, Bytes b, std::uint32_t mask) {
+    _mm512_mask_storeu_epi32(p, static_cast<__mmask16>(mask), b);
+  }
+};
+
+#if defined(PILLARSEG_HAVE_AMX_INT8_KERNELS)
+// The tile instructions for int8_amx.hpp. The intrinsics take tile numbers as literals, hence one
+// branch per tile.
+struct AmxInt8Tiles {
+  static void configure(const AmxInt8TileConfig& config) { _tile_loadconfig(&config); }
+  static void release() { _tile_release(); }
+  template <int T>
+  static void zero() {
+    static_assert(T >= 0 && T <= 3, "the accumulators are tmm0..tmm3");
+    if constexpr (T == 0) _tile_zero(0);
+    if constexpr (T == 1) _tile_zero(1);
+    if constexpr (T == 2) _tile_zero(2);
+    if constexpr (T == 3) _tile_zero(3);
+  }
+  template <int T>
+  static void load(const void* base, std::int64_t stride_bytes) {
+    static_assert(T >= 4 && T <= 7, "the operands are tmm4..tmm7");
+    if constexpr (T == 4) _tile_loadd(4, base, stride_bytes);
+    if constexpr (T == 5) _tile_loadd(5, base, stride_bytes);
+    if constexpr (T == 6) _tile_loadd(6, base, stride_bytes);
+    if constexpr (T == 7) _tile_loadd(7, base, stride_bytes);
+  }
+  template <int T>
+  static void store(void* base, std::int64_t stride_bytes) {
+    static_assert(T >= 0 && T <= 3, "the accumulators are tmm0..tmm3");
+    if constexpr (T == 0) _tile_stored(0, base, stride_bytes);
+    if constexpr (T == 1) _tile_stored(1, base, stride_bytes);
+    if constexpr (T == 2) _tile_stored(2, base, stride_bytes);
+    if constexpr (T == 3) _tile_stored(3, base, stride_bytes);
+  }
+  template <int C, int A, int B>
+  static void dot() {
+    static_assert(C == (A - 4) * 2 + (B - 6), "C (A, B): 0 (4, 6), 1 (4, 7), 2 (5, 6), 3 (5, 7)");
+    if constexpr (C == 0) _tile_dpbsud(0, 4, 6);
+    if constexpr (C == 1) _tile_dpbsud(1, 4, 7);
+    if constexpr (C == 2) _tile_dpbsud(2, 5, 6);
+    if constexpr (C == 3) _tile_dpbsud(3, 5, 7);
+  }
+};
+#endif
+
+}  // namespace
+
+void int8_quantize_rows_avx512(const Int8Quantize& q, std::int64_t begin, std::int64_t end) {
+  quantize_rows<Avx512VnniIsa>(q, begin, end);
+}
+
+void int8_gemm_rows_vnni(const Int8Gemm& g, std::int64_t begin, std::int64_t end) {
+  vnni_rows<Avx512VnniIsa>(g, begin, end);
+}
+
+#if defined(PILLARSEG_HAVE_AMX_INT8_KERNELS)
+void int8_gemm_rows_amx(const Int8Gemm& g, std::int64_t begin, std::int64_t end) {
+  amx_rows<Avx512VnniIsa, AmxInt8Tiles>(g, begin, end);
+}
+#endif
+
+}  // namespace pillarseg::cpu

@@ -1,0 +1,252 @@
+// The CPU's INT8 convolution micro-kernel and the input quantization, written once over an
+// instruction set `Isa` and compiled twice: on AVX512-VNNI (int8_conv_avx512.cpp, built with the
+// AVX-512 flags and only ever called where the CPU has them) and on the exact scalar model
+// EmulatedVnniIsa (int8_isa_emulated.hpp, in int8_conv.cpp), which the tests run on every CPU.
+//
+// The quantized input (the workspace): u = q + 128 in bytes, four channels c = 4 cq + i side by
+// side in one dword ("quads"), laid out xq[b][row][cq][col][i] over the padded image (Hp = H + 2
+// pad rows, Wp = W + 2 pad columns, the padding u = 128) and `quads` channel quads (the channels
+// past I, up to the quads' end, are u = 128 with zero weights). A convolution's output pixel (row,
+// col) reads, for the tap (ky, kx), the padded input pixel (row + ky, col + kx): one plain 64-byte
+// load gives 16 pixels' quads of one channel quad, with no masks and no borders.
+//
+// The GEMM: y[n, pixel] = epilogue(sum over k = (tap, cq, i) of u[k, pixel] w[n, k]), one
+// VPDPBUSD a channel quad: a register holds 16 pixels' dwords (u8 x 4) of one quad, the column's
+// four s8 weights broadcast to every lane. A register tile is 8 columns x NPX <= 3 vectors of 16
+// pixels (24 accumulators, 3 operands, the broadcasts from memory). The weights (Vnni packing) are
+// w[n / 8][tap][cq][n % 8][i], the columns padded to a multiple of 8 with zeros, so that the 8
+// broadcasts of one step read 32 consecutive bytes.
+//   - Convolution (stride 1): rows are output rows; tap t = ky k + kx at byte offset ky row_stride
+//     + 4 kx; y (B, N, Ho, Wo).
+//   - Transposed 2x2 stride 2: rows are input rows, pad 0, one tap; column n = 4 o + 2 dy + dx goes
+//     to y[b, o, 2 row + dy, 2 col + dx]; columns n (dx = 0) and n + 1 (dx = 1) are stored
+//     interleaved.
+// Work items: (batch, row, block of 64 columns); within one, each group of 8 columns over the
+// row's pixels 48 at a time, so that the group's weights stay in cache while the row streams by.
+//
+// Everything here is in an unnamed namespace and calls no library function: the AVX-512 copy's
+// code must not be merged by the linker with a copy that other CPUs run (bf16_microkernel.hpp).
+#pragma once
+
+#include <cstdint>
+
+namespace pillarseg::cpu {
+
+inline constexpr int kInt8MaxTaps = 49;               // kernels up to 7 x 7
+inline constexpr std::int64_t kInt8GroupColumns = 8;  // the Vnni register tile's columns
+inline constexpr std::int64_t kInt8ColumnBlock = 64;  // columns of a work item
+inline constexpr std::int64_t kInt8Slack = 256;       // bytes after the quads a tile may read
+
+// The quantization of one (batch, padded row): plain data for both compilations.
+struct Int8Quantize {
+  const void* x = nullptr;  // (B, C, H, W) FP32 or (x_bf16) BF16
+  bool x_bf16 = false;
+  std::int64_t channels = 0, height = 0, width = 0;
+  float reciprocal = 0.0f;  // 1 / sx
+  int pad = 0;
+  std::uint8_t* xq = nullptr;  // (B, Hp, quads, Wp, 4)
+  std::int64_t quads = 0, padded_height = 0, padded_width = 0;
+};
+
+// One convolution for the micro-kernel.
+struct Int8Gemm {
+  const std::uint8_t* xq = nullptr;                                // the quads above
+  std::int64_t batch_stride = 0, row_stride = 0, quad_stride = 0;  // bytes
+  std::int64_t quads = 0;
+  std::int64_t tap_offsets[kInt8MaxTaps] = {};  // bytes
+  int taps = 0;
+  const std::int8_t* w = nullptr;              // packed (Vnni or Amx layout)
+  std::int64_t columns = 0;                    // real columns (stored); the packing pads them
+  const float* sw = nullptr;                   // (O): per output channel o = n (transposed: n / 4)
+  const float* bias = nullptr;                 // (columns)
+  const std::int32_t* compensation = nullptr;  // (columns)
+  float sx = 0.0f;
+  bool relu = false;
+  bool transposed = false;
+  void* y = nullptr;  // FP32 or (y_bf16) BF16
+  bool y_bf16 = false;
+  std::int64_t batch = 0, rows = 0, row_pixels = 0;            // the GEMM's pixel grid
+  std::int64_t out_height = 0, out_width = 0, out_planes = 0;  // y (B, out_planes, ...)
+};
+
+// Rows [begin, end) of the quantization, row r = b Hp + padded row (int8_conv_avx512.cpp).
+void int8_quantize_rows_avx512(const Int8Quantize& q, std::int64_t begin, std::int64_t end);
+// Work items [begin, end) on VPDPBUSD (int8_conv_avx512.cpp).
+void int8_gemm_rows_vnni(const Int8Gemm& g, std::int64_t begin, std::int64_t end);
+
+namespace {
+
+inline std::uint32_t int8_first_lanes(std::int64_t count) {
+  return count >= 32 ? ~std::uint32_t{0} : (std::uint32_t{1} << count) - 1;
+}
+
+template <class Isa>
+void quantize_rows(const Int8Quantize& q, std::int64_t begin, std::int64_t end) {
+  using Acc = typename Isa::Acc;
+  using F = typename Isa::F;
+  const std::int64_t plane = q.height * q.width, wp = q.padded_width;
+  const Acc padding = Isa::set1(128);
+  const auto padding_quads = Isa::pack_quads(padding, padding, padding, padding);
+  for (std::int64_t r = begin; r < end; ++r) {
+    const std::int64_t b = r / q.padded_height, row = r % q.padded_height - q.pad;
+    std::uint8_t* out = q.xq + r * q.quads * wp * 4;
+    for (std::int64_t cq = 0; cq < q.quads; ++cq, out += wp * 4) {
+      if (row < 0 || row >= q.height) {
+        for (std::int64_t col = 0; col < wp; col += 16)
+          Isa::store_quads(out + 4 * col, padding_quads,
+                           int8_first_lanes(wp - col < 16 ? wp - col : 16));
+        continue;
+      }
+      for (std::int64_t col = 0; col < q.pad; col += 16) {
+        Isa::store_quads(out + 4 * col, padding_quads,
+                         int8_first_lanes(q.pad - col < 16 ? q.pad - col : 16));
+      }
+      for (std::int64_t col = q.pad + q.width; col < wp; col += 16)
+        Isa::store_quads(out + 4 * col, padding_quads,
+                         int8_first_lanes(wp - col < 16 ? wp - col : 16));
+      const std::int64_t offset = (b * q.channels + 4 * cq) * plane + row * q.width;
+      for (std::int64_t x0 = 0; x0 < q.width; x0 += 16) {
+        const std::uint32_t mask = int8_first_lanes(q.width - x0 < 16 ? q.width - x0 : 16);
+        Acc u[4];
+#pragma GCC unroll 4
+        for (int i = 0; i < 4; ++i) {
+          if (4 * cq + i >= q.channels) {
+            u[i] = padding;
+            continue;
+          }
+          const std::int64_t at = offset + i * plane + x0;
+          const F v = q.x_bf16 ? Isa::load_bf16(static_cast<const std::uint16_t*>(q.x) + at, mask)
+                               : Isa::load_f32(static_cast<const float*>(q.x) + at, mask);
+          u[i] = Isa::quantize_u8(v, q.reciprocal);
+        }
+        Isa::store_quads(out + 4 * (q.pad + x0), Isa::pack_quads(u[0], u[1], u[2], u[3]), mask);
+      }
+    }
+  }
+}
+
+// Column n's output channel, where its scale is.
+inline std::int64_t int8_channel(const Int8Gemm& g, std::int64_t n) {
+  return g.transposed ? n / 4 : n;
+}
+
+// The epilogue of column n.
+template <class Isa>
+typename Isa::F column_result(const Int8Gemm& g, std::int64_t n, const typename Isa::Acc& acc) {
+  return Isa::epilogue(acc, g.compensation[n], g.sx * g.sw[int8_channel(g, n)], g.bias[n], g.relu);
+}
+
+// The epilogue and store of column n's accumulators over the pixels [x0, x0 + 16 NPX) of `row`
+// (those before row_pixels).
+template <class Isa, int NPX>
+void store_column(const Int8Gemm& g, std::int64_t b, std::int64_t row, std::int64_t n,
+                  std::int64_t x0, const typename Isa::Acc (&acc)[NPX]) {
+  const std::int64_t base = ((b * g.out_planes + n) * g.out_height + row) * g.out_width + x0;
+#pragma GCC unroll 4
+  for (int p = 0; p < NPX; ++p) {
+    const std::int64_t left = g.row_pixels - (x0 + 16 * p);
+    if (left <= 0) break;
+    const std::uint32_t mask = int8_first_lanes(left < 16 ? left : 16);
+    const typename Isa::F f = column_result<Isa>(g, n, acc[p]);
+    if (g.y_bf16) {
+      Isa::store_bf16(static_cast<std::uint16_t*>(g.y) + base + 16 * p, f, mask);
+    } else {
+      Isa::store_f32(static_cast<float*>(g.y) + base + 16 * p, f, mask);
+    }
+  }
+}
+
+// Transposed: n even, so the columns (n, n + 1) are (dx = 0, dx = 1) of one (o, dy), stored
+// interleaved.
+template <class Isa, int NPX>
+void store_column_pair(const Int8Gemm& g, std::int64_t b, std::int64_t row, std::int64_t n,
+                       std::int64_t x0, const typename Isa::Acc (&even)[NPX],
+                       const typename Isa::Acc (&odd)[NPX]) {
+  const std::int64_t o = n / 4, dy = (n % 4) / 2;
+  const std::int64_t base =
+      ((b * g.out_planes + o) * g.out_height + 2 * row + dy) * g.out_width + 2 * x0;
+#pragma GCC unroll 4
+  for (int p = 0; p < NPX; ++p) {
+    const std::int64_t left = g.row_pixels - (x0 + 16 * p);
+    if (left <= 0) break;
+    const std::uint32_t mask = int8_first_lanes(2 * (left < 16 ? left : 16));
+    const typename Isa::F e = column_result<Isa>(g, n, even[p]),
+                          d = column_result<Isa>(g, n + 1, odd[p]);
+    if (g.y_bf16) {
+      Isa::store_bf16_interleaved(static_cast<std::uint16_t*>(g.y) + base + 32 * p, e, d, mask);
+    } else {
+      Isa::store_f32_interleaved(static_cast<float*>(g.y) + base + 32 * p, e, d, mask);
+    }
+  }
+}
+
+// One register tile: the 8 columns of group n0 / 8, pixels [x0, x0 + 16 NPX) of `row` (those
+// before row_pixels) of batch b.
+template <class Isa, int NPX>
+void vnni_tile(const Int8Gemm& g, std::int64_t b, std::int64_t row, std::int64_t n0,
+               std::int64_t x0) {
+  using Acc = typename Isa::Acc;
+  using Bytes = typename Isa::Bytes;
+  constexpr int kCols = static_cast<int>(kInt8GroupColumns);
+  Acc acc[kCols][NPX];
+#pragma GCC unroll 8
+  for (int c = 0; c < kCols; ++c)
+#pragma GCC unroll 4
+    for (int p = 0; p < NPX; ++p) acc[c][p] = Isa::zero();
+  const std::uint8_t* x_row = g.xq + b * g.batch_stride + row * g.row_stride + 4 * x0;
+  const std::int8_t* w = g.w + n0 * g.taps * g.quads * 4;
+  const std::int64_t quads = g.quads, quad_stride = g.quad_stride;
+  for (int t = 0; t < g.taps; ++t) {
+    const std::uint8_t* x = x_row + g.tap_offsets[t];
+    for (std::int64_t cq = 0; cq < quads; ++cq, x += quad_stride, w += 4 * kCols) {
+      Bytes a[NPX];
+#pragma GCC unroll 4
+      for (int p = 0; p < NPX; ++p) a[p] = Isa::load(x + 64 * p);
+#pragma GCC unroll 8
+      for (int c = 0; c < kCols; ++c) {
+        const Bytes weights = Isa::broadcast4(w + 4 * c);
+#pragma GCC unroll 4
+        for (int p = 0; p < NPX; ++p) acc[c][p] = Isa::dot(acc[c][p], a[p], weights);
+      }
+    }
+  }
+#pragma GCC unroll 8
+  for (int c = 0; c < kCols; ++c) {
+    if (n0 + c >= g.columns) break;
+    if (!g.transposed) {
+      store_column<Isa, NPX>(g, b, row, n0 + c, x0, acc[c]);
+    } else if (c % 2 == 0) {
+      store_column_pair<Isa, NPX>(g, b, row, n0 + c, x0, acc[c], acc[c + 1]);
+    }
+  }
+}
+
+inline std::int64_t int8_gemm_items(const Int8Gemm& g, std::int64_t column_block) {
+  return g.batch * g.rows * ((g.columns + column_block - 1) / column_block);
+}
+
+template <class Isa>
+void vnni_rows(const Int8Gemm& g, std::int64_t begin, std::int64_t end) {
+  const std::int64_t blocks = (g.columns + kInt8ColumnBlock - 1) / kInt8ColumnBlock;
+  for (std::int64_t item = begin; item < end; ++item) {
+    const std::int64_t block = item % blocks, row = item / blocks % g.rows,
+                       b = item / blocks / g.rows;
+    const std::int64_t n_end =
+        (block + 1) * kInt8ColumnBlock < g.columns ? (block + 1) * kInt8ColumnBlock : g.columns;
+    for (std::int64_t n0 = block * kInt8ColumnBlock; n0 < n_end; n0 += kInt8GroupColumns) {
+      for (std::int64_t x0 = 0; x0 < g.row_pixels; x0 += 48) {
+        const std::int64_t left = g.row_pixels - x0;
+        if (left > 32) {
+          vnni_tile<Isa, 3>(g, b, row, n0, x0);
+        } else if (left > 16) {
+          vnni_tile<Isa, 2>(g, b, row, n0, x0);
+        } else {
+          vnni_tile<Isa, 1>(g, b, row, n0, x0);
+        }
+      }
+    }
+  }
+}
+
+}  // namespace
+}  // namespace pillarseg::cpu

@@ -1,0 +1,563 @@
+// INT8 convolutions on the CPU (engine/cpu/int8_conv.hpp): the models of VPDPBUSD and TDPBSUD
+// against hand-computed examples (operand signs, wrap-around); the quantization rules by hand;
+// every kernel choice (the models everywhere, VNNI and AMX-INT8 where this CPU has them, skipped
+// with the reason where not) against a reference that quantizes by the same rules and accumulates
+// in int64 (bit for bit, so the INT32 accumulators match exactly) and against the same sums in
+// double (within the FP32 epilogue's rounding), at shapes that leave every tail (channels not
+// multiples of 4, 16 or 64, widths not multiples of 16, columns past the 8- and 32-column tiles),
+// with guard words around the outputs; the transposed 2x2 convolution; results independent of
+// the thread count; a packing with its K order swapped fails; and against FP32, the error on
+// random data is what the quantization noise predicts.
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+#include <limits>
+#include <random>
+#include <string>
+#include <vector>
+
+#include "core/error.hpp"
+#include "core/parallel.hpp"
+#include "engine/cpu/int8_conv.hpp"
+#include "engine/cpu/int8_isa_emulated.hpp"
+#include "weights_io/half.hpp"
+
+using namespace pillarseg;
+using cpu::EmulatedAmxInt8Tiles;
+using cpu::EmulatedVnniIsa;
+using cpu::Int8Kernels;
+
+namespace {
+
+// ---- the instruction models ----
+
+TEST(EmulatedVnniIsa, DpbusdMultipliesUnsignedBySignedBytesAndWraps) {
+  EmulatedVnniIsa::Bytes a{}, b{};
+  // Lane 0: a = (255, 1, 128, 0) unsigned, b = (0x80, 127, 0xFF, 5) signed: (-128, 127, -1, 5).
+  const std::uint8_t a0[4] = {255, 1, 128, 0}, b0[4] = {0x80, 127, 0xFF, 5};
+  std::memcpy(a.v, a0, 4);
+  std::memcpy(b.v, b0, 4);
+  // Lane 1: every byte 255 by 127, near the top of the int32 range.
+  for (int i = 4; i < 8; ++i) a.v[i] = 255, b.v[i] = 127;
+  EmulatedVnniIsa::Acc acc = EmulatedVnniIsa::zero();
+  acc.v[0] = 10;
+  acc.v[1] = std::numeric_limits<std::int32_t>::max() - 10;
+  acc.v[2] = -3;  // lane 2: no products (zero bytes)
+  const EmulatedVnniIsa::Acc r = EmulatedVnniIsa::dot(acc, a, b);
+  // 10 + 255 (-128) + 1 127 + 128 (-1) + 0 = 10 - 32640 + 127 - 128 = -32631.
+  EXPECT_EQ(r.v[0], -32631);
+  // (2^31 - 11) + 4 32385 = 2^31 + 129529 wraps to -2^31 + 129529 (no saturation).
+  EXPECT_EQ(r.v[1], -2147483648 + 129529);
+  EXPECT_EQ(r.v[2], -3);
+}
+
+TEST(EmulatedAmxInt8Tiles, DpbsudMultipliesSignedAByUnsignedBAndWraps) {
+  using Tiles = EmulatedAmxInt8Tiles;
+  alignas(64) std::uint8_t a[16][64] = {}, b[16][64] = {};
+  alignas(64) std::int32_t c[16][16] = {};
+  // C[0][1] += A[0] . B[:, 1]: A row 0 bytes (0xFF, 2, 0, 0 | 0x80, 0, 0, 0) are signed (-1, 2 |
+  // -128); B row 0 dword 1 (200, 3, 0, 0) and row 1 dword 1 (255, 0, 0, 0) are unsigned.
+  a[0][0] = 0xFF, a[0][1] = 2, a[0][4] = 0x80;
+  b[0][4] = 200, b[0][5] = 3, b[1][4] = 255;
+  // C[3][0]: A row 3 all -128, B's dword 0 of every row all 255: 64 (-128 255) = -2088960,
+  // added to -2^31 + 5 it wraps.
+  for (int k = 0; k < 64; ++k) a[3][k] = 0x80;
+  for (int k = 0; k < 16; ++k) std::memset(&b[k][0], 255, 4);
+  c[0][1] = 7;
+  c[3][0] = std::numeric_limits<std::int32_t>::min() + 5;
+  Tiles::load<0>(c, 64);
+  Tiles::load<4>(a, 64);
+  Tiles::load<6>(b, 64);
+  Tiles::dot<0, 4, 6>();
+  Tiles::store<0>(c, 64);
+  // 7 + (-1) 200 + 2 3 + (-128) 255 = 7 - 200 + 6 - 32640.
+  EXPECT_EQ(c[0][1], -32827);
+  // -2^31 + 5 - 2088960 + 2^32.
+  EXPECT_EQ(c[3][0], 2145394693);
+  // Row 0 against B's dword 0 (255 in every byte of rows 0..15): -1 255 + 2 255 + (-128) 255.
+  EXPECT_EQ(c[0][0], 255 * (-1 + 2 - 128));
+  EXPECT_EQ(c[1][1], 0);
+}
+
+// ---- the quantization rules ----
+
+TEST(Int8Quantize, RoundsHalfToEvenAndClamps) {
+  const float r = 1.0f / 0.5f;                 // sx = 0.5
+  EXPECT_EQ(cpu::quantize_int8(0.25f, r), 0);  // 0.5 -> 0
+  EXPECT_EQ(cpu::quantize_int8(0.75f, r), 2);  // 1.5 -> 2
+  EXPECT_EQ(cpu::quantize_int8(1.25f, r), 2);  // 2.5 -> 2
+  EXPECT_EQ(cpu::quantize_int8(-0.75f, r), -2);
+  EXPECT_EQ(cpu::quantize_int8(-0.25f, r), 0);
+  EXPECT_EQ(cpu::quantize_int8(63.25f, r), 126);  // 126.5 -> 126
+  EXPECT_EQ(cpu::quantize_int8(63.75f, r), 127);  // 127.5 clamped to 127 first
+  EXPECT_EQ(cpu::quantize_int8(1e9f, r), 127);
+  EXPECT_EQ(cpu::quantize_int8(-1e9f, r), -127);
+  EXPECT_EQ(cpu::quantize_int8(std::numeric_limits<float>::infinity(), r), 127);
+  EXPECT_EQ(cpu::quantize_int8(-std::numeric_limits<float>::infinity(), r), -127);
+  EXPECT_EQ(cpu::quantize_int8(std::numeric_limits<float>::quiet_NaN(), r), 0);
+}
+
+TEST(Int8Quantize, WeightsPerOutputChannelWithCompensation) {
+  // w (3, 1, 1, 2): channel 0 (0.5, -1.27): scale 0.01, q (50, -127); channel 1 all zero: scale
+  // 0, q 0; channel 2 (0.3, 0.1): scale 0.3 / 127, q (127, 42.33 -> 42).
+  std::vector<float> w = {0.5f, -1.27f, 0.0f, 0.0f, 0.3f, 0.1f}, bias = {1.0f, 2.0f, 3.0f};
+  for (Int8Kernels k : {Int8Kernels::Emulated, Int8Kernels::AmxEmulated}) {
+    cpu::Int8ConvWeights p;
+    cpu::prepare_int8_conv(k, Ref{w.data(), {3, 1, 1, 2}}, Ref{bias.data(), {3}}, p);
+    EXPECT_FLOAT_EQ(p.scale[0], 0.01f);
+    EXPECT_EQ(p.scale[1], 0.0f);
+    EXPECT_FLOAT_EQ(p.scale[2], 0.3f / 127.0f);
+    EXPECT_EQ(p.q, (std::vector<std::int8_t>{50, -127, 0, 0, 127, 42}));
+    EXPECT_EQ(p.compensation, (std::vector<std::int32_t>{128 * -77, 0, 128 * 169}));
+    EXPECT_EQ(p.bias, bias);
+  }
+  // Transposed w (I 2, O 1, 2, 2): one output channel over both inputs and all four sub-pixels,
+  // max 2.54: scale 0.02; column n = 4 o + s sums its sub-pixel s over the inputs.
+  std::vector<float> wt = {2.54f, 0.2f, -0.2f, 0.0f, 0.02f, 0.0f, 0.0f, -2.54f}, bt = {0.5f};
+  cpu::Int8ConvWeights t;
+  cpu::prepare_int8_conv_transpose(Int8Kernels::Emulated, Ref{wt.data(), {2, 1, 2, 2}},
+                                   Ref{bt.data(), {1}}, t);
+  EXPECT_FLOAT_EQ(t.scale[0], 0.02f);
+  EXPECT_EQ(t.q, (std::vector<std::int8_t>{127, 10, -10, 0, 1, 0, 0, -127}));
+  EXPECT_EQ(t.compensation,
+            (std::vector<std::int32_t>{128 * 128, 128 * 10, 128 * -10, 128 * -127}));
+  EXPECT_EQ(t.bias, (std::vector<float>{0.5f, 0.5f, 0.5f, 0.5f}));
+}
+
+// ---- the convolutions against the reference ----
+
+std::vector<Int8Kernels> kernels_to_test() {
+  std::vector<Int8Kernels> list = {Int8Kernels::Emulated, Int8Kernels::AmxEmulated};
+  if (cpu::avx512_vnni_available()) list.push_back(Int8Kernels::Vnni);
+  if (cpu::amx_int8_available()) list.push_back(Int8Kernels::Amx);
+  return list;
+}
+
+std::vector<float> random_values(std::int64_t n, std::uint32_t seed, float lo, float hi) {
+  std::mt19937 gen(seed);
+  std::uniform_real_distribution<float> d(lo, hi);
+  std::vector<float> v(static_cast<size_t>(n));
+  for (float& x : v) x = d(gen);
+  return v;
+}
+
+// An activation tensor in FP32 or BF16 (its values rounded), with its values as floats.
+struct Input {
+  Shape shape;
+  std::vector<float> values;
+  std::vector<std::uint16_t> bits;
+  bool half = false;
+  ActRef ref() {
+    return half ? ActRef{bits.data(), shape, true} : ActRef{values.data(), shape, false};
+  }
+};
+Input make_input(const Shape& shape, std::uint32_t seed, bool half) {
+  Input in{shape, random_values(shape_numel(shape), seed, -2.0f, 2.0f), {}, half};
+  if (half) {
+    for (float& v : in.values) {
+      in.bits.push_back(weights::float_to_bf16_bits(v));
+      v = weights::bf16_bits_to_float(in.bits.back());
+    }
+  }
+  return in;
+}
+
+// An output tensor with guard words on both sides (FP32 or BF16).
+struct Output {
+  static constexpr std::int64_t kGuard = 37;
+  Shape shape;
+  bool half = false;
+  std::vector<float> f;
+  std::vector<std::uint16_t> h;
+  Output(Shape s, bool bf16) : shape(std::move(s)), half(bf16) {
+    const auto n = static_cast<size_t>(shape_numel(shape) + 2 * kGuard);
+    if (half)
+      h.assign(n, 0xABCD);
+    else
+      f.assign(n, 1234.5f);
+  }
+  ActRef ref() {
+    return half ? ActRef{h.data() + kGuard, shape, true} : ActRef{f.data() + kGuard, shape, false};
+  }
+  bool guards_intact() const {
+    const std::int64_t n = shape_numel(shape);
+    for (std::int64_t i = 0; i < kGuard; ++i) {
+      const size_t lo = static_cast<size_t>(i), hi = static_cast<size_t>(kGuard + n + i);
+      if (half ? (h[lo] != 0xABCD || h[hi] != 0xABCD) : (f[lo] != 1234.5f || f[hi] != 1234.5f))
+        return false;
+    }
+    return true;
+  }
+  std::uint32_t bits(std::int64_t i) const {  // element i's bits (FP32 or BF16)
+    const size_t at = static_cast<size_t>(kGuard + i);
+    if (half) return h[at];
+    std::uint32_t u;
+    std::memcpy(&u, &f[at], 4);
+    return u;
+  }
+  float value(std::int64_t i) const {
+    const size_t at = static_cast<size_t>(kGuard + i);
+    return half ? weights::bf16_bits_to_float(h[at]) : f[at];
+  }
+};
+
+// The reference: acc (int64) of each output, and y by the documented epilogue.
+struct Reference {
+  std::vector<std::int64_t> acc;
+  std::vector<float> y;
+};
+
+float epilogue(std::int64_t acc, float sx, float sw, float bias, bool relu) {
+  const float v = std::fma(static_cast<float>(acc), sx * sw, bias);
+  return relu ? (v > 0.0f ? v : 0.0f) : v;
+}
+
+Reference reference_conv(const Input& x, float sx, const cpu::Int8ConvWeights& w, int pad,
+                         bool relu) {
+  const std::int64_t b_count = x.shape[0], in = x.shape[1], h = x.shape[2], wd = x.shape[3];
+  const std::int64_t out = w.weight[0], kh = w.weight[2], kw = w.weight[3];
+  const std::int64_t ho = h + 2 * pad - kh + 1, wo = wd + 2 * pad - kw + 1;
+  const float r = 1.0f / sx;
+  Reference ref;
+  for (std::int64_t b = 0; b < b_count; ++b)
+    for (std::int64_t o = 0; o < out; ++o)
+      for (std::int64_t oy = 0; oy < ho; ++oy)
+        for (std::int64_t ox = 0; ox < wo; ++ox) {
+          std::int64_t acc = 0;
+          for (std::int64_t c = 0; c < in; ++c)
+            for (std::int64_t ky = 0; ky < kh; ++ky)
+              for (std::int64_t kx = 0; kx < kw; ++kx) {
+                const std::int64_t iy = oy + ky - pad, ix = ox + kx - pad;
+                if (iy < 0 || iy >= h || ix < 0 || ix >= wd) continue;
+                const float v = x.values[static_cast<size_t>(((b * in + c) * h + iy) * wd + ix)];
+                acc += cpu::quantize_int8(v, r) *
+                       w.q[static_cast<size_t>(((o * in + c) * kh + ky) * kw + kx)];
+              }
+          ref.acc.push_back(acc);
+          ref.y.push_back(epilogue(acc, sx, w.scale[static_cast<size_t>(o)],
+                                   w.bias[static_cast<size_t>(o)], relu));
+        }
+  return ref;
+}
+
+Reference reference_conv_transpose(const Input& x, float sx, const cpu::Int8ConvWeights& w) {
+  const std::int64_t b_count = x.shape[0], in = x.shape[1], h = x.shape[2], wd = x.shape[3];
+  const std::int64_t out = w.weight[1];
+  const float r = 1.0f / sx;
+  Reference ref;
+  for (std::int64_t b = 0; b < b_count; ++b)
+    for (std::int64_t o = 0; o < out; ++o)
+      for (std::int64_t y = 0; y < 2 * h; ++y)
+        for (std::int64_t xx = 0; xx < 2 * wd; ++xx) {
+          const std::int64_t s = (y % 2) * 2 + xx % 2;
+          std::int64_t acc = 0;
+          for (std::int64_t c = 0; c < in; ++c) {
+            const float v = x.values[static_cast<size_t>(((b * in + c) * h + y / 2) * wd + xx / 2)];
+            acc += cpu::quantize_int8(v, r) * w.q[static_cast<size_t>((c * out + o) * 4 + s)];
+          }
+          ref.acc.push_back(acc);
+          ref.y.push_back(epilogue(acc, sx, w.scale[static_cast<size_t>(o)],
+                                   w.bias[static_cast<size_t>(4 * o)], false));
+        }
+  return ref;
+}
+
+// y against the reference: bit for bit (FP32, or the BF16 rounding of the reference's FP32), and
+// within the FP32 epilogue's rounding of acc sx sw + bias in double. Returns the mismatches.
+std::int64_t compare(const Output& y, const Reference& ref, const cpu::Int8ConvWeights& w, float sx,
+                     bool relu, std::int64_t plane, std::int64_t out_channels, std::string* first) {
+  const std::int64_t columns_per_channel = w.transposed ? 4 : 1;  // bias is per GEMM column
+  std::int64_t bad = 0;
+  for (std::int64_t i = 0; i < static_cast<std::int64_t>(ref.y.size()); ++i) {
+    const float want = ref.y[static_cast<size_t>(i)];
+    const std::uint32_t want_bits = y.half ? weights::float_to_bf16_bits(want) : [&] {
+      std::uint32_t u;
+      std::memcpy(&u, &want, 4);
+      return u;
+    }();
+    const std::int64_t o = i / plane % out_channels;
+    const double exact_pre = static_cast<double>(ref.acc[static_cast<size_t>(i)]) * sx *
+                                 w.scale[static_cast<size_t>(o)] +
+                             w.bias[static_cast<size_t>(columns_per_channel * o)];
+    const double exact = relu ? std::max(exact_pre, 0.0) : exact_pre;
+    // float(acc), sx sw and the FMA each round once (and BF16 once more).
+    const double tol = (y.half ? 0x1p-8 : 0.0) * std::abs(exact) +
+                       4 * 0x1p-24 *
+                           (std::abs(static_cast<double>(ref.acc[static_cast<size_t>(i)]) * sx *
+                                     w.scale[static_cast<size_t>(o)]) +
+                            std::abs(exact)) +
+                       1e-30;
+    const bool ok = y.bits(i) == want_bits && std::abs(y.value(i) - exact) <= tol;
+    if (!ok && bad++ == 0 && first != nullptr) {
+      *first = "element " + std::to_string(i) + ": got " + std::to_string(y.value(i)) + " (bits " +
+               std::to_string(y.bits(i)) + "), want " + std::to_string(want) + " (bits " +
+               std::to_string(want_bits) + "), double " + std::to_string(exact);
+    }
+  }
+  return bad;
+}
+
+struct ConvCase {
+  std::int64_t batch, in, out, h, w, k;
+  int pad;
+};
+std::string name(const ConvCase& c) {
+  return std::to_string(c.batch) + "x" + std::to_string(c.in) + "->" + std::to_string(c.out) +
+         " @" + std::to_string(c.h) + "x" + std::to_string(c.w) + " k" + std::to_string(c.k) +
+         " pad" + std::to_string(c.pad);
+}
+
+// Channels not multiples of 4, 16 (AMX's quad block: 64 channels) or 8 / 32 columns; widths below,
+// at and past 16, 32 and 48 pixels; 1x1, 3x3, 5x5; pad 0.
+const ConvCase kConvCases[] = {
+    {1, 5, 3, 7, 19, 3, 1}, {2, 16, 12, 5, 33, 3, 1},  {1, 67, 40, 4, 50, 3, 1},
+    {1, 3, 9, 6, 8, 1, 0},  {1, 4, 5, 9, 11, 5, 2},    {1, 6, 4, 6, 7, 3, 0},
+    {1, 2, 2, 1, 1, 3, 1},  {1, 130, 33, 3, 16, 3, 1}, {1, 8, 70, 2, 49, 3, 1},
+};
+
+TEST(Int8Conv, EveryKernelMatchesTheReferenceBitForBit) {
+  for (Int8Kernels kernels : kernels_to_test()) {
+    for (const ConvCase& c : kConvCases) {
+      const std::vector<float> w = random_values(c.out * c.in * c.k * c.k, 7, -0.3f, 0.3f);
+      const std::vector<float> bias = random_values(c.out, 8, -1.0f, 1.0f);
+      cpu::Int8ConvWeights p;
+      cpu::prepare_int8_conv(kernels, Ref{const_cast<float*>(w.data()), {c.out, c.in, c.k, c.k}},
+                             Ref{const_cast<float*>(bias.data()), {c.out}}, p);
+      for (const bool x_half : {false, true}) {
+        for (const bool y_half : {false, true}) {
+          for (const bool relu : {false, true}) {
+            Input x = make_input({c.batch, c.in, c.h, c.w}, 11, x_half);
+            const float sx = 1.9f / 127.0f;  // |x| up to 2: some values clamp
+            const std::int64_t ho = c.h + 2 * c.pad - c.k + 1, wo = c.w + 2 * c.pad - c.k + 1;
+            Output y({c.batch, c.out, ho, wo}, y_half);
+            cpu::Int8ConvWorkspace ws;
+            cpu::int8_conv2d_forward(kernels, x.ref(), sx, p, c.pad, relu, y.ref(), ws);
+            const Reference ref = reference_conv(x, sx, p, c.pad, relu);
+            std::string first;
+            EXPECT_EQ(compare(y, ref, p, sx, relu, ho * wo, c.out, &first), 0)
+                << cpu::int8_kernels_name(kernels) << " " << name(c) << " x "
+                << (x_half ? "bf16" : "fp32") << " y " << (y_half ? "bf16" : "fp32") << " relu "
+                << relu << ": " << first;
+            EXPECT_TRUE(y.guards_intact()) << cpu::int8_kernels_name(kernels) << " " << name(c);
+          }
+        }
+      }
+    }
+  }
+}
+
+TEST(Int8Conv, TransposedMatchesTheReferenceBitForBit) {
+  struct Case {
+    std::int64_t batch, in, out, h, w;
+  };
+  const Case cases[] = {
+      {1, 5, 3, 4, 7}, {2, 70, 9, 3, 20}, {1, 16, 16, 2, 17}, {1, 1, 1, 1, 1}, {1, 9, 12, 2, 40}};
+  for (Int8Kernels kernels : kernels_to_test()) {
+    for (const Case& c : cases) {
+      const std::vector<float> w = random_values(c.in * c.out * 4, 17, -0.5f, 0.5f);
+      const std::vector<float> bias = random_values(c.out, 18, -1.0f, 1.0f);
+      cpu::Int8ConvWeights p;
+      cpu::prepare_int8_conv_transpose(kernels,
+                                       Ref{const_cast<float*>(w.data()), {c.in, c.out, 2, 2}},
+                                       Ref{const_cast<float*>(bias.data()), {c.out}}, p);
+      for (const bool half : {false, true}) {
+        Input x = make_input({c.batch, c.in, c.h, c.w}, 19, half);
+        const float sx = 2.0f / 127.0f;
+        Output y({c.batch, c.out, 2 * c.h, 2 * c.w}, half);
+        cpu::Int8ConvWorkspace ws;
+        cpu::int8_conv_transpose2x2_forward(kernels, x.ref(), sx, p, y.ref(), ws);
+        const Reference ref = reference_conv_transpose(x, sx, p);
+        std::string first;
+        EXPECT_EQ(compare(y, ref, p, sx, false, 4 * c.h * c.w, c.out, &first), 0)
+            << cpu::int8_kernels_name(kernels) << " " << c.in << "->" << c.out << " @" << c.h << "x"
+            << c.w << (half ? " bf16" : " fp32") << ": " << first;
+        EXPECT_TRUE(y.guards_intact());
+      }
+    }
+  }
+}
+
+TEST(Int8Conv, NativeKernelsGiveTheirModelsBits) {
+  std::vector<std::pair<Int8Kernels, Int8Kernels>> pairs;
+  std::string why;
+  if (cpu::avx512_vnni_available(&why))
+    pairs.push_back({Int8Kernels::Vnni, Int8Kernels::Emulated});
+  else
+    std::printf("VNNI not run: %s\n", why.c_str());
+  if (cpu::amx_int8_available(&why))
+    pairs.push_back({Int8Kernels::Amx, Int8Kernels::AmxEmulated});
+  else
+    std::printf("AMX-INT8 not run: %s\n", why.c_str());
+  if (pairs.empty()) GTEST_SKIP() << "this CPU runs neither VNNI nor AMX-INT8: " << why;
+  // Inputs with NaN, infinities and values past the clamp, a wider layer.
+  const ConvCase c{2, 96, 48, 6, 70, 3, 1};
+  const std::vector<float> w = random_values(c.out * c.in * 9, 23, -0.2f, 0.2f);
+  const std::vector<float> bias = random_values(c.out, 24, -1.0f, 1.0f);
+  Input x = make_input({c.batch, c.in, c.h, c.w}, 25, false);
+  x.values[3] = std::numeric_limits<float>::quiet_NaN();
+  x.values[100] = std::numeric_limits<float>::infinity();
+  x.values[2000] = -std::numeric_limits<float>::infinity();
+  x.values[5000] = 1e30f;
+  for (const auto& [native, model] : pairs) {
+    std::vector<std::uint32_t> got[2];
+    for (int i = 0; i < 2; ++i) {
+      const Int8Kernels k = i == 0 ? native : model;
+      cpu::Int8ConvWeights p;
+      cpu::prepare_int8_conv(k, Ref{const_cast<float*>(w.data()), {c.out, c.in, 3, 3}},
+                             Ref{const_cast<float*>(bias.data()), {c.out}}, p);
+      Output y({c.batch, c.out, c.h, c.w}, false);
+      cpu::Int8ConvWorkspace ws;
+      cpu::int8_conv2d_forward(k, x.ref(), 1.5f / 127.0f, p, 1, true, y.ref(), ws);
+      for (std::int64_t e = 0; e < shape_numel(y.shape); ++e) got[i].push_back(y.bits(e));
+    }
+    EXPECT_EQ(got[0], got[1]) << cpu::int8_kernels_name(native);
+  }
+}
+
+TEST(Int8Conv, ResultsDoNotDependOnTheThreadCount) {
+  const ConvCase c{2, 20, 24, 9, 21, 3, 1};
+  const std::vector<float> w = random_values(c.out * c.in * 9, 31, -0.3f, 0.3f);
+  const std::vector<float> bias = random_values(c.out, 32, -1.0f, 1.0f);
+  Input x = make_input({c.batch, c.in, c.h, c.w}, 33, true);
+  for (Int8Kernels kernels : kernels_to_test()) {
+    cpu::Int8ConvWeights p;
+    cpu::prepare_int8_conv(kernels, Ref{const_cast<float*>(w.data()), {c.out, c.in, 3, 3}},
+                           Ref{const_cast<float*>(bias.data()), {c.out}}, p);
+    std::vector<std::uint16_t> first;
+    for (int threads : {1, 2, 3}) {
+      ScopedThreads scoped(threads);
+      Output y({c.batch, c.out, c.h, c.w}, true);
+      cpu::Int8ConvWorkspace ws;
+      cpu::int8_conv2d_forward(kernels, x.ref(), 0.02f, p, 1, false, y.ref(), ws);
+      if (first.empty()) first = y.h;
+      EXPECT_EQ(y.h, first) << cpu::int8_kernels_name(kernels) << " threads " << threads;
+    }
+  }
+}
+
+// The reference comparison catches a packing whose K order is wrong: the four channels within a
+// quad reversed, or two taps swapped.
+TEST(Int8Conv, ASwappedKOrderFails) {
+  const ConvCase c{1, 8, 8, 5, 20, 3, 1};
+  const std::vector<float> w = random_values(c.out * c.in * 9, 41, -0.3f, 0.3f);
+  const std::vector<float> bias = random_values(c.out, 42, -1.0f, 1.0f);
+  Input x = make_input({c.batch, c.in, c.h, c.w}, 43, false);
+  for (Int8Kernels kernels : {Int8Kernels::Emulated, Int8Kernels::AmxEmulated}) {
+    cpu::Int8ConvWeights good;
+    cpu::prepare_int8_conv(kernels, Ref{const_cast<float*>(w.data()), {c.out, c.in, 3, 3}},
+                           Ref{const_cast<float*>(bias.data()), {c.out}}, good);
+    const Reference ref = reference_conv(x, 0.015f, good, 1, false);
+    const auto mismatches = [&](const cpu::Int8ConvWeights& p) {
+      Output y({c.batch, c.out, c.h, c.w}, false);
+      cpu::Int8ConvWorkspace ws;
+      cpu::int8_conv2d_forward(kernels, x.ref(), 0.015f, p, 1, false, y.ref(), ws);
+      return compare(y, ref, good, 0.015f, false, c.h * c.w, c.out, nullptr);
+    };
+    ASSERT_EQ(mismatches(good), 0) << cpu::int8_kernels_name(kernels);
+    cpu::Int8ConvWeights reversed = good;
+    for (size_t i = 0; i + 4 <= reversed.packed.size(); i += 4)
+      std::reverse(reversed.packed.begin() + static_cast<std::ptrdiff_t>(i),
+                   reversed.packed.begin() + static_cast<std::ptrdiff_t>(i + 4));
+    EXPECT_GT(mismatches(reversed), c.h * c.w) << cpu::int8_kernels_name(kernels);
+    // Taps 0 and 1 swapped: in both packings a tap's bytes are one contiguous run of `quads` x 4
+    // (x 8 columns for Vnni) within a column (group).
+    cpu::Int8ConvWeights swapped = good;
+    const bool amx = cpu::int8_amx_family(kernels);
+    const std::int64_t quads = amx ? 16 : 2, run = amx ? quads * 4 : quads * 4 * 8;
+    const std::int64_t column_bytes = 9 * run;
+    for (std::int64_t base = 0;
+         base + column_bytes <= static_cast<std::int64_t>(swapped.packed.size());
+         base += column_bytes) {
+      std::swap_ranges(swapped.packed.begin() + base, swapped.packed.begin() + base + run,
+                       swapped.packed.begin() + base + run);
+    }
+    EXPECT_GT(mismatches(swapped), c.h * c.w) << cpu::int8_kernels_name(kernels);
+  }
+}
+
+TEST(Int8Conv, RejectsWhatItCannotRun) {
+  const std::vector<float> w = random_values(4 * 4 * 9, 51, -0.3f, 0.3f), bias(4, 0.0f);
+  cpu::Int8ConvWeights p;
+  cpu::prepare_int8_conv(Int8Kernels::Emulated, Ref{const_cast<float*>(w.data()), {4, 4, 3, 3}},
+                         Ref{const_cast<float*>(bias.data()), {4}}, p);
+  Input x = make_input({1, 4, 5, 5}, 52, false);
+  Output y({1, 4, 5, 5}, false);
+  cpu::Int8ConvWorkspace ws;
+  EXPECT_THROW(
+      cpu::int8_conv2d_forward(Int8Kernels::Emulated, x.ref(), 0.0f, p, 1, false, y.ref(), ws),
+      Error);
+  EXPECT_THROW(
+      cpu::int8_conv2d_forward(Int8Kernels::AmxEmulated, x.ref(), 0.01f, p, 1, false, y.ref(), ws),
+      Error);  // packed for VNNI
+  Output wrong({1, 4, 4, 5}, false);
+  EXPECT_THROW(
+      cpu::int8_conv2d_forward(Int8Kernels::Emulated, x.ref(), 0.01f, p, 1, false, wrong.ref(), ws),
+      Error);
+  std::vector<float> bad = w;
+  bad[5] = std::numeric_limits<float>::quiet_NaN();
+  EXPECT_THROW(cpu::prepare_int8_conv(Int8Kernels::Emulated, Ref{bad.data(), {4, 4, 3, 3}},
+                                      Ref{const_cast<float*>(bias.data()), {4}}, p),
+               Error);
+}
+
+// Against FP32 on random data: each product's error is w dq + x dw with the rounding errors dq,
+// dw uniform on half a step (variance sx^2 / 12, sw^2 / 12), so the output's error variance is
+// sum (w^2 sx^2 + x^2 sw^2) / 12 over its products. The measured sum of squared errors over all
+// outputs must be that prediction within 20% (a few thousand outputs: the ratio's spread is a
+// few percent), and its relative RMS is printed.
+TEST(Int8Conv, ErrorAgainstFp32IsTheQuantizationNoise) {
+  const ConvCase c{1, 32, 16, 24, 24, 3, 1};
+  std::mt19937 gen(61);
+  std::normal_distribution<float> normal(0.0f, 1.0f);
+  std::vector<float> w(static_cast<size_t>(c.out * c.in * 9)), bias(static_cast<size_t>(c.out));
+  for (float& v : w) v = 0.1f * normal(gen);
+  for (float& v : bias) v = 0.1f * normal(gen);
+  Input x{{c.batch, c.in, c.h, c.w},
+          std::vector<float>(static_cast<size_t>(c.in * c.h * c.w)),
+          {},
+          false};
+  for (float& v : x.values) v = normal(gen);
+  float max_abs = 0.0f;
+  for (float v : x.values) max_abs = std::max(max_abs, std::abs(v));
+  const float sx = max_abs / 127.0f;  // no clamping
+  cpu::Int8ConvWeights p;
+  cpu::prepare_int8_conv(Int8Kernels::Emulated, Ref{w.data(), {c.out, c.in, 3, 3}},
+                         Ref{bias.data(), {c.out}}, p);
+  Output y({c.batch, c.out, c.h, c.w}, false);
+  cpu::Int8ConvWorkspace ws;
+  cpu::int8_conv2d_forward(Int8Kernels::Emulated, x.ref(), sx, p, 1, false, y.ref(), ws);
+  double error2 = 0.0, predicted2 = 0.0, signal2 = 0.0;
+  for (std::int64_t o = 0; o < c.out; ++o) {
+    const double sw = p.scale[static_cast<size_t>(o)];
+    for (std::int64_t oy = 0; oy < c.h; ++oy)
+      for (std::int64_t ox = 0; ox < c.w; ++ox) {
+        double exact = bias[static_cast<size_t>(o)], var = 0.0;
+        for (std::int64_t ci = 0; ci < c.in; ++ci)
+          for (int ky = 0; ky < 3; ++ky)
+            for (int kx = 0; kx < 3; ++kx) {
+              const std::int64_t iy = oy + ky - 1, ix = ox + kx - 1;
+              if (iy < 0 || iy >= c.h || ix < 0 || ix >= c.w) continue;
+              const double xv = x.values[static_cast<size_t>((ci * c.h + iy) * c.w + ix)];
+              const double wv = w[static_cast<size_t>(((o * c.in + ci) * 3 + ky) * 3 + kx)];
+              exact += xv * wv;
+              var += (wv * wv * sx * sx + xv * xv * sw * sw) / 12.0;
+            }
+        const double got = y.value((o * c.h + oy) * c.w + ox);
+        error2 += (got - exact) * (got - exact);
+        predicted2 += var;
+        signal2 += exact * exact;
+      }
+  }
+  std::printf(
+      "INT8 against FP32: relative RMS error %.4f%%, predicted %.4f%%, measured / predicted "
+      "error power %.3f\n",
+      100.0 * std::sqrt(error2 / signal2), 100.0 * std::sqrt(predicted2 / signal2),
+      error2 / predicted2);
+  EXPECT_GT(error2 / predicted2, 0.8);
+  EXPECT_LT(error2 / predicted2, 1.2);
+}
+
+}  // namespace
