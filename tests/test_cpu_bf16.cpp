@@ -823,10 +823,10 @@ TEST(CpuBf16Model, TracksFp32AndTheCudaBackend) {
     const Tensor<float> bf16_cpu = net.download_logits();
     const Tensor<uint8_t> labels16 = net.predict_labels();
     // Again: the weights (w16 and the Winograd-transformed U) as prepared the first time.
-    const int64_t preparations = net.op_times().at("16-bit weights").calls;
+    const int64_t preparations = net.op_times().at("prepared weights bf16").calls;
     net.forward(d.batch, false);
     net.set_op_timing(false);
-    EXPECT_EQ(net.op_times().at("16-bit weights").calls, preparations);
+    EXPECT_EQ(net.op_times().at("prepared weights bf16").calls, preparations);
     EXPECT_EQ(net.download_logits(), bf16_cpu);
     const auto nmse = [](const Tensor<float>& a, const Tensor<float>& r) {
       double num = 0, den = 0;

@@ -862,9 +862,9 @@ TEST(CudaBackendPrecision, HalfTrainingTracksFp32) {
       EXPECT_NEAR(losses16.back(), losses32.back(), 0.05 * losses32.front());
       int half_backward = 0, fp32_convs = 0;
       for (const GraphNode& n : net16.graph(true).nodes()) {
-        half_backward += n.op == OpKind::Conv2dBackwardHalf || n.op == OpKind::ConvTranspose2x2BackwardHalf;
-        fp32_convs += n.op == OpKind::Conv2d || n.op == OpKind::Conv2dBackward || n.op == OpKind::ConvTranspose2x2 ||
-                      n.op == OpKind::ConvTranspose2x2Backward;
+        const bool backward = n.op == OpKind::Conv2dBackward || n.op == OpKind::ConvTranspose2dBackward;
+        half_backward += backward && n.compute == (precision == Precision::BF16 ? DType::BF16 : DType::F16);
+        fp32_convs += n.op == OpKind::Conv2d || n.op == OpKind::ConvTranspose2d || (backward && n.compute == DType::F32);
       }
       EXPECT_GT(half_backward, 0);
       EXPECT_EQ(fp32_convs, 0);
@@ -998,11 +998,11 @@ TEST(CudaBackendPrecision, PreparedWeightsFollowTheParameters) {
   net.set_precision(Precision::BF16);
   net.set_op_timing(true);  // runs the nodes one by one (no recording) and counts them
   net.forward(d.batch, false);
-  const int64_t preparations = net.op_times().at("16-bit weights").calls;
+  const int64_t preparations = net.op_times().at("prepared weights bf16").calls;
   EXPECT_GT(preparations, 0);
   const Tensor<float> first = net.download_logits();
   net.forward(d.batch, false);
-  EXPECT_EQ(net.op_times().at("16-bit weights").calls, preparations) << "prepared again, unchanged weights";
+  EXPECT_EQ(net.op_times().at("prepared weights bf16").calls, preparations) << "prepared again, unchanged weights";
   EXPECT_EQ(net.download_logits(), first);
   net.set_op_timing(false);
   net.forward(d.batch, false);  // recorded

@@ -14,6 +14,7 @@
 #include <vector>
 
 #include "core/error.hpp"
+#include "core/ops.hpp"
 #include "engine/model/graph.hpp"
 #include "engine/model/pillarsegnet.hpp"
 #include "engine/model/roofline.hpp"
@@ -81,7 +82,7 @@ TEST(Graph, OutputsLiveToTheEndAndViewsShareTheirTensor) {
 TEST(Graph, NodeBytesCountEachTensorReadAndWrittenOnce) {
   Graph g;
   const int x = g.tensor("x", {2, 3});                   // 24 bytes
-  const int h = g.tensor("h", {5}, DType::U16);          // 10
+  const int h = g.tensor("h", {5}, DType::BF16);         // 10
   const int whole = g.tensor("whole", {8});              // 32
   const int band = g.view("whole.band", whole, {2}, 8);  // 8
   const int rows = g.tensor("rows", {100, 4});           // planned at 100 rows of 16 bytes
@@ -100,19 +101,71 @@ TEST(Graph, NodeBytesCountEachTensorReadAndWrittenOnce) {
   // A channel copy and a scatter name the whole canvas but move a band or some cells: x (2 x 3
   // FP32) into a 16-bit canvas: 24 read + 12 written; 7 rows of 4 features and 7 cells of 3
   // int32 into the canvas: 112 + 84 read, 112 written.
-  const int canvas = g.tensor("canvas", {1000}, DType::U16);
+  // (The records check shapes: x is (1, 2, 3, 1), a band of a (1, 4, 3, 1) canvas at channel 2;
+  // the scatter's features (rows, 4) land in a (1, 4, 5, 50) canvas.)
+  const int x4 = g.tensor("x4", {1, 2, 3, 1}, DType::BF16);  // 12 bytes
+  const int canvas = g.tensor("canvas", {1, 4, 3, 1}, DType::BF16);
+  GraphNode band_copy;
+  band_copy.channel0 = 2;
+  g.add(OpKind::CopyChannels, "copy", CopyChannelsArgs{.x = x4, .y = canvas}, band_copy);
   const int cells = g.tensor("cells", {100, 3}, DType::I32);
   g.at(cells).dynamic_rows = true;
-  GraphNode copy = node({x, canvas}, {canvas});
-  copy.op = OpKind::CopyChannelsHalf;
-  copy.args = {x, canvas};
-  g.add(copy);
-  GraphNode scatter = node({rows, cells, canvas}, {canvas});
-  scatter.op = OpKind::Scatter;
-  scatter.args = {rows, cells, canvas};
-  g.add(scatter);
-  EXPECT_EQ(g.node_bytes(3, 7), 36u);
-  EXPECT_EQ(g.node_bytes(4, 7), 308u);
+  const int canvas16 = g.tensor("canvas16", {1, 4, 5, 50}, DType::BF16);
+  g.add(OpKind::Scatter, "scatter", ScatterArgs{.features = rows, .cells = cells, .canvas = canvas16});
+  EXPECT_EQ(g.node_bytes(3, 7), 24u);  // 12 read + 12 written
+  // 112 + 84 read, 7 x 4 values written at 2 bytes
+  EXPECT_EQ(g.node_bytes(4, 7), 252u);
+  // The same scatter into an FP32 canvas writes 4 bytes a value.
+  const int canvas32 = g.tensor("canvas32", {1, 4, 5, 50});
+  g.add(OpKind::Scatter, "scatter32", ScatterArgs{.features = rows, .cells = cells, .canvas = canvas32});
+  EXPECT_EQ(g.node_bytes(5, 7), 308u);
+}
+
+// A node's reads, writes and FLOPs come from its op's record; the record refuses a missing
+// argument, a wrong dtype and a shape its rule does not give, naming the node.
+TEST(Graph, RecordsDeriveAccessesAndCheckArguments) {
+  Graph g;
+  const int x = g.tensor("x", {1, 3, 8, 8}), w = g.tensor("w", {4, 3, 3, 3}), b = g.tensor("b", {4});
+  const int y = g.tensor("y", {1, 4, 8, 8});
+  GraphNode pad1;
+  pad1.pad = 1;
+  const GraphNode& conv = g.add(OpKind::Conv2d, "conv", Conv2dArgs{.x = x, .w = w, .bias = b, .y = y}, pad1);
+  EXPECT_EQ(conv.reads, (std::vector<int>{x, w, b}));
+  EXPECT_EQ(conv.writes, (std::vector<int>{y}));
+  EXPECT_DOUBLE_EQ(conv.flops, 2.0 * 4 * 8 * 8 * 3 * 9);  // 2 x O x h x w x I x k k
+  // In place: the add reads and writes a.
+  const int d = g.tensor("d", {1, 4, 8, 8});
+  const GraphNode& add = g.add(OpKind::AddInplace, "add", AddInplaceArgs{.a = y, .b = d});
+  EXPECT_EQ(add.reads, (std::vector<int>{y, d}));
+  EXPECT_EQ(add.writes, (std::vector<int>{y}));
+  const auto message = [&](auto&& f) {
+    try {
+      f();
+    } catch (const Error& e) {
+      return std::string(e.what());
+    }
+    return std::string("accepted");
+  };
+  EXPECT_NE(message([&] { g.add(OpKind::Conv2d, "nox", Conv2dArgs{.w = w, .y = y}, pad1); }).find("lacks its argument x"),
+            std::string::npos);
+  EXPECT_NE(message([&] { g.add(OpKind::Conv2d, "nopad", Conv2dArgs{.x = x, .w = w, .y = y}); }).find("nopad"),
+            std::string::npos)
+      << "without padding y would be (1, 4, 6, 6)";
+  const int x16 = g.tensor("x16", {1, 3, 8, 8}, DType::BF16);
+  EXPECT_NE(message([&] { g.add(OpKind::Conv2d, "bf16", Conv2dArgs{.x = x16, .w = w, .y = y}, pad1); })
+                .find("argument x (x16) is bf16"),
+            std::string::npos);
+  // A 16-bit max-pool needs no arg-max; an FP32 one does.
+  const int p16 = g.tensor("p16", {1, 3, 4, 4}, DType::BF16), p32 = g.tensor("p32", {1, 3, 4, 4});
+  EXPECT_EQ(message([&] { g.add(OpKind::MaxPool2d, "pool16", MaxPool2dArgs{.x = x16, .y = p16}); }), "accepted");
+  EXPECT_NE(message([&] { g.add(OpKind::MaxPool2d, "pool32", MaxPool2dArgs{.x = x, .y = p32}); }).find("arg-max"),
+            std::string::npos);
+  EXPECT_NE(message([&] { g.add(OpKind::MaxPool2d, "mixed", MaxPool2dArgs{.x = x16, .y = p32}); }).find("mixed"),
+            std::string::npos);
+  // The label of a node says its dtype; the 16-bit convolutions run on the tensor cores.
+  EXPECT_EQ(op_label(g, g.nodes()[0]), "conv forward");
+  EXPECT_EQ(op_label(g, g.nodes().back()), "maxpool forward bf16");
+  EXPECT_FALSE(on_matrix_units(g, g.nodes()[0]));
 }
 
 // The roofline bound (engine/model/roofline.hpp) by hand: 2 GFLOP and 48 MB on custom peaks of
@@ -132,25 +185,37 @@ TEST(Roofline, BoundsAnOpByItsFlopsAndBytes) {
   EXPECT_NEAR(fp32.ms(), 0.2, 1e-12);
   EXPECT_FALSE(fp32.memory_bound());
   EXPECT_EQ(parse_gpu("H200").half_tflops, 989);
-  EXPECT_TRUE(runs_on_tensor_cores(op_name(OpKind::Conv2dHalf)));
-  EXPECT_TRUE(runs_on_tensor_cores(op_name(OpKind::ConvTranspose2x2BackwardHalf)));
-  EXPECT_FALSE(runs_on_tensor_cores(op_name(OpKind::Conv2d)));
-  EXPECT_FALSE(runs_on_tensor_cores(op_name(OpKind::PfnForward)));
   // A graph's bound: a 16-bit convolution of 2 GFLOP reading and writing 1e6 bytes (compute:
   // 0.02 ms against 0.001), an FP32 op of 1 MFLOP reading and writing 4e6 bytes (memory: 0.004 ms
   // against 0.0001).
   Graph g;
-  const int a = g.tensor("a", {250000, 2}, DType::U16), b = g.tensor("b", {1000000});
+  // As records: a BF16 1x1 convolution of 200 -> 400 channels on 50 x 50 pixels (0.4 GFLOP on the
+  // tensor cores, 0.004 ms; its x 1e6 bytes, prepared weights 400 x 224 x 2 = 179,200, bias 1,600
+  // and y 2e6: 0.00159 ms), its weight preparation (w 320,000 bytes read, 179,200 + 1,600
+  // written: memory, 0.0002504 ms), and a raw FP32 node of 1 MFLOP reading and writing 4e6 bytes
+  // (memory: 0.004 ms against 0.0001).
+  const int x = g.tensor("x", {1, 200, 50, 50}, DType::BF16);      // 1e6 bytes
+  const int w = g.tensor("w", {400, 200, 1, 1});
+  const int w16 = g.tensor("w16", op::half16_conv_weights({400, 200, 1, 1}, false), DType::BF16);
+  const int b16 = g.tensor("b16", {400});
+  const int y = g.tensor("y", {1, 400, 50, 50}, DType::BF16);      // 2e6 bytes
+  g.add(OpKind::PrepareConvWeights, "prep",
+        PrepareConvWeightsArgs{.w = w, .prepared = w16, .prepared_bias = b16});
   GraphNode conv;
-  conv.op = OpKind::Conv2dHalf, conv.reads = {a}, conv.writes = {a}, conv.flops = 2e9;
-  g.add(conv);
+  conv.weight = {400, 200, 1, 1};
+  const GraphNode& c = g.add(OpKind::PreparedConv2d, "conv",
+                             PreparedConv2dArgs{.x = x, .prepared = w16, .prepared_bias = b16, .y = y}, conv);
+  EXPECT_DOUBLE_EQ(c.flops, 2.0 * 400 * 200 * 2500);  // 0.4 GFLOP
+  EXPECT_TRUE(on_matrix_units(g, c));
+  EXPECT_EQ(op_label(g, c), "conv forward bf16 (tensor cores)");
+  const int b = g.tensor("b", {1000000});
   GraphNode relu;
   relu.op = OpKind::BatchNormRelu, relu.reads = {b}, relu.writes = {b}, relu.flops = 1e6;
   g.add(relu);
   const GraphBound whole = graph_bound(g, 0, gpu);
-  EXPECT_NEAR(whole.compute_ms, 0.02, 1e-12);
-  EXPECT_NEAR(whole.memory_ms, 0.004, 1e-12);
-  EXPECT_NEAR(whole.ms(), 0.024, 1e-12);
+  EXPECT_NEAR(whole.compute_ms, 0.004, 1e-12);
+  EXPECT_NEAR(whole.memory_ms, 0.004 + 0.0002504, 1e-12);
+  EXPECT_NEAR(whole.ms(), 0.0082504, 1e-12);
   for (const char* bad :
        {"h300", "custom:1:2", "custom:1:2:x", "custom:1:-2:3", "custom:1:2:3:4"}) {
     try {

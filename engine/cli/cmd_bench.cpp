@@ -184,7 +184,7 @@ void print_op_table(ScanSegmenter& segmenter, const Scan& scan, Tensor<uint8_t>&
       }
     }
     if (bounded) {
-      const RooflineBound b = roofline_bound(flops, bytes, runs_on_tensor_cores(name), gpu);
+      const RooflineBound b = roofline_bound(flops, bytes, t.matrix_units, gpu);
       (b.memory_bound() ? memory_bound_ms : compute_bound_ms) += b.ms();
       line += fmt::format(" {:>10.4f} {:>7}", b.ms(), b.memory_bound() ? "memory" : "compute");
     }

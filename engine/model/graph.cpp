@@ -18,107 +18,6 @@ size_t aligned(size_t bytes) {
 }
 }  // namespace
 
-size_t dtype_bytes(DType dtype) {
-  switch (dtype) {
-    case DType::F32:
-    case DType::I32:
-      return 4;
-    case DType::U8:
-      return 1;
-    case DType::U16:
-      return 2;
-  }
-  return 4;
-}
-
-const char* dtype_name(DType dtype) {
-  switch (dtype) {
-    case DType::F32:
-      return "f32";
-    case DType::I32:
-      return "i32";
-    case DType::U8:
-      return "u8";
-    case DType::U16:
-      return "16b";
-  }
-  return "?";
-}
-
-const char* op_name(OpKind op) {
-  switch (op) {
-    case OpKind::FillZero:
-      return "fill zero";
-    case OpKind::PfnForward:
-      return "pfn forward";
-    case OpKind::PfnBackward:
-      return "pfn backward";
-    case OpKind::Scatter:
-      return "scatter forward";
-    case OpKind::ScatterBackward:
-      return "scatter backward";
-    case OpKind::CopyChannels:
-      return "channel copies";
-    case OpKind::ExtractChannels:
-      return "channel copies";
-    case OpKind::Conv2d:
-      return "conv forward";
-    case OpKind::Conv2dBnReluEval:
-      return "conv+BN+ReLU eval";
-    case OpKind::Conv2dBackward:
-      return "conv backward";
-    case OpKind::ConvTranspose2x2:
-      return "convT 2x2 forward";
-    case OpKind::ConvTranspose2x2Backward:
-      return "convT 2x2 backward";
-    case OpKind::BatchNormRelu:
-      return "batchnorm+relu forward";
-    case OpKind::BatchNormReluBackward:
-      return "batchnorm+relu backward";
-    case OpKind::MaxPool2x2:
-      return "maxpool forward";
-    case OpKind::MaxPool2x2Backward:
-      return "maxpool backward";
-    case OpKind::Upsample2x:
-      return "upsample forward";
-    case OpKind::Upsample2xBackward:
-      return "upsample backward";
-    case OpKind::PadConcat:
-      return "pad+concat forward";
-    case OpKind::PadConcatBackward:
-      return "pad+concat backward";
-    case OpKind::AddInplace:
-      return "add (skip gradients)";
-    case OpKind::Loss:
-      return "loss";
-    case OpKind::PrepareConvWeights:
-      return "16-bit weights";
-    case OpKind::PrepareConvTransposeWeights:
-      return "16-bit weights";
-    case OpKind::Conv2dHalf:
-      return "conv 16-bit (tensor cores)";
-    case OpKind::ConvTranspose2x2Half:
-      return "convT 2x2 16-bit (tensor cores)";
-    case OpKind::Conv2dBackwardHalf:
-      return "conv backward 16-bit (tensor cores)";
-    case OpKind::ConvTranspose2x2BackwardHalf:
-      return "convT 2x2 backward 16-bit (tensor cores)";
-    case OpKind::ToHalf:
-      return "to 16-bit";
-    case OpKind::MaxPool2x2Half:
-      return "maxpool 16-bit";
-    case OpKind::Upsample2xHalf:
-      return "upsample 16-bit";
-    case OpKind::PadConcatHalf:
-      return "pad+concat 16-bit";
-    case OpKind::CopyChannelsHalf:
-      return "channel copies 16-bit";
-    case OpKind::ScatterHalf:
-      return "scatter forward 16-bit";
-  }
-  return "?";
-}
-
 int Graph::tensor(std::string name, Shape shape, DType dtype) {
   GraphTensor t;
   t.name = std::move(name);
@@ -154,6 +53,29 @@ int Graph::parameter(int index, Shape shape, bool gradient) {
 }
 
 GraphNode& Graph::add(GraphNode node) {
+  if (!node.args.empty()) {
+    const OpRecord& record = op_record(node.op);
+    PS_CHECK(node.reads.empty() && node.writes.empty(), "graph: node {} names its reads and writes (the record does)",
+             node.name);
+    PS_CHECK(node.args.size() == record.args.size(), "graph: node {} ({}) has {} arguments, the op takes {}",
+             node.name, record.name, node.args.size(), record.args.size());
+    for (size_t k = 0; k < node.args.size(); ++k) {
+      const ArgSpec& spec = record.args[k];
+      const int id = node.args[k];
+      if (id < 0) {
+        PS_CHECK(spec.optional, "graph: node {} ({}) lacks its argument {}", node.name, record.name, spec.name);
+        continue;
+      }
+      PS_CHECK(id < static_cast<int>(tensors_.size()), "graph: node {} names tensor {} of {}", node.name, id,
+               tensors_.size());
+      PS_CHECK((spec.dtypes & dtypes_of(at(id).dtype)) != 0, "graph: node {} ({}): argument {} ({}) is {}",
+               node.name, record.name, spec.name, at(id).name, dtype_name(at(id).dtype));
+      if (spec.access != Access::Write) node.reads.push_back(id);
+      if (spec.access != Access::Read) node.writes.push_back(id);
+    }
+    if (record.check) record.check(*this, node);
+    node.flops = record.flops ? record.flops(*this, node) : 0.0;
+  }
   for (const std::vector<int>* list : {&node.reads, &node.writes})
     for (int id : *list)
       PS_CHECK(id >= 0 && id < static_cast<int>(tensors_.size()),
@@ -240,32 +162,16 @@ size_t Graph::tensor_bytes(int id, int64_t pillar_rows) const {
 
 size_t Graph::node_bytes(size_t i, int64_t pillar_rows) const {
   const GraphNode& n = nodes_.at(i);
-  const auto bytes_of = [&](int id) { return tensor_bytes(id, pillar_rows); };
-  const auto elements = [&](int id) { return bytes_of(id) / dtype_bytes(at(id).dtype); };
-  const auto arg = [&](size_t k) { return n.args.at(k); };
-  switch (n.op) {
-    // Ops that name a whole tensor of which they read or write a band or some rows (for its
-    // lifetime): what they move is the band's or the rows' bytes.
-    case OpKind::CopyChannels:
-    case OpKind::CopyChannelsHalf:  // x -> the band of y at y's dtype
-      return bytes_of(arg(0)) + elements(arg(0)) * dtype_bytes(at(arg(1)).dtype);
-    case OpKind::ExtractChannels:  // the band of y -> x
-      return 2 * bytes_of(arg(1));
-    case OpKind::Scatter:  // features and cells -> one canvas value per feature
-      return 2 * bytes_of(arg(0)) + bytes_of(arg(1));
-    case OpKind::ScatterHalf:  // the same, 16-bit canvas values
-      return bytes_of(arg(0)) + bytes_of(arg(1)) + elements(arg(0)) * dtype_bytes(DType::U16);
-    case OpKind::ScatterBackward:  // one canvas value per feature and cells -> d_features
-      return 2 * bytes_of(arg(2)) + bytes_of(arg(1));
-    default:
-      break;
+  if (!n.args.empty()) {
+    const OpRecord& record = op_record(n.op);
+    if (record.least_bytes) return record.least_bytes(*this, n, pillar_rows);
   }
   const auto bytes = [&](const std::vector<int>& ids) {
     std::vector<int> distinct = ids;
     std::sort(distinct.begin(), distinct.end());
     distinct.erase(std::unique(distinct.begin(), distinct.end()), distinct.end());
     size_t sum = 0;
-    for (int id : distinct) sum += bytes_of(id);
+    for (int id : distinct) sum += tensor_bytes(id, pillar_rows);
     return sum;
   };
   return bytes(n.reads) + bytes(n.writes);

@@ -17,62 +17,20 @@
 
 #include <cstddef>
 #include <cstdint>
+#include <cstring>
 #include <string>
 #include <utility>
 #include <vector>
 
+#include "core/dtype.hpp"
+#include "core/error.hpp"
 #include "core/tensor.hpp"
+#include "engine/model/op_record.hpp"
 
 namespace pillarseg {
 
-enum class DType { F32, I32, U8, U16 };  // U16: 16-bit floats (BF16, FP16) as bits
-size_t dtype_bytes(DType dtype);
-const char* dtype_name(DType dtype);
-
-enum class OpKind {
-  FillZero,          // w0 = 0
-  PfnForward,        // r: points, weight | w: out (training: argmax, save stats)
-  PfnBackward,       // r: points, weight, argmax, dout | w: dweight, dgamma, dbeta
-  Scatter,           // r: features, cells | w: canvas band
-  ScatterBackward,   // r: dcanvas band, cells | w: dfeatures
-  CopyChannels,      // r: x | w: band of y
-  ExtractChannels,   // r: band of y | w: x
-  Conv2d,            // r: x, w, bias | w: y
-  Conv2dBnReluEval,  // r: x, w, bias, BatchNorm | w: y
-  Conv2dBackward,    // r: x, w, dy | w: dx, dw, dbias
-  ConvTranspose2x2,  // r: x, w, bias | w: y
-  ConvTranspose2x2Backward,
-  BatchNormRelu,          // r: x | w: y (training: save stats)
-  BatchNormReluBackward,  // r: x, y, dy, save stats | w: dx (may be dy), dgamma, dbeta
-  MaxPool2x2,             // r: x | w: y, argmax
-  MaxPool2x2Backward,     // r: dy, argmax | w: dx
-  Upsample2x,
-  Upsample2xBackward,
-  PadConcat,          // r: skip, up | w: y
-  PadConcatBackward,  // r: dy | w: dskip, dup
-  AddInplace,         // r: a, b | w: a
-  Loss,               // r: logits, labels, coefficients | w: dlogits
-  // Mixed precision: 16-bit weights prepared from the FP32 parameters (in the evaluation forward
-  // into persistent tensors, again only when the parameters changed), then the tensor-core
-  // convolution.
-  PrepareConvWeights,           // r: w, bias, BatchNorm | w: w16, bias_out, transformed
-  PrepareConvTransposeWeights,  // r: w, bias | w: w16, bias_out
-  Conv2dHalf,                   // r: x, w16, bias_out, transformed | w: y (relu: + ReLU)
-  ConvTranspose2x2Half,         // r: x, w16, bias_out | w: y
-  // Mixed precision (training): the gradients on the tensor cores from the FP32 tensors.
-  Conv2dBackwardHalf,            // r: x, w, dy | w: dx, dw, dbias
-  ConvTranspose2x2BackwardHalf,  // r: x, w, dy | w: dx, dw, dbias
-  ToHalf,                        // r: x (FP32) | w: y (16-bit)
-  MaxPool2x2Half,                // r: x | w: y (16-bit, no arg-max)
-  Upsample2xHalf,                // r: x | w: y
-  PadConcatHalf,                 // r: skip, up | w: y
-  CopyChannelsHalf,              // r: x | w: band of y
-  ScatterHalf,                   // r: features, cells | w: 16-bit canvas band
-};
-const char* op_name(OpKind op);
-
 // Which part of a forward a node belongs to, for the stage timing of pillarseg bench.
-enum class Stage { Pfn, Scatter, Occupancy, GridMap, UNet, Head, Loss, Backward };
+enum class Stage { Pfn, Scatter, Occupancy, UNet, Head, Loss, Backward };
 
 struct GraphTensor {
   std::string name;  // "down2.conv1.out": for the memory report
@@ -95,15 +53,28 @@ struct GraphNode {
   OpKind op = OpKind::FillZero;
   Stage stage = Stage::UNet;
   std::string name;       // "down2.conv1"
-  std::vector<int> args;  // the op's tensors in its Backend method's order (-1: absent)
-  std::vector<int> reads, writes;
+  std::vector<int> args;  // the op's tensors in its record's order (-1: absent)
+  std::vector<int> reads, writes;  // from the record's accesses (Graph::add)
   int pad = 0;            // convolutions
   int channel0 = 0;       // scatter, channel copies
   int batchnorm = -1;     // the model's BatchNorm this node uses
   bool training = false;  // PFN, BatchNorm: batch statistics
-  bool relu = false;      // Conv2dHalf
-  Shape weight;           // Conv2dHalf, ConvTranspose2x2Half: the FP32 weight's shape
-  double flops = 0;       // 2 x multiply-adds of its arithmetic on weights
+  bool relu = false;      // PreparedConv2d
+  Shape weight;           // PreparedConv2d, PreparedConvTranspose2d: the FP32 weight's shape
+  // The arithmetic of a convolution's backward on FP32 tensors: F32, or BF16 / F16 on the
+  // tensor cores (the prepared convolutions' is their prepared weights' dtype).
+  DType compute = DType::F32;
+  double flops = 0;       // from the record (Graph::add)
+
+  // The arguments as the op's struct (engine/model/op_record.hpp).
+  template <class Args>
+  Args as() const {
+    PS_CHECK(args.size() * sizeof(int) == sizeof(Args), "graph: node {} has {} arguments, its op {}", name,
+             args.size(), sizeof(Args) / sizeof(int));
+    Args a;
+    std::memcpy(static_cast<void*>(&a), args.data(), sizeof(Args));
+    return a;
+  }
 };
 
 // A range of the flat parameter-gradient array, [offset, offset + count), that no node after
@@ -123,7 +94,18 @@ class Graph {
   const GraphTensor& at(int id) const { return tensors_.at(static_cast<size_t>(id)); }
   const std::vector<GraphTensor>& tensors() const { return tensors_; }
 
+  // A node of op n.op with n.args in its record's order: checks them against the record (count,
+  // presence, dtypes, the shape rule) and sets reads, writes and flops from it. A node without
+  // args keeps the reads and writes it was given (the planner's tests).
   GraphNode& add(GraphNode node);
+  // The same from the op's argument struct; `attributes` carries the rest (stage, pad, ...).
+  template <class Args>
+  GraphNode& add(OpKind op, std::string name, const Args& args, GraphNode attributes = {}) {
+    attributes.op = op;
+    attributes.name = std::move(name);
+    attributes.args = args_vector(args);
+    return add(std::move(attributes));
+  }
   const std::vector<GraphNode>& nodes() const { return nodes_; }
   size_t size() const { return nodes_.size(); }
 

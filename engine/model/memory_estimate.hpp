@@ -2,32 +2,16 @@
 // section 9): the memory a grid and batch size would need, and the counts stored in 32-bit
 // indices.
 //
-// estimate_model_memory() counts, in FP32 (16-bit activations only make it smaller), the memory
-// of the backend the model runs on:
-//   - parameters: every value and BatchNorm buffer; training adds the gradients and Adam's two
-//     moments (x 4 for the trainable values);
-//   - activations: the U-Net's feature maps, level l (H / 2^l x W / 2^l cells) holding c_l
-//     channels (b 2^l, the widths of DESIGN.md section 2), with the input maps, the outputs
-//     (logits, their gradient, the probabilities) and the labels. Evaluation: the largest set
-//     alive at once under the lifetime planner (engine/model/graph.hpp), over its phases: the
-//     inputs (the canvas, the occupancy and grid-map inputs, with the pillar buffers, which die
-//     there); each Down block (its input, pooled map, arg-max, convolution outputs); each Up
-//     block (its input, the skip, the concatenation, the first convolution's output), with the
-//     skips of the finer levels the decoder has still to read; the head and outputs. Training:
-//     every forward tensor the backward reads (pooled maps and their arg-max, each convolution's
-//     output and its BatchNorm's, the concatenations, the occupancy stream's, the logits and
-//     their gradient), plus the gradients at their peak (the last Up block's concatenation's,
-//     split into the canvas's and the upsampled map's, with the coarser levels' outputs' waiting
-//     for their Down blocks);
-//   - pillars: the pillar buffers, P rows x N points x 10 features plus the cells and the PFN's
-//     output (training: its arg-max, gradients and working memory); P = model.max_pillars a
-//     sample, or with max_pillars 0 one pillar a cell up to kTypicalScanPoints, with the model's
-//     headroom of a quarter; a scan with more pillars is checked again when it is planned;
-// (The batch prepared on the host before its upload is small against the activations.)
-// It is meant as an upper estimate of what the planner then places: tests/test_memory_budget.cpp
-// holds it between 0.95x (the greedy placement may leave small gaps) and 2x of the plan for
-// several variants; the plan itself is checked again, exactly, before its block is allocated
-// (PillarSegNet::plan), and so are a scan's buffers (ScanPipeline::reserve).
+// estimate_model_memory() is what the model would hold, derived from the model itself (DESIGN.md
+// section 7: derived, never restated): the parameters as PillarSegNet declares them (values and
+// BatchNorm buffers; training adds the gradients and Adam's two moments, x 4 for the trainable
+// values), and the block the lifetime planner places for the FP32 op graph of that batch and mode
+// (engine/model/model_graph.hpp), its pillar buffers planned for model.max_pillars a sample, or
+// with max_pillars 0 one pillar a cell up to kTypicalScanPoints, with the model's headroom (a scan
+// with more pillars is checked again when it is planned). The plan itself is checked again,
+// exactly, before its block is allocated (PillarSegNet::plan), and so are a scan's buffers
+// (ScanPipeline::reserve); the batch prepared on the host before its upload is small against the
+// activations.
 #pragma once
 
 #include <cstdint>
@@ -44,10 +28,10 @@ inline constexpr int64_t kTypicalScanPoints = 131072;
 
 struct ModelMemoryEstimate {
   uint64_t parameters = 0;
-  uint64_t activations = 0;
-  uint64_t pillars = 0;
-  uint64_t total() const;
-  // "parameters 65.8 MiB, activations 1.2 GiB, pillar buffers 166.9 MiB".
+  uint64_t activations = 0;  // the planned block, the pillar buffers in it
+  uint64_t pillars = 0;      // of the activations: the pillar buffers (at their largest)
+  uint64_t total() const;    // parameters + activations
+  // "parameters 65.8 MiB, activations 1.2 GiB (pillar buffers 166.9 MiB of them)".
   std::string breakdown() const;
 };
 

@@ -65,7 +65,8 @@ class PillarSegNet {
   const StageTimes& stage_times() const { return stage_times_; }
   // Per-op timing (where a benchmark's time goes): while on, every node of the op graph that a
   // forward, loss or backward runs is timed by Backend::clock_ms() and added, with the node's
-  // FLOPs and bytes, to the total of its op (op_name(), engine/model/graph.hpp), until cleared.
+  // FLOPs and bytes, to the total of its op and dtype (op_label(), engine/model/op_record.hpp),
+  // until cleared.
   // It waits for the device after every node, and the evaluation forward is not replayed from a
   // recorded graph meanwhile. bytes: what the node must move at the least, every tensor it reads
   // or writes once (Graph::node_bytes, with the pillar rows of the run); tensor_core_flops and
@@ -73,6 +74,7 @@ class PillarSegNet {
   // where it does not count).
   struct OpTime {
     double ms = 0, flops = 0, bytes = 0;
+    bool matrix_units = false;  // on_matrix_units(): the roofline's 16-bit peak
     double tensor_core_flops = -1, async_copy_bytes = -1;
     int64_t calls = 0;
   };

@@ -71,13 +71,6 @@ GpuPeaks parse_gpu(const std::string& spec) {
   return GpuPeaks{spec, values[0], values[1], values[2], "given on the command line"};
 }
 
-bool runs_on_tensor_cores(const std::string& op) {
-  for (OpKind kind : {OpKind::Conv2dHalf, OpKind::ConvTranspose2x2Half, OpKind::Conv2dBackwardHalf,
-                      OpKind::ConvTranspose2x2BackwardHalf})
-    if (op == op_name(kind)) return true;
-  return false;
-}
-
 RooflineBound roofline_bound(double flops, double bytes, bool tensor_cores, const GpuPeaks& gpu) {
   const double tflops = tensor_cores ? gpu.half_tflops : gpu.fp32_tflops;
   RooflineBound b;
@@ -92,7 +85,7 @@ GraphBound graph_bound(const Graph& graph, int64_t pillar_rows, const GpuPeaks& 
     const GraphNode& n = graph.nodes()[i];
     const RooflineBound b =
         roofline_bound(n.flops, static_cast<double>(graph.node_bytes(i, pillar_rows)),
-                       runs_on_tensor_cores(op_name(n.op)), gpu);
+                       on_matrix_units(graph, n), gpu);
     (b.memory_bound() ? total.memory_ms : total.compute_ms) += b.ms();
   }
   return total;

@@ -28,9 +28,6 @@ const std::vector<GpuPeaks>& known_gpus();
 // TFLOP/s, TB/s); throws pillarseg::Error naming the argument and the known names.
 GpuPeaks parse_gpu(const std::string& spec);
 
-// Whether an op (op_name(), engine/model/graph.hpp) runs on the tensor cores.
-bool runs_on_tensor_cores(const std::string& op);
-
 struct RooflineBound {
   double compute_ms = 0, memory_ms = 0;
   double ms() const { return compute_ms > memory_ms ? compute_ms : memory_ms; }

@@ -1,0 +1,45 @@
+// The element type of a tensor (DESIGN.md section 7: the dtype belongs to the tensor, not to op
+// or method names): FP32, the two 16-bit float formats of the mixed-precision paths (stored as
+// their bits), and the integer types of indices, arg-maxes and labels.
+#pragma once
+
+#include <cstddef>
+
+namespace pillarseg {
+
+enum class DType { F32, BF16, F16, I32, U8 };
+
+constexpr size_t dtype_bytes(DType dtype) {
+  switch (dtype) {
+    case DType::F32:
+    case DType::I32:
+      return 4;
+    case DType::BF16:
+    case DType::F16:
+      return 2;
+    case DType::U8:
+      return 1;
+  }
+  return 4;
+}
+
+// "f32", "bf16", "f16", "i32", "u8".
+constexpr const char* dtype_name(DType dtype) {
+  switch (dtype) {
+    case DType::F32:
+      return "f32";
+    case DType::BF16:
+      return "bf16";
+    case DType::F16:
+      return "f16";
+    case DType::I32:
+      return "i32";
+    case DType::U8:
+      return "u8";
+  }
+  return "?";
+}
+
+constexpr bool is_float16(DType dtype) { return dtype == DType::BF16 || dtype == DType::F16; }
+
+}  // namespace pillarseg
