@@ -9,10 +9,12 @@
 // most 64 columns; a warp 64 x BN / 2) in steps of 32 along K (one mma.sync m16n8k32 deep),
 // through a pipeline of 3 stages in dynamic shared memory:
 //   - A: each thread owns one pixel of the tile; a K step lies within one tap (Ip is a multiple
-//     of 32), so the thread checks the tap's position once and reads its 32 channels plane after
-//     plane (a warp reads 32 neighbouring pixels of each plane), quantizes them (quantize_s8) and
-//     stores them as its pixel's 32-byte row in two 16-byte stores. The loads for step s + 2 are
-//     issued before step s is computed and stored after it;
+//     of 32), so the thread checks the tap's position once and stages its pixel's 32-byte row:
+//       FP32 or BF16 x: reads its 32 channels plane after plane (a warp reads 32 neighbouring
+//       pixels of each plane), quantizes them (quantize_s8) and stores them in two 16-byte
+//       stores; the loads for step s + 2 are issued before step s is computed and stored after;
+//       S8x32 x: the 32 channels are the pixel's 32 contiguous bytes of its channel block, copied
+//       by two cp.async (zero-filled outside x) with the weights of the step;
 //   - B: the weights' BN x 32 bytes, rows (N, Kp) contiguous along K, by cp.async in 16-byte
 //     pieces (zero-filled past the last column), committed per step and waited for two steps
 //     later;
@@ -21,8 +23,9 @@
 //     (ldmatrix.x4 of Bs, rows = columns), and issues 4 x BN / 16 mma.sync m16n8k32. Rows of 32
 //     bytes are padded to 48 so that stores and ldmatrix rows of 8 neighbouring rows fall in
 //     distinct banks;
-//   - epilogue: acc to float, times sx sw[n], plus the bias (one FMA), ReLU, stored FP32 or BF16
-//     to its pixel and column (for the transposed kind at its sub-pixel);
+//   - epilogue: acc to float, times sx sw[n], plus the bias (one FMA), ReLU, stored FP32, BF16 or
+//     quantized with y's scale, at its pixel and column of y (the transposed kind's at its
+//     sub-pixel);
 //   - split K (gemm_splits_s8, where the tiles are few and K long): block z runs its range of K
 //     steps and stores its 32-bit sums; split_reduce_s8_kernel adds them (exactly, modulo 2^32 as
 //     the tensor cores do) and does the epilogue's work.
@@ -52,8 +55,11 @@ struct GemmS8 {
   int kernel, pad;                     // KS and pad of the gather (stride 1)
   bool sub_pixels;                     // D's column (o, dy, dx) goes to y's sub-pixel
   bool relu;
-  float x_scale;      // sx
-  float x_inv_scale;  // r = 1 / sx, rounded to FP32
+  bool y_blocked;         // y is S8x32 ...
+  std::int64_t y_blocks;  // ... of Op / 32 channel blocks
+  float x_scale;          // sx
+  float x_inv_scale;      // r = 1 / sx, rounded to FP32
+  float y_inv_scale;      // 1 / y's scale (S8x32 y)
   // Split K: block z runs steps [z split_steps, (z + 1) split_steps) and writes its sums to
   // partial[z] (columns x rows, the pixel fastest); unsplit: split_steps = k_padded / 32,
   // partial = nullptr.
@@ -87,6 +93,9 @@ __device__ __forceinline__ std::uint32_t quantize_s8(float x, float r) {
 }
 
 template <class T>
+constexpr bool kQuantizedInput = std::is_same_v<T, std::int8_t>;  // S8x32 x
+
+template <class T>
 __device__ __forceinline__ float activation_value(T value) {
   if constexpr (std::is_same_v<T, float>)
     return value;
@@ -98,7 +107,7 @@ __device__ __forceinline__ float activation_value(T value) {
 // (ky, kx) and the first channel c0 of the step advance by 32 channels at a time.
 template <class TIn>
 struct PixelGatherS8 {
-  const TIn* image = nullptr;  // the pixel's image of x
+  const TIn* image = nullptr;  // the pixel's image of x (S8x32: its first channel block)
   std::int64_t oy = 0, ox = 0;
   bool valid = false;
   std::int64_t c0 = 0;
@@ -143,6 +152,22 @@ struct PixelGatherS8 {
         words[j] = word;
       }
     }
+    advance(g);
+  }
+
+  // S8x32 x: the next step's 32 bytes, channels c0 .. c0 + 31 at tap (ky, kx), by two cp.async
+  // into `row` (zeros outside x; past I the tensor holds zeros).
+  __device__ __forceinline__ void issue_next(const GemmS8& g, std::uint8_t* row) {
+    const std::int64_t iy = oy + ky - g.pad, ix = ox + kx - g.pad;
+    const bool inside = valid && iy >= 0 && iy < g.in_height && ix >= 0 && ix < g.in_width;
+    const TIn* source =
+        inside ? image + ((c0 / 32) * g.in_height * g.in_width + iy * g.in_width + ix) * 32 : image;
+    cp_async_16(row, source, inside);
+    cp_async_16(row + 16, inside ? source + 16 : image, inside);
+    advance(g);
+  }
+
+  __device__ __forceinline__ void advance(const GemmS8& g) {
     c0 += 32;
     if (c0 == g.channels_padded) {
       c0 = 0;
@@ -203,34 +228,46 @@ __device__ __forceinline__ void compute_stage_s8(
       mma_m16n8k32_s8(acc[mt][nt], a[mt], b[nt], acc[mt][nt]);
 }
 
-// Where D's row (pixel p of `image`) and column n go in y: y[pixel_offset + column_offset].
-// Planar: y[image][n][p]; sub-pixels: y[image][o][2 oy + dy][2 ox + dx], n = 4 o + 2 dy + dx.
+// Where D's row (pixel p of `image`) and column n go in y: y[pixel_offset + column_offset], in
+// elements of y. y's pixel of row p is p, or for sub-pixels (2 oy, 2 ox) of its 2 Ho x 2 Wo, and
+// column n is channel n, or channel n / 4 at the sub-pixel offset (n % 4 / 2, n % 2). Planar:
+// y[image][channel][pixel]; S8x32: byte ((image Op / 32 + channel / 32) plane + pixel) 32 +
+// channel % 32.
+__device__ __forceinline__ std::int64_t y_plane_s8(const GemmS8& g) {
+  return g.out_height * g.out_width * (g.sub_pixels ? 4 : 1);
+}
 __device__ __forceinline__ std::int64_t pixel_offset_s8(const GemmS8& g, std::int64_t image,
                                                         std::int64_t p) {
-  const std::int64_t pixels_per_image = g.out_height * g.out_width;
-  const std::int64_t start = image * g.columns * pixels_per_image;
-  return g.sub_pixels ? start + 2 * (p / g.out_width) * 2 * g.out_width + 2 * (p % g.out_width)
-                      : start + p;
+  const std::int64_t plane = y_plane_s8(g);
+  const std::int64_t pixel =
+      g.sub_pixels ? 2 * (p / g.out_width) * 2 * g.out_width + 2 * (p % g.out_width) : p;
+  return g.y_blocked ? (image * g.y_blocks * plane + pixel) * 32
+                     : image * (g.sub_pixels ? g.columns / 4 : g.columns) * plane + pixel;
 }
 __device__ __forceinline__ std::int64_t column_offset_s8(const GemmS8& g, std::int64_t n) {
-  const std::int64_t pixels_per_image = g.out_height * g.out_width;
-  return g.sub_pixels ? (n / 4) * 4 * pixels_per_image + (n % 4) / 2 * 2 * g.out_width + n % 2
-                      : n * pixels_per_image;
+  const std::int64_t plane = y_plane_s8(g);
+  const std::int64_t channel = g.sub_pixels ? n / 4 : n;
+  const std::int64_t sub_pixel = g.sub_pixels ? (n % 4) / 2 * 2 * g.out_width + n % 2 : 0;
+  return g.y_blocked ? ((channel / 32) * plane + sub_pixel) * 32 + channel % 32
+                     : channel * plane + sub_pixel;
 }
 
-// act(float(acc) s + bias) stored as TOut.
+// act(float(acc) s + bias) stored as TOut: FP32, BF16 bits, or quantized (S8x32).
 template <class TOut>
 __device__ __forceinline__ void store_output(TOut* y, std::int64_t index, std::int32_t acc,
-                                             float scale, float bias, bool relu) {
+                                             float scale, float bias, const GemmS8& g) {
   float value = fmaf(static_cast<float>(acc), scale, bias);
-  if (relu) value = value > 0.0f ? value : 0.0f;
+  if (g.relu) value = value > 0.0f ? value : 0.0f;
   if constexpr (std::is_same_v<TOut, float>)
     y[index] = value;
+  else if constexpr (std::is_same_v<TOut, std::int8_t>)
+    y[index] =
+        static_cast<std::int8_t>(static_cast<std::uint8_t>(quantize_s8(value, g.y_inv_scale)));
   else
     y[index] = float_to_bf16_bits(value);
 }
 
-// TIn, TOut: float (FP32) or std::uint16_t (BF16 bits).
+// TIn, TOut: float (FP32), std::uint16_t (BF16 bits) or std::int8_t (S8x32).
 template <class TIn, class TOut, class Tile>
 __global__ void __launch_bounds__(Tile::kThreads, 2)
     conv_gemm_s8_kernel(const TIn* __restrict__ x, const std::int8_t* __restrict__ w8,
@@ -254,7 +291,8 @@ __global__ void __launch_bounds__(Tile::kThreads, 2)
     const std::int64_t image = pixel.valid ? m / pixels_per_image : 0;
     const std::int64_t p = pixel.valid ? m % pixels_per_image : 0;
     pixel.oy = p / g.out_width, pixel.ox = p % g.out_width;
-    pixel.image = x + image * g.channels * g.in_height * g.in_width;
+    const std::int64_t planes = kQuantizedInput<TIn> ? g.channels_padded : g.channels;
+    pixel.image = x + image * planes * g.in_height * g.in_width;
     row_offset[tid] = pixel.valid ? pixel_offset_s8(g, image, p) : -1;
   }
   const auto store_pixel = [&](const StageS8<Tile>& s, const std::uint32_t(&words)[8]) {
@@ -281,27 +319,40 @@ __global__ void __launch_bounds__(Tile::kThreads, 2)
   for (int s = 0; s < Tile::kStages - 1; ++s) {
     if (s < steps) {
       const StageS8<Tile> stage(shared, s);
-      std::uint32_t words[8];
-      pixel.load_next(g, words);
-      store_pixel(stage, words);
+      if constexpr (kQuantizedInput<TIn>) {
+        pixel.issue_next(g, stage.a + tid * Tile::kPitch);
+      } else {
+        std::uint32_t words[8];
+        pixel.load_next(g, words);
+        store_pixel(stage, words);
+      }
       issue_weights_s8(stage, w8, g, n0, (first + s) * Tile::kK, tid);
     }
     cp_async_commit();
   }
   for (std::int64_t step = 0; step < steps; ++step) {
-    cp_async_wait<Tile::kStages - 2>();  // this step's weights have landed
+    cp_async_wait<Tile::kStages - 2>();  // this step's copies have landed
     __syncthreads();  // ... and every thread's, and its pixels; the oldest stage is free
     const std::int64_t next = step + Tile::kStages - 1;
     const StageS8<Tile> next_stage(shared, static_cast<int>(next % Tile::kStages));
-    std::uint32_t words[8] = {};  // loaded and stored under the same condition
-    if (next < steps) {
-      pixel.load_next(g, words);
-      issue_weights_s8(next_stage, w8, g, n0, (first + next) * Tile::kK, tid);
+    const StageS8<Tile> stage(shared, static_cast<int>(step % Tile::kStages));
+    if constexpr (kQuantizedInput<TIn>) {
+      if (next < steps) {
+        pixel.issue_next(g, next_stage.a + tid * Tile::kPitch);
+        issue_weights_s8(next_stage, w8, g, n0, (first + next) * Tile::kK, tid);
+      }
+      cp_async_commit();
+      compute_stage_s8<Tile>(stage, acc, warp_m, warp_n, lane);
+    } else {
+      std::uint32_t words[8] = {};  // loaded and stored under the same condition
+      if (next < steps) {
+        pixel.load_next(g, words);
+        issue_weights_s8(next_stage, w8, g, n0, (first + next) * Tile::kK, tid);
+      }
+      cp_async_commit();
+      compute_stage_s8<Tile>(stage, acc, warp_m, warp_n, lane);
+      if (next < steps) store_pixel(next_stage, words);
     }
-    cp_async_commit();
-    compute_stage_s8<Tile>(StageS8<Tile>(shared, static_cast<int>(step % Tile::kStages)), acc,
-                           warp_m, warp_n, lane);
-    if (next < steps) store_pixel(next_stage, words);
   }
 
   // Epilogue: accumulator i of (mt, nt) is D[row group + 8 (i >= 2)][column 2 t + (i & 1)].
@@ -351,7 +402,7 @@ __global__ void __launch_bounds__(Tile::kThreads, 2)
         for (int e = 0; e < 2; ++e) {
           if (column_offsets[nt][e] < 0) continue;
           store_output(y, row + column_offsets[nt][e], acc[mt][nt][2 * half + e],
-                       column_scale[nt][e], column_bias[nt][e], g.relu);
+                       column_scale[nt][e], column_bias[nt][e], g);
         }
       }
     }
@@ -376,7 +427,7 @@ __global__ void __launch_bounds__(256)
     sum += static_cast<std::uint32_t>(partial[(z * g.columns + n) * rows + m]);
   const std::int64_t index =
       pixel_offset_s8(g, m / pixels_per_image, m % pixels_per_image) + column_offset_s8(g, n);
-  store_output(y, index, static_cast<std::int32_t>(sum), g.x_scale * w_scale[n], bias[n], g.relu);
+  store_output(y, index, static_cast<std::int32_t>(sum), g.x_scale * w_scale[n], bias[n], g);
 }
 
 // The preparation's view of one weight: w (O, I, k, k), or w (I, O, 2, 2) for the transposed
@@ -443,6 +494,34 @@ __global__ void quantize_weights_s8_kernel(WeightsS8 p, const float* __restrict_
   w8[i] = static_cast<std::int8_t>(q);
 }
 
+// One thread per (image, channel block, pixel): the pixel's 32 channels of the block, quantized,
+// as its 32 bytes of q (S8x32), zeros past C.
+template <class T>
+__global__ void __launch_bounds__(256)
+    quantize_activations_s8_kernel(const T* __restrict__ x, std::int64_t channels,
+                                   std::int64_t blocks, std::int64_t plane, std::int64_t total,
+                                   float r, std::int8_t* __restrict__ q) {
+  const std::int64_t i = static_cast<std::int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (i >= total) return;
+  const std::int64_t p = i % plane, block = (i / plane) % blocks, image = i / (plane * blocks);
+  const std::int64_t first = block * 32, here = channels - first;  // > 0
+  const T* source = x + (image * channels + first) * plane + p;
+  std::uint32_t words[8];
+#pragma unroll
+  for (int j = 0; j < 8; ++j) {
+    std::uint32_t word = 0;
+#pragma unroll
+    for (int e = 0; e < 4; ++e) {
+      if (4 * j + e < here)
+        word |= quantize_s8(activation_value(source[(4 * j + e) * plane]), r) << (8 * e);
+    }
+    words[j] = word;
+  }
+  auto* out = reinterpret_cast<uint4*>(q + i * 32);
+  out[0] = make_uint4(words[0], words[1], words[2], words[3]);
+  out[1] = make_uint4(words[4], words[5], words[6], words[7]);
+}
+
 // One warp: each lane builds its A and B registers from row-major A (16 x 32) and B (32 x 8) by
 // the ISA's formulas, runs the mma, and writes its four results to D (16 x 8) by the formula.
 __global__ void mma_s8_probe_kernel(const std::int8_t* a, const std::int8_t* b,
@@ -493,18 +572,36 @@ void launch_gemm_s8(const void* x, const std::int8_t* w8, const float* w_scale, 
   }
 }
 
+template <class Tile, class TIn>
+void launch_gemm_s8(const void* x, const std::int8_t* w8, const float* w_scale, const float* bias,
+                    const GemmS8& g, const OutputS8& y, cudaStream_t stream) {
+  switch (y.layout) {
+    case ActivationLayout::F32:
+      launch_gemm_s8<Tile, TIn, float>(x, w8, w_scale, bias, g, y.data, stream);
+      break;
+    case ActivationLayout::BF16:
+      launch_gemm_s8<Tile, TIn, std::uint16_t>(x, w8, w_scale, bias, g, y.data, stream);
+      break;
+    case ActivationLayout::S8x32:
+      launch_gemm_s8<Tile, TIn, std::int8_t>(x, w8, w_scale, bias, g, y.data, stream);
+      break;
+  }
+}
+
 template <class Tile>
-void launch_gemm_s8(const void* x, bool x_bf16, const std::int8_t* w8, const float* w_scale,
-                    const float* bias, const GemmS8& g, void* y, bool y_bf16, cudaStream_t stream) {
-  using U = std::uint16_t;
-  if (x_bf16 && y_bf16)
-    launch_gemm_s8<Tile, U, U>(x, w8, w_scale, bias, g, y, stream);
-  else if (x_bf16)
-    launch_gemm_s8<Tile, U, float>(x, w8, w_scale, bias, g, y, stream);
-  else if (y_bf16)
-    launch_gemm_s8<Tile, float, U>(x, w8, w_scale, bias, g, y, stream);
-  else
-    launch_gemm_s8<Tile, float, float>(x, w8, w_scale, bias, g, y, stream);
+void launch_gemm_s8(const ActivationsS8& x, const std::int8_t* w8, const float* w_scale,
+                    const float* bias, const GemmS8& g, const OutputS8& y, cudaStream_t stream) {
+  switch (x.layout) {
+    case ActivationLayout::F32:
+      launch_gemm_s8<Tile, float>(x.data, w8, w_scale, bias, g, y, stream);
+      break;
+    case ActivationLayout::BF16:
+      launch_gemm_s8<Tile, std::uint16_t>(x.data, w8, w_scale, bias, g, y, stream);
+      break;
+    case ActivationLayout::S8x32:
+      launch_gemm_s8<Tile, std::int8_t>(x.data, w8, w_scale, bias, g, y, stream);
+      break;
+  }
 }
 
 // As conv2d_mma.cu's gemm_splits: where the tiles are few and K long, K splits over blockIdx.z
@@ -528,32 +625,56 @@ std::int64_t gemm_workspace_s8(const GemmS8& g) {
   return splits > 1 ? splits * g.batch * g.out_height * g.out_width * g.columns : 0;
 }
 
-void run_gemm_s8(const void* x, bool x_bf16, float x_scale, const std::int8_t* w8,
-                 const float* w_scale, const float* bias, GemmS8 g, void* y, bool y_bf16,
-                 cudaStream_t stream, std::int32_t* workspace) {
+bool is_16_byte_aligned(const void* p) {
+  return reinterpret_cast<std::uintptr_t>(p) % 16 == 0;
+}
+
+void check_scale(float scale, const char* what) {
+  PS_CHECK(std::isfinite(scale) && scale > 0.0f,
+           "conv2d_mma_s8: the {} scale must be positive and finite, not {}", what, scale);
+}
+
+// y_channels, y_height, y_width: y's shape (for clearing an S8x32 y's padding channels).
+void run_gemm_s8(const ActivationsS8& x, const std::int8_t* w8, const float* w_scale,
+                 const float* bias, GemmS8 g, const OutputS8& y, std::int64_t y_channels,
+                 std::int64_t y_height, std::int64_t y_width, cudaStream_t stream,
+                 std::int32_t* workspace) {
   const std::int64_t rows = g.batch * g.out_height * g.out_width;
   if (rows == 0 || g.columns == 0) return;
   std::string why;
   PS_CHECK(mma_supported(&why), "conv2d_mma_s8: {}", why);
-  PS_CHECK(std::isfinite(x_scale) && x_scale > 0.0f,
-           "conv2d_mma_s8: the activation scale must be positive and finite, not {}", x_scale);
-  PS_CHECK(reinterpret_cast<std::uintptr_t>(w8) % 16 == 0,
+  check_scale(x.scale, "activation");
+  PS_CHECK(is_16_byte_aligned(w8),
            "conv2d_mma_s8: the prepared weights must be 16-byte aligned (device allocations are); "
            "{} is not",
            static_cast<const void*>(w8));
+  PS_CHECK(x.layout != ActivationLayout::S8x32 || is_16_byte_aligned(x.data),
+           "conv2d_mma_s8: an S8x32 input must be 16-byte aligned; {} is not", x.data);
   PS_CHECK(w_scale != nullptr && bias != nullptr,
            "conv2d_mma_s8: the prepared weight scales and bias are required");
-  g.x_scale = x_scale;
-  g.x_inv_scale = 1.0f / x_scale;
+  g.x_scale = x.scale;
+  g.x_inv_scale = 1.0f / x.scale;
+  g.y_blocked = y.layout == ActivationLayout::S8x32;
+  if (g.y_blocked) {
+    check_scale(y.scale, "output");
+    g.y_blocks = op::half16_padded_channels(y_channels) / 32;
+    g.y_inv_scale = 1.0f / y.scale;
+    if (y_channels % 32 != 0) {  // the padding channels hold zeros; the kernels write the others
+      PS_CUDA_CHECK(cudaMemsetAsync(
+          y.data, 0,
+          static_cast<std::size_t>(activations_s8_bytes(g.batch, y_channels, y_height, y_width)),
+          stream));
+    }
+  }
   const std::int64_t steps = g.k_padded / TileS8<64>::kK;
   const std::int64_t splits = workspace != nullptr ? gemm_splits_s8(g) : 1;
   g.split_steps = ceil_div(steps, splits);
   g.partial = splits > 1 ? workspace : nullptr;
   // Layers of at most 64 columns (the U-Net's widest-resolution ones) in 128 x 64 tiles.
   if (g.columns <= 64)
-    launch_gemm_s8<TileS8<64>>(x, x_bf16, w8, w_scale, bias, g, y, y_bf16, stream);
+    launch_gemm_s8<TileS8<64>>(x, w8, w_scale, bias, g, y, stream);
   else
-    launch_gemm_s8<TileS8<128>>(x, x_bf16, w8, w_scale, bias, g, y, y_bf16, stream);
+    launch_gemm_s8<TileS8<128>>(x, w8, w_scale, bias, g, y, stream);
 }
 
 // The gather of a stride-1 convolution of x (B, I, H, W) with a k x k kernel: D's rows are the
@@ -630,12 +751,11 @@ std::int64_t conv2d_mma_s8_forward_workspace(const Conv2dShape& shape) {
   return gemm_workspace_s8(conv_forward_gemm_s8(shape, false));
 }
 
-void conv2d_mma_s8_forward(const void* x, bool x_bf16, float x_scale, const std::int8_t* w8,
-                           const float* w_scale, const float* bias_out, const Conv2dShape& shape,
-                           bool relu, void* y, bool y_bf16, cudaStream_t stream,
-                           std::int32_t* workspace) {
-  run_gemm_s8(x, x_bf16, x_scale, w8, w_scale, bias_out, conv_forward_gemm_s8(shape, relu), y,
-              y_bf16, stream, workspace);
+void conv2d_mma_s8_forward(const ActivationsS8& x, const std::int8_t* w8, const float* w_scale,
+                           const float* bias_out, const Conv2dShape& shape, bool relu,
+                           const OutputS8& y, cudaStream_t stream, std::int32_t* workspace) {
+  run_gemm_s8(x, w8, w_scale, bias_out, conv_forward_gemm_s8(shape, relu), y, shape.out_channels,
+              shape.out_height(), shape.out_width(), stream, workspace);
 }
 
 std::int64_t conv_transpose2x2_mma_s8_forward_workspace(std::int64_t batch,
@@ -646,16 +766,41 @@ std::int64_t conv_transpose2x2_mma_s8_forward_workspace(std::int64_t batch,
       conv_transpose_forward_gemm_s8(batch, in_channels, height, width, out_channels, false));
 }
 
-void conv_transpose2x2_mma_s8_forward(const void* x, bool x_bf16, float x_scale,
-                                      const std::int8_t* w8, const float* w_scale,
-                                      const float* bias_out, std::int64_t batch,
-                                      std::int64_t in_channels, std::int64_t height,
-                                      std::int64_t width, std::int64_t out_channels, bool relu,
-                                      void* y, bool y_bf16, cudaStream_t stream,
-                                      std::int32_t* workspace) {
-  run_gemm_s8(x, x_bf16, x_scale, w8, w_scale, bias_out,
+void conv_transpose2x2_mma_s8_forward(const ActivationsS8& x, const std::int8_t* w8,
+                                      const float* w_scale, const float* bias_out,
+                                      std::int64_t batch, std::int64_t in_channels,
+                                      std::int64_t height, std::int64_t width,
+                                      std::int64_t out_channels, bool relu, const OutputS8& y,
+                                      cudaStream_t stream, std::int32_t* workspace) {
+  run_gemm_s8(x, w8, w_scale, bias_out,
               conv_transpose_forward_gemm_s8(batch, in_channels, height, width, out_channels, relu),
-              y, y_bf16, stream, workspace);
+              y, out_channels, 2 * height, 2 * width, stream, workspace);
+}
+
+std::int64_t activations_s8_bytes(std::int64_t batch, std::int64_t channels, std::int64_t height,
+                                  std::int64_t width) {
+  return batch * op::half16_padded_channels(channels) * height * width;
+}
+
+void quantize_activations_s8(const void* x, ActivationLayout x_layout, float scale,
+                             std::int64_t batch, std::int64_t channels, std::int64_t height,
+                             std::int64_t width, std::int8_t* q, cudaStream_t stream) {
+  PS_CHECK(x_layout != ActivationLayout::S8x32,
+           "quantize_activations_s8: the input must be FP32 or BF16, not already S8x32");
+  check_scale(scale, "activation");
+  PS_CHECK(is_16_byte_aligned(q), "quantize_activations_s8: q must be 16-byte aligned; {} is not",
+           static_cast<const void*>(q));
+  const std::int64_t blocks = op::half16_padded_channels(channels) / 32, plane = height * width;
+  const std::int64_t total = batch * blocks * plane;
+  if (total == 0) return;
+  const dim3 grid(static_cast<unsigned>(ceil_div(total, 256)));
+  if (x_layout == ActivationLayout::F32)
+    launch_kernel(quantize_activations_s8_kernel<float>, grid, dim3(256), 0, stream,
+                  static_cast<const float*>(x), channels, blocks, plane, total, 1.0f / scale, q);
+  else
+    launch_kernel(quantize_activations_s8_kernel<std::uint16_t>, grid, dim3(256), 0, stream,
+                  static_cast<const std::uint16_t*>(x), channels, blocks, plane, total,
+                  1.0f / scale, q);
 }
 
 void mma_s8_fragment_probe(const std::int8_t* a, const std::int8_t* b, const std::int32_t* c,

@@ -465,6 +465,7 @@ void check_conv_s8(const ConvCaseS8& cc) {
         }
 
   // The device: x as FP32 or BF16, y between guard words, unsplit and split, twice.
+  using cuda::ActivationLayout;
   GuardedArray<float> dx_f(x);
   GuardedArray<std::uint16_t> dx_h(bf16_bits(x));
   auto dw8 = DeviceBuffer<std::int8_t>::from_host(p.w8);
@@ -478,18 +479,24 @@ void check_conv_s8(const ConvCaseS8& cc) {
                     : cuda::conv2d_mma_s8_forward_workspace(s);
   DeviceBuffer<std::int32_t> workspace(
       static_cast<size_t>(std::max<std::int64_t>(workspace_count, 1)));
-  const void* x_device = cc.x_bf16 ? static_cast<const void*>(dx_h.data()) : dx_f.data();
-  void* y_device = cc.y_bf16 ? static_cast<void*>(dy_h.data()) : dy_f.data();
-  const auto run = [&](bool split) -> std::vector<float> {
+  const ActivationLayout x_layout = cc.x_bf16 ? ActivationLayout::BF16 : ActivationLayout::F32;
+  const cuda::ActivationsS8 x_in{cc.x_bf16 ? static_cast<const void*>(dx_h.data()) : dx_f.data(),
+                                 x_layout, sx};
+  const auto convolve = [&](const cuda::ActivationsS8& xs, const cuda::OutputS8& ys, bool split) {
     std::int32_t* ws = split ? workspace.data() : nullptr;
     if (cc.transposed)
-      cuda::conv_transpose2x2_mma_s8_forward(
-          x_device, cc.x_bf16, sx, dw8.data(), dscale.data(), dbias.data(), s.batch, s.in_channels,
-          s.height, s.width, s.out_channels, cc.relu, y_device, cc.y_bf16, nullptr, ws);
+      cuda::conv_transpose2x2_mma_s8_forward(xs, dw8.data(), dscale.data(), dbias.data(), s.batch,
+                                             s.in_channels, s.height, s.width, s.out_channels,
+                                             cc.relu, ys, nullptr, ws);
     else
-      cuda::conv2d_mma_s8_forward(x_device, cc.x_bf16, sx, dw8.data(), dscale.data(), dbias.data(),
-                                  s, cc.relu, y_device, cc.y_bf16, nullptr, ws);
+      cuda::conv2d_mma_s8_forward(xs, dw8.data(), dscale.data(), dbias.data(), s, cc.relu, ys,
+                                  nullptr, ws);
     PS_CUDA_CHECK(cudaDeviceSynchronize());
+  };
+  const auto run = [&](const cuda::ActivationsS8& xs, bool split) -> std::vector<float> {
+    const cuda::OutputS8 ys{cc.y_bf16 ? static_cast<void*>(dy_h.data()) : dy_f.data(),
+                            cc.y_bf16 ? ActivationLayout::BF16 : ActivationLayout::F32, 1.0f};
+    convolve(xs, ys, split);
     EXPECT_TRUE(dy_f.guards_intact());
     EXPECT_TRUE(dy_h.guards_intact());
     if (!cc.y_bf16) return dy_f.download();
@@ -497,20 +504,46 @@ void check_conv_s8(const ConvCaseS8& cc) {
     for (std::uint16_t bits : dy_h.download()) y.push_back(cuda::bf16_bits_to_float(bits));
     return y;
   };
-  const std::vector<float> y = run(false);
-  EXPECT_TRUE(kernel_test::same_bits(run(false), y)) << "a rerun";
+  const std::vector<float> y = run(x_in, false);
+  EXPECT_TRUE(kernel_test::same_bits(run(x_in, false), y)) << "a rerun";
   if (workspace_count > 0) {
-    EXPECT_TRUE(kernel_test::same_bits(run(true), y)) << "split K";
+    EXPECT_TRUE(kernel_test::same_bits(run(x_in, true), y)) << "split K";
   }
   if (ip > s.in_channels) {  // A is zero past I: weights there (not zero now) change nothing
     std::vector<std::int8_t> padded = p.w8;
     for (size_t i = 0; i < padded.size(); ++i)
       if (static_cast<std::int64_t>(i) % ip >= s.in_channels) padded[i] = 77;
     dw8.copy_from_host(padded);
-    EXPECT_TRUE(kernel_test::same_bits(run(false), y)) << "weights past the input channels";
+    EXPECT_TRUE(kernel_test::same_bits(run(x_in, false), y)) << "weights past the input channels";
+    dw8.copy_from_host(p.w8);
+  }
+
+  // x quantized beforehand (S8x32): the host's quantization in blocks of 32 channels, zeros past
+  // I, and the convolution of it gives the same bits.
+  const std::int64_t plane = s.height * s.width, x_blocks = ip / 32;
+  GuardedArray<std::int8_t> dq(
+      cuda::activations_s8_bytes(s.batch, s.in_channels, s.height, s.width));
+  ASSERT_EQ(dq.size(), s.batch * ip * plane);
+  cuda::quantize_activations_s8(x_in.data, x_layout, sx, s.batch, s.in_channels, s.height, s.width,
+                                dq.data(), nullptr);
+  PS_CUDA_CHECK(cudaDeviceSynchronize());
+  std::vector<std::int8_t> q_expected(static_cast<size_t>(dq.size()), 0);
+  for (std::int64_t b = 0; b < s.batch; ++b)
+    for (std::int64_t c = 0; c < s.in_channels; ++c)
+      for (std::int64_t pixel = 0; pixel < plane; ++pixel)
+        q_expected[static_cast<size_t>(((b * x_blocks + c / 32) * plane + pixel) * 32 + c % 32)] =
+            static_cast<std::int8_t>(
+                qx[static_cast<size_t>((b * s.in_channels + c) * plane + pixel)]);
+  EXPECT_TRUE(kernel_test::same_bits(dq.download(), q_expected)) << "quantize_activations_s8";
+  EXPECT_TRUE(dq.guards_intact());
+  const cuda::ActivationsS8 q_in{dq.data(), ActivationLayout::S8x32, sx};
+  EXPECT_TRUE(kernel_test::same_bits(run(q_in, false), y)) << "S8x32 x";
+  if (workspace_count > 0) {
+    EXPECT_TRUE(kernel_test::same_bits(run(q_in, true), y)) << "S8x32 x, split K";
   }
 
   double worst = 0;  // |y - exact| in units of the epilogue's rounding bound
+  std::vector<float> values(static_cast<size_t>(out_count));  // act(fma(...)) before rounding
   for (std::int64_t i = 0; i < out_count; ++i) {
     const std::int64_t n_of = (i / (ho * wo)) % s.out_channels;  // output channel
     const std::int64_t column =
@@ -525,6 +558,7 @@ void check_conv_s8(const ConvCaseS8& cc) {
     // The documented epilogue, bit for bit.
     float expected = std::fma(static_cast<float>(a), scale, b);
     if (cc.relu) expected = std::max(expected, 0.0f);
+    values[static_cast<size_t>(i)] = expected;
     if (cc.y_bf16) expected = bf16_value(expected);
     ASSERT_EQ(got, expected) << "y[" << i << "] from accumulator " << a;
     // Against the exact value: float(acc) and the FMA round once each, BF16 once more.
@@ -537,6 +571,31 @@ void check_conv_s8(const ConvCaseS8& cc) {
     worst = std::max(worst, std::abs(got - exact) / bound);
   }
   ::testing::Test::RecordProperty("worst_error_in_rounding_bounds", std::to_string(worst));
+
+  // y quantized (S8x32) with sy = max |v| / 100: the host's quantization of the epilogue's
+  // values, zeros in the padding channels (GuardedArray fills them with 0xA7 first), from FP32
+  // or BF16 x and from S8x32 x, split or not.
+  float largest_value = 0.0f;
+  for (float v : values) largest_value = std::max(largest_value, std::abs(v));
+  const float sy = largest_value > 0.0f ? largest_value / 100.0f : 1.0f;
+  const std::int64_t op = op::half16_padded_channels(s.out_channels), y_plane = ho * wo;
+  GuardedArray<std::int8_t> dyq(cuda::activations_s8_bytes(s.batch, s.out_channels, ho, wo));
+  std::vector<std::int8_t> yq_expected(static_cast<size_t>(dyq.size()), 0);
+  for (std::int64_t i = 0; i < out_count; ++i) {
+    const std::int64_t pixel = i % y_plane, o = (i / y_plane) % s.out_channels,
+                       b = i / (y_plane * s.out_channels);
+    yq_expected[static_cast<size_t>(((b * (op / 32) + o / 32) * y_plane + pixel) * 32 + o % 32)] =
+        static_cast<std::int8_t>(quantize_activation(values[static_cast<size_t>(i)], 1.0f / sy));
+  }
+  for (const auto& [xs, split] : {std::pair{x_in, false}, std::pair{q_in, false},
+                                  std::pair{x_in, true}, std::pair{q_in, true}}) {
+    if (split && workspace_count == 0) continue;
+    convolve(xs, {dyq.data(), ActivationLayout::S8x32, sy}, split);
+    EXPECT_TRUE(kernel_test::same_bits(dyq.download(), yq_expected))
+        << "S8x32 y from " << (xs.layout == ActivationLayout::S8x32 ? "S8x32" : "FP32/BF16") << " x"
+        << (split ? ", split K" : "");
+    EXPECT_TRUE(dyq.guards_intact());
+  }
 }
 
 TEST(ConvMmaS8, AccumulatorsExactWithUnitScales) {
@@ -600,8 +659,9 @@ TEST(ConvMmaS8, NonFiniteActivationsQuantizeDeterministically) {
   auto dscale = DeviceBuffer<float>::from_host(p.scale),
        dbias = DeviceBuffer<float>::from_host(p.bias);
   DeviceBuffer<float> dy(6);
-  cuda::conv2d_mma_s8_forward(dx.data(), false, 1.0f, dw8.data(), dscale.data(), dbias.data(), s,
-                              false, dy.data(), false, nullptr);
+  cuda::conv2d_mma_s8_forward({dx.data(), cuda::ActivationLayout::F32, 1.0f}, dw8.data(),
+                              dscale.data(), dbias.data(), s, false,
+                              {dy.data(), cuda::ActivationLayout::F32, 1.0f}, nullptr);
   PS_CUDA_CHECK(cudaDeviceSynchronize());
   const std::vector<float> y = dy.to_host();
   const float expected[6] = {-127 * 127, 127 * 127, -127 * 127, 2 * 127, -4 * 127, 126 * 127};
@@ -609,20 +669,39 @@ TEST(ConvMmaS8, NonFiniteActivationsQuantizeDeterministically) {
     EXPECT_EQ(y[static_cast<size_t>(i)], expected[i]) << "x = " << x[static_cast<size_t>(i)];
 }
 
-TEST(ConvMmaS8, RefusesABadActivationScale) {
+// Scales that are not positive and finite, and a misaligned S8x32 input, are refused with a
+// message; an S8x32 input cannot be quantized again.
+TEST(ConvMmaS8, RefusesBadScalesAndMisalignedInt8Tensors) {
   std::string why;
   if (!cuda::mma_supported(&why)) GTEST_SKIP() << why;
+  using cuda::ActivationLayout;
   const cuda::Conv2dShape s{1, 1, 1, 1, 1, 1, 0};
   DeviceBuffer<float> x(1), scale(1), bias(1), y(1);
-  DeviceBuffer<std::int8_t> w8(32);
-  for (const float bad : {0.0f, -1.0f, std::numeric_limits<float>::infinity()}) {
-    const std::string message = kernel_test::error_message([&] {
-      cuda::conv2d_mma_s8_forward(x.data(), false, bad, w8.data(), scale.data(), bias.data(), s,
-                                  false, y.data(), false, nullptr);
+  DeviceBuffer<std::int8_t> w8(32), q(64);
+  const auto convolve = [&](const cuda::ActivationsS8& xs, const cuda::OutputS8& ys) {
+    return kernel_test::error_message([&] {
+      cuda::conv2d_mma_s8_forward(xs, w8.data(), scale.data(), bias.data(), s, false, ys, nullptr);
     });
+  };
+  for (const float bad : {0.0f, -1.0f, std::numeric_limits<float>::infinity(),
+                          std::numeric_limits<float>::quiet_NaN()}) {
+    std::string message =
+        convolve({x.data(), ActivationLayout::F32, bad}, {y.data(), ActivationLayout::F32, 1.0f});
     EXPECT_NE(message.find("activation scale must be positive and finite"), std::string::npos)
         << message;
+    message =
+        convolve({x.data(), ActivationLayout::F32, 1.0f}, {q.data(), ActivationLayout::S8x32, bad});
+    EXPECT_NE(message.find("output scale must be positive and finite"), std::string::npos)
+        << message;
   }
+  std::string message = convolve({q.data() + 8, ActivationLayout::S8x32, 1.0f},
+                                 {y.data(), ActivationLayout::F32, 1.0f});
+  EXPECT_NE(message.find("S8x32 input must be 16-byte aligned"), std::string::npos) << message;
+  message = kernel_test::error_message([&] {
+    cuda::quantize_activations_s8(q.data(), ActivationLayout::S8x32, 1.0f, 1, 1, 1, 1, q.data(),
+                                  nullptr);
+  });
+  EXPECT_NE(message.find("must be FP32 or BF16"), std::string::npos) << message;
 }
 
 #if defined(PILLARSEG_CUDA_EMULATION)
@@ -650,8 +729,9 @@ TEST(ConvMmaS8, EmulationCountsTheIssuedInstructions) {
     PS_CUDA_CHECK(cudaMemset(scale.data(), 0, scale.size() * sizeof(float)));
     PS_CUDA_CHECK(cudaMemset(bias.data(), 0, bias.size() * sizeof(float)));
     const emu::InstructionCounts before = emu::instruction_counts();
-    cuda::conv2d_mma_s8_forward(x.data(), false, 1.0f, w8.data(), scale.data(), bias.data(), s,
-                                false, y.data(), false, nullptr);
+    cuda::conv2d_mma_s8_forward({x.data(), cuda::ActivationLayout::F32, 1.0f}, w8.data(),
+                                scale.data(), bias.data(), s, false,
+                                {y.data(), cuda::ActivationLayout::F32, 1.0f}, nullptr);
     PS_CUDA_CHECK(cudaDeviceSynchronize());
     const emu::InstructionCounts after = emu::instruction_counts();
     const std::int64_t blocks = c.blocks_m * c.blocks_n, steps = c.k_padded / 32;
