@@ -141,7 +141,7 @@ std::int64_t int8_quads(Int8Kernels kernels, std::int64_t channels) {
 // columns. qw(n, tap, c) gives the value.
 template <class Qw>
 void pack_weights(Int8Kernels kernels, std::int64_t columns, std::int64_t taps,
-                  std::int64_t channels, Qw&& qw, std::vector<std::int8_t>& packed) {
+                  std::int64_t channels, Qw&& qw, AlignedVector<std::int8_t>& packed) {
   const std::int64_t quads = int8_quads(kernels, channels);
   const bool amx = int8_amx_family(kernels);
   const std::int64_t padded = round_up(columns, amx ? kInt8AmxColumns : kInt8GroupColumns);
@@ -287,7 +287,8 @@ void quantize_input(Int8Kernels kernels, bool on_native, const ActRef& x, float 
   q.reciprocal = 1.0f / sx;
   q.pad = pad;
   q.quads = int8_quads(kernels, q.channels);
-  q.padded_height = q.height + 2 * pad, q.padded_width = q.width + 2 * pad;
+  // Rows of whole cache lines (16 quads), so that a tap with kx = 0 loads aligned.
+  q.padded_height = q.height + 2 * pad, q.padded_width = round_up(q.width + 2 * pad, 16);
   const std::int64_t bytes = x.dim(0) * q.padded_height * q.quads * q.padded_width * 4;
   if (workspace.x.size() < static_cast<size_t>(bytes + kInt8Slack))
     workspace.x.resize(static_cast<size_t>(bytes + kInt8Slack));

@@ -71,7 +71,7 @@ struct Int8ConvWeights {
   std::vector<float> scale;                // sw, (O)
   std::vector<float> bias;                 // (columns)
   std::vector<std::int32_t> compensation;  // (columns): 128 times the sum of the column's qw
-  std::vector<std::int8_t> packed;         // qw laid out for the micro-kernel (int8_conv.cpp)
+  AlignedVector<std::int8_t> packed;       // qw laid out for the micro-kernel (int8_conv.cpp)
 };
 
 // w (O, I, k, k), bias (O) (BatchNorm already folded into both) -> `out`, packed for the family of
@@ -84,7 +84,7 @@ void prepare_int8_conv_transpose(Int8Kernels kernels, const Ref& w, const Ref& b
 // The quantized input in the micro-kernel's layout, kept by the caller between calls so that the
 // steady state allocates nothing (it only grows).
 struct Int8ConvWorkspace {
-  std::vector<std::uint8_t> x;
+  AlignedVector<std::uint8_t> x;
 };
 
 // x (B, I, H, W) FP32 or BF16 (x.half) -> y (B, O, Ho, Wo) = act(conv(x, w) + bias), stride 1,

@@ -5,8 +5,9 @@
 //
 // The quantized input (the workspace): u = q + 128 in bytes, four channels c = 4 cq + i side by
 // side in one dword ("quads"), laid out xq[b][row][cq][col][i] over the padded image (Hp = H + 2
-// pad rows, Wp = W + 2 pad columns, the padding u = 128) and `quads` channel quads (the channels
-// past I, up to the quads' end, are u = 128 with zero weights). A convolution's output pixel (row,
+// pad rows, Wp = W + 2 pad columns rounded up to 16, whole cache lines; the padding u = 128) and
+// `quads` channel quads (the channels past I, up to the quads' end, are u = 128 with zero
+// weights). A convolution's output pixel (row,
 // col) reads, for the tap (ky, kx), the padded input pixel (row + ky, col + kx): one plain 64-byte
 // load gives 16 pixels' quads of one channel quad, with no masks and no borders.
 //
