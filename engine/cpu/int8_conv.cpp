@@ -279,8 +279,8 @@ void require_activation(const char* op, const char* what, const ActRef& r) {
 
 // The input quantized into the workspace (`pad` columns and rows of u = 128 around it), and the
 // GEMM's input fields.
-void quantize_input(Int8Kernels kernels, bool on_native, const ActRef& x, float sx, int pad,
-                    Int8ConvWorkspace& workspace, Int8Gemm& g) {
+void quantize_input(Int8Kernels kernels, [[maybe_unused]] bool on_native, const ActRef& x, float sx,
+                    int pad, Int8ConvWorkspace& workspace, Int8Gemm& g) {
   Int8Quantize q;
   q.x = x.data, q.x_bf16 = x.half;
   q.channels = x.dim(1), q.height = x.dim(2), q.width = x.dim(3);
@@ -311,7 +311,7 @@ void quantize_input(Int8Kernels kernels, bool on_native, const ActRef& x, float 
   g.batch = x.dim(0);
 }
 
-void run_gemm(Int8Kernels kernels, bool on_native, const Int8Gemm& g) {
+void run_gemm(Int8Kernels kernels, [[maybe_unused]] bool on_native, const Int8Gemm& g) {
   const bool amx = int8_amx_family(kernels);
   const std::int64_t items = int8_gemm_items(g, amx ? kInt8AmxColumns : kInt8ColumnBlock);
   parallel_chunks(items, [&](std::int64_t begin, std::int64_t end, int) {
