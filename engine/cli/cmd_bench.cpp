@@ -9,7 +9,8 @@
 // CUDA backend the bytes that cross the bus per scan are counted, and compared with inputs
 // prepared on the host and uploaded (the network's decorated pillars and maps). --ops adds the
 // network op by op (print_op_table), --roofline each op's and a training step's lower bound on a
-// GPU (engine/model/roofline.hpp).
+// GPU (engine/model/roofline.hpp). --save-canvas writes the U-Net's FP32 input canvas of the scan
+// as .npy, for calibrating a peer's INT8 quantization on real inputs (bench/peer/).
 #include <fmt/format.h>
 #include <sys/resource.h>
 
@@ -19,6 +20,7 @@
 #include <fstream>
 #include <optional>
 
+#include "core/io.hpp"
 #include "core/parallel.hpp"
 #include "engine/cli/cli_util.hpp"
 #include "engine/cli/commands.hpp"
@@ -32,6 +34,10 @@
 #include "engine/render/label_map.hpp"
 #include "engine/sim/simulate.hpp"
 #include "engine/train/checkpoint.hpp"
+#include "host/batchnorm.hpp"
+#include "host/conv2d.hpp"
+#include "host/pfn.hpp"
+#include "host/scatter.hpp"
 
 namespace pillarseg::cli {
 
@@ -44,6 +50,7 @@ struct BenchArgs {
   bool transposed = false, mask_unobserved = false;
   bool ops = false;      // the network's time per op of its graph
   std::string roofline;  // a GPU (engine/model/roofline.hpp) to bound each op's time on
+  std::string save_canvas;  // a .npy file for the U-Net's FP32 input canvas of the scan
 };
 
 double ms_since(std::chrono::steady_clock::time_point t0) {
@@ -212,6 +219,70 @@ void print_op_table(ScanSegmenter& segmenter, const Scan& scan, Tensor<uint8_t>&
   }
 }
 
+// The U-Net's FP32 input canvas (1, I, H, W) of the scan, from the CPU reference (host/) with the
+// network's parameters in evaluation: the PFN and scatter, the occupancy stream and the grid-map
+// layers in the canvas's channel order (engine/model/model_graph.cpp), whatever precision the
+// bench runs. Written as NumPy .npy (version 1.0, '<f4', C order): what a peer calibrates its INT8
+// quantization on (bench/peer/openvino_peer.py).
+void save_canvas(ScanSegmenter& segmenter, const Scan& scan, const std::filesystem::path& path) {
+  const ModelConfig& model = segmenter.model();
+  const ParameterSet& params = segmenter.net().parameters();
+  const auto param = [&](const std::string& name) {
+    const int index = params.find(name);
+    PS_CHECK(index >= 0, "--save-canvas: the model has no parameter '{}'", name);
+    return params.download(index);
+  };
+  const int64_t height = model.grid.height(), width = model.grid.width(), plane = height * width;
+  ScanInputs inputs = compute_scan_inputs(scan.points, Eigen::Vector3d::Zero(), model,
+                                          host::SampleMode::Inference, nullptr);
+  Tensor<float> canvas = Tensor<float>::zeros({1, model.input_channels(), height, width});
+  int64_t channel = 0;
+  const auto append = [&](const Tensor<float>& stream) {  // (1, c, H, W) after `channel`
+    PS_CHECK(stream.numel() % plane == 0 && channel + stream.numel() / plane <= canvas.dim(1),
+             "--save-canvas: a stream of shape {} does not fit the canvas {}", shape_str(stream.shape()),
+             shape_str(canvas.shape()));
+    std::copy(stream.begin(), stream.end(), canvas.data() + channel * plane);
+    channel += stream.numel() / plane;
+  };
+  if (model.pillar_input) {
+    const std::string pfn = "vfe.pfn_layers.0.";
+    Tensor<float> features;
+    host::pfn_forward_eval(inputs.pillar_points, param(pfn + "linear.weight"), param(pfn + "norm.weight"),
+                           param(pfn + "norm.bias"), param(pfn + "norm.running_mean"),
+                           param(pfn + "norm.running_var"), host::kPfnNormOptions, features);
+    Tensor<int32_t> cells({inputs.pillar_cells.dim(0), 3});
+    host::batch_cells(inputs.pillar_cells, 0, cells);
+    Tensor<float> scattered;
+    host::scatter_forward(features, cells, 1, height, width, scattered);
+    append(scattered);
+  }
+  if (model.occupancy != OccupancyInput::None) {
+    Tensor<float> occupancy = std::move(inputs.occupancy);
+    occupancy.reshape({1, occupancy.dim(0), height, width});
+    Tensor<float> conv, stream;
+    host::conv2d_forward(occupancy, param("occupancy.conv.weight"), nullptr, 1, conv);
+    // The occupancy stream's BatchNorm has the PFN's eps and momentum (DESIGN.md section 2).
+    host::batchnorm_relu_forward_eval(conv, param("occupancy.norm.weight"), param("occupancy.norm.bias"),
+                                      param("occupancy.norm.running_mean"), param("occupancy.norm.running_var"),
+                                      host::kPfnNormOptions, stream);
+    append(stream);
+  }
+  if (model.grid_map_input) append(inputs.grid_map);
+  PS_CHECK(channel == canvas.dim(1), "--save-canvas: the streams fill {} of the canvas's {} channels", channel,
+           canvas.dim(1));
+  std::string header = fmt::format("{{'descr': '<f4', 'fortran_order': False, 'shape': ({}, {}, {}, {}), }}",
+                                    canvas.dim(0), canvas.dim(1), canvas.dim(2), canvas.dim(3));
+  header.append(63 - (10 + header.size()) % 64, ' ');  // the data starts on a 64-byte boundary
+  header += '\n';
+  write_file_atomic(path, [&](std::ostream& out) {
+    const uint16_t header_size = static_cast<uint16_t>(header.size());  // little-endian, as x86 and ARM
+    out.write("\x93NUMPY\x01\x00", 8);
+    out.write(reinterpret_cast<const char*>(&header_size), 2);
+    out.write(header.data(), static_cast<std::streamsize>(header.size()));
+    out.write(reinterpret_cast<const char*>(canvas.data()), static_cast<std::streamsize>(canvas.numel() * 4));
+  });
+}
+
 void run_bench(const BenchArgs& a) {
   namespace fs = std::filesystem;
   std::optional<GpuPeaks> roofline;  // checked before anything runs
@@ -283,6 +354,7 @@ void run_bench(const BenchArgs& a) {
     }
   }
   const Scan scan = read_points(scan_path, format);  // for the checks below, before the scratch folder goes
+  if (!a.save_canvas.empty()) save_canvas(segmenter, scan, a.save_canvas);
   std::error_code ec;
   fs::remove_all(scratch, ec);
   int64_t host_bytes = 0;
@@ -389,6 +461,9 @@ void add_bench(CLI::App& app) {
       "l4, "
       "rtx4090, orin-agx-64, or custom:FP32_TFLOPS:HALF_TFLOPS:TB_PER_S), and a training step's "
       "(its graph planned, not run: the plan's memory is allocated)");
+  cmd->add_option("--save-canvas", a->save_canvas,
+                  "write the U-Net's FP32 input canvas of the scan, (1, I, H, W), to this .npy file (float32, C "
+                  "order), e.g. to calibrate a peer's INT8 quantization");
   cmd->callback([a] { run_bench(*a); });
 }
 
