@@ -82,13 +82,15 @@ struct TileS8 {
   static_assert(kSharedBytes <= 48 * 1024, "within the default dynamic shared memory limit");
 };
 
-// rint(x r) clamped to [-127, 127], as the low byte of its two's complement. The FMA rounds
-// x r + 1.5 2^23 once; where that sum lies in [2^23, 2^24) its ulp is 1, so it is the integer
-// nearest to x r (ties to even: 1.5 2^23 is even) plus 1.5 2^23, whose low bits are that integer;
-// the clamp keeps the sum there (and turns NaN into -127: fmaxf returns the other operand).
+// q = clamp(rint(x r), -127, 127) as the low byte of its two's complement, x r rounded to FP32
+// first (never fused into the addition), NaN -> 0. Adding 1.5 2^23 rounds x r to an integer (ties
+// to even: 1.5 2^23 is even) where the sum lies in [2^23, 2^24), whose ulp is 1, and leaves that
+// integer in the sum's low bits; the clamp keeps the sum there.
 __device__ __forceinline__ std::uint32_t quantize_s8(float x, float r) {
   constexpr float kMagic = 12582912.0f;  // 1.5 x 2^23
-  const float t = fminf(fmaxf(fmaf(x, r, kMagic), kMagic - 127.0f), kMagic + 127.0f);
+  float t = __fmul_rn(x, r);
+  t = t == t ? t : 0.0f;
+  t = fminf(fmaxf(__fadd_rn(t, kMagic), kMagic - 127.0f), kMagic + 127.0f);
   return __float_as_uint(t) & 0xFFu;
 }
 
@@ -810,4 +812,4 @@ void mma_s8_fragment_probe(const std::int8_t* a, const std::int8_t* b, const std
   launch_kernel(mma_s8_probe_kernel, dim3(1), dim3(32), 0, stream, a, b, c, d);
 }
 
-}  // namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE
+}  // namespace pillarseg::cuda

@@ -17,13 +17,13 @@
 //   bias_out (N) FP32: the bias with the BatchNorm's shift beta - scale mean.
 // Activations, x and y, in one of three layouts (ActivationLayout): FP32 or BF16 planes (B, C, H,
 //   W), or int8 in blocks of 32 channels. A tensor's scale s (per tensor, calibrated, > 0)
-//   quantizes it as q = clamp(rint(v r), -127, 127) with r = 1 / s rounded to FP32 and v r
-//   rounded once, to the nearest integer (ties to even): |v| beyond 127 s clamps, NaN becomes
-//   -127. (A multiply, not a division: q differs from rint(v / s) only where v / s lies within an
-//   FP32 rounding of a half-integer.) FP32 and BF16 inputs are quantized as they are staged in
-//   shared memory, on every tap that reads them; int8 inputs (quantize_activations_s8, or a
-//   previous layer's int8 output) are copied as they are, by cp.async, which leaves the kernel no
-//   work but the tensor cores' on them.
+//   quantizes it as q = clamp(rint(v r), -127, 127) with r = 1 / s and v r each rounded to FP32,
+//   rint to the nearest integer, ties to even: |v| beyond 127 s clamps, NaN becomes 0 (the CPU
+//   backend's INT8 rule, so that both give the same bits). A multiply, not a division: q differs
+//   from rint(v / s) only where v / s lies within an FP32 rounding of a half-integer. FP32 and
+//   BF16 inputs are quantized as they are staged in shared memory, on every tap that reads them;
+//   int8 inputs (quantize_activations_s8, or a previous layer's int8 output) are copied as they
+//   are, by cp.async, which leaves the kernel no work but the tensor cores' on them.
 // Output: acc = sum over K of q_w q_x in 32 bits, exact (|acc| <= 127^2 Kp; wraps past 2^31, Kp
 //   > 133,000); v = act(fma(float(acc), s, bias_out[n])) with s = sx w_scale[n] rounded to FP32,
 //   act ReLU or nothing; stored as v (FP32), v rounded once to BF16, or q(v) with y's scale.
@@ -61,10 +61,9 @@ void prepare_conv_weights_s8(const float* w, const float* bias, const FoldedBatc
                              float* bias_out, cudaStream_t stream);
 // w (I, O, 2, 2) [, bias (O)] -> w8 (4 O, Ip), w_scale (4 O) and bias_out (4 O), row 4 o + 2 dy +
 // dx holding output channel o's scale and bias.
-void prepare_conv_transpose_weights_s8(const float* w, const float* bias,
-                                       std::int64_t in_channels, std::int64_t out_channels,
-                                       std::int8_t* w8, float* w_scale, float* bias_out,
-                                       cudaStream_t stream);
+void prepare_conv_transpose_weights_s8(const float* w, const float* bias, std::int64_t in_channels,
+                                       std::int64_t out_channels, std::int8_t* w8, float* w_scale,
+                                       float* bias_out, cudaStream_t stream);
 
 // One side of a convolution's activations: where, in which layout, and the scale (of x: sx; of
 // y: only for S8x32, the scale it is quantized with).

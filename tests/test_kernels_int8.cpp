@@ -27,6 +27,7 @@
 
 #include "core/ops.hpp"
 #include "core/rng.hpp"
+#include "engine/cpu/int8_conv.hpp"
 #include "kernels/common.cuh"
 #include "kernels/conv2d_mma.cuh"
 #include "kernels/conv2d_mma_s8.cuh"
@@ -338,12 +339,12 @@ TEST(Int8Weights, PreparedByHand) {
 
 // ---- the convolutions ----
 
-// q of an activation by the contract: x (1 / sx) exact (two FP32 factors: exact in double),
-// rounded to the nearest integer (ties to even), clamped; NaN -127.
+// q of an activation by the contract: x (1 / sx) rounded to FP32, then to the nearest integer
+// (ties to even), clamped; NaN 0.
 std::int64_t quantize_activation(float x, float inverse_scale) {
-  if (std::isnan(x)) return -127;
-  const double v = std::nearbyint(static_cast<double>(x) * inverse_scale);
-  return static_cast<std::int64_t>(std::clamp(v, -127.0, 127.0));
+  const float product = x * inverse_scale;
+  if (std::isnan(product)) return 0;
+  return static_cast<std::int64_t>(std::nearbyint(std::clamp(product, -127.0f, 127.0f)));
 }
 
 float bf16_value(float x) {
@@ -640,7 +641,77 @@ TEST(ConvMmaS8, Transposed2x2SplitK) {
   check_conv_s8({2, 512, 3, 4, 5, 2, 0, true, false, true, false, true});
 }
 
-// A NaN quantizes to -127 and infinities clamp: the same on every device.
+// The product x r is rounded to FP32 before it is rounded to an integer: values whose exact
+// product lies just past a half-integer but rounds onto it in FP32 go to the even integer (a fused
+// multiply-add would round them away from it). Found by search for r = 1 / 0.3.
+TEST(ConvMmaS8, QuantizationRoundsTheFp32ProductFirst) {
+  std::string why;
+  if (!cuda::mma_supported(&why)) GTEST_SKIP() << why;
+  const float sx = 0.3f, r = 1.0f / sx;
+  std::vector<float> x;
+  std::vector<std::int8_t> expected;
+  for (int k = -127; k < 127; ++k) {  // the half-integers k + 0.5 and the values near k + 0.5 sx
+    const float target = static_cast<float>(k) + 0.5f;
+    float v = target / r;
+    for (int i = 0; i < 32; ++i) v = std::nextafter(v, -2 * v);  // 32 ulps towards zero
+    for (int i = 0; i < 64; ++i, v = std::nextafter(v, 2 * v)) {
+      if (v * r == target && std::abs(static_cast<double>(v) * r) > std::abs(target)) {
+        x.push_back(v);
+        expected.push_back(static_cast<std::int8_t>(std::nearbyint(target)));  // the even one
+        break;
+      }
+    }
+  }
+  ASSERT_GE(x.size(), 20u) << "too few such values found";
+  const auto n = static_cast<std::int64_t>(x.size());
+  auto dx = DeviceBuffer<float>::from_host(x);
+  DeviceBuffer<std::int8_t> q(static_cast<size_t>(cuda::activations_s8_bytes(1, 1, 1, n)));
+  cuda::quantize_activations_s8(dx.data(), cuda::ActivationLayout::F32, sx, 1, 1, 1, n, q.data(),
+                                nullptr);
+  PS_CUDA_CHECK(cudaDeviceSynchronize());
+  const std::vector<std::int8_t> got = q.to_host();
+  for (size_t i = 0; i < x.size(); ++i) {
+    EXPECT_EQ(got[32 * i], expected[i]) << "x = " << x[i] << ", x r = " << x[i] * r;
+  }
+}
+
+// The CPU backend's INT8 rule (engine/cpu/int8_conv.hpp, quantize_int8 and int8_weight_scale)
+// gives the same bytes, so that the two backends' INT8 convolutions agree bit for bit: values
+// over several orders of magnitude, half-integer multiples of sx, both signs, infinities, NaN.
+TEST(ConvMmaS8, QuantizationMatchesTheCpuBackend) {
+  std::string why;
+  if (!cuda::mma_supported(&why)) GTEST_SKIP() << why;
+  const float sx = 0.0173f, r = 1.0f / sx;
+  Rng rng(41);
+  std::vector<float> x;
+  for (int i = 0; i < 2000; ++i)
+    x.push_back(static_cast<float>(rng.normal() * std::pow(10.0, rng.uniform(-3.0, 1.0))));
+  for (int k = -130; k <= 130; ++k) x.push_back((static_cast<float>(k) + 0.5f) * sx);
+  x.insert(x.end(),
+           {std::numeric_limits<float>::infinity(), -std::numeric_limits<float>::infinity(),
+            std::numeric_limits<float>::quiet_NaN(), 0.0f, -0.0f, 1e30f, -1e30f});
+  const auto n = static_cast<std::int64_t>(x.size());
+  auto dx = DeviceBuffer<float>::from_host(x);
+  DeviceBuffer<std::int8_t> q(static_cast<size_t>(cuda::activations_s8_bytes(1, 1, 1, n)));
+  cuda::quantize_activations_s8(dx.data(), cuda::ActivationLayout::F32, sx, 1, 1, 1, n, q.data(),
+                                nullptr);
+  PS_CUDA_CHECK(cudaDeviceSynchronize());
+  const std::vector<std::int8_t> got = q.to_host();
+  for (size_t i = 0; i < x.size(); ++i)
+    ASSERT_EQ(got[32 * i], cpu::quantize_int8(x[i], r)) << "x = " << x[i];
+
+  // Weights: the scale and the bytes of one output channel.
+  const std::vector<float> w = {0.31f, -0.07f, 0.0f, 0.155f, -0.31f, 0.2f, 1e-6f, -0.0775f, 0.1f};
+  const PreparedS8 p = device_prepare(w, {}, nullptr, 0.0f, {1, 1, 3, 3, 1, 3, 1}, false);
+  const float sw = cpu::int8_weight_scale(0.31f);
+  EXPECT_EQ(p.scale[0], sw);
+  for (size_t tap = 0; tap < 9; ++tap) {
+    const float expected = std::clamp(std::nearbyint(w[tap] / sw), -127.0f, 127.0f);
+    EXPECT_EQ(p.w8[tap * 32], static_cast<std::int8_t>(expected)) << "tap " << tap;
+  }
+}
+
+// A NaN quantizes to 0 and infinities clamp, the same on every device (and as on the CPU).
 TEST(ConvMmaS8, NonFiniteActivationsQuantizeDeterministically) {
   std::string why;
   if (!cuda::mma_supported(&why)) GTEST_SKIP() << why;
@@ -664,7 +735,7 @@ TEST(ConvMmaS8, NonFiniteActivationsQuantizeDeterministically) {
                               {dy.data(), cuda::ActivationLayout::F32, 1.0f}, nullptr);
   PS_CUDA_CHECK(cudaDeviceSynchronize());
   const std::vector<float> y = dy.to_host();
-  const float expected[6] = {-127 * 127, 127 * 127, -127 * 127, 2 * 127, -4 * 127, 126 * 127};
+  const float expected[6] = {0, 127 * 127, -127 * 127, 2 * 127, -4 * 127, 126 * 127};
   for (int i = 0; i < 6; ++i)
     EXPECT_EQ(y[static_cast<size_t>(i)], expected[i]) << "x = " << x[static_cast<size_t>(i)];
 }
