@@ -13,6 +13,8 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <cstdio>
+#include <cstdlib>
 #include <cstring>
 #include <limits>
 #include <random>
@@ -80,6 +82,28 @@ TEST(EmulatedAmxInt8Tiles, DpbsudMultipliesSignedAByUnsignedBAndWraps) {
   // Row 0 against B's dword 0 (255 in every byte of rows 0..15): -1 255 + 2 255 + (-128) 255.
   EXPECT_EQ(c[0][0], 255 * (-1 + 2 - 128));
   EXPECT_EQ(c[1][1], 0);
+}
+
+TEST(Int8Kernels, NativeChoiceFollowsTheCpuAndPillarsegCpuAmx) {
+  const char* saved = std::getenv("PILLARSEG_CPU_AMX");
+  const std::string saved_value = saved != nullptr ? saved : "";
+  ::unsetenv("PILLARSEG_CPU_AMX");
+  EXPECT_EQ(cpu::native_int8_kernels(),
+            cpu::amx_int8_available() ? Int8Kernels::Amx : Int8Kernels::Vnni);
+  ::setenv("PILLARSEG_CPU_AMX", "0", 1);
+  EXPECT_EQ(cpu::native_int8_kernels(), Int8Kernels::Vnni);
+  if (saved != nullptr) {
+    ::setenv("PILLARSEG_CPU_AMX", saved_value.c_str(), 1);
+  } else {
+    ::unsetenv("PILLARSEG_CPU_AMX");
+  }
+  std::string why;
+  const bool amx = cpu::amx_int8_available(&why);
+  EXPECT_EQ(amx, why.empty()) << why;
+  if (amx) EXPECT_TRUE(cpu::avx512_vnni_available());  // AMX's epilogue and quantization are VNNI's
+  std::printf("this CPU: avx512_vnni %s, amx_int8 %s%s\n",
+              cpu::avx512_vnni_available() ? "yes" : "no", amx ? "yes" : "no",
+              amx ? "" : (" (" + why + ")").c_str());
 }
 
 // ---- the quantization rules ----
