@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The command line end to end on a tiny simulated data set: pillarseg infer over one scan, a
 # directory and several files (the same label maps), --device emu for infer, bench, eval and
-# train (training's first losses those of the CPU; in bf16 close to them), --precision, plot (the
+# train (training's first losses those of the CPU; in bf16 close to them), --precision, bench
+# --save-canvas (the PFN's channels against one computed in the test), plot (the
 # PNGs of a run with and without validation), errors that name the argument, and sizes refused
 # before allocating (a low PILLARSEG_MEMORY_LIMIT, a grid beyond the 32-bit cell indices).
 # Usage: tests/cli_test.sh PILLARSEG_BINARY WORK_DIR
@@ -161,6 +162,61 @@ grep -q 'pillarize' "$work/bench.log" && fail "bench --device emu: a host pillar
 grep -q '^bytes over the bus per scan' "$work/bench.log" || fail "bench --device emu: no bytes count"
 grep -qE '^host cpu: .+, [0-9]+ threads; (BF16 on|no BF16 kernels)' "$work/bench.log" ||
   fail "bench: the host CPU and its BF16 kernels are not reported"
+
+# bench --save-canvas: the U-Net's FP32 input canvas as .npy, (1, C + Q, H, W) float32 C order; its
+# pillar channels against the PFN computed here in double from the checkpoint's weights and the
+# scan's points (inference's point choice floor(k n / N), DESIGN.md section 1), zero where no
+# point is; the occupancy stream's channels after a ReLU.
+run bench --device cpu --config "$work/tiny.yaml" --weights "$weights" --scan "$velodyne/000001.bin" --repeat 1 \
+  --save-canvas "$work/canvas.npy" > "$work/bench_canvas.log" 2>&1 ||
+  { cat "$work/bench_canvas.log"; fail "bench --save-canvas failed"; }
+python3 - "$work/canvas.npy" "$weights" "$velodyne/000001.bin" <<'PY' || fail "bench --save-canvas: the canvas is wrong"
+import array, ast, json, math, struct, sys
+raw = open(sys.argv[1], "rb").read()
+assert raw[:8] == b"\x93NUMPY\x01\x00", raw[:8]
+start = 10 + struct.unpack("<H", raw[8:10])[0]
+assert start % 64 == 0, start
+header = ast.literal_eval(raw[10:start].decode())
+assert header == {"descr": "<f4", "fortran_order": False, "shape": (1, 12, 50, 100)}, header
+canvas = array.array("f", raw[start:])
+assert len(canvas) == 12 * 50 * 100, len(canvas)
+ckpt = open(sys.argv[2], "rb").read()
+meta_size = struct.unpack("<Q", ckpt[:8])[0]
+meta = json.loads(ckpt[8:8 + meta_size])
+def tensor(name):
+    entry = meta[name]
+    assert entry["dtype"] == "F32", entry
+    begin, end = entry["data_offsets"]
+    return list(array.array("f", ckpt[8 + meta_size + begin:8 + meta_size + end]))
+pfn = "vfe.pfn_layers.0."
+weight = tensor(pfn + "linear.weight")  # (8, 10)
+gamma, beta, mean, var = (tensor(pfn + "norm." + k) for k in ("weight", "bias", "running_mean", "running_var"))
+pts = array.array("f", open(sys.argv[3], "rb").read())
+pillars = {}  # (iy, ix) -> points in file order
+for i in range(0, len(pts), 4):
+    x, y, z, r = pts[i:i + 4]
+    if -20 <= x < 20 and -10 <= y < 10 and -2.5 <= z < 1.5:
+        pillars.setdefault((math.floor((y + 10) / 0.4), math.floor((x + 20) / 0.4)), []).append((x, y, z, r))
+plane, worst = 50 * 100, 0.0
+for (iy, ix), points in pillars.items():
+    n = len(points)
+    kept = [points[k * n // 8] for k in range(8)] if n > 8 else points
+    m = [sum(p[d] for p in kept) / len(kept) for d in range(3)]
+    centre = (-20 + (ix + 0.5) * 0.4, -10 + (iy + 0.5) * 0.4, -0.5)
+    rows = [list(p) + [p[d] - m[d] for d in range(3)] + [p[d] - centre[d] for d in range(3)] for p in kept]
+    rows += [[0.0] * 10] * (8 - len(kept))
+    for c in range(8):
+        want = max(max(0.0, (sum(w * v for w, v in zip(weight[10 * c:10 * c + 10], row)) - mean[c]) /
+                        math.sqrt(var[c] + 1e-3) * gamma[c] + beta[c]) for row in rows)
+        got = canvas[c * plane + iy * 100 + ix]
+        worst = max(worst, abs(got - want) / (1e-5 + 1e-5 * abs(want)))
+assert worst <= 1, f"pillar channels: worst error {worst} tolerances (1e-5 + 1e-5 |ref|)"
+empty = sum(1 for c in range(8) for cell in range(plane) if divmod(cell, 100) not in pillars and canvas[c * plane + cell] != 0)
+assert empty == 0, f"{empty} pillar-channel values nonzero in cells without points"
+occupancy = canvas[8 * plane:]
+assert min(occupancy) >= 0 and max(occupancy) > 0 and all(math.isfinite(v) for v in occupancy), "occupancy channels"
+print(f"cli_test: bench --save-canvas: {len(pillars)} pillars as computed here (worst {worst:.3f} of the tolerance)")
+PY
 
 # --precision bf16: the tensor-core convolutions on the emulation (a label map of the same size,
 # mostly the FP32 one); on the CPU the AVX512_BF16 micro-kernel where the CPU has it, else one
