@@ -4,19 +4,29 @@
 The network (the authors' UNet: DoubleConv 3x3 + BatchNorm + ReLU blocks, 2x2 max-pool, bilinear
 x2 upsampling with align_corners, zero padding to the skip's size, concatenation, a 1x1 head) is
 written as ONNX with the `onnx` helper API (PyTorch is not needed; the graph is the one
-pytorch_peer.py's UNet exports: the same ops, shapes and layouts) and compiled by OpenVINO for
-the CPU twice: INFERENCE_PRECISION_HINT f32, and bf16 (which OpenVINO keeps only on CPUs with
-AVX512_BF16 or AMX; elsewhere it runs f32, and the report says which it ran). Ours is `pillarseg
-bench --device cpu` on the same input size and thread count: its "U-Net" and "head" stages, in
-FP32 and with `--precision bf16` (our AVX512_BF16 micro-kernel; on CPUs without it ours falls
-back to FP32 with a warning, and the report says which ours ran). The sides alternate round by
-round and the medians are reported, with the ratios.
+pytorch_peer.py's UNet exports: the same ops, shapes and layouts, random weights) and compiled by
+OpenVINO for the CPU three times: INFERENCE_PRECISION_HINT f32; bf16 (which OpenVINO keeps only on
+CPUs with AVX512_BF16 or AMX; elsewhere it runs f32); and INT8, NNCF's post-training quantization
+(nncf.quantize, default preset) of the same model, calibrated on the U-Net's real input: the
+canvases of `--calibration-scans` simulated scans (`pillarseg simulate`, then `pillarseg bench
+--scan S --save-canvas S.npy` for each), compiled with OpenVINO's default precision hint. What each
+compiled model really runs is read from its execution graph: the runtime precision of every
+convolution.
 
-    python3 bench/peer/openvino_peer.py --pillarseg build/pillarseg --threads 2 --rounds 5
+Ours is `pillarseg bench --device cpu` on its default scan (a simulated full-size scan), whose
+canvas is also OpenVINO's input: its "U-Net" and "head" stages, in FP32, `--precision bf16` and
+`--precision int8`, each reported with the precision and kernels it said it ran. Where ours
+refuses a precision, its row says "not available" with our error line, and the others still run.
+The sides alternate round by round; the medians are reported, with the ratios ours / OpenVINO.
 
-Prints "skipped: ..." and exits 0 where openvino or onnx is missing.
+    python3 -m venv bench/peer/.venv && bench/peer/.venv/bin/pip install openvino nncf onnx numpy
+    bench/peer/.venv/bin/python bench/peer/openvino_peer.py --pillarseg build/pillarseg --threads 2 --rounds 5
+
+Prints "skipped: ..." and exits 0 where numpy, onnx or openvino is missing; without nncf it
+prints OpenVINO's INT8 row as skipped and runs the rest.
 """
 import argparse
+import collections
 import os
 import platform
 import re
@@ -32,8 +42,14 @@ try:
     from onnx import TensorProto, helper, numpy_helper
     import openvino as ov
 except ImportError as e:  # pragma: no cover - depends on the machine
-    print(f"skipped: {e} (pip install openvino onnx)")
+    print(f"skipped: {e} (pip install openvino nncf onnx numpy: bench/peer/README.md)")
     sys.exit(0)
+NNCF_MISSING = None
+try:
+    import nncf
+except ImportError as e:  # pragma: no cover - depends on the machine
+    nncf = None
+    NNCF_MISSING = f"{e} (pip install nncf)"
 
 
 class Builder:
@@ -138,74 +154,168 @@ def unet_onnx(channels, classes, base, depth, height, width, seed):
     return model
 
 
-def ours_ms(args, precision):
-    """Our U-Net + head stage times (ms) of one `pillarseg bench` run (after its warm-up), and the
-    precision it ran."""
-    out = subprocess.run([args.pillarseg, "--threads", str(args.threads), "bench", "--device", "cpu",
-                          "--precision", precision, "--repeat", "1"] +
-                         (["--config", args.config] if args.config else []),
-                         capture_output=True, text=True, check=True).stdout
+class OursFailed(Exception):
+    """`pillarseg bench` exited with an error; the message is its first line of output."""
+
+
+def pillarseg(args, *command):
+    """Runs our binary with the bench's threads; its standard output, or OursFailed."""
+    run = subprocess.run([args.pillarseg, "--threads", str(args.threads), *command], capture_output=True, text=True)
+    if run.returncode != 0:
+        lines = [line.strip() for line in (run.stderr + run.stdout).splitlines() if line.strip()]
+        raise OursFailed(lines[0] if lines else f"exit status {run.returncode}")
+    return run.stdout
+
+
+def bench(args, precision, *extra):
+    """One `pillarseg bench --device cpu` run (one warm-up, one timed repetition): U-Net + head
+    stage time (ms), and the precision it says it ran (with its kernels, e.g. "bf16 (amx_bf16)")."""
+    out = pillarseg(args, "bench", "--device", "cpu", "--precision", precision, "--repeat", "1",
+                    *(["--config", args.config] if args.config else []), *extra)
     stages = dict(re.findall(r"^(U-Net|head)\s+([0-9.]+)$", out, re.M))
-    ran = re.search(r"precision (fp32|bf16|fp16)", out)
+    ran = re.search(r"precision ([a-z0-9]+(?: \([^)]*\))?)", out)
     return float(stages["U-Net"]) + float(stages["head"]), ran.group(1) if ran else "?"
+
+
+def calibration_canvases(args, tmp):
+    """The U-Net's FP32 input canvases of `--calibration-scans` simulated scans, as NNCF's data set."""
+    root = os.path.join(tmp, "calibration")
+    pillarseg(args, "simulate", "--out", root, "--sequences", "1", "--scans", str(args.calibration_scans),
+              "--seed", str(args.calibration_seed))
+    velodyne = os.path.join(root, "sequences", "00", "velodyne")
+    canvases = []
+    for name in sorted(os.listdir(velodyne)):
+        path = os.path.join(tmp, name + ".npy")
+        bench(args, "fp32", "--scan", os.path.join(velodyne, name), "--save-canvas", path)
+        canvases.append(np.load(path))
+        os.remove(path)
+    return canvases
+
+
+def convolutions_by_precision(compiled):
+    """How many convolutions of a compiled model's execution graph run in each precision."""
+    counts = collections.Counter()
+    for op in compiled.get_runtime_model().get_ordered_ops():
+        info = op.get_rt_info()
+        if info["layerType"].astype(str) == "Convolution":
+            counts[info["runtimePrecision"].astype(str)] += 1
+    return ", ".join(f"{n} {precision}" for precision, n in counts.most_common())
+
+
+def agreement(logits, reference, occupied):
+    """Percentage of the cells with points where two (1, classes, H, W) logits have the same arg-max."""
+    return 100.0 * np.mean(logits[0].argmax(0)[occupied] == reference[0].argmax(0)[occupied])
+
+
+def cpu_line():
+    """The CPU's model name and the flags these figures depend on, as lscpu shows them."""
+    name, flags = platform.processor() or "unknown", set()
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                key, _, value = line.partition(":")
+                if key.strip() == "model name":
+                    name = value.strip()
+                elif key.strip() == "flags":
+                    flags = set(value.split())
+    except OSError:
+        pass
+    wanted = ["avx512f", "avx512_vnni", "avx512_bf16", "avx_vnni", "amx_tile", "amx_bf16", "amx_int8"]
+    present = " ".join(f for f in wanted if f in flags) or "none of " + " ".join(wanted)
+    return f"{name} ({platform.machine()}; flags: {present})"
 
 
 def main():
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--pillarseg", required=True, help="our pillarseg binary")
-    p.add_argument("--config", default="", help="a run config for both (default: the paper's full size)")
+    p.add_argument("--config", default="", help="a run config for ours (default: the paper's full size); the ONNX "
+                   "U-Net takes the shape of its canvas")
     p.add_argument("--threads", type=int, default=os.cpu_count())
     p.add_argument("--rounds", type=int, default=5)
-    p.add_argument("--height", type=int, default=500)
-    p.add_argument("--width", type=int, default=1000)
-    p.add_argument("--channels", type=int, default=64, help="the canvas's channels (C)")
     p.add_argument("--base-width", type=int, default=64)
     p.add_argument("--depth", type=int, default=4)
+    p.add_argument("--calibration-scans", type=int, default=4,
+                   help="simulated scans whose canvases calibrate OpenVINO's INT8 (NNCF's subset size)")
+    p.add_argument("--calibration-seed", type=int, default=7,
+                   help="`pillarseg simulate --seed` of the calibration scans (ours times the scan of seed 1)")
     args = p.parse_args()
 
+    load_before = os.getloadavg()[0]  # the machine is shared: how busy it was around the figures
     core = ov.Core()
-    cpu = core.get_property("CPU", "FULL_DEVICE_NAME")
+    compile_options = {"INFERENCE_NUM_THREADS": args.threads, "PERFORMANCE_HINT": "LATENCY"}
     with tempfile.TemporaryDirectory() as tmp:
-        path = os.path.join(tmp, "unet.onnx")
-        onnx.save(unet_onnx(args.channels, 12, args.base_width, args.depth, args.height, args.width, 0), path)
-        model = core.read_model(path)
-        compiled = {}
-        for hint in ("f32", "bf16"):
-            compiled[hint] = core.compile_model(model, "CPU", {"INFERENCE_PRECISION_HINT": hint,
-                                                               "INFERENCE_NUM_THREADS": args.threads,
-                                                               "PERFORMANCE_HINT": "LATENCY"})
-    canvas = np.random.default_rng(1).standard_normal((1, args.channels, args.height, args.width)).astype(np.float32)
+        # Our warm-up, which also writes the canvas of the scan ours is timed on: OpenVINO's input.
+        path = os.path.join(tmp, "canvas.npy")
+        bench(args, "fp32", "--save-canvas", path)
+        canvas = np.load(path)
+        _, channels, height, width = canvas.shape
+        onnx_path = os.path.join(tmp, "unet.onnx")
+        onnx.save(unet_onnx(channels, 12, args.base_width, args.depth, height, width, 0), onnx_path)
+        model = core.read_model(onnx_path)
+        compiled = {hint: core.compile_model(model, "CPU", {**compile_options, "INFERENCE_PRECISION_HINT": hint})
+                    for hint in ("f32", "bf16")}
+        int8_missing = NNCF_MISSING if nncf is None else None
+        if nncf is not None:
+            canvases = calibration_canvases(args, tmp)
+            start = time.perf_counter()
+            quantized = nncf.quantize(model, nncf.Dataset(canvases), subset_size=len(canvases))
+            quantize_s = time.perf_counter() - start
+            del canvases
+            compiled["int8"] = core.compile_model(quantized, "CPU", compile_options)
     requests = {hint: c.create_infer_request() for hint, c in compiled.items()}
-    for r in requests.values():
-        r.infer({"canvas": canvas})  # warm-up
-    ours_ms(args, "fp32")  # warm-up
-    times = {"ours": [], "ours_bf16": [], "f32": [], "bf16": []}
-    ours_ran = "?"
+    logits = {hint: next(iter(r.infer({"canvas": canvas}).values())).copy() for hint, r in requests.items()}  # warm-up
+    occupied = (canvas[0] != 0).any(axis=0)
+
+    ours = {"fp32": None, "bf16": None, "int8": None}  # what each ran, or why it did not
+    ours_error = {}
+    for precision in ours:
+        try:
+            ours[precision] = bench(args, precision)[1]
+        except OursFailed as e:
+            ours_error[precision] = str(e)
+    times = collections.defaultdict(list)
     for _ in range(args.rounds):
-        times["ours"].append(ours_ms(args, "fp32")[0])
-        ms, ours_ran = ours_ms(args, "bf16")
-        times["ours_bf16"].append(ms)
+        for precision in ours:
+            if precision not in ours_error:
+                times["ours " + precision].append(bench(args, precision)[0])
         for hint, r in requests.items():
             start = time.perf_counter()
             r.infer({"canvas": canvas})
-            times[hint].append((time.perf_counter() - start) * 1e3)
-    def type_name(t):
-        return t.get_type_name() if hasattr(t, "get_type_name") else str(t)
-
-    ran = {hint: type_name(c.get_property("INFERENCE_PRECISION_HINT")) for hint, c in compiled.items()}
+            times["openvino " + hint].append((time.perf_counter() - start) * 1e3)
     med = {k: statistics.median(v) for k, v in times.items()}
-    print(f"U-Net {args.channels} -> 12 classes, b {args.base_width}, depth {args.depth}, "
-          f"{args.height} x {args.width}, {args.threads} threads, CPU: {cpu} ({platform.machine()}); "
-          f"OpenVINO {ov.__version__}; median of {args.rounds} alternating rounds")
-    print(f"ours fp32 (U-Net + head stages): {med['ours']:.1f} ms")
-    print(f"ours --precision bf16 (ran {ours_ran}): {med['ours_bf16']:.1f} ms")
-    print(f"OpenVINO, hint f32 (ran {ran['f32']}): {med['f32']:.1f} ms; ours fp32 / OpenVINO = "
-          f"{med['ours'] / med['f32']:.2f}")
-    print(f"OpenVINO, hint bf16 (ran {ran['bf16']}): {med['bf16']:.1f} ms; ours bf16 / OpenVINO = "
-          f"{med['ours_bf16'] / med['bf16']:.2f}")
-    print(f"PEER case=unet threads={args.threads} ours_ms={med['ours']:.1f} ours_bf16_ms={med['ours_bf16']:.1f} "
-          f"ours_bf16_ran={ours_ran} openvino_f32_ms={med['f32']:.1f} "
-          f"openvino_bf16_ms={med['bf16']:.1f} openvino_bf16_ran={ran['bf16']}")
+
+    print(f"U-Net {channels} -> 12 classes, b {args.base_width}, depth {args.depth}, {height} x {width}, "
+          f"{args.threads} threads; CPU: {cpu_line()}; OpenVINO {ov.__version__}"
+          f"{'' if nncf is None else ', NNCF ' + nncf.__version__}; median of {args.rounds} alternating rounds; "
+          f"input: the canvas of ours' benched scan ({occupied.sum()} cells with points); load average "
+          f"{load_before:.1f} before, {os.getloadavg()[0]:.1f} after; random weights on both sides")
+    if nncf is not None:
+        print(f"OpenVINO INT8: nncf.quantize (default preset) calibrated on the canvases of {args.calibration_scans} "
+              f"simulated scans (pillarseg simulate --seed {args.calibration_seed}), {quantize_s:.0f} s")
+    for hint in ("f32", "bf16", "int8"):
+        ours_precision = "fp32" if hint == "f32" else hint
+        ours_key = "ours " + ours_precision
+        if ours_precision in ours_error:
+            ours_text = f"ours --precision {ours_precision}: not available: {ours_error[ours_precision]}"
+        else:
+            ours_text = f"ours --precision {ours_precision} (ran {ours[ours_precision]}): {med[ours_key]:.1f} ms"
+        if hint not in compiled:
+            print(f"{ours_text}; OpenVINO {hint}: skipped: {int8_missing}")
+            continue
+        c = compiled[hint]
+        ran = c.get_property("INFERENCE_PRECISION_HINT")
+        ran = ran.get_type_name() if hasattr(ran, "get_type_name") else str(ran)
+        ov_text = (f"OpenVINO {hint} (precision hint {ran}; convolutions: {convolutions_by_precision(c)}): "
+                   f"{med['openvino ' + hint]:.1f} ms")
+        if hint != "f32":
+            ov_text += f", arg-max equal to OpenVINO f32's on {agreement(logits[hint], logits['f32'], occupied):.2f}%"
+        ratio = ("" if ours_precision in ours_error
+                 else f"; ours / OpenVINO = {med[ours_key] / med['openvino ' + hint]:.2f}")
+        print(f"{ours_text}; {ov_text}{ratio}")
+    fields = [f"case=unet threads={args.threads}"]
+    for key in ("ours fp32", "ours bf16", "ours int8", "openvino f32", "openvino bf16", "openvino int8"):
+        fields.append(f"{key.replace(' ', '_')}_ms={med[key]:.1f}" if key in med else f"{key.replace(' ', '_')}_ms=na")
+    print("PEER " + " ".join(fields))
 
 
 if __name__ == "__main__":
