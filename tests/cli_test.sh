@@ -243,7 +243,7 @@ run bench --device emu --precision bf16 --config "$work/tiny.yaml" --weights "$w
 grep -q 'precision bf16' "$work/bench_bf16.log" || fail "bench --precision bf16: precision not reported"
 # --ops: the tensor-core convolutions' row with the emulation's count of what they issued (at most
 # 100% of it useful) and their bound on the H200; the network's roofline bound.
-grep -qE '^conv 16-bit \(tensor cores\) +[0-9]+ +[0-9.]+ +[0-9.]+ +[0-9.]+ +[0-9.]+ +[0-9.]+ +([0-9]|[1-9][0-9]|100)\.[0-9]% +[0-9.]+ +[0-9.]+ +(memory|compute)$' \
+grep -qE '^conv forward bf16 \(tensor cores\) +[0-9]+ +[0-9.]+ +[0-9.]+ +[0-9.]+ +[0-9.]+ +[0-9.]+ +([0-9]|[1-9][0-9]|100)\.[0-9]% +[0-9.]+ +[0-9.]+ +(memory|compute)$' \
   "$work/bench_bf16.log" || { cat "$work/bench_bf16.log"; fail "bench --ops: no tensor-core row with counts and bound"; }
 grep -qE '^roofline bound on h200 .*: [0-9.]+ ms for the network' "$work/bench_bf16.log" ||
   fail "bench --roofline h200: no bound for the network"
