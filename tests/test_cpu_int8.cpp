@@ -100,7 +100,9 @@ TEST(Int8Kernels, NativeChoiceFollowsTheCpuAndPillarsegCpuAmx) {
   std::string why;
   const bool amx = cpu::amx_int8_available(&why);
   EXPECT_EQ(amx, why.empty()) << why;
-  if (amx) EXPECT_TRUE(cpu::avx512_vnni_available());  // AMX's epilogue and quantization are VNNI's
+  if (amx) {
+    EXPECT_TRUE(cpu::avx512_vnni_available());  // AMX's epilogue and quantization are VNNI's
+  }
   std::printf("this CPU: avx512_vnni %s, amx_int8 %s%s\n",
               cpu::avx512_vnni_available() ? "yes" : "no", amx ? "yes" : "no",
               amx ? "" : (" (" + why + ")").c_str());
@@ -525,6 +527,206 @@ TEST(Int8Conv, RejectsWhatItCannotRun) {
   EXPECT_THROW(cpu::prepare_int8_conv(Int8Kernels::Emulated, Ref{bad.data(), {4, 4, 3, 3}},
                                       Ref{const_cast<float*>(bias.data()), {4}}, p),
                Error);
+}
+
+// ---- Winograd-domain INT8 F(2x2, 3x3) ----
+
+// V (C, tiles, 16) of one image by the kernel's FP32 operations, in the kernel's order.
+std::vector<float> winograd_v(const Input& x, std::int64_t b) {
+  const std::int64_t in = x.shape[1], h = x.shape[2], w = x.shape[3];
+  const std::int64_t th = (h + 1) / 2, tw = (w + 1) / 2;
+  std::vector<float> v(static_cast<size_t>(in * th * tw * 16));
+  for (std::int64_t c = 0; c < in; ++c)
+    for (std::int64_t t = 0; t < th * tw; ++t) {
+      float hr[4][4];
+      for (int r = 0; r < 4; ++r) {
+        float d[4];
+        for (int j = 0; j < 4; ++j) {
+          const std::int64_t iy = 2 * (t / tw) - 1 + r, ix = 2 * (t % tw) - 1 + j;
+          d[j] = iy < 0 || iy >= h || ix < 0 || ix >= w
+                     ? 0.0f
+                     : x.values[static_cast<size_t>(((b * in + c) * h + iy) * w + ix)];
+        }
+        hr[r][0] = d[0] - d[2], hr[r][1] = d[1] + d[2], hr[r][2] = d[2] - d[1];
+        hr[r][3] = d[1] - d[3];
+      }
+      for (int j = 0; j < 4; ++j) {
+        const float col[4] = {hr[0][j] - hr[2][j], hr[1][j] + hr[2][j], hr[2][j] - hr[1][j],
+                              hr[1][j] - hr[3][j]};
+        for (int i = 0; i < 4; ++i)
+          v[static_cast<size_t>((c * th * tw + t) * 16 + 4 * i + j)] = col[i];
+      }
+    }
+  return v;
+}
+
+// y by the contract of int8_winograd.hpp: V quantized per position, int64 products, M = float(acc)
+// (sv su), the output transform in the kernel's order, the bias, the ReLU.
+std::vector<float> reference_winograd(const Input& x, const float* sv,
+                                      const cpu::Int8WinogradWeights& w, bool relu) {
+  const std::int64_t batch = x.shape[0], in = x.shape[1], h = x.shape[2], wd = x.shape[3];
+  const std::int64_t out = w.weight[0], th = (h + 1) / 2, tw = (wd + 1) / 2;
+  std::vector<float> y(static_cast<size_t>(batch * out * h * wd));
+  for (std::int64_t b = 0; b < batch; ++b) {
+    const std::vector<float> v = winograd_v(x, b);
+    for (std::int64_t o = 0; o < out; ++o)
+      for (std::int64_t t = 0; t < th * tw; ++t) {
+        float m[16];
+        for (int p = 0; p < 16; ++p) {
+          std::int64_t acc = 0;
+          for (std::int64_t c = 0; c < in; ++c) {
+            acc += cpu::quantize_int8(v[static_cast<size_t>((c * th * tw + t) * 16 + p)],
+                                      1.0f / sv[p]) *
+                   w.q[static_cast<size_t>((p * out + o) * in + c)];
+          }
+          m[p] = static_cast<float>(acc) * (sv[p] * w.scale[static_cast<size_t>(p * out + o)]);
+        }
+        float rows[2][4];
+        for (int j = 0; j < 4; ++j) {
+          rows[0][j] = m[j] + m[4 + j] + m[8 + j];
+          rows[1][j] = m[4 + j] - m[8 + j] - m[12 + j];
+        }
+        for (int dy = 0; dy < 2; ++dy) {
+          const float ys[2] = {rows[dy][0] + rows[dy][1] + rows[dy][2],
+                               rows[dy][1] - rows[dy][2] - rows[dy][3]};
+          for (int dx = 0; dx < 2; ++dx) {
+            const std::int64_t oy = 2 * (t / tw) + dy, ox = 2 * (t % tw) + dx;
+            if (oy >= h || ox >= wd) continue;
+            const float r = ys[dx] + w.bias[static_cast<size_t>(o)];
+            y[static_cast<size_t>(((b * out + o) * h + oy) * wd + ox)] =
+                relu ? (r > 0.0f ? r : 0.0f) : r;
+          }
+        }
+      }
+  }
+  return y;
+}
+
+TEST(Int8Winograd, MatchesTheReferenceBitForBit) {
+  struct Case {
+    std::int64_t batch, in, out, h, w;
+  };
+  // Odd sizes, channels not multiples of 4, columns past 8, widths past 16 / 32 / 48 tiles, and
+  // (1024 channels, 40 tiles a row) two blocks a tile row.
+  const Case cases[] = {{1, 5, 3, 7, 19}, {2, 16, 12, 6, 33}, {1, 67, 20, 5, 40}, {1, 8, 9, 1, 1},
+                        {1, 4, 8, 9, 70}, {1, 3, 17, 2, 2},   {1, 1024, 8, 2, 80}};
+  std::vector<Int8Kernels> kernels = {Int8Kernels::Emulated};
+  if (cpu::avx512_vnni_available()) kernels.push_back(Int8Kernels::Vnni);
+  for (const Case& c : cases) {
+    const std::vector<float> w = random_values(c.out * c.in * 9, 81, -0.3f, 0.3f);
+    const std::vector<float> bias = random_values(c.out, 82, -1.0f, 1.0f);
+    cpu::Int8WinogradWeights p;
+    cpu::prepare_int8_winograd(Ref{const_cast<float*>(w.data()), {c.out, c.in, 3, 3}},
+                               Ref{const_cast<float*>(bias.data()), {c.out}}, p);
+    for (const bool half : {false, true}) {
+      Input x = make_input({c.batch, c.in, c.h, c.w}, 83, half);
+      // Scales from the maxima, a little under them so that some values clamp.
+      float absmax[16], sv[16];
+      cpu::int8_winograd_input_absmax(x.ref(), absmax);
+      float want_max[16] = {};
+      for (std::int64_t b = 0; b < c.batch; ++b) {
+        const std::vector<float> v = winograd_v(x, b);
+        for (size_t i = 0; i < v.size(); ++i)
+          want_max[i % 16] = std::max(want_max[i % 16], std::abs(v[i]));
+      }
+      for (int q = 0; q < 16; ++q) {
+        ASSERT_EQ(absmax[q], want_max[q]) << "position " << q;
+        sv[q] = std::max(absmax[q], 1e-3f) * 0.9f / 127.0f;
+      }
+      for (const bool relu : {false, true}) {
+        const std::vector<float> want = reference_winograd(x, sv, p, relu);
+        for (Int8Kernels k : kernels) {
+          Output y({c.batch, c.out, c.h, c.w}, half);
+          cpu::Int8WinogradWorkspace ws;
+          cpu::int8_winograd_forward(k, x.ref(), sv, p, relu, y.ref(), ws);
+          std::int64_t bad = 0;
+          std::string first;
+          for (std::int64_t i = 0; i < static_cast<std::int64_t>(want.size()); ++i) {
+            const float wv = want[static_cast<size_t>(i)];
+            std::uint32_t want_bits = weights::float_to_bf16_bits(wv);
+            if (!half) std::memcpy(&want_bits, &wv, 4);
+            if (y.bits(i) != want_bits && bad++ == 0) {
+              first = "element " + std::to_string(i) + ": got " + std::to_string(y.value(i)) +
+                      ", want " + std::to_string(wv);
+            }
+          }
+          EXPECT_EQ(bad, 0) << cpu::int8_kernels_name(k) << " " << c.in << "->" << c.out << " @"
+                            << c.h << "x" << c.w << (half ? " bf16" : " fp32") << " relu " << relu
+                            << ": " << first;
+          EXPECT_TRUE(y.guards_intact());
+        }
+      }
+    }
+  }
+  std::vector<float> w(4 * 4 * 9, 0.1f), bias(4, 0.0f);
+  cpu::Int8WinogradWeights p;
+  cpu::prepare_int8_winograd(Ref{w.data(), {4, 4, 3, 3}}, Ref{bias.data(), {4}}, p);
+  Input x = make_input({1, 4, 4, 4}, 84, false);
+  Output y({1, 4, 4, 4}, false);
+  cpu::Int8WinogradWorkspace ws;
+  const float sv[16] = {1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 0};
+  EXPECT_THROW(
+      cpu::int8_winograd_forward(Int8Kernels::Emulated, x.ref(), sv, p, false, y.ref(), ws), Error);
+  EXPECT_THROW(
+      cpu::int8_winograd_forward(Int8Kernels::AmxEmulated, x.ref(), sv, p, false, y.ref(), ws),
+      Error);
+}
+
+// Against FP32, next to the direct INT8 convolution on the same data: Winograd's quantization of
+// V and U (whose entries sum up to 4 and 9 products' worth of range) costs about half again the
+// direct error (bench_int8_conv --winograd simulates the same); bounded loosely here, printed.
+TEST(Int8Winograd, ErrorAgainstFp32) {
+  const std::int64_t in = 32, out = 16, h = 24, w = 24;
+  std::mt19937 gen(91);
+  std::normal_distribution<float> normal(0.0f, 1.0f);
+  std::vector<float> wt(static_cast<size_t>(out * in * 9)), bias(static_cast<size_t>(out));
+  for (float& v : wt) v = 0.1f * normal(gen);
+  for (float& v : bias) v = 0.1f * normal(gen);
+  Input x{{1, in, h, w}, std::vector<float>(static_cast<size_t>(in * h * w)), {}, false};
+  for (float& v : x.values) v = std::max(normal(gen), 0.0f);  // post-ReLU activations
+  cpu::Int8WinogradWeights p;
+  cpu::prepare_int8_winograd(Ref{wt.data(), {out, in, 3, 3}}, Ref{bias.data(), {out}}, p);
+  float sv[16];
+  cpu::int8_winograd_input_absmax(x.ref(), sv);
+  for (float& s : sv) s /= 127.0f;
+  Output yw({1, out, h, w}, false);
+  cpu::Int8WinogradWorkspace ws;
+  cpu::int8_winograd_forward(Int8Kernels::Emulated, x.ref(), sv, p, false, yw.ref(), ws);
+  float max_abs = 0.0f;
+  for (float v : x.values) max_abs = std::max(max_abs, v);
+  cpu::Int8ConvWeights pd;
+  cpu::prepare_int8_conv(Int8Kernels::Emulated, Ref{wt.data(), {out, in, 3, 3}},
+                         Ref{bias.data(), {out}}, pd);
+  Output yd({1, out, h, w}, false);
+  cpu::Int8ConvWorkspace wsd;
+  cpu::int8_conv2d_forward(Int8Kernels::Emulated, x.ref(), max_abs / 127.0f, pd, 1, false, yd.ref(),
+                           wsd);
+  double signal = 0.0, e_wino = 0.0, e_direct = 0.0;
+  for (std::int64_t o = 0; o < out; ++o)
+    for (std::int64_t oy = 0; oy < h; ++oy)
+      for (std::int64_t ox = 0; ox < w; ++ox) {
+        double exact = bias[static_cast<size_t>(o)];
+        for (std::int64_t c = 0; c < in; ++c)
+          for (int ky = 0; ky < 3; ++ky)
+            for (int kx = 0; kx < 3; ++kx) {
+              const std::int64_t iy = oy + ky - 1, ix = ox + kx - 1;
+              if (iy < 0 || iy >= h || ix < 0 || ix >= w) continue;
+              exact += static_cast<double>(x.values[static_cast<size_t>((c * h + iy) * w + ix)]) *
+                       wt[static_cast<size_t>(((o * in + c) * 3 + ky) * 3 + kx)];
+            }
+        const std::int64_t i = (o * h + oy) * w + ox;
+        signal += exact * exact;
+        e_wino += (yw.value(i) - exact) * (yw.value(i) - exact);
+        e_direct += (yd.value(i) - exact) * (yd.value(i) - exact);
+      }
+  const double wino = std::sqrt(e_wino / signal), direct = std::sqrt(e_direct / signal);
+  std::printf(
+      "against FP32 (ReLU'd N(0, 1) input): relative RMS error, direct INT8 %.3f%%, "
+      "Winograd-domain INT8 %.3f%%\n",
+      100 * direct, 100 * wino);
+  EXPECT_LT(direct, 0.03);
+  EXPECT_LT(wino, 3 * direct);
+  EXPECT_GT(wino, 0.5 * direct);
 }
 
 // Against FP32 on random data: each product's error is w dq + x dw with the rounding errors dq,

@@ -22,6 +22,8 @@
 #include "engine/cpu/int8_amx.hpp"
 #include "engine/cpu/int8_isa_emulated.hpp"
 #include "engine/cpu/int8_microkernel.hpp"
+#include "engine/cpu/int8_winograd.hpp"
+#include "weights_io/half.hpp"
 
 namespace pillarseg::cpu {
 
@@ -404,6 +406,159 @@ void int8_conv_transpose2x2_forward(Int8Kernels kernels, const ActRef& x, float 
   g.out_height = y_shape[2], g.out_width = y_shape[3], g.out_planes = y_shape[1];
   if (y.numel() == 0) return;
   run_gemm(kernels, on_native, g);
+}
+
+void prepare_int8_winograd(const Ref& w, const Ref& bias, Int8WinogradWeights& out) {
+  const char* op = "prepare_int8_winograd";
+  require_shape(op, "w", w, {w.dim(0), w.dim(1), 3, 3});
+  const std::int64_t o_count = w.dim(0), in = w.dim(1);
+  require_shape(op, "bias", bias, {o_count});
+  require_finite(op, w, "w");
+  require_finite(op, bias, "bias");
+  out.weight = w.shape;
+  std::vector<double> u(static_cast<size_t>(16 * o_count * in));  // (16, O, I)
+  parallel_for(o_count, [&](std::int64_t o) {
+    for (std::int64_t c = 0; c < in; ++c) {
+      const float* g = w.data + (o * in + c) * 9;
+      double gg[4][3];  // G g
+      for (int b = 0; b < 3; ++b) {
+        gg[0][b] = g[b];
+        gg[1][b] = 0.5 * (static_cast<double>(g[b]) + g[3 + b] + g[6 + b]);
+        gg[2][b] = 0.5 * (static_cast<double>(g[b]) - g[3 + b] + g[6 + b]);
+        gg[3][b] = g[6 + b];
+      }
+      for (int i = 0; i < 4; ++i) {
+        const double row[4] = {gg[i][0], 0.5 * (gg[i][0] + gg[i][1] + gg[i][2]),
+                               0.5 * (gg[i][0] - gg[i][1] + gg[i][2]), gg[i][2]};
+        for (int j = 0; j < 4; ++j)
+          u[static_cast<size_t>(((4 * i + j) * o_count + o) * in + c)] = row[j];
+      }
+    }
+  });
+  const std::int64_t groups = (o_count + kInt8GroupColumns - 1) / kInt8GroupColumns;
+  const std::int64_t o_padded = groups * kInt8GroupColumns, quads = (in + 3) / 4;
+  out.q.assign(u.size(), 0);
+  out.scale.assign(static_cast<size_t>(16 * o_count), 0.0f);
+  out.compensation.assign(static_cast<size_t>(16 * o_padded), 0);
+  out.packed.assign(static_cast<size_t>(16 * o_padded * quads * 4), 0);
+  for (std::int64_t row = 0; row < 16 * o_count; ++row) {  // row = p O + o
+    const std::int64_t p = row / o_count, o = row % o_count;
+    const double* ur = u.data() + row * in;
+    double max_abs = 0.0;
+    for (std::int64_t c = 0; c < in; ++c) max_abs = std::max(max_abs, std::abs(ur[c]));
+    const float s = static_cast<float>(max_abs / 127.0);
+    out.scale[static_cast<size_t>(row)] = s;
+    std::int32_t sum = 0;
+    for (std::int64_t c = 0; c < in; ++c) {
+      const auto q = static_cast<std::int8_t>(
+          s > 0.0f ? std::clamp(std::nearbyint(ur[c] / s), -127.0, 127.0) : 0.0);
+      out.q[static_cast<size_t>(row * in + c)] = q;
+      sum += q;
+      out.packed[static_cast<size_t>(
+          (((p * groups + o / kInt8GroupColumns) * quads + c / 4) * kInt8GroupColumns +
+           o % kInt8GroupColumns) *
+              4 +
+          c % 4)] = q;
+    }
+    out.compensation[static_cast<size_t>(p * o_padded + o)] = 128 * sum;
+  }
+  out.bias.assign(bias.data, bias.data + o_count);
+}
+
+void int8_winograd_forward(Int8Kernels kernels, const ActRef& x, const float* sv,
+                           const Int8WinogradWeights& w, bool relu, const ActRef& y,
+                           Int8WinogradWorkspace& workspace) {
+  const char* op = "int8_winograd_forward";
+  require_activation(op, "x", x);
+  require_activation(op, "y", y);
+  PS_CHECK(!int8_amx_family(kernels), "{}: runs on avx512_vnni or its model, not {}", op,
+           int8_kernels_name(kernels));
+  const Shape y_shape = op::conv2d(x.shape, w.weight, 1, nullptr, op);
+  PS_CHECK(y.shape == y_shape, "{}: y must be {}, got {}", op, shape_str(y_shape),
+           shape_str(y.shape));
+  float reciprocal[16];
+  for (int p = 0; p < 16; ++p) {
+    PS_CHECK(std::isfinite(sv[p]) && sv[p] > 0.0f && std::isfinite(1.0f / sv[p]),
+             "{}: the input scale of position {} must be positive and finite, got {}", op, p,
+             sv[p]);
+    reciprocal[p] = 1.0f / sv[p];
+  }
+  const bool on_native = native(kernels);
+  Int8Winograd g;
+  g.x = x.data, g.x_bf16 = x.half;
+  g.batch = x.dim(0), g.channels = x.dim(1), g.height = x.dim(2), g.width = x.dim(3);
+  g.reciprocal = reciprocal, g.sv = sv;
+  g.quads = (g.channels + 3) / 4;
+  g.u = w.packed.data(), g.su = w.scale.data(), g.compensation = w.compensation.data();
+  g.bias = w.bias.data();
+  g.out_channels = w.weight[0];
+  g.column_groups = (g.out_channels + kInt8GroupColumns - 1) / kInt8GroupColumns;
+  g.relu = relu, g.y = y.data, g.y_bf16 = y.half;
+  g.tiles_h = (g.height + 1) / 2, g.tiles_w = (g.width + 1) / 2;
+  // Blocks whose V (64 quads bytes a tile) stays within 512 KiB of a core's L2, a multiple of 16
+  // tiles, at most a tile row.
+  const std::int64_t fit = (512 << 10) / (64 * g.quads) / 16 * 16;
+  g.block_tiles = std::min(std::max<std::int64_t>(fit, 16), round_up(g.tiles_w, 16));
+  g.blocks_per_row = (g.tiles_w + g.block_tiles - 1) / g.block_tiles;
+  const int threads = std::max(num_threads(), 1);
+  g.v_stride = 16 * g.quads * g.block_tiles * 4;
+  g.m_stride = 16 * kInt8GroupColumns * kInt8WinogradGroupTiles;
+  if (workspace.v.size() < static_cast<size_t>(threads * g.v_stride))
+    workspace.v.resize(static_cast<size_t>(threads * g.v_stride));
+  if (workspace.m.size() < static_cast<size_t>(threads * g.m_stride))
+    workspace.m.resize(static_cast<size_t>(threads * g.m_stride));
+  g.v = workspace.v.data(), g.m = workspace.m.data();
+  if (y.numel() == 0) return;
+  parallel_chunks(g.batch * g.tiles_h * g.blocks_per_row,
+                  [&](std::int64_t begin, std::int64_t end, int thread) {
+#if defined(PILLARSEG_HAVE_AVX512_VNNI_KERNELS)
+                    if (on_native) {
+                      int8_winograd_blocks_vnni(g, begin, end, thread);
+                      return;
+                    }
+#endif
+                    int8_winograd_blocks<EmulatedVnniIsa>(g, begin, end, thread);
+                  });
+}
+
+void int8_winograd_input_absmax(const ActRef& x, float* absmax) {
+  require_activation("int8_winograd_input_absmax", "x", x);
+  const std::int64_t channels = x.dim(1), h = x.dim(2), wd = x.dim(3);
+  const std::int64_t th = (h + 1) / 2, tw = (wd + 1) / 2;
+  const int threads = std::max(num_threads(), 1);
+  std::vector<float> partial(static_cast<size_t>(16 * threads), 0.0f);
+  parallel_chunks(x.dim(0) * channels, [&](std::int64_t begin, std::int64_t end, int thread) {
+    float* mx = partial.data() + 16 * thread;
+    for (std::int64_t plane = begin; plane < end; ++plane) {
+      const auto at = [&](std::int64_t iy, std::int64_t ix) -> float {
+        if (iy < 0 || iy >= h || ix < 0 || ix >= wd) return 0.0f;
+        const std::int64_t i = (plane * h + iy) * wd + ix;
+        return x.half ? weights::bf16_bits_to_float(static_cast<const std::uint16_t*>(x.data)[i])
+                      : static_cast<const float*>(x.data)[i];
+      };
+      for (std::int64_t ty = 0; ty < th; ++ty) {
+        for (std::int64_t tx = 0; tx < tw; ++tx) {
+          float hr[4][4];
+          for (int r = 0; r < 4; ++r) {
+            float d[4];
+            for (int j = 0; j < 4; ++j) d[j] = at(2 * ty - 1 + r, 2 * tx - 1 + j);
+            hr[r][0] = d[0] - d[2], hr[r][1] = d[1] + d[2], hr[r][2] = d[2] - d[1],
+            hr[r][3] = d[1] - d[3];
+          }
+          for (int j = 0; j < 4; ++j) {
+            const float v[4] = {hr[0][j] - hr[2][j], hr[1][j] + hr[2][j], hr[2][j] - hr[1][j],
+                                hr[1][j] - hr[3][j]};
+            for (int i = 0; i < 4; ++i) mx[4 * i + j] = std::max(mx[4 * i + j], std::abs(v[i]));
+          }
+        }
+      }
+    }
+  });
+  for (int p = 0; p < 16; ++p) {
+    absmax[p] = 0.0f;
+    for (int t = 0; t < threads; ++t)
+      absmax[p] = std::max(absmax[p], partial[static_cast<size_t>(16 * t + p)]);
+  }
 }
 
 }  // namespace pillarseg::cpu

@@ -26,6 +26,9 @@
 //                (int8_isa_emulated.hpp): the tests' way to check both on any CPU (slow).
 // Vnni and Emulated share a weight packing, Amx and AmxEmulated another (prepare for the family
 // the forward will use). Threads: num_threads(); results do not depend on the thread count.
+// And for the 3x3 pad-1 convolutions, Winograd-domain INT8 F(2x2, 3x3) on Vnni (below): 2.25x
+// fewer multiply-adds for its transforms' cost and a larger error (about 1.4x the direct one's);
+// bench_int8_conv measures both per layer.
 #pragma once
 
 #include <cstdint>
@@ -95,5 +98,32 @@ void int8_conv2d_forward(Int8Kernels kernels, const ActRef& x, float sx, const I
 void int8_conv_transpose2x2_forward(Int8Kernels kernels, const ActRef& x, float sx,
                                     const Int8ConvWeights& w, const ActRef& y,
                                     Int8ConvWorkspace& workspace);
+
+// Winograd-domain INT8 F(2x2, 3x3) for the 3x3 pad-1 convolutions (int8_winograd.hpp has the
+// arithmetic), on Vnni or Emulated (the AMX family is refused): weights U = G g G^T per position p
+// and output channel, quantized with su[p][o] = max over the input channels |U| / 127; the
+// transformed input V_p with its own scale sv[p] per position (int8_winograd_input_absmax gives the
+// maxima a calibration takes them from).
+struct Int8WinogradWeights {
+  Shape weight;                            // (O, I, 3, 3)
+  std::vector<std::int8_t> q;              // qU (16, O, I)
+  std::vector<float> scale;                // su (16, O)
+  std::vector<float> bias;                 // (O)
+  std::vector<std::int32_t> compensation;  // (16, O rounded up to 8): 128 sum over I of qU
+  AlignedVector<std::int8_t> packed;       // qU (16, O / 8, I / 4, 8, 4), zero padded
+};
+void prepare_int8_winograd(const Ref& w, const Ref& bias, Int8WinogradWeights& out);
+
+struct Int8WinogradWorkspace {
+  AlignedVector<std::uint8_t> v;
+  AlignedVector<float> m;
+};
+
+// x (B, I, H, W) FP32 or BF16 -> y (B, O, H, W) FP32 or BF16, for the 16 input scales sv > 0.
+void int8_winograd_forward(Int8Kernels kernels, const ActRef& x, const float* sv,
+                           const Int8WinogradWeights& w, bool relu, const ActRef& y,
+                           Int8WinogradWorkspace& workspace);
+// max |V_p| over x's tiles and channels for the 16 positions p (V in FP32 as the kernel makes it).
+void int8_winograd_input_absmax(const ActRef& x, float* absmax);
 
 }  // namespace pillarseg::cpu

@@ -14,6 +14,7 @@
 
 #include "engine/cpu/int8_amx.hpp"
 #include "engine/cpu/int8_microkernel.hpp"
+#include "engine/cpu/int8_winograd.hpp"
 
 namespace pillarseg::cpu {
 namespace {
@@ -22,6 +23,20 @@ alignas(64) constexpr std::uint32_t kInt8InterleaveLow[16] = {0, 16, 1, 17, 2, 1
                                                               4, 20, 5, 21, 6, 22, 7, 23};
 alignas(64) constexpr std::uint32_t kInt8InterleaveHigh[16] = {8,  24, 9,  25, 10, 26, 11, 27,
                                                                12, 28, 13, 29, 14, 30, 15, 31};
+
+// Lane i of the permutation: 2 i (even) or 2 i + 1 (odd) of the pair (lo, hi), indices 16.. in hi.
+alignas(64) constexpr std::uint32_t kInt8EvenLanes[16] = {0,  2,  4,  6,  8,  10, 12, 14,
+                                                          16, 18, 20, 22, 24, 26, 28, 30};
+alignas(64) constexpr std::uint32_t kInt8OddLanes[16] = {1,  3,  5,  7,  9,  11, 13, 15,
+                                                         17, 19, 21, 23, 25, 27, 29, 31};
+
+// base + index as an address; the lanes a zero mask bit names are never read, so the address of
+// a column outside the image is formed but not dereferenced.
+template <class T>
+T* at(T* base, std::int64_t index) {
+  return reinterpret_cast<T*>(reinterpret_cast<std::uintptr_t>(base) +
+                              static_cast<std::uintptr_t>(index) * sizeof(T));
+}
 
 struct Avx512VnniIsa {
   using Acc = __m512i;
@@ -38,7 +53,9 @@ struct Avx512VnniIsa {
   static Acc dot(Acc acc, Bytes a, Bytes b) { return _mm512_dpbusd_epi32(acc, a, b); }
   static Acc load_acc(const std::int32_t* p) { return _mm512_loadu_si512(p); }
   static F epilogue(Acc acc, std::int32_t comp, float scale, float bias, bool relu) {
-    const __m512 v = _mm512_cvtepi32_ps(_mm512_sub_epi32(acc, _mm512_set1_epi32(comp)));
+    // (The zero-masked form: GCC's unmasked one reads an undefined register, which it warns about.)
+    const __m512 v =
+        _mm512_maskz_cvtepi32_ps(0xFFFF, _mm512_sub_epi32(acc, _mm512_set1_epi32(comp)));
     const __m512 y = _mm512_fmadd_ps(v, _mm512_set1_ps(scale), _mm512_set1_ps(bias));
     return relu ? _mm512_max_ps(y, _mm512_setzero_ps()) : y;
   }
@@ -96,6 +113,29 @@ struct Avx512VnniIsa {
   static void store_quads(std::uint8_t* p, Bytes b, std::uint32_t mask) {
     _mm512_mask_storeu_epi32(p, static_cast<__mmask16>(mask), b);
   }
+
+  static F zero_f() { return _mm512_setzero_ps(); }
+  static F load_f32_at(const float* base, std::int64_t index, std::uint32_t mask) {
+    return _mm512_maskz_loadu_ps(static_cast<__mmask16>(mask), at(base, index));
+  }
+  static F load_bf16_at(const std::uint16_t* base, std::int64_t index, std::uint32_t mask) {
+    const __m256i words = _mm256_maskz_loadu_epi16(static_cast<__mmask16>(mask), at(base, index));
+    return _mm512_castsi512_ps(_mm512_slli_epi32(_mm512_cvtepu16_epi32(words), 16));
+  }
+  static F even(F lo, F hi) {
+    return _mm512_permutex2var_ps(lo, _mm512_load_si512(kInt8EvenLanes), hi);
+  }
+  static F odd(F lo, F hi) {
+    return _mm512_permutex2var_ps(lo, _mm512_load_si512(kInt8OddLanes), hi);
+  }
+  static F add(F a, F b) { return _mm512_add_ps(a, b); }
+  static F sub(F a, F b) { return _mm512_sub_ps(a, b); }
+  static F bias_act(F a, float bias, bool relu) {
+    const __m512 y = _mm512_add_ps(a, _mm512_set1_ps(bias));
+    return relu ? _mm512_max_ps(y, _mm512_setzero_ps()) : y;
+  }
+  static F load_f(const float* p) { return _mm512_load_ps(p); }
+  static void store_f(float* p, F f) { _mm512_store_ps(p, f); }
 };
 
 #if defined(PILLARSEG_HAVE_AMX_INT8_KERNELS)
@@ -147,6 +187,11 @@ void int8_quantize_rows_avx512(const Int8Quantize& q, std::int64_t begin, std::i
 
 void int8_gemm_rows_vnni(const Int8Gemm& g, std::int64_t begin, std::int64_t end) {
   vnni_rows<Avx512VnniIsa>(g, begin, end);
+}
+
+void int8_winograd_blocks_vnni(const Int8Winograd& g, std::int64_t begin, std::int64_t end,
+                               int thread) {
+  int8_winograd_blocks<Avx512VnniIsa>(g, begin, end, thread);
 }
 
 #if defined(PILLARSEG_HAVE_AMX_INT8_KERNELS)

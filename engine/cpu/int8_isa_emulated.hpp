@@ -8,7 +8,8 @@
 //   VCVTPS2DQ    {rn-sae}: FP32 -> int32, nearest even (the values are clamped to +-127 first);
 //   the BF16 rounding of the outputs in integer operations (weights::float_to_bf16_bits: nearest
 //   even, NaN kept quiet, no flushing), masked loads and stores reading or writing only the lanes
-//   the mask names.
+//   the mask names; for the Winograd transforms (int8_winograd.hpp) VPERMT2PS's even and odd
+//   lanes of a pair of vectors, FP32 adds and subtractions (VADDPS, VSUBPS: one rounding each).
 // And of the AMX-INT8 tile instructions (int8_amx.hpp), EmulatedAmxInt8Tiles:
 //   TDPBSUD      C[m].dword[n] += sext(A[m].byte[4k + i]) * zext(B[k].byte[4n + i]) for k <
 //                16, i < 4, wrapping like VPDPBUSD (signed A, unsigned B: the operand roles of
@@ -145,6 +146,58 @@ struct EmulatedVnniIsa {
     for (int j = 0; j < 16; ++j)
       if ((mask >> j) & 1u) std::memcpy(p + 4 * j, b.v + 4 * j, 4);
   }
+
+  // The Winograd transforms (int8_winograd.hpp): lane i of base[index + i] where the mask names it,
+  // else 0 (only named lanes are read); the even and odd lanes of (lo, hi) as one vector; FP32
+  // adds, subtractions, the bias and the ReLU; plain loads and stores of M.
+  static F zero_f() { return F{}; }
+  static F load_f32_at(const float* base, std::int64_t index, std::uint32_t mask) {
+    F f{};
+    for (int i = 0; i < 16; ++i)
+      if ((mask >> i) & 1u) f.v[i] = base[index + i];
+    return f;
+  }
+  static F load_bf16_at(const std::uint16_t* base, std::int64_t index, std::uint32_t mask) {
+    F f{};
+    for (int i = 0; i < 16; ++i)
+      if ((mask >> i) & 1u)
+        f.v[i] = std::bit_cast<float>(static_cast<std::uint32_t>(base[index + i]) << 16);
+    return f;
+  }
+  static F even(const F& lo, const F& hi) {
+    F f;
+    for (int i = 0; i < 16; ++i) f.v[i] = i < 8 ? lo.v[2 * i] : hi.v[2 * i - 16];
+    return f;
+  }
+  static F odd(const F& lo, const F& hi) {
+    F f;
+    for (int i = 0; i < 16; ++i) f.v[i] = i < 8 ? lo.v[2 * i + 1] : hi.v[2 * i - 15];
+    return f;
+  }
+  static F add(const F& a, const F& b) {
+    F f;
+    for (int i = 0; i < 16; ++i) f.v[i] = a.v[i] + b.v[i];
+    return f;
+  }
+  static F sub(const F& a, const F& b) {
+    F f;
+    for (int i = 0; i < 16; ++i) f.v[i] = a.v[i] - b.v[i];
+    return f;
+  }
+  static F bias_act(const F& a, float bias, bool relu) {
+    F f;
+    for (int i = 0; i < 16; ++i) {
+      const float y = a.v[i] + bias;
+      f.v[i] = relu ? (y > 0.0f ? y : 0.0f) : y;
+    }
+    return f;
+  }
+  static F load_f(const float* p) {
+    F f;
+    std::memcpy(f.v, p, sizeof(f.v));
+    return f;
+  }
+  static void store_f(float* p, const F& f) { std::memcpy(p, f.v, sizeof(f.v)); }
 };
 
 // The tile instructions (see above), the interface of AmxInt8Tiles in int8_conv_avx512.cpp.

@@ -1,0 +1,277 @@
+// The CPU's Winograd-domain INT8 3x3 convolution (stride 1, pad 1), F(2x2, 3x3), written once over
+// the instruction set `Isa` of the direct micro-kernel (int8_microkernel.hpp) and compiled twice:
+// on AVX512-VNNI (int8_conv_avx512.cpp) and on the scalar model EmulatedVnniIsa.
+//
+// Each 2x2 output tile (ty, tx) comes from the 4x4 input tile d at rows 2 ty - 1.., columns
+// 2 tx - 1.. (zero outside the image): Y = A^T [sum_c U_oc . V_c] A with V_c = B^T d_c B and
+// U_oc = G g_oc G^T (bf16_winograd.hpp has the matrices). Quantized in the Winograd domain as in
+// LoWino (Li et al., 2021): V_p of each of the 16 positions p with its own per-tensor scale sv[p]
+// (V_p = clamp(round_half_even(V_p * (1 / sv[p])), -127, 127), the reciprocal rounded to FP32
+// once), U_p per position and output channel (su[p][o] = max over the input channels / 127); the
+// products M_p = sum_c qU qV in INT32, M_p = float(acc) * (sv[p] su[p][o]) (one rounding each);
+// the output transform adds M in FP32 in a fixed order, then the bias and the ReLU, and rounds
+// once for a BF16 output. The input transform adds and subtracts FP32 values only, so the two
+// compilations give the same bits, and the tests compare them bit for bit.
+//
+// Layout and blocking. A block is a run of `block_tiles` (a multiple of 16) tiles of one tile row
+// of one image, taken by one thread from its input transform to its output: V (16, quads,
+// block_tiles, 4) in bytes, u = q + 128 of four channels a dword as the direct kernel's quads
+// (the tiles past the row's end are transformed from the zero padding and never stored); then for
+// each group of 8 output channels and 32 tiles, the 16 products in a register tile of 8 channels
+// x 2 vectors of 16 tiles into M (16, 8, 32) FP32, and that group's output transform, whose 16
+// tiles a vector are 32 consecutive output columns of two rows. U (16, O / 8, quads, 8, 4) is
+// read from every block (the Vnni packing's order, per position).
+#pragma once
+
+#include <cstdint>
+
+#include "engine/cpu/int8_microkernel.hpp"
+
+namespace pillarseg::cpu {
+
+struct Int8Winograd {
+  const void* x = nullptr;  // (B, C, H, W) FP32 or (x_bf16) BF16
+  bool x_bf16 = false;
+  std::int64_t batch = 0, channels = 0, height = 0, width = 0;
+  const float* reciprocal = nullptr;  // (16): 1 / sv[p]
+  const float* sv = nullptr;          // (16)
+  std::int64_t quads = 0;
+  const std::int8_t* u = nullptr;                    // packed qU
+  const float* su = nullptr;                         // (16, O)
+  const std::int32_t* compensation = nullptr;        // (16, O)
+  const float* bias = nullptr;                       // (O)
+  std::int64_t out_channels = 0, column_groups = 0;  // O, ceil(O / 8)
+  bool relu = false;
+  void* y = nullptr;  // (B, O, H, W) FP32 or (y_bf16) BF16
+  bool y_bf16 = false;
+  std::int64_t tiles_h = 0, tiles_w = 0, block_tiles = 0, blocks_per_row = 0;
+  // Per thread t: v + t v_stride bytes, m + t m_stride floats (64-byte aligned).
+  std::uint8_t* v = nullptr;
+  float* m = nullptr;
+  std::int64_t v_stride = 0, m_stride = 0;
+};
+
+// Tiles of a group: 2 vectors of 16 (16 accumulators; GCC spills a 3-vector tile's 24 here).
+inline constexpr std::int64_t kInt8WinogradGroupTiles = 32;
+
+// Blocks [begin, end) (block j of tile row r of image b is item (b tiles_h + r) blocks_per_row
+// + j) on the AVX-512 instructions with the scratch of thread `thread` (int8_conv_avx512.cpp).
+void int8_winograd_blocks_vnni(const Int8Winograd& g, std::int64_t begin, std::int64_t end,
+                               int thread);
+
+namespace {
+
+// Row 0..3 of B^T d: the input rows (first, second) combined as first - second or first + second.
+struct Int8WinogradPick {
+  int first, second;
+  bool sum;
+};
+inline constexpr Int8WinogradPick kInt8WinogradPick[4] = {
+    {0, 2, false}, {1, 2, true}, {2, 1, false}, {1, 3, false}};
+
+// The loads of int8_winograd_row for 16 tiles whose inputs start at column x0: the columns x0..,
+// x0 + 16.., x0 + 2.., x0 + 18.., and their masks (the columns inside the image).
+struct Int8WinogradColumns {
+  std::int64_t start[4];
+  std::uint32_t mask[4];
+};
+inline Int8WinogradColumns int8_winograd_columns(std::int64_t x0, std::int64_t width) {
+  Int8WinogradColumns c;
+  const std::int64_t offsets[4] = {0, 16, 2, 18};
+  for (int k = 0; k < 4; ++k) {
+    const std::int64_t s = x0 + offsets[k];
+    const std::int64_t lo = s < 0 ? -s : 0, hi = width - s < 16 ? width - s : 16;
+    c.start[k] = s;
+    c.mask[k] = hi <= lo ? 0u : ((std::uint32_t{1} << hi) - 1) & ~((std::uint32_t{1} << lo) - 1);
+  }
+  return c;
+}
+
+// h[j] = (d_r B)[j] of the input row starting at element `row` (none: zero rows) over 16 tiles:
+// lane i holds columns x0 + 2 i + j.
+template <class Isa>
+void int8_winograd_row(const Int8Winograd& g, bool inside, std::int64_t row,
+                       const Int8WinogradColumns& columns, typename Isa::F* h) {
+  using F = typename Isa::F;
+  if (!inside) {
+    for (int j = 0; j < 4; ++j) h[j] = Isa::zero_f();
+    return;
+  }
+  F parts[4];
+#pragma GCC unroll 4
+  for (int k = 0; k < 4; ++k) {
+    parts[k] = g.x_bf16 ? Isa::load_bf16_at(static_cast<const std::uint16_t*>(g.x),
+                                            row + columns.start[k], columns.mask[k])
+                        : Isa::load_f32_at(static_cast<const float*>(g.x), row + columns.start[k],
+                                           columns.mask[k]);
+  }
+  const F d0 = Isa::even(parts[0], parts[1]), d1 = Isa::odd(parts[0], parts[1]);
+  const F d2 = Isa::even(parts[2], parts[3]), d3 = Isa::odd(parts[2], parts[3]);
+  h[0] = Isa::sub(d0, d2);
+  h[1] = Isa::add(d1, d2);
+  h[2] = Isa::sub(d2, d1);
+  h[3] = Isa::sub(d1, d3);
+}
+
+// V[p][cq][tl][i] for the block's tiles tl (16 at a time) of tile row ty from tile tx0 on.
+template <class Isa>
+void int8_winograd_input(const Int8Winograd& g, std::int64_t b, std::int64_t ty, std::int64_t tx0,
+                         std::uint8_t* v) {
+  using Acc = typename Isa::Acc;
+  using F = typename Isa::F;
+  const std::int64_t plane_size = g.height * g.width;
+  const Acc padding = Isa::set1(128);
+  for (std::int64_t cq = 0; cq < g.quads; ++cq) {
+    for (std::int64_t tl = 0; tl < g.block_tiles; tl += 16) {
+      const Int8WinogradColumns columns = int8_winograd_columns(2 * (tx0 + tl) - 1, g.width);
+      Acc u[4][16];
+      for (int i = 0; i < 4; ++i) {
+        const std::int64_t c = 4 * cq + i;
+        if (c >= g.channels) {
+          for (Acc& a : u[i]) a = padding;
+          continue;
+        }
+        const std::int64_t plane = (b * g.channels + c) * plane_size;
+        F h[4][4];
+#pragma GCC unroll 4
+        for (int r = 0; r < 4; ++r) {
+          const std::int64_t iy = 2 * ty - 1 + r;
+          int8_winograd_row<Isa>(g, iy >= 0 && iy < g.height, plane + iy * g.width, columns, h[r]);
+        }
+        for (int row = 0; row < 4; ++row) {
+          const Int8WinogradPick pick = kInt8WinogradPick[row];
+          for (int j = 0; j < 4; ++j) {
+            const F vij = pick.sum ? Isa::add(h[pick.first][j], h[pick.second][j])
+                                   : Isa::sub(h[pick.first][j], h[pick.second][j]);
+            u[i][4 * row + j] = Isa::quantize_u8(vij, g.reciprocal[4 * row + j]);
+          }
+        }
+      }
+      for (int p = 0; p < 16; ++p) {
+        Isa::store_quads(v + ((p * g.quads + cq) * g.block_tiles + tl) * 4,
+                         Isa::pack_quads(u[0][p], u[1][p], u[2][p], u[3][p]), 0xFFFFu);
+      }
+    }
+  }
+}
+
+// m[c][16 px + lane] = float(acc - comp[c]) scale[c] (the epilogue without bias or ReLU): out of
+// line, so that the caller keeps its accumulators in registers.
+template <class Isa, int NPX>
+[[gnu::noinline]] void int8_winograd_dequantize(
+    const typename Isa::Acc (&acc)[kInt8GroupColumns][NPX], const float* scale,
+    const std::int32_t* comp, float* m) {
+  for (int c = 0; c < static_cast<int>(kInt8GroupColumns); ++c) {
+#pragma GCC unroll 4
+    for (int px = 0; px < NPX; ++px) {
+      Isa::store_f(m + c * kInt8WinogradGroupTiles + 16 * px,
+                   Isa::epilogue(acc[c][px], comp[c], scale[c], 0.0f, false));
+    }
+  }
+}
+
+// M[p][c][16 px + lane] for the output channels o0 + c (c < 8) and the tiles tl0 + 16 px + lane
+// of the block: the products over the quads, dequantized. Not inlined: in the caller the output
+// transform's constants would take registers from the 24 accumulators.
+template <class Isa, int NPX>
+[[gnu::noinline]] void int8_winograd_position(const Int8Winograd& g, const std::uint8_t* v, int p,
+                                              std::int64_t o0, std::int64_t tl0, float* m) {
+  using Acc = typename Isa::Acc;
+  using Bytes = typename Isa::Bytes;
+  constexpr int kCols = static_cast<int>(kInt8GroupColumns);
+  float scale[kCols];
+  std::int32_t comp[kCols];
+  for (int c = 0; c < kCols; ++c) {
+    const std::int64_t o = o0 + c < g.out_channels ? o0 + c : g.out_channels - 1;
+    scale[c] = g.sv[p] * g.su[p * g.out_channels + o];
+    comp[c] = g.compensation[p * g.column_groups * kCols + o0 + c];
+  }
+  Acc acc[kCols][NPX];
+#pragma GCC unroll 8
+  for (int c = 0; c < kCols; ++c)
+#pragma GCC unroll 4
+    for (int px = 0; px < NPX; ++px) acc[c][px] = Isa::zero();
+  const std::uint8_t* vp = v + (p * g.quads * g.block_tiles + tl0) * 4;
+  const std::int8_t* w = g.u + ((p * g.column_groups + o0 / kCols) * g.quads) * 4 * kCols;
+  const std::int64_t quads = g.quads, v_step = g.block_tiles * 4;
+  for (std::int64_t cq = 0; cq < quads; ++cq, vp += v_step, w += 4 * kCols) {
+    Bytes a[NPX];
+#pragma GCC unroll 4
+    for (int px = 0; px < NPX; ++px) a[px] = Isa::load(vp + 64 * px);
+#pragma GCC unroll 8
+    for (int c = 0; c < kCols; ++c) {
+      const Bytes weights = Isa::broadcast4(w + 4 * c);
+#pragma GCC unroll 4
+      for (int px = 0; px < NPX; ++px) acc[c][px] = Isa::dot(acc[c][px], a[px], weights);
+    }
+  }
+  int8_winograd_dequantize<Isa, NPX>(acc, scale, comp, m + p * kCols * kInt8WinogradGroupTiles);
+}
+
+// The products of output channels [o0, o0 + 8) and tiles [tl0, tl0 + 16 NPX) of the block into M
+// (16, 8, 32), then their output transform into y.
+template <class Isa, int NPX>
+void int8_winograd_group(const Int8Winograd& g, const std::uint8_t* v, std::int64_t b,
+                         std::int64_t ty, std::int64_t tx0, std::int64_t o0, std::int64_t tl0,
+                         float* m) {
+  using F = typename Isa::F;
+  constexpr int kCols = static_cast<int>(kInt8GroupColumns);
+  for (int p = 0; p < 16; ++p) int8_winograd_position<Isa, NPX>(g, v, p, o0, tl0, m);
+  // Y = A^T M A, A^T = [1 1 1 0; 0 1 -1 -1]: row 0 of A^T M is M0 + M1 + M2, row 1 M1 - M2 - M3
+  // (rows of 4 positions), then the same along the columns.
+  const std::int64_t oy = 2 * ty;
+  for (int c = 0; c < kCols && o0 + c < g.out_channels; ++c) {
+    const std::int64_t o = o0 + c;
+    for (int px = 0; px < NPX; ++px) {
+      const std::int64_t tx = tx0 + tl0 + 16 * px, ox = 2 * tx;
+      if (ox >= g.width) break;
+      F mm[16];
+      for (int p = 0; p < 16; ++p)
+        mm[p] = Isa::load_f(m + (p * kCols + c) * kInt8WinogradGroupTiles + 16 * px);
+      F rows[2][4];
+      for (int j = 0; j < 4; ++j) {
+        rows[0][j] = Isa::add(Isa::add(mm[j], mm[4 + j]), mm[8 + j]);
+        rows[1][j] = Isa::sub(Isa::sub(mm[4 + j], mm[8 + j]), mm[12 + j]);
+      }
+      const std::int64_t left = g.width - ox;
+      const std::uint32_t mask = int8_first_lanes(left < 32 ? left : 32);
+      for (int dy = 0; dy < 2 && oy + dy < g.height; ++dy) {
+        const F y0 = Isa::bias_act(Isa::add(Isa::add(rows[dy][0], rows[dy][1]), rows[dy][2]),
+                                   g.bias[o], g.relu);
+        const F y1 = Isa::bias_act(Isa::sub(Isa::sub(rows[dy][1], rows[dy][2]), rows[dy][3]),
+                                   g.bias[o], g.relu);
+        const std::int64_t base = ((b * g.out_channels + o) * g.height + oy + dy) * g.width + ox;
+        if (g.y_bf16) {
+          Isa::store_bf16_interleaved(static_cast<std::uint16_t*>(g.y) + base, y0, y1, mask);
+        } else {
+          Isa::store_f32_interleaved(static_cast<float*>(g.y) + base, y0, y1, mask);
+        }
+      }
+    }
+  }
+}
+
+template <class Isa>
+void int8_winograd_blocks(const Int8Winograd& g, std::int64_t begin, std::int64_t end, int thread) {
+  std::uint8_t* v = g.v + thread * g.v_stride;
+  float* m = g.m + thread * g.m_stride;
+  for (std::int64_t item = begin; item < end; ++item) {
+    const std::int64_t block = item % g.blocks_per_row, ty = item / g.blocks_per_row % g.tiles_h,
+                       b = item / g.blocks_per_row / g.tiles_h;
+    const std::int64_t tx0 = block * g.block_tiles;
+    int8_winograd_input<Isa>(g, b, ty, tx0, v);
+    const std::int64_t tiles = g.tiles_w - tx0 < g.block_tiles ? g.tiles_w - tx0 : g.block_tiles;
+    for (std::int64_t o0 = 0; o0 < g.out_channels; o0 += kInt8GroupColumns) {
+      for (std::int64_t tl0 = 0; tl0 < tiles; tl0 += kInt8WinogradGroupTiles) {
+        if (tiles - tl0 > 16) {
+          int8_winograd_group<Isa, 2>(g, v, b, ty, tx0, o0, tl0, m);
+        } else {
+          int8_winograd_group<Isa, 1>(g, v, b, ty, tx0, o0, tl0, m);
+        }
+      }
+    }
+  }
+}
+
+}  // namespace
+}  // namespace pillarseg::cpu
