@@ -182,19 +182,19 @@ void BM_Conv3x3(benchmark::State& state, const Layer& l) {
     if (amx) {
       time_once(r.amx_winograd, [&] {
         cpu::conv3x3_winograd_forward(cpu::Bf16Kernels::Amx, x16_ref, w16_ref, u_amx.data(), bias16_ref, weight,
-                                      false, ActRef{y16.data(), y.shape(), true}, bf16_workspace);
+                                      false, TensorRef{y16.data(), y.shape(), DType::BF16}, bf16_workspace);
         benchmark::DoNotOptimize(y16.data());
       });
     }
     if (bf16) {
       time_once(r.bf16, [&] {
         cpu::conv2d_forward(cpu::Bf16Kernels::Avx512, x16_ref, w16_ref, bias16_ref, weight, 1, false,
-                            ActRef{y16.data(), y.shape(), true});
+                            TensorRef{y16.data(), y.shape(), DType::BF16});
         benchmark::DoNotOptimize(y16.data());
       });
       time_once(r.bf16_winograd, [&] {
         cpu::conv3x3_winograd_forward(cpu::Bf16Kernels::Avx512, x16_ref, w16_ref, u_avx512.data(), bias16_ref,
-                                      weight, false, ActRef{y16.data(), y.shape(), true}, bf16_workspace);
+                                      weight, false, TensorRef{y16.data(), y.shape(), DType::BF16}, bf16_workspace);
         benchmark::DoNotOptimize(y16.data());
       });
     }

@@ -68,6 +68,7 @@ void BM_Layer(benchmark::State& state, const Layer& l) {
   std::vector<std::uint16_t> x16(x.size()), y16(y.size());
   for (size_t i = 0; i < x.size(); ++i) x16[i] = weights::float_to_bf16_bits(x[i]);
   const ActRef x16_act{x16.data(), x_shape, true}, y16_act{y16.data(), y_shape, true};
+  const TensorRef y16_bf16{y16.data(), y_shape, DType::BF16};
 
   const bool bf16 = cpu::avx512_bf16_available();
   const bool bf16_amx = cpu::amx_bf16_available();
@@ -116,14 +117,14 @@ void BM_Layer(benchmark::State& state, const Layer& l) {
     if (bf16) {
       time_once(r.bf16, [&] {
         cpu::conv3x3_winograd_forward(cpu::Bf16Kernels::Avx512, x16_ref, w16_ref, u_avx512.data(),
-                                      bias16_ref, weight, false, y16_act, bf16_workspace);
+                                      bias16_ref, weight, false, y16_bf16, bf16_workspace);
         benchmark::DoNotOptimize(y16.data());
       });
     }
     if (bf16_amx) {
       time_once(r.bf16_amx, [&] {
         cpu::conv3x3_winograd_forward(cpu::Bf16Kernels::Amx, x16_ref, w16_ref, u_amx.data(),
-                                      bias16_ref, weight, false, y16_act, bf16_workspace);
+                                      bias16_ref, weight, false, y16_bf16, bf16_workspace);
         benchmark::DoNotOptimize(y16.data());
       });
     }

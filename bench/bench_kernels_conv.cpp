@@ -373,7 +373,7 @@ void BM_ConvTranspose2dBackwardDataHalf(benchmark::State& state, const ConvTrans
   const double flops = conv_transpose_flops(s);
   const double ms = time_pass(state, flops, [&](cudaStream_t stream) {
     cuda::prepare_conv_transpose_data_weights(b.w.data(), s, type, w16t.data(), stream);
-    cuda::conv_transpose2x2_mma_backward_data(b.dy.data(), w16t.data(), s, type, b.dx.data(),
+    cuda::conv_transpose2d_mma_backward_data(b.dy.data(), w16t.data(), s, type, b.dx.data(),
                                               stream);
   });
   half_counters(state, flops, ms, std::string("transpose_backward_data/") + l.name);
@@ -385,10 +385,10 @@ void BM_ConvTranspose2dBackwardWeightsHalf(benchmark::State& state, const ConvTr
   const cuda::ConvTranspose2dShape& s = l.shape;
   ConvTransposeBuffers b(s);
   DeviceBuffer<float> workspace(
-      static_cast<size_t>(cuda::conv_transpose2x2_mma_backward_weights_workspace(s)));
+      static_cast<size_t>(cuda::conv_transpose2d_mma_backward_weights_workspace(s)));
   const double flops = conv_transpose_flops(s);
   const double ms = time_pass(state, flops, [&](cudaStream_t stream) {
-    cuda::conv_transpose2x2_mma_backward_weights(b.x.data(), b.dy.data(), s, type, b.dw.data(),
+    cuda::conv_transpose2d_mma_backward_weights(b.x.data(), b.dy.data(), s, type, b.dw.data(),
                                                  b.db.data(), workspace.data(), stream);
   });
   half_counters(state, flops, ms, std::string("transpose_backward_weights/") + l.name);

@@ -143,7 +143,7 @@ void BM_Bf16(benchmark::State& state, const Layer& l) {
   DeviceBuffer<float> bias_out(static_cast<size_t>(columns));
   DeviceBuffer<float> y(static_cast<size_t>(s.batch * s.out_channels * output_pixels(l)));
   const std::int64_t workspace_floats =
-      l.transposed ? cuda::conv_transpose2x2_mma_forward_workspace(s.batch, s.in_channels, s.height,
+      l.transposed ? cuda::conv_transpose2d_mma_forward_workspace(s.batch, s.in_channels, s.height,
                                                                    s.width, s.out_channels)
                    : cuda::conv2d_mma_forward_workspace(s);
   DeviceBuffer<float> workspace(static_cast<size_t>(std::max<std::int64_t>(workspace_floats, 1)));
@@ -156,7 +156,7 @@ void BM_Bf16(benchmark::State& state, const Layer& l) {
                                cuda::Half16::BF16, w16.data(), bias_out.data(), nullptr);
   bf16_ms()[l.name] = time_layer(state, l, false, [&](cudaStream_t stream) {
     if (l.transposed)
-      cuda::conv_transpose2x2_mma_forward(x.data(), false, w16.data(), bias_out.data(), s.batch,
+      cuda::conv_transpose2d_mma_forward(x.data(), false, w16.data(), bias_out.data(), s.batch,
                                           s.in_channels, s.height, s.width, s.out_channels,
                                           cuda::Half16::BF16, y.data(), false, stream, ws);
     else
@@ -197,7 +197,7 @@ void BM_Int8(benchmark::State& state, const Layer& l, cuda::ActivationLayout lay
   DeviceBuffer<std::int8_t> y8(static_cast<size_t>(
       s8 ? cuda::activations_s8_bytes(s.batch, s.out_channels, y_height, y_width) : 16));
   const std::int64_t workspace_count =
-      l.transposed ? cuda::conv_transpose2x2_mma_s8_forward_workspace(
+      l.transposed ? cuda::conv_transpose2d_mma_s8_forward_workspace(
                          s.batch, s.in_channels, s.height, s.width, s.out_channels)
                    : cuda::conv2d_mma_s8_forward_workspace(s);
   DeviceBuffer<std::int32_t> workspace(
@@ -219,7 +219,7 @@ void BM_Int8(benchmark::State& state, const Layer& l, cuda::ActivationLayout lay
   const cuda::OutputS8 y_out{y_data, layout, y_scale};
   const double ms = time_layer(state, l, true, [&](cudaStream_t stream) {
     if (l.transposed)
-      cuda::conv_transpose2x2_mma_s8_forward(x_in, w8.data(), w_scale.data(), bias_out.data(),
+      cuda::conv_transpose2d_mma_s8_forward(x_in, w8.data(), w_scale.data(), bias_out.data(),
                                              s.batch, s.in_channels, s.height, s.width,
                                              s.out_channels, false, y_out, stream, ws);
     else

@@ -68,7 +68,7 @@ Shape conv2d(const Shape& x, const Shape& weight, int pad, const Shape* bias, co
   return y;
 }
 
-Shape conv_transpose2x2(const Shape& x, const Shape& weight, const Shape* bias,
+Shape conv_transpose2d(const Shape& x, const Shape& weight, const Shape* bias,
                         const char* caller) {
   require_rank(caller, "x", x, 4, "(B, I, H, W)");
   PS_CHECK(x[2] >= 1 && x[3] >= 1, "{}: x must have H, W >= 1, got shape {}", caller, shape_str(x));
@@ -91,12 +91,12 @@ Shape batchnorm(const Shape& x, const Shape& channel_parameter) {
   return x;
 }
 
-Shape maxpool2x2(const Shape& x, const char* caller) {
+Shape maxpool2d(const Shape& x, const char* caller) {
   require_rank(caller, "x", x, 4, "(B, C, H, W)");
   return {x[0], x[1], x[2] / 2, x[3] / 2};
 }
 
-Shape upsample2x(const Shape& x, const char* caller) {
+Shape upsample_bilinear(const Shape& x, const char* caller) {
   require_rank(caller, "x", x, 4, "(B, C, H, W)");
   PS_CHECK(x[2] >= 1 && x[3] >= 1, "{}: x must have H, W >= 1, got shape {}", caller, shape_str(x));
   return {x[0], x[1], 2 * x[2], 2 * x[3]};
@@ -152,7 +152,7 @@ double conv2d_flops(const Shape& y, const Shape& weight) {
          static_cast<double>(weight[1] * weight[2] * weight[3]);
 }
 
-double conv_transpose2x2_flops(const Shape& x, const Shape& weight) {
+double conv_transpose2d_flops(const Shape& x, const Shape& weight) {
   return 2.0 * static_cast<double>(shape_numel(x)) *
          static_cast<double>(weight[1] * weight[2] * weight[3]);
 }

@@ -34,14 +34,14 @@ Shape channel_band(const Shape& x, const Shape& y, int64_t channel0,
 Shape conv2d(const Shape& x, const Shape& weight, int pad, const Shape* bias = nullptr,
              const char* caller = "conv2d");
 // ConvTranspose2d kernel 2 stride 2: x (B, I, H, W), weight (I, O, 2, 2) -> (B, O, 2 H, 2 W).
-Shape conv_transpose2x2(const Shape& x, const Shape& weight, const Shape* bias = nullptr,
-                        const char* caller = "conv_transpose2x2");
+Shape conv_transpose2d(const Shape& x, const Shape& weight, const Shape* bias = nullptr,
+                        const char* caller = "conv_transpose2d");
 // BatchNorm over channels (axis 1) of x (B, C, ...) with per-channel parameters (C) -> x's shape.
 Shape batchnorm(const Shape& x, const Shape& channel_parameter);
 // MaxPool 2x2 stride 2 (floor): x (B, C, H, W) -> (B, C, H / 2, W / 2).
-Shape maxpool2x2(const Shape& x, const char* caller = "maxpool2x2");
+Shape maxpool2d(const Shape& x, const char* caller = "maxpool2d");
 // Bilinear x2 upsampling (align_corners = true): x (B, C, H, W) -> (B, C, 2 H, 2 W).
-Shape upsample2x(const Shape& x, const char* caller = "upsample2x");
+Shape upsample_bilinear(const Shape& x, const char* caller = "upsample_bilinear");
 // [skip, up zero-padded to skip's H, W]: skip (B, Cs, H, W), up (B, Cu, h <= H, w <= W) ->
 // (B, Cs + Cu, H, W).
 Shape pad_concat(const Shape& skip, const Shape& up, const char* caller = "pad_concat");
@@ -68,7 +68,7 @@ Shape half16_conv_weights(const Shape& weight, bool transposed);
 // of output (B, O, h, w) with weight (O, I, k, k); a transposed one of input (B, I, H, W) with
 // weight (I, O, 2, 2); the PFN's linear layer on points (P, N, 10) with weight (C, 10).
 double conv2d_flops(const Shape& y, const Shape& weight);
-double conv_transpose2x2_flops(const Shape& x, const Shape& weight);
+double conv_transpose2d_flops(const Shape& x, const Shape& weight);
 double pfn_flops(const Shape& points, const Shape& weight);
 
 }  // namespace pillarseg::op

@@ -25,11 +25,11 @@ namespace {
 
 constexpr int64_t kSubPixels = 4;  // (dy, dx) in {0, 1}^2, index dy * 2 + dx
 
-// Checks x, w and bias (op::conv_transpose2x2); `caller` names the calling op in messages.
+// Checks x, w and bias (op::conv_transpose2d); `caller` names the calling op in messages.
 template <class T>
 void check_args(const char* caller, const Tensor<T>& x, const Tensor<T>& w,
                 const std::type_identity_t<Tensor<T>>* bias) {
-  op::conv_transpose2x2(x.shape(), w.shape(), bias != nullptr ? &bias->shape() : nullptr, caller);
+  op::conv_transpose2d(x.shape(), w.shape(), bias != nullptr ? &bias->shape() : nullptr, caller);
 }
 
 // w (I, O, 2, 2) -> the equivalent 1x1 convolution weight (4 O, I, 1, 1):

@@ -13,7 +13,7 @@ namespace pillarseg::host {
 
 template <class T>
 void maxpool2d_forward(const Tensor<T>& x, Tensor<T>& y, Tensor<int32_t>* argmax) {
-  op::maxpool2x2(x.shape(), "maxpool2d_forward");
+  op::maxpool2d(x.shape(), "maxpool2d_forward");
   PS_CHECK(x.dim(2) * x.dim(3) <= std::numeric_limits<int32_t>::max(),
            "maxpool2d_forward: an x plane of {}x{} has more elements than an int32 argmax holds",
            x.dim(2), x.dim(3));

@@ -47,7 +47,7 @@ std::vector<Tap<T>> axis_taps(int64_t in, int64_t out) {
 
 template <class T>
 void upsample_bilinear_forward(const Tensor<T>& x, Tensor<T>& y) {
-  op::upsample2x(x.shape(), "upsample_bilinear_forward");
+  op::upsample_bilinear(x.shape(), "upsample_bilinear_forward");
   PS_CHECK(&y != &x, "upsample_bilinear_forward: the output y must be a different tensor from x");
   const int64_t in_h = x.dim(2);
   const int64_t in_w = x.dim(3);

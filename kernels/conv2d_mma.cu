@@ -897,14 +897,14 @@ void conv2d_mma_forward(const void* x, bool x_half, const std::uint16_t* w16, co
            workspace);
 }
 
-std::int64_t conv_transpose2x2_mma_forward_workspace(std::int64_t batch, std::int64_t in_channels,
+std::int64_t conv_transpose2d_mma_forward_workspace(std::int64_t batch, std::int64_t in_channels,
                                                      std::int64_t height, std::int64_t width,
                                                      std::int64_t out_channels) {
   return gemm_workspace(
       conv_transpose_forward_gemm(batch, in_channels, height, width, out_channels));
 }
 
-void conv_transpose2x2_mma_forward(const void* x, bool x_half, const std::uint16_t* w16,
+void conv_transpose2d_mma_forward(const void* x, bool x_half, const std::uint16_t* w16,
                                    const float* bias, std::int64_t batch, std::int64_t in_channels,
                                    std::int64_t height, std::int64_t width,
                                    std::int64_t out_channels, Half16 type, void* y, bool y_half,
@@ -1049,23 +1049,23 @@ void prepare_conv_transpose_data_weights(const float* w, const ConvTranspose2dSh
   run_prepare_data(w, shape.in_channels, shape.out_channels, 4, true, type, w16t, stream);
 }
 
-std::int64_t conv_transpose2x2_mma_backward_data_workspace(const ConvTranspose2dShape& shape) {
+std::int64_t conv_transpose2d_mma_backward_data_workspace(const ConvTranspose2dShape& shape) {
   return gemm_workspace(conv_transpose_data_gemm(shape));
 }
 
-void conv_transpose2x2_mma_backward_data(const float* dy, const std::uint16_t* w16t,
+void conv_transpose2d_mma_backward_data(const float* dy, const std::uint16_t* w16t,
                                          const ConvTranspose2dShape& shape, Half16 type, float* dx,
                                          cudaStream_t stream, float* workspace) {
   run_gemm(dy, false, w16t, nullptr, conv_transpose_data_gemm(shape), type, dx, false, stream,
            workspace);
 }
 
-std::int64_t conv_transpose2x2_mma_backward_weights_workspace(const ConvTranspose2dShape& shape) {
+std::int64_t conv_transpose2d_mma_backward_weights_workspace(const ConvTranspose2dShape& shape) {
   const MmaWeightGrad g = conv_transpose_weight_grad(shape);
   return split_count(g) * g.rows * g.columns;
 }
 
-void conv_transpose2x2_mma_backward_weights(const float* x, const float* dy, const ConvTranspose2dShape& shape,
+void conv_transpose2d_mma_backward_weights(const float* x, const float* dy, const ConvTranspose2dShape& shape,
                                             Half16 type, float* dw, float* dbias, float* workspace,
                                             cudaStream_t stream) {
   run_weight_grad(x, dy, conv_transpose_weight_grad(shape), type, dw, workspace, stream);

@@ -64,10 +64,10 @@ void conv2d_mma_forward(const void* x, bool x_half, const std::uint16_t* w16, co
                         const Conv2dShape& shape, Half16 type, bool relu, void* y, bool y_half,
                         cudaStream_t stream, float* workspace = nullptr);
 // x (B, I, H, W), prepared w16 and bias -> y (B, O, 2H, 2W); x, y, workspace as above.
-std::int64_t conv_transpose2x2_mma_forward_workspace(std::int64_t batch, std::int64_t in_channels,
+std::int64_t conv_transpose2d_mma_forward_workspace(std::int64_t batch, std::int64_t in_channels,
                                                      std::int64_t height, std::int64_t width,
                                                      std::int64_t out_channels);
-void conv_transpose2x2_mma_forward(const void* x, bool x_half, const std::uint16_t* w16,
+void conv_transpose2d_mma_forward(const void* x, bool x_half, const std::uint16_t* w16,
                                    const float* bias, std::int64_t batch, std::int64_t in_channels,
                                    std::int64_t height, std::int64_t width,
                                    std::int64_t out_channels, Half16 type, void* y, bool y_half,
@@ -98,12 +98,12 @@ void conv2d_mma_backward_weights(const float* x, const float* dy, const Conv2dSh
                                  cudaStream_t stream);
 void prepare_conv_transpose_data_weights(const float* w, const ConvTranspose2dShape& shape,
                                          Half16 type, std::uint16_t* w16t, cudaStream_t stream);
-std::int64_t conv_transpose2x2_mma_backward_data_workspace(const ConvTranspose2dShape& shape);
-void conv_transpose2x2_mma_backward_data(const float* dy, const std::uint16_t* w16t,
+std::int64_t conv_transpose2d_mma_backward_data_workspace(const ConvTranspose2dShape& shape);
+void conv_transpose2d_mma_backward_data(const float* dy, const std::uint16_t* w16t,
                                          const ConvTranspose2dShape& shape, Half16 type, float* dx,
                                          cudaStream_t stream, float* workspace = nullptr);
-std::int64_t conv_transpose2x2_mma_backward_weights_workspace(const ConvTranspose2dShape& shape);
-void conv_transpose2x2_mma_backward_weights(const float* x, const float* dy,
+std::int64_t conv_transpose2d_mma_backward_weights_workspace(const ConvTranspose2dShape& shape);
+void conv_transpose2d_mma_backward_weights(const float* x, const float* dy,
                                             const ConvTranspose2dShape& shape, Half16 type,
                                             float* dw, float* dbias, float* workspace,
                                             cudaStream_t stream);

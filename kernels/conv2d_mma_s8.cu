@@ -760,7 +760,7 @@ void conv2d_mma_s8_forward(const ActivationsS8& x, const std::int8_t* w8, const 
               shape.out_height(), shape.out_width(), stream, workspace);
 }
 
-std::int64_t conv_transpose2x2_mma_s8_forward_workspace(std::int64_t batch,
+std::int64_t conv_transpose2d_mma_s8_forward_workspace(std::int64_t batch,
                                                         std::int64_t in_channels,
                                                         std::int64_t height, std::int64_t width,
                                                         std::int64_t out_channels) {
@@ -768,7 +768,7 @@ std::int64_t conv_transpose2x2_mma_s8_forward_workspace(std::int64_t batch,
       conv_transpose_forward_gemm_s8(batch, in_channels, height, width, out_channels, false));
 }
 
-void conv_transpose2x2_mma_s8_forward(const ActivationsS8& x, const std::int8_t* w8,
+void conv_transpose2d_mma_s8_forward(const ActivationsS8& x, const std::int8_t* w8,
                                       const float* w_scale, const float* bias_out,
                                       std::int64_t batch, std::int64_t in_channels,
                                       std::int64_t height, std::int64_t width,

@@ -89,11 +89,11 @@ void conv2d_mma_s8_forward(const ActivationsS8& x, const std::int8_t* w8, const 
                            const OutputS8& y, cudaStream_t stream,
                            std::int32_t* workspace = nullptr);
 // x (B, I, H, W), prepared w8, w_scale, bias_out -> y (B, O, 2H, 2W); the rest as above.
-std::int64_t conv_transpose2x2_mma_s8_forward_workspace(std::int64_t batch,
+std::int64_t conv_transpose2d_mma_s8_forward_workspace(std::int64_t batch,
                                                         std::int64_t in_channels,
                                                         std::int64_t height, std::int64_t width,
                                                         std::int64_t out_channels);
-void conv_transpose2x2_mma_s8_forward(const ActivationsS8& x, const std::int8_t* w8,
+void conv_transpose2d_mma_s8_forward(const ActivationsS8& x, const std::int8_t* w8,
                                       const float* w_scale, const float* bias_out,
                                       std::int64_t batch, std::int64_t in_channels,
                                       std::int64_t height, std::int64_t width,

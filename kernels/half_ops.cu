@@ -107,7 +107,7 @@ void to_half16(const float* x, std::int64_t n, Half16 type, std::uint16_t* y, cu
   });
 }
 
-void maxpool2x2_half16(const std::uint16_t* x, std::int64_t planes, std::int64_t height,
+void maxpool2d_half16(const std::uint16_t* x, std::int64_t planes, std::int64_t height,
                        std::int64_t width, Half16 type, std::uint16_t* y, cudaStream_t stream) {
   const std::int64_t n = planes * (height / 2) * (width / 2);
   if (n == 0) return;
@@ -117,11 +117,11 @@ void maxpool2x2_half16(const std::uint16_t* x, std::int64_t planes, std::int64_t
   });
 }
 
-void upsample2x_half16(const std::uint16_t* x, std::int64_t planes, std::int64_t height,
+void upsample_bilinear_half16(const std::uint16_t* x, std::int64_t planes, std::int64_t height,
                        std::int64_t width, Half16 type, std::uint16_t* y, cudaStream_t stream) {
   const std::int64_t n = planes * 4 * height * width;
   if (n == 0) return;
-  PS_CHECK(height >= 1 && width >= 1, "upsample2x_half16: x must have H, W >= 1, got {} x {}",
+  PS_CHECK(height >= 1 && width >= 1, "upsample_bilinear_half16: x must have H, W >= 1, got {} x {}",
            height, width);
   with_half16(type, [&](auto h) {
     launch_kernel(upsample_kernel<decltype(h)::value>, grid_for(n), dim3(kBlock), 0, stream, x, planes,

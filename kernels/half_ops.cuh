@@ -1,9 +1,9 @@
 // The evaluation forward's data movement on activations stored as 16-bit floats (BF16 or FP16
 // bits, kernels/mma.cuh), between the tensor-core convolutions (conv2d_mma.cuh):
 //   to_half16            x (n) FP32 -> y (n), rounded to nearest even;
-//   maxpool2x2_half16    x (planes, H, W) -> y (planes, H / 2, W / 2), the largest of each 2 x 2
+//   maxpool2d_half16    x (planes, H, W) -> y (planes, H / 2, W / 2), the largest of each 2 x 2
 //                        window (an exact copy of one input; NaN wins as in the FP32 kernel);
-//   upsample2x_half16    bilinear x2, align_corners = true, the same taps as the FP32 kernel
+//   upsample_bilinear_half16    bilinear x2, align_corners = true, the same taps as the FP32 kernel
 //                        (bilinear_taps.cuh), computed in FP32 and rounded once;
 //   pad_concat_half16    [skip, up zero-padded to skip's size] along channels (PadConcatShape);
 //   copy_channels_half16 x as channels [channel0, channel0 + Cx) of y (ChannelBand).
@@ -20,9 +20,9 @@
 namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 
 void to_half16(const float* x, std::int64_t n, Half16 type, std::uint16_t* y, cudaStream_t stream);
-void maxpool2x2_half16(const std::uint16_t* x, std::int64_t planes, std::int64_t height,
+void maxpool2d_half16(const std::uint16_t* x, std::int64_t planes, std::int64_t height,
                        std::int64_t width, Half16 type, std::uint16_t* y, cudaStream_t stream);
-void upsample2x_half16(const std::uint16_t* x, std::int64_t planes, std::int64_t height,
+void upsample_bilinear_half16(const std::uint16_t* x, std::int64_t planes, std::int64_t height,
                        std::int64_t width, Half16 type, std::uint16_t* y, cudaStream_t stream);
 void pad_concat_half16(const std::uint16_t* skip, const std::uint16_t* up,
                        const PadConcatShape& shape, std::uint16_t* y, cudaStream_t stream);

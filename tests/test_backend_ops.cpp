@@ -6,7 +6,7 @@
 //   - the reference: the CPU reference backend (host/ ops alone), or, for the 16-bit ops, which it
 //     does not have, the op's definition written here on host memory from host/ ops and the
 //     rounding of weights_io/half.hpp;
-//   - each case names the op, its dtype and its shapes ("conv2d_half_forward/bf16,x=...,w=..."),
+//   - each case names the op, its dtype and its shapes ("conv2d_prepared_forward/bf16,x=...,w=..."),
 //     and gives its tensors (inputs, outputs, and in-outs such as a canvas that an op writes a
 //     band of, or running statistics) with their random contents;
 //   - every tensor lies between guard words: an op that writes a byte outside its tensor fails,
@@ -40,10 +40,10 @@
 //   conv2d_bn_relu_eval         conv2d_bn_relu_eval/[no_bias,]...
 //   batchnorm_relu_forward      batchnorm_relu_forward/eval[,empty]|train|train,twin_replicas
 //   batchnorm_relu_backward     batchnorm_relu_backward/[twin_replicas,|in_place,]...
-//   maxpool2x2_forward          maxpool2x2_forward/[empty,]...  (a 1 x 1 output; NaN, -Inf, ties)
-//   maxpool2x2_backward         maxpool2x2_backward/...
-//   upsample2x_forward          upsample2x_forward/[empty,]...  (a 1 x 1 input)
-//   upsample2x_backward         upsample2x_backward/...
+//   maxpool2d_forward          maxpool2d_forward/[empty,]...  (a 1 x 1 output; NaN, -Inf, ties)
+//   maxpool2d_backward         maxpool2d_backward/...
+//   upsample_bilinear_forward          upsample_bilinear_forward/[empty,]...  (a 1 x 1 input)
+//   upsample_bilinear_backward         upsample_bilinear_backward/...
 //   pad_concat_forward          pad_concat_forward/[empty,]...  (1 x 1 planes)
 //   pad_concat_backward         pad_concat_backward/...
 //   add_inplace                 add_inplace/...              (0 and 1 element)
@@ -60,19 +60,19 @@
 //                                                            processes: tests/mpi)
 //   supports_precision, supports_training_precision, supports_synchronized_batchnorm: the cases
 //                               that need them ask the backend first (and record why not)
-//   prepared_conv_transform_elements  conv2d_half_forward/... (the CPU's Winograd U)
+//   prepared_conv_transform_elements  conv2d_prepared_forward/... (the CPU's Winograd U)
 //   prepare_conv_weights        prepare_conv_weights/bf16|fp16  (bias, BatchNorm folded, neither)
 //   prepare_conv_transpose_weights  prepare_conv_transpose_weights/bf16|fp16
-//   conv2d_half_forward         conv2d_half_forward/bf16|fp16   (x and y FP32 or 16-bit)
-//   conv_transpose2x2_half_forward  conv_transpose2x2_half_forward/bf16|fp16
-//   conv2d_backward_half        conv2d_backward_half/bf16|fp16[,dw_only]
-//   conv_transpose2x2_backward_half conv_transpose2x2_backward_half/bf16|fp16
-//   to_half                     to_half/bf16|fp16            (ties, overflow, subnormals, NaN)
-//   maxpool2x2_half             maxpool2x2_half/bf16|fp16    (NaN, -Inf, ties)
-//   upsample2x_half             upsample2x_half/bf16|fp16
-//   pad_concat_half             pad_concat_half/bf16|fp16
-//   copy_channels_half          copy_channels_half/bf16|fp16
-//   scatter_forward_half        scatter_forward_half/bf16|fp16  (0 and 1 pillar, inert rows)
+//   conv2d_prepared_forward     conv2d_prepared_forward/bf16|fp16   (x and y FP32 or 16-bit)
+//   conv_transpose2d_prepared_forward  conv_transpose2d_prepared_forward/bf16|fp16
+//   conv2d_backward (compute 16-bit)  conv2d_backward/bf16|fp16[,dw_only]
+//   conv_transpose2d_backward (compute 16-bit)  conv_transpose2d_backward/bf16|fp16
+//   convert                     convert/bf16|fp16            (ties, overflow, subnormals, NaN)
+//   maxpool2d_forward (16-bit)  maxpool2d_forward/bf16|fp16    (NaN, -Inf, ties)
+//   upsample_bilinear_forward (16-bit)  upsample_bilinear_forward/bf16|fp16
+//   pad_concat_forward (16-bit)  pad_concat_forward/bf16|fp16
+//   copy_channels (16-bit)      copy_channels/bf16|fp16
+//   scatter_forward (16-bit canvas)  scatter_forward/bf16|fp16  (0 and 1 pillar, inert rows)
 #include <gtest/gtest.h>
 
 #include <algorithm>
@@ -200,7 +200,11 @@ class Bound {
   URef u32(size_t i) { return ref<uint32_t>(i); }
   LRef u8(size_t i) { return ref<uint8_t>(i); }
   HRef h16(size_t i) { return ref<uint16_t>(i); }
-  // An activation of the 16-bit forward: FP32 or 16-bit as the arg's kind.
+  // A tensor with its dtype: 16-bit in precision p where the arg's kind is, else FP32.
+  TensorRef tensor(size_t i, Precision p) {
+    return {blocks_[i] + kGuardBytes, (*args_)[i].shape, (*args_)[i].kind == Kind::H16 ? dtype_of(p) : DType::F32};
+  }
+  // The same for the references' helpers below.
   ActRef act(size_t i) {
     return {blocks_[i] + kGuardBytes, (*args_)[i].shape, (*args_)[i].kind == Kind::H16};
   }
@@ -247,6 +251,7 @@ class BackendScratch {
   BackendScratch(const BackendScratch&) = delete;
   BackendScratch& operator=(const BackendScratch&) = delete;
   const HRef& ref() const { return ref_; }
+  TensorRef tensor(Precision p) const { return {ref_.data, ref_.shape, dtype_of(p)}; }
 
  private:
   Backend& be_;
@@ -494,7 +499,7 @@ void define_conv2d_half_forward(const ActRef& x, const HRef& w16, const Ref& bia
 }
 // y (B, O, 2H, 2W): y[b][o][2i + dy][2j + dx] = bias_out[4 o + 2 dy + dx] + sum_c x[b][c][i][j]
 // w16[4 o + 2 dy + dx][c], in double on the 16-bit operands.
-void define_conv_transpose2x2_half_forward(const ActRef& x, const HRef& w16, const Ref& bias_out,
+void define_conv_transpose2d_half_forward(const ActRef& x, const HRef& w16, const Ref& bias_out,
                                            const Shape& weight, Precision p, const ActRef& y) {
   const std::vector<double> xv = rounded_activation(x, p);
   const int64_t B = x.dim(0), I = x.dim(1), H = x.dim(2), W = x.dim(3), O = weight[1],
@@ -741,7 +746,7 @@ void add_input_ops(std::vector<Case>& all) {
 void add_half_ops(std::vector<Case>& all, Precision p) {
   const std::string d = precision_name(p);
   const double ulp = half_ulp(p);
-  // to_half: random values, and at the start the rounding's edge cases.
+  // convert: random values, and at the start the rounding's edge cases.
   for (const Shape& x : std::vector<Shape>{{0, 3, 4, 5}, {1, 1, 1, 1}, {2, 3, 5, 7}}) {
     Arg in = in_f("x", x, -4, 4);
     in.fill = [](Rng& rng, void* dst, int64_t n) {
@@ -769,12 +774,11 @@ void add_half_ops(std::vector<Case>& all, Precision p) {
                    ? special[i]
                    : static_cast<float>(rng.uniform(-4, 4));
     };
-    all.push_back({.name = "to_half/" + d + ",x=" + shape_name(x),
+    all.push_back({.name = "convert/" + d + ",x=" + shape_name(x),
                    .args = {in, out("y", x, Kind::H16)},
                    .run =
                        [p](Backend& be, Bound& t) {
-                         HRef y = t.h16(1);
-                         be.to_half(t.f(0), p, y);
+                         be.convert(t.f(0), t.tensor(1, p));
                        },
                    .tol = bits(),
                    .precision = p,
@@ -787,13 +791,12 @@ void add_half_ops(std::vector<Case>& all, Precision p) {
                        }});
   }
   for (const Shape& x : std::vector<Shape>{{1, 1, 2, 2}, {2, 3, 7, 9}}) {
-    const Shape y = op::maxpool2x2(x);
-    all.push_back({.name = "maxpool2x2_half/" + d + ",x=" + shape_name(x),
+    const Shape y = op::maxpool2d(x);
+    all.push_back({.name = "maxpool2d_forward/" + d + ",x=" + shape_name(x),
                    .args = {with_nan_and_ties(in_h("x", x, p), p), out("y", y, Kind::H16)},
                    .run =
                        [p](Backend& be, Bound& t) {
-                         HRef yy = t.h16(1);
-                         be.maxpool2x2_half(t.h16(0), p, yy);
+                         be.maxpool2d_forward(t.tensor(0, p), t.tensor(1, p), nullptr);
                        },
                    .tol = bits(),
                    .precision = p,
@@ -808,13 +811,12 @@ void add_half_ops(std::vector<Case>& all, Precision p) {
   // Bilinear x2 in FP32, rounded once: the host's FP32 taps and the kernel's may round the FP32
   // value differently in its last bit, which can move the 16-bit result by one unit.
   for (const Shape& x : std::vector<Shape>{{1, 1, 1, 1}, {2, 3, 5, 4}}) {
-    const Shape y = op::upsample2x(x);
-    all.push_back({.name = "upsample2x_half/" + d + ",x=" + shape_name(x),
+    const Shape y = op::upsample_bilinear(x);
+    all.push_back({.name = "upsample_bilinear_forward/" + d + ",x=" + shape_name(x),
                    .args = {in_h("x", x, p), out("y", y, Kind::H16)},
                    .run =
                        [p](Backend& be, Bound& t) {
-                         HRef yy = t.h16(1);
-                         be.upsample2x_half(t.h16(0), p, yy);
+                         be.upsample_bilinear_forward(t.tensor(0, p), t.tensor(1, p));
                        },
                    .tol = within(0, ulp),
                    .precision = p,
@@ -832,13 +834,10 @@ void add_half_ops(std::vector<Case>& all, Precision p) {
                                             {{1, 1, 1, 1}, {1, 1, 1, 1}}}) {
     const Shape y = op::pad_concat(skip, up);
     all.push_back(
-        {.name = "pad_concat_half/" + d + ",skip=" + shape_name(skip) + ",up=" + shape_name(up),
+        {.name = "pad_concat_forward/" + d + ",skip=" + shape_name(skip) + ",up=" + shape_name(up),
          .args = {in_h("skip", skip, p), in_h("up", up, p), out("y", y, Kind::H16)},
          .run =
-             [](Backend& be, Bound& t) {
-               HRef yy = t.h16(2);
-               be.pad_concat_half(t.h16(0), t.h16(1), yy);
-             },
+             [p](Backend& be, Bound& t) { be.pad_concat_forward(t.tensor(0, p), t.tensor(1, p), t.tensor(2, p)); },
          .tol = bits(),
          .precision = p,
          .reference =
@@ -849,13 +848,10 @@ void add_half_ops(std::vector<Case>& all, Precision p) {
                encode(joined, p, yy);
              }});
   }
-  all.push_back({.name = "copy_channels_half/" + d + ",x=2x3x4x5,y=2x8x4x5,c0=4",
+  all.push_back({.name = "copy_channels/" + d + ",x=2x3x4x5,y=2x8x4x5,c0=4",
                  .args = {in_h("x", {2, 3, 4, 5}, p), inout_h("y", {2, 8, 4, 5}, p)},
                  .run =
-                     [](Backend& be, Bound& t) {
-                       HRef y = t.h16(1);
-                       be.copy_channels_half(t.h16(0), 4, y);
-                     },
+                     [p](Backend& be, Bound& t) { be.copy_channels(t.tensor(0, p), 4, t.tensor(1, p)); },
                  .tol = bits(),
                  .precision = p,
                  .reference =
@@ -871,14 +867,13 @@ void add_half_ops(std::vector<Case>& all, Precision p) {
        std::vector<std::pair<int64_t, int64_t>>{{0, 4}, {1, 4}, {37, 16}}) {
     const int64_t b = 2, h = 6, w = 7, cc = c + 3;
     all.push_back(
-        {.name = "scatter_forward_half/" + d + ",features=" + std::to_string(pillars) + "x" +
+        {.name = "scatter_forward/" + d + ",features=" + std::to_string(pillars) + "x" +
                  std::to_string(c) + ",canvas=" + shape_name({b, cc, h, w}),
          .args = {in_f("features", {pillars, c}, -3, 3),
                   cells_arg(pillars, b, h, w, /*inert=*/true), inout_h("canvas", {b, cc, h, w}, p)},
          .run =
              [p](Backend& be, Bound& t) {
-               HRef canvas = t.h16(2);
-               be.scatter_forward_half(t.f(0), t.i32(1), 2, p, canvas);
+               be.scatter_forward(t.f(0), t.i32(1), 2, t.tensor(2, p));
              },
          .tol = bits(),
          .precision = p,
@@ -919,11 +914,10 @@ void add_half_ops(std::vector<Case>& all, Precision p) {
                        [p, with_bias, with_bn](Backend& be, Bound& t) {
                          const Ref bias = t.f(1);
                          const BatchNormRefs bn = t.bn(2, false);
-                         HRef w16r = t.h16(6);
                          Ref bias_out = t.f(7);
                          be.prepare_conv_weights(t.f(0), with_bias ? &bias : nullptr,
-                                                 with_bn ? &bn : nullptr, p, w16r, bias_out,
-                                                 HRef{});
+                                                 with_bn ? &bn : nullptr, t.tensor(6, p), bias_out,
+                                                 TensorRef{});
                        },
                    .tol = bits(),
                    .precision = p,
@@ -947,10 +941,9 @@ void add_half_ops(std::vector<Case>& all, Precision p) {
                    .run =
                        [p, with_bias](Backend& be, Bound& t) {
                          const Ref bias = t.f(1);
-                         HRef w16r = t.h16(2);
                          Ref bias_out = t.f(3);
-                         be.prepare_conv_transpose_weights(t.f(0), with_bias ? &bias : nullptr, p,
-                                                           w16r, bias_out);
+                         be.prepare_conv_transpose_weights(t.f(0), with_bias ? &bias : nullptr,
+                                                           t.tensor(2, p), bias_out);
                        },
                    .tol = bits(),
                    .precision = p,
@@ -991,7 +984,7 @@ void add_half_ops(std::vector<Case>& all, Precision p) {
     const Conv c = cv;
     const bool winograd = cv.w[2] == 3 && cv.pad == 1;
     all.push_back(
-        {.name = "conv2d_half_forward/" + d + ",x=" + shape_name(cv.x) + (cv.x_half ? "h" : "f") +
+        {.name = "conv2d_prepared_forward/" + d + ",x=" + shape_name(cv.x) + (cv.x_half ? "h" : "f") +
                  ",w=" + shape_name(cv.w) + ",pad=" + std::to_string(cv.pad) +
                  ",y=" + (cv.y_half ? "h" : "f") + (cv.relu ? ",relu" : ""),
          .args = args,
@@ -999,13 +992,12 @@ void add_half_ops(std::vector<Case>& all, Precision p) {
              [p, c](Backend& be, Bound& t) {
                const Ref bias = t.f(2);
                const BatchNormRefs bn = t.bn(3, false);
-               HRef w16r = t.h16(7);
                Ref bias_out = t.f(8);
-               const BackendScratch transformed(be,
-                                                be.prepared_conv_transform_elements(c.w, c.pad, p));
-               be.prepare_conv_weights(t.f(1), &bias, &bn, p, w16r, bias_out, transformed.ref());
-               be.conv2d_half_forward(t.act(0), w16r, transformed.ref(), bias_out, c.w, c.pad,
-                                      c.relu, p, t.act(9));
+               const BackendScratch transformed(
+                   be, be.prepared_conv_transform_elements(c.w, c.pad, dtype_of(p)));
+               be.prepare_conv_weights(t.f(1), &bias, &bn, t.tensor(7, p), bias_out, transformed.tensor(p));
+               be.conv2d_prepared_forward(t.tensor(0, p), t.tensor(7, p), transformed.tensor(p), bias_out, c.w,
+                                          c.pad, c.relu, t.tensor(9, p));
              },
          .tol = cv.y_half ? within(1e-6, ulp) : nmse_within(1e-12),
          .precision = p,
@@ -1039,16 +1031,15 @@ void add_half_ops(std::vector<Case>& all, Precision p) {
                              out("y", y, cv.y_half ? Kind::H16 : Kind::F32)};
     args[3].tol = args[4].tol = bits();
     all.push_back(
-        {.name = "conv_transpose2x2_half_forward/" + d + ",x=" + shape_name(cv.x) +
+        {.name = "conv_transpose2d_prepared_forward/" + d + ",x=" + shape_name(cv.x) +
                  (cv.x_half ? "h" : "f") + ",w=" + shape_name(w) + ",y=" + (cv.y_half ? "h" : "f"),
          .args = args,
          .run =
              [p, w](Backend& be, Bound& t) {
                const Ref bias = t.f(2);
-               HRef w16r = t.h16(3);
                Ref bias_out = t.f(4);
-               be.prepare_conv_transpose_weights(t.f(1), &bias, p, w16r, bias_out);
-               be.conv_transpose2x2_half_forward(t.act(0), w16r, bias_out, w, p, t.act(5));
+               be.prepare_conv_transpose_weights(t.f(1), &bias, t.tensor(3, p), bias_out);
+               be.conv_transpose2d_prepared_forward(t.tensor(0, p), t.tensor(3, p), bias_out, w, t.tensor(5, p));
              },
          .tol = cv.y_half ? within(1e-6, ulp) : nmse_within(1e-12),
          .precision = p,
@@ -1058,7 +1049,7 @@ void add_half_ops(std::vector<Case>& all, Precision p) {
                HRef w16r = t.h16(3);
                Ref bias_out = t.f(4);
                define_prepare_conv_transpose_weights(t.f(1), &bias, p, w16r, bias_out);
-               define_conv_transpose2x2_half_forward(t.act(0), w16r, bias_out, w, p, t.act(5));
+               define_conv_transpose2d_half_forward(t.act(0), w16r, bias_out, w, p, t.act(5));
              }});
   }
   // The 16-bit training gradients: the FP32 backward of the operands rounded to p, dbias of the
@@ -1072,14 +1063,14 @@ void add_half_ops(std::vector<Case>& all, Precision p) {
       if (!full && x[1] != 3) continue;
       std::vector<Arg> args = {in_f("x", x), in_f("w", w), in_f("dy", y), out("dw", w)};
       if (full) args.push_back(out("dx", x)), args.push_back(out("dbias", {w[0]}));
-      all.push_back({.name = "conv2d_backward_half/" + d + (full ? "," : ",dw_only,") + "x=" +
+      all.push_back({.name = "conv2d_backward/" + d + (full ? "," : ",dw_only,") + "x=" +
                              shape_name(x) + ",w=" + shape_name(w) + ",pad=" + std::to_string(pad),
                      .args = args,
                      .run =
                          [p, pad, full](Backend& be, Bound& t) {
                            Ref dw = t.f(3), dx = full ? t.f(4) : Ref{}, db = full ? t.f(5) : Ref{};
-                           be.conv2d_backward_half(t.f(0), t.f(1), t.f(2), pad, p,
-                                                   full ? &dx : nullptr, dw, full ? &db : nullptr);
+                           be.conv2d_backward(t.f(0), t.f(1), t.f(2), pad, full ? &dx : nullptr, dw,
+                                              full ? &db : nullptr, dtype_of(p));
                          },
                      .tol = nmse_within(1e-12),
                      .precision = p,
@@ -1100,14 +1091,14 @@ void add_half_ops(std::vector<Case>& all, Precision p) {
   for (const auto& [x, o] :
        std::vector<std::pair<Shape, int64_t>>{{{2, 6, 3, 4}, 3}, {{1, 16, 5, 7}, 8}}) {
     const Shape w{x[1], o, 2, 2}, y{x[0], o, 2 * x[2], 2 * x[3]};
-    all.push_back({.name = "conv_transpose2x2_backward_half/" + d + ",x=" + shape_name(x) +
+    all.push_back({.name = "conv_transpose2d_backward/" + d + ",x=" + shape_name(x) +
                            ",o=" + std::to_string(o),
                    .args = {in_f("x", x), in_f("w", w), in_f("dy", y), out("dx", x), out("dw", w),
                             out("dbias", {o})},
                    .run =
                        [p](Backend& be, Bound& t) {
                          Ref dx = t.f(3), dw = t.f(4), db = t.f(5);
-                         be.conv_transpose2x2_backward_half(t.f(0), t.f(1), t.f(2), p, dx, dw, &db);
+                         be.conv_transpose2d_backward(t.f(0), t.f(1), t.f(2), dx, dw, &db, dtype_of(p));
                        },
                    .tol = nmse_within(1e-12),
                    .precision = p,
@@ -1242,39 +1233,39 @@ std::vector<Case> cases() {
   // movement, exact.
   for (const Shape& x : std::vector<Shape>{{2, 3, 6, 8}, {1, 4, 7, 5}, {1, 1, 2, 2}}) {
     const Shape p{x[0], x[1], x[2] / 2, x[3] / 2};
-    all.push_back({"maxpool2x2_forward/x=" + shape_name(x),
+    all.push_back({"maxpool2d_forward/x=" + shape_name(x),
                    {with_nan_and_ties(in_f("x", x)), out("y", p), out("argmax", p, Kind::I32)},
                    [](Backend& be, Bound& t) {
                      Ref y = t.f(1);
                      IRef am = t.i32(2);
-                     be.maxpool2x2_forward(t.f(0), y, am);
+                     be.maxpool2d_forward(t.f(0), y, &am);
                    },
                    bits()});
-    all.push_back({"maxpool2x2_backward/x=" + shape_name(x),
+    all.push_back({"maxpool2d_backward/x=" + shape_name(x),
                    {with_nan_and_ties(in_f("x", x)), in_f("dy", p), out("dx", x), out("y", p),
                     out("argmax", p, Kind::I32)},
                    [](Backend& be, Bound& t) {
                      Ref y = t.f(3), dx = t.f(2);
                      IRef am = t.i32(4);
-                     be.maxpool2x2_forward(t.f(0), y, am);
-                     be.maxpool2x2_backward(t.f(1), am, dx);
+                     be.maxpool2d_forward(t.f(0), y, &am);
+                     be.maxpool2d_backward(t.f(1), am, dx);
                    },
                    bits()});
   }
   for (const Shape& x : std::vector<Shape>{{2, 3, 6, 8}, {1, 4, 7, 5}, {1, 1, 1, 1}}) {
     const Shape u{x[0], x[1], 2 * x[2], 2 * x[3]};
-    all.push_back({"upsample2x_forward/x=" + shape_name(x),
+    all.push_back({"upsample_bilinear_forward/x=" + shape_name(x),
                    {in_f("x", x), out("y", u)},
                    [](Backend& be, Bound& t) {
                      Ref y = t.f(1);
-                     be.upsample2x_forward(t.f(0), y);
+                     be.upsample_bilinear_forward(t.f(0), y);
                    },
                    within(1e-7, 0x1p-22)});
-    all.push_back({"upsample2x_backward/x=" + shape_name(x),
+    all.push_back({"upsample_bilinear_backward/x=" + shape_name(x),
                    {in_f("dy", u), out("dx", x)},
                    [](Backend& be, Bound& t) {
                      Ref dx = t.f(1);
-                     be.upsample2x_backward(t.f(0), dx);
+                     be.upsample_bilinear_backward(t.f(0), dx);
                    },
                    within(1e-6, 1e-6)});
   }
@@ -1506,18 +1497,18 @@ std::vector<Case> cases() {
            Ref bias = t.f(2), y = t.f(3);
            be.conv2d_forward(t.f(0), t.f(1), &bias, 1, y);
          }});
-    all.push_back({"maxpool2x2_forward/empty,x=0x3x4x6",
+    all.push_back({"maxpool2d_forward/empty,x=0x3x4x6",
                    {in_f("x", x), out("y", {0, 3, 2, 3}), out("argmax", {0, 3, 2, 3}, Kind::I32)},
                    [](Backend& be, Bound& t) {
                      Ref y = t.f(1);
                      IRef am = t.i32(2);
-                     be.maxpool2x2_forward(t.f(0), y, am);
+                     be.maxpool2d_forward(t.f(0), y, &am);
                    }});
-    all.push_back({"upsample2x_forward/empty,x=0x3x4x6",
+    all.push_back({"upsample_bilinear_forward/empty,x=0x3x4x6",
                    {in_f("x", x), out("y", {0, 3, 8, 12})},
                    [](Backend& be, Bound& t) {
                      Ref y = t.f(1);
-                     be.upsample2x_forward(t.f(0), y);
+                     be.upsample_bilinear_forward(t.f(0), y);
                    }});
     all.push_back({"pad_concat_forward/empty,skip=0x3x4x6,up=0x2x3x5",
                    {in_f("skip", x), in_f("up", {0, 2, 3, 5}), out("y", {0, 5, 4, 6})},

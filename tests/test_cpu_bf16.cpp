@@ -202,7 +202,7 @@ TEST(CpuBf16Amx, AvailabilityAndTheNativeChoiceAgree) {
   try {
     cpu::conv3x3_winograd_forward(Bf16Kernels::Amx, HRef{x.data(), {1, 2, 4, 4}},
                                   HRef{w16.data(), {2, 9 * 32}}, nullptr, Ref{bias.data(), {2}},
-                                  {2, 2, 3, 3}, false, ActRef{y.data(), {1, 2, 4, 4}, false},
+                                  {2, 2, 3, 3}, false, TensorRef{y.data(), {1, 2, 4, 4}, DType::F32},
                                   workspace);
     FAIL() << "the AMX kernels where the CPU lacks them must throw";
   } catch (const Error& e) {
@@ -384,7 +384,7 @@ TEST_P(CpuBf16Conv, MatchesTheDoubleReference) {
     for (const int threads : {1, 2}) {
       ScopedThreads scoped(threads);
       Guarded y(static_cast<std::int64_t>(ref.size()), c.y_bf16 ? 2 : 4);
-      const ActRef y_ref{y.data(), {c.batch, c.out, ho, wo}, c.y_bf16};
+      const TensorRef y_ref{y.data(), {c.batch, c.out, ho, wo}, c.y_bf16 ? DType::BF16 : DType::F32};
       cpu::conv2d_forward(kernels, x_ref, w16_ref, bias_out_ref, weight, c.pad, c.relu, y_ref);
       expect_close(ref, magnitude, y, c.y_bf16, k, c.relu,
                    std::string(cpu::bf16_kernels_name(kernels)) + " " + std::to_string(threads) +
@@ -458,8 +458,8 @@ TEST_P(CpuBf16ConvTranspose, MatchesTheDoubleReference) {
   }
   for (const Bf16Kernels kernels : kernels_to_test()) {
     Guarded y(static_cast<std::int64_t>(ref.size()), c.y_bf16 ? 2 : 4);
-    cpu::conv_transpose2x2_forward(kernels, x_ref, w16_ref, bias_out_ref, weight,
-                                   ActRef{y.data(), {c.batch, c.out, oh, ow}, c.y_bf16});
+    cpu::conv_transpose2d_forward(kernels, x_ref, w16_ref, bias_out_ref, weight,
+                                   TensorRef{y.data(), {c.batch, c.out, oh, ow}, c.y_bf16 ? DType::BF16 : DType::F32});
     expect_close(ref, magnitude, y, c.y_bf16, c.in, false, cpu::bf16_kernels_name(kernels));
   }
 }
@@ -483,16 +483,16 @@ TEST(CpuBf16Conv, WrongShapesAndPrecisionsSayWhat) {
   const Ref bias_ref{bias.data(), {4}};
   try {
     cpu::conv2d_forward(Bf16Kernels::Emulated, x_ref, HRef{w16.data(), {4, 288}}, bias_ref,
-                        {4, 3, 3, 3}, 1, false, ActRef{y.data(), {2, 4, 4, 5}, false});
+                        {4, 3, 3, 3}, 1, false, TensorRef{y.data(), {2, 4, 4, 5}, DType::F32});
     FAIL() << "a wrong y shape must throw";
   } catch (const Error& e) {
-    EXPECT_NE(std::string(e.what()).find("CpuBackend::conv2d_half_forward: y must be (2, 4, 4, 4)"),
+    EXPECT_NE(std::string(e.what()).find("CpuBackend::conv2d_prepared_forward: y must be (2, 4, 4, 4)"),
               std::string::npos)
         << e.what();
   }
   try {
     cpu::conv2d_forward(Bf16Kernels::Emulated, x_ref, HRef{w16.data(), {4, 27}}, bias_ref,
-                        {4, 3, 3, 3}, 1, false, ActRef{y.data(), {2, 4, 4, 4}, false});
+                        {4, 3, 3, 3}, 1, false, TensorRef{y.data(), {2, 4, 4, 4}, DType::F32});
     FAIL() << "unpadded weights must throw";
   } catch (const Error& e) {
     // 9 taps of the 3 channels padded to 32 (tap-major).
@@ -616,7 +616,7 @@ TEST_P(CpuBf16Winograd, MatchesTheDoubleReference) {
       Guarded y(static_cast<std::int64_t>(ref.size()), c.y_bf16 ? 2 : 4);
       cpu::Bf16WinogradWorkspace workspace;
       cpu::conv3x3_winograd_forward(kernels, x_ref, w16_ref, nullptr, bias_out_ref, weight, c.relu,
-                                    ActRef{y.data(), {c.batch, c.out, H, W}, c.y_bf16}, workspace);
+                                    TensorRef{y.data(), {c.batch, c.out, H, W}, c.y_bf16 ? DType::BF16 : DType::F32}, workspace);
       expect_within(ref, bound, y, c.y_bf16, false, what);
       // The same with the transformed weights made beforehand (as the model makes them once):
       // the same bits.
@@ -626,7 +626,7 @@ TEST_P(CpuBf16Winograd, MatchesTheDoubleReference) {
       Guarded y_prepared(static_cast<std::int64_t>(ref.size()), c.y_bf16 ? 2 : 4);
       cpu::conv3x3_winograd_forward(
           kernels, x_ref, w16_ref, u16.data(), bias_out_ref, weight, c.relu,
-          ActRef{y_prepared.data(), {c.batch, c.out, H, W}, c.y_bf16}, workspace);
+          TensorRef{y_prepared.data(), {c.batch, c.out, H, W}, c.y_bf16 ? DType::BF16 : DType::F32}, workspace);
       EXPECT_EQ(y_prepared.bytes, y.bytes) << what << ": with U made beforehand";
       results.emplace_back(kernels, y.bytes);
     }
@@ -694,22 +694,23 @@ std::vector<std::uint16_t> run_half_ops(Backend& be, const std::vector<float>& x
   const std::int64_t n = shape_numel(shape);
   float* xd = f.put(xf);
   HRef h{d.put(std::vector<std::uint16_t>(static_cast<size_t>(n))), shape};
-  be.to_half(Ref{xd, shape}, Precision::BF16, h);
-  const Shape pooled_shape = op::maxpool2x2(shape);
+  const auto bf16 = [](const HRef& r) { return TensorRef{r.data, r.shape, DType::BF16}; };
+  be.convert(Ref{xd, shape}, bf16(h));
+  const Shape pooled_shape = op::maxpool2d(shape);
   HRef pooled{d.put(std::vector<std::uint16_t>(static_cast<size_t>(shape_numel(pooled_shape)))),
               pooled_shape};
-  be.maxpool2x2_half(h, Precision::BF16, pooled);
-  const Shape up_shape = op::upsample2x(pooled_shape);
+  be.maxpool2d_forward(bf16(h), bf16(pooled), nullptr);
+  const Shape up_shape = op::upsample_bilinear(pooled_shape);
   HRef up{d.put(std::vector<std::uint16_t>(static_cast<size_t>(shape_numel(up_shape)))), up_shape};
-  be.upsample2x_half(pooled, Precision::BF16, up);
+  be.upsample_bilinear_forward(bf16(pooled), bf16(up));
   const Shape cat_shape = op::pad_concat(h.shape, up.shape);
   HRef cat{d.put(std::vector<std::uint16_t>(static_cast<size_t>(shape_numel(cat_shape)))),
            cat_shape};
-  be.pad_concat_half(h, up, cat);
+  be.pad_concat_forward(bf16(h), bf16(up), bf16(cat));
   const Shape wide_shape = {shape[0], cat_shape[1] + 3, shape[2], shape[3]};
   HRef wide{d.put(std::vector<std::uint16_t>(static_cast<size_t>(shape_numel(wide_shape)), 0x1234)),
             wide_shape};
-  be.copy_channels_half(cat, 2, wide);
+  be.copy_channels(bf16(cat), 2, bf16(wide));
   std::vector<std::uint16_t> all = d.get(h.data, n);
   for (const HRef* r : {&pooled, &up, &cat, &wide}) {
     const std::vector<std::uint16_t> part = d.get(r->data, r->numel());
@@ -734,7 +735,7 @@ TEST(CpuHalfOps, BitForBitTheCudaBackends) {
 }
 
 // The scatter into a 16-bit canvas band (channels 2..4 of 6, batch 2, 5 x 7 cells): the band's
-// values are the FP32 scatter's rounded (what to_half makes of its canvas), the other channels
+// values are the FP32 scatter's rounded (what convert makes of its canvas), the other channels
 // keep 0x1234, an inert row (-1, -1, -1) is skipped; the CPU's bits are the CUDA backend's.
 std::vector<std::uint16_t> run_half_scatter(Backend& be) {
   Rng rng(17);
@@ -757,16 +758,15 @@ std::vector<std::uint16_t> run_half_scatter(Backend& be) {
   be.scatter_forward(Ref{f.put(features), {pillars, c}}, IRef{i.put(cells), {pillars, 3}}, channel0,
                      canvas32);
   HRef rounded{d.put(std::vector<std::uint16_t>(static_cast<size_t>(n))), canvas_shape};
-  be.to_half(canvas32, Precision::BF16, rounded);
+  be.convert(canvas32, TensorRef{rounded.data, rounded.shape, DType::BF16});
   // 16-bit, with an inert row appended.
   std::vector<float> more = features;
   more.insert(more.end(), {7.0f, 7.0f, 7.0f});
   std::vector<std::int32_t> more_cells = cells;
   more_cells.insert(more_cells.end(), {-1, -1, -1});
   HRef canvas16{d.put(std::vector<std::uint16_t>(static_cast<size_t>(n), 0x1234)), canvas_shape};
-  be.scatter_forward_half(Ref{f.put(more), {pillars + 1, c}},
-                          IRef{i.put(more_cells), {pillars + 1, 3}}, channel0, Precision::BF16,
-                          canvas16);
+  be.scatter_forward(Ref{f.put(more), {pillars + 1, c}}, IRef{i.put(more_cells), {pillars + 1, 3}}, channel0,
+                     TensorRef{canvas16.data, canvas16.shape, DType::BF16});
   const std::vector<std::uint16_t> expected = d.get(rounded.data, n), got = d.get(canvas16.data, n);
   for (std::int64_t e = 0; e < n; ++e) {
     const std::int64_t channel = e / (h * w) % cc;

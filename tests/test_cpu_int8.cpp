@@ -394,7 +394,7 @@ TEST(Int8Conv, TransposedMatchesTheReferenceBitForBit) {
         const float sx = 2.0f / 127.0f;
         Output y({c.batch, c.out, 2 * c.h, 2 * c.w}, half);
         cpu::Int8ConvWorkspace ws;
-        cpu::int8_conv_transpose2x2_forward(kernels, x.ref(), sx, p, y.ref(), ws);
+        cpu::int8_conv_transpose2d_forward(kernels, x.ref(), sx, p, y.ref(), ws);
         const Reference ref = reference_conv_transpose(x, sx, p);
         std::string first;
         EXPECT_EQ(compare(y, ref, p, sx, false, 4 * c.h * c.w, c.out, &first), 0)

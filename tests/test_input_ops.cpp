@@ -9,9 +9,9 @@
 
 #include "core/error.hpp"
 #include "core/tensor.hpp"
-#include "host/label_mask.hpp"
+#include "host/mask_unobserved.hpp"
 #include "host/observability_input.hpp"
-#include "host/point_padding.hpp"
+#include "host/pad_points.hpp"
 #include "host/scatter.hpp"
 
 using namespace pillarseg;

@@ -1,7 +1,7 @@
 // The input-preparation kernels of the device pipeline on the CUDA emulation (and, as *_gpu, on a
-// GPU), against the host ops on the same inputs: point padding (kernels/point_padding.cu), batch
+// GPU), against the host ops on the same inputs: point padding (kernels/pad_points.cu), batch
 // cells (scatter.cu), the 2D occupancy input (observability_input.cu), the masking of unobserved
-// cells (label_mask.cu) and the grid-map layers (grid_map_features.cu, on the gather's grouping).
+// cells (mask_unobserved.cu) and the grid-map layers (grid_map_features.cu, on the gather's grouping).
 // Cases: odd grids, empty scans, points outside the grid and non-finite ones, padding rows,
 // guard words around every output. Everything is exact except log1p on a GPU (one float ulp at
 // most in rare cells; the emulation uses the host's log1p, so there it is exact too).
@@ -17,17 +17,17 @@
 #include "core/grid.hpp"
 #include "core/point.hpp"
 #include "host/grid_map_features.hpp"
-#include "host/label_mask.hpp"
+#include "host/mask_unobserved.hpp"
 #include "host/observability_input.hpp"
 #include "host/pillar_gather.hpp"
-#include "host/point_padding.hpp"
+#include "host/pad_points.hpp"
 #include "host/raywalk.hpp"
 #include "host/scatter.hpp"
 #include "kernels/grid_map_features.cuh"
-#include "kernels/label_mask.cuh"
+#include "kernels/mask_unobserved.cuh"
 #include "kernels/observability_input.cuh"
 #include "kernels/pillar_gather.cuh"
-#include "kernels/point_padding.cuh"
+#include "kernels/pad_points.cuh"
 #include "kernels/raywalk.cuh"
 #include "kernels/scatter.cuh"
 #include "tests/kernel_test_helpers.hpp"

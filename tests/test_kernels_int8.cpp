@@ -475,7 +475,7 @@ void check_conv_s8(const ConvCaseS8& cc) {
   GuardedArray<float> dy_f(out_count, 1);
   GuardedArray<std::uint16_t> dy_h(out_count, 3);
   const std::int64_t workspace_count =
-      cc.transposed ? cuda::conv_transpose2x2_mma_s8_forward_workspace(
+      cc.transposed ? cuda::conv_transpose2d_mma_s8_forward_workspace(
                           s.batch, s.in_channels, s.height, s.width, s.out_channels)
                     : cuda::conv2d_mma_s8_forward_workspace(s);
   DeviceBuffer<std::int32_t> workspace(
@@ -486,7 +486,7 @@ void check_conv_s8(const ConvCaseS8& cc) {
   const auto convolve = [&](const cuda::ActivationsS8& xs, const cuda::OutputS8& ys, bool split) {
     std::int32_t* ws = split ? workspace.data() : nullptr;
     if (cc.transposed)
-      cuda::conv_transpose2x2_mma_s8_forward(xs, dw8.data(), dscale.data(), dbias.data(), s.batch,
+      cuda::conv_transpose2d_mma_s8_forward(xs, dw8.data(), dscale.data(), dbias.data(), s.batch,
                                              s.in_channels, s.height, s.width, s.out_channels,
                                              cc.relu, ys, nullptr, ws);
     else
@@ -637,7 +637,7 @@ TEST(ConvMmaS8, Transposed2x2Bf16ReluUnitScales) {
 }
 // in_channels 512: 16 K steps for one tile of 24 pixels x 20 columns: 2 splits.
 TEST(ConvMmaS8, Transposed2x2SplitK) {
-  EXPECT_EQ(cuda::conv_transpose2x2_mma_s8_forward_workspace(2, 512, 3, 4, 5), 2 * 24 * 20);
+  EXPECT_EQ(cuda::conv_transpose2d_mma_s8_forward_workspace(2, 512, 3, 4, 5), 2 * 24 * 20);
   check_conv_s8({2, 512, 3, 4, 5, 2, 0, true, false, true, false, true});
 }
 

@@ -401,12 +401,12 @@ void check_transposed(Half16 type, std::int64_t in_channels = 6) {
   cuda::prepare_conv_transpose_weights(dw.data(), dbias.data(), I, O, type, w16.data(),
                                        b_out.data(), nullptr);
   const std::int64_t workspace_floats =
-      cuda::conv_transpose2x2_mma_forward_workspace(B, I, H, W, O);
+      cuda::conv_transpose2d_mma_forward_workspace(B, I, H, W, O);
   if (I == 512) {
     EXPECT_EQ(workspace_floats, 2 * B * H * W * 4 * O);
   }
   DeviceBuffer<float> workspace(static_cast<size_t>(std::max<std::int64_t>(workspace_floats, 1)));
-  cuda::conv_transpose2x2_mma_forward(dx.data(), false, w16.data(), b_out.data(), B, I, H, W, O,
+  cuda::conv_transpose2d_mma_forward(dx.data(), false, w16.data(), b_out.data(), B, I, H, W, O,
                                       type, dy.data(), false, nullptr, workspace.data());
   PS_CUDA_CHECK(cudaDeviceSynchronize());
   const std::vector<float> y = dy.to_host();
@@ -573,11 +573,11 @@ void check_transposed_backward(std::int64_t B, std::int64_t I, std::int64_t O, s
        d_g = DeviceBuffer<float>::from_host(g);
   DeviceBuffer<std::uint16_t> w16t(static_cast<size_t>(I * op::half16_weight_k(O, 4)));
   DeviceBuffer<float> workspace(
-      static_cast<size_t>(std::max<std::int64_t>(1, cuda::conv_transpose2x2_mma_backward_weights_workspace(s))));
+      static_cast<size_t>(std::max<std::int64_t>(1, cuda::conv_transpose2d_mma_backward_weights_workspace(s))));
   GuardedArray<float> dx(static_cast<std::int64_t>(x.size())), dw(static_cast<std::int64_t>(w.size())), db(O);
   cuda::prepare_conv_transpose_data_weights(d_w.data(), s, type, w16t.data(), nullptr);
-  cuda::conv_transpose2x2_mma_backward_data(d_g.data(), w16t.data(), s, type, dx.data(), nullptr);
-  cuda::conv_transpose2x2_mma_backward_weights(d_x.data(), d_g.data(), s, type, dw.data(), db.data(),
+  cuda::conv_transpose2d_mma_backward_data(d_g.data(), w16t.data(), s, type, dx.data(), nullptr);
+  cuda::conv_transpose2d_mma_backward_weights(d_x.data(), d_g.data(), s, type, dw.data(), db.data(),
                                                workspace.data(), nullptr);
   PS_CUDA_CHECK(cudaDeviceSynchronize());
   EXPECT_TRUE(dx.guards_intact());
@@ -684,7 +684,7 @@ void check_half_ops(Half16 type) {
   DeviceBuffer<std::uint16_t> pool16(pooled);
   DeviceBuffer<float> pool32(pooled);
   DeviceBuffer<std::int32_t> argmax(pooled);
-  cuda::maxpool2x2_half16(d_bits.data(), planes, H, W, type, pool16.data(), nullptr);
+  cuda::maxpool2d_half16(d_bits.data(), planes, H, W, type, pool16.data(), nullptr);
   cuda::maxpool2d_forward(d_rounded.data(), planes, H, W, pool32.data(), argmax.data(), nullptr);
   PS_CUDA_CHECK(cudaDeviceSynchronize());
   EXPECT_EQ(half_values(pool16.to_host(), type), pool32.to_host());
@@ -693,7 +693,7 @@ void check_half_ops(Half16 type) {
   const size_t up = static_cast<size_t>(planes * 4 * H * W);
   DeviceBuffer<std::uint16_t> up16(up);
   DeviceBuffer<float> up32(up);
-  cuda::upsample2x_half16(d_bits.data(), planes, H, W, type, up16.data(), nullptr);
+  cuda::upsample_bilinear_half16(d_bits.data(), planes, H, W, type, up16.data(), nullptr);
   cuda::upsample_bilinear_forward(d_rounded.data(), planes, H, W, up32.data(), nullptr);
   PS_CUDA_CHECK(cudaDeviceSynchronize());
   expect_within_one_rounding(half_values(up16.to_host(), type), up32.to_host(), type, "upsample");

@@ -102,10 +102,12 @@ void run_gemm(Bf16Kernels kernels, const Bf16Gemm& g) {
 }
 
 // y's shape against the op's, and whether y is FP32 or BF16.
-void require_output(const char* op, const ActRef& y, const Shape& expected) {
+void require_output(const char* op, const TensorRef& y, const Shape& expected) {
   PS_CHECK(y.shape == expected, "{}: y must be {}, got {}", op, shape_str(expected),
            shape_str(y.shape));
   PS_CHECK(y.data != nullptr || y.numel() == 0, "{}: y has no memory", op);
+  PS_CHECK(y.dtype == DType::F32 || y.dtype == DType::BF16, "{}: y must be f32 or bf16, got {}", op,
+           dtype_name(y.dtype));
 }
 
 }  // namespace
@@ -245,8 +247,8 @@ void prepare_conv_transpose_weights(const Ref& w, const Ref* bias, Precision p, 
 }
 
 void conv2d_forward(Bf16Kernels kernels, const HRef& x, const HRef& w16, const Ref& bias_out,
-                    const Shape& weight, int pad, bool relu, const ActRef& y) {
-  const char* op = "CpuBackend::conv2d_half_forward";
+                    const Shape& weight, int pad, bool relu, const TensorRef& y) {
+  const char* op = "CpuBackend::conv2d_prepared_forward";
   const Shape y_shape = op::conv2d(x.shape, weight, pad, nullptr, op);
   require_output(op, y, y_shape);
   require_shape(op, "w16", w16, op::half16_conv_weights(weight, false));
@@ -264,7 +266,7 @@ void conv2d_forward(Bf16Kernels kernels, const HRef& x, const HRef& w16, const R
   g.k_taps = taps.data(), g.k = static_cast<std::int64_t>(taps.size()), g.offsets = offsets.data(),
   g.taps = static_cast<int>(offsets.size());
   g.w = w16.data, g.kp = w16.dim(1), g.columns = weight[0], g.bias = bias_out.data, g.relu = relu;
-  g.y = y.data, g.y_bf16 = y.half;
+  g.y = y.data, g.y_bf16 = y.dtype == DType::BF16;
   g.rows = y_shape[2], g.row_pixels = y_shape[3];
   g.out_height = y_shape[2], g.out_width = y_shape[3], g.out_planes = y_shape[1];
   run_gemm(kernels, g);
@@ -338,8 +340,8 @@ void winograd_transform_weights(Bf16Kernels kernels, const HRef& w16, const Shap
 
 void conv3x3_winograd_forward(Bf16Kernels kernels, const HRef& x, const HRef& w16,
                               const std::uint16_t* u, const Ref& bias_out, const Shape& weight,
-                              bool relu, const ActRef& y, Bf16WinogradWorkspace& workspace) {
-  const char* op = "CpuBackend::conv2d_half_forward (Winograd)";
+                              bool relu, const TensorRef& y, Bf16WinogradWorkspace& workspace) {
+  const char* op = "CpuBackend::conv2d_prepared_forward (Winograd)";
   require_3x3(op, weight);
   const Shape y_shape = op::conv2d(x.shape, weight, 1, nullptr, op);
   require_output(op, y, y_shape);
@@ -363,7 +365,7 @@ void conv3x3_winograd_forward(Bf16Kernels kernels, const HRef& x, const HRef& w1
   g.x = x.data, g.batch = x.dim(0), g.channels = in, g.height = x.dim(2), g.width = x.dim(3);
   g.channel_pairs = pairs, g.u = u, g.out_channels = out, g.u_rows = u_rows;
   g.bias = bias_out.data, g.relu = relu;
-  g.y = y.data, g.y_bf16 = y.half;
+  g.y = y.data, g.y_bf16 = y.dtype == DType::BF16;
   g.tiles_h = (g.height + 1) / 2, g.tiles_w = (g.width + 1) / 2;
   // Blocks whose V (16 channel-pair rows of 4-byte pairs per tile) stays within 384 KiB of a
   // core's L2, at least one 48-tile group, at most an image.
@@ -400,10 +402,10 @@ void conv3x3_winograd_forward(Bf16Kernels kernels, const HRef& x, const HRef& w1
                   });
 }
 
-void conv_transpose2x2_forward(Bf16Kernels kernels, const HRef& x, const HRef& w16,
-                               const Ref& bias_out, const Shape& weight, const ActRef& y) {
-  const char* op = "CpuBackend::conv_transpose2x2_half_forward";
-  const Shape y_shape = op::conv_transpose2x2(x.shape, weight, nullptr, op);
+void conv_transpose2d_forward(Bf16Kernels kernels, const HRef& x, const HRef& w16,
+                               const Ref& bias_out, const Shape& weight, const TensorRef& y) {
+  const char* op = "CpuBackend::conv_transpose2d_prepared_forward";
+  const Shape y_shape = op::conv_transpose2d(x.shape, weight, nullptr, op);
   require_output(op, y, y_shape);
   require_shape(op, "w16", w16, op::half16_conv_weights(weight, true));
   require_shape(op, "bias_out", bias_out, {4 * weight[1]});
@@ -416,7 +418,7 @@ void conv_transpose2x2_forward(Bf16Kernels kernels, const HRef& x, const HRef& w
   g.taps = 1;
   g.w = w16.data, g.kp = w16.dim(1), g.columns = 4 * weight[1], g.bias = bias_out.data;
   g.transposed = true;
-  g.y = y.data, g.y_bf16 = y.half;
+  g.y = y.data, g.y_bf16 = y.dtype == DType::BF16;
   g.rows = h, g.row_pixels = w;
   g.out_height = y_shape[2], g.out_width = y_shape[3], g.out_planes = y_shape[1];
   run_gemm(kernels, g);
@@ -451,10 +453,10 @@ void scatter_half(const Ref& features, const IRef& cells, int channel0, Precisio
   }
 }
 
-void maxpool2x2_half(const HRef& x, Precision p, HRef& y) {
-  const char* op = "CpuBackend::maxpool2x2_half";
+void maxpool2d_half(const HRef& x, Precision p, HRef& y) {
+  const char* op = "CpuBackend::maxpool2d_half";
   require_half(op, p);
-  require_shape(op, "y", y, op::maxpool2x2(x.shape, op));
+  require_shape(op, "y", y, op::maxpool2d(x.shape, op));
   const std::int64_t h = x.dim(2), w = x.dim(3), oh = h / 2, ow = w / 2;
   with_half_type(p, [&](auto half) {
     constexpr bool kBf16 = decltype(half)::value;
@@ -477,10 +479,10 @@ void maxpool2x2_half(const HRef& x, Precision p, HRef& y) {
   });
 }
 
-void upsample2x_half(const HRef& x, Precision p, HRef& y) {
-  const char* op = "CpuBackend::upsample2x_half";
+void upsample_bilinear_half(const HRef& x, Precision p, HRef& y) {
+  const char* op = "CpuBackend::upsample_bilinear_half";
   require_half(op, p);
-  require_shape(op, "y", y, op::upsample2x(x.shape, op));
+  require_shape(op, "y", y, op::upsample_bilinear(x.shape, op));
   const std::int64_t in_h = x.dim(2), in_w = x.dim(3), out_h = 2 * in_h, out_w = 2 * in_w;
   // The taps of kernels/bilinear_taps.cuh: s = d (in - 1) / (out - 1) = i0 + remainder / (out -
   // 1), the weights rounded once from the exact fractions.

@@ -49,10 +49,10 @@ void prepare_conv_transpose_weights(const Ref& w, const Ref* bias, Precision p, 
                                     Ref& bias_out);
 
 // x (B, I, H, W) BF16 -> y (B, O, Ho, Wo) = act(conv(x, w16) + bias_out) for `weight` (O, I, k,
-// k) and `pad` (stride 1), FP32 or BF16 (y.half). Threads: num_threads(); results do not depend
+// k) and `pad` (stride 1), FP32 or BF16 (y.dtype). Threads: num_threads(); results do not depend
 // on the thread count.
 void conv2d_forward(Bf16Kernels kernels, const HRef& x, const HRef& w16, const Ref& bias_out,
-                    const Shape& weight, int pad, bool relu, const ActRef& y);
+                    const Shape& weight, int pad, bool relu, const TensorRef& y);
 // Scratch of the Winograd convolution, kept by its owner (the CPU backend) between calls so that
 // the steady state allocates nothing: the transformed weights and each thread's blocks.
 struct Bf16WinogradWorkspace {
@@ -66,7 +66,7 @@ struct Bf16WinogradWorkspace {
 // nullptr to make them here (in the workspace).
 void conv3x3_winograd_forward(Bf16Kernels kernels, const HRef& x, const HRef& w16,
                               const std::uint16_t* u, const Ref& bias_out, const Shape& weight,
-                              bool relu, const ActRef& y, Bf16WinogradWorkspace& workspace);
+                              bool relu, const TensorRef& y, Bf16WinogradWorkspace& workspace);
 // The Winograd-transformed weights of a 3 x 3 convolution of weight (O, I, 3, 3): U = G g G^T
 // of each prepared BF16 kernel g of w16 (in double, rounded once), laid out for `kernels` (AMX's
 // tiles pad the channel pairs and rows): their element count, and U itself.
@@ -75,13 +75,13 @@ void winograd_transform_weights(Bf16Kernels kernels, const HRef& w16, const Shap
                                 std::uint16_t* u);
 // x (B, I, H, W) BF16 -> y (B, O, 2H, 2W), the transposed 2x2 stride-2 convolution for `weight`
 // (I, O, 2, 2).
-void conv_transpose2x2_forward(Bf16Kernels kernels, const HRef& x, const HRef& w16,
-                               const Ref& bias_out, const Shape& weight, const ActRef& y);
+void conv_transpose2d_forward(Bf16Kernels kernels, const HRef& x, const HRef& w16,
+                               const Ref& bias_out, const Shape& weight, const TensorRef& y);
 
 // The 16-bit data movement (kernels/half_ops.cuh), for BF16 and FP16 bits.
 void to_half(const Ref& x, Precision p, HRef& y);
-void maxpool2x2_half(const HRef& x, Precision p, HRef& y);
-void upsample2x_half(const HRef& x, Precision p, HRef& y);
+void maxpool2d_half(const HRef& x, Precision p, HRef& y);
+void upsample_bilinear_half(const HRef& x, Precision p, HRef& y);
 void pad_concat_half(const HRef& skip, const HRef& up, HRef& y);
 void copy_channels_half(const HRef& x, int channel0, HRef& y);
 // The pillar scatter into channels [channel0, channel0 + C) of a 16-bit canvas (B, Cc, H, W):

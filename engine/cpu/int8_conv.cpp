@@ -385,13 +385,13 @@ void int8_conv2d_forward(Int8Kernels kernels, const ActRef& x, float sx, const I
   run_gemm(kernels, on_native, g);
 }
 
-void int8_conv_transpose2x2_forward(Int8Kernels kernels, const ActRef& x, float sx,
+void int8_conv_transpose2d_forward(Int8Kernels kernels, const ActRef& x, float sx,
                                     const Int8ConvWeights& w, const ActRef& y,
                                     Int8ConvWorkspace& workspace) {
-  const char* op = "int8_conv_transpose2x2_forward";
+  const char* op = "int8_conv_transpose2d_forward";
   check_common(op, kernels, x, sx, w, y);
   PS_CHECK(w.transposed, "{}: the weights are a plain convolution's", op);
-  const Shape y_shape = op::conv_transpose2x2(x.shape, w.weight, nullptr, op);
+  const Shape y_shape = op::conv_transpose2d(x.shape, w.weight, nullptr, op);
   PS_CHECK(y.shape == y_shape, "{}: y must be {}, got {}", op, shape_str(y_shape),
            shape_str(y.shape));
   const bool on_native = native(kernels);

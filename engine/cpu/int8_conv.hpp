@@ -95,7 +95,7 @@ struct Int8ConvWorkspace {
 void int8_conv2d_forward(Int8Kernels kernels, const ActRef& x, float sx, const Int8ConvWeights& w,
                          int pad, bool relu, const ActRef& y, Int8ConvWorkspace& workspace);
 // x (B, I, H, W) -> y (B, O, 2H, 2W), the transposed 2x2 stride-2 convolution, no activation.
-void int8_conv_transpose2x2_forward(Int8Kernels kernels, const ActRef& x, float sx,
+void int8_conv_transpose2d_forward(Int8Kernels kernels, const ActRef& x, float sx,
                                     const Int8ConvWeights& w, const ActRef& y,
                                     Int8ConvWorkspace& workspace);
 

@@ -20,14 +20,14 @@
 #include "kernels/conv_transpose2d.cuh"
 #include "kernels/elementwise.cuh"
 #include "kernels/grid_map_features.cuh"
-#include "kernels/label_mask.cuh"
+#include "kernels/mask_unobserved.cuh"
 #include "kernels/maxpool2d.cuh"
 #include "kernels/observability_input.cuh"
 #include "kernels/pad_concat.cuh"
 #include "kernels/pfn.cuh"
 #include "kernels/pillar_gather.cuh"
 #include "kernels/point_decoration.cuh"
-#include "kernels/point_padding.cuh"
+#include "kernels/pad_points.cuh"
 #include "kernels/raywalk.cuh"
 #include "kernels/reduce.cuh"
 #include "kernels/scatter.cuh"
@@ -542,7 +542,7 @@ void CudaBackend::pfn_backward(const Ref& points, const Ref& weight, const Batch
                      dbeta.data, workspace, stream_.get(), batchnorm_sum(bn.replicas));
 }
 
-void CudaBackend::scatter_forward(const Ref& features, const IRef& cells, int channel0,
+void CudaBackend::scatter_forward_f32(const Ref& features, const IRef& cells, int channel0,
                                   Ref& canvas) {
   op::scatter(features.shape, cells.shape, canvas.shape, channel0, "scatter_forward");
   const cuda::ScatterCanvas shape{canvas.dim(0), canvas.dim(1), canvas.dim(2), canvas.dim(3),
@@ -570,7 +570,7 @@ cuda::ChannelBand channel_band(const char* caller, const Ref& x, int channel0, c
 
 }  // namespace
 
-void CudaBackend::copy_channels(const Ref& x, int channel0, Ref& y) {
+void CudaBackend::copy_channels_f32(const Ref& x, int channel0, Ref& y) {
   cuda::copy_channels(x.data, channel_band("copy_channels", x, channel0, y), y.data, stream_.get());
 }
 
@@ -592,7 +592,7 @@ Shape conv_output(const cuda::Conv2dShape& s) {
 }
 
 cuda::ConvTranspose2dShape conv_transpose_shape(const char* caller, const Ref& x, const Ref& w) {
-  op::conv_transpose2x2(x.shape, w.shape, nullptr, caller);
+  op::conv_transpose2d(x.shape, w.shape, nullptr, caller);
   return {x.dim(0), x.dim(1), x.dim(2), x.dim(3), w.dim(1)};
 }
 
@@ -643,7 +643,7 @@ void CudaBackend::conv2d_forward(const Ref& x, const Ref& w, const Ref* bias, in
   cuda::conv2d_forward(x.data, w.data, bias ? bias->data : nullptr, y.data, shape, stream_.get());
 }
 
-void CudaBackend::conv2d_backward(const Ref& x, const Ref& w, const Ref& dy, int pad, Ref* dx,
+void CudaBackend::conv2d_backward_f32(const Ref& x, const Ref& w, const Ref& dy, int pad, Ref* dx,
                                   Ref& dw, Ref* dbias) {
   const char* op = "conv2d_backward";
   const cuda::Conv2dShape shape = conv_backward_shape(op, x, w, dy, pad, dx, dw, dbias);
@@ -670,7 +670,7 @@ void CudaBackend::conv_transpose2d_forward(const Ref& x, const Ref& w, const Ref
                                  stream_.get());
 }
 
-void CudaBackend::conv_transpose2d_backward(const Ref& x, const Ref& w, const Ref& dy, Ref& dx,
+void CudaBackend::conv_transpose2d_backward_f32(const Ref& x, const Ref& w, const Ref& dy, Ref& dx,
                                             Ref& dw, Ref* dbias) {
   const char* op = "conv_transpose2d_backward";
   const cuda::ConvTranspose2dShape shape = conv_transpose_backward_shape(op, x, w, dy, dx, dw, dbias);
@@ -718,17 +718,17 @@ void CudaBackend::batchnorm_relu_backward(const Ref& x, const Ref& y, const Ref&
                            stream_.get(), batchnorm_sum(bn.replicas));
 }
 
-void CudaBackend::maxpool2x2_forward(const Ref& x, Ref& y, IRef& argmax) {
-  const char* op = "maxpool2x2_forward";
-  const Shape pooled = op::maxpool2x2(x.shape, op);
+void CudaBackend::maxpool2d_f32(const Ref& x, Ref& y, IRef& argmax) {
+  const char* op = "maxpool2d_forward";
+  const Shape pooled = op::maxpool2d(x.shape, op);
   require_shape(op, "y", y, pooled);
   require_shape(op, "argmax", argmax, pooled);
   cuda::maxpool2d_forward(x.data, x.dim(0) * x.dim(1), x.dim(2), x.dim(3), y.data, argmax.data,
                           stream_.get());
 }
 
-void CudaBackend::maxpool2x2_backward(const Ref& dy, const IRef& argmax, Ref& dx) {
-  const char* op = "maxpool2x2_backward";
+void CudaBackend::maxpool2d_backward(const Ref& dy, const IRef& argmax, Ref& dx) {
+  const char* op = "maxpool2d_backward";
   require_rank(op, "dx", dx, 4);
   const Shape pooled{dx.dim(0), dx.dim(1), dx.dim(2) / 2, dx.dim(3) / 2};
   require_shape(op, "dy", dy, pooled);
@@ -737,14 +737,14 @@ void CudaBackend::maxpool2x2_backward(const Ref& dy, const IRef& argmax, Ref& dx
                            dx.data, stream_.get());
 }
 
-void CudaBackend::upsample2x_forward(const Ref& x, Ref& y) {
-  require_shape("upsample2x_forward", "y", y, op::upsample2x(x.shape, "upsample2x_forward"));
+void CudaBackend::upsample_bilinear_f32(const Ref& x, Ref& y) {
+  require_shape("upsample_bilinear_forward", "y", y, op::upsample_bilinear(x.shape, "upsample_bilinear_forward"));
   cuda::upsample_bilinear_forward(x.data, x.dim(0) * x.dim(1), x.dim(2), x.dim(3), y.data, stream_.get());
 }
 
-void CudaBackend::upsample2x_backward(const Ref& dy, Ref& dx) {
-  require_rank("upsample2x_backward", "dx", dx, 4);
-  require_shape("upsample2x_backward", "dy", dy,
+void CudaBackend::upsample_bilinear_backward(const Ref& dy, Ref& dx) {
+  require_rank("upsample_bilinear_backward", "dx", dx, 4);
+  require_shape("upsample_bilinear_backward", "dy", dy,
                 {dx.dim(0), dx.dim(1), 2 * dx.dim(2), 2 * dx.dim(3)});
   cuda::upsample_bilinear_backward(dy.data, dx.dim(0) * dx.dim(1), dx.dim(2), dx.dim(3), dx.data,
                                    stream_.get());
@@ -760,7 +760,7 @@ cuda::PadConcatShape pad_concat_shape(const char* caller, const Ref& skip, const
 
 }  // namespace
 
-void CudaBackend::pad_concat_forward(const Ref& skip, const Ref& up, Ref& y) {
+void CudaBackend::pad_concat_f32(const Ref& skip, const Ref& up, Ref& y) {
   cuda::pad_concat_forward(skip.data, up.data, pad_concat_shape("pad_concat_forward", skip, up, y),
                            y.data, stream_.get());
 }
@@ -880,7 +880,7 @@ bool CudaBackend::supports_precision(Precision p, std::string* why_not) const {
   return cuda::mma_supported(why_not);
 }
 
-void CudaBackend::prepare_conv_weights(const Ref& w, const Ref* bias, const BatchNormRefs* bn, Precision p,
+void CudaBackend::prepare_conv_weights_16(const Ref& w, const Ref* bias, const BatchNormRefs* bn, Precision p,
                                        HRef& w16, Ref& bias_out, const HRef& transformed) {
   const char* op = "prepare_conv_weights";
   PS_CHECK(transformed.data == nullptr, "{}: the CUDA backend has no transformed weights", op);
@@ -898,7 +898,7 @@ void CudaBackend::prepare_conv_weights(const Ref& w, const Ref* bias, const Batc
                              bias_out.data, stream_.get());
 }
 
-void CudaBackend::prepare_conv_transpose_weights(const Ref& w, const Ref* bias, Precision p, HRef& w16,
+void CudaBackend::prepare_conv_transpose_weights_16(const Ref& w, const Ref* bias, Precision p, HRef& w16,
                                                  Ref& bias_out) {
   const char* op = "prepare_conv_transpose_weights";
   require_rank(op, "w", w, 4);
@@ -909,9 +909,9 @@ void CudaBackend::prepare_conv_transpose_weights(const Ref& w, const Ref* bias, 
                                        w16.data, bias_out.data, stream_.get());
 }
 
-void CudaBackend::conv2d_half_forward(const ActRef& x, const HRef& w16, const HRef& transformed, const Ref& bias_out,
-                                      const Shape& weight, int pad, bool relu, Precision p, const ActRef& y) {
-  const char* op = "conv2d_half_forward";
+void CudaBackend::conv2d_prepared_16(const TensorRef& x, const HRef& w16, const HRef& transformed, const Ref& bias_out,
+                                      const Shape& weight, int pad, bool relu, Precision p, const TensorRef& y) {
+  const char* op = "conv2d_prepared_forward";
   PS_CHECK(transformed.data == nullptr, "{}: the CUDA backend has no transformed weights", op);
   const Shape y_shape = op::conv2d(x.shape, weight, pad, nullptr, op);
   PS_CHECK(y.shape == y_shape, "{}: y must be {}, got {}", op, shape_str(y_shape), shape_str(y.shape));
@@ -920,32 +920,32 @@ void CudaBackend::conv2d_half_forward(const ActRef& x, const HRef& w16, const HR
   const cuda::Conv2dShape shape{x.dim(0), x.dim(1), x.dim(2), x.dim(3), weight[0], weight[2], pad};
   float* workspace =
       float_workspace(static_cast<size_t>(cuda::conv2d_mma_forward_workspace(shape)));
-  cuda::conv2d_mma_forward(x.data, x.half, w16.data, bias_out.data, shape, half_type(op, p), relu,
-                           y.data, y.half, stream_.get(), workspace);
+  cuda::conv2d_mma_forward(x.data, is_float16(x.dtype), w16.data, bias_out.data, shape, half_type(op, p), relu,
+                           y.data, is_float16(y.dtype), stream_.get(), workspace);
 }
 
-void CudaBackend::conv_transpose2x2_half_forward(const ActRef& x, const HRef& w16, const Ref& bias_out,
-                                                 const Shape& weight, Precision p, const ActRef& y) {
-  const char* op = "conv_transpose2x2_half_forward";
-  const Shape y_shape = op::conv_transpose2x2(x.shape, weight, nullptr, op);
+void CudaBackend::conv_transpose2d_prepared_16(const TensorRef& x, const HRef& w16, const Ref& bias_out,
+                                                 const Shape& weight, Precision p, const TensorRef& y) {
+  const char* op = "conv_transpose2d_prepared_forward";
+  const Shape y_shape = op::conv_transpose2d(x.shape, weight, nullptr, op);
   PS_CHECK(y.shape == y_shape, "{}: y must be {}, got {}", op, shape_str(y_shape), shape_str(y.shape));
   require_shape(op, "w16", w16, op::half16_conv_weights(weight, true));
   require_shape(op, "bias_out", bias_out, {4 * weight[1]});
   float* workspace =
-      float_workspace(static_cast<size_t>(cuda::conv_transpose2x2_mma_forward_workspace(
+      float_workspace(static_cast<size_t>(cuda::conv_transpose2d_mma_forward_workspace(
           x.dim(0), x.dim(1), x.dim(2), x.dim(3), weight[1])));
-  cuda::conv_transpose2x2_mma_forward(x.data, x.half, w16.data, bias_out.data, x.dim(0), x.dim(1),
+  cuda::conv_transpose2d_mma_forward(x.data, is_float16(x.dtype), w16.data, bias_out.data, x.dim(0), x.dim(1),
                                       x.dim(2), x.dim(3), weight[1], half_type(op, p), y.data,
-                                      y.half, stream_.get(), workspace);
+                                      is_float16(y.dtype), stream_.get(), workspace);
 }
 
 bool CudaBackend::supports_training_precision(Precision p, std::string* why_not) const {
   return supports_precision(p, why_not);
 }
 
-void CudaBackend::conv2d_backward_half(const Ref& x, const Ref& w, const Ref& dy, int pad, Precision p, Ref* dx,
+void CudaBackend::conv2d_backward_16(const Ref& x, const Ref& w, const Ref& dy, int pad, Precision p, Ref* dx,
                                        Ref& dw, Ref* dbias) {
-  const char* op = "conv2d_backward_half";
+  const char* op = "conv2d_backward";
   const cuda::Conv2dShape shape = conv_backward_shape(op, x, w, dy, pad, dx, dw, dbias);
   const cuda::Half16 type = half_type(op, p);
   if (dx) {
@@ -962,49 +962,49 @@ void CudaBackend::conv2d_backward_half(const Ref& x, const Ref& w, const Ref& dy
                                     stream_.get());
 }
 
-void CudaBackend::conv_transpose2x2_backward_half(const Ref& x, const Ref& w, const Ref& dy, Precision p, Ref& dx,
+void CudaBackend::conv_transpose2d_backward_16(const Ref& x, const Ref& w, const Ref& dy, Precision p, Ref& dx,
                                                   Ref& dw, Ref* dbias) {
-  const char* op = "conv_transpose2x2_backward_half";
+  const char* op = "conv_transpose2d_backward";
   const cuda::ConvTranspose2dShape shape = conv_transpose_backward_shape(op, x, w, dy, dx, dw, dbias);
   const cuda::Half16 type = half_type(op, p);
   std::uint16_t* w16t = half_workspace(
       static_cast<size_t>(shape.in_channels * op::half16_weight_k(shape.out_channels, 4)));
   cuda::prepare_conv_transpose_data_weights(w.data, shape, type, w16t, stream_.get());
   float* split = float_workspace(
-      static_cast<size_t>(cuda::conv_transpose2x2_mma_backward_data_workspace(shape)));
-  cuda::conv_transpose2x2_mma_backward_data(dy.data, w16t, shape, type, dx.data, stream_.get(),
+      static_cast<size_t>(cuda::conv_transpose2d_mma_backward_data_workspace(shape)));
+  cuda::conv_transpose2d_mma_backward_data(dy.data, w16t, shape, type, dx.data, stream_.get(),
                                             split);
   float* workspace =
-      float_workspace(static_cast<size_t>(cuda::conv_transpose2x2_mma_backward_weights_workspace(shape)));
-  cuda::conv_transpose2x2_mma_backward_weights(x.data, dy.data, shape, type, dw.data, dbias ? dbias->data : nullptr,
+      float_workspace(static_cast<size_t>(cuda::conv_transpose2d_mma_backward_weights_workspace(shape)));
+  cuda::conv_transpose2d_mma_backward_weights(x.data, dy.data, shape, type, dw.data, dbias ? dbias->data : nullptr,
                                                workspace, stream_.get());
 }
 
-void CudaBackend::to_half(const Ref& x, Precision p, HRef& y) {
+void CudaBackend::convert_16(const Ref& x, Precision p, HRef& y) {
   require_shape("to_half", "y", y, x.shape);
   cuda::to_half16(x.data, x.numel(), half_type("to_half", p), y.data, stream_.get());
 }
 
-void CudaBackend::maxpool2x2_half(const HRef& x, Precision p, HRef& y) {
-  const char* op = "maxpool2x2_half";
-  require_shape(op, "y", y, op::maxpool2x2(x.shape, op));
-  cuda::maxpool2x2_half16(x.data, x.dim(0) * x.dim(1), x.dim(2), x.dim(3), half_type(op, p), y.data, stream_.get());
+void CudaBackend::maxpool2d_16(const HRef& x, Precision p, HRef& y) {
+  const char* op = "maxpool2d_half";
+  require_shape(op, "y", y, op::maxpool2d(x.shape, op));
+  cuda::maxpool2d_half16(x.data, x.dim(0) * x.dim(1), x.dim(2), x.dim(3), half_type(op, p), y.data, stream_.get());
 }
 
-void CudaBackend::upsample2x_half(const HRef& x, Precision p, HRef& y) {
-  const char* op = "upsample2x_half";
-  require_shape(op, "y", y, op::upsample2x(x.shape, op));
-  cuda::upsample2x_half16(x.data, x.dim(0) * x.dim(1), x.dim(2), x.dim(3), half_type(op, p), y.data, stream_.get());
+void CudaBackend::upsample_bilinear_16(const HRef& x, Precision p, HRef& y) {
+  const char* op = "upsample_bilinear_half";
+  require_shape(op, "y", y, op::upsample_bilinear(x.shape, op));
+  cuda::upsample_bilinear_half16(x.data, x.dim(0) * x.dim(1), x.dim(2), x.dim(3), half_type(op, p), y.data, stream_.get());
 }
 
-void CudaBackend::pad_concat_half(const HRef& skip, const HRef& up, HRef& y) {
+void CudaBackend::pad_concat_16(const HRef& skip, const HRef& up, HRef& y) {
   const char* op = "pad_concat_half";
   require_shape(op, "y", y, op::pad_concat(skip.shape, up.shape, op));
   const cuda::PadConcatShape shape{skip.dim(0), skip.dim(1), up.dim(1), skip.dim(2), skip.dim(3), up.dim(2), up.dim(3)};
   cuda::pad_concat_half16(skip.data, up.data, shape, y.data, stream_.get());
 }
 
-void CudaBackend::scatter_forward_half(const Ref& features, const IRef& cells, int channel0,
+void CudaBackend::scatter_forward_16(const Ref& features, const IRef& cells, int channel0,
                                        Precision p, HRef& canvas) {
   const char* op = "scatter_forward_half";
   op::scatter(features.shape, cells.shape, canvas.shape, channel0, op);
@@ -1014,7 +1014,7 @@ void CudaBackend::scatter_forward_half(const Ref& features, const IRef& cells, i
                              half_type(op, p), canvas.data, stream_.get());
 }
 
-void CudaBackend::copy_channels_half(const HRef& x, int channel0, HRef& y) {
+void CudaBackend::copy_channels_16(const HRef& x, int channel0, HRef& y) {
   const char* op = "copy_channels_half";
   op::channel_band(x.shape, y.shape, channel0, op);
   cuda::copy_channels_half16(x.data, {x.dim(0), x.dim(1), x.dim(2) * x.dim(3), y.dim(1), channel0}, y.data,
@@ -1028,6 +1028,116 @@ std::unique_ptr<Backend> make_cuda_device_backend(const BackendOptions& options)
   cuda_options.convolution = parse_convolution_impl(options.convolution);
   cuda_options.device = options.cuda_device;
   return std::make_unique<CudaBackend>(cuda_options);
+}
+
+// ---- the Backend's ops, by the dtype of their tensors ----
+
+void CudaBackend::scatter_forward(const Ref& features, const IRef& cells, int channel0, const TensorRef& canvas) {
+  const char* op = "scatter_forward";
+  if (is_float16(canvas.dtype)) {
+    HRef c = canvas.bits16(op);
+    scatter_forward_16(features, cells, channel0, precision_of(canvas.dtype), c);
+    return;
+  }
+  Ref c = canvas.f32(op);
+  scatter_forward_f32(features, cells, channel0, c);
+}
+
+void CudaBackend::copy_channels(const TensorRef& x, int channel0, const TensorRef& y) {
+  const char* op = "copy_channels";
+  PS_CHECK(x.dtype == y.dtype, "{}: x is {} but y is {}", op, dtype_name(x.dtype), dtype_name(y.dtype));
+  if (is_float16(y.dtype)) {
+    HRef out = y.bits16(op);
+    copy_channels_16(x.bits16(op), channel0, out);
+    return;
+  }
+  Ref out = y.f32(op);
+  copy_channels_f32(x.f32(op), channel0, out);
+}
+
+void CudaBackend::conv2d_backward(const Ref& x, const Ref& w, const Ref& dy, int pad, Ref* dx, Ref& dw, Ref* dbias,
+                                  DType compute) {
+  if (compute == DType::F32) {
+    conv2d_backward_f32(x, w, dy, pad, dx, dw, dbias);
+  } else {
+    conv2d_backward_16(x, w, dy, pad, precision_of(compute), dx, dw, dbias);
+  }
+}
+
+void CudaBackend::conv_transpose2d_backward(const Ref& x, const Ref& w, const Ref& dy, Ref& dx, Ref& dw, Ref* dbias,
+                                            DType compute) {
+  if (compute == DType::F32) {
+    conv_transpose2d_backward_f32(x, w, dy, dx, dw, dbias);
+  } else {
+    conv_transpose2d_backward_16(x, w, dy, precision_of(compute), dx, dw, dbias);
+  }
+}
+
+void CudaBackend::maxpool2d_forward(const TensorRef& x, const TensorRef& y, IRef* argmax) {
+  const char* op = "maxpool2d_forward";
+  if (is_float16(x.dtype)) {
+    HRef out = y.bits16(op);
+    maxpool2d_16(x.bits16(op), precision_of(x.dtype), out);
+    return;
+  }
+  PS_CHECK(argmax != nullptr, "{}: an f32 max-pool writes its arg-max (none given)", op);
+  Ref out = y.f32(op);
+  maxpool2d_f32(x.f32(op), out, *argmax);
+}
+
+void CudaBackend::upsample_bilinear_forward(const TensorRef& x, const TensorRef& y) {
+  const char* op = "upsample_bilinear_forward";
+  if (is_float16(x.dtype)) {
+    HRef out = y.bits16(op);
+    upsample_bilinear_16(x.bits16(op), precision_of(x.dtype), out);
+    return;
+  }
+  Ref out = y.f32(op);
+  upsample_bilinear_f32(x.f32(op), out);
+}
+
+void CudaBackend::pad_concat_forward(const TensorRef& skip, const TensorRef& up, const TensorRef& y) {
+  const char* op = "pad_concat_forward";
+  if (is_float16(y.dtype)) {
+    HRef out = y.bits16(op);
+    pad_concat_16(skip.bits16(op), up.bits16(op), out);
+    return;
+  }
+  Ref out = y.f32(op);
+  pad_concat_f32(skip.f32(op), up.f32(op), out);
+}
+
+void CudaBackend::convert(const Ref& x, const TensorRef& y) {
+  HRef out = y.bits16("convert");
+  convert_16(x, precision_of(y.dtype), out);
+}
+
+void CudaBackend::prepare_conv_weights(const Ref& w, const Ref* bias, const BatchNormRefs* bn,
+                                       const TensorRef& prepared, Ref& bias_out, const TensorRef& transformed) {
+  const char* op = "prepare_conv_weights";
+  HRef w16 = prepared.bits16(op);
+  prepare_conv_weights_16(w, bias, bn, precision_of(prepared.dtype), w16, bias_out,
+                          HRef{static_cast<uint16_t*>(transformed.data), transformed.shape});
+}
+
+void CudaBackend::prepare_conv_transpose_weights(const Ref& w, const Ref* bias, const TensorRef& prepared,
+                                                 Ref& bias_out) {
+  HRef w16 = prepared.bits16("prepare_conv_transpose_weights");
+  prepare_conv_transpose_weights_16(w, bias, precision_of(prepared.dtype), w16, bias_out);
+}
+
+void CudaBackend::conv2d_prepared_forward(const TensorRef& x, const TensorRef& prepared, const TensorRef& transformed,
+                                          const Ref& bias_out, const Shape& weight, int pad, bool relu,
+                                          const TensorRef& y) {
+  const char* op = "conv2d_prepared_forward";
+  conv2d_prepared_16(x, prepared.bits16(op), HRef{static_cast<uint16_t*>(transformed.data), transformed.shape},
+                     bias_out, weight, pad, relu, precision_of(prepared.dtype), y);
+}
+
+void CudaBackend::conv_transpose2d_prepared_forward(const TensorRef& x, const TensorRef& prepared, const Ref& bias_out,
+                                                    const Shape& weight, const TensorRef& y) {
+  conv_transpose2d_prepared_16(x, prepared.bits16("conv_transpose2d_prepared_forward"), bias_out, weight,
+                               precision_of(prepared.dtype), y);
 }
 
 }  // namespace pillarseg::inline PILLARSEG_CUDA_NAMESPACE

@@ -131,25 +131,25 @@ class CudaBackend final : public Backend {
   void pfn_backward(const Ref& points, const Ref& weight, const BatchNormRefs& bn,
                     const IRef& argmax, const Ref& dout, Ref& dweight, Ref& dgamma,
                     Ref& dbeta) override;
-  void scatter_forward(const Ref& features, const IRef& cells, int channel0, Ref& canvas) override;
+  void scatter_forward(const Ref& features, const IRef& cells, int channel0, const TensorRef& canvas) override;
   void scatter_backward(const Ref& dcanvas, const IRef& cells, int channel0,
                         Ref& dfeatures) override;
-  void copy_channels(const Ref& x, int channel0, Ref& y) override;
+  void copy_channels(const TensorRef& x, int channel0, const TensorRef& y) override;
   void extract_channels(const Ref& y, int channel0, Ref& x) override;
   void conv2d_forward(const Ref& x, const Ref& w, const Ref* bias, int pad, Ref& y) override;
-  void conv2d_backward(const Ref& x, const Ref& w, const Ref& dy, int pad, Ref* dx, Ref& dw,
-                       Ref* dbias) override;
+  void conv2d_backward(const Ref& x, const Ref& w, const Ref& dy, int pad, Ref* dx, Ref& dw, Ref* dbias,
+                       DType compute = DType::F32) override;
   void conv_transpose2d_forward(const Ref& x, const Ref& w, const Ref* bias, Ref& y) override;
-  void conv_transpose2d_backward(const Ref& x, const Ref& w, const Ref& dy, Ref& dx, Ref& dw,
-                                 Ref* dbias) override;
+  void conv_transpose2d_backward(const Ref& x, const Ref& w, const Ref& dy, Ref& dx, Ref& dw, Ref* dbias,
+                                 DType compute = DType::F32) override;
   void batchnorm_relu_forward(const Ref& x, BatchNormRefs& bn, bool training, Ref& y) override;
   void batchnorm_relu_backward(const Ref& x, const Ref& y, const Ref& dy, const BatchNormRefs& bn,
                                Ref& dx, Ref& dgamma, Ref& dbeta) override;
-  void maxpool2x2_forward(const Ref& x, Ref& y, IRef& argmax) override;
-  void maxpool2x2_backward(const Ref& dy, const IRef& argmax, Ref& dx) override;
-  void upsample2x_forward(const Ref& x, Ref& y) override;
-  void upsample2x_backward(const Ref& dy, Ref& dx) override;
-  void pad_concat_forward(const Ref& skip, const Ref& up, Ref& y) override;
+  void maxpool2d_forward(const TensorRef& x, const TensorRef& y, IRef* argmax) override;
+  void maxpool2d_backward(const Ref& dy, const IRef& argmax, Ref& dx) override;
+  void upsample_bilinear_forward(const TensorRef& x, const TensorRef& y) override;
+  void upsample_bilinear_backward(const Ref& dy, Ref& dx) override;
+  void pad_concat_forward(const TensorRef& skip, const TensorRef& up, const TensorRef& y) override;
   void pad_concat_backward(const Ref& dy, Ref& dskip, Ref& dup) override;
   void add_inplace(Ref& a, const Ref& b) override;
   void softmax(const Ref& logits, Ref& probs) override;
@@ -164,13 +164,15 @@ class CudaBackend final : public Backend {
   // capability 8.0 or later, or the emulation.
   bool supports_precision(Precision p, std::string* why_not = nullptr) const override;
   // (No transformed form of the weights: prepared_conv_transform_elements is 0.)
-  void prepare_conv_weights(const Ref& w, const Ref* bias, const BatchNormRefs* bn, Precision p, HRef& w16,
-                            Ref& bias_out, const HRef& transformed) override;
-  void prepare_conv_transpose_weights(const Ref& w, const Ref* bias, Precision p, HRef& w16, Ref& bias_out) override;
-  void conv2d_half_forward(const ActRef& x, const HRef& w16, const HRef& transformed, const Ref& bias_out,
-                           const Shape& weight, int pad, bool relu, Precision p, const ActRef& y) override;
-  void conv_transpose2x2_half_forward(const ActRef& x, const HRef& w16, const Ref& bias_out, const Shape& weight,
-                                      Precision p, const ActRef& y) override;
+  void prepare_conv_weights(const Ref& w, const Ref* bias, const BatchNormRefs* bn, const TensorRef& prepared,
+                            Ref& bias_out, const TensorRef& transformed) override;
+  void prepare_conv_transpose_weights(const Ref& w, const Ref* bias, const TensorRef& prepared,
+                                      Ref& bias_out) override;
+  void conv2d_prepared_forward(const TensorRef& x, const TensorRef& prepared, const TensorRef& transformed,
+                               const Ref& bias_out, const Shape& weight, int pad, bool relu,
+                               const TensorRef& y) override;
+  void conv_transpose2d_prepared_forward(const TensorRef& x, const TensorRef& prepared, const Ref& bias_out,
+                                         const Shape& weight, const TensorRef& y) override;
   bool supports_training_precision(Precision p, std::string* why_not) const override;
   // Synchronised BatchNorm: the kernels' statistics summed over the replicas. On a GPU, when
   // BatchNormRefs::replicas is the run's Replicas, in device memory over NCCL on the compute
@@ -186,19 +188,35 @@ class CudaBackend final : public Backend {
   void begin_sum_over_replicas(Ref& values, Replicas& replicas) override;
   void end_sums_over_replicas(Replicas& replicas) override;
 #endif
-  void conv2d_backward_half(const Ref& x, const Ref& w, const Ref& dy, int pad, Precision p, Ref* dx, Ref& dw,
-                            Ref* dbias) override;
-  void conv_transpose2x2_backward_half(const Ref& x, const Ref& w, const Ref& dy, Precision p, Ref& dx, Ref& dw,
-                                       Ref* dbias) override;
-  void to_half(const Ref& x, Precision p, HRef& y) override;
-  void maxpool2x2_half(const HRef& x, Precision p, HRef& y) override;
-  void upsample2x_half(const HRef& x, Precision p, HRef& y) override;
-  void pad_concat_half(const HRef& skip, const HRef& up, HRef& y) override;
-  void copy_channels_half(const HRef& x, int channel0, HRef& y) override;
-  void scatter_forward_half(const Ref& features, const IRef& cells, int channel0, Precision p,
-                            HRef& canvas) override;
+  void convert(const Ref& x, const TensorRef& y) override;
 
  private:
+  // The ops above for each dtype of their tensors (FP32, or 16-bit as bits in precision p).
+  void scatter_forward_f32(const Ref& features, const IRef& cells, int channel0, Ref& canvas);
+  void scatter_forward_16(const Ref& features, const IRef& cells, int channel0, Precision p, HRef& canvas);
+  void copy_channels_f32(const Ref& x, int channel0, Ref& y);
+  void copy_channels_16(const HRef& x, int channel0, HRef& y);
+  void conv2d_backward_f32(const Ref& x, const Ref& w, const Ref& dy, int pad, Ref* dx, Ref& dw, Ref* dbias);
+  void conv2d_backward_16(const Ref& x, const Ref& w, const Ref& dy, int pad, Precision p, Ref* dx, Ref& dw,
+                          Ref* dbias);
+  void conv_transpose2d_backward_f32(const Ref& x, const Ref& w, const Ref& dy, Ref& dx, Ref& dw, Ref* dbias);
+  void conv_transpose2d_backward_16(const Ref& x, const Ref& w, const Ref& dy, Precision p, Ref& dx, Ref& dw,
+                                    Ref* dbias);
+  void maxpool2d_f32(const Ref& x, Ref& y, IRef& argmax);
+  void maxpool2d_16(const HRef& x, Precision p, HRef& y);
+  void upsample_bilinear_f32(const Ref& x, Ref& y);
+  void upsample_bilinear_16(const HRef& x, Precision p, HRef& y);
+  void pad_concat_f32(const Ref& skip, const Ref& up, Ref& y);
+  void pad_concat_16(const HRef& skip, const HRef& up, HRef& y);
+  void convert_16(const Ref& x, Precision p, HRef& y);
+  void prepare_conv_weights_16(const Ref& w, const Ref* bias, const BatchNormRefs* bn, Precision p, HRef& w16,
+                               Ref& bias_out, const HRef& transformed);
+  void prepare_conv_transpose_weights_16(const Ref& w, const Ref* bias, Precision p, HRef& w16, Ref& bias_out);
+  void conv2d_prepared_16(const TensorRef& x, const HRef& w16, const HRef& transformed, const Ref& bias_out,
+                          const Shape& weight, int pad, bool relu, Precision p, const TensorRef& y);
+  void conv_transpose2d_prepared_16(const TensorRef& x, const HRef& w16, const Ref& bias_out, const Shape& weight,
+                                    Precision p, const TensorRef& y);
+
   // The kernels' scratch, in one place. `floats`, `doubles`, `gather` and `rays` grow to the
   // largest request so far; the loss and reduction buffers have fixed sizes.
   struct Workspace {

@@ -44,6 +44,24 @@ const char* precision_name(Precision p) {
   return "?";
 }
 
+Precision precision_of(DType dtype) {
+  switch (dtype) {
+    case DType::F32:
+      return Precision::F32;
+    case DType::BF16:
+      return Precision::BF16;
+    case DType::F16:
+      return Precision::F16;
+    default:
+      break;
+  }
+  PS_FAIL("{} is not a float type of a precision", dtype_name(dtype));
+}
+
+DType dtype_of(Precision p) {
+  return p == Precision::BF16 ? DType::BF16 : p == Precision::F16 ? DType::F16 : DType::F32;
+}
+
 Precision parse_precision(const std::string& text, const std::string& what) {
   if (text == "fp32") return Precision::F32;
   if (text == "bf16") return Precision::BF16;
@@ -59,21 +77,28 @@ bool Backend::supports_precision(Precision p, std::string* why_not) const {
   return false;
 }
 
-int64_t Backend::prepared_conv_transform_elements(const Shape&, int, Precision) const { return 0; }
-void Backend::prepare_conv_weights(const Ref&, const Ref*, const BatchNormRefs*, Precision p, HRef&, Ref&,
-                                   const HRef&) {
-  PS_FAIL("backend {}: no {} convolutions (supports_precision)", name(), precision_name(p));
+int64_t Backend::prepared_conv_transform_elements(const Shape&, int, DType) const { return 0; }
+void Backend::require_precision(Precision p) const {
+  std::string why;
+  PS_CHECK(supports_precision(p, &why), "backend {}: --precision {}: {}", name(), precision_name(p), why);
 }
-void Backend::prepare_conv_transpose_weights(const Ref&, const Ref*, Precision p, HRef&, Ref&) {
-  PS_FAIL("backend {}: no {} convolutions (supports_precision)", name(), precision_name(p));
+void Backend::prepare_conv_weights(const Ref&, const Ref*, const BatchNormRefs*, const TensorRef& prepared, Ref&,
+                                   const TensorRef&) {
+  PS_FAIL("backend {}: no {} convolutions (supports_precision)", name(), dtype_name(prepared.dtype));
 }
-void Backend::conv2d_half_forward(const ActRef&, const HRef&, const HRef&, const Ref&, const Shape&, int, bool,
-                                  Precision p, const ActRef&) {
-  PS_FAIL("backend {}: no {} convolutions (supports_precision)", name(), precision_name(p));
+void Backend::prepare_conv_transpose_weights(const Ref&, const Ref*, const TensorRef& prepared, Ref&) {
+  PS_FAIL("backend {}: no {} convolutions (supports_precision)", name(), dtype_name(prepared.dtype));
 }
-void Backend::conv_transpose2x2_half_forward(const ActRef&, const HRef&, const Ref&, const Shape&, Precision p,
-                                             const ActRef&) {
-  PS_FAIL("backend {}: no {} convolutions (supports_precision)", name(), precision_name(p));
+void Backend::conv2d_prepared_forward(const TensorRef&, const TensorRef& prepared, const TensorRef&, const Ref&,
+                                      const Shape&, int, bool, const TensorRef&) {
+  PS_FAIL("backend {}: no {} convolutions (supports_precision)", name(), dtype_name(prepared.dtype));
+}
+void Backend::conv_transpose2d_prepared_forward(const TensorRef&, const TensorRef& prepared, const Ref&, const Shape&,
+                                                const TensorRef&) {
+  PS_FAIL("backend {}: no {} convolutions (supports_precision)", name(), dtype_name(prepared.dtype));
+}
+void Backend::convert(const Ref&, const TensorRef& y) {
+  PS_FAIL("backend {}: no {} activations (supports_precision)", name(), dtype_name(y.dtype));
 }
 bool Backend::supports_training_precision(Precision p, std::string* why_not) const {
   if (p == Precision::F32) return true;
@@ -105,31 +130,6 @@ bool Backend::supports_synchronized_batchnorm(std::string* why_not) const {
   }
   return false;
 }
-void Backend::conv2d_backward_half(const Ref&, const Ref&, const Ref&, int, Precision p, Ref*, Ref&, Ref*) {
-  PS_FAIL("backend {}: no {} training (supports_training_precision)", name(), precision_name(p));
-}
-void Backend::conv_transpose2x2_backward_half(const Ref&, const Ref&, const Ref&, Precision p, Ref&, Ref&, Ref*) {
-  PS_FAIL("backend {}: no {} training (supports_training_precision)", name(), precision_name(p));
-}
-void Backend::to_half(const Ref&, Precision p, HRef&) {
-  PS_FAIL("backend {}: no {} activations (supports_precision)", name(), precision_name(p));
-}
-void Backend::maxpool2x2_half(const HRef&, Precision p, HRef&) {
-  PS_FAIL("backend {}: no {} activations (supports_precision)", name(), precision_name(p));
-}
-void Backend::upsample2x_half(const HRef&, Precision p, HRef&) {
-  PS_FAIL("backend {}: no {} activations (supports_precision)", name(), precision_name(p));
-}
-void Backend::pad_concat_half(const HRef&, const HRef&, HRef&) {
-  PS_FAIL("backend {}: no 16-bit activations (supports_precision)", name());
-}
-void Backend::copy_channels_half(const HRef&, int, HRef&) {
-  PS_FAIL("backend {}: no 16-bit activations (supports_precision)", name());
-}
-void Backend::scatter_forward_half(const Ref&, const IRef&, int, Precision p, HRef&) {
-  PS_FAIL("backend {}: no {} activations (supports_precision)", name(), precision_name(p));
-}
-
 MemoryBudget Backend::memory_budget() const { return host_memory_budget(); }
 
 void Arena::reserve(size_t bytes) {

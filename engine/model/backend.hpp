@@ -17,6 +17,7 @@
 #include "core/grid.hpp"
 #include "core/memory_budget.hpp"
 #include "core/replicas.hpp"
+#include "core/dtype.hpp"
 #include "core/tensor.hpp"
 
 namespace pillarseg {
@@ -78,7 +79,36 @@ inline const int32_t* live_rows_data(const char* op, const IRef& live_rows) {
   return live_rows.data;
 }
 
-// An activation of the mixed-precision evaluation forward: FP32, or 16-bit (`half`).
+// A tensor of any dtype in a backend's memory (DESIGN.md section 7: the dtype belongs to the
+// tensor, not to op or method names). The ops whose tensors come in several dtypes (the
+// activations: FP32, or BF16 / FP16 as bits; prepared weights) take it; an FP32 Ref converts to
+// it.
+struct TensorRef {
+  void* data = nullptr;
+  Shape shape;
+  DType dtype = DType::F32;
+  TensorRef() = default;
+  TensorRef(void* data_, Shape shape_, DType dtype_) : data(data_), shape(std::move(shape_)), dtype(dtype_) {}
+  TensorRef(const Ref& r) : data(r.data), shape(r.shape), dtype(DType::F32) {}  // NOLINT: implicit on purpose
+  int64_t numel() const { return shape_numel(shape); }
+  int64_t dim(int i) const { return shape.at(static_cast<size_t>(i < 0 ? static_cast<int>(shape.size()) + i : i)); }
+  size_t bytes() const { return static_cast<size_t>(numel()) * dtype_bytes(dtype); }
+  // The typed views; `op` (the caller) names the error when the dtype is another.
+  Ref f32(const char* op) const {
+    PS_CHECK(dtype == DType::F32, "{}: expected an f32 tensor {}, got {}", op, shape_str(shape), dtype_name(dtype));
+    return Ref{static_cast<float*>(data), shape};
+  }
+  HRef bits16(const char* op) const {
+    PS_CHECK(is_float16(dtype), "{}: expected a bf16 or f16 tensor {}, got {}", op, shape_str(shape),
+             dtype_name(dtype));
+    return HRef{static_cast<uint16_t*>(data), shape};
+  }
+};
+// The precision of a float dtype (F32, BF16, F16), and back.
+Precision precision_of(DType dtype);
+DType dtype_of(Precision p);
+
+// The INT8 kernels' activation argument (engine/cpu/int8_conv.hpp): FP32, or BF16 (`half`).
 struct ActRef {
   void* data = nullptr;
   Shape shape;
@@ -193,7 +223,7 @@ class Backend {
   virtual void grid_map_features(const Ref& points, const GridSpec& grid, const URef& detections,
                                  const URef& transmissions, Ref& out) = 0;
   // labels (H W values) = 0, and probabilities (K planes of H W) = 0 when given, where no ray
-  // touched the cell (host/label_mask.hpp).
+  // touched the cell (host/mask_unobserved.hpp).
   virtual void mask_unobserved(const URef& transmissions, const URef& detections, LRef& labels,
                                Ref* probabilities) = 0;
 
@@ -210,19 +240,28 @@ class Backend {
                             const IRef& argmax, const Ref& dout, Ref& dweight, Ref& dgamma,
                             Ref& dbeta) = 0;
   // Pillar features (P, C) + cells (P, 3: batch, iy, ix) -> canvas (B, C, H, W) at channel
-  // offset `channel0` of a canvas with more channels (the other channels are untouched).
-  virtual void scatter_forward(const Ref& features, const IRef& cells, int channel0, Ref& canvas) = 0;
+  // offset `channel0` of a canvas with more channels (the other channels are untouched); an FP32
+  // canvas, or a 16-bit one (the values rounded to its dtype; a cell outside the canvas, an inert
+  // row's, is skipped), so that a mixed-precision U-Net's input needs no FP32 canvas.
+  virtual void scatter_forward(const Ref& features, const IRef& cells, int channel0, const TensorRef& canvas) = 0;
   virtual void scatter_backward(const Ref& dcanvas, const IRef& cells, int channel0, Ref& dfeatures) = 0;
-  // Copies x (B, Cx, H, W) into channels [channel0, channel0 + Cx) of y (B, Cy, H, W), and back.
-  virtual void copy_channels(const Ref& x, int channel0, Ref& y) = 0;
+  // Copies x (B, Cx, H, W) into channels [channel0, channel0 + Cx) of y (B, Cy, H, W) (both of
+  // one dtype), and back (FP32).
+  virtual void copy_channels(const TensorRef& x, int channel0, const TensorRef& y) = 0;
   virtual void extract_channels(const Ref& y, int channel0, Ref& x) = 0;
 
-  // Stride-1 convolution, weight (O, I, k, k), zero padding `pad`.
+  // Stride-1 convolution, weight (O, I, k, k), zero padding `pad`. The backward's arithmetic:
+  // `compute` F32, or BF16 / FP16 with x, dy and w rounded to it and FP32 accumulation on the
+  // tensor cores (kernels/conv2d_mma.cuh; supports_training_precision() says where); its
+  // tensors are FP32 either way, and the backend keeps the flipped 16-bit weights and the weight
+  // gradient's partial sums in its own scratch.
   virtual void conv2d_forward(const Ref& x, const Ref& w, const Ref* bias, int pad, Ref& y) = 0;
-  virtual void conv2d_backward(const Ref& x, const Ref& w, const Ref& dy, int pad, Ref* dx, Ref& dw, Ref* dbias) = 0;
+  virtual void conv2d_backward(const Ref& x, const Ref& w, const Ref& dy, int pad, Ref* dx, Ref& dw, Ref* dbias,
+                               DType compute = DType::F32) = 0;
   // ConvTranspose2d kernel 2 stride 2, weight (I, O, 2, 2).
   virtual void conv_transpose2d_forward(const Ref& x, const Ref& w, const Ref* bias, Ref& y) = 0;
-  virtual void conv_transpose2d_backward(const Ref& x, const Ref& w, const Ref& dy, Ref& dx, Ref& dw, Ref* dbias) = 0;
+  virtual void conv_transpose2d_backward(const Ref& x, const Ref& w, const Ref& dy, Ref& dx, Ref& dw, Ref* dbias,
+                                         DType compute = DType::F32) = 0;
   // Eval-mode Conv2d -> BatchNorm (running statistics) -> ReLU, y = relu(bn(conv(x, w) + bias)),
   // which a backend may run as one pass (BatchNorm folded into the convolution's output). The
   // default composes conv2d_forward and batchnorm_relu_forward, the latter in place on y.
@@ -237,12 +276,15 @@ class Backend {
   virtual void batchnorm_relu_forward(const Ref& x, BatchNormRefs& bn, bool training, Ref& y) = 0;
   virtual void batchnorm_relu_backward(const Ref& x, const Ref& y, const Ref& dy, const BatchNormRefs& bn, Ref& dx,
                                        Ref& dgamma, Ref& dbeta) = 0;
-  virtual void maxpool2x2_forward(const Ref& x, Ref& y, IRef& argmax) = 0;
-  virtual void maxpool2x2_backward(const Ref& dy, const IRef& argmax, Ref& dx) = 0;
-  virtual void upsample2x_forward(const Ref& x, Ref& y) = 0;
-  virtual void upsample2x_backward(const Ref& dy, Ref& dx) = 0;
-  // y = [skip, zero-padded up] along channels.
-  virtual void pad_concat_forward(const Ref& skip, const Ref& up, Ref& y) = 0;
+  // Max-pool 2x2 of FP32 (with the arg-max the backward reads) or 16-bit activations (argmax
+  // null: the evaluation keeps none).
+  virtual void maxpool2d_forward(const TensorRef& x, const TensorRef& y, IRef* argmax) = 0;
+  virtual void maxpool2d_backward(const Ref& dy, const IRef& argmax, Ref& dx) = 0;
+  // Bilinear x2 (align_corners), x and y of one dtype.
+  virtual void upsample_bilinear_forward(const TensorRef& x, const TensorRef& y) = 0;
+  virtual void upsample_bilinear_backward(const Ref& dy, Ref& dx) = 0;
+  // y = [skip, zero-padded up] along channels, all of one dtype.
+  virtual void pad_concat_forward(const TensorRef& skip, const TensorRef& up, const TensorRef& y) = 0;
   virtual void pad_concat_backward(const Ref& dy, Ref& dskip, Ref& dup) = 0;
   // a += b (gradient of a tensor used twice).
   virtual void add_inplace(Ref& a, const Ref& b) = 0;
@@ -272,49 +314,40 @@ class Backend {
   // are engine/cpu/bf16_conv.hpp) ----
   // Whether this backend runs them in `p` (F32 always); else false with the reason in why_not.
   virtual bool supports_precision(Precision p, std::string* why_not = nullptr) const;
-  // weight (O, I, k, k) [, bias (O)] [, eval BatchNorm] -> w16 (O, Kp) (op::half16_conv_weights)
-  // rounded to `p` with the BatchNorm scale multiplied in, bias_out (O) with its shift added; and
-  // where the backend has one, `transformed`: a form of the same weights of its own (the CPU's
-  // Winograd-transformed U), made here once rather than in every convolution, of
-  // prepared_conv_transform_elements() 16-bit elements (the caller plans it beside w16; data null
-  // when there is none).
-  virtual int64_t prepared_conv_transform_elements(const Shape& weight, int pad, Precision p) const;
-  virtual void prepare_conv_weights(const Ref& w, const Ref* bias, const BatchNormRefs* bn, Precision p, HRef& w16,
-                                    Ref& bias_out, const HRef& transformed);
-  // weight (I, O, 2, 2) [, bias (O)] -> w16 (4 O, Kp), bias_out (4 O).
-  virtual void prepare_conv_transpose_weights(const Ref& w, const Ref* bias, Precision p, HRef& w16, Ref& bias_out);
-  // y = act(conv(x, w16) + bias_out) for the weight shape `weight` (O, I, k, k) and `pad`; x
-  // and y FP32 or 16-bit; `transformed` as prepare_conv_weights made it with w16 (or data null).
-  virtual void conv2d_half_forward(const ActRef& x, const HRef& w16, const HRef& transformed, const Ref& bias_out,
-                                   const Shape& weight, int pad, bool relu, Precision p, const ActRef& y);
+  // weight (O, I, k, k) [, bias (O)] [, eval BatchNorm] -> prepared (O, Kp)
+  // (op::half16_conv_weights) rounded to its dtype with the BatchNorm scale multiplied in,
+  // bias_out (O) with its shift added; and where the backend has one, `transformed`: a form of the
+  // same weights of its own (the CPU's Winograd-transformed U), made here once rather than in
+  // every convolution, of prepared_conv_transform_elements() elements of `dtype` (the caller
+  // plans it beside the prepared weights; data null when there is none).
+  virtual int64_t prepared_conv_transform_elements(const Shape& weight, int pad, DType dtype) const;
+  virtual void prepare_conv_weights(const Ref& w, const Ref* bias, const BatchNormRefs* bn, const TensorRef& prepared,
+                                    Ref& bias_out, const TensorRef& transformed);
+  // weight (I, O, 2, 2) [, bias (O)] -> prepared (4 O, Kp), bias_out (4 O).
+  virtual void prepare_conv_transpose_weights(const Ref& w, const Ref* bias, const TensorRef& prepared, Ref& bias_out);
+  // y = act(conv(x, prepared) + bias_out) for the weight shape `weight` (O, I, k, k) and `pad`,
+  // in the prepared weights' arithmetic; x and y FP32 or 16-bit; `transformed` as
+  // prepare_conv_weights made it (or data null).
+  virtual void conv2d_prepared_forward(const TensorRef& x, const TensorRef& prepared, const TensorRef& transformed,
+                                       const Ref& bias_out, const Shape& weight, int pad, bool relu,
+                                       const TensorRef& y);
   // y (B, O, 2H, 2W) = the transposed convolution of x (B, I, H, W) for weight (I, O, 2, 2).
-  virtual void conv_transpose2x2_half_forward(const ActRef& x, const HRef& w16, const Ref& bias_out,
-                                              const Shape& weight, Precision p, const ActRef& y);
+  virtual void conv_transpose2d_prepared_forward(const TensorRef& x, const TensorRef& prepared, const Ref& bias_out,
+                                                 const Shape& weight, const TensorRef& y);
   // Training in `p` (FP32 tensors and master weights; the convolutions' forward is
-  // conv2d_half_forward / conv_transpose2x2_half_forward on weights prepared without BatchNorm):
-  // whether this backend has the backward below, else false with the reason.
+  // conv2d_prepared_forward / conv_transpose2d_prepared_forward on weights prepared without
+  // BatchNorm, the backward conv2d_backward / conv_transpose2d_backward with `compute` p):
+  // whether this backend has them, else false with the reason.
   virtual bool supports_training_precision(Precision p, std::string* why_not = nullptr) const;
   // Whether the training BatchNorm ops (batchnorm_relu_*, pfn_*) honour BatchNormRefs::replicas,
   // as data-parallel training needs; else false with the reason in why_not.
   virtual bool supports_synchronized_batchnorm(std::string* why_not = nullptr) const;
-  // The gradients with x, dy and w rounded to `p` and FP32 accumulation (kernels/conv2d_mma.cuh):
-  // dx (when given), dw and dbias (when given) of conv2d_backward, FP32; the backend keeps the
-  // flipped 16-bit weights and the weight gradient's partial sums in its own scratch.
-  virtual void conv2d_backward_half(const Ref& x, const Ref& w, const Ref& dy, int pad, Precision p, Ref* dx, Ref& dw,
-                                    Ref* dbias);
-  virtual void conv_transpose2x2_backward_half(const Ref& x, const Ref& w, const Ref& dy, Precision p, Ref& dx,
-                                               Ref& dw, Ref* dbias);
-  // The 16-bit activations' data movement (kernels/half_ops.cuh): x FP32 -> y rounded; max-pool
-  // 2x2; bilinear x2; [skip, zero-padded up]; x into channels [channel0, ..) of y.
-  virtual void to_half(const Ref& x, Precision p, HRef& y);
-  virtual void maxpool2x2_half(const HRef& x, Precision p, HRef& y);
-  virtual void upsample2x_half(const HRef& x, Precision p, HRef& y);
-  virtual void pad_concat_half(const HRef& skip, const HRef& up, HRef& y);
-  virtual void copy_channels_half(const HRef& x, int channel0, HRef& y);
-  // scatter_forward into a 16-bit canvas: the band's values rounded to `p` (a cell outside the
-  // canvas, an inert row's, is skipped), so that the U-Net's 16-bit input needs no FP32 canvas.
-  virtual void scatter_forward_half(const Ref& features, const IRef& cells, int channel0,
-                                    Precision p, HRef& canvas);
+  // x FP32 -> y rounded to y's dtype (BF16 or FP16, to nearest even).
+  virtual void convert(const Ref& x, const TensorRef& y);
+
+ protected:
+  // Throws unless this backend supports_precision(p), naming the backend and why.
+  void require_precision(Precision p) const;
 };
 
 std::unique_ptr<Backend> make_cpu_backend();

@@ -24,7 +24,7 @@
 #include "host/conv2d_winograd.hpp"
 #include "host/conv_transpose2d.hpp"
 #include "host/grid_map_features.hpp"
-#include "host/label_mask.hpp"
+#include "host/mask_unobserved.hpp"
 #include "host/losses.hpp"
 #include "host/maxpool2d.hpp"
 #include "host/observability_input.hpp"
@@ -32,7 +32,7 @@
 #include "host/pfn.hpp"
 #include "host/pillar_gather.hpp"
 #include "host/point_decoration.hpp"
-#include "host/point_padding.hpp"
+#include "host/pad_points.hpp"
 #include "host/raywalk.hpp"
 #include "host/scatter.hpp"
 #include "host/softmax.hpp"
@@ -95,60 +95,57 @@ class CpuBackend final : public Backend {
     if (why_not != nullptr) *why_not = why;
     return false;
   }
-  // The 3 x 3 pad-1 convolutions run by Winograd; their transformed weights U are made with w16.
-  int64_t prepared_conv_transform_elements(const Shape& weight, int pad, Precision p) const override {
+  // The 3 x 3 pad-1 convolutions run by Winograd; their transformed weights U are made with the
+  // prepared weights.
+  int64_t prepared_conv_transform_elements(const Shape& weight, int pad, DType dtype) const override {
+    const Precision p = precision_of(dtype);
     if (!supports_precision(p, nullptr) || p == Precision::F32 || !winograd_half_applies(weight, pad)) return 0;
     return cpu::winograd_weight_elements(bf16_kernels_, weight);
   }
-  void prepare_conv_weights(const Ref& w, const Ref* bias, const BatchNormRefs* bn, Precision p, HRef& w16,
-                            Ref& bias_out, const HRef& transformed) override {
-    require_precision(p);
-    cpu::prepare_conv_weights(w, bias, bn, p, w16, bias_out);
+  void prepare_conv_weights(const Ref& w, const Ref* bias, const BatchNormRefs* bn, const TensorRef& prepared,
+                            Ref& bias_out, const TensorRef& transformed) override {
+    const char* op = "CpuBackend::prepare_conv_weights";
+    require_precision(precision_of(prepared.dtype));
+    HRef w16 = prepared.bits16(op);
+    cpu::prepare_conv_weights(w, bias, bn, precision_of(prepared.dtype), w16, bias_out);
     if (transformed.data == nullptr) return;
-    require_shape("CpuBackend::prepare_conv_weights", "transformed", transformed,
-                  {cpu::winograd_weight_elements(bf16_kernels_, w.shape)});
-    cpu::winograd_transform_weights(bf16_kernels_, w16, w.shape, transformed.data);
+    require_shape(op, "transformed", transformed.bits16(op), {cpu::winograd_weight_elements(bf16_kernels_, w.shape)});
+    cpu::winograd_transform_weights(bf16_kernels_, w16, w.shape, static_cast<uint16_t*>(transformed.data));
   }
-  void prepare_conv_transpose_weights(const Ref& w, const Ref* bias, Precision p, HRef& w16, Ref& bias_out) override {
-    require_precision(p);
-    cpu::prepare_conv_transpose_weights(w, bias, p, w16, bias_out);
+  void prepare_conv_transpose_weights(const Ref& w, const Ref* bias, const TensorRef& prepared,
+                                      Ref& bias_out) override {
+    require_precision(precision_of(prepared.dtype));
+    HRef w16 = prepared.bits16("CpuBackend::prepare_conv_transpose_weights");
+    cpu::prepare_conv_transpose_weights(w, bias, precision_of(prepared.dtype), w16, bias_out);
   }
-  void conv2d_half_forward(const ActRef& x, const HRef& w16, const HRef& transformed, const Ref& bias_out,
-                           const Shape& weight, int pad, bool relu, Precision p, const ActRef& y) override {
+  void conv2d_prepared_forward(const TensorRef& x, const TensorRef& prepared, const TensorRef& transformed,
+                               const Ref& bias_out, const Shape& weight, int pad, bool relu,
+                               const TensorRef& y) override {
+    const char* op = "CpuBackend::conv2d_prepared_forward";
+    const Precision p = precision_of(prepared.dtype);
     require_precision(p);
+    const HRef w16 = prepared.bits16(op);
     if (winograd_half_applies(weight, pad)) {  // the U-Net's: Winograd F(2x2, 3x3)
       if (transformed.data != nullptr)
-        require_shape("CpuBackend::conv2d_half_forward", "transformed", transformed,
-                      {cpu::winograd_weight_elements(bf16_kernels_, weight)});
-      cpu::conv3x3_winograd_forward(bf16_kernels_, half_input(x, p), w16, transformed.data, bias_out, weight, relu, y,
-                                    bf16_winograd_);
+        require_shape(op, "transformed", transformed.bits16(op), {cpu::winograd_weight_elements(bf16_kernels_, weight)});
+      cpu::conv3x3_winograd_forward(bf16_kernels_, half_input(x, p), w16, static_cast<uint16_t*>(transformed.data),
+                                    bias_out, weight, relu, y, bf16_winograd_);
     } else {
       cpu::conv2d_forward(bf16_kernels_, half_input(x, p), w16, bias_out, weight, pad, relu, y);
     }
   }
-  void conv_transpose2x2_half_forward(const ActRef& x, const HRef& w16, const Ref& bias_out, const Shape& weight,
-                                      Precision p, const ActRef& y) override {
+  void conv_transpose2d_prepared_forward(const TensorRef& x, const TensorRef& prepared, const Ref& bias_out,
+                                         const Shape& weight, const TensorRef& y) override {
+    const Precision p = precision_of(prepared.dtype);
     require_precision(p);
-    cpu::conv_transpose2x2_forward(bf16_kernels_, half_input(x, p), w16, bias_out, weight, y);
+    cpu::conv_transpose2d_forward(bf16_kernels_, half_input(x, p), prepared.bits16("CpuBackend::conv_transpose2d_prepared_forward"),
+                                  bias_out, weight, y);
   }
-  void to_half(const Ref& x, Precision p, HRef& y) override {
+  void convert(const Ref& x, const TensorRef& y) override {
+    const Precision p = precision_of(y.dtype);
     require_precision(p);
-    cpu::to_half(x, p, y);
-  }
-  void maxpool2x2_half(const HRef& x, Precision p, HRef& y) override {
-    require_precision(p);
-    cpu::maxpool2x2_half(x, p, y);
-  }
-  void upsample2x_half(const HRef& x, Precision p, HRef& y) override {
-    require_precision(p);
-    cpu::upsample2x_half(x, p, y);
-  }
-  void pad_concat_half(const HRef& skip, const HRef& up, HRef& y) override { cpu::pad_concat_half(skip, up, y); }
-  void copy_channels_half(const HRef& x, int channel0, HRef& y) override { cpu::copy_channels_half(x, channel0, y); }
-  void scatter_forward_half(const Ref& features, const IRef& cells, int channel0, Precision p,
-                            HRef& canvas) override {
-    require_precision(p);
-    cpu::scatter_half(features, cells, channel0, p, canvas);
+    HRef h = y.bits16("CpuBackend::convert");
+    cpu::to_half(x, p, h);
   }
 
   void* allocate(size_t bytes) override {
@@ -201,7 +198,15 @@ class CpuBackend final : public Backend {
                        db, static_cast<float*>(nullptr), bn.replicas);
   }
 
-  void scatter_forward(const Ref& features, const IRef& cells, int channel0, Ref& canvas) override {
+  void scatter_forward(const Ref& features, const IRef& cells, int channel0, const TensorRef& canvas_ref) override {
+    if (is_float16(canvas_ref.dtype)) {
+      const Precision p = precision_of(canvas_ref.dtype);
+      require_precision(p);
+      HRef canvas = canvas_ref.bits16("CpuBackend::scatter_forward");
+      cpu::scatter_half(features, cells, channel0, p, canvas);
+      return;
+    }
+    Ref canvas = canvas_ref.f32("CpuBackend::scatter_forward");
     const int64_t B = canvas.dim(0), Cc = canvas.dim(1), H = canvas.dim(2), W = canvas.dim(3), C = features.dim(1);
     PS_CHECK(channel0 >= 0 && channel0 + C <= Cc, "scatter: channels [{}, {}) outside the canvas's {}", channel0,
              channel0 + C, Cc);
@@ -212,8 +217,7 @@ class CpuBackend final : public Backend {
     }
     Tensor<float> part;
     host::scatter_forward(view(features), view(cells), B, H, W, part);
-    Ref part_ref{part.data(), part.shape()};
-    copy_channels(part_ref, channel0, canvas);
+    move_channels(Ref{part.data(), part.shape()}, channel0, canvas, /*into_y=*/true);
   }
   void scatter_backward(const Ref& dcanvas, const IRef& cells, int channel0, Ref& dfeatures) override {
     const int64_t B = dcanvas.dim(0), H = dcanvas.dim(2), W = dcanvas.dim(3), C = dfeatures.dim(1);
@@ -227,8 +231,16 @@ class CpuBackend final : public Backend {
     extract_channels(dcanvas, channel0, part_ref);
     host::scatter_backward(part, view(cells), df);
   }
-  void copy_channels(const Ref& x, int channel0, Ref& y) override {
-    move_channels(x, channel0, y, /*into_y=*/true);
+  void copy_channels(const TensorRef& x, int channel0, const TensorRef& y) override {
+    const char* op = "CpuBackend::copy_channels";
+    PS_CHECK(x.dtype == y.dtype, "{}: x is {} but y is {}", op, dtype_name(x.dtype), dtype_name(y.dtype));
+    if (is_float16(y.dtype)) {
+      HRef out = y.bits16(op);
+      cpu::copy_channels_half(x.bits16(op), channel0, out);
+      return;
+    }
+    Ref out = y.f32(op);
+    move_channels(x.f32(op), channel0, out, /*into_y=*/true);
   }
   void extract_channels(const Ref& y, int channel0, Ref& x) override {
     move_channels(x, channel0, y, /*into_y=*/false);
@@ -245,7 +257,9 @@ class CpuBackend final : public Backend {
     if (bias) b = view(*bias);
     host::conv2d_forward(view(x), view(w), bias ? &b : nullptr, pad, out);
   }
-  void conv2d_backward(const Ref& x, const Ref& w, const Ref& dy, int pad, Ref* dx, Ref& dw, Ref* dbias) override {
+  void conv2d_backward(const Ref& x, const Ref& w, const Ref& dy, int pad, Ref* dx, Ref& dw, Ref* dbias,
+                       DType compute = DType::F32) override {
+    require_fp32_training(compute);
     Tensor<float> gx, gw = view(dw), gb;
     if (dbias) gb = view(*dbias);
     if (dx) gx = view(*dx);
@@ -287,7 +301,9 @@ class CpuBackend final : public Backend {
     if (bias) b = view(*bias);
     host::conv_transpose2d_forward(view(x), view(w), bias ? &b : nullptr, out);
   }
-  void conv_transpose2d_backward(const Ref& x, const Ref& w, const Ref& dy, Ref& dx, Ref& dw, Ref* dbias) override {
+  void conv_transpose2d_backward(const Ref& x, const Ref& w, const Ref& dy, Ref& dx, Ref& dw, Ref* dbias,
+                                 DType compute = DType::F32) override {
+    require_fp32_training(compute);
     // host/ rearranges dy in place; this backend's own copy keeps the caller's dy intact.
     transpose_dy_.assign(dy.data, dy.data + dy.numel());
     Tensor<float> gx = view(dx), gw = view(dw), gb, scratch_dy = Tensor<float>::view(transpose_dy_.data(), dy.shape);
@@ -314,26 +330,49 @@ class CpuBackend final : public Backend {
     Tensor<float>& gx = dx.data == dy.data ? gy : separate_gx;
     host::batchnorm_relu_backward(gy, view(x), view(y), view(bn.gamma), bn_saved(bn), gx, gg, gb, bn.replicas);
   }
-  void maxpool2x2_forward(const Ref& x, Ref& y, IRef& argmax) override {
-    Tensor<float> out = view(y);
-    Tensor<int32_t> idx = view(argmax);
-    host::maxpool2d_forward(view(x), out, &idx);
+  void maxpool2d_forward(const TensorRef& x, const TensorRef& y, IRef* argmax) override {
+    const char* op = "CpuBackend::maxpool2d_forward";
+    if (is_float16(x.dtype)) {
+      const Precision p = precision_of(x.dtype);
+      require_precision(p);
+      HRef out = y.bits16(op);
+      cpu::maxpool2d_half(x.bits16(op), p, out);
+      return;
+    }
+    PS_CHECK(argmax != nullptr, "{}: an f32 max-pool writes its arg-max (none given)", op);
+    Tensor<float> out = view(y.f32(op));
+    Tensor<int32_t> idx = view(*argmax);
+    host::maxpool2d_forward(view(x.f32(op)), out, &idx);
   }
-  void maxpool2x2_backward(const Ref& dy, const IRef& argmax, Ref& dx) override {
+  void maxpool2d_backward(const Ref& dy, const IRef& argmax, Ref& dx) override {
     Tensor<float> gx = view(dx);
     host::maxpool2d_backward(view(dy), view(argmax), dx.shape, gx);
   }
-  void upsample2x_forward(const Ref& x, Ref& y) override {
-    Tensor<float> out = view(y);
-    host::upsample_bilinear_forward(view(x), out);
+  void upsample_bilinear_forward(const TensorRef& x, const TensorRef& y) override {
+    const char* op = "CpuBackend::upsample_bilinear_forward";
+    if (is_float16(x.dtype)) {
+      const Precision p = precision_of(x.dtype);
+      require_precision(p);
+      HRef out = y.bits16(op);
+      cpu::upsample_bilinear_half(x.bits16(op), p, out);
+      return;
+    }
+    Tensor<float> out = view(y.f32(op));
+    host::upsample_bilinear_forward(view(x.f32(op)), out);
   }
-  void upsample2x_backward(const Ref& dy, Ref& dx) override {
+  void upsample_bilinear_backward(const Ref& dy, Ref& dx) override {
     Tensor<float> gx = view(dx);
     host::upsample_bilinear_backward(view(dy), gx);
   }
-  void pad_concat_forward(const Ref& skip, const Ref& up, Ref& y) override {
-    Tensor<float> out = view(y);
-    host::pad_concat_forward(view(skip), view(up), out);
+  void pad_concat_forward(const TensorRef& skip, const TensorRef& up, const TensorRef& y) override {
+    const char* op = "CpuBackend::pad_concat_forward";
+    if (is_float16(y.dtype)) {
+      HRef out = y.bits16(op);
+      cpu::pad_concat_half(skip.bits16(op), up.bits16(op), out);
+      return;
+    }
+    Tensor<float> out = view(y.f32(op));
+    host::pad_concat_forward(view(skip.f32(op)), view(up.f32(op)), out);
   }
   void pad_concat_backward(const Ref& dy, Ref& dskip, Ref& dup) override {
     Tensor<float> gs = view(dskip), gu = view(dup);
@@ -467,13 +506,13 @@ class CpuBackend final : public Backend {
     return fast_paths_ && w.shape.size() == 4 && w.dim(2) == 3 && w.dim(3) == 3 && pad == 1;
   }
 
-  void require_precision(Precision p) const {
-    std::string why;
-    PS_CHECK(supports_precision(p, &why), "backend {}: --precision {}: {}", name(), precision_name(p), why);
+  void require_fp32_training(DType compute) const {
+    PS_CHECK(compute == DType::F32, "backend {} trains in fp32 only ({} training runs on --device cuda)", name(),
+             dtype_name(compute));
   }
   // x as BF16: itself, or rounded from FP32 into staging_.
-  HRef half_input(const ActRef& x, Precision p) {
-    if (x.half) return {static_cast<uint16_t*>(x.data), x.shape};
+  HRef half_input(const TensorRef& x, Precision p) {
+    if (is_float16(x.dtype)) return {static_cast<uint16_t*>(x.data), x.shape};
     staging_.resize(static_cast<size_t>(x.numel()));
     HRef h{staging_.data(), x.shape};
     cpu::to_half(Ref{static_cast<float*>(x.data), x.shape}, p, h);

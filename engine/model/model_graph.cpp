@@ -161,7 +161,7 @@ class Builder {
     const int w16 = g_.tensor(name + ".w16", op::half16_conv_weights(w_shape, false), half_dtype());
     const int b16 = g_.tensor(name + ".bias16", {w_shape[0]});
     // The backend's own transformed form of the weights, where it has one (the CPU's Winograd U).
-    const int64_t transform = backend_ ? backend_->prepared_conv_transform_elements(w_shape, pad, conv_precision_) : 0;
+    const int64_t transform = backend_ ? backend_->prepared_conv_transform_elements(w_shape, pad, half_dtype()) : 0;
     const int wt = transform > 0 ? g_.tensor(name + ".w16_transformed", {transform}, half_dtype()) : -1;
     keep_prepared({w16, b16, wt});
     add(OpKind::PrepareConvWeights, name,
@@ -393,7 +393,7 @@ void build_model_graph(ModelGraph& out, const ModelConfig& config, const Modules
     const Down& d = m.downs[static_cast<size_t>(i - 1)];
     DownActs& a = down_acts[static_cast<size_t>(i - 1)];
     const std::string name = fmt::format("down{}", i);
-    const Shape pooled = op::maxpool2x2(g.at(x[static_cast<size_t>(i - 1)]).shape);
+    const Shape pooled = op::maxpool2d(g.at(x[static_cast<size_t>(i - 1)]).shape);
     a.pooled = g.tensor(name + ".pooled", pooled, bld.act());
     // 16-bit activations are pooled without an arg-max (the evaluation forward keeps none).
     if (!bld.half()) a.argmax = g.tensor(name + ".argmax", pooled, DType::I32);
@@ -422,7 +422,7 @@ void build_model_graph(ModelGraph& out, const ModelConfig& config, const Modules
     const int skip = x[skip_level];
     a.cat = cat[static_cast<size_t>(j - 1)];
     const Shape in = g.at(current).shape;  // a copy: adding tensors below moves the list
-    const Shape up_shape = u.transposed ? op::conv_transpose2x2(in, {u.in, u.up_channels, 2, 2}) : op::upsample2x(in);
+    const Shape up_shape = u.transposed ? op::conv_transpose2d(in, {u.in, u.up_channels, 2, 2}) : op::upsample_bilinear(in);
     // Eval with batch 1 and no padding: the upsampled tensor is the band of the concatenation
     // after the skip, so the upsampling writes its part in place.
     const bool upsampled_in_cat = !training && batch == 1 && up_shape[2] == hs[skip_level] &&

@@ -126,8 +126,8 @@ class OpContext {
   }
   Ref f32(int id) { return ref<float>(id); }
   IRef i32(int id) { return ref<int32_t>(id); }
-  HRef bits16(int id) { return ref<uint16_t>(id); }
-  ActRef activation(int id);
+  // The tensor with its dtype (empty for -1).
+  TensorRef tensor(int id);
   size_t bytes(int id);
 };
 

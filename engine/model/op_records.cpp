@@ -12,20 +12,13 @@
 
 namespace pillarseg {
 
-ActRef OpContext::activation(int id) {
-  const HRef r = bits16(id);
-  return ActRef{r.data, r.shape, is_float16(graph().at(id).dtype)};
+TensorRef OpContext::tensor(int id) {
+  return id < 0 ? TensorRef{} : TensorRef{data(id), shape(id), graph().at(id).dtype};
 }
 
 size_t OpContext::bytes(int id) { return graph().tensor_bytes(id, pillar_rows()); }
 
 namespace {
-
-// The precision of a 16-bit dtype, for the Backend's mixed-precision calls.
-Precision precision_of(DType dtype) {
-  PS_CHECK(is_float16(dtype), "op graph: {} is not a 16-bit float type", dtype_name(dtype));
-  return dtype == DType::BF16 ? Precision::BF16 : Precision::F16;
-}
 
 const Shape& shape_of(const Graph& g, int id) { return g.at(id).shape; }
 DType dtype_of(const Graph& g, int id) { return g.at(id).dtype; }
@@ -85,11 +78,11 @@ void check_conv2d_backward(const Graph& g, const GraphNode& n) {
 void check_conv_transpose2d(const Graph& g, const GraphNode& n) {
   const auto a = n.as<Conv2dArgs>();
   const Shape* bias = a.bias >= 0 ? &shape_of(g, a.bias) : nullptr;
-  require_shape(g, n, a.y, op::conv_transpose2x2(shape_of(g, a.x), shape_of(g, a.w), bias), "y");
+  require_shape(g, n, a.y, op::conv_transpose2d(shape_of(g, a.x), shape_of(g, a.w), bias), "y");
 }
 void check_conv_transpose2d_backward(const Graph& g, const GraphNode& n) {
   const auto a = n.as<Conv2dBackwardArgs>();
-  require_shape(g, n, a.dy, op::conv_transpose2x2(shape_of(g, a.x), shape_of(g, a.w)), "dy");
+  require_shape(g, n, a.dy, op::conv_transpose2d(shape_of(g, a.x), shape_of(g, a.w)), "dy");
   require_shape(g, n, a.dx, shape_of(g, a.x), "dx");
   require_shape(g, n, a.dw, shape_of(g, a.w), "dw");
   require_shape(g, n, a.dbias, {shape_of(g, a.w)[1]}, "dbias");
@@ -108,7 +101,7 @@ void check_batchnorm_relu_backward(const Graph& g, const GraphNode& n) {
 }
 void check_maxpool2d(const Graph& g, const GraphNode& n) {
   const auto a = n.as<MaxPool2dArgs>();
-  const Shape y = op::maxpool2x2(shape_of(g, a.x));
+  const Shape y = op::maxpool2d(shape_of(g, a.x));
   require_shape(g, n, a.y, y, "y");
   require_shape(g, n, a.argmax, y, "argmax");
   require_same_dtype(g, n, a.x, a.y);
@@ -117,17 +110,17 @@ void check_maxpool2d(const Graph& g, const GraphNode& n) {
 }
 void check_maxpool2d_backward(const Graph& g, const GraphNode& n) {
   const auto a = n.as<MaxPool2dBackwardArgs>();
-  require_shape(g, n, a.dy, op::maxpool2x2(shape_of(g, a.dx)), "dy");
+  require_shape(g, n, a.dy, op::maxpool2d(shape_of(g, a.dx)), "dy");
   require_shape(g, n, a.argmax, shape_of(g, a.dy), "argmax");
 }
 void check_upsample(const Graph& g, const GraphNode& n) {
   const auto a = n.as<UnaryArgs>();
-  require_shape(g, n, a.y, op::upsample2x(shape_of(g, a.x)), "y");
+  require_shape(g, n, a.y, op::upsample_bilinear(shape_of(g, a.x)), "y");
   require_same_dtype(g, n, a.x, a.y);
 }
 void check_upsample_backward(const Graph& g, const GraphNode& n) {
   const auto a = n.as<UnaryArgs>();  // x: dy, y: dx
-  require_shape(g, n, a.x, op::upsample2x(shape_of(g, a.y)), "dy");
+  require_shape(g, n, a.x, op::upsample_bilinear(shape_of(g, a.y)), "dy");
 }
 void check_pad_concat(const Graph& g, const GraphNode& n) {
   const auto a = n.as<PadConcatArgs>();
@@ -169,7 +162,7 @@ void check_prepared_conv2d(const Graph& g, const GraphNode& n) {
 }
 void check_prepared_conv_transpose2d(const Graph& g, const GraphNode& n) {
   const auto a = n.as<PreparedConv2dArgs>();
-  require_shape(g, n, a.y, op::conv_transpose2x2(shape_of(g, a.x), n.weight), "y");
+  require_shape(g, n, a.y, op::conv_transpose2d(shape_of(g, a.x), n.weight), "y");
   require_shape(g, n, a.prepared, op::half16_conv_weights(n.weight, true), "prepared");
 }
 void check_convert(const Graph& g, const GraphNode& n) {
@@ -189,11 +182,11 @@ double conv2d_backward_flops(const Graph& g, const GraphNode& n) {  // dx and dw
 }
 double conv_transpose2d_flops(const Graph& g, const GraphNode& n) {
   const auto a = n.as<Conv2dArgs>();
-  return op::conv_transpose2x2_flops(shape_of(g, a.x), shape_of(g, a.w));
+  return op::conv_transpose2d_flops(shape_of(g, a.x), shape_of(g, a.w));
 }
 double conv_transpose2d_backward_flops(const Graph& g, const GraphNode& n) {
   const auto a = n.as<Conv2dBackwardArgs>();
-  return 2.0 * op::conv_transpose2x2_flops(shape_of(g, a.x), shape_of(g, a.w));
+  return 2.0 * op::conv_transpose2d_flops(shape_of(g, a.x), shape_of(g, a.w));
 }
 double pfn_flops(const Graph& g, const GraphNode& n) {
   const auto a = n.as<PfnForwardArgs>();
@@ -207,7 +200,7 @@ double prepared_conv2d_flops(const Graph& g, const GraphNode& n) {
   return op::conv2d_flops(shape_of(g, n.as<PreparedConv2dArgs>().y), n.weight);
 }
 double prepared_conv_transpose2d_flops(const Graph& g, const GraphNode& n) {
-  return op::conv_transpose2x2_flops(shape_of(g, n.as<PreparedConv2dArgs>().x), n.weight);
+  return op::conv_transpose2d_flops(shape_of(g, n.as<PreparedConv2dArgs>().x), n.weight);
 }
 
 // ---- least bytes of the ops that name a whole tensor of which they move a band or some rows
@@ -265,14 +258,7 @@ double run_pfn_backward(OpContext& c, const GraphNode& n) {
 double run_scatter(OpContext& c, const GraphNode& n) {
   if (c.pillar_rows() == 0) return 0;
   const auto a = n.as<ScatterArgs>();
-  const DType canvas = c.graph().at(a.canvas).dtype;
-  if (is_float16(canvas)) {
-    HRef y = c.bits16(a.canvas);
-    c.backend().scatter_forward_half(c.f32(a.features), c.i32(a.cells), n.channel0, precision_of(canvas), y);
-  } else {
-    Ref y = c.f32(a.canvas);
-    c.backend().scatter_forward(c.f32(a.features), c.i32(a.cells), n.channel0, y);
-  }
+  c.backend().scatter_forward(c.f32(a.features), c.i32(a.cells), n.channel0, c.tensor(a.canvas));
   return 0;
 }
 double run_scatter_backward(OpContext& c, const GraphNode& n) {
@@ -284,13 +270,7 @@ double run_scatter_backward(OpContext& c, const GraphNode& n) {
 }
 double run_copy_channels(OpContext& c, const GraphNode& n) {
   const auto a = n.as<CopyChannelsArgs>();
-  if (is_float16(c.graph().at(a.y).dtype)) {
-    HRef y = c.bits16(a.y);
-    c.backend().copy_channels_half(c.bits16(a.x), n.channel0, y);
-  } else {
-    Ref y = c.f32(a.y);
-    c.backend().copy_channels(c.f32(a.x), n.channel0, y);
-  }
+  c.backend().copy_channels(c.tensor(a.x), n.channel0, c.tensor(a.y));
   return 0;
 }
 double run_extract_channels(OpContext& c, const GraphNode& n) {
@@ -317,14 +297,8 @@ double run_conv2d_bn_relu_eval(OpContext& c, const GraphNode& n) {
 double run_conv2d_backward(OpContext& c, const GraphNode& n) {
   const auto a = n.as<Conv2dBackwardArgs>();
   Ref dx = c.f32(a.dx), dw = c.f32(a.dw), db = c.f32(a.dbias);
-  Ref* dx_or_null = a.dx >= 0 ? &dx : nullptr;
-  Ref* db_or_null = a.dbias >= 0 ? &db : nullptr;
-  if (n.compute == DType::F32) {
-    c.backend().conv2d_backward(c.f32(a.x), c.f32(a.w), c.f32(a.dy), n.pad, dx_or_null, dw, db_or_null);
-  } else {
-    c.backend().conv2d_backward_half(c.f32(a.x), c.f32(a.w), c.f32(a.dy), n.pad, precision_of(n.compute),
-                                     dx_or_null, dw, db_or_null);
-  }
+  c.backend().conv2d_backward(c.f32(a.x), c.f32(a.w), c.f32(a.dy), n.pad, a.dx >= 0 ? &dx : nullptr, dw,
+                              a.dbias >= 0 ? &db : nullptr, n.compute);
   return 0;
 }
 double run_conv_transpose2d(OpContext& c, const GraphNode& n) {
@@ -337,12 +311,7 @@ double run_conv_transpose2d(OpContext& c, const GraphNode& n) {
 double run_conv_transpose2d_backward(OpContext& c, const GraphNode& n) {
   const auto a = n.as<Conv2dBackwardArgs>();
   Ref dx = c.f32(a.dx), dw = c.f32(a.dw), db = c.f32(a.dbias);
-  if (n.compute == DType::F32) {
-    c.backend().conv_transpose2d_backward(c.f32(a.x), c.f32(a.w), c.f32(a.dy), dx, dw, &db);
-  } else {
-    c.backend().conv_transpose2x2_backward_half(c.f32(a.x), c.f32(a.w), c.f32(a.dy), precision_of(n.compute), dx, dw,
-                                                &db);
-  }
+  c.backend().conv_transpose2d_backward(c.f32(a.x), c.f32(a.w), c.f32(a.dy), dx, dw, &db, n.compute);
   return 0;
 }
 double run_batchnorm_relu(OpContext& c, const GraphNode& n) {
@@ -362,50 +331,30 @@ double run_batchnorm_relu_backward(OpContext& c, const GraphNode& n) {
 }
 double run_maxpool2d(OpContext& c, const GraphNode& n) {
   const auto a = n.as<MaxPool2dArgs>();
-  const DType dtype = c.graph().at(a.x).dtype;
-  if (is_float16(dtype)) {
-    HRef y = c.bits16(a.y);
-    c.backend().maxpool2x2_half(c.bits16(a.x), precision_of(dtype), y);
-  } else {
-    Ref y = c.f32(a.y);
-    IRef argmax = c.i32(a.argmax);
-    c.backend().maxpool2x2_forward(c.f32(a.x), y, argmax);
-  }
+  IRef argmax = c.i32(a.argmax);
+  c.backend().maxpool2d_forward(c.tensor(a.x), c.tensor(a.y), a.argmax >= 0 ? &argmax : nullptr);
   return 0;
 }
 double run_maxpool2d_backward(OpContext& c, const GraphNode& n) {
   const auto a = n.as<MaxPool2dBackwardArgs>();
   Ref dx = c.f32(a.dx);
-  c.backend().maxpool2x2_backward(c.f32(a.dy), c.i32(a.argmax), dx);
+  c.backend().maxpool2d_backward(c.f32(a.dy), c.i32(a.argmax), dx);
   return 0;
 }
 double run_upsample(OpContext& c, const GraphNode& n) {
   const auto a = n.as<UnaryArgs>();
-  const DType dtype = c.graph().at(a.x).dtype;
-  if (is_float16(dtype)) {
-    HRef y = c.bits16(a.y);
-    c.backend().upsample2x_half(c.bits16(a.x), precision_of(dtype), y);
-  } else {
-    Ref y = c.f32(a.y);
-    c.backend().upsample2x_forward(c.f32(a.x), y);
-  }
+  c.backend().upsample_bilinear_forward(c.tensor(a.x), c.tensor(a.y));
   return 0;
 }
 double run_upsample_backward(OpContext& c, const GraphNode& n) {
   const auto a = n.as<UnaryArgs>();
   Ref dx = c.f32(a.y);
-  c.backend().upsample2x_backward(c.f32(a.x), dx);
+  c.backend().upsample_bilinear_backward(c.f32(a.x), dx);
   return 0;
 }
 double run_pad_concat(OpContext& c, const GraphNode& n) {
   const auto a = n.as<PadConcatArgs>();
-  if (is_float16(c.graph().at(a.y).dtype)) {
-    HRef y = c.bits16(a.y);
-    c.backend().pad_concat_half(c.bits16(a.skip), c.bits16(a.up), y);
-  } else {
-    Ref y = c.f32(a.y);
-    c.backend().pad_concat_forward(c.f32(a.skip), c.f32(a.up), y);
-  }
+  c.backend().pad_concat_forward(c.tensor(a.skip), c.tensor(a.up), c.tensor(a.y));
   return 0;
 }
 double run_pad_concat_backward(OpContext& c, const GraphNode& n) {
@@ -429,41 +378,35 @@ double run_loss(OpContext& c, const GraphNode& n) {
 double run_prepare_conv(OpContext& c, const GraphNode& n) {
   const auto a = n.as<PrepareConvWeightsArgs>();
   const Ref bias = c.f32(a.bias);
-  HRef prepared = c.bits16(a.prepared);
   Ref prepared_bias = c.f32(a.prepared_bias);
   const BatchNormRefs bn = n.batchnorm >= 0 ? c.batchnorm(n, -1, -1) : BatchNormRefs{};
   c.backend().prepare_conv_weights(c.f32(a.w), a.bias >= 0 ? &bias : nullptr, n.batchnorm >= 0 ? &bn : nullptr,
-                                   precision_of(c.graph().at(a.prepared).dtype), prepared, prepared_bias,
-                                   c.bits16(a.transformed));
+                                   c.tensor(a.prepared), prepared_bias, c.tensor(a.transformed));
   return 0;
 }
 double run_prepare_conv_transpose(OpContext& c, const GraphNode& n) {
   const auto a = n.as<PrepareConvWeightsArgs>();
   const Ref bias = c.f32(a.bias);
-  HRef prepared = c.bits16(a.prepared);
   Ref prepared_bias = c.f32(a.prepared_bias);
-  c.backend().prepare_conv_transpose_weights(c.f32(a.w), a.bias >= 0 ? &bias : nullptr,
-                                             precision_of(c.graph().at(a.prepared).dtype), prepared, prepared_bias);
+  c.backend().prepare_conv_transpose_weights(c.f32(a.w), a.bias >= 0 ? &bias : nullptr, c.tensor(a.prepared),
+                                             prepared_bias);
   return 0;
 }
 double run_prepared_conv2d(OpContext& c, const GraphNode& n) {
   const auto a = n.as<PreparedConv2dArgs>();
-  c.backend().conv2d_half_forward(c.activation(a.x), c.bits16(a.prepared), c.bits16(a.transformed),
-                                  c.f32(a.prepared_bias), n.weight, n.pad, n.relu,
-                                  precision_of(c.graph().at(a.prepared).dtype), c.activation(a.y));
+  c.backend().conv2d_prepared_forward(c.tensor(a.x), c.tensor(a.prepared), c.tensor(a.transformed),
+                                      c.f32(a.prepared_bias), n.weight, n.pad, n.relu, c.tensor(a.y));
   return 0;
 }
 double run_prepared_conv_transpose2d(OpContext& c, const GraphNode& n) {
   const auto a = n.as<PreparedConv2dArgs>();
-  c.backend().conv_transpose2x2_half_forward(c.activation(a.x), c.bits16(a.prepared), c.f32(a.prepared_bias),
-                                             n.weight, precision_of(c.graph().at(a.prepared).dtype),
-                                             c.activation(a.y));
+  c.backend().conv_transpose2d_prepared_forward(c.tensor(a.x), c.tensor(a.prepared), c.f32(a.prepared_bias), n.weight,
+                                                c.tensor(a.y));
   return 0;
 }
 double run_convert(OpContext& c, const GraphNode& n) {
   const auto a = n.as<UnaryArgs>();
-  HRef y = c.bits16(a.y);
-  c.backend().to_half(c.f32(a.x), precision_of(c.graph().at(a.y).dtype), y);
+  c.backend().convert(c.f32(a.x), c.tensor(a.y));
   return 0;
 }
 

@@ -1,6 +1,6 @@
-// Point padding (see point_padding.cuh): a grid-stride loop over the capacity's rows; rows below
+// Point padding (see pad_points.cuh): a grid-stride loop over the capacity's rows; rows below
 // M return at once, the others are written as one float4 of NaN (rows are 16 bytes).
-#include "kernels/point_padding.cuh"
+#include "kernels/pad_points.cuh"
 
 #include <cstdint>
 

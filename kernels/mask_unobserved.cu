@@ -1,6 +1,6 @@
-// Masking of unobserved cells (see label_mask.cuh): one grid-stride loop over the cells; a masked
+// Masking of unobserved cells (see mask_unobserved.cuh): one grid-stride loop over the cells; a masked
 // cell clears its label and its value in every probability plane.
-#include "kernels/label_mask.cuh"
+#include "kernels/mask_unobserved.cuh"
 
 #include <cstdint>
 

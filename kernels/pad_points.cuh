@@ -1,4 +1,4 @@
-// Point padding (host/point_padding.hpp is the spec): rows [M, capacity) of points (capacity, 4)
+// Point padding (host/pad_points.hpp is the spec): rows [M, capacity) of points (capacity, 4)
 // become quiet NaN, M = *num_points read on the device, so that one recorded graph serves every
 // scan of up to `capacity` points (padding rows belong to no pillar and cast no ray). M outside
 // [0, capacity] is clamped to it (a kernel cannot throw). Pointers are device memory; the work is

@@ -1,4 +1,4 @@
-#include "host/point_padding.hpp"
+#include "host/pad_points.hpp"
 
 #include <algorithm>
 #include <limits>

@@ -1,4 +1,4 @@
-#include "host/label_mask.hpp"
+#include "host/mask_unobserved.hpp"
 
 #include "core/error.hpp"
 

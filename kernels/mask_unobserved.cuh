@@ -1,4 +1,4 @@
-// Masking of unobserved cells (host/label_mask.hpp is the spec): where transmissions + detections
+// Masking of unobserved cells (host/mask_unobserved.hpp is the spec): where transmissions + detections
 // is 0 (no ray touched the cell), labels (n) = 0 and, when probabilities is not null, each of its
 // `planes` planes of n values = 0. Exact; one writer per element. Pointers are device memory; the
 // work is queued on `stream`.
