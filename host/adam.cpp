@@ -69,11 +69,16 @@ template <class T>
 double clip_grad_norm(std::span<const std::span<T>> grads, double max_norm) {
   PS_CHECK(max_norm > 0, "clip_grad_norm: expected max_norm > 0, given {}", max_norm);
   const double norm = grad_norm(grads);
-  const double clip_coefficient = max_norm / (norm + 1e-6);
-  if (clip_coefficient < 1) {
-    for (const std::span<T>& g : grads) flat(g) *= static_cast<T>(clip_coefficient);
+  const double coefficient = clip_coefficient(norm, max_norm);
+  if (coefficient < 1) {
+    for (const std::span<T>& g : grads) flat(g) *= static_cast<T>(coefficient);
   }
   return norm;
+}
+
+double clip_coefficient(double norm, double max_norm) {
+  const double coefficient = max_norm / (norm + 1e-6);
+  return coefficient < 1 ? coefficient : 1.0;
 }
 
 template void adam_step<float>(std::span<float>, std::span<const float>, std::span<float>,

@@ -29,9 +29,15 @@ void adam_step(std::span<T> params, std::span<const T> grads, std::span<T> exp_a
 template <class T>
 double grad_norm(std::span<const std::span<T>> grads);
 
-// Scales every gradient by max_norm / (norm + 1e-6) when that factor is below 1, so that the
-// norm becomes max_norm; returns the norm before clipping. A non-finite norm leaves the
-// gradients as they are (the caller stops on it).
+// The factor clip_grad_norm_ scales gradients of L2 norm `norm` by for a threshold max_norm > 0:
+// max_norm / (norm + 1e-6) where that is below 1, else 1 (no clipping). The one rule of gradient
+// clipping: clip_grad_norm below and the trainer's clipping of the backend's flat gradient array
+// (engine/train/trainer.cpp) both take it.
+double clip_coefficient(double norm, double max_norm);
+
+// Scales every gradient by clip_coefficient(norm, max_norm), so that the norm becomes at most
+// max_norm; returns the norm before clipping. A non-finite norm leaves the gradients as they are
+// (the caller stops on it).
 template <class T>
 double clip_grad_norm(std::span<const std::span<T>> grads, double max_norm);
 

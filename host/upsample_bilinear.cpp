@@ -9,6 +9,7 @@
 #include <cstdint>
 #include <vector>
 
+#include "core/bilinear_taps.hpp"
 #include "core/error.hpp"
 #include "core/ops.hpp"
 #include "core/parallel.hpp"
@@ -18,28 +19,13 @@ namespace {
 
 // Sample at output index d of an axis: (1 - lambda) in[i0] + lambda in[i1].
 template <class T>
-struct Tap {
-  int64_t i0 = 0;
-  int64_t i1 = 0;
-  T w0 = 0;  // 1 - lambda
-  T w1 = 0;  // lambda
-};
+using Tap = BilinearTap<T>;
 
-// Taps of the `out` output samples of an axis with `in` input samples, align_corners = true:
-// source coordinate d (in - 1) / (out - 1), computed in double from the exact integer numerator.
+// The taps of the `out` output samples of an axis with `in` input samples (core/bilinear_taps.hpp).
 template <class T>
 std::vector<Tap<T>> axis_taps(int64_t in, int64_t out) {
   std::vector<Tap<T>> taps(static_cast<size_t>(out));
-  for (int64_t d = 0; d < out; ++d) {
-    const double source =
-        out > 1 ? static_cast<double>(d * (in - 1)) / static_cast<double>(out - 1) : 0.0;
-    Tap<T>& tap = taps[static_cast<size_t>(d)];
-    tap.i0 = std::min(static_cast<int64_t>(std::floor(source)), in - 1);
-    tap.i1 = std::min(tap.i0 + 1, in - 1);
-    const double lambda = source - static_cast<double>(tap.i0);
-    tap.w0 = static_cast<T>(1.0 - lambda);
-    tap.w1 = static_cast<T>(lambda);
-  }
+  for (int64_t d = 0; d < out; ++d) taps[static_cast<size_t>(d)] = bilinear_tap<T>(d, in, out);
   return taps;
 }
 

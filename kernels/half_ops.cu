@@ -4,7 +4,7 @@
 
 #include <algorithm>
 
-#include "kernels/bilinear_taps.cuh"
+#include "core/bilinear_taps.hpp"
 #include "kernels/common.cuh"
 
 namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
@@ -57,7 +57,7 @@ __global__ void upsample_kernel(const std::uint16_t* __restrict__ x, std::int64_
   const std::int64_t out_h = 2 * in_h, out_w = 2 * in_w, n = planes * out_h * out_w;
   for (std::int64_t i = first_index(); i < n; i += stride()) {
     const std::int64_t plane = i / (out_h * out_w), oy = i / out_w % out_h, ox = i % out_w;
-    const Tap r = axis_tap(oy, in_h, out_h), c = axis_tap(ox, in_w, out_w);
+    const BilinearTap<float> r = bilinear_tap<float>(oy, in_h, out_h), c = bilinear_tap<float>(ox, in_w, out_w);
     const std::uint16_t* top = x + plane * in_h * in_w + r.i0 * in_w;
     const std::uint16_t* bottom = x + plane * in_h * in_w + r.i1 * in_w;
     const float value =

@@ -4,7 +4,7 @@
 //   maxpool2d_half16    x (planes, H, W) -> y (planes, H / 2, W / 2), the largest of each 2 x 2
 //                        window (an exact copy of one input; NaN wins as in the FP32 kernel);
 //   upsample_bilinear_half16    bilinear x2, align_corners = true, the same taps as the FP32 kernel
-//                        (bilinear_taps.cuh), computed in FP32 and rounded once;
+//                        (core/bilinear_taps.hpp), computed in FP32 and rounded once;
 //   pad_concat_half16    [skip, up zero-padded to skip's size] along channels (PadConcatShape);
 //   copy_channels_half16 x as channels [channel0, channel0 + Cx) of y (ChannelBand).
 // Pointers are device memory; the work is queued on `stream`.

@@ -9,7 +9,7 @@
 #include <cstdint>
 #include <limits>
 
-#include "kernels/bilinear_taps.cuh"
+#include "core/bilinear_taps.hpp"
 #include "kernels/common.cuh"
 
 namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
@@ -62,7 +62,7 @@ static __device__ __forceinline__ InputTaps input_taps(std::int64_t i, std::int6
 #pragma unroll
   for (int k = 0; k < kMaxTapsPerInput; ++k) {
     if (k < taps.count) {
-      const Tap tap = axis_tap(taps.first + k, in, out);
+      const BilinearTap<float> tap = bilinear_tap<float>(taps.first + k, in, out);
       taps.weight[k] = (tap.i0 == i ? tap.w0 : 0.0f) + (tap.i1 == i ? tap.w1 : 0.0f);
     }
   }
@@ -78,8 +78,8 @@ static __global__ void __launch_bounds__(kBlockSize)
   const std::int64_t ox = std::int64_t{blockIdx.x} * kTileX + threadIdx.x;
   const std::int64_t oy = std::int64_t{blockIdx.y} * kTileY + threadIdx.y;
   if (ox >= out_w || oy >= out_h) return;
-  const Tap r = axis_tap(oy, in_h, out_h);
-  const Tap c = axis_tap(ox, in_w, out_w);
+  const BilinearTap<float> r = bilinear_tap<float>(oy, in_h, out_h);
+  const BilinearTap<float> c = bilinear_tap<float>(ox, in_w, out_w);
   for (std::int64_t plane = blockIdx.z; plane < planes; plane += gridDim.z) {
     const float* top = x + plane * in_h * in_w + r.i0 * in_w;
     const float* bottom = x + plane * in_h * in_w + r.i1 * in_w;

@@ -1,5 +1,5 @@
 // CPU reference layers around the convolutions (host/maxpool2d, host/upsample_bilinear,
-// host/pad_concat, host/relu): hand-computed cases, edge cases (odd sizes, ties, NaN, one-pixel
+// host/pad_concat): hand-computed cases, edge cases (odd sizes, ties, NaN, one-pixel
 // images), invariants, every backward against central finite differences in double, float
 // against double, and shape errors.
 #include <gtest/gtest.h>
@@ -14,7 +14,6 @@
 #include "core/rng.hpp"
 #include "host/maxpool2d.hpp"
 #include "host/pad_concat.hpp"
-#include "host/relu.hpp"
 #include "host/upsample_bilinear.hpp"
 #include "tests/support/test_support.hpp"
 
@@ -367,70 +366,5 @@ TEST(PadConcat, ShapeErrorsNameTheProblem) {
 }
 
 // ---- ReLU ----
-
-TEST(Relu, HandComputedWithZeroAndNaN) {
-  const TensorD x = filled({6}, {-2, -0.5, 0, 0.5, 3, kNaN});
-  TensorD y = stale_output();
-  relu_forward(x, y);
-  EXPECT_TRUE(test::all_close(y, filled({6}, {0, 0, 0, 0.5, 3, kNaN}), 0, 0));
-  TensorD dx = stale_output();
-  relu_backward(y, TensorD({6}, 1.0), dx);
-  EXPECT_TRUE(test::all_close(dx, filled({6}, {0, 0, 0, 1, 1, 0}), 0, 0));
-}
-
-TEST(Relu, InPlaceMatchesOutOfPlace) {
-  Rng rng(17);
-  TensorD x = random_tensor({2, 3, 5, 7}, rng);
-  TensorD y;
-  relu_forward(x, y);
-  const TensorD dy = random_tensor(x.shape(), rng);
-  TensorD dx;
-  relu_backward(y, dy, dx);
-  TensorD in_place = x;
-  relu_forward(in_place, in_place);
-  EXPECT_TRUE(test::all_close(in_place, y, 0, 0));
-  TensorD grad_in_place = dy;
-  relu_backward(y, grad_in_place, grad_in_place);
-  EXPECT_TRUE(test::all_close(grad_in_place, dx, 0, 0));
-}
-
-TEST(Relu, BackwardMatchesFiniteDifferences) {
-  for (const Shape& shape : kOddShapes) {
-    SCOPED_TRACE(shape_str(shape));
-    Rng rng(18);
-    TensorD x = random_tensor(shape, rng);
-    // Keep every value 1e-3 away from the kink at 0, where the derivative is undefined.
-    for (int64_t i = 0; i < x.numel(); ++i)
-      if (std::abs(x[i]) < 1e-3) x[i] = 0.5;
-    TensorD y;
-    relu_forward(x, y);
-    const TensorD dy = random_tensor(shape, rng);
-    TensorD dx;
-    relu_backward(y, dy, dx);
-    const TensorD numeric = numeric_gradient(x, [&] {
-      TensorD out;
-      relu_forward(x, out);
-      return dot(dy, out);
-    });
-    EXPECT_TRUE(test::all_close(dx, numeric, kGradAtol, kGradRtol));
-
-    TensorF yf, dxf;
-    relu_forward(tensor_cast<float>(x), yf);
-    relu_backward(yf, tensor_cast<float>(dy), dxf);
-    EXPECT_TRUE(test::all_close(yf, tensor_cast<float>(y), 0, 0));
-    EXPECT_TRUE(test::all_close(dxf, tensor_cast<float>(dx), 0, 0));
-  }
-}
-
-TEST(Relu, ShapeErrorsNameTheProblem) {
-  TensorD dx;
-  try {
-    relu_backward(TensorD({2, 3}), TensorD({3, 2}), dx);
-    FAIL() << "expected pillarseg::Error";
-  } catch (const Error& e) {
-    EXPECT_NE(std::string(e.what()).find("relu_backward"), std::string::npos) << e.what();
-    EXPECT_NE(std::string(e.what()).find("(3, 2)"), std::string::npos) << e.what();
-  }
-}
 
 }  // namespace

@@ -123,6 +123,19 @@ TEST(HostGradNorm, NormOverAllArraysAndClipToExactlyMaxNorm) {
   EXPECT_EQ(grad_norm<double>({}), 0.0);
 }
 
+// The one clipping rule (PyTorch's clip_grad_norm_), which the trainer applies to the backend's
+// gradients too: max_norm / (norm + 1e-6) where below 1; a norm equal to max_norm is scaled by
+// just under 1, one within 1e-6 below it is not scaled.
+TEST(HostGradNorm, ClipCoefficientByHand) {
+  EXPECT_DOUBLE_EQ(clip_coefficient(13.0, 6.5), 6.5 / (13.0 + 1e-6));
+  EXPECT_EQ(clip_coefficient(5.0, 10.0), 1.0);
+  EXPECT_EQ(clip_coefficient(0.0, 10.0), 1.0);
+  EXPECT_DOUBLE_EQ(clip_coefficient(10.0, 10.0), 10.0 / (10.0 + 1e-6));
+  EXPECT_LT(clip_coefficient(10.0, 10.0), 1.0);
+  EXPECT_EQ(clip_coefficient(10.0 - 2e-6, 10.0), 1.0);
+  EXPECT_EQ(clip_coefficient(std::numeric_limits<double>::quiet_NaN(), 1.0), 1.0);  // left as it is
+}
+
 TEST(HostGradNorm, NonFiniteNormLeavesGradients) {
   std::vector<double> a = {1, std::numeric_limits<double>::quiet_NaN()};
   const std::vector<std::span<double>> grads = {a};

@@ -19,6 +19,7 @@
 #include <vector>
 
 #include "core/error.hpp"
+#include "core/bilinear_taps.hpp"
 #include "core/ops.hpp"
 #include "core/parallel.hpp"
 #include "engine/cpu/bf16_amx.hpp"
@@ -484,26 +485,11 @@ void upsample_bilinear_half(const HRef& x, Precision p, HRef& y) {
   require_half(op, p);
   require_shape(op, "y", y, op::upsample_bilinear(x.shape, op));
   const std::int64_t in_h = x.dim(2), in_w = x.dim(3), out_h = 2 * in_h, out_w = 2 * in_w;
-  // The taps of kernels/bilinear_taps.cuh: s = d (in - 1) / (out - 1) = i0 + remainder / (out -
-  // 1), the weights rounded once from the exact fractions.
-  struct Tap {
-    std::int64_t i0, i1;
-    float w0, w1;
-  };
+  // The taps of core/bilinear_taps.hpp, as the CUDA kernel weighs.
+  using Tap = BilinearTap<float>;
   const auto taps = [](std::int64_t in, std::int64_t out) {
     std::vector<Tap> t(static_cast<size_t>(out));
-    for (std::int64_t d = 0; d < out; ++d) {
-      if (in == 1) {
-        t[static_cast<size_t>(d)] = {0, 0, 1.0f, 0.0f};
-        continue;
-      }
-      const std::int64_t numerator = d * (in - 1), i0 = numerator / (out - 1),
-                         remainder = numerator - i0 * (out - 1);
-      const auto denominator = static_cast<float>(out - 1);
-      t[static_cast<size_t>(d)] = {i0, i0 + 1 < in ? i0 + 1 : in - 1,
-                                   static_cast<float>(out - 1 - remainder) / denominator,
-                                   static_cast<float>(remainder) / denominator};
-    }
+    for (std::int64_t d = 0; d < out; ++d) t[static_cast<size_t>(d)] = bilinear_tap<float>(d, in, out);
     return t;
   };
   const std::vector<Tap> rows = taps(in_h, out_h), cols = taps(in_w, out_w);

@@ -27,6 +27,7 @@
 #include "engine/train/prefetcher.hpp"
 #include "engine/util/progress.hpp"
 #include "engine/util/tensorboard.hpp"
+#include "host/adam.hpp"
 #include "host/lr_schedule.hpp"
 
 namespace pillarseg {
@@ -458,8 +459,10 @@ TrainResult train(const TrainOptions& options) {
       PS_CHECK(std::isfinite(grad_norm),
                "non-finite gradient norm at epoch {}, step {}; stopping. {}", epoch + 1,
                state.step + 1, last_good_checkpoint());
-      if (tc.grad_clip > 0 && grad_norm > tc.grad_clip)
-        backend->scale(grads, static_cast<float>(tc.grad_clip / (grad_norm + 1e-6)));
+      if (tc.grad_clip > 0) {
+        const double coefficient = host::clip_coefficient(grad_norm, tc.grad_clip);
+        if (coefficient < 1) backend->scale(grads, static_cast<float>(coefficient));
+      }
       const host::LrAndMomentum lm = host::lr_schedule_at(schedule, state.step);
       AdamOptions adam;
       adam.lr = float_value(lm.lr);

@@ -1,5 +1,5 @@
-// kernels/relu.cu (relu_forward, relu_backward), kernels/reduce.cu (sum_of_squares) and
-// kernels/replica_sum.cu (the replica-order gradient sum), run on
+// kernels/reduce.cu (sum_of_squares) and kernels/replica_sum.cu (the replica-order gradient sum),
+// run on
 // the CUDA emulation and compared with plain host loops: sizes around the warp, block and float4
 // boundaries up to 2^20 + 3, pointers at every 4-byte misalignment (float4 path with scalar head
 // and tail; mixed misalignments take the scalar path), NaN, Inf and -0 inputs, in-place use, guard
@@ -22,7 +22,6 @@
 #include "kernels/common.cuh"
 #include "kernels/device_buffer.hpp"
 #include "kernels/reduce.cuh"
-#include "kernels/relu.cuh"
 #include "kernels/replica_sum.cuh"
 
 using namespace pillarseg;
@@ -110,19 +109,6 @@ std::vector<float> test_values(std::int64_t n, std::uint64_t seed) {
   return ::testing::AssertionSuccess();
 }
 
-std::vector<float> reference_relu(const std::vector<float>& x) {
-  std::vector<float> y(x.size());
-  for (size_t i = 0; i < x.size(); ++i) y[i] = x[i] <= 0.0f ? 0.0f : x[i];
-  return y;
-}
-
-std::vector<float> reference_relu_backward(const std::vector<float>& x,
-                                           const std::vector<float>& dy) {
-  std::vector<float> dx(x.size());
-  for (size_t i = 0; i < x.size(); ++i) dx[i] = x[i] <= 0.0f ? 0.0f : dy[i];
-  return dx;
-}
-
 std::string error_message(const std::function<void()>& fn) {
   try {
     fn();
@@ -140,101 +126,6 @@ const std::vector<Offsets> kOffsets = {{0, 0, 0}, {1, 1, 1}, {2, 2, 2},
                                        {3, 3, 3}, {0, 1, 2}, {3, 0, 1}};
 
 }  // namespace
-
-TEST(ReluKernels, ForwardMatchesTheHostLoopBitForBit) {
-  for (const std::int64_t n : kSizes) {
-    for (const Offsets& offsets : kOffsets) {
-      SCOPED_TRACE(::testing::Message()
-                   << "n " << n << ", offsets x " << offsets.a << " y " << offsets.b);
-      const std::vector<float> x = test_values(n, 1);
-      GuardedDeviceArray device_x(n, offsets.a), device_y(n, offsets.b);
-      device_x.upload(x);
-      cuda::relu_forward(device_x.data(), device_y.data(), n, nullptr);
-      EXPECT_TRUE(same_bits(device_y.download(), reference_relu(x)));
-      EXPECT_TRUE(device_y.guards_intact());
-      EXPECT_TRUE(same_bits(device_x.download(), x)) << "the input must not change";
-    }
-  }
-}
-
-TEST(ReluKernels, BackwardMatchesTheHostLoopBitForBit) {
-  for (const std::int64_t n : kSizes) {
-    for (const Offsets& offsets : kOffsets) {
-      SCOPED_TRACE(::testing::Message() << "n " << n << ", offsets x " << offsets.a << " dy "
-                                        << offsets.b << " dx " << offsets.c);
-      const std::vector<float> x = test_values(n, 2);
-      const std::vector<float> dy = test_values(n, 3);
-      GuardedDeviceArray device_x(n, offsets.a), device_dy(n, offsets.b), device_dx(n, offsets.c);
-      device_x.upload(x);
-      device_dy.upload(dy);
-      cuda::relu_backward(device_x.data(), device_dy.data(), device_dx.data(), n, nullptr);
-      EXPECT_TRUE(same_bits(device_dx.download(), reference_relu_backward(x, dy)));
-      EXPECT_TRUE(device_dx.guards_intact());
-    }
-  }
-}
-
-TEST(ReluKernels, SpecialValuesByHand) {
-  const float nan = std::numeric_limits<float>::quiet_NaN();
-  const float inf = std::numeric_limits<float>::infinity();
-  const std::vector<float> x = {nan, inf, -inf, -0.0f, 0.0f, 2.5f, -2.5f, 1e-45f};
-  const std::vector<float> dy = {7.0f, 7.0f, 7.0f, 7.0f, 7.0f, nan, nan, -3.0f};
-  auto device_x = DeviceBuffer<float>::from_host(x);
-  auto device_dy = DeviceBuffer<float>::from_host(dy);
-  DeviceBuffer<float> device_y(x.size()), device_dx(x.size());
-  cuda::relu_forward(device_x.data(), device_y.data(), static_cast<std::int64_t>(x.size()),
-                     nullptr);
-  cuda::relu_backward(device_x.data(), device_dy.data(), device_dx.data(),
-                      static_cast<std::int64_t>(x.size()), nullptr);
-  const std::vector<float> y = device_y.to_host();
-  const std::vector<float> dx = device_dx.to_host();
-  EXPECT_TRUE(std::isnan(y[0])) << "NaN passes through the forward";
-  EXPECT_EQ(y[1], inf);
-  EXPECT_EQ(y[2], 0.0f);
-  EXPECT_EQ(std::bit_cast<std::uint32_t>(y[3]), 0u) << "-0 becomes +0";
-  EXPECT_EQ(y[4], 0.0f);
-  EXPECT_EQ(y[5], 2.5f);
-  EXPECT_EQ(y[6], 0.0f);
-  EXPECT_EQ(y[7], 1e-45f);
-  EXPECT_EQ(dx[0], 7.0f) << "a NaN input lets the gradient through (threshold_backward)";
-  EXPECT_EQ(dx[1], 7.0f);
-  EXPECT_EQ(dx[2], 0.0f);
-  EXPECT_EQ(dx[3], 0.0f);
-  EXPECT_EQ(dx[4], 0.0f);
-  EXPECT_TRUE(std::isnan(dx[5])) << "a NaN gradient passes where x > 0";
-  EXPECT_EQ(dx[6], 0.0f) << "and is cut where x <= 0";
-  EXPECT_EQ(dx[7], -3.0f);
-}
-
-TEST(ReluKernels, InPlace) {
-  const std::int64_t n = 1001;
-  const std::vector<float> x = test_values(n, 4);
-  const std::vector<float> dy = test_values(n, 5);
-  GuardedDeviceArray device_x(n, 1), device_dy(n, 1);
-  device_x.upload(x);
-  device_dy.upload(dy);
-  cuda::relu_backward(device_x.data(), device_dy.data(), device_dy.data(), n, nullptr);
-  cuda::relu_forward(device_x.data(), device_x.data(), n, nullptr);
-  EXPECT_TRUE(same_bits(device_x.download(), reference_relu(x)));
-  EXPECT_TRUE(same_bits(device_dy.download(), reference_relu_backward(x, dy)));
-  EXPECT_TRUE(device_x.guards_intact());
-  EXPECT_TRUE(device_dy.guards_intact());
-}
-
-TEST(ReluKernels, LaunchersCheckTheirArguments) {
-  DeviceBuffer<float> buffer(4);
-  const std::string negative =
-      error_message([&] { cuda::relu_forward(buffer.data(), buffer.data(), -1, nullptr); });
-  EXPECT_NE(negative.find("relu_forward: n = -1; expected a number of elements >= 0"),
-            std::string::npos)
-      << negative;
-  const std::string null_input = error_message(
-      [&] { cuda::relu_backward(nullptr, buffer.data(), buffer.data(), 4, nullptr); });
-  EXPECT_NE(null_input.find("relu_backward: x, dy and dx must point to 4 floats of device memory"),
-            std::string::npos)
-      << null_input;
-  cuda::relu_forward(nullptr, nullptr, 0, nullptr);  // nothing to do, nothing checked
-}
 
 namespace {
 
