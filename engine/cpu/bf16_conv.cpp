@@ -440,18 +440,24 @@ void scatter_half(const Ref& features, const IRef& cells, int channel0, Precisio
   op::scatter(features.shape, cells.shape, canvas.shape, channel0, op);
   const std::int64_t batch = canvas.dim(0), channels = canvas.dim(1), height = canvas.dim(2),
                      width = canvas.dim(3), plane = height * width, c_band = features.dim(1);
-  for (std::int64_t b = 0; b < batch; ++b)
-    std::fill_n(canvas.data + (b * channels + channel0) * plane, c_band * plane, std::uint16_t{0});
-  for (std::int64_t r = 0; r < features.dim(0); ++r) {
-    const std::int32_t* cell = cells.data + 3 * r;
-    if (cell[0] < 0 || cell[0] >= batch || cell[1] < 0 || cell[1] >= height || cell[2] < 0 ||
-        cell[2] >= width)
-      continue;
-    std::uint16_t* out =
-        canvas.data + (cell[0] * channels + channel0) * plane + cell[1] * width + cell[2];
-    for (std::int64_t c = 0; c < c_band; ++c)
-      out[c * plane] = to_bits(features.data[r * c_band + c], p);
-  }
+  const std::int64_t rows = features.dim(0);
+  // Each thread owns whole channels: it zeroes them, then writes every pillar's value in them in
+  // pillar order, so a cell named twice keeps the last pillar's value as the serial loop did.
+  parallel_chunks(c_band, [&](std::int64_t c_begin, std::int64_t c_end, int) {
+    for (std::int64_t b = 0; b < batch; ++b)
+      std::fill_n(canvas.data + (b * channels + channel0 + c_begin) * plane,
+                  (c_end - c_begin) * plane, std::uint16_t{0});
+    for (std::int64_t r = 0; r < rows; ++r) {
+      const std::int32_t* cell = cells.data + 3 * r;
+      if (cell[0] < 0 || cell[0] >= batch || cell[1] < 0 || cell[1] >= height || cell[2] < 0 ||
+          cell[2] >= width)
+        continue;
+      std::uint16_t* out =
+          canvas.data + (cell[0] * channels + channel0) * plane + cell[1] * width + cell[2];
+      for (std::int64_t c = c_begin; c < c_end; ++c)
+        out[c * plane] = to_bits(features.data[r * c_band + c], p);
+    }
+  });
 }
 
 void maxpool2d_half(const HRef& x, Precision p, HRef& y) {
@@ -551,10 +557,16 @@ void pad_concat_half(const HRef& skip, const HRef& up, HRef& y) {
       std::copy_n(skip.data + (b * cs + c) * plane, plane, out);
       return;
     }
-    std::fill_n(out, plane, std::uint16_t{0});
+    // Zero only the border the up-sampled plane leaves, then copy its rows in.
     const std::uint16_t* in = up.data + (b * cu + c - cs) * uh * uw;
-    for (std::int64_t uy = 0; uy < uh; ++uy)
-      std::copy_n(in + uy * uw, uw, out + (uy + top) * w + left);
+    std::fill_n(out, top * w, std::uint16_t{0});
+    for (std::int64_t uy = 0; uy < uh; ++uy) {
+      std::uint16_t* row = out + (uy + top) * w;
+      std::fill_n(row, left, std::uint16_t{0});
+      std::copy_n(in + uy * uw, uw, row + left);
+      std::fill_n(row + left + uw, w - left - uw, std::uint16_t{0});
+    }
+    std::fill_n(out + (top + uh) * w, (h - top - uh) * w, std::uint16_t{0});
   });
 }
 
