@@ -783,6 +783,41 @@ TEST(CpuHalfOps, ScatterIsTheFp32ScatterRoundedBitForBitTheCudaBackends) {
   EXPECT_EQ(run_half_scatter(*cpu_backend), run_half_scatter(cuda_backend));
 }
 
+// The CPU's 16-bit scatter splits the channels between threads: a cell named by several pillars
+// still holds the last one's value in every channel (the FP32 scatter's order), out-of-range
+// rows write nothing, and channels outside the band keep their contents.
+TEST(CpuHalfOps, ScatterKeepsTheLastPillarOfARepeatedCellInEveryChannel) {
+  auto be = make_cpu_backend_emulated_bf16();
+  const std::int64_t c = 7, b = 1, h = 3, w = 5, cc = 9;
+  const int channel0 = 1;
+  // Pillars 0, 2 and 3 name cell (0, 1, 2); pillar 1 names (0, 2, 4); pillar 4 is off the grid.
+  const std::vector<std::int32_t> cells = {0, 1, 2, 0, 2, 4, 0, 1, 2, 0, 1, 2, 0, 3, 0};
+  std::vector<float> features(static_cast<size_t>(5 * c));
+  for (std::int64_t r = 0; r < 5; ++r)
+    for (std::int64_t k = 0; k < c; ++k)
+      features[static_cast<size_t>(r * c + k)] = static_cast<float>(10 * (r + 1) + k);  // exact in BF16
+  Device<float> f{*be, {}};
+  Device<std::int32_t> i{*be, {}};
+  Device<std::uint16_t> d{*be, {}};
+  const Shape canvas_shape = {b, cc, h, w};
+  const std::int64_t n = shape_numel(canvas_shape), plane = h * w;
+  HRef canvas{d.put(std::vector<std::uint16_t>(static_cast<size_t>(n), 0x1234)), canvas_shape};
+  be->scatter_forward(Ref{f.put(features), {5, c}}, IRef{i.put(cells), {5, 3}}, channel0,
+                      TensorRef{canvas.data, canvas.shape, DType::BF16});
+  const std::vector<std::uint16_t> got = d.get(canvas.data, n);
+  const auto bits = [](float v) { return static_cast<std::uint16_t>(std::bit_cast<std::uint32_t>(v) >> 16); };
+  for (std::int64_t e = 0; e < n; ++e) {
+    const std::int64_t channel = e / plane, cell = e % plane, k = channel - channel0;
+    std::uint16_t expected = 0x1234;
+    if (k >= 0 && k < c) {
+      expected = 0;
+      if (cell == 1 * w + 2) expected = bits(static_cast<float>(40 + k));  // pillar 3, the last
+      if (cell == 2 * w + 4) expected = bits(static_cast<float>(20 + k));  // pillar 1
+    }
+    EXPECT_EQ(got[static_cast<size_t>(e)], expected) << "channel " << channel << ", cell " << cell;
+  }
+}
+
 // ---- the whole model ----
 
 // A few training steps (BatchNorm statistics and weights away from their initial values), then
