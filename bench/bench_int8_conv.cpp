@@ -6,7 +6,9 @@
 // every variant once, in turn; the table gives medians in ms, the INT8 rate in GOP/s (2 O I 9 h w
 // operations), wall and CPU time, the sums over the U-Net's 3x3 layers and the INT8 output's
 // relative RMS error against FP32 (x ~ N(0, 1) quantized with sx = max |x| / 127, weights ~ N(0,
-// 0.05)). 16-bit and INT8 variants read and write BF16 activations, as the model stores them.
+// 0.05)). And the direct INT8 (amx, else vnni) on the non-negative input max(x, 0) in both modes:
+// the time of the non-negative mode (sx = max x / 255), and both modes' errors against FP32 on that
+// input. 16-bit and INT8 variants read and write BF16 activations, as the model stores them.
 // Flags: --reps=R (timed steps per layer, default 5), --threads=T (default 2), and Google
 // Benchmark's (--benchmark_filter=REGEX).
 #include <benchmark/benchmark.h>
@@ -41,8 +43,9 @@ int g_reps = 5;
 
 struct LayerResult {
   Layer layer;
-  StepTimes fp32, bf16, bf16_amx, int8_vnni, int8_amx, int8_winograd;
+  StepTimes fp32, bf16, bf16_amx, int8_vnni, int8_amx, int8_winograd, int8_non_negative;
   double int8_rel_rms = 0.0, winograd_rel_rms = 0.0;
+  double relu_signed_rel_rms = 0.0, relu_non_negative_rel_rms = 0.0;  // on max(x, 0)
 };
 std::vector<LayerResult> g_results;
 std::string g_notes;
@@ -108,7 +111,19 @@ void BM_Layer(benchmark::State& state, const Layer& l) {
     for (float& v : sv) v = std::max(v, 1e-6f) / 127.0f;
   }
 
-  LayerResult r{l, {}, {}, {}, {}, {}, {}, 0.0, 0.0};
+  // The non-negative input: max(x, 0) in BF16, on the native direct kernels.
+  std::vector<float> x_relu(x.size());
+  std::vector<std::uint16_t> x16_relu(x.size());
+  for (size_t i = 0; i < x.size(); ++i) {
+    x_relu[i] = std::max(x[i], 0.0f);
+    x16_relu[i] = weights::float_to_bf16_bits(x_relu[i]);
+  }
+  const ActRef x16_relu_act{x16_relu.data(), x_shape, true};
+  const cpu::Int8Kernels native_kernels = int8_amx ? cpu::Int8Kernels::Amx : cpu::Int8Kernels::Vnni;
+  const cpu::Int8ConvWeights& q_native = int8_amx ? q_amx : q_vnni;
+  const float relu_max = *std::max_element(x_relu.begin(), x_relu.end());
+
+  LayerResult r{l, {}, {}, {}, {}, {}, {}, {}, 0.0, 0.0, 0.0, 0.0};
   for (auto _ : state) {
     state.SetIterationTime(time_once(r.fp32, [&] {
       backend->conv2d_forward(x_ref, w_ref, &bias_ref, 1, y_ref);
@@ -130,15 +145,22 @@ void BM_Layer(benchmark::State& state, const Layer& l) {
     }
     if (vnni) {
       time_once(r.int8_vnni, [&] {
-        cpu::int8_conv2d_forward(cpu::Int8Kernels::Vnni, x16_act, sx, q_vnni, 1, false, y16_act,
-                                 int8_workspace);
+        cpu::int8_conv2d_forward(cpu::Int8Kernels::Vnni, x16_act, sx, false, q_vnni, 1, false,
+                                 y16_act, int8_workspace);
         benchmark::DoNotOptimize(y16.data());
       });
     }
     if (int8_amx) {
       time_once(r.int8_amx, [&] {
-        cpu::int8_conv2d_forward(cpu::Int8Kernels::Amx, x16_act, sx, q_amx, 1, false, y16_act,
-                                 int8_workspace);
+        cpu::int8_conv2d_forward(cpu::Int8Kernels::Amx, x16_act, sx, false, q_amx, 1, false,
+                                 y16_act, int8_workspace);
+        benchmark::DoNotOptimize(y16.data());
+      });
+    }
+    if (vnni || int8_amx) {
+      time_once(r.int8_non_negative, [&] {
+        cpu::int8_conv2d_forward(native_kernels, x16_relu_act, relu_max / 255.0f, true, q_native, 1,
+                                 false, y16_act, int8_workspace);
         benchmark::DoNotOptimize(y16.data());
       });
     }
@@ -163,7 +185,7 @@ void BM_Layer(benchmark::State& state, const Layer& l) {
   };
   if (vnni || int8_amx) {
     const cpu::Int8Kernels k = int8_amx ? cpu::Int8Kernels::Amx : cpu::Int8Kernels::Vnni;
-    cpu::int8_conv2d_forward(k, x16_act, sx, int8_amx ? q_amx : q_vnni, 1, false, y16_act,
+    cpu::int8_conv2d_forward(k, x16_act, sx, false, int8_amx ? q_amx : q_vnni, 1, false, y16_act,
                              int8_workspace);
     r.int8_rel_rms = rel_rms();
   }
@@ -172,9 +194,21 @@ void BM_Layer(benchmark::State& state, const Layer& l) {
                                winograd_workspace);
     r.winograd_rel_rms = rel_rms();
   }
+  if (vnni || int8_amx) {
+    const Ref x_relu_ref{x_relu.data(), x_shape};
+    backend->conv2d_forward(x_relu_ref, w_ref, &bias_ref, 1, y_ref);
+    for (const bool non_negative : {false, true}) {
+      cpu::int8_conv2d_forward(native_kernels, x16_relu_act,
+                               relu_max / (non_negative ? 255.0f : 127.0f), non_negative, q_native,
+                               1, false, y16_act, int8_workspace);
+      (non_negative ? r.relu_non_negative_rel_rms : r.relu_signed_rel_rms) = rel_rms();
+    }
+  }
   state.counters["fp32_ms"] = r.fp32.wall_median() * 1e3;
   if (vnni) state.counters["int8_vnni_ms"] = r.int8_vnni.wall_median() * 1e3;
   if (int8_amx) state.counters["int8_amx_ms"] = r.int8_amx.wall_median() * 1e3;
+  if (vnni || int8_amx)
+    state.counters["int8_non_negative_ms"] = r.int8_non_negative.wall_median() * 1e3;
   g_results.push_back(std::move(r));
 }
 
@@ -209,13 +243,15 @@ void print_table() {
       "\nU-Net 3x3 convolutions, full size, batch 1, {} threads, median of {} steps: wall ms / CPU "
       "ms (process CPU time / threads); GOP/s of int8 by wall (2 O I 9 h w / time); err: relative "
       "RMS of the int8 direct (amx, else vnni) and int8 Winograd (vnni) BF16 outputs against "
-      "fp32, %:\n",
+      "fp32, %; on max(x, 0): the int8 direct's non-negative mode (u8), and both modes' errors, "
+      "%:\n",
       num_threads(), g_reps);
   fmt::print(
       "  {:<36} {:>20} {:>6} | {:>15} | {:>15} | {:>15} | {:>15} {:>5} | {:>15} {:>5} | {:>15} | "
-      "{:>5} {:>5}\n",
+      "{:>5} {:>5} | {:>15} {:>6} {:>6}\n",
       "layer", "I -> O @ h x w", "GOP", "fp32 winograd", "bf16 wino avx", "bf16 wino amx",
-      "int8 vnni", "GOP/s", "int8 amx", "GOP/s", "int8 wino vnni", "err", "wino");
+      "int8 vnni", "GOP/s", "int8 amx", "GOP/s", "int8 wino vnni", "err", "wino", "u8 on relu",
+      "err s8", "err u8");
   const auto cell = [](const StepTimes& t) { return ms(t, false) + " / " + ms(t, true); };
   struct Sum {
     double wall = 0.0, cpu = 0.0;
@@ -224,7 +260,7 @@ void print_table() {
       wall += t.wall_median(), cpu += t.cpu_median() / num_threads();
     }
     std::string str() const { return fmt::format("{:.0f} / {:.0f}", wall * 1e3, cpu * 1e3); }
-  } fp32, bf16, bf16_amx, vnni, amx, winograd;
+  } fp32, bf16, bf16_amx, vnni, amx, winograd, non_negative;
   double gop_sum = 0.0;
   for (const LayerResult& r : g_results) {
     const double gop = r.layer.flops() * 1e-9;
@@ -233,25 +269,25 @@ void print_table() {
     };
     fmt::print(
         "  {:<36} {:>20} {:>6.1f} | {:>15} | {:>15} | {:>15} | {:>15} {:>5} | {:>15} {:>5} | "
-        "{:>15} | "
-        "{:>5.2f} {:>5.2f}\n",
+        "{:>15} | {:>5.2f} {:>5.2f} | {:>15} {:>6.2f} {:>6.2f}\n",
         r.layer.name,
         fmt::format("{} -> {} @ {}x{}", r.layer.in, r.layer.out, r.layer.h, r.layer.w), gop,
         cell(r.fp32), cell(r.bf16), cell(r.bf16_amx), cell(r.int8_vnni), rate(r.int8_vnni),
         cell(r.int8_amx), rate(r.int8_amx), cell(r.int8_winograd), 100.0 * r.int8_rel_rms,
-        100.0 * r.winograd_rel_rms);
+        100.0 * r.winograd_rel_rms, cell(r.int8_non_negative), 100.0 * r.relu_signed_rel_rms,
+        100.0 * r.relu_non_negative_rel_rms);
     gop_sum += gop;
     fp32.add(r.fp32), bf16.add(r.bf16), bf16_amx.add(r.bf16_amx), vnni.add(r.int8_vnni),
-        amx.add(r.int8_amx), winograd.add(r.int8_winograd);
+        amx.add(r.int8_amx), winograd.add(r.int8_winograd), non_negative.add(r.int8_non_negative);
   }
   fmt::print(
       "  sum over the U-Net's 3x3 layers ({:.0f} GOP), wall / CPU ms: fp32 winograd {}, bf16 "
       "winograd avx512_bf16 {}, bf16 winograd amx_bf16 {}, int8 direct avx512_vnni {} ({:.0f} "
       "GOP/s by CPU time), int8 direct amx_int8 {} ({:.0f} GOP/s by CPU time), int8 Winograd "
-      "F(2x2, 3x3) avx512_vnni {}\n{}",
+      "F(2x2, 3x3) avx512_vnni {}, int8 direct non-negative mode on max(x, 0) {}\n{}",
       gop_sum, fp32.str(), bf16.str(), bf16_amx.str(), vnni.str(),
       vnni.cpu > 0 ? gop_sum / vnni.cpu : 0.0, amx.str(), amx.cpu > 0 ? gop_sum / amx.cpu : 0.0,
-      winograd.str(), g_notes);
+      winograd.str(), non_negative.str(), g_notes);
 }
 
 }  // namespace

@@ -7,7 +7,11 @@
 // multiples of 4, 16 or 64, widths not multiples of 16, columns past the 8- and 32-column tiles),
 // with guard words around the outputs; the transposed 2x2 convolution; results independent of
 // the thread count; a packing with its K order swapped fails; and against FP32, the error on
-// random data is what the quantization noise predicts.
+// random data is what the quantization noise predicts. Each in both input modes: signed (u = q +
+// 128, compensated) and non-negative (u = q in 0..255, padding 0, no compensation), the latter
+// with inputs past 127 sx (which the signed rule would clamp) and a hand-computed case that a
+// padding of 128 or a compensation taken off would fail; for a non-negative input its error is
+// about half the signed mode's.
 #include <gtest/gtest.h>
 
 #include <algorithm>
@@ -126,6 +130,33 @@ TEST(Int8Quantize, RoundsHalfToEvenAndClamps) {
   EXPECT_EQ(cpu::quantize_int8(std::numeric_limits<float>::quiet_NaN(), r), 0);
 }
 
+TEST(Int8Quantize, NonNegativeRoundsHalfToEvenAndClampsToAByte) {
+  const float r = 1.0f / 0.5f;                     // sx = 0.5
+  EXPECT_EQ(cpu::quantize_uint8(0.25f, r), 0);     // 0.5 -> 0
+  EXPECT_EQ(cpu::quantize_uint8(0.75f, r), 2);     // 1.5 -> 2
+  EXPECT_EQ(cpu::quantize_uint8(1.25f, r), 2);     // 2.5 -> 2
+  EXPECT_EQ(cpu::quantize_uint8(63.75f, r), 128);  // 127.5 -> 128: past the signed rule's 127
+  EXPECT_EQ(cpu::quantize_uint8(64.25f, r), 128);  // 128.5 -> 128
+  EXPECT_EQ(cpu::quantize_uint8(100.0f, r), 200);
+  EXPECT_EQ(cpu::quantize_uint8(127.25f, r), 254);  // 254.5 -> 254
+  EXPECT_EQ(cpu::quantize_uint8(127.4f, r), 255);   // 254.8 -> 255
+  EXPECT_EQ(cpu::quantize_uint8(127.75f, r), 255);  // 255.5 clamped to 255 first
+  EXPECT_EQ(cpu::quantize_uint8(1e9f, r), 255);
+  EXPECT_EQ(cpu::quantize_uint8(-0.2f, r), 0);  // -0.4 -> 0
+  EXPECT_EQ(cpu::quantize_uint8(-0.3f, r), 0);  // -0.6 -> 0
+  EXPECT_EQ(cpu::quantize_uint8(-0.0f, r), 0);
+  EXPECT_EQ(cpu::quantize_uint8(-1e9f, r), 0);
+  EXPECT_EQ(cpu::quantize_uint8(std::numeric_limits<float>::infinity(), r), 255);
+  EXPECT_EQ(cpu::quantize_uint8(-std::numeric_limits<float>::infinity(), r), 0);
+  EXPECT_EQ(cpu::quantize_uint8(std::numeric_limits<float>::quiet_NaN(), r), 0);
+  // The same product x r as the signed rule: below 127 both give the same code.
+  const float r3 = 1.0f / 0.013f;
+  for (int i = 0; i <= 1000; ++i) {
+    const float x = 1.651f * static_cast<float>(i) / 1000.0f;  // x r up to 127
+    EXPECT_EQ(cpu::quantize_uint8(x, r3), cpu::quantize_int8(x, r3)) << x;
+  }
+}
+
 TEST(Int8Quantize, WeightsPerOutputChannelWithCompensation) {
   // w (3, 1, 1, 2): channel 0 (0.5, -1.27): scale 0.01, q (50, -127); channel 1 all zero: scale
   // 0, q 0; channel 2 (0.3, 0.1): scale 0.3 / 127, q (127, 42.33 -> 42).
@@ -180,8 +211,9 @@ struct Input {
     return half ? ActRef{bits.data(), shape, true} : ActRef{values.data(), shape, false};
   }
 };
-Input make_input(const Shape& shape, std::uint32_t seed, bool half) {
-  Input in{shape, random_values(shape_numel(shape), seed, -2.0f, 2.0f), {}, half};
+Input make_input(const Shape& shape, std::uint32_t seed, bool half, float lo = -2.0f,
+                 float hi = 2.0f) {
+  Input in{shape, random_values(shape_numel(shape), seed, lo, hi), {}, half};
   if (half) {
     for (float& v : in.values) {
       in.bits.push_back(weights::float_to_bf16_bits(v));
@@ -236,13 +268,18 @@ struct Reference {
   std::vector<float> y;
 };
 
+// The input's code by the rule of its mode.
+std::int64_t quantize(float x, float reciprocal, bool non_negative) {
+  return non_negative ? cpu::quantize_uint8(x, reciprocal) : cpu::quantize_int8(x, reciprocal);
+}
+
 float epilogue(std::int64_t acc, float sx, float sw, float bias, bool relu) {
   const float v = std::fma(static_cast<float>(acc), sx * sw, bias);
   return relu ? (v > 0.0f ? v : 0.0f) : v;
 }
 
-Reference reference_conv(const Input& x, float sx, const cpu::Int8ConvWeights& w, int pad,
-                         bool relu) {
+Reference reference_conv(const Input& x, float sx, bool non_negative, const cpu::Int8ConvWeights& w,
+                         int pad, bool relu) {
   const std::int64_t b_count = x.shape[0], in = x.shape[1], h = x.shape[2], wd = x.shape[3];
   const std::int64_t out = w.weight[0], kh = w.weight[2], kw = w.weight[3];
   const std::int64_t ho = h + 2 * pad - kh + 1, wo = wd + 2 * pad - kw + 1;
@@ -259,7 +296,7 @@ Reference reference_conv(const Input& x, float sx, const cpu::Int8ConvWeights& w
                 const std::int64_t iy = oy + ky - pad, ix = ox + kx - pad;
                 if (iy < 0 || iy >= h || ix < 0 || ix >= wd) continue;
                 const float v = x.values[static_cast<size_t>(((b * in + c) * h + iy) * wd + ix)];
-                acc += cpu::quantize_int8(v, r) *
+                acc += quantize(v, r, non_negative) *
                        w.q[static_cast<size_t>(((o * in + c) * kh + ky) * kw + kx)];
               }
           ref.acc.push_back(acc);
@@ -269,7 +306,8 @@ Reference reference_conv(const Input& x, float sx, const cpu::Int8ConvWeights& w
   return ref;
 }
 
-Reference reference_conv_transpose(const Input& x, float sx, const cpu::Int8ConvWeights& w) {
+Reference reference_conv_transpose(const Input& x, float sx, bool non_negative,
+                                   const cpu::Int8ConvWeights& w) {
   const std::int64_t b_count = x.shape[0], in = x.shape[1], h = x.shape[2], wd = x.shape[3];
   const std::int64_t out = w.weight[1];
   const float r = 1.0f / sx;
@@ -282,7 +320,7 @@ Reference reference_conv_transpose(const Input& x, float sx, const cpu::Int8Conv
           std::int64_t acc = 0;
           for (std::int64_t c = 0; c < in; ++c) {
             const float v = x.values[static_cast<size_t>(((b * in + c) * h + y / 2) * wd + xx / 2)];
-            acc += cpu::quantize_int8(v, r) * w.q[static_cast<size_t>((c * out + o) * 4 + s)];
+            acc += quantize(v, r, non_negative) * w.q[static_cast<size_t>((c * out + o) * 4 + s)];
           }
           ref.acc.push_back(acc);
           ref.y.push_back(epilogue(acc, sx, w.scale[static_cast<size_t>(o)],
@@ -344,6 +382,30 @@ const ConvCase kConvCases[] = {
     {1, 2, 2, 1, 1, 3, 1},  {1, 130, 33, 3, 16, 3, 1}, {1, 8, 70, 2, 49, 3, 1},
 };
 
+// The input of either mode for the bit-for-bit tests, with its scale: signed, |x| up to 2 and sx
+// = 1.9 / 127, so that some values clamp; non-negative, x in [0, 2.2) and sx = 2 / 255: most
+// codes past 127 (where the signed rule would clamp), some clamped at 255, and a few negatives,
+// NaN and infinities for the rule's edges.
+Input mode_input(const Shape& shape, std::uint32_t seed, bool half, bool non_negative, float& sx) {
+  if (!non_negative) {
+    sx = 1.9f / 127.0f;
+    return make_input(shape, seed, half);
+  }
+  sx = 2.0f / 255.0f;
+  Input x = make_input(shape, seed, half, 0.0f, 2.2f);
+  const float special[] = {-0.5f, -0.0f, std::numeric_limits<float>::quiet_NaN(),
+                           std::numeric_limits<float>::infinity(),
+                           -std::numeric_limits<float>::infinity()};
+  for (size_t i = 0; i < 5 && 7 * i < x.values.size(); ++i) {
+    x.values[7 * i] = special[i];
+    if (half) x.bits[7 * i] = weights::float_to_bf16_bits(special[i]);
+  }
+  return x;
+}
+const char* mode_name(bool non_negative) {
+  return non_negative ? "non-negative" : "signed";
+}
+
 TEST(Int8Conv, EveryKernelMatchesTheReferenceBitForBit) {
   for (Int8Kernels kernels : kernels_to_test()) {
     for (const ConvCase& c : kConvCases) {
@@ -352,25 +414,57 @@ TEST(Int8Conv, EveryKernelMatchesTheReferenceBitForBit) {
       cpu::Int8ConvWeights p;
       cpu::prepare_int8_conv(kernels, Ref{const_cast<float*>(w.data()), {c.out, c.in, c.k, c.k}},
                              Ref{const_cast<float*>(bias.data()), {c.out}}, p);
-      for (const bool x_half : {false, true}) {
-        for (const bool y_half : {false, true}) {
-          for (const bool relu : {false, true}) {
-            Input x = make_input({c.batch, c.in, c.h, c.w}, 11, x_half);
-            const float sx = 1.9f / 127.0f;  // |x| up to 2: some values clamp
-            const std::int64_t ho = c.h + 2 * c.pad - c.k + 1, wo = c.w + 2 * c.pad - c.k + 1;
-            Output y({c.batch, c.out, ho, wo}, y_half);
-            cpu::Int8ConvWorkspace ws;
-            cpu::int8_conv2d_forward(kernels, x.ref(), sx, p, c.pad, relu, y.ref(), ws);
-            const Reference ref = reference_conv(x, sx, p, c.pad, relu);
-            std::string first;
-            EXPECT_EQ(compare(y, ref, p, sx, relu, ho * wo, c.out, &first), 0)
-                << cpu::int8_kernels_name(kernels) << " " << name(c) << " x "
-                << (x_half ? "bf16" : "fp32") << " y " << (y_half ? "bf16" : "fp32") << " relu "
-                << relu << ": " << first;
-            EXPECT_TRUE(y.guards_intact()) << cpu::int8_kernels_name(kernels) << " " << name(c);
+      for (const bool non_negative : {false, true}) {
+        for (const bool x_half : {false, true}) {
+          for (const bool y_half : {false, true}) {
+            for (const bool relu : {false, true}) {
+              float sx = 0.0f;
+              Input x = mode_input({c.batch, c.in, c.h, c.w}, 11, x_half, non_negative, sx);
+              const std::int64_t ho = c.h + 2 * c.pad - c.k + 1, wo = c.w + 2 * c.pad - c.k + 1;
+              Output y({c.batch, c.out, ho, wo}, y_half);
+              cpu::Int8ConvWorkspace ws;
+              cpu::int8_conv2d_forward(kernels, x.ref(), sx, non_negative, p, c.pad, relu, y.ref(),
+                                       ws);
+              const Reference ref = reference_conv(x, sx, non_negative, p, c.pad, relu);
+              std::string first;
+              EXPECT_EQ(compare(y, ref, p, sx, relu, ho * wo, c.out, &first), 0)
+                  << cpu::int8_kernels_name(kernels) << " " << name(c) << " "
+                  << mode_name(non_negative) << " x " << (x_half ? "bf16" : "fp32") << " y "
+                  << (y_half ? "bf16" : "fp32") << " relu " << relu << ": " << first;
+              EXPECT_TRUE(y.guards_intact()) << cpu::int8_kernels_name(kernels) << " " << name(c);
+            }
           }
         }
       }
+    }
+  }
+}
+
+// A non-negative input by hand: 1 -> 1 channel, 3x3 weights all 1 (sw = 1 / 127, qw = 127), pad
+// 1, x = 2 everywhere on a 3x3 image with sx = 0.01: q = 200 (past the signed rule's 127), and the
+// output is the count of taps inside the image times 200 127 sx sw = 2: 8 at the corners, 12 at
+// the edges, 18 in the middle. A padding of 128 would add 128 127 sx sw = 1.28 for each tap
+// outside (a corner 14.4), a compensation taken off 9 128 127 sx sw = 11.52; the signed rule gives
+// 127 / 200 of these values.
+TEST(Int8Conv, NonNegativeInputIsUnshiftedAndPaddedWithZero) {
+  const std::vector<float> w(9, 1.0f), bias = {0.0f};
+  const float want[9] = {8, 12, 8, 12, 18, 12, 8, 12, 8};
+  for (Int8Kernels kernels : kernels_to_test()) {
+    cpu::Int8ConvWeights p;
+    cpu::prepare_int8_conv(kernels, Ref{const_cast<float*>(w.data()), {1, 1, 3, 3}},
+                           Ref{const_cast<float*>(bias.data()), {1}}, p);
+    ASSERT_EQ(p.q, std::vector<std::int8_t>(9, 127));
+    Input x{{1, 1, 3, 3}, std::vector<float>(9, 2.0f), {}, false};
+    for (const bool non_negative : {true, false}) {
+      Output y({1, 1, 3, 3}, false);
+      cpu::Int8ConvWorkspace ws;
+      cpu::int8_conv2d_forward(kernels, x.ref(), 0.01f, non_negative, p, 1, false, y.ref(), ws);
+      for (int i = 0; i < 9; ++i) {
+        const float expected = non_negative ? want[i] : want[i] * 127.0f / 200.0f;
+        EXPECT_NEAR(y.value(i), expected, 1e-5f * expected)
+            << cpu::int8_kernels_name(kernels) << " " << mode_name(non_negative) << " pixel " << i;
+      }
+      EXPECT_TRUE(y.guards_intact());
     }
   }
 }
@@ -389,18 +483,21 @@ TEST(Int8Conv, TransposedMatchesTheReferenceBitForBit) {
       cpu::prepare_int8_conv_transpose(kernels,
                                        Ref{const_cast<float*>(w.data()), {c.in, c.out, 2, 2}},
                                        Ref{const_cast<float*>(bias.data()), {c.out}}, p);
-      for (const bool half : {false, true}) {
-        Input x = make_input({c.batch, c.in, c.h, c.w}, 19, half);
-        const float sx = 2.0f / 127.0f;
-        Output y({c.batch, c.out, 2 * c.h, 2 * c.w}, half);
-        cpu::Int8ConvWorkspace ws;
-        cpu::int8_conv_transpose2d_forward(kernels, x.ref(), sx, p, y.ref(), ws);
-        const Reference ref = reference_conv_transpose(x, sx, p);
-        std::string first;
-        EXPECT_EQ(compare(y, ref, p, sx, false, 4 * c.h * c.w, c.out, &first), 0)
-            << cpu::int8_kernels_name(kernels) << " " << c.in << "->" << c.out << " @" << c.h << "x"
-            << c.w << (half ? " bf16" : " fp32") << ": " << first;
-        EXPECT_TRUE(y.guards_intact());
+      for (const bool non_negative : {false, true}) {
+        for (const bool half : {false, true}) {
+          float sx = 0.0f;
+          Input x = mode_input({c.batch, c.in, c.h, c.w}, 19, half, non_negative, sx);
+          Output y({c.batch, c.out, 2 * c.h, 2 * c.w}, half);
+          cpu::Int8ConvWorkspace ws;
+          cpu::int8_conv_transpose2d_forward(kernels, x.ref(), sx, non_negative, p, y.ref(), ws);
+          const Reference ref = reference_conv_transpose(x, sx, non_negative, p);
+          std::string first;
+          EXPECT_EQ(compare(y, ref, p, sx, false, 4 * c.h * c.w, c.out, &first), 0)
+              << cpu::int8_kernels_name(kernels) << " " << c.in << "->" << c.out << " @" << c.h
+              << "x" << c.w << " " << mode_name(non_negative) << (half ? " bf16" : " fp32") << ": "
+              << first;
+          EXPECT_TRUE(y.guards_intact());
+        }
       }
     }
   }
@@ -418,7 +515,7 @@ TEST(Int8Conv, NativeKernelsGiveTheirModelsBits) {
   else
     std::printf("AMX-INT8 not run: %s\n", why.c_str());
   if (pairs.empty()) GTEST_SKIP() << "this CPU runs neither VNNI nor AMX-INT8: " << why;
-  // Inputs with NaN, infinities and values past the clamp, a wider layer.
+  // Inputs with NaN, infinities, negatives and values past the clamp, a wider layer, both modes.
   const ConvCase c{2, 96, 48, 6, 70, 3, 1};
   const std::vector<float> w = random_values(c.out * c.in * 9, 23, -0.2f, 0.2f);
   const std::vector<float> bias = random_values(c.out, 24, -1.0f, 1.0f);
@@ -428,18 +525,21 @@ TEST(Int8Conv, NativeKernelsGiveTheirModelsBits) {
   x.values[2000] = -std::numeric_limits<float>::infinity();
   x.values[5000] = 1e30f;
   for (const auto& [native, model] : pairs) {
-    std::vector<std::uint32_t> got[2];
-    for (int i = 0; i < 2; ++i) {
-      const Int8Kernels k = i == 0 ? native : model;
-      cpu::Int8ConvWeights p;
-      cpu::prepare_int8_conv(k, Ref{const_cast<float*>(w.data()), {c.out, c.in, 3, 3}},
-                             Ref{const_cast<float*>(bias.data()), {c.out}}, p);
-      Output y({c.batch, c.out, c.h, c.w}, false);
-      cpu::Int8ConvWorkspace ws;
-      cpu::int8_conv2d_forward(k, x.ref(), 1.5f / 127.0f, p, 1, true, y.ref(), ws);
-      for (std::int64_t e = 0; e < shape_numel(y.shape); ++e) got[i].push_back(y.bits(e));
+    for (const bool non_negative : {false, true}) {
+      std::vector<std::uint32_t> got[2];
+      for (int i = 0; i < 2; ++i) {
+        const Int8Kernels k = i == 0 ? native : model;
+        cpu::Int8ConvWeights p;
+        cpu::prepare_int8_conv(k, Ref{const_cast<float*>(w.data()), {c.out, c.in, 3, 3}},
+                               Ref{const_cast<float*>(bias.data()), {c.out}}, p);
+        Output y({c.batch, c.out, c.h, c.w}, false);
+        cpu::Int8ConvWorkspace ws;
+        cpu::int8_conv2d_forward(k, x.ref(), non_negative ? 1.5f / 255.0f : 1.5f / 127.0f,
+                                 non_negative, p, 1, true, y.ref(), ws);
+        for (std::int64_t e = 0; e < shape_numel(y.shape); ++e) got[i].push_back(y.bits(e));
+      }
+      EXPECT_EQ(got[0], got[1]) << cpu::int8_kernels_name(native) << " " << mode_name(non_negative);
     }
-    EXPECT_EQ(got[0], got[1]) << cpu::int8_kernels_name(native);
   }
 }
 
@@ -452,14 +552,17 @@ TEST(Int8Conv, ResultsDoNotDependOnTheThreadCount) {
     cpu::Int8ConvWeights p;
     cpu::prepare_int8_conv(kernels, Ref{const_cast<float*>(w.data()), {c.out, c.in, 3, 3}},
                            Ref{const_cast<float*>(bias.data()), {c.out}}, p);
-    std::vector<std::uint16_t> first;
-    for (int threads : {1, 2, 3}) {
-      ScopedThreads scoped(threads);
-      Output y({c.batch, c.out, c.h, c.w}, true);
-      cpu::Int8ConvWorkspace ws;
-      cpu::int8_conv2d_forward(kernels, x.ref(), 0.02f, p, 1, false, y.ref(), ws);
-      if (first.empty()) first = y.h;
-      EXPECT_EQ(y.h, first) << cpu::int8_kernels_name(kernels) << " threads " << threads;
+    for (const bool non_negative : {false, true}) {
+      std::vector<std::uint16_t> first;
+      for (int threads : {1, 2, 3}) {
+        ScopedThreads scoped(threads);
+        Output y({c.batch, c.out, c.h, c.w}, true);
+        cpu::Int8ConvWorkspace ws;
+        cpu::int8_conv2d_forward(kernels, x.ref(), 0.02f, non_negative, p, 1, false, y.ref(), ws);
+        if (first.empty()) first = y.h;
+        EXPECT_EQ(y.h, first) << cpu::int8_kernels_name(kernels) << " " << mode_name(non_negative)
+                              << " threads " << threads;
+      }
     }
   }
 }
@@ -475,11 +578,11 @@ TEST(Int8Conv, ASwappedKOrderFails) {
     cpu::Int8ConvWeights good;
     cpu::prepare_int8_conv(kernels, Ref{const_cast<float*>(w.data()), {c.out, c.in, 3, 3}},
                            Ref{const_cast<float*>(bias.data()), {c.out}}, good);
-    const Reference ref = reference_conv(x, 0.015f, good, 1, false);
+    const Reference ref = reference_conv(x, 0.015f, false, good, 1, false);
     const auto mismatches = [&](const cpu::Int8ConvWeights& p) {
       Output y({c.batch, c.out, c.h, c.w}, false);
       cpu::Int8ConvWorkspace ws;
-      cpu::int8_conv2d_forward(kernels, x.ref(), 0.015f, p, 1, false, y.ref(), ws);
+      cpu::int8_conv2d_forward(kernels, x.ref(), 0.015f, false, p, 1, false, y.ref(), ws);
       return compare(y, ref, good, 0.015f, false, c.h * c.w, c.out, nullptr);
     };
     ASSERT_EQ(mismatches(good), 0) << cpu::int8_kernels_name(kernels);
@@ -512,16 +615,16 @@ TEST(Int8Conv, RejectsWhatItCannotRun) {
   Input x = make_input({1, 4, 5, 5}, 52, false);
   Output y({1, 4, 5, 5}, false);
   cpu::Int8ConvWorkspace ws;
-  EXPECT_THROW(
-      cpu::int8_conv2d_forward(Int8Kernels::Emulated, x.ref(), 0.0f, p, 1, false, y.ref(), ws),
-      Error);
-  EXPECT_THROW(
-      cpu::int8_conv2d_forward(Int8Kernels::AmxEmulated, x.ref(), 0.01f, p, 1, false, y.ref(), ws),
-      Error);  // packed for VNNI
+  EXPECT_THROW(cpu::int8_conv2d_forward(Int8Kernels::Emulated, x.ref(), 0.0f, false, p, 1, false,
+                                        y.ref(), ws),
+               Error);
+  EXPECT_THROW(cpu::int8_conv2d_forward(Int8Kernels::AmxEmulated, x.ref(), 0.01f, false, p, 1,
+                                        false, y.ref(), ws),
+               Error);  // packed for VNNI
   Output wrong({1, 4, 4, 5}, false);
-  EXPECT_THROW(
-      cpu::int8_conv2d_forward(Int8Kernels::Emulated, x.ref(), 0.01f, p, 1, false, wrong.ref(), ws),
-      Error);
+  EXPECT_THROW(cpu::int8_conv2d_forward(Int8Kernels::Emulated, x.ref(), 0.01f, false, p, 1, false,
+                                        wrong.ref(), ws),
+               Error);
   std::vector<float> bad = w;
   bad[5] = std::numeric_limits<float>::quiet_NaN();
   EXPECT_THROW(cpu::prepare_int8_conv(Int8Kernels::Emulated, Ref{bad.data(), {4, 4, 3, 3}},
@@ -699,8 +802,8 @@ TEST(Int8Winograd, ErrorAgainstFp32) {
                          Ref{bias.data(), {out}}, pd);
   Output yd({1, out, h, w}, false);
   cpu::Int8ConvWorkspace wsd;
-  cpu::int8_conv2d_forward(Int8Kernels::Emulated, x.ref(), max_abs / 127.0f, pd, 1, false, yd.ref(),
-                           wsd);
+  cpu::int8_conv2d_forward(Int8Kernels::Emulated, x.ref(), max_abs / 127.0f, false, pd, 1, false,
+                           yd.ref(), wsd);
   double signal = 0.0, e_wino = 0.0, e_direct = 0.0;
   for (std::int64_t o = 0; o < out; ++o)
     for (std::int64_t oy = 0; oy < h; ++oy)
@@ -754,7 +857,7 @@ TEST(Int8Conv, ErrorAgainstFp32IsTheQuantizationNoise) {
                          Ref{bias.data(), {c.out}}, p);
   Output y({c.batch, c.out, c.h, c.w}, false);
   cpu::Int8ConvWorkspace ws;
-  cpu::int8_conv2d_forward(Int8Kernels::Emulated, x.ref(), sx, p, 1, false, y.ref(), ws);
+  cpu::int8_conv2d_forward(Int8Kernels::Emulated, x.ref(), sx, false, p, 1, false, y.ref(), ws);
   double error2 = 0.0, predicted2 = 0.0, signal2 = 0.0;
   for (std::int64_t o = 0; o < c.out; ++o) {
     const double sw = p.scale[static_cast<size_t>(o)];
@@ -784,6 +887,62 @@ TEST(Int8Conv, ErrorAgainstFp32IsTheQuantizationNoise) {
       error2 / predicted2);
   EXPECT_GT(error2 / predicted2, 0.8);
   EXPECT_LT(error2 / predicted2, 1.2);
+}
+
+// A non-negative input (ReLU'd N(0, 1)) at the same clip value, max x: the non-negative mode's
+// step is clip / 255 against the signed mode's clip / 127, so its error against FP32 is about half
+// (127 / 255). The weights are whole multiples of their step (qw sw = w), so that only the input's
+// rounding differs between the modes.
+TEST(Int8Conv, NonNegativeModeHalvesTheErrorOfANonNegativeInput) {
+  const std::int64_t in = 32, out = 16, h = 24, w = 24;
+  std::mt19937 gen(71);
+  std::normal_distribution<float> normal(0.0f, 1.0f);
+  std::uniform_int_distribution<int> step(-127, 127);
+  std::vector<float> wt(static_cast<size_t>(out * in * 9)), bias(static_cast<size_t>(out));
+  for (size_t i = 0; i < wt.size(); ++i)
+    wt[i] = 0.01f * static_cast<float>(i % (in * 9) == 0 ? 127 : step(gen));  // sw = 0.01
+  for (float& v : bias) v = 0.1f * normal(gen);
+  Input x{{1, in, h, w}, std::vector<float>(static_cast<size_t>(in * h * w)), {}, false};
+  for (float& v : x.values) v = std::max(normal(gen), 0.0f);
+  const float clip = *std::max_element(x.values.begin(), x.values.end());
+  cpu::Int8ConvWeights p;
+  cpu::prepare_int8_conv(Int8Kernels::Emulated, Ref{wt.data(), {out, in, 3, 3}},
+                         Ref{bias.data(), {out}}, p);
+  for (size_t i = 0; i < wt.size(); ++i) {
+    ASSERT_NEAR(p.q[i] * p.scale[i / static_cast<size_t>(in * 9)], wt[i], 1e-6f) << i;
+  }
+  double error2[2] = {0.0, 0.0}, signal2 = 0.0;
+  for (const bool non_negative : {false, true}) {
+    Output y({1, out, h, w}, false);
+    cpu::Int8ConvWorkspace ws;
+    cpu::int8_conv2d_forward(Int8Kernels::Emulated, x.ref(),
+                             clip / (non_negative ? 255.0f : 127.0f), non_negative, p, 1, false,
+                             y.ref(), ws);
+    for (std::int64_t o = 0; o < out; ++o)
+      for (std::int64_t oy = 0; oy < h; ++oy)
+        for (std::int64_t ox = 0; ox < w; ++ox) {
+          double exact = bias[static_cast<size_t>(o)];
+          for (std::int64_t c = 0; c < in; ++c)
+            for (int ky = 0; ky < 3; ++ky)
+              for (int kx = 0; kx < 3; ++kx) {
+                const std::int64_t iy = oy + ky - 1, ix = ox + kx - 1;
+                if (iy < 0 || iy >= h || ix < 0 || ix >= w) continue;
+                exact += static_cast<double>(x.values[static_cast<size_t>((c * h + iy) * w + ix)]) *
+                         wt[static_cast<size_t>(((o * in + c) * 3 + ky) * 3 + kx)];
+              }
+          const double d = y.value((o * h + oy) * w + ox) - exact;
+          error2[non_negative] += d * d;
+          if (!non_negative) signal2 += exact * exact;
+        }
+  }
+  const double signed_rms = std::sqrt(error2[0] / signal2);
+  const double unsigned_rms = std::sqrt(error2[1] / signal2);
+  std::printf(
+      "non-negative input against FP32: relative RMS error, signed mode %.4f%%, non-negative mode "
+      "%.4f%%, ratio %.3f (127 / 255 = 0.498)\n",
+      100.0 * signed_rms, 100.0 * unsigned_rms, unsigned_rms / signed_rms);
+  EXPECT_LT(unsigned_rms / signed_rms, 0.75);
+  EXPECT_GT(unsigned_rms / signed_rms, 0.3);
 }
 
 }  // namespace

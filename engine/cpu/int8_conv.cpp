@@ -122,6 +122,13 @@ std::int8_t quantize_int8(float x, float reciprocal) {
   return static_cast<std::int8_t>(std::nearbyint(r));
 }
 
+std::uint8_t quantize_uint8(float x, float reciprocal) {
+  float r = x * reciprocal;
+  if (std::isnan(r)) return 0;
+  r = std::clamp(r, 0.0f, 255.0f);
+  return static_cast<std::uint8_t>(std::nearbyint(r));
+}
+
 float int8_weight_scale(float max_abs) {
   return max_abs / 127.0f;
 }
@@ -279,14 +286,15 @@ void require_activation(const char* op, const char* what, const ActRef& r) {
   PS_CHECK(r.data != nullptr || r.numel() == 0, "{}: {} has no memory", op, what);
 }
 
-// The input quantized into the workspace (`pad` columns and rows of u = 128 around it), and the
-// GEMM's input fields.
+// The input quantized into the workspace (`pad` columns and rows of padding around it: u = 128,
+// or 0 for a non-negative input), and the GEMM's input fields.
 void quantize_input(Int8Kernels kernels, [[maybe_unused]] bool on_native, const ActRef& x, float sx,
-                    int pad, Int8ConvWorkspace& workspace, Int8Gemm& g) {
+                    bool non_negative, int pad, Int8ConvWorkspace& workspace, Int8Gemm& g) {
   Int8Quantize q;
   q.x = x.data, q.x_bf16 = x.half;
   q.channels = x.dim(1), q.height = x.dim(2), q.width = x.dim(3);
   q.reciprocal = 1.0f / sx;
+  q.non_negative = non_negative;
   q.pad = pad;
   q.quads = int8_quads(kernels, q.channels);
   // Rows of whole cache lines (16 quads), so that a tap with kx = 0 loads aligned.
@@ -349,18 +357,20 @@ void check_common(const char* op, Int8Kernels kernels, const ActRef& x, float sx
            op, int8_kernels_name(w.packed_for), int8_kernels_name(kernels));
 }
 
-void fill_weights(const Int8ConvWeights& w, Int8Gemm& g) {
+// The weights' fields; the compensation only for the shifted (signed) input.
+void fill_weights(const Int8ConvWeights& w, bool non_negative, Int8Gemm& g) {
   g.w = w.packed.data();
   g.columns = w.columns;
   g.sw = w.scale.data();
   g.bias = w.bias.data();
-  g.compensation = w.compensation.data();
+  g.compensation = non_negative ? nullptr : w.compensation.data();
 }
 
 }  // namespace
 
-void int8_conv2d_forward(Int8Kernels kernels, const ActRef& x, float sx, const Int8ConvWeights& w,
-                         int pad, bool relu, const ActRef& y, Int8ConvWorkspace& workspace) {
+void int8_conv2d_forward(Int8Kernels kernels, const ActRef& x, float sx, bool non_negative,
+                         const Int8ConvWeights& w, int pad, bool relu, const ActRef& y,
+                         Int8ConvWorkspace& workspace) {
   const char* op = "int8_conv2d_forward";
   check_common(op, kernels, x, sx, w, y);
   PS_CHECK(!w.transposed, "{}: the weights are a transposed convolution's", op);
@@ -369,14 +379,14 @@ void int8_conv2d_forward(Int8Kernels kernels, const ActRef& x, float sx, const I
            shape_str(y.shape));
   const bool on_native = native(kernels);
   Int8Gemm g;
-  quantize_input(kernels, on_native, x, sx, pad, workspace, g);
+  quantize_input(kernels, on_native, x, sx, non_negative, pad, workspace, g);
   const std::int64_t kh = w.weight[2], kw = w.weight[3];
   g.taps = static_cast<int>(kh * kw);
   for (std::int64_t ky = 0; ky < kh; ++ky) {
     for (std::int64_t kx = 0; kx < kw; ++kx)
       g.tap_offsets[ky * kw + kx] = ky * g.row_stride + 4 * kx;
   }
-  fill_weights(w, g);
+  fill_weights(w, non_negative, g);
   g.relu = relu, g.transposed = false;
   g.y = y.data, g.y_bf16 = y.half;
   g.rows = y_shape[2], g.row_pixels = y_shape[3];
@@ -386,8 +396,8 @@ void int8_conv2d_forward(Int8Kernels kernels, const ActRef& x, float sx, const I
 }
 
 void int8_conv_transpose2d_forward(Int8Kernels kernels, const ActRef& x, float sx,
-                                    const Int8ConvWeights& w, const ActRef& y,
-                                    Int8ConvWorkspace& workspace) {
+                                   bool non_negative, const Int8ConvWeights& w, const ActRef& y,
+                                   Int8ConvWorkspace& workspace) {
   const char* op = "int8_conv_transpose2d_forward";
   check_common(op, kernels, x, sx, w, y);
   PS_CHECK(w.transposed, "{}: the weights are a plain convolution's", op);
@@ -396,16 +406,27 @@ void int8_conv_transpose2d_forward(Int8Kernels kernels, const ActRef& x, float s
            shape_str(y.shape));
   const bool on_native = native(kernels);
   Int8Gemm g;
-  quantize_input(kernels, on_native, x, sx, 0, workspace, g);
+  quantize_input(kernels, on_native, x, sx, non_negative, 0, workspace, g);
   g.taps = 1;
   g.tap_offsets[0] = 0;
-  fill_weights(w, g);
+  fill_weights(w, non_negative, g);
   g.relu = false, g.transposed = true;
   g.y = y.data, g.y_bf16 = y.half;
   g.rows = x.dim(2), g.row_pixels = x.dim(3);
   g.out_height = y_shape[2], g.out_width = y_shape[3], g.out_planes = y_shape[1];
   if (y.numel() == 0) return;
   run_gemm(kernels, on_native, g);
+}
+
+void int8_conv2d_forward(Int8Kernels kernels, const ActRef& x, float sx, const Int8ConvWeights& w,
+                         int pad, bool relu, const ActRef& y, Int8ConvWorkspace& workspace) {
+  int8_conv2d_forward(kernels, x, sx, false, w, pad, relu, y, workspace);
+}
+
+void int8_conv_transpose2d_forward(Int8Kernels kernels, const ActRef& x, float sx,
+                                   const Int8ConvWeights& w, const ActRef& y,
+                                   Int8ConvWorkspace& workspace) {
+  int8_conv_transpose2d_forward(kernels, x, sx, false, w, y, workspace);
 }
 
 void prepare_int8_winograd(const Ref& w, const Ref& bias, Int8WinogradWeights& out) {

@@ -9,15 +9,21 @@
 //   input     q = clamp(round_half_even(x * r), -127, 127) with r = 1 / sx rounded to FP32 once
 //             (a multiply, not a division: the same bits in the vector and scalar code, half the
 //             cost), NaN -> 0, +-inf -> +-127; the padding is q = 0;
+//   or, for an input the caller knows is non-negative (non_negative: ReLU outputs and what
+//             max-pooling, bilinear upsampling and concatenation make of them), the whole code
+//             range on [0, 255 sx]: q = clamp(round_half_even(x * r), 0, 255), NaN -> 0,
+//             negatives and -inf -> 0, +inf -> 255; the padding q = 0. Twice the resolution of the
+//             signed rule at the same clip value (sx = clip / 255 instead of clip / 127);
 //   products  acc = sum over (tap, channel) of q qw in INT32, wrapping (the U-Net's layers stay far
-//             from 2^31: even the shifted sum below is at most 9 * 1536 * 255 * 127 < 2^29);
+//             from 2^31: even the unsigned sum below is at most 9 * 1536 * 255 * 127 < 2^29);
 //   epilogue  y = act(fma(float(acc), sx * sw[o], bias[o])), float() and the product sx * sw[o]
 //             each rounded to nearest even, act the ReLU max(y, 0) (NaN -> 0) or none, then BF16
 //             rounded to nearest even (weights::float_to_bf16_bits) or FP32.
 //
-// The instructions multiply unsigned by signed bytes, so the input is stored shifted, u = q + 128
-// (the padding 128), and the prepared weights carry comp[o] = 128 sum qw[o, ...] to take off:
-// acc = sum u qw - comp[o]. Kernels, chosen at run time:
+// The instructions multiply unsigned by signed bytes, so the signed input is stored shifted, u = q
+// + 128 (the padding 128), and the prepared weights carry comp[o] = 128 sum qw[o, ...] to take
+// off: acc = sum u qw - comp[o]; the non-negative input is stored as it is, u = q (the padding 0),
+// and nothing is taken off: acc = sum u qw. Kernels, chosen at run time:
 //   Vnni         AVX512-VNNI VPDPBUSD (int8_microkernel.hpp; AVX512F, BW, VL and VNNI: Cascade
 //                Lake, Ice Lake and later, Zen 4);
 //   Amx          AMX-INT8 TDPBSUD on tiles (int8_amx.hpp; Sapphire Rapids and later), the
@@ -28,7 +34,8 @@
 // the forward will use). Threads: num_threads(); results do not depend on the thread count.
 // And for the 3x3 pad-1 convolutions, Winograd-domain INT8 F(2x2, 3x3) on Vnni (below): 2.25x
 // fewer multiply-adds for its transforms' cost and a larger error (about 1.4x the direct one's);
-// bench_int8_conv measures both per layer.
+// bench_int8_conv measures both per layer. Its transformed input is signed whatever x is, so it has
+// no non-negative mode.
 #pragma once
 
 #include <cstdint>
@@ -59,8 +66,9 @@ const char* int8_kernels_name(Int8Kernels kernels);
 bool int8_amx_family(Int8Kernels kernels);  // Amx or AmxEmulated
 
 // The quantization rules above, one value at a time (the kernels' reference).
-std::int8_t quantize_int8(float x, float reciprocal);  // reciprocal = 1 / sx rounded to FP32
-float int8_weight_scale(float max_abs);                // max_abs / 127
+std::int8_t quantize_int8(float x, float reciprocal);    // reciprocal = 1 / sx rounded to FP32
+std::uint8_t quantize_uint8(float x, float reciprocal);  // the non-negative input's rule
+float int8_weight_scale(float max_abs);                  // max_abs / 127
 
 // A prepared convolution: `weight` is the FP32 weight's shape, (O, I, k, k) or transposed (I, O,
 // 2, 2). The GEMM's columns are the output channels o, or for the transposed convolution n = 4 o
@@ -91,13 +99,21 @@ struct Int8ConvWorkspace {
 };
 
 // x (B, I, H, W) FP32 or BF16 (x.half) -> y (B, O, Ho, Wo) = act(conv(x, w) + bias), stride 1,
-// zero padding `pad`, FP32 or BF16 (y.half), for the input scale sx > 0.
-void int8_conv2d_forward(Int8Kernels kernels, const ActRef& x, float sx, const Int8ConvWeights& w,
-                         int pad, bool relu, const ActRef& y, Int8ConvWorkspace& workspace);
+// zero padding `pad`, FP32 or BF16 (y.half), for the input scale sx > 0, x quantized by the
+// non-negative rule where non_negative, else the signed one (the same weights serve both).
+void int8_conv2d_forward(Int8Kernels kernels, const ActRef& x, float sx, bool non_negative,
+                         const Int8ConvWeights& w, int pad, bool relu, const ActRef& y,
+                         Int8ConvWorkspace& workspace);
 // x (B, I, H, W) -> y (B, O, 2H, 2W), the transposed 2x2 stride-2 convolution, no activation.
 void int8_conv_transpose2d_forward(Int8Kernels kernels, const ActRef& x, float sx,
-                                    const Int8ConvWeights& w, const ActRef& y,
-                                    Int8ConvWorkspace& workspace);
+                                   bool non_negative, const Int8ConvWeights& w, const ActRef& y,
+                                   Int8ConvWorkspace& workspace);
+// The two above with non_negative = false, for callers that do not pass it.
+void int8_conv2d_forward(Int8Kernels kernels, const ActRef& x, float sx, const Int8ConvWeights& w,
+                         int pad, bool relu, const ActRef& y, Int8ConvWorkspace& workspace);
+void int8_conv_transpose2d_forward(Int8Kernels kernels, const ActRef& x, float sx,
+                                   const Int8ConvWeights& w, const ActRef& y,
+                                   Int8ConvWorkspace& workspace);
 
 // Winograd-domain INT8 F(2x2, 3x3) for the 3x3 pad-1 convolutions (int8_winograd.hpp has the
 // arithmetic), on Vnni or Emulated (the AMX family is refused): weights U = G g G^T per position p

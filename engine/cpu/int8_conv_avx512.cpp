@@ -102,6 +102,12 @@ struct Avx512VnniIsa {
     const __m512i q = _mm512_cvt_roundps_epi32(r, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
     return _mm512_add_epi32(q, _mm512_set1_epi32(128));
   }
+  static Acc quantize_unsigned(F x, float reciprocal) {
+    __m512 r = _mm512_mul_ps(x, _mm512_set1_ps(reciprocal));
+    r = _mm512_maskz_mov_ps(_mm512_cmp_ps_mask(r, r, _CMP_ORD_Q), r);  // NaN -> 0
+    r = _mm512_min_ps(_mm512_max_ps(r, _mm512_setzero_ps()), _mm512_set1_ps(255.0f));
+    return _mm512_cvt_roundps_epi32(r, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
+  }
   static Bytes pack_quads(Acc c0, Acc c1, Acc c2, Acc c3) {
     const __m512i byte = _mm512_set1_epi32(0xFF);
     __m512i v = _mm512_and_si512(c0, byte);

@@ -5,7 +5,8 @@
 //                32-bit two's complement arithmetic: wraps, no saturation (VPDPBUSDS saturates);
 //   VCVTDQ2PS    int32 -> FP32, rounded to nearest even;
 //   VFMADD       one rounding;  VMAXPS(v, 0)  NaN -> 0;
-//   VCVTPS2DQ    {rn-sae}: FP32 -> int32, nearest even (the values are clamped to +-127 first);
+//   VCVTPS2DQ    {rn-sae}: FP32 -> int32, nearest even (the values are clamped to +-127, or to
+//                0..255 for a non-negative input, first);
 //   the BF16 rounding of the outputs in integer operations (weights::float_to_bf16_bits: nearest
 //   even, NaN kept quiet, no flushing), masked loads and stores reading or writing only the lanes
 //   the mask names; for the Winograd transforms (int8_winograd.hpp) VPERMT2PS's even and odd
@@ -122,6 +123,17 @@ struct EmulatedVnniIsa {
       if (std::isnan(r)) r = 0.0f;
       r = r < -127.0f ? -127.0f : r > 127.0f ? 127.0f : r;
       a.v[i] = static_cast<std::int32_t>(std::nearbyint(r)) + 128;
+    }
+    return a;
+  }
+  // u = clamp(round_half_even(x * reciprocal), 0, 255), NaN -> 0.
+  static Acc quantize_unsigned(const F& x, float reciprocal) {
+    Acc a;
+    for (int i = 0; i < 16; ++i) {
+      float r = x.v[i] * reciprocal;
+      if (std::isnan(r)) r = 0.0f;
+      r = r < 0.0f ? 0.0f : r > 255.0f ? 255.0f : r;
+      a.v[i] = static_cast<std::int32_t>(std::nearbyint(r));
     }
     return a;
   }

@@ -3,20 +3,21 @@
 // AVX-512 flags and only ever called where the CPU has them) and on the exact scalar model
 // EmulatedVnniIsa (int8_isa_emulated.hpp, in int8_conv.cpp), which the tests run on every CPU.
 //
-// The quantized input (the workspace): u = q + 128 in bytes, four channels c = 4 cq + i side by
-// side in one dword ("quads"), laid out xq[b][row][cq][col][i] over the padded image (Hp = H + 2
-// pad rows, Wp = W + 2 pad columns rounded up to 16, whole cache lines; the padding u = 128) and
-// `quads` channel quads (the channels past I, up to the quads' end, are u = 128 with zero
-// weights). A convolution's output pixel (row,
-// col) reads, for the tap (ky, kx), the padded input pixel (row + ky, col + kx): one plain 64-byte
-// load gives 16 pixels' quads of one channel quad, with no masks and no borders.
+// The quantized input (the workspace): u = q + 128 (signed rule) or u = q (non-negative rule) in
+// bytes, four channels c = 4 cq + i side by side in one dword ("quads"), laid out
+// xq[b][row][cq][col][i] over the padded image (Hp = H + 2 pad rows, Wp = W + 2 pad columns
+// rounded up to 16, whole cache lines; the padding u = 128, or 0) and `quads` channel quads (the
+// channels past I, up to the quads' end, are padding too, with zero weights). A convolution's
+// output pixel (row, col) reads, for the tap (ky, kx), the padded input pixel (row + ky, col +
+// kx): one plain 64-byte load gives 16 pixels' quads of one channel quad, with no masks and no
+// borders.
 //
-// The GEMM: y[n, pixel] = epilogue(sum over k = (tap, cq, i) of u[k, pixel] w[n, k]), one
-// VPDPBUSD a channel quad: a register holds 16 pixels' dwords (u8 x 4) of one quad, the column's
-// four s8 weights broadcast to every lane. A register tile is 8 columns x NPX <= 3 vectors of 16
-// pixels (24 accumulators, 3 operands, the broadcasts from memory). The weights (Vnni packing) are
-// w[n / 8][tap][cq][n % 8][i], the columns padded to a multiple of 8 with zeros, so that the 8
-// broadcasts of one step read 32 consecutive bytes.
+// The GEMM: y[n, pixel] = epilogue(sum over k = (tap, cq, i) of u[k, pixel] w[n, k] - comp[n])
+// (comp 0 for the non-negative rule), one VPDPBUSD a channel quad: a register holds 16 pixels'
+// dwords (u8 x 4) of one quad, the column's four s8 weights broadcast to every lane. A register
+// tile is 8 columns x NPX <= 3 vectors of 16 pixels (24 accumulators, 3 operands, the broadcasts
+// from memory). The weights (Vnni packing) are w[n / 8][tap][cq][n % 8][i], the columns padded to
+// a multiple of 8 with zeros, so that the 8 broadcasts of one step read 32 consecutive bytes.
 //   - Convolution (stride 1): rows are output rows; tap t = ky k + kx at byte offset ky row_stride
 //     + 4 kx; y (B, N, Ho, Wo).
 //   - Transposed 2x2 stride 2: rows are input rows, pad 0, one tap; column n = 4 o + 2 dy + dx goes
@@ -43,7 +44,8 @@ struct Int8Quantize {
   const void* x = nullptr;  // (B, C, H, W) FP32 or (x_bf16) BF16
   bool x_bf16 = false;
   std::int64_t channels = 0, height = 0, width = 0;
-  float reciprocal = 0.0f;  // 1 / sx
+  float reciprocal = 0.0f;    // 1 / sx
+  bool non_negative = false;  // u = q by the non-negative rule, padding 0; else q + 128, 128
   int pad = 0;
   std::uint8_t* xq = nullptr;  // (B, Hp, quads, Wp, 4)
   std::int64_t quads = 0, padded_height = 0, padded_width = 0;
@@ -60,7 +62,7 @@ struct Int8Gemm {
   std::int64_t columns = 0;                    // real columns (stored); the packing pads them
   const float* sw = nullptr;                   // (O): per output channel o = n (transposed: n / 4)
   const float* bias = nullptr;                 // (columns)
-  const std::int32_t* compensation = nullptr;  // (columns)
+  const std::int32_t* compensation = nullptr;  // (columns), null for the non-negative input
   float sx = 0.0f;
   bool relu = false;
   bool transposed = false;
@@ -86,8 +88,11 @@ void quantize_rows(const Int8Quantize& q, std::int64_t begin, std::int64_t end) 
   using Acc = typename Isa::Acc;
   using F = typename Isa::F;
   const std::int64_t plane = q.height * q.width, wp = q.padded_width;
-  const Acc padding = Isa::set1(128);
-  const auto padding_quads = Isa::pack_quads(padding, padding, padding, padding);
+  const Acc zero = Isa::set1(0), shifted_zero = Isa::set1(128);
+  const Acc padding = q.non_negative ? zero : shifted_zero;
+  const auto padding_quads =
+      q.non_negative ? Isa::pack_quads(zero, zero, zero, zero)
+                     : Isa::pack_quads(shifted_zero, shifted_zero, shifted_zero, shifted_zero);
   for (std::int64_t r = begin; r < end; ++r) {
     const std::int64_t b = r / q.padded_height, row = r % q.padded_height - q.pad;
     std::uint8_t* out = q.xq + r * q.quads * wp * 4;
@@ -118,7 +123,8 @@ void quantize_rows(const Int8Quantize& q, std::int64_t begin, std::int64_t end) 
           const std::int64_t at = offset + i * plane + x0;
           const F v = q.x_bf16 ? Isa::load_bf16(static_cast<const std::uint16_t*>(q.x) + at, mask)
                                : Isa::load_f32(static_cast<const float*>(q.x) + at, mask);
-          u[i] = Isa::quantize_u8(v, q.reciprocal);
+          u[i] = q.non_negative ? Isa::quantize_unsigned(v, q.reciprocal)
+                                : Isa::quantize_u8(v, q.reciprocal);
         }
         Isa::store_quads(out + 4 * (q.pad + x0), Isa::pack_quads(u[0], u[1], u[2], u[3]), mask);
       }
@@ -134,7 +140,8 @@ inline std::int64_t int8_channel(const Int8Gemm& g, std::int64_t n) {
 // The epilogue of column n.
 template <class Isa>
 typename Isa::F column_result(const Int8Gemm& g, std::int64_t n, const typename Isa::Acc& acc) {
-  return Isa::epilogue(acc, g.compensation[n], g.sx * g.sw[int8_channel(g, n)], g.bias[n], g.relu);
+  return Isa::epilogue(acc, g.compensation != nullptr ? g.compensation[n] : 0,
+                       g.sx * g.sw[int8_channel(g, n)], g.bias[n], g.relu);
 }
 
 // The epilogue and store of column n's accumulators over the pixels [x0, x0 + 16 NPX) of `row`
