@@ -227,7 +227,7 @@ __device__ __forceinline__ void compute_stage_s8(
   for (int mt = 0; mt < Tile::kFragsM; ++mt)
 #pragma unroll
     for (int nt = 0; nt < Tile::kFragsN; ++nt)
-      mma_m16n8k32_s8(acc[mt][nt], a[mt], b[nt], acc[mt][nt]);
+      mma_m16n8k32_i8<Int8A::S8>(acc[mt][nt], a[mt], b[nt], acc[mt][nt]);
 }
 
 // Where D's row (pixel p of `image`) and column n go in y: y[pixel_offset + column_offset], in
@@ -524,9 +524,11 @@ __global__ void __launch_bounds__(256)
   out[1] = make_uint4(words[4], words[5], words[6], words[7]);
 }
 
-// One warp: each lane builds its A and B registers from row-major A (16 x 32) and B (32 x 8) by
-// the ISA's formulas, runs the mma, and writes its four results to D (16 x 8) by the formula.
-__global__ void mma_s8_probe_kernel(const std::int8_t* a, const std::int8_t* b,
+// One warp: each lane builds its A and B registers from row-major A (16 x 32 bytes, s8 or u8: XA)
+// and B (32 x 8) by the ISA's formulas, runs the mma, and writes its four results to D (16 x 8) by
+// the formula.
+template <Int8A XA>
+__global__ void mma_i8_probe_kernel(const std::uint8_t* a, const std::int8_t* b,
                                     const std::int32_t* c, std::int32_t* d) {
   const int lane = static_cast<int>(threadIdx.x), g = lane / 4, t = lane % 4;
   std::uint32_t ra[4], rb[2];
@@ -536,7 +538,7 @@ __global__ void mma_s8_probe_kernel(const std::int8_t* a, const std::int8_t* b,
       const int i = 4 * r + byte;  // element a_i
       const int row = (i < 4 || (i >= 8 && i < 12)) ? g : g + 8;
       const int col = 4 * t + (i & 3) + (i >= 8 ? 16 : 0);
-      reg |= std::uint32_t{static_cast<std::uint8_t>(a[row * 32 + col])} << (8 * byte);
+      reg |= std::uint32_t{a[row * 32 + col]} << (8 * byte);
     }
     ra[r] = reg;
   }
@@ -551,7 +553,7 @@ __global__ void mma_s8_probe_kernel(const std::int8_t* a, const std::int8_t* b,
   }
   std::int32_t rc[4], rd[4];
   for (int i = 0; i < 4; ++i) rc[i] = c[(g + (i >= 2 ? 8 : 0)) * 8 + 2 * t + (i & 1)];
-  mma_m16n8k32_s8(rd, ra, rb, rc);
+  mma_m16n8k32_i8<XA>(rd, ra, rb, rc);
   for (int i = 0; i < 4; ++i) d[(g + (i >= 2 ? 8 : 0)) * 8 + 2 * t + (i & 1)] = rd[i];
 }
 
@@ -809,7 +811,15 @@ void mma_s8_fragment_probe(const std::int8_t* a, const std::int8_t* b, const std
                            std::int32_t* d, cudaStream_t stream) {
   std::string why;
   PS_CHECK(mma_supported(&why), "mma_s8_fragment_probe: {}", why);
-  launch_kernel(mma_s8_probe_kernel, dim3(1), dim3(32), 0, stream, a, b, c, d);
+  launch_kernel(mma_i8_probe_kernel<Int8A::S8>, dim3(1), dim3(32), 0, stream,
+                reinterpret_cast<const std::uint8_t*>(a), b, c, d);
+}
+
+void mma_u8s8_fragment_probe(const std::uint8_t* a, const std::int8_t* b, const std::int32_t* c,
+                             std::int32_t* d, cudaStream_t stream) {
+  std::string why;
+  PS_CHECK(mma_supported(&why), "mma_u8s8_fragment_probe: {}", why);
+  launch_kernel(mma_i8_probe_kernel<Int8A::U8>, dim3(1), dim3(32), 0, stream, a, b, c, d);
 }
 
 }  // namespace pillarseg::cuda

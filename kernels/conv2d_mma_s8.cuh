@@ -106,5 +106,8 @@ void conv_transpose2d_mma_s8_forward(const ActivationsS8& x, const std::int8_t* 
 // stored by them.
 void mma_s8_fragment_probe(const std::int8_t* a, const std::int8_t* b, const std::int32_t* c,
                            std::int32_t* d, cudaStream_t stream);
+// The same for mma.sync m16n8k32 .u8.s8: A's bytes unsigned.
+void mma_u8s8_fragment_probe(const std::uint8_t* a, const std::int8_t* b, const std::int32_t* c,
+                             std::int32_t* d, cudaStream_t stream);
 
 }  // namespace pillarseg::cuda

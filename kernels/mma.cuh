@@ -6,9 +6,11 @@
 //                            emulation's are exact bit manipulations; on a GPU the cvt.rn
 //                            instructions, which round the same way);
 //   mma_m16n8k16<H>          D = A B + C on one warp's fragments, FP32 accumulation;
-//   mma_m16n8k32_s8          D = A B + C with 8-bit signed integers, 32-bit integer accumulation
-//                            (wrapping); A and B fragments are those of m16n8k16 with each
-//                            16-bit element two 8-bit ones along K, so ldmatrix loads them;
+//   mma_m16n8k32_i8<A>       D = A B + C with 8-bit integers, 32-bit integer accumulation
+//                            (wrapping): B signed (s8), A signed (Int8A::S8) or unsigned
+//                            (Int8A::U8: bytes 0..255, for non-negative activations); A and B
+//                            fragments are those of m16n8k16 with each 16-bit element two 8-bit
+//                            ones along K, so ldmatrix loads them, the same for both A types;
 //   ldmatrix_x4/_x2<Trans>   one warp's fragments from shared memory (row addresses per lane);
 //   cp_async_16, cp_async_commit, cp_async_wait<N>
 //                            asynchronous 16-byte copies from global to shared memory (sm_80),
@@ -33,6 +35,9 @@
 namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
 
 enum class Half16 { BF16, F16 };
+
+// How m16n8k32's A bytes read: signed (-128..127) or unsigned (0..255). B is always signed.
+enum class Int8A { S8, U8 };
 
 // Round to nearest even; NaN stays a (quiet) NaN, overflow goes to infinity.
 __host__ __device__ inline std::uint16_t float_to_bf16_bits(float x) {
@@ -146,17 +151,27 @@ __device__ inline void mma_m16n8k16(float d[4], const std::uint32_t a[4], const 
 #endif
 }
 
-__device__ inline void mma_m16n8k32_s8(std::int32_t d[4], const std::uint32_t a[4],
+template <Int8A A>
+__device__ inline void mma_m16n8k32_i8(std::int32_t d[4], const std::uint32_t a[4],
                                        const std::uint32_t b[2], const std::int32_t c[4]) {
 #if defined(PILLARSEG_CUDA_EMULATION)
-  emu::mma_m16n8k32_s8_collective(d, a, b, c);
+  emu::mma_m16n8k32_i8_collective(A == Int8A::U8, d, a, b, c);
 #elif defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800
-  asm volatile(
-      "mma.sync.aligned.m16n8k32.row.col.s32.s8.s8.s32 {%0, %1, %2, %3}, {%4, %5, %6, %7}, "
-      "{%8, %9}, {%10, %11, %12, %13};\n"
-      : "=r"(d[0]), "=r"(d[1]), "=r"(d[2]), "=r"(d[3])
-      : "r"(a[0]), "r"(a[1]), "r"(a[2]), "r"(a[3]), "r"(b[0]), "r"(b[1]), "r"(c[0]), "r"(c[1]),
-        "r"(c[2]), "r"(c[3]));
+  if constexpr (A == Int8A::U8) {
+    asm volatile(
+        "mma.sync.aligned.m16n8k32.row.col.s32.u8.s8.s32 {%0, %1, %2, %3}, {%4, %5, %6, %7}, "
+        "{%8, %9}, {%10, %11, %12, %13};\n"
+        : "=r"(d[0]), "=r"(d[1]), "=r"(d[2]), "=r"(d[3])
+        : "r"(a[0]), "r"(a[1]), "r"(a[2]), "r"(a[3]), "r"(b[0]), "r"(b[1]), "r"(c[0]), "r"(c[1]),
+          "r"(c[2]), "r"(c[3]));
+  } else {
+    asm volatile(
+        "mma.sync.aligned.m16n8k32.row.col.s32.s8.s8.s32 {%0, %1, %2, %3}, {%4, %5, %6, %7}, "
+        "{%8, %9}, {%10, %11, %12, %13};\n"
+        : "=r"(d[0]), "=r"(d[1]), "=r"(d[2]), "=r"(d[3])
+        : "r"(a[0]), "r"(a[1]), "r"(a[2]), "r"(a[3]), "r"(b[0]), "r"(b[1]), "r"(c[0]), "r"(c[1]),
+          "r"(c[2]), "r"(c[3]));
+  }
 #else
   // Before sm_80 there is no m16n8k32; the launchers refuse such devices.
   __trap();

@@ -1,10 +1,13 @@
-// The INT8 tensor-core pieces: mma.sync m16n8k32 s8 (kernels/mma.cuh) and the INT8 convolutions
-// (kernels/conv2d_mma_s8.cuh), on the emulation here and on a GPU as test_kernels_int8_gpu:
+// The INT8 tensor-core pieces: mma.sync m16n8k32 .s8.s8 and .u8.s8 (kernels/mma.cuh) and the INT8
+// convolutions (kernels/conv2d_mma_s8.cuh), on the emulation here and on a GPU as
+// test_kernels_int8_gpu:
 //   - m16n8k32 in one warp against the PTX ISA's fragment formulas: a hand-built case whose
 //     product selects rows of B, and distinct values throughout, so that an element in the wrong
-//     register or byte gives a wrong number; on the emulation also fragments laid out wrongly on
-//     purpose (two A registers swapped, A's bytes reversed, B's K order strided), which must give
-//     other products, the wrap past 2^31 and the count of 8,192 flops an instruction;
+//     register or byte gives a wrong number; .u8.s8 by hand (A bytes 200 and 128 count +200 and
+//     +128, and the .s8.s8 instruction on the same bytes -56 and -128) and on distinct values; on
+//     the emulation also fragments laid out wrongly on purpose (two A registers swapped, A's bytes
+//     reversed, B's K order strided), which must give other products, the wrap past 2^31 and the
+//     count of 8,192 flops an instruction, for both;
 //   - the weight preparation by hand (scales, ties to even, the clamp, an all-zero channel, the
 //     BatchNorm fold, the padding to 32 channels per tap, the transposed layout) and against the
 //     host's formulas on random weights;
@@ -70,6 +73,34 @@ std::vector<std::int32_t> run_probe(const std::vector<std::int8_t>& a,
   return dd.to_host();
 }
 
+// D = A B + C with A's bytes unsigned (0..255), in int64.
+std::vector<std::int64_t> reference_product_u8(const std::vector<std::uint8_t>& a,
+                                               const std::vector<std::int8_t>& b,
+                                               const std::vector<std::int32_t>& c) {
+  std::vector<std::int64_t> d(128);
+  for (int row = 0; row < 16; ++row)
+    for (int col = 0; col < 8; ++col) {
+      std::int64_t sum = c[static_cast<size_t>(row * 8 + col)];
+      for (int k = 0; k < 32; ++k)
+        sum += std::int64_t{a[static_cast<size_t>(row * 32 + k)]} *
+               b[static_cast<size_t>(k * 8 + col)];
+      d[static_cast<size_t>(row * 8 + col)] = sum;
+    }
+  return d;
+}
+
+std::vector<std::int32_t> run_probe_u8(const std::vector<std::uint8_t>& a,
+                                       const std::vector<std::int8_t>& b,
+                                       const std::vector<std::int32_t>& c) {
+  auto da = DeviceBuffer<std::uint8_t>::from_host(a);
+  auto db = DeviceBuffer<std::int8_t>::from_host(b);
+  auto dc = DeviceBuffer<std::int32_t>::from_host(c);
+  DeviceBuffer<std::int32_t> dd(128);
+  cuda::mma_u8s8_fragment_probe(da.data(), db.data(), dc.data(), dd.data(), nullptr);
+  PS_CUDA_CHECK(cudaDeviceSynchronize());
+  return dd.to_host();
+}
+
 // A selects rows of B: A[r][k] = 1 where k = 2 r (rows 0-15 pick the even K rows) and -1 where
 // k = 2 r + 1, so D[r][n] = B[2 r][n] - B[2 r + 1][n] + C[r][n], worked by hand below for B[k][n]
 // = 3 k - n - 40 and C[r][n] = 1000 r + n: D[r][n] = -3 + 1000 r + n.
@@ -107,6 +138,39 @@ void distinct_operands(std::vector<std::int8_t>& a, std::vector<std::int8_t>& b,
   a[0] = -128, a[511] = 127, b[0] = -128, b[255] = 127;
 }
 
+// m16n8k32 .u8.s8: A[r][2 r] = 200 (bytes 0xC8) and A[r][2 r + 1] = 128 (0x80), so that D[r][n] =
+// 200 B[2 r][n] + 128 B[2 r + 1][n] + C[r][n] = 328 (6 r - n - 40) + 128 x 3 + 1000 r + n, worked
+// by hand for the B and C above. Read as signed the bytes are -56 and -128: the .s8.s8 instruction
+// on the same registers gives -56 B[2 r][n] - 128 B[2 r + 1][n] + C[r][n], which must differ.
+TEST(Int8Mma, U8HandBuiltCaseReadsBytesUnsigned) {
+  std::string why;
+  if (!cuda::mma_supported(&why)) GTEST_SKIP() << why;
+  std::vector<std::uint8_t> a(512, 0);
+  std::vector<std::int8_t> b(256);
+  std::vector<std::int32_t> c(128);
+  for (int r = 0; r < 16; ++r) {
+    a[static_cast<size_t>(r * 32 + 2 * r)] = 200;
+    a[static_cast<size_t>(r * 32 + 2 * r + 1)] = 128;
+  }
+  for (int k = 0; k < 32; ++k)
+    for (int n = 0; n < 8; ++n)
+      b[static_cast<size_t>(k * 8 + n)] = static_cast<std::int8_t>(3 * k - n - 40);
+  for (int r = 0; r < 16; ++r)
+    for (int n = 0; n < 8; ++n) c[static_cast<size_t>(r * 8 + n)] = 1000 * r + n;
+  const std::vector<std::int32_t> d = run_probe_u8(a, b, c);
+  std::vector<std::int8_t> a_signed(a.size());
+  for (size_t i = 0; i < a.size(); ++i) a_signed[i] = static_cast<std::int8_t>(a[i]);
+  const std::vector<std::int32_t> d_signed = run_probe(a_signed, b, c);
+  for (int r = 0; r < 16; ++r)
+    for (int n = 0; n < 8; ++n) {
+      const int b0 = 6 * r - n - 40, b1 = b0 + 3, i = r * 8 + n;
+      EXPECT_EQ(d[static_cast<size_t>(i)], 200 * b0 + 128 * b1 + 1000 * r + n)
+          << "u8 D[" << r << "][" << n << "]";
+      EXPECT_EQ(d_signed[static_cast<size_t>(i)], -56 * b0 - 128 * b1 + 1000 * r + n)
+          << "s8 D[" << r << "][" << n << "]";
+    }
+}
+
 TEST(Int8Mma, M16n8k32MatchesTheIsaLayout) {
   std::string why;
   if (!cuda::mma_supported(&why)) GTEST_SKIP() << why;
@@ -115,6 +179,23 @@ TEST(Int8Mma, M16n8k32MatchesTheIsaLayout) {
   distinct_operands(a, b, c);
   const std::vector<std::int32_t> d = run_probe(a, b, c);
   const std::vector<std::int64_t> expected = reference_product(a, b, c);
+  for (size_t i = 0; i < 128; ++i)
+    EXPECT_EQ(d[i], expected[i]) << "D[" << i / 8 << "][" << i % 8 << "]";
+}
+
+// .u8.s8 with distinct A bytes over 0..255 (0, 128 and 255 included): the same fragment layout as
+// .s8.s8, A's bytes unsigned.
+TEST(Int8Mma, M16n8k32U8S8MatchesTheIsaLayout) {
+  std::string why;
+  if (!cuda::mma_supported(&why)) GTEST_SKIP() << why;
+  std::vector<std::int8_t> a_signed, b;
+  std::vector<std::int32_t> c;
+  distinct_operands(a_signed, b, c);
+  std::vector<std::uint8_t> a(a_signed.size());
+  for (size_t i = 0; i < a.size(); ++i) a[i] = static_cast<std::uint8_t>(a_signed[i]);
+  a[0] = 255, a[1] = 128, a[511] = 0;
+  const std::vector<std::int32_t> d = run_probe_u8(a, b, c);
+  const std::vector<std::int64_t> expected = reference_product_u8(a, b, c);
   for (size_t i = 0; i < 128; ++i)
     EXPECT_EQ(d[i], expected[i]) << "D[" << i / 8 << "][" << i % 8 << "]";
 }
@@ -151,7 +232,7 @@ __global__ void layout_probe_kernel(const std::int8_t* a, const std::int8_t* b,
                  << (8 * (i % 4));
   std::int32_t rc[4], rd[4];
   for (int i = 0; i < 4; ++i) rc[i] = c[(g + (i >= 2 ? 8 : 0)) * 8 + 2 * t + (i & 1)];
-  cuda::mma_m16n8k32_s8(rd, ra, rb, rc);
+  cuda::mma_m16n8k32_i8<cuda::Int8A::S8>(rd, ra, rb, rc);
   for (int i = 0; i < 4; ++i) d[(g + (i >= 2 ? 8 : 0)) * 8 + 2 * t + (i & 1)] = rd[i];
 }
 
@@ -189,6 +270,15 @@ TEST(Int8Mma, WrapsPast2To31AndCountsItsFlops) {
   EXPECT_EQ(after.mma_m16n8k32 - before.mma_m16n8k32, 1u);
   EXPECT_EQ(after.mma_m16n8k16, before.mma_m16n8k16);
   EXPECT_EQ(after.tensor_core_flops() - before.tensor_core_flops(), 2u * 16 * 8 * 32);
+
+  // .u8.s8: 32 x 255 x 127 = 1,036,320 past the largest int32; one more instruction, as many flops.
+  const std::vector<std::int32_t> du =
+      run_probe_u8(std::vector<std::uint8_t>(512, 255), std::vector<std::int8_t>(256, 127), c);
+  const emu::InstructionCounts after_u8 = emu::instruction_counts();
+  for (size_t i = 0; i < 128; ++i)
+    EXPECT_EQ(du[i], std::numeric_limits<std::int32_t>::min() + 1036320 - 1);
+  EXPECT_EQ(after_u8.mma_m16n8k32 - after.mma_m16n8k32, 1u);
+  EXPECT_EQ(after_u8.tensor_core_flops() - after.tensor_core_flops(), 2u * 16 * 8 * 32);
 }
 #endif
 

@@ -14,8 +14,10 @@
 //   float. A GPU adds in an order and with internal rounding the ISA does not specify, so results
 //   there may differ from these in the last bits of the float accumulator.
 //
-//   mma.sync.aligned.m16n8k32.row.col.s32.s8.s8.s32  D = A B + C (section 9.7.14.5.10 "Matrix
-//     Fragments for mma.m16n8k32"), each register four 8-bit elements, the lowest byte first:
+//   mma.sync.aligned.m16n8k32.row.col.s32.{s8,u8}.s8.s32  D = A B + C (section 9.7.14.5.10
+//     "Matrix Fragments for mma.m16n8k32", the same for .s8 and .u8), each register four 8-bit
+//     elements, the lowest byte first; A's bytes two's complement (.s8, -128..127) or unsigned
+//     (.u8, 0..255: a byte 200 is +200, not -56), B's two's complement:
 //     A (16 x 32, 4 registers a0..a3 of elements 4 r .. 4 r + 3): row g (a0, a2) or g + 8 (a1,
 //       a3), column 4 t + byte, + 16 for a2 and a3;
 //     B (32 x 8, 2 registers): row 4 t + byte, + 16 for b1, column g;
@@ -115,20 +117,27 @@ struct MmaS8Lane {
   std::int32_t c[4];
 };
 
-inline void mma_m16n8k32_s8(void* const* lanes) {
+template <bool UnsignedA>
+void mma_m16n8k32_i8(void* const* lanes) {
   count_mma_m16n8k32();  // once per warp instruction
   std::int64_t a[16][32], b[32][8], c[16][8];
-  const auto element = [](std::uint32_t reg, int byte) {
+  const auto signed_byte = [](std::uint32_t reg, int byte) {
     return static_cast<std::int64_t>(static_cast<std::int8_t>(reg >> (8 * byte)));
+  };
+  const auto a_byte = [&](std::uint32_t reg, int byte) {
+    if constexpr (UnsignedA)
+      return static_cast<std::int64_t>(static_cast<std::uint8_t>(reg >> (8 * byte)));
+    else
+      return signed_byte(reg, byte);
   };
   for (int lane = 0; lane < 32; ++lane) {
     const MmaS8Lane& l = *static_cast<const MmaS8Lane*>(lanes[lane]);
     const int g = lane / 4, t = lane % 4;
     for (int r = 0; r < 4; ++r)
       for (int byte = 0; byte < 4; ++byte)
-        a[g + (r % 2) * 8][4 * t + byte + (r / 2) * 16] = element(l.a[r], byte);
+        a[g + (r % 2) * 8][4 * t + byte + (r / 2) * 16] = a_byte(l.a[r], byte);
     for (int r = 0; r < 2; ++r)
-      for (int byte = 0; byte < 4; ++byte) b[4 * t + byte + r * 16][g] = element(l.b[r], byte);
+      for (int byte = 0; byte < 4; ++byte) b[4 * t + byte + r * 16][g] = signed_byte(l.b[r], byte);
     for (int i = 0; i < 4; ++i) c[g + (i >= 2 ? 8 : 0)][2 * t + (i & 1)] = l.c[i];
   }
   for (int lane = 0; lane < 32; ++lane) {
@@ -143,13 +152,16 @@ inline void mma_m16n8k32_s8(void* const* lanes) {
   }
 }
 
-inline void mma_m16n8k32_s8_collective(std::int32_t d[4], const std::uint32_t a[4],
-                                       const std::uint32_t b[2], const std::int32_t c[4]) {
+// unsigned_a: A's bytes are .u8; otherwise .s8.
+inline void mma_m16n8k32_i8_collective(bool unsigned_a, std::int32_t d[4],
+                                       const std::uint32_t a[4], const std::uint32_t b[2],
+                                       const std::int32_t c[4]) {
   MmaS8Lane lane;
   std::memcpy(lane.a, a, sizeof lane.a);
   std::memcpy(lane.b, b, sizeof lane.b);
   std::memcpy(lane.c, c, sizeof lane.c);
-  warp_matrix("mma.sync.m16n8k32.s8", 0xffffffffu, &lane, &mma_m16n8k32_s8);
+  warp_matrix(unsigned_a ? "mma.sync.m16n8k32.u8.s8" : "mma.sync.m16n8k32.s8.s8", 0xffffffffu,
+              &lane, unsigned_a ? &mma_m16n8k32_i8<true> : &mma_m16n8k32_i8<false>);
   std::memcpy(d, lane.d, sizeof lane.d);
 }
 
