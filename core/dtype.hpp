@@ -1,13 +1,14 @@
 // The element type of a tensor (DESIGN.md section 7: the dtype belongs to the tensor, not to op
 // or method names): FP32, the two 16-bit float formats of the mixed-precision paths (stored as
-// their bits), and the integer types of indices, arg-maxes and labels.
+// their bits), the integer types of indices, arg-maxes and labels, and the INT8 convolutions'
+// quantized weights (DESIGN.md section 10).
 #pragma once
 
 #include <cstddef>
 
 namespace pillarseg {
 
-enum class DType { F32, BF16, F16, I32, U8 };
+enum class DType { F32, BF16, F16, I32, U8, I8 };
 
 constexpr size_t dtype_bytes(DType dtype) {
   switch (dtype) {
@@ -18,6 +19,7 @@ constexpr size_t dtype_bytes(DType dtype) {
     case DType::F16:
       return 2;
     case DType::U8:
+    case DType::I8:
       return 1;
   }
   return 4;
@@ -36,6 +38,8 @@ constexpr const char* dtype_name(DType dtype) {
       return "i32";
     case DType::U8:
       return "u8";
+    case DType::I8:
+      return "i8";
   }
   return "?";
 }

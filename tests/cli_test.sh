@@ -245,6 +245,23 @@ grep -q 'precision bf16' "$work/bench_bf16.log" || fail "bench --precision bf16:
 # 100% of it useful) and their bound on the H200; the network's roofline bound.
 grep -qE '^conv forward bf16 \(tensor cores\) +[0-9]+ +[0-9.]+ +[0-9.]+ +[0-9.]+ +[0-9.]+ +[0-9.]+ +([0-9]|[1-9][0-9]|100)\.[0-9]% +[0-9.]+ +[0-9.]+ +(memory|compute)$' \
   "$work/bench_bf16.log" || { cat "$work/bench_bf16.log"; fail "bench --ops: no tensor-core row with counts and bound"; }
+# INT8: calibrate the tiny model on the sequence, then infer with its scales; the calibrated file
+# still loads as FP32 (the same label map as the original's); without scales --precision int8
+# names the convolution and the command that writes them.
+run calibrate --data "$work/data" --weights "$weights" --out "$work/int8.safetensors" --sequences 0 --scans 2 \
+  > "$work/calibrate.log" 2>&1 || { cat "$work/calibrate.log"; fail "calibrate failed"; }
+grep -qE '^calibrated [0-9]+ convolutions on 2 scans' "$work/calibrate.log" || fail "calibrate: $(cat "$work/calibrate.log")"
+run infer --weights "$work/int8.safetensors" --scan "$velodyne/000001.bin" --out "$work/int8_fp32" > /dev/null 2>&1 ||
+  fail "infer of the calibrated checkpoint in fp32 failed"
+cmp "$work/int8_fp32.u8" "$work/one.u8" || fail "the calibrated checkpoint in fp32 is not the original's label map"
+run infer --weights "$work/int8.safetensors" --scan "$velodyne/000001.bin" --out "$work/int8" --precision int8 \
+  > "$work/int8.log" 2>&1 || { cat "$work/int8.log"; fail "infer --precision int8 failed"; }
+[[ -s "$work/int8.u8" ]] || fail "infer --precision int8 wrote no label map"
+if message=$(run infer --weights "$weights" --scan "$velodyne/000001.bin" --out "$work/int8_bad" --precision int8 2>&1); then
+  fail "infer --precision int8 without calibrated scales succeeded"
+fi
+[[ $message == *"no input scale for the convolution"*"pillarseg calibrate"* ]] ||
+  fail "infer --precision int8 without scales: '$message'"
 grep -qE '^roofline bound on h200 .*: [0-9.]+ ms for the network' "$work/bench_bf16.log" ||
   fail "bench --roofline h200: no bound for the network"
 grep -qE '^training step on h200 \(batch 2, [1-9][0-9]* pillar rows, bf16 convolutions\): bound [0-9.]+ ms .* at least [0-9.]+ h on one' \

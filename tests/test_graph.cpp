@@ -176,6 +176,10 @@ TEST(Roofline, BoundsAnOpByItsFlopsAndBytes) {
   EXPECT_DOUBLE_EQ(gpu.fp32_tflops, 10);
   EXPECT_DOUBLE_EQ(gpu.half_tflops, 100);
   EXPECT_DOUBLE_EQ(gpu.tb_per_s, 2);
+  EXPECT_DOUBLE_EQ(gpu.int8_tops, 200);  // custom: twice the 16-bit rate
+  // INT8 on the tensor cores: 2 GFLOP at 200 TOP/s, 0.01 ms; H200's dense INT8 rate.
+  EXPECT_NEAR(roofline_bound(2e9, 0, true, gpu, /*int8=*/true).compute_ms, 0.01, 1e-12);
+  EXPECT_EQ(parse_gpu("h200").int8_tops, 1979);
   const RooflineBound tc = roofline_bound(2e9, 48e6, true, gpu);
   EXPECT_NEAR(tc.compute_ms, 0.02, 1e-12);
   EXPECT_NEAR(tc.memory_ms, 0.024, 1e-12);

@@ -71,44 +71,6 @@ class GuardedDeviceArray {
   DeviceBuffer<float> storage_;
 };
 
-// n values from N(0, 1) with the special values spread over the head, the body and the tail.
-std::vector<float> test_values(std::int64_t n, std::uint64_t seed) {
-  Rng rng(seed);
-  std::vector<float> values(static_cast<size_t>(n));
-  for (float& v : values) v = static_cast<float>(rng.normal());
-  const float specials[] = {std::numeric_limits<float>::quiet_NaN(),
-                            -std::numeric_limits<float>::quiet_NaN(),
-                            std::numeric_limits<float>::infinity(),
-                            -std::numeric_limits<float>::infinity(),
-                            0.0f,
-                            -0.0f,
-                            std::numeric_limits<float>::denorm_min(),
-                            -std::numeric_limits<float>::denorm_min(),
-                            std::numeric_limits<float>::max(),
-                            -std::numeric_limits<float>::max()};
-  const std::int64_t count = std::size(specials);
-  for (std::int64_t k = 0; k < count && k < n; ++k) {
-    values[static_cast<size_t>(k * 7919 % n)] = specials[k];  // spread out, first one at 0
-    values[static_cast<size_t>(n - 1 - k)] = specials[(k + 3) % count];
-  }
-  return values;
-}
-
-// Bitwise equality (NaN payloads included), naming the first differing element.
-::testing::AssertionResult same_bits(const std::vector<float>& actual,
-                                     const std::vector<float>& expected) {
-  if (actual.size() != expected.size()) {
-    return ::testing::AssertionFailure() << "size " << actual.size() << " != " << expected.size();
-  }
-  for (size_t i = 0; i < actual.size(); ++i) {
-    if (std::bit_cast<std::uint32_t>(actual[i]) != std::bit_cast<std::uint32_t>(expected[i])) {
-      return ::testing::AssertionFailure()
-             << "element " << i << ": " << actual[i] << " != expected " << expected[i];
-    }
-  }
-  return ::testing::AssertionSuccess();
-}
-
 std::string error_message(const std::function<void()>& fn) {
   try {
     fn();

@@ -49,8 +49,10 @@ inline void add_device_options(CLI::App* cmd, DeviceArgs& args) {
   cmd->add_option("--precision", args.precision,
                   "the convolutions: fp32, or bf16 / fp16 (tensor cores on --device cuda, compute capability "
                   "8.0+, or emu; bf16 also on CPUs with AVX512_BF16; elsewhere one line says so and fp32 runs; "
-                  "train: cuda or emu only, with FP32 master weights)")
-      ->check(CLI::IsMember({"fp32", "bf16", "fp16"}));
+                  "train: cuda or emu only, with FP32 master weights), or int8 (inference: the U-Net on INT8, "
+                  "a checkpoint calibrated by pillarseg calibrate; CPUs with AVX512-VNNI, AMX-INT8 where "
+                  "present, cuda/emu)")
+      ->check(CLI::IsMember({"fp32", "bf16", "fp16", "int8"}));
 }
 
 // The segmenter options of --device, --conv, --cuda-device and --precision.

@@ -25,8 +25,10 @@
 #include "engine/cli/cli_util.hpp"
 #include "engine/cli/commands.hpp"
 #include "engine/cpu/bf16_conv.hpp"
+#include "engine/cpu/int8_conv.hpp"
 #include "engine/data/point_formats.hpp"
 #include "engine/data/semantickitti.hpp"
+#include "engine/model/calibration.hpp"
 #include "engine/model/pillarsegnet.hpp"
 #include "engine/model/roofline.hpp"
 #include "engine/pipeline/scan_inputs.hpp"
@@ -191,7 +193,7 @@ void print_op_table(ScanSegmenter& segmenter, const Scan& scan, Tensor<uint8_t>&
       }
     }
     if (bounded) {
-      const RooflineBound b = roofline_bound(flops, bytes, t.matrix_units, gpu);
+      const RooflineBound b = roofline_bound(flops, bytes, t.matrix_units, gpu, t.int8_units);
       (b.memory_bound() ? memory_bound_ms : compute_bound_ms) += b.ms();
       line += fmt::format(" {:>10.4f} {:>7}", b.ms(), b.memory_bound() ? "memory" : "compute");
     }
@@ -209,11 +211,11 @@ void print_op_table(ScanSegmenter& segmenter, const Scan& scan, Tensor<uint8_t>&
   }
   if (bounded) {
     fmt::print(
-        "roofline bound on {} ({} TFLOP/s FP32, {} TFLOP/s dense 16-bit tensor cores, {} TB/s; "
+        "roofline bound on {} ({} TFLOP/s FP32, {} TFLOP/s dense 16-bit tensor cores, {} TOP/s INT8, {} TB/s; "
         "{}): {:.3f} ms for the network, PFN to head ({:.3f} ms in compute-bound ops, {:.3f} ms "
         "in memory-bound ones) - a lower bound, not a prediction: no kernel runs at a peak, and "
         "the pillar gather, decoration, input maps and predictions are outside the graph\n",
-        gpu.name, gpu.fp32_tflops, gpu.half_tflops, gpu.tb_per_s, gpu.source,
+        gpu.name, gpu.fp32_tflops, gpu.half_tflops, gpu.int8_tops, gpu.tb_per_s, gpu.source,
         compute_bound_ms + memory_bound_ms, compute_bound_ms, memory_bound_ms);
     print_training_bound(segmenter, scan, gpu);
   }
@@ -307,6 +309,22 @@ void run_bench(const BenchArgs& a) {
     format = PointFormat::Kitti;
   }
   if (!a.weights.empty()) load_weights(read_checkpoint(a.weights), segmenter.net(), false);
+  PillarSegNet& net = segmenter.net();
+  if (net.precision() == Precision::I8 && net.input_scales().empty()) {
+    // No calibrated scales: the benched scan's own FP32 forward gives them (engine/model/calibration.hpp).
+    InputScaleCalibrator calibrator;
+    net.set_precision(Precision::F32);
+    {
+      const CalibrationScope observing(net, calibrator);
+      Tensor<uint8_t> scratch_labels({model.grid.height(), model.grid.width()});
+      segmenter.segment(read_points(scan_path, format).points, scratch_labels.data());
+    }
+    net.set_input_scales(calibrator.scales());
+    net.set_precision(Precision::I8);
+    fmt::print("--precision int8: {} carries no INT8 scales; calibrated on the benched scan itself ({}th "
+               "percentile; pillarseg calibrate gives a checkpoint its own)\n",
+               a.weights.empty() ? "the random weights" : a.weights, calibrator.percentile());
+  }
   const ClassTable classes = ClassTable::defaults();
 
   const std::vector<std::string> names = {"read",   "upload", "pillars", "input maps", "PFN",   "scatter", "occupancy",
@@ -363,6 +381,8 @@ void run_bench(const BenchArgs& a) {
   std::string precision_label = precision_name(segmenter.net().precision());
   if (backend.device() == Device::Cpu && segmenter.net().precision() == Precision::BF16)
     precision_label += fmt::format(" ({})", cpu::bf16_kernels_name(cpu::native_bf16_kernels()));
+  if (backend.device() == Device::Cpu && segmenter.net().precision() == Precision::I8)
+    precision_label += fmt::format(" ({})", cpu::int8_kernels_name(cpu::native_int8_kernels()));
   fmt::print("pillarseg bench: device {}, precision {}, {} threads, grid {} x {}, C {}, b {}, {} upsampling, "
              "occupancy {}{}\n",
              backend.name(), precision_label, num_threads(), model.grid.width(), model.grid.height(), model.pillar_channels,

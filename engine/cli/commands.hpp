@@ -13,5 +13,6 @@ void add_train(CLI::App& app);
 void add_infer(CLI::App& app);
 void add_bench(CLI::App& app);
 void add_plot(CLI::App& app);
+void add_calibrate(CLI::App& app);
 
 }  // namespace pillarseg::cli

@@ -37,6 +37,7 @@ int main(int argc, char** argv) {
   pillarseg::cli::add_infer(app);
   pillarseg::cli::add_bench(app);
   pillarseg::cli::add_plot(app);
+  pillarseg::cli::add_calibrate(app);
   pillarseg::cli::add_info(app);
 
   try {

@@ -16,6 +16,7 @@
 #include "kernels/common.cuh"
 #include "kernels/conv2d.cuh"
 #include "kernels/conv2d_mma.cuh"
+#include "kernels/conv2d_mma_s8.cuh"
 #include "kernels/half_ops.cuh"
 #include "kernels/conv_transpose2d.cuh"
 #include "kernels/elementwise.cuh"
@@ -187,7 +188,7 @@ Backend::Counters CudaBackend::counters() const {
   c.graph_replays = stats_.graph_replays;
 #if defined(PILLARSEG_CUDA_EMULATION)
   const emu::InstructionCounts issued = emu::instruction_counts();
-  c.tensor_core_flops = static_cast<int64_t>(issued.mma_m16n8k16) * 4096;
+  c.tensor_core_flops = static_cast<int64_t>(issued.tensor_core_flops());
   c.async_copy_bytes = static_cast<int64_t>(issued.cp_async_bytes);
 #endif
   return c;
@@ -940,6 +941,10 @@ void CudaBackend::conv_transpose2d_prepared_16(const TensorRef& x, const HRef& w
 }
 
 bool CudaBackend::supports_training_precision(Precision p, std::string* why_not) const {
+  if (p == Precision::I8) {
+    if (why_not != nullptr) *why_not = "int8 is an inference precision (training runs fp32, bf16 or fp16)";
+    return false;
+  }
   return supports_precision(p, why_not);
 }
 
@@ -1113,29 +1118,104 @@ void CudaBackend::convert(const Ref& x, const TensorRef& y) {
 }
 
 void CudaBackend::prepare_conv_weights(const Ref& w, const Ref* bias, const BatchNormRefs* bn,
-                                       const TensorRef& prepared, Ref& bias_out, const TensorRef& transformed) {
+                                       const TensorRef& prepared, Ref& bias_out, const TensorRef& transformed,
+                                       const Ref* weight_scale) {
   const char* op = "prepare_conv_weights";
+  if (prepared.dtype == DType::I8) {
+    PS_CHECK(transformed.data == nullptr, "{}: the CUDA backend has no transformed weights", op);
+    PS_CHECK(weight_scale != nullptr, "{}: INT8 weights need their weight_scale tensor", op);
+    require_rank(op, "w", w, 4);
+    const cuda::Conv2dShape shape{1, w.dim(1), w.dim(2), w.dim(3), w.dim(0), w.dim(2), 0};
+    if (bias) require_shape(op, "bias", *bias, {w.dim(0)});
+    require_shape(op, "prepared", prepared.i8(op), op::half16_conv_weights(w.shape, false));
+    require_shape(op, "bias_out", bias_out, {w.dim(0)});
+    require_shape(op, "weight_scale", *weight_scale, {w.dim(0)});
+    cuda::FoldedBatchNorm folded;
+    if (bn != nullptr) {
+      require_shape(op, "gamma", bn->gamma, {w.dim(0)});
+      folded = {bn->gamma.data, bn->beta.data, bn->running_mean.data, bn->running_var.data, bn->eps};
+    }
+    cuda::prepare_conv_weights_s8(w.data, bias ? bias->data : nullptr, folded, shape, prepared.i8(op).data,
+                                  weight_scale->data, bias_out.data, stream_.get());
+    return;
+  }
   HRef w16 = prepared.bits16(op);
   prepare_conv_weights_16(w, bias, bn, precision_of(prepared.dtype), w16, bias_out,
                           HRef{static_cast<uint16_t*>(transformed.data), transformed.shape});
 }
 
 void CudaBackend::prepare_conv_transpose_weights(const Ref& w, const Ref* bias, const TensorRef& prepared,
-                                                 Ref& bias_out) {
+                                                 Ref& bias_out, const Ref* weight_scale) {
+  if (prepared.dtype == DType::I8) {
+    const char* op = "prepare_conv_transpose_weights";
+    PS_CHECK(weight_scale != nullptr, "{}: INT8 weights need their weight_scale tensor", op);
+    require_rank(op, "w", w, 4);
+    if (bias) require_shape(op, "bias", *bias, {w.dim(1)});
+    require_shape(op, "prepared", prepared.i8(op), op::half16_conv_weights(w.shape, true));
+    require_shape(op, "bias_out", bias_out, {4 * w.dim(1)});
+    require_shape(op, "weight_scale", *weight_scale, {4 * w.dim(1)});
+    cuda::prepare_conv_transpose_weights_s8(w.data, bias ? bias->data : nullptr, w.dim(0), w.dim(1),
+                                            prepared.i8(op).data, weight_scale->data, bias_out.data, stream_.get());
+    return;
+  }
   HRef w16 = prepared.bits16("prepare_conv_transpose_weights");
   prepare_conv_transpose_weights_16(w, bias, precision_of(prepared.dtype), w16, bias_out);
 }
 
+namespace {
+
+// An activation of the INT8 convolutions: FP32 or BF16 planes.
+cuda::ActivationLayout s8_layout(const char* op, const TensorRef& t) {
+  PS_CHECK(t.dtype == DType::F32 || t.dtype == DType::BF16, "{}: INT8 convolutions take f32 or bf16 activations, got {}",
+           op, dtype_name(t.dtype));
+  return t.dtype == DType::BF16 ? cuda::ActivationLayout::BF16 : cuda::ActivationLayout::F32;
+}
+
+}  // namespace
+
 void CudaBackend::conv2d_prepared_forward(const TensorRef& x, const TensorRef& prepared, const TensorRef& transformed,
                                           const Ref& bias_out, const Shape& weight, int pad, bool relu,
-                                          const TensorRef& y) {
+                                          const TensorRef& y, const Ref* weight_scale, float input_scale) {
   const char* op = "conv2d_prepared_forward";
+  if (prepared.dtype == DType::I8) {
+    PS_CHECK(transformed.data == nullptr, "{}: the CUDA backend has no transformed weights", op);
+    PS_CHECK(weight_scale != nullptr, "{}: INT8 needs its weight scales", op);
+    const Shape y_shape = op::conv2d(x.shape, weight, pad, nullptr, op);
+    PS_CHECK(y.shape == y_shape, "{}: y must be {}, got {}", op, shape_str(y_shape), shape_str(y.shape));
+    require_shape(op, "prepared", prepared.i8(op), op::half16_conv_weights(weight, false));
+    require_shape(op, "bias_out", bias_out, {weight[0]});
+    require_shape(op, "weight_scale", *weight_scale, {weight[0]});
+    const cuda::Conv2dShape shape{x.dim(0), x.dim(1), x.dim(2), x.dim(3), weight[0], weight[2], pad};
+    auto* workspace = reinterpret_cast<std::int32_t*>(
+        float_workspace(static_cast<size_t>(cuda::conv2d_mma_s8_forward_workspace(shape))));
+    cuda::conv2d_mma_s8_forward(cuda::ActivationsS8{x.data, s8_layout(op, x), input_scale}, prepared.i8(op).data,
+                                weight_scale->data, bias_out.data, shape, relu,
+                                cuda::OutputS8{y.data, s8_layout(op, y), 1.0f}, stream_.get(), workspace);
+    return;
+  }
   conv2d_prepared_16(x, prepared.bits16(op), HRef{static_cast<uint16_t*>(transformed.data), transformed.shape},
                      bias_out, weight, pad, relu, precision_of(prepared.dtype), y);
 }
 
 void CudaBackend::conv_transpose2d_prepared_forward(const TensorRef& x, const TensorRef& prepared, const Ref& bias_out,
-                                                    const Shape& weight, const TensorRef& y) {
+                                                    const Shape& weight, const TensorRef& y, const Ref* weight_scale,
+                                                    float input_scale) {
+  if (prepared.dtype == DType::I8) {
+    const char* op = "conv_transpose2d_prepared_forward";
+    PS_CHECK(weight_scale != nullptr, "{}: INT8 needs its weight scales", op);
+    const Shape y_shape = op::conv_transpose2d(x.shape, weight, nullptr, op);
+    PS_CHECK(y.shape == y_shape, "{}: y must be {}, got {}", op, shape_str(y_shape), shape_str(y.shape));
+    require_shape(op, "prepared", prepared.i8(op), op::half16_conv_weights(weight, true));
+    require_shape(op, "bias_out", bias_out, {4 * weight[1]});
+    require_shape(op, "weight_scale", *weight_scale, {4 * weight[1]});
+    auto* workspace = reinterpret_cast<std::int32_t*>(float_workspace(static_cast<size_t>(
+        cuda::conv_transpose2d_mma_s8_forward_workspace(x.dim(0), x.dim(1), x.dim(2), x.dim(3), weight[1]))));
+    cuda::conv_transpose2d_mma_s8_forward(cuda::ActivationsS8{x.data, s8_layout(op, x), input_scale},
+                                          prepared.i8(op).data, weight_scale->data, bias_out.data, x.dim(0),
+                                          x.dim(1), x.dim(2), x.dim(3), weight[1], /*relu=*/false,
+                                          cuda::OutputS8{y.data, s8_layout(op, y), 1.0f}, stream_.get(), workspace);
+    return;
+  }
   conv_transpose2d_prepared_16(x, prepared.bits16("conv_transpose2d_prepared_forward"), bias_out, weight,
                                precision_of(prepared.dtype), y);
 }

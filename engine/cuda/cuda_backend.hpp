@@ -164,15 +164,18 @@ class CudaBackend final : public Backend {
   // capability 8.0 or later, or the emulation.
   bool supports_precision(Precision p, std::string* why_not = nullptr) const override;
   // (No transformed form of the weights: prepared_conv_transform_elements is 0.)
+  // INT8 (kernels/conv2d_mma_s8.cuh): mma.sync m16n8k32 on compute capability 8.0 or later, or the
+  // emulation; the weights prepared on the device.
   void prepare_conv_weights(const Ref& w, const Ref* bias, const BatchNormRefs* bn, const TensorRef& prepared,
-                            Ref& bias_out, const TensorRef& transformed) override;
-  void prepare_conv_transpose_weights(const Ref& w, const Ref* bias, const TensorRef& prepared,
-                                      Ref& bias_out) override;
+                            Ref& bias_out, const TensorRef& transformed, const Ref* weight_scale = nullptr) override;
+  void prepare_conv_transpose_weights(const Ref& w, const Ref* bias, const TensorRef& prepared, Ref& bias_out,
+                                      const Ref* weight_scale = nullptr) override;
   void conv2d_prepared_forward(const TensorRef& x, const TensorRef& prepared, const TensorRef& transformed,
-                               const Ref& bias_out, const Shape& weight, int pad, bool relu,
-                               const TensorRef& y) override;
+                               const Ref& bias_out, const Shape& weight, int pad, bool relu, const TensorRef& y,
+                               const Ref* weight_scale = nullptr, float input_scale = 0.0f) override;
   void conv_transpose2d_prepared_forward(const TensorRef& x, const TensorRef& prepared, const Ref& bias_out,
-                                         const Shape& weight, const TensorRef& y) override;
+                                         const Shape& weight, const TensorRef& y, const Ref* weight_scale = nullptr,
+                                         float input_scale = 0.0f) override;
   bool supports_training_precision(Precision p, std::string* why_not) const override;
   // Synchronised BatchNorm: the kernels' statistics summed over the replicas. On a GPU, when
   // BatchNormRefs::replicas is the run's Replicas, in device memory over NCCL on the compute

@@ -40,6 +40,7 @@ const char* precision_name(Precision p) {
     case Precision::F32: return "fp32";
     case Precision::BF16: return "bf16";
     case Precision::F16: return "fp16";
+    case Precision::I8: return "int8";
   }
   return "?";
 }
@@ -52,21 +53,34 @@ Precision precision_of(DType dtype) {
       return Precision::BF16;
     case DType::F16:
       return Precision::F16;
+    case DType::I8:
+      return Precision::I8;
     default:
       break;
   }
-  PS_FAIL("{} is not a float type of a precision", dtype_name(dtype));
+  PS_FAIL("{} is not the dtype of a precision", dtype_name(dtype));
 }
 
 DType dtype_of(Precision p) {
-  return p == Precision::BF16 ? DType::BF16 : p == Precision::F16 ? DType::F16 : DType::F32;
+  switch (p) {
+    case Precision::BF16:
+      return DType::BF16;
+    case Precision::F16:
+      return DType::F16;
+    case Precision::I8:
+      return DType::I8;
+    case Precision::F32:
+      break;
+  }
+  return DType::F32;
 }
 
 Precision parse_precision(const std::string& text, const std::string& what) {
   if (text == "fp32") return Precision::F32;
   if (text == "bf16") return Precision::BF16;
   if (text == "fp16") return Precision::F16;
-  PS_FAIL("{}: expected fp32, bf16 or fp16, got '{}'", what, text);
+  if (text == "int8") return Precision::I8;
+  PS_FAIL("{}: expected fp32, bf16, fp16 or int8, got '{}'", what, text);
 }
 
 bool Backend::supports_precision(Precision p, std::string* why_not) const {
@@ -83,18 +97,18 @@ void Backend::require_precision(Precision p) const {
   PS_CHECK(supports_precision(p, &why), "backend {}: --precision {}: {}", name(), precision_name(p), why);
 }
 void Backend::prepare_conv_weights(const Ref&, const Ref*, const BatchNormRefs*, const TensorRef& prepared, Ref&,
-                                   const TensorRef&) {
+                                   const TensorRef&, const Ref*) {
   PS_FAIL("backend {}: no {} convolutions (supports_precision)", name(), dtype_name(prepared.dtype));
 }
-void Backend::prepare_conv_transpose_weights(const Ref&, const Ref*, const TensorRef& prepared, Ref&) {
+void Backend::prepare_conv_transpose_weights(const Ref&, const Ref*, const TensorRef& prepared, Ref&, const Ref*) {
   PS_FAIL("backend {}: no {} convolutions (supports_precision)", name(), dtype_name(prepared.dtype));
 }
 void Backend::conv2d_prepared_forward(const TensorRef&, const TensorRef& prepared, const TensorRef&, const Ref&,
-                                      const Shape&, int, bool, const TensorRef&) {
+                                      const Shape&, int, bool, const TensorRef&, const Ref*, float) {
   PS_FAIL("backend {}: no {} convolutions (supports_precision)", name(), dtype_name(prepared.dtype));
 }
 void Backend::conv_transpose2d_prepared_forward(const TensorRef&, const TensorRef& prepared, const Ref&, const Shape&,
-                                                const TensorRef&) {
+                                                const TensorRef&, const Ref*, float) {
   PS_FAIL("backend {}: no {} convolutions (supports_precision)", name(), dtype_name(prepared.dtype));
 }
 void Backend::convert(const Ref&, const TensorRef& y) {

@@ -28,9 +28,14 @@ enum class Device { Cpu, Cuda };
 // accumulation, activations stored in 16 bits between them: on the tensor cores of the CUDA
 // backend, BF16 also on the CPU's AVX512_BF16). The PFN, scatter, head output, softmax, arg-max
 // and training run in FP32.
-enum class Precision { F32, BF16, F16 };
-const char* precision_name(Precision p);  // "fp32", "bf16", "fp16"
-// "fp32", "bf16" or "fp16"; throws pillarseg::Error naming `what` (the option) otherwise.
+//
+// INT8 (DESIGN.md section 10): the U-Net's convolutions on INT8 weights (per output channel) and
+// inputs (per tensor, the calibrated scales of engine/model/calibration.hpp) with INT32
+// accumulation, BatchNorm folded, the epilogue in FP32; the activations between them, the head's
+// and the occupancy stream's convolutions in BF16; the PFN, softmax and arg-max in FP32.
+enum class Precision { F32, BF16, F16, I8 };
+const char* precision_name(Precision p);  // "fp32", "bf16", "fp16", "int8"
+// "fp32", "bf16", "fp16" or "int8"; throws pillarseg::Error naming `what` (the option) otherwise.
 Precision parse_precision(const std::string& text, const std::string& what = "--precision");
 
 // A tensor in a backend's memory; T is float, int32_t, uint32_t or uint8_t.
@@ -98,13 +103,17 @@ struct TensorRef {
     PS_CHECK(dtype == DType::F32, "{}: expected an f32 tensor {}, got {}", op, shape_str(shape), dtype_name(dtype));
     return Ref{static_cast<float*>(data), shape};
   }
+  RefT<int8_t> i8(const char* op) const {
+    PS_CHECK(dtype == DType::I8, "{}: expected an i8 tensor {}, got {}", op, shape_str(shape), dtype_name(dtype));
+    return RefT<int8_t>{static_cast<int8_t*>(data), shape};
+  }
   HRef bits16(const char* op) const {
     PS_CHECK(is_float16(dtype), "{}: expected a bf16 or f16 tensor {}, got {}", op, shape_str(shape),
              dtype_name(dtype));
     return HRef{static_cast<uint16_t*>(data), shape};
   }
 };
-// The precision of a float dtype (F32, BF16, F16), and back.
+// The precision of a dtype (F32, BF16, F16, I8), and back.
 Precision precision_of(DType dtype);
 DType dtype_of(Precision p);
 
@@ -321,19 +330,27 @@ class Backend {
   // every convolution, of prepared_conv_transform_elements() elements of `dtype` (the caller
   // plans it beside the prepared weights; data null when there is none).
   virtual int64_t prepared_conv_transform_elements(const Shape& weight, int pad, DType dtype) const;
+  // INT8 prepared weights (DESIGN.md section 10) also write `weight_scale` (O): the per-output-
+  // channel symmetric scales max |w'| / 127 of the weights w' with the BatchNorm folded in, the
+  // prepared int8 values q = clamp(round_half_even(w' / scale), -127, 127); null for 16-bit.
   virtual void prepare_conv_weights(const Ref& w, const Ref* bias, const BatchNormRefs* bn, const TensorRef& prepared,
-                                    Ref& bias_out, const TensorRef& transformed);
-  // weight (I, O, 2, 2) [, bias (O)] -> prepared (4 O, Kp), bias_out (4 O).
-  virtual void prepare_conv_transpose_weights(const Ref& w, const Ref* bias, const TensorRef& prepared, Ref& bias_out);
+                                    Ref& bias_out, const TensorRef& transformed, const Ref* weight_scale = nullptr);
+  // weight (I, O, 2, 2) [, bias (O)] -> prepared (4 O, Kp), bias_out (4 O) [, weight_scale (4 O)].
+  virtual void prepare_conv_transpose_weights(const Ref& w, const Ref* bias, const TensorRef& prepared, Ref& bias_out,
+                                              const Ref* weight_scale = nullptr);
   // y = act(conv(x, prepared) + bias_out) for the weight shape `weight` (O, I, k, k) and `pad`,
   // in the prepared weights' arithmetic; x and y FP32 or 16-bit; `transformed` as
-  // prepare_conv_weights made it (or data null).
+  // prepare_conv_weights made it (or data null). INT8: x quantized with the per-tensor
+  // input_scale (q = clamp(round_half_even(x / input_scale), -127, 127)), INT32 sums, y =
+  // act(acc input_scale weight_scale[o] + bias_out[o]).
   virtual void conv2d_prepared_forward(const TensorRef& x, const TensorRef& prepared, const TensorRef& transformed,
                                        const Ref& bias_out, const Shape& weight, int pad, bool relu,
-                                       const TensorRef& y);
+                                       const TensorRef& y, const Ref* weight_scale = nullptr,
+                                       float input_scale = 0.0f);
   // y (B, O, 2H, 2W) = the transposed convolution of x (B, I, H, W) for weight (I, O, 2, 2).
   virtual void conv_transpose2d_prepared_forward(const TensorRef& x, const TensorRef& prepared, const Ref& bias_out,
-                                                 const Shape& weight, const TensorRef& y);
+                                                 const Shape& weight, const TensorRef& y,
+                                                 const Ref* weight_scale = nullptr, float input_scale = 0.0f);
   // Training in `p` (FP32 tensors and master weights; the convolutions' forward is
   // conv2d_prepared_forward / conv_transpose2d_prepared_forward on weights prepared without
   // BatchNorm, the backward conv2d_backward / conv_transpose2d_backward with `compute` p):
@@ -356,8 +373,10 @@ std::unique_ptr<Backend> make_cpu_backend();
 std::unique_ptr<Backend> make_cpu_reference_backend();
 // The CPU backend with its BF16 convolutions' micro-kernel on the exact scalar model of the
 // AVX512_BF16 instructions (engine/cpu/bf16_isa_emulated.hpp), and with `amx` the Winograd
-// products on the model of the AMX tiles, on any CPU: how the tests check --precision bf16 on
-// the CPU where it lacks them. Slow; otherwise make_cpu_backend().
+// products on the model of the AMX tiles, and its INT8 convolutions on the models of VPDPBUSD
+// or (`amx`) the AMX-INT8 tiles (engine/cpu/int8_isa_emulated.hpp), on any CPU: how the tests
+// check --precision bf16 and int8 on the CPU where it lacks them. Slow; otherwise
+// make_cpu_backend().
 std::unique_ptr<Backend> make_cpu_backend_emulated_bf16(bool amx = false);
 
 // How make_backend() makes a backend.

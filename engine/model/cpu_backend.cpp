@@ -9,13 +9,16 @@
 #include <cmath>
 #include <cstdlib>
 #include <cstring>
+#include <map>
 #include <span>
 #include <vector>
 
 #include "core/eigen.hpp"
 #include "core/error.hpp"
+#include "core/ops.hpp"
 #include "core/parallel.hpp"
 #include "engine/cpu/bf16_conv.hpp"
+#include "engine/cpu/int8_conv.hpp"
 #include "engine/cpu/pfn_blocked.hpp"
 #include "engine/model/backend.hpp"
 #include "host/adam.hpp"
@@ -69,7 +72,8 @@ host::BatchNormSaved<float> bn_saved(const BatchNormRefs& bn) {
 
 class CpuBackend final : public Backend {
  public:
-  CpuBackend(bool fast_paths, cpu::Bf16Kernels bf16_kernels) : fast_paths_(fast_paths), bf16_kernels_(bf16_kernels) {}
+  CpuBackend(bool fast_paths, cpu::Bf16Kernels bf16_kernels, cpu::Int8Kernels int8_kernels)
+      : fast_paths_(fast_paths), bf16_kernels_(bf16_kernels), int8_kernels_(int8_kernels) {}
   Device device() const override { return Device::Cpu; }
   std::string name() const override { return fast_paths_ ? "cpu" : "cpu-reference"; }
 
@@ -77,13 +81,21 @@ class CpuBackend final : public Backend {
   // at run time), with the Winograd products on AMX-BF16 tiles where it has those too, or their
   // exact scalar models for the tests; not in the reference backend, and no FP16 (the CPU's
   // 16-bit type is BF16).
+  // INT8 (engine/cpu/int8_conv.hpp): the AVX512-VNNI micro-kernel, or AMX-INT8 tiles where the
+  // CPU has them, or their models for the tests; its 16-bit activations move by the BF16 data
+  // movement ops, which need no BF16 instructions.
   bool supports_precision(Precision p, std::string* why_not) const override {
     if (p == Precision::F32) return true;
     std::string why;
     const bool emulated =
         bf16_kernels_ == cpu::Bf16Kernels::Emulated || bf16_kernels_ == cpu::Bf16Kernels::AmxEmulated;
+    const bool int8_emulated =
+        int8_kernels_ == cpu::Int8Kernels::Emulated || int8_kernels_ == cpu::Int8Kernels::AmxEmulated;
     if (!fast_paths_) {
       why = "the reference CPU backend computes in FP32 only";
+    } else if (p == Precision::I8) {
+      if (int8_emulated || cpu::avx512_vnni_available(&why)) return true;
+      why = "the CPU's INT8 convolutions need AVX512-VNNI: " + why + " (AMX-INT8 tiles are used where present too)";
     } else if (p == Precision::F16) {
       why = "the CPU backend has no FP16 convolutions (its 16-bit type is BF16, on AVX512_BF16; fp16 runs on "
             "--device cuda)";
@@ -98,13 +110,19 @@ class CpuBackend final : public Backend {
   // The 3 x 3 pad-1 convolutions run by Winograd; their transformed weights U are made with the
   // prepared weights.
   int64_t prepared_conv_transform_elements(const Shape& weight, int pad, DType dtype) const override {
-    const Precision p = precision_of(dtype);
-    if (!supports_precision(p, nullptr) || p == Precision::F32 || !winograd_half_applies(weight, pad)) return 0;
+    if (dtype != DType::BF16 || !supports_precision(Precision::BF16, nullptr) || !winograd_half_applies(weight, pad))
+      return 0;
     return cpu::winograd_weight_elements(bf16_kernels_, weight);
   }
   void prepare_conv_weights(const Ref& w, const Ref* bias, const BatchNormRefs* bn, const TensorRef& prepared,
-                            Ref& bias_out, const TensorRef& transformed) override {
+                            Ref& bias_out, const TensorRef& transformed, const Ref* weight_scale) override {
     const char* op = "CpuBackend::prepare_conv_weights";
+    if (prepared.dtype == DType::I8) {
+      require_precision(Precision::I8);
+      PS_CHECK(transformed.data == nullptr, "{}: no transformed form of INT8 weights", op);
+      prepare_int8(op, w, bias, bn, /*transposed=*/false, prepared, bias_out, weight_scale);
+      return;
+    }
     require_precision(precision_of(prepared.dtype));
     HRef w16 = prepared.bits16(op);
     cpu::prepare_conv_weights(w, bias, bn, precision_of(prepared.dtype), w16, bias_out);
@@ -112,16 +130,29 @@ class CpuBackend final : public Backend {
     require_shape(op, "transformed", transformed.bits16(op), {cpu::winograd_weight_elements(bf16_kernels_, w.shape)});
     cpu::winograd_transform_weights(bf16_kernels_, w16, w.shape, static_cast<uint16_t*>(transformed.data));
   }
-  void prepare_conv_transpose_weights(const Ref& w, const Ref* bias, const TensorRef& prepared,
-                                      Ref& bias_out) override {
+  void prepare_conv_transpose_weights(const Ref& w, const Ref* bias, const TensorRef& prepared, Ref& bias_out,
+                                      const Ref* weight_scale) override {
+    if (prepared.dtype == DType::I8) {
+      require_precision(Precision::I8);
+      prepare_int8("CpuBackend::prepare_conv_transpose_weights", w, bias, nullptr, /*transposed=*/true, prepared,
+                   bias_out, weight_scale);
+      return;
+    }
     require_precision(precision_of(prepared.dtype));
     HRef w16 = prepared.bits16("CpuBackend::prepare_conv_transpose_weights");
     cpu::prepare_conv_transpose_weights(w, bias, precision_of(prepared.dtype), w16, bias_out);
   }
   void conv2d_prepared_forward(const TensorRef& x, const TensorRef& prepared, const TensorRef& transformed,
-                               const Ref& bias_out, const Shape& weight, int pad, bool relu,
-                               const TensorRef& y) override {
+                               const Ref& bias_out, const Shape& weight, int pad, bool relu, const TensorRef& y,
+                               const Ref* weight_scale, float input_scale) override {
     const char* op = "CpuBackend::conv2d_prepared_forward";
+    if (prepared.dtype == DType::I8) {
+      require_precision(Precision::I8);
+      cpu::int8_conv2d_forward(int8_kernels_, int8_activation(x), input_scale,
+                               int8_weights(op, prepared, bias_out, weight_scale, weight), pad, relu,
+                               int8_activation(y), int8_workspace_);
+      return;
+    }
     const Precision p = precision_of(prepared.dtype);
     require_precision(p);
     const HRef w16 = prepared.bits16(op);
@@ -135,7 +166,16 @@ class CpuBackend final : public Backend {
     }
   }
   void conv_transpose2d_prepared_forward(const TensorRef& x, const TensorRef& prepared, const Ref& bias_out,
-                                         const Shape& weight, const TensorRef& y) override {
+                                         const Shape& weight, const TensorRef& y, const Ref* weight_scale,
+                                         float input_scale) override {
+    if (prepared.dtype == DType::I8) {
+      require_precision(Precision::I8);
+      const char* op = "CpuBackend::conv_transpose2d_prepared_forward";
+      cpu::int8_conv_transpose2d_forward(int8_kernels_, int8_activation(x), input_scale,
+                                         int8_weights(op, prepared, bias_out, weight_scale, weight),
+                                         int8_activation(y), int8_workspace_);
+      return;
+    }
     const Precision p = precision_of(prepared.dtype);
     require_precision(p);
     cpu::conv_transpose2d_forward(bf16_kernels_, half_input(x, p), prepared.bits16("CpuBackend::conv_transpose2d_prepared_forward"),
@@ -519,8 +559,78 @@ class CpuBackend final : public Backend {
     return h;
   }
 
+  // INT8: the weights w (with the eval BatchNorm folded in, as the CUDA backend folds them: scale
+  // gamma / sqrt(var + eps) in FP32, w' = w scale, b' = scale bias + beta - scale mean) quantized
+  // and packed for this backend's kernels, kept here by the address of the graph's prepared
+  // tensor (the graph prepares every layer again when its memory or the parameters change; a
+  // preparation after a forward begins a new set); the prepared tensor gets the int8 values in
+  // the CUDA backend's tap-major layout, weight_scale and bias_out the scales and folded bias.
+  void prepare_int8(const char* op, const Ref& w, const Ref* bias, const BatchNormRefs* bn, bool transposed,
+                    const TensorRef& prepared, Ref& bias_out, const Ref* weight_scale) {
+    PS_CHECK(weight_scale != nullptr, "{}: INT8 weights need their weight_scale tensor", op);
+    require_rank(op, "w", w, 4);
+    const int64_t out = transposed ? w.dim(1) : w.dim(0), columns = transposed ? 4 * out : out;
+    require_shape(op, "prepared", prepared.i8(op), pillarseg::op::half16_conv_weights(w.shape, transposed));
+    require_shape(op, "bias_out", bias_out, {columns});
+    require_shape(op, "weight_scale", *weight_scale, {columns});
+    if (int8_forward_ran_) int8_prepared_.clear(), int8_forward_ran_ = false;
+    int8_folded_.assign(w.data, w.data + w.numel());
+    int8_bias_.assign(static_cast<size_t>(out), 0.0f);
+    const int64_t k = transposed ? 0 : w.numel() / out;
+    for (int64_t o = 0; o < out; ++o) {
+      float scale = 1.0f, shift = 0.0f;
+      if (bn != nullptr) {
+        scale = bn->gamma.data[o] / std::sqrt(bn->running_var.data[o] + bn->eps);
+        shift = bn->beta.data[o] - scale * bn->running_mean.data[o];
+        for (int64_t j = 0; j < k; ++j) int8_folded_[static_cast<size_t>(o * k + j)] *= scale;
+      }
+      int8_bias_[static_cast<size_t>(o)] = scale * (bias != nullptr ? bias->data[o] : 0.0f) + shift;
+    }
+    const Ref folded{int8_folded_.data(), w.shape}, folded_bias{int8_bias_.data(), {out}};
+    cpu::Int8ConvWeights& prepared_weights = int8_prepared_[prepared.data];
+    if (transposed) {
+      cpu::prepare_int8_conv_transpose(int8_kernels_, folded, folded_bias, prepared_weights);
+    } else {
+      cpu::prepare_int8_conv(int8_kernels_, folded, folded_bias, prepared_weights);
+    }
+    // The tap-major int8 values (the CUDA layout: column n, K index t Ip + c), scales and bias.
+    auto* q = static_cast<int8_t*>(prepared.data);
+    const int64_t kp = prepared.dim(1), in = transposed ? w.dim(0) : w.dim(1);
+    const int64_t taps = transposed ? 1 : w.dim(2) * w.dim(3), padded = kp / taps;
+    std::fill(q, q + prepared.numel(), int8_t{0});
+    for (int64_t n = 0; n < columns; ++n) {
+      for (int64_t t = 0; t < taps; ++t)
+        for (int64_t c = 0; c < in; ++c)
+          q[n * kp + t * padded + c] =
+              transposed ? prepared_weights.q[static_cast<size_t>((c * out + n / 4) * 4 + n % 4)]
+                         : prepared_weights.q[static_cast<size_t>((n * in + c) * taps + t)];
+      weight_scale->data[n] = prepared_weights.scale[static_cast<size_t>(transposed ? n / 4 : n)];
+      bias_out.data[n] = prepared_weights.bias[static_cast<size_t>(n)];
+    }
+  }
+  const cpu::Int8ConvWeights& int8_weights(const char* op, const TensorRef& prepared, const Ref& bias_out,
+                                           const Ref* weight_scale, const Shape& weight) {
+    PS_CHECK(weight_scale != nullptr && bias_out.data != nullptr, "{}: INT8 needs its weight scales and bias", op);
+    const auto it = int8_prepared_.find(prepared.data);
+    PS_CHECK(it != int8_prepared_.end() && it->second.weight == weight,
+             "{}: these INT8 weights {} were not prepared on this backend (prepare_conv_weights first)", op,
+             shape_str(weight));
+    int8_forward_ran_ = true;
+    return it->second;
+  }
+  static ActRef int8_activation(const TensorRef& t) {
+    PS_CHECK(t.dtype == DType::F32 || t.dtype == DType::BF16, "CpuBackend: INT8 convolutions take f32 or bf16 "
+             "activations, got {}", dtype_name(t.dtype));
+    return ActRef{t.data, t.shape, t.dtype == DType::BF16};
+  }
+
   bool fast_paths_;
   cpu::Bf16Kernels bf16_kernels_;
+  cpu::Int8Kernels int8_kernels_;
+  std::map<const void*, cpu::Int8ConvWeights> int8_prepared_;
+  bool int8_forward_ran_ = false;
+  std::vector<float> int8_folded_, int8_bias_;
+  cpu::Int8ConvWorkspace int8_workspace_;
   cpu::Bf16WinogradWorkspace bf16_winograd_;  // the BF16 3 x 3 convolutions' scratch
   std::vector<uint16_t> staging_;
   std::vector<float> transpose_dy_;  // conv_transpose2d_backward's copy of dy
@@ -548,14 +658,15 @@ class CpuBackend final : public Backend {
 }  // namespace
 
 std::unique_ptr<Backend> make_cpu_backend() {
-  return std::make_unique<CpuBackend>(/*fast_paths=*/true, cpu::native_bf16_kernels());
+  return std::make_unique<CpuBackend>(/*fast_paths=*/true, cpu::native_bf16_kernels(), cpu::native_int8_kernels());
 }
 std::unique_ptr<Backend> make_cpu_reference_backend() {
-  return std::make_unique<CpuBackend>(/*fast_paths=*/false, cpu::Bf16Kernels::Avx512);
+  return std::make_unique<CpuBackend>(/*fast_paths=*/false, cpu::Bf16Kernels::Avx512, cpu::Int8Kernels::Vnni);
 }
 std::unique_ptr<Backend> make_cpu_backend_emulated_bf16(bool amx) {
   return std::make_unique<CpuBackend>(/*fast_paths=*/true,
-                                      amx ? cpu::Bf16Kernels::AmxEmulated : cpu::Bf16Kernels::Emulated);
+                                      amx ? cpu::Bf16Kernels::AmxEmulated : cpu::Bf16Kernels::Emulated,
+                                      amx ? cpu::Int8Kernels::AmxEmulated : cpu::Int8Kernels::Emulated);
 }
 
 }  // namespace pillarseg

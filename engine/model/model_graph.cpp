@@ -4,6 +4,8 @@
 #include <fmt/format.h>
 
 #include <algorithm>
+#include <map>
+#include <optional>
 #include <initializer_list>
 #include <string>
 #include <utility>
@@ -100,6 +102,13 @@ Modules declare_modules(const ModelConfig& config, ParameterSet& ps) {
   return m;
 }
 
+std::string quantization_key(const std::string& weight_name) {
+  const std::string suffix = ".weight";
+  PS_CHECK(weight_name.size() > suffix.size() && weight_name.ends_with(suffix),
+           "quantization_key: {} is not a weight's name", weight_name);
+  return weight_name.substr(0, weight_name.size() - suffix.size());
+}
+
 int64_t pillar_capacity_for(int64_t pillars, int64_t points_per_pillar) {
   return std::min(std::max<int64_t>(pillars + pillars / 4, 1024), kMaxInt32Index / points_per_pillar);
 }
@@ -111,18 +120,29 @@ class Builder {
  public:
   // `precision`: the convolutions'; the evaluation forward also keeps the U-Net's activations in
   // it, training keeps them (and BatchNorm, the loss, gradients) in FP32.
+  // INT8 (evaluation only): the U-Net's convolutions on INT8 weights with the calibrated input
+  // scales of `input_scales`, its activations in BF16, the other convolutions (the occupancy
+  // stream's, the head's) in FP32 on FP32 tensors.
   Builder(Graph& g, const ParameterSet& ps, const Backend* backend, const std::vector<BnParams>& bns, bool training,
-          Precision precision)
+          Precision precision, const std::map<std::string, float>* input_scales)
       : g_(g), ps_(ps), backend_(backend), bns_(bns), training_(training),
-        half_(training ? Precision::F32 : precision), conv_precision_(precision) {}
+        half_(training ? Precision::F32 : precision), conv_precision_(precision), input_scales_(input_scales) {
+    PS_CHECK(!(training && precision == Precision::I8), "INT8 is an inference precision (training runs fp32, bf16 or "
+                                                        "fp16)");
+  }
 
   Stage stage = Stage::UNet;
   // 16-bit activations (the evaluation forward in bf16 / fp16).
   bool half() const { return half_ != Precision::F32; }
   // Convolutions on prepared 16-bit weights (the tensor-core kernels), in either graph.
   bool half_convs() const { return conv_precision_ != Precision::F32; }
-  // The dtype of the prepared weights and of the 16-bit activations.
+  bool int8() const { return conv_precision_ == Precision::I8; }
+  // The dtype of the 16-bit activations (and of 16-bit prepared weights): BF16 also for INT8.
   DType half_dtype() const { return conv_precision_ == Precision::F16 ? DType::F16 : DType::BF16; }
+  // Whether the convolution emitted now runs on prepared weights (16-bit; INT8 in the U-Net),
+  // and their dtype.
+  bool prepared_conv() const { return int8() ? unet && stage == Stage::UNet : half_convs(); }
+  DType weight_dtype() const { return int8() ? DType::I8 : half_dtype(); }
   // The arithmetic of the training step's convolution backward.
   DType compute() const { return half_convs() ? half_dtype() : DType::F32; }
   // The type of the U-Net's activations: 16-bit in a mixed-precision evaluation forward once
@@ -158,33 +178,52 @@ class Builder {
   // in, when >= 0) and the tensor-core convolution x -> y.
   void half_conv(const std::string& name, int x, int w, int b, int bn, int pad, bool relu, int y) {
     const Shape w_shape = shape(w);
-    const int w16 = g_.tensor(name + ".w16", op::half16_conv_weights(w_shape, false), half_dtype());
+    const DType dtype = weight_dtype();
+    const int w16 = g_.tensor(name + ".w16", op::half16_conv_weights(w_shape, false), dtype);
     const int b16 = g_.tensor(name + ".bias16", {w_shape[0]});
+    const int scale = dtype == DType::I8 ? g_.tensor(name + ".w8_scale", {w_shape[0]}) : -1;
     // The backend's own transformed form of the weights, where it has one (the CPU's Winograd U).
-    const int64_t transform = backend_ ? backend_->prepared_conv_transform_elements(w_shape, pad, half_dtype()) : 0;
-    const int wt = transform > 0 ? g_.tensor(name + ".w16_transformed", {transform}, half_dtype()) : -1;
-    keep_prepared({w16, b16, wt});
+    const int64_t transform = backend_ ? backend_->prepared_conv_transform_elements(w_shape, pad, dtype) : 0;
+    const int wt = transform > 0 ? g_.tensor(name + ".w16_transformed", {transform}, dtype) : -1;
+    keep_prepared({w16, b16, wt, scale});
     add(OpKind::PrepareConvWeights, name,
-        PrepareConvWeightsArgs{.w = w, .bias = b, .prepared = w16, .prepared_bias = b16, .transformed = wt},
+        PrepareConvWeightsArgs{.w = w, .bias = b, .prepared = w16, .prepared_bias = b16, .transformed = wt,
+                               .prepared_scale = scale},
         with_batchnorm(bn, false));
     GraphNode n = with_pad(pad);
     n.relu = relu;
     n.weight = w_shape;
+    n.input_scale = dtype == DType::I8 ? input_scale(w) : 0.0f;
     add(OpKind::PreparedConv2d, name,
-        PreparedConv2dArgs{.x = x, .prepared = w16, .prepared_bias = b16, .transformed = wt, .y = y}, n);
+        PreparedConv2dArgs{.x = x, .prepared = w16, .prepared_bias = b16, .transformed = wt, .y = y,
+                           .prepared_scale = scale},
+        n);
   }
   // The same for a transposed 2x2 convolution.
   void half_conv_transpose(const std::string& name, int x, int w, int b, int y) {
     const Shape w_shape = shape(w);
-    const int w16 = g_.tensor(name + ".w16", op::half16_conv_weights(w_shape, true), half_dtype());
+    const DType dtype = weight_dtype();
+    const int w16 = g_.tensor(name + ".w16", op::half16_conv_weights(w_shape, true), dtype);
     const int b16 = g_.tensor(name + ".bias16", {4 * w_shape[1]});
-    keep_prepared({w16, b16});
+    const int scale = dtype == DType::I8 ? g_.tensor(name + ".w8_scale", {4 * w_shape[1]}) : -1;
+    keep_prepared({w16, b16, scale});
     add(OpKind::PrepareConvTransposeWeights, name,
-        PrepareConvWeightsArgs{.w = w, .bias = b, .prepared = w16, .prepared_bias = b16});
+        PrepareConvWeightsArgs{.w = w, .bias = b, .prepared = w16, .prepared_bias = b16, .prepared_scale = scale});
     GraphNode n;
     n.weight = w_shape;
+    n.input_scale = dtype == DType::I8 ? input_scale(w) : 0.0f;
     add(OpKind::PreparedConvTranspose2d, name,
-        PreparedConv2dArgs{.x = x, .prepared = w16, .prepared_bias = b16, .y = y}, n);
+        PreparedConv2dArgs{.x = x, .prepared = w16, .prepared_bias = b16, .y = y, .prepared_scale = scale}, n);
+  }
+  // The calibrated input scale of the convolution whose weight is graph tensor w.
+  float input_scale(int w) const {
+    const std::string key = quantization_key(ps_.entries().at(static_cast<size_t>(g_.at(w).parameter)).name);
+    const auto it = input_scales_ ? input_scales_->find(key) : std::map<std::string, float>::const_iterator{};
+    PS_CHECK(input_scales_ && it != input_scales_->end() && it->second > 0,
+             "precision int8: no input scale for the convolution {} (the weights are not calibrated: pillarseg "
+             "calibrate writes the scales into a checkpoint)",
+             key);
+    return it->second;
   }
 
   // The evaluation forward's prepared weights persist from run to run (PillarSegNet::run prepares
@@ -204,7 +243,7 @@ class Builder {
     const int w = param(c.weight), b = param(c.bias);
     const Shape b_shape = b >= 0 ? shape(b) : Shape{};
     const int y = g_.tensor(name + "." + out, op::conv2d(shape(x), shape(w), c.pad, b >= 0 ? &b_shape : nullptr));
-    if (half_convs()) {
+    if (prepared_conv()) {
       half_conv(name, x, w, b, -1, c.pad, false, y);
       return y;
     }
@@ -229,7 +268,8 @@ class Builder {
   struct Activations {
     int conv_out = -1, out = -1, save_mean = -1, save_invstd = -1;
   };
-  Activations conv_bn_relu(const std::string& name, const ConvBnRelu& m, int x, int into = -1) {
+  Activations conv_bn_relu(const std::string& name, const ConvBnRelu& m, int x, int into = -1,
+                           std::optional<DType> out_dtype = std::nullopt) {
     Activations a;
     if (training_) {
       a.conv_out = conv(name, m.conv, x, "conv_out");
@@ -241,8 +281,8 @@ class Builder {
     const int w = param(m.conv.weight), b = param(m.conv.bias);
     const Shape b_shape = b >= 0 ? shape(b) : Shape{};
     const Shape y_shape = op::conv2d(shape(x), shape(w), m.conv.pad, b >= 0 ? &b_shape : nullptr);
-    a.out = into >= 0 ? into : g_.tensor(name + ".out", y_shape, act());
-    if (half()) {
+    a.out = into >= 0 ? into : g_.tensor(name + ".out", y_shape, out_dtype.value_or(act()));
+    if (prepared_conv()) {
       half_conv(name, x, w, b, m.bn, m.conv.pad, true, a.out);
       return a;
     }
@@ -282,18 +322,19 @@ class Builder {
   const std::vector<BnParams>& bns_;
   bool training_;
   Precision half_, conv_precision_;
+  const std::map<std::string, float>* input_scales_;
 };
 
 }  // namespace
 
 void build_model_graph(ModelGraph& out, const ModelConfig& config, const Modules& modules, const ParameterSet& ps,
                        const Backend* backend, int batch, bool training, Precision precision,
-                       int64_t pillar_capacity) {
+                       int64_t pillar_capacity, const std::map<std::string, float>* input_scales) {
   const Modules& m = modules;
   ModelGraph& p = out;
   p = ModelGraph();
   Graph& g = p.graph;
-  Builder bld(g, ps, backend, m.bns, training, precision);
+  Builder bld(g, ps, backend, m.bns, training, precision, input_scales);
   const int H = config.grid.height(), W = config.grid.width(), depth = config.depth;
   const int64_t N = config.max_points_per_pillar, C = config.pillar_channels, cap = pillar_capacity;
   const int K = config.num_classes;
@@ -432,7 +473,7 @@ void build_model_graph(ModelGraph& out, const ModelConfig& config, const Modules
                                static_cast<size_t>(u.skip_channels) * static_cast<size_t>(hs[skip_level]) *
                                    static_cast<size_t>(ws[skip_level]) * dtype_bytes(bld.act()))
                       : g.tensor(name + ".upsampled", up_shape, bld.act());
-    if (u.transposed && bld.half_convs()) {
+    if (u.transposed && bld.prepared_conv()) {
       bld.half_conv_transpose(name + ".up", current, bld.param(u.up.weight), bld.param(u.up.bias), a.upsampled);
     } else if (u.transposed) {
       const int w = bld.param(u.up.weight), bias = bld.param(u.up.bias);
@@ -449,7 +490,9 @@ void build_model_graph(ModelGraph& out, const ModelConfig& config, const Modules
       bld.add(OpKind::PadConcat, name, PadConcatArgs{.skip = skip, .up = a.upsampled, .y = a.cat});
     }
     a.first = bld.conv_bn_relu(name + ".conv1", u.conv.first, a.cat);
-    a.second = bld.conv_bn_relu(name + ".conv2", u.conv.second, a.first.out);
+    // INT8: the U-Net's last output in FP32, the FP32 head's input.
+    a.second = bld.conv_bn_relu(name + ".conv2", u.conv.second, a.first.out, -1,
+                                j == depth && bld.int8() ? std::optional<DType>(DType::F32) : std::nullopt);
     current = a.second.out;
   }
   bld.stage = Stage::Head;

@@ -8,6 +8,7 @@
 #pragma once
 
 #include <cstdint>
+#include <map>
 #include <string>
 #include <vector>
 
@@ -80,11 +81,16 @@ struct ModelGraph {
 
 // The graph of the evaluation forward (training: the training step) for `batch` samples and
 // pillar buffers of `pillar_capacity` rows, its convolutions in `precision` (the evaluation
-// forward also keeps the U-Net's activations in it); `backend` (may be null) gives its own
-// transformed form of 16-bit weights where it has one.
+// forward also keeps the U-Net's activations in it; INT8: in BF16, with the U-Net's input scales
+// from `input_scales` by quantization_key, a missing one an error naming it); `backend` (may be
+// null) gives its own transformed form of prepared weights where it has one.
 void build_model_graph(ModelGraph& out, const ModelConfig& config, const Modules& modules, const ParameterSet& ps,
                        const Backend* backend, int batch, bool training, Precision precision,
-                       int64_t pillar_capacity);
+                       int64_t pillar_capacity, const std::map<std::string, float>* input_scales = nullptr);
+
+// A convolution's key for its INT8 scales: its weight's name without ".weight"
+// ("segmentation_head.down1.maxpool_conv.1.double_conv.0").
+std::string quantization_key(const std::string& weight_name);
 
 // The rows the pillar buffers are planned for when a batch has `pillars`: with a quarter's
 // headroom (so that a slowly rising count does not re-plan every batch), at least 1024, within the

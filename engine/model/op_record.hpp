@@ -83,8 +83,13 @@ struct PadConcatArgs { int skip = -1, up = -1, y = -1; };
 struct PadConcatBackwardArgs { int dy = -1, dskip = -1, dup = -1; };
 struct AddInplaceArgs { int a = -1, b = -1; };
 struct LossArgs { int logits = -1, labels = -1, coefficients = -1, dlogits = -1; };
-struct PrepareConvWeightsArgs { int w = -1, bias = -1, prepared = -1, prepared_bias = -1, transformed = -1; };
-struct PreparedConv2dArgs { int x = -1, prepared = -1, prepared_bias = -1, transformed = -1, y = -1; };
+// prepared_scale: INT8 weights' per-output-channel scales (absent for 16-bit weights).
+struct PrepareConvWeightsArgs {
+  int w = -1, bias = -1, prepared = -1, prepared_bias = -1, transformed = -1, prepared_scale = -1;
+};
+struct PreparedConv2dArgs {
+  int x = -1, prepared = -1, prepared_bias = -1, transformed = -1, y = -1, prepared_scale = -1;
+};
 
 enum class Access { Read, Write, ReadWrite };
 
@@ -93,6 +98,7 @@ using DTypes = uint32_t;
 constexpr DTypes dtypes_of(DType t) { return DTypes{1} << static_cast<unsigned>(t); }
 constexpr DTypes kF32 = dtypes_of(DType::F32), kI32 = dtypes_of(DType::I32), kU8 = dtypes_of(DType::U8);
 constexpr DTypes kFloat16 = dtypes_of(DType::BF16) | dtypes_of(DType::F16);
+constexpr DTypes kPrepared = kFloat16 | dtypes_of(DType::I8);  // prepared convolution weights
 constexpr DTypes kActivation = kF32 | kFloat16;
 
 struct ArgSpec {
@@ -154,9 +160,11 @@ const OpRecord& op_record(OpKind kind);
 // the per-op timing.
 const char* op_name(OpKind kind);
 std::string op_label(const Graph& g, const GraphNode& n);
-// Whether node n's arithmetic runs on matrix units (tensor cores; the roofline's 16-bit peak): a
-// matrix op whose compute dtype is 16-bit.
+// Whether node n's arithmetic runs on matrix units (tensor cores, AMX; the roofline's 16-bit or
+// INT8 peak): a matrix op whose compute dtype is 16-bit or INT8.
 bool on_matrix_units(const Graph& g, const GraphNode& n);
+// ... and whether at the INT8 rate (a matrix op on INT8 prepared weights).
+bool on_int8_units(const Graph& g, const GraphNode& n);
 
 // A node's arguments as the op's struct, and back.
 template <class Args>

@@ -141,8 +141,18 @@ void check_loss(const Graph& g, const GraphNode& n) {
   require_shape(g, n, a.dlogits,
                 op::loss(shape_of(g, a.logits), shape_of(g, a.labels), shape_of(g, a.coefficients)), "dlogits");
 }
+// INT8 weights come with their per-output-channel scales (rows of the prepared weights), 16-bit
+// ones without.
+void check_prepared_scale(const Graph& g, const GraphNode& n, int prepared, int scale) {
+  const bool int8 = dtype_of(g, prepared) == DType::I8;
+  PS_CHECK(int8 == (scale >= 0), "graph: node {} ({}): {} weights {} a prepared_scale", n.name, op_name(n.op),
+           dtype_name(dtype_of(g, prepared)), int8 ? "need" : "take no");
+  require_shape(g, n, scale, {shape_of(g, prepared).at(0)}, "prepared_scale");
+}
+
 void check_prepare_conv(const Graph& g, const GraphNode& n) {
   const auto a = n.as<PrepareConvWeightsArgs>();
+  check_prepared_scale(g, n, a.prepared, a.prepared_scale);
   const Shape& w = shape_of(g, a.w);
   require_shape(g, n, a.prepared, op::half16_conv_weights(w, false), "prepared");
   require_shape(g, n, a.prepared_bias, {w.at(0)}, "prepared_bias");
@@ -150,6 +160,7 @@ void check_prepare_conv(const Graph& g, const GraphNode& n) {
 }
 void check_prepare_conv_transpose(const Graph& g, const GraphNode& n) {
   const auto a = n.as<PrepareConvWeightsArgs>();
+  check_prepared_scale(g, n, a.prepared, a.prepared_scale);
   const Shape& w = shape_of(g, a.w);
   require_shape(g, n, a.prepared, op::half16_conv_weights(w, true), "prepared");
   require_shape(g, n, a.prepared_bias, {4 * w.at(1)}, "prepared_bias");
@@ -157,11 +168,17 @@ void check_prepare_conv_transpose(const Graph& g, const GraphNode& n) {
 }
 void check_prepared_conv2d(const Graph& g, const GraphNode& n) {
   const auto a = n.as<PreparedConv2dArgs>();
+  check_prepared_scale(g, n, a.prepared, a.prepared_scale);
+  PS_CHECK(dtype_of(g, a.prepared) != DType::I8 || n.input_scale > 0, "graph: node {} ({}): INT8 needs an input scale",
+           n.name, op_name(n.op));
   require_shape(g, n, a.y, op::conv2d(shape_of(g, a.x), n.weight, n.pad), "y");
   require_shape(g, n, a.prepared, op::half16_conv_weights(n.weight, false), "prepared");
 }
 void check_prepared_conv_transpose2d(const Graph& g, const GraphNode& n) {
   const auto a = n.as<PreparedConv2dArgs>();
+  check_prepared_scale(g, n, a.prepared, a.prepared_scale);
+  PS_CHECK(dtype_of(g, a.prepared) != DType::I8 || n.input_scale > 0, "graph: node {} ({}): INT8 needs an input scale",
+           n.name, op_name(n.op));
   require_shape(g, n, a.y, op::conv_transpose2d(shape_of(g, a.x), n.weight), "y");
   require_shape(g, n, a.prepared, op::half16_conv_weights(n.weight, true), "prepared");
 }
@@ -380,28 +397,35 @@ double run_prepare_conv(OpContext& c, const GraphNode& n) {
   const Ref bias = c.f32(a.bias);
   Ref prepared_bias = c.f32(a.prepared_bias);
   const BatchNormRefs bn = n.batchnorm >= 0 ? c.batchnorm(n, -1, -1) : BatchNormRefs{};
+  const Ref scale = c.f32(a.prepared_scale);
   c.backend().prepare_conv_weights(c.f32(a.w), a.bias >= 0 ? &bias : nullptr, n.batchnorm >= 0 ? &bn : nullptr,
-                                   c.tensor(a.prepared), prepared_bias, c.tensor(a.transformed));
+                                   c.tensor(a.prepared), prepared_bias, c.tensor(a.transformed),
+                                   a.prepared_scale >= 0 ? &scale : nullptr);
   return 0;
 }
 double run_prepare_conv_transpose(OpContext& c, const GraphNode& n) {
   const auto a = n.as<PrepareConvWeightsArgs>();
   const Ref bias = c.f32(a.bias);
   Ref prepared_bias = c.f32(a.prepared_bias);
+  const Ref scale = c.f32(a.prepared_scale);
   c.backend().prepare_conv_transpose_weights(c.f32(a.w), a.bias >= 0 ? &bias : nullptr, c.tensor(a.prepared),
-                                             prepared_bias);
+                                             prepared_bias, a.prepared_scale >= 0 ? &scale : nullptr);
   return 0;
 }
 double run_prepared_conv2d(OpContext& c, const GraphNode& n) {
   const auto a = n.as<PreparedConv2dArgs>();
+  const Ref scale = c.f32(a.prepared_scale);
   c.backend().conv2d_prepared_forward(c.tensor(a.x), c.tensor(a.prepared), c.tensor(a.transformed),
-                                      c.f32(a.prepared_bias), n.weight, n.pad, n.relu, c.tensor(a.y));
+                                      c.f32(a.prepared_bias), n.weight, n.pad, n.relu, c.tensor(a.y),
+                                      a.prepared_scale >= 0 ? &scale : nullptr, n.input_scale);
   return 0;
 }
 double run_prepared_conv_transpose2d(OpContext& c, const GraphNode& n) {
   const auto a = n.as<PreparedConv2dArgs>();
+  const Ref scale = c.f32(a.prepared_scale);
   c.backend().conv_transpose2d_prepared_forward(c.tensor(a.x), c.tensor(a.prepared), c.f32(a.prepared_bias), n.weight,
-                                                c.tensor(a.y));
+                                                c.tensor(a.y), a.prepared_scale >= 0 ? &scale : nullptr,
+                                                n.input_scale);
   return 0;
 }
 double run_convert(OpContext& c, const GraphNode& n) {
@@ -477,20 +501,20 @@ std::vector<OpRecord> make_records() {
        {{"logits", R, kF32}, {"labels", R, kU8}, {"coefficients", R, kF32}, {"dlogits", W, kF32}}, check_loss,
        nullptr, nullptr, run_loss},
       {OpKind::PrepareConvWeights, "prepared weights",
-       {{"w", R, kF32}, {"bias", R, kF32, kOptional}, {"prepared", W, kFloat16}, {"prepared_bias", W, kF32},
-        {"transformed", W, kFloat16, kOptional}},
+       {{"w", R, kF32}, {"bias", R, kF32, kOptional}, {"prepared", W, kPrepared}, {"prepared_bias", W, kF32},
+        {"transformed", W, kFloat16, kOptional}, {"prepared_scale", W, kF32, kOptional}},
        check_prepare_conv, nullptr, nullptr, run_prepare_conv},
       {OpKind::PrepareConvTransposeWeights, "prepared weights",
-       {{"w", R, kF32}, {"bias", R, kF32, kOptional}, {"prepared", W, kFloat16}, {"prepared_bias", W, kF32},
-        {"transformed", W, kFloat16, kOptional}},
+       {{"w", R, kF32}, {"bias", R, kF32, kOptional}, {"prepared", W, kPrepared}, {"prepared_bias", W, kF32},
+        {"transformed", W, kFloat16, kOptional}, {"prepared_scale", W, kF32, kOptional}},
        check_prepare_conv_transpose, nullptr, nullptr, run_prepare_conv_transpose},
       {OpKind::PreparedConv2d, "conv forward",
-       {{"x", R, kActivation}, {"prepared", R, kFloat16}, {"prepared_bias", R, kF32},
-        {"transformed", R, kFloat16, kOptional}, {"y", W, kActivation}},
+       {{"x", R, kActivation}, {"prepared", R, kPrepared}, {"prepared_bias", R, kF32},
+        {"transformed", R, kFloat16, kOptional}, {"y", W, kActivation}, {"prepared_scale", R, kF32, kOptional}},
        check_prepared_conv2d, prepared_conv2d_flops, nullptr, run_prepared_conv2d, /*matrix_op=*/true},
       {OpKind::PreparedConvTranspose2d, "convT 2x2 forward",
-       {{"x", R, kActivation}, {"prepared", R, kFloat16}, {"prepared_bias", R, kF32},
-        {"transformed", R, kFloat16, kOptional}, {"y", W, kActivation}},
+       {{"x", R, kActivation}, {"prepared", R, kPrepared}, {"prepared_bias", R, kF32},
+        {"transformed", R, kFloat16, kOptional}, {"y", W, kActivation}, {"prepared_scale", R, kF32, kOptional}},
        check_prepared_conv_transpose2d, prepared_conv_transpose2d_flops, nullptr, run_prepared_conv_transpose2d,
        /*matrix_op=*/true},
       {OpKind::Convert, "convert", {{"x", R, kF32}, {"y", W, kFloat16}}, check_convert, nullptr, nullptr,
@@ -504,7 +528,7 @@ std::vector<OpRecord> make_records() {
 // The argument structs against their records.
 static_assert(sizeof(PfnForwardArgs) == 6 * sizeof(int) && sizeof(PfnBackwardArgs) == 9 * sizeof(int));
 static_assert(sizeof(Conv2dBackwardArgs) == 6 * sizeof(int) && sizeof(BatchNormReluBackwardArgs) == 8 * sizeof(int));
-static_assert(sizeof(PrepareConvWeightsArgs) == 5 * sizeof(int) && sizeof(PreparedConv2dArgs) == 5 * sizeof(int));
+static_assert(sizeof(PrepareConvWeightsArgs) == 6 * sizeof(int) && sizeof(PreparedConv2dArgs) == 6 * sizeof(int));
 
 }  // namespace
 
@@ -533,7 +557,12 @@ DType node_dtype(const Graph& g, const GraphNode& n) {
 }  // namespace
 
 bool on_matrix_units(const Graph& g, const GraphNode& n) {
-  return !n.args.empty() && op_record(n.op).matrix_op && is_float16(node_dtype(g, n));
+  const DType dtype = n.args.empty() ? DType::F32 : node_dtype(g, n);
+  return !n.args.empty() && op_record(n.op).matrix_op && (is_float16(dtype) || dtype == DType::I8);
+}
+
+bool on_int8_units(const Graph& g, const GraphNode& n) {
+  return on_matrix_units(g, n) && node_dtype(g, n) == DType::I8;
 }
 
 std::string op_label(const Graph& g, const GraphNode& n) {

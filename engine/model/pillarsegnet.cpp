@@ -8,6 +8,8 @@
 #include <fmt/format.h>
 
 #include <algorithm>
+#include <cmath>
+#include <map>
 #include <initializer_list>
 #include <string>
 #include <utility>
@@ -37,6 +39,8 @@ struct PillarSegNet::Impl : Modules {
   GraphPlan* current = nullptr;
   LossKind loss_kind = LossKind::CrossEntropy;
   Precision precision = Precision::F32;        // of the evaluation convolutions
+  std::map<std::string, float> input_scales;   // INT8: the U-Net's calibrated input scales
+  PillarSegNet::ConvInputObserver observer;    // calibration
   Precision train_precision = Precision::F32;  // of the training step's convolutions
   // Pillar buffers are planned for a capacity that grows with headroom (a slowly rising pillar
   // count does not re-plan every batch); the nodes run on the current batch's rows.
@@ -77,7 +81,8 @@ PillarSegNet::~PillarSegNet() = default;
 void PillarSegNet::build_graph(GraphPlan& p, int batch, bool training) {
   Impl& m = *impl_;
   p.precision = training ? m.train_precision : m.precision;
-  build_model_graph(p, config_, m, params_, &backend_, batch, training, p.precision, m.pillar_capacity);
+  build_model_graph(p, config_, m, params_, &backend_, batch, training, p.precision, m.pillar_capacity,
+                    &m.input_scales);
   p.batch = batch;
   p.pillar_capacity = m.pillar_capacity;
 }
@@ -197,6 +202,7 @@ double PillarSegNet::execute(const GraphPlan& p, size_t begin, size_t end, bool 
       if (time_stages_ && (i + 1 == end || nodes[i + 1].stage != n.stage)) lap(n.stage);
       continue;
     }
+    if (m.observer && &p == &m.eval) observe_conv_input(p, n, context);
     const double op_start = time_ops_ ? be.clock_ms() : 0.0;
     const Backend::Counters counted_before = time_ops_ ? be.counters() : Backend::Counters{};
     const double value = op_record(n.op).run(context, n);
@@ -207,6 +213,7 @@ double PillarSegNet::execute(const GraphPlan& p, size_t begin, size_t end, bool 
       t.flops += n.flops;
       t.bytes += static_cast<double>(p.graph.node_bytes(i, m.pillar_rows));
       t.matrix_units = on_matrix_units(p.graph, n);
+      t.int8_units = on_int8_units(p.graph, n);
       const Backend::Counters counted = be.counters();
       const auto add_counted = [](double& total, int64_t before, int64_t after) {
         if (before < 0 || after < 0) return;
@@ -232,6 +239,43 @@ void PillarSegNet::set_precision(Precision precision) {
 }
 
 Precision PillarSegNet::precision() const { return impl_->precision; }
+
+void PillarSegNet::set_input_scales(std::map<std::string, float> scales) {
+  Impl& m = *impl_;
+  for (const auto& [key, scale] : scales)
+    PS_CHECK(std::isfinite(scale) && scale > 0, "INT8 input scale of {}: {} is not a positive number", key, scale);
+  m.input_scales = std::move(scales);
+  m.eval.batch = -1;  // planned again at the next evaluation forward
+  m.eval_graph.reset();
+}
+
+const std::map<std::string, float>& PillarSegNet::input_scales() const { return impl_->input_scales; }
+
+void PillarSegNet::set_conv_input_observer(ConvInputObserver observer) {
+  impl_->observer = std::move(observer);
+  impl_->eval_graph.reset();
+}
+
+// The U-Net's convolutions of an evaluation graph and their inputs, for the observer.
+void PillarSegNet::observe_conv_input(const GraphPlan& p, const GraphNode& n, OpContext& context) {
+  if (n.stage != Stage::UNet) return;
+  int x = -1, w = -1;
+  switch (n.op) {
+    case OpKind::Conv2d:
+    case OpKind::Conv2dBnReluEval:
+    case OpKind::ConvTranspose2d: {
+      const auto a = n.as<Conv2dArgs>();
+      x = a.x, w = a.w;
+      break;
+    }
+    default:
+      return;
+  }
+  const GraphTensor& weight = p.graph.at(w);
+  if (weight.parameter < 0) return;
+  impl_->observer(quantization_key(params_.entries().at(static_cast<size_t>(weight.parameter)).name),
+                  context.tensor(x));
+}
 
 void PillarSegNet::set_training_precision(Precision precision) {
   Impl& m = *impl_;
@@ -351,7 +395,7 @@ void PillarSegNet::forward(const ModelBatch& batch, bool training) {
   // skips, so one recording serves every pillar count up to the capacity, the count itself never
   // reaching the device work; a re-plan (another batch size, more pillars than the capacity)
   // records again.
-  const bool replay = !training && !time_stages_ && !time_ops_ && be.supports_capture();
+  const bool replay = !training && !time_stages_ && !time_ops_ && !m.observer && be.supports_capture();
 
   int64_t P = 0;
   if (config_.pillar_input) {

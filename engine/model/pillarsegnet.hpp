@@ -16,6 +16,7 @@
 #pragma once
 
 #include <array>
+#include <functional>
 #include <cstdint>
 #include <map>
 #include <memory>
@@ -31,6 +32,7 @@
 namespace pillarseg {
 
 class Graph;
+class OpContext;
 struct GraphNode;
 struct GraphPlan;
 
@@ -75,6 +77,7 @@ class PillarSegNet {
   struct OpTime {
     double ms = 0, flops = 0, bytes = 0;
     bool matrix_units = false;  // on_matrix_units(): the roofline's 16-bit peak
+    bool int8_units = false;    // on_int8_units(): its INT8 peak
     double tensor_core_flops = -1, async_copy_bytes = -1;
     int64_t calls = 0;
   };
@@ -86,8 +89,19 @@ class PillarSegNet {
   // on a backend that supports_precision() it (the CUDA backend on compute capability 8.0 or
   // later, the emulation, the CPU with AVX512_BF16), else throws pillarseg::Error with the
   // reason. The evaluation graph is planned again at the next forward.
+  // INT8 (DESIGN.md section 10) on a backend that supports it, with the U-Net's input scales
+  // set first (set_input_scales, or a calibrated checkpoint's through load_weights).
   void set_precision(Precision precision);
   Precision precision() const;
+  // The calibrated per-tensor scales of the U-Net's convolution inputs for INT8, by
+  // quantization_key (engine/model/model_graph.hpp); the evaluation graph is planned again.
+  void set_input_scales(std::map<std::string, float> scales);
+  const std::map<std::string, float>& input_scales() const;
+  // Calibration: while set, every U-Net convolution of an evaluation forward hands its input (the
+  // backend's memory, with its dtype) and its key to `observer` before it runs; the forward then
+  // runs node by node (no recorded graph).
+  using ConvInputObserver = std::function<void(const std::string& key, const TensorRef& input)>;
+  void set_conv_input_observer(ConvInputObserver observer);
   // The training step's convolutions (forward, input and weight gradients) in BF16 or FP16 on
   // the tensor cores, with activations, BatchNorm, the loss, gradients, the FP32 master weights
   // and the optimiser state in FP32, on a backend that supports_training_precision() it (the
@@ -186,6 +200,7 @@ class PillarSegNet {
   RefT<T> bind(const GraphPlan& p, int id);
   BatchNormRefs batchnorm_refs(const GraphPlan& p, const GraphNode& n, int save_mean, int save_invstd);
   double execute(const GraphPlan& p, size_t begin, size_t end, bool prepared_weights_only = false);
+  void observe_conv_input(const GraphPlan& p, const GraphNode& n, OpContext& context);
 
   ModelConfig config_;
   Backend& backend_;

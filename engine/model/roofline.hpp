@@ -1,6 +1,7 @@
 // A roofline bound for the op graph's nodes on a named GPU: a node cannot take less than its
 // FLOPs at the peak rate of the units it runs on (the tensor cores' dense 16-bit rate for the
-// BF16/FP16 convolutions, the CUDA cores' FP32 rate for everything else) nor less than its bytes
+// BF16/FP16 convolutions, their dense INT8 rate for the INT8 ones, the CUDA cores' FP32 rate for
+// everything else) nor less than its bytes
 // (Graph::node_bytes: every tensor read and written once) at the memory bandwidth. The sum over
 // the nodes is a lower bound on the network's time there, not a prediction: kernels reach a
 // share of either peak, caches can only help by less than the tensors' own sizes, and launch
@@ -17,6 +18,7 @@ struct GpuPeaks {
   std::string name;
   double fp32_tflops = 0;  // CUDA cores, FMA = 2 flops
   double half_tflops = 0;  // tensor cores, dense BF16/FP16 with FP32 accumulation
+  double int8_tops = 0;    // tensor cores, dense INT8 with INT32 accumulation (custom: 2 x half)
   double tb_per_s = 0;     // memory bandwidth, 10^12 bytes per second
   std::string source;      // where the figures come from
 };
@@ -33,7 +35,8 @@ struct RooflineBound {
   double ms() const { return compute_ms > memory_ms ? compute_ms : memory_ms; }
   bool memory_bound() const { return memory_ms > compute_ms; }
 };
-RooflineBound roofline_bound(double flops, double bytes, bool tensor_cores, const GpuPeaks& gpu);
+// tensor_cores: at the 16-bit tensor rate, or with int8 the INT8 one; else the FP32 rate.
+RooflineBound roofline_bound(double flops, double bytes, bool tensor_cores, const GpuPeaks& gpu, bool int8 = false);
 
 class Graph;
 // The bound of a whole graph: every node's (its flops, Graph::node_bytes at `pillar_rows`, the

@@ -4,10 +4,12 @@
 
 #include <charconv>
 #include <cstdlib>
+#include <map>
 #include <set>
 
 #include "core/error.hpp"
 #include "engine/model/architecture.hpp"
+#include "engine/model/calibration.hpp"
 
 namespace pillarseg {
 
@@ -75,15 +77,28 @@ void load_weights(const Checkpoint& checkpoint, PillarSegNet& net, bool with_opt
   std::vector<weights::ExpectedTensor> expected;
   for (const ParamEntry& e : ps.entries()) expected.push_back({e.name, e.shape, weights::ValueKind::Float});
   for (const auto& [name, count] : ps.counters()) expected.push_back({name, {}, weights::ValueKind::Integer});
-  // The optimiser moments are not model tensors: check the model's set without them.
+  // The optimiser moments and the INT8 scales (engine/model/calibration.hpp) are not model
+  // tensors: check the model's set without them.
   weights::SafeTensors model_part;
-  for (const std::string& name : file.names())
+  std::map<std::string, float> input_scales;
+  const std::string scale_suffix = ".input_scale";
+  for (const std::string& name : file.names()) {
+    if (name.rfind(kQuantizationPrefix, 0) == 0) {
+      if (name.ends_with(scale_suffix)) {
+        const Tensor<float> v = file.get_f32(name, {1});
+        input_scales[name.substr(std::string(kQuantizationPrefix).size(),
+                                 name.size() - std::string(kQuantizationPrefix).size() - scale_suffix.size())] = v[0];
+      }
+      continue;
+    }
     if (name.rfind("optimizer.", 0) != 0) model_part.add(file.at(name));
+  }
   weights::check_names_and_shapes(model_part, expected, file.source());
   for (size_t i = 0; i < ps.entries().size(); ++i) {
     const ParamEntry& e = ps.entries()[i];
     ps.upload(static_cast<int>(i), file.get_f32(e.name, e.shape));
   }
+  if (!input_scales.empty()) net.set_input_scales(std::move(input_scales));
   for (auto& [name, count] : ps.counters()) {
     const auto v = file.get_i64(name);
     PS_CHECK(v.size() == 1, "{}: {} must hold one integer", file.source(), name);

@@ -98,7 +98,8 @@ class Segmenter:
     weights: a safetensors checkpoint (one `pillarseg train` wrote, or weights only).
     config: a run config YAML whose grid:, model: and input: settings win over the checkpoint's.
     device: "cpu", "cuda" (a GPU) or "emu" (the CUDA backend on the CPU emulation: slow).
-    precision: the convolutions' arithmetic, "fp32", "bf16" or "fp16" (see the `precision` property).
+    precision: the convolutions' arithmetic, "fp32", "bf16", "fp16" or "int8" (weights calibrated by
+        `pillarseg calibrate`; see the `precision` property).
     threads: CPU threads (0: all). cuda_device: the GPU ordinal with "cuda".
     mask_unobserved: cells no ray observed get class 0 and probabilities 0.
     convolution: with "cuda", "own", "cudnn" or "cublas".

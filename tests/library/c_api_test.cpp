@@ -239,8 +239,14 @@ TEST(CApi, PrecisionOption) {
   for (pillarseg_segmenter* s : {fp32, bf16, cpu}) pillarseg_close(s);
   pillarseg_options options;
   pillarseg_default_options(&options);
+  options.precision = "int4";
+  EXPECT_NE(open_error(tiny_checkpoint().c_str(), nullptr, &options)
+                .find("options->precision: expected fp32, bf16, fp16 or int8, got 'int4'"),
+            std::string::npos);
+  // int8 needs the scales pillarseg calibrate writes: an uncalibrated checkpoint is refused at open.
   options.precision = "int8";
-  EXPECT_NE(open_error(tiny_checkpoint().c_str(), nullptr, &options).find("options->precision: expected fp32, bf16 or fp16, got 'int8'"),
+  EXPECT_NE(open_error(tiny_checkpoint().c_str(), nullptr, &options)
+                .find("precision int8: no input scale for the convolutions (the weights are not calibrated"),
             std::string::npos);
 }
 

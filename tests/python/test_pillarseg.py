@@ -258,6 +258,8 @@ class ErrorsAndLifetimeTest(unittest.TestCase):
         with self.assertRaisesRegex(pillarseg.Error, "options->device must be"):
             pillarseg.Segmenter(WEIGHTS, device="tpu")
         with self.assertRaisesRegex(pillarseg.Error, "options->precision"):
+            pillarseg.Segmenter(WEIGHTS, precision="int4")
+        with self.assertRaisesRegex(pillarseg.Error, "precision int8: no input scale .*pillarseg calibrate"):
             pillarseg.Segmenter(WEIGHTS, precision="int8")
         with self.assertRaisesRegex(pillarseg.Error, "options->threads must be >= 0"):
             pillarseg.Segmenter(WEIGHTS, threads=-1)
