@@ -1,18 +1,18 @@
 // The INT8 tensor-core convolutions of conv2d_mma_s8.cuh. One kernel, conv_gemm_s8_kernel, runs
 // the forward of both kinds as an implicit GEMM D (pixels x columns) = A (pixels x K) B (K x
 // columns), as conv_gemm_kernel of conv2d_mma.cu does in 16 bits: A gathers, for output pixel
-// (oy, ox) and K element k = t Ip + c (tap-major), channel c of x at (oy + t / KS - pad, ox + t %
-// KS
-// - pad), zero outside it and past I (KS = k for a convolution; a 1 x 1 gather for the transposed
-// kind, whose column (o, dy, dx) goes to y's sub-pixel (2 h + dy, 2 w + dx)).
+// (oy, ox) and K element k = t Ip + c (tap-major), channel c of x at (oy + t / KS - pad,
+// ox + t % KS - pad), zero outside it and past I (KS = k for a convolution; a 1 x 1 gather for the
+// transposed kind, whose column (o, dy, dx) goes to y's sub-pixel (2 h + dy, 2 w + dx)).
 // A block of 128 threads (4 warps, 2 x 2) computes a 128 x BN tile of D (BN = 128, or 64 for at
 // most 64 columns; a warp 64 x BN / 2) in steps of 32 along K (one mma.sync m16n8k32 deep),
 // through a pipeline of 3 stages in dynamic shared memory:
 //   - A: each thread owns one pixel of the tile; a K step lies within one tap (Ip is a multiple
 //     of 32), so the thread checks the tap's position once and stages its pixel's 32-byte row:
 //       FP32 or BF16 x: reads its 32 channels plane after plane (a warp reads 32 neighbouring
-//       pixels of each plane), quantizes them (quantize_s8) and stores them in two 16-byte
-//       stores; the loads for step s + 2 are issued before step s is computed and stored after;
+//       pixels of each plane), quantizes them (quantize_i8: to s8, or to u8 for non_negative x)
+//       and stores them in two 16-byte stores; the loads for step s + 2 are issued before step s
+//       is computed and stored after;
 //       S8x32 x: the 32 channels are the pixel's 32 contiguous bytes of its channel block, copied
 //       by two cp.async (zero-filled outside x) with the weights of the step;
 //   - B: the weights' BN x 32 bytes, rows (N, Kp) contiguous along K, by cp.async in 16-byte
@@ -20,7 +20,8 @@
 //     later;
 //   - compute: each warp loads its four 16 x 32 A fragments (ldmatrix.x4 of As, rows = pixels,
 //     each 16-bit element two int8 along K: the m16n8k32 layout) and its BN / 16 B fragment pairs
-//     (ldmatrix.x4 of Bs, rows = columns), and issues 4 x BN / 16 mma.sync m16n8k32. Rows of 32
+//     (ldmatrix.x4 of Bs, rows = columns), and issues 4 x BN / 16 mma.sync m16n8k32 (.s8.s8, or
+//     .u8.s8 with u8 activations: the same fragments, A's bytes read unsigned). Rows of 32
 //     bytes are padded to 48 so that stores and ldmatrix rows of 8 neighbouring rows fall in
 //     distinct banks;
 //   - epilogue: acc to float, times sx sw[n], plus the bias (one FMA), ReLU, stored FP32, BF16 or
@@ -82,16 +83,23 @@ struct TileS8 {
   static_assert(kSharedBytes <= 48 * 1024, "within the default dynamic shared memory limit");
 };
 
-// q = clamp(rint(x r), -127, 127) as the low byte of its two's complement, x r rounded to FP32
-// first (never fused into the addition), NaN -> 0. Adding 1.5 2^23 rounds x r to an integer (ties
-// to even: 1.5 2^23 is even) where the sum lies in [2^23, 2^24), whose ulp is 1, and leaves that
-// integer in the sum's low bits; the clamp keeps the sum there.
-__device__ __forceinline__ std::uint32_t quantize_s8(float x, float r) {
+// q = clamp(rint(x r), -127, 127) (s8: as the low byte of its two's complement) or clamp(rint(x
+// r), 0, 255) (u8), x r rounded to FP32 first (never fused into the addition), NaN -> 0. Adding
+// 1.5 2^23 rounds x r to an integer (ties to even: 1.5 2^23 is even) where the sum lies in [2^23,
+// 2^24), whose ulp is 1, and leaves that integer in the sum's low bits; the clamp keeps the sum
+// there (infinities clamp too).
+template <Int8A Q>
+__device__ __forceinline__ std::uint32_t quantize_i8(float x, float r) {
   constexpr float kMagic = 12582912.0f;  // 1.5 x 2^23
+  constexpr float kLow = Q == Int8A::U8 ? kMagic : kMagic - 127.0f;
+  constexpr float kHigh = Q == Int8A::U8 ? kMagic + 255.0f : kMagic + 127.0f;
   float t = __fmul_rn(x, r);
   t = t == t ? t : 0.0f;
-  t = fminf(fmaxf(__fadd_rn(t, kMagic), kMagic - 127.0f), kMagic + 127.0f);
+  t = fminf(fmaxf(__fadd_rn(t, kMagic), kLow), kHigh);
   return __float_as_uint(t) & 0xFFu;
+}
+__device__ __forceinline__ std::uint32_t quantize_s8(float x, float r) {
+  return quantize_i8<Int8A::S8>(x, r);
 }
 
 template <class T>
@@ -121,8 +129,9 @@ struct PixelGatherS8 {
     ky = static_cast<int>(tap / g.kernel), kx = static_cast<int>(tap % g.kernel);
   }
 
-  // The next step's 32 quantized values, channels c0 .. c0 + 31 at tap (ky, kx), as 8 words of
-  // four bytes (the lowest channel in the lowest byte), zero outside x and past I.
+  // The next step's 32 quantized values (s8 or u8: XA), channels c0 .. c0 + 31 at tap (ky, kx),
+  // as 8 words of four bytes (the lowest channel in the lowest byte), zero outside x and past I.
+  template <Int8A XA>
   __device__ __forceinline__ void load_next(const GemmS8& g, std::uint32_t (&words)[8]) {
     const std::int64_t iy = oy + ky - g.pad, ix = ox + kx - g.pad;
     const bool inside = valid && iy >= 0 && iy < g.in_height && ix >= 0 && ix < g.in_width;
@@ -139,7 +148,7 @@ struct PixelGatherS8 {
         std::uint32_t word = 0;
 #pragma unroll
         for (int e = 0; e < 4; ++e)
-          word |= quantize_s8(activation_value(p[(4 * j + e) * plane]), r) << (8 * e);
+          word |= quantize_i8<XA>(activation_value(p[(4 * j + e) * plane]), r) << (8 * e);
         words[j] = word;
       }
     } else {
@@ -149,7 +158,7 @@ struct PixelGatherS8 {
 #pragma unroll
         for (int e = 0; e < 4; ++e) {
           if (4 * j + e < channels_here)
-            word |= quantize_s8(activation_value(p[(4 * j + e) * plane]), r) << (8 * e);
+            word |= quantize_i8<XA>(activation_value(p[(4 * j + e) * plane]), r) << (8 * e);
         }
         words[j] = word;
       }
@@ -203,8 +212,8 @@ __device__ __forceinline__ void issue_weights_s8(const StageS8<Tile>& s, const s
 // One stage's 32 of K for a warp: its kFragsM A fragments (ldmatrix.x4: (pixels 0-7, k 0-15),
 // (8-15, 0-15), (0-7, 16-31), (8-15, 16-31) are a0..a3) and kFragsN B fragments (ldmatrix.x4 of
 // two n8 tiles: (n 0-7, k 0-15), (n 0-7, k 16-31), (n 8-15, k 0-15), (n 8-15, k 16-31)), and
-// kFragsM kFragsN mma.sync.
-template <class Tile>
+// kFragsM kFragsN mma.sync (A's bytes s8 or u8: XA).
+template <class Tile, Int8A XA>
 __device__ __forceinline__ void compute_stage_s8(
     const StageS8<Tile>& s, std::int32_t (&acc)[Tile::kFragsM][Tile::kFragsN][4], int warp_m,
     int warp_n, int lane) {
@@ -227,7 +236,7 @@ __device__ __forceinline__ void compute_stage_s8(
   for (int mt = 0; mt < Tile::kFragsM; ++mt)
 #pragma unroll
     for (int nt = 0; nt < Tile::kFragsN; ++nt)
-      mma_m16n8k32_i8<Int8A::S8>(acc[mt][nt], a[mt], b[nt], acc[mt][nt]);
+      mma_m16n8k32_i8<XA>(acc[mt][nt], a[mt], b[nt], acc[mt][nt]);
 }
 
 // Where D's row (pixel p of `image`) and column n go in y: y[pixel_offset + column_offset], in
@@ -269,8 +278,9 @@ __device__ __forceinline__ void store_output(TOut* y, std::int64_t index, std::i
     y[index] = float_to_bf16_bits(value);
 }
 
-// TIn, TOut: float (FP32), std::uint16_t (BF16 bits) or std::int8_t (S8x32).
-template <class TIn, class TOut, class Tile>
+// TIn, TOut: float (FP32), std::uint16_t (BF16 bits) or std::int8_t (S8x32). XA: x quantized to
+// s8, or to u8 (non-negative x, FP32 or BF16 only), and the matching mma.sync.
+template <class TIn, class TOut, class Tile, Int8A XA>
 __global__ void __launch_bounds__(Tile::kThreads, 2)
     conv_gemm_s8_kernel(const TIn* __restrict__ x, const std::int8_t* __restrict__ w8,
                         const float* __restrict__ w_scale, const float* __restrict__ bias, GemmS8 g,
@@ -325,7 +335,7 @@ __global__ void __launch_bounds__(Tile::kThreads, 2)
         pixel.issue_next(g, stage.a + tid * Tile::kPitch);
       } else {
         std::uint32_t words[8];
-        pixel.load_next(g, words);
+        pixel.template load_next<XA>(g, words);
         store_pixel(stage, words);
       }
       issue_weights_s8(stage, w8, g, n0, (first + s) * Tile::kK, tid);
@@ -344,15 +354,15 @@ __global__ void __launch_bounds__(Tile::kThreads, 2)
         issue_weights_s8(next_stage, w8, g, n0, (first + next) * Tile::kK, tid);
       }
       cp_async_commit();
-      compute_stage_s8<Tile>(stage, acc, warp_m, warp_n, lane);
+      compute_stage_s8<Tile, XA>(stage, acc, warp_m, warp_n, lane);
     } else {
       std::uint32_t words[8] = {};  // loaded and stored under the same condition
       if (next < steps) {
-        pixel.load_next(g, words);
+        pixel.template load_next<XA>(g, words);
         issue_weights_s8(next_stage, w8, g, n0, (first + next) * Tile::kK, tid);
       }
       cp_async_commit();
-      compute_stage_s8<Tile>(stage, acc, warp_m, warp_n, lane);
+      compute_stage_s8<Tile, XA>(stage, acc, warp_m, warp_n, lane);
       if (next < steps) store_pixel(next_stage, words);
     }
   }
@@ -557,7 +567,7 @@ __global__ void mma_i8_probe_kernel(const std::uint8_t* a, const std::int8_t* b,
   for (int i = 0; i < 4; ++i) d[(g + (i >= 2 ? 8 : 0)) * 8 + 2 * t + (i & 1)] = rd[i];
 }
 
-template <class Tile, class TIn, class TOut>
+template <class Tile, class TIn, Int8A XA, class TOut>
 void launch_gemm_s8(const void* x, const std::int8_t* w8, const float* w_scale, const float* bias,
                     const GemmS8& g, void* y, cudaStream_t stream) {
   const std::int64_t rows = g.batch * g.out_height * g.out_width;
@@ -565,7 +575,7 @@ void launch_gemm_s8(const void* x, const std::int8_t* w8, const float* w_scale, 
   const dim3 grid(static_cast<unsigned>(ceil_div(rows, std::int64_t{Tile::kM})),
                   static_cast<unsigned>(ceil_div(g.columns, std::int64_t{Tile::kN})),
                   static_cast<unsigned>(splits));
-  launch_kernel(conv_gemm_s8_kernel<TIn, TOut, Tile>, grid, dim3(Tile::kThreads),
+  launch_kernel(conv_gemm_s8_kernel<TIn, TOut, Tile, XA>, grid, dim3(Tile::kThreads),
                 Tile::kSharedBytes, stream, static_cast<const TIn*>(x), w8, w_scale, bias, g,
                 static_cast<TOut*>(y));
   if (g.partial != nullptr) {
@@ -576,20 +586,30 @@ void launch_gemm_s8(const void* x, const std::int8_t* w8, const float* w_scale, 
   }
 }
 
-template <class Tile, class TIn>
+template <class Tile, class TIn, Int8A XA>
 void launch_gemm_s8(const void* x, const std::int8_t* w8, const float* w_scale, const float* bias,
                     const GemmS8& g, const OutputS8& y, cudaStream_t stream) {
   switch (y.layout) {
     case ActivationLayout::F32:
-      launch_gemm_s8<Tile, TIn, float>(x, w8, w_scale, bias, g, y.data, stream);
+      launch_gemm_s8<Tile, TIn, XA, float>(x, w8, w_scale, bias, g, y.data, stream);
       break;
     case ActivationLayout::BF16:
-      launch_gemm_s8<Tile, TIn, std::uint16_t>(x, w8, w_scale, bias, g, y.data, stream);
+      launch_gemm_s8<Tile, TIn, XA, std::uint16_t>(x, w8, w_scale, bias, g, y.data, stream);
       break;
     case ActivationLayout::S8x32:
-      launch_gemm_s8<Tile, TIn, std::int8_t>(x, w8, w_scale, bias, g, y.data, stream);
+      launch_gemm_s8<Tile, TIn, XA, std::int8_t>(x, w8, w_scale, bias, g, y.data, stream);
       break;
   }
+}
+
+// FP32 or BF16 x quantized to s8, or to u8 where x is non-negative.
+template <class Tile, class TIn>
+void launch_gemm_s8(const ActivationsS8& x, const std::int8_t* w8, const float* w_scale,
+                    const float* bias, const GemmS8& g, const OutputS8& y, cudaStream_t stream) {
+  if (x.non_negative)
+    launch_gemm_s8<Tile, TIn, Int8A::U8>(x.data, w8, w_scale, bias, g, y, stream);
+  else
+    launch_gemm_s8<Tile, TIn, Int8A::S8>(x.data, w8, w_scale, bias, g, y, stream);
 }
 
 template <class Tile>
@@ -597,13 +617,13 @@ void launch_gemm_s8(const ActivationsS8& x, const std::int8_t* w8, const float* 
                     const float* bias, const GemmS8& g, const OutputS8& y, cudaStream_t stream) {
   switch (x.layout) {
     case ActivationLayout::F32:
-      launch_gemm_s8<Tile, float>(x.data, w8, w_scale, bias, g, y, stream);
+      launch_gemm_s8<Tile, float>(x, w8, w_scale, bias, g, y, stream);
       break;
     case ActivationLayout::BF16:
-      launch_gemm_s8<Tile, std::uint16_t>(x.data, w8, w_scale, bias, g, y, stream);
+      launch_gemm_s8<Tile, std::uint16_t>(x, w8, w_scale, bias, g, y, stream);
       break;
-    case ActivationLayout::S8x32:
-      launch_gemm_s8<Tile, std::int8_t>(x.data, w8, w_scale, bias, g, y, stream);
+    case ActivationLayout::S8x32:  // signed bytes as they are (run_gemm_s8 refuses non_negative)
+      launch_gemm_s8<Tile, std::int8_t, Int8A::S8>(x.data, w8, w_scale, bias, g, y, stream);
       break;
   }
 }
@@ -654,6 +674,10 @@ void run_gemm_s8(const ActivationsS8& x, const std::int8_t* w8, const float* w_s
            static_cast<const void*>(w8));
   PS_CHECK(x.layout != ActivationLayout::S8x32 || is_16_byte_aligned(x.data),
            "conv2d_mma_s8: an S8x32 input must be 16-byte aligned; {} is not", x.data);
+  PS_CHECK(!(x.non_negative && x.layout == ActivationLayout::S8x32),
+           "conv2d_mma_s8: non_negative needs an FP32 or BF16 input, which the kernel quantizes to "
+           "u8; an S8x32 input holds signed bytes (there is no unsigned int8 layout): give x as "
+           "FP32 or BF16, or clear non_negative");
   PS_CHECK(w_scale != nullptr && bias != nullptr,
            "conv2d_mma_s8: the prepared weight scales and bias are required");
   g.x_scale = x.scale;

@@ -1,6 +1,6 @@
-// INT8 convolutions on the tensor cores for inference: implicit GEMM with mma.sync m16n8k32 s8 x s8
-// (kernels/mma.cuh), exact 32-bit integer accumulation, requantization in the epilogue. The
-// forward of the two kinds of conv2d_mma.cuh:
+// INT8 convolutions on the tensor cores for inference: implicit GEMM with mma.sync m16n8k32, s8 x
+// s8, or u8 x s8 for non-negative activations (kernels/mma.cuh), exact 32-bit integer
+// accumulation, requantization in the epilogue. The forward of the two kinds of conv2d_mma.cuh:
 //   - a stride-1 convolution x (B, I, H, W), weight (O, I, k, k), pad -> y (B, O, Ho, Wo), with an
 //     eval BatchNorm folded into the weights and the bias, and an optional ReLU;
 //   - ConvTranspose2d kernel 2 stride 2, x (B, I, H, W), weight (I, O, 2, 2) -> y (B, O, 2H, 2W).
@@ -24,9 +24,17 @@
 //   BF16 inputs are quantized as they are staged in shared memory, on every tap that reads them;
 //   int8 inputs (quantize_activations_s8, or a previous layer's int8 output) are copied as they
 //   are, by cp.async, which leaves the kernel no work but the tensor cores' on them.
-// Output: acc = sum over K of q_w q_x in 32 bits, exact (|acc| <= 127^2 Kp; wraps past 2^31, Kp
-//   > 133,000); v = act(fma(float(acc), s, bias_out[n])) with s = sx w_scale[n] rounded to FP32,
-//   act ReLU or nothing; stored as v (FP32), v rounded once to BF16, or q(v) with y's scale.
+// Non-negative activations (ActivationsS8::non_negative; the U-Net's convolution inputs are ReLU
+//   outputs, max-pooled, upsampled and concatenated): FP32 or BF16 x quantized as staged to u8,
+//   q = clamp(rint(v r), 0, 255) with r and v r rounded as above, NaN, negatives and -inf -> 0,
+//   +inf -> 255, padding 0 (the CPU backend's unsigned rule), and multiplied by mma.sync
+//   m16n8k32 .u8.s8 (activations are A, the weights B): a clip value c takes s = c / 255 rather
+//   than c / 127, twice the resolution. There is no unsigned int8 layout: non_negative with an
+//   S8x32 x is refused (the launchers throw).
+// Output: acc = sum over K of q_w q_x in 32 bits, exact (|acc| <= 127^2 Kp, 255 127 Kp for u8 x;
+//   wraps past 2^31, Kp > 133,000, 66,000 for u8 x); v = act(fma(float(acc), s, bias_out[n]))
+//   with s = sx w_scale[n] rounded to FP32, act ReLU or nothing; stored as v (FP32), v rounded
+//   once to BF16, or q(v) with y's scale (signed, S8x32, whatever x was).
 //
 // Needs compute capability 8.0 or later on a GPU (mma_supported(), conv2d_mma.cuh); the
 // emulation runs it everywhere. Pointers are device memory (int8 tensors and w8 16-byte
@@ -66,11 +74,14 @@ void prepare_conv_transpose_weights_s8(const float* w, const float* bias, std::i
                                        float* bias_out, cudaStream_t stream);
 
 // One side of a convolution's activations: where, in which layout, and the scale (of x: sx; of
-// y: only for S8x32, the scale it is quantized with).
+// y: only for S8x32, the scale it is quantized with). non_negative (x only, FP32 or BF16): x is
+// quantized to u8 and multiplied as unsigned (see the top of the file); with S8x32 the launchers
+// throw ("non_negative needs an FP32 or BF16 input").
 struct ActivationsS8 {
   const void* data = nullptr;
   ActivationLayout layout = ActivationLayout::F32;
   float scale = 1.0f;
+  bool non_negative = false;
 };
 struct OutputS8 {
   void* data = nullptr;
@@ -106,7 +117,7 @@ void conv_transpose2d_mma_s8_forward(const ActivationsS8& x, const std::int8_t* 
 // stored by them.
 void mma_s8_fragment_probe(const std::int8_t* a, const std::int8_t* b, const std::int32_t* c,
                            std::int32_t* d, cudaStream_t stream);
-// The same for mma.sync m16n8k32 .u8.s8: A's bytes unsigned.
+// The same for mma.sync m16n8k32 .u8.s8 (the non_negative kernels'): A's bytes unsigned.
 void mma_u8s8_fragment_probe(const std::uint8_t* a, const std::int8_t* b, const std::int32_t* c,
                              std::int32_t* d, cudaStream_t stream);
 

@@ -18,7 +18,11 @@
 //     + bias. Channels that are not multiples of 32, pixels that are not multiples of the tile,
 //     batch 2, FP32 and BF16 in and out, ReLU on and off, split K (the same bits as unsplit),
 //     reruns (the same bits), guard words around y, weights past I that must not matter (nothing of
-//     x is read past I), and activations beyond 127 sx that clamp.
+//     x is read past I), and activations beyond 127 sx that clamp;
+//   - non-negative activations (u8, mma .u8.s8) the same way: values between 127 sx and 255 sx
+//     kept, negatives 0, beyond 255 sx clamped, the padding 0, the unsigned rounding rule by hand
+//     and on values near half-integers, the transposed kind, split K, the instruction counts, and
+//     S8x32 x with non_negative refused.
 #include <gtest/gtest.h>
 
 #include <algorithm>
@@ -430,11 +434,12 @@ TEST(Int8Weights, PreparedByHand) {
 // ---- the convolutions ----
 
 // q of an activation by the contract: x (1 / sx) rounded to FP32, then to the nearest integer
-// (ties to even), clamped; NaN 0.
-std::int64_t quantize_activation(float x, float inverse_scale) {
+// (ties to even), clamped to [-127, 127], or to [0, 255] for non-negative activations (u8); NaN 0.
+std::int64_t quantize_activation(float x, float inverse_scale, bool non_negative = false) {
   const float product = x * inverse_scale;
   if (std::isnan(product)) return 0;
-  return static_cast<std::int64_t>(std::nearbyint(std::clamp(product, -127.0f, 127.0f)));
+  const float low = non_negative ? 0.0f : -127.0f, high = non_negative ? 255.0f : 127.0f;
+  return static_cast<std::int64_t>(std::nearbyint(std::clamp(product, low, high)));
 }
 
 float bf16_value(float x) {
@@ -452,8 +457,13 @@ struct ConvCaseS8 {
   bool transposed, batchnorm, relu, x_bf16, y_bf16;
   // x's scale: max |x| / 127 divided by `clamp_factor` (> 1: values beyond 127 sx clamp).
   double clamp_factor = 1.0;
-  // Integer x (|x| <= 127), integer weights with max |w| 127 per channel, sx 1, no bias: y = acc.
+  // Integer x (|x| <= 127; non_negative: |x| <= 254), integer weights with max |w| 127 per
+  // channel, sx 1, no bias: y = acc.
   bool unit_scales = false;
+  // x quantized to u8 (ActivationsS8::non_negative), sx = max |x| / 255 / clamp_factor: x's
+  // negative half quantizes to 0, and the values between 127 sx and 255 sx, which the signed mode
+  // clamps, keep their value. No S8x32 x (refused).
+  bool non_negative = false;
 };
 
 std::vector<float> uniform(size_t n, Rng& rng, double lo, double hi) {
@@ -482,7 +492,7 @@ void check_conv_s8(const ConvCaseS8& cc) {
   std::vector<float> w = uniform(static_cast<size_t>(weights), rng, -0.5, 0.5);
   std::vector<float> bias = uniform(static_cast<size_t>(s.out_channels), rng, -1, 1);
   if (cc.unit_scales) {
-    for (float& v : x) v = std::round(v * 63.0f);
+    for (float& v : x) v = std::round(v * (cc.non_negative ? 127.0f : 63.0f));
     for (float& v : w) v = std::round(v * 250.0f);     // within +-125 ...
     for (std::int64_t o = 0; o < s.out_channels; ++o)  // ... and 127 once per output channel
       w[static_cast<size_t>(cc.transposed ? o * 4 : o * s.in_channels * taps)] =
@@ -498,7 +508,8 @@ void check_conv_s8(const ConvCaseS8& cc) {
   }
   float largest = 0.0f;
   for (float v : x) largest = std::max(largest, std::abs(v));
-  const float sx = cc.unit_scales ? 1.0f : static_cast<float>(largest / 127.0 / cc.clamp_factor);
+  const double levels = cc.non_negative ? 255.0 : 127.0;
+  const float sx = cc.unit_scales ? 1.0f : static_cast<float>(largest / levels / cc.clamp_factor);
   const float inverse = 1.0f / sx;
 
   // The preparation, on the device and on the host.
@@ -519,15 +530,22 @@ void check_conv_s8(const ConvCaseS8& cc) {
   const std::int64_t ip = op::half16_padded_channels(s.in_channels),
                      kp = (cc.transposed ? 1 : taps) * ip;
   std::vector<std::int64_t> qx(x.size());
-  std::int64_t clamped = 0;
+  std::int64_t clamped = 0, beyond_127 = 0, negative = 0;
   for (size_t i = 0; i < x.size(); ++i) {
-    qx[i] = quantize_activation(x[i], inverse);
-    clamped += std::abs(static_cast<double>(x[i]) * inverse) > 127.5 ? 1 : 0;
+    qx[i] = quantize_activation(x[i], inverse, cc.non_negative);
+    const double scaled = static_cast<double>(x[i]) * inverse;
+    clamped += std::abs(scaled) > levels + 0.5 ? 1 : 0;
+    beyond_127 += scaled > 127.5 ? 1 : 0;
+    negative += scaled < -0.5 ? 1 : 0;
   }
   if (cc.clamp_factor > 1.0) {
     EXPECT_GT(clamped, static_cast<std::int64_t>(x.size() / 10)) << "the case should clamp";
   } else {
     EXPECT_EQ(clamped, 0);
+  }
+  if (cc.non_negative) {  // what the signed mode would clamp, and negatives that become 0
+    EXPECT_GT(beyond_127, static_cast<std::int64_t>(x.size() / 10));
+    EXPECT_GT(negative, static_cast<std::int64_t>(x.size() / 10));
   }
   const std::int64_t out_count = s.batch * s.out_channels * ho * wo;
   std::vector<std::int64_t> acc(static_cast<size_t>(out_count), 0);
@@ -572,7 +590,7 @@ void check_conv_s8(const ConvCaseS8& cc) {
       static_cast<size_t>(std::max<std::int64_t>(workspace_count, 1)));
   const ActivationLayout x_layout = cc.x_bf16 ? ActivationLayout::BF16 : ActivationLayout::F32;
   const cuda::ActivationsS8 x_in{cc.x_bf16 ? static_cast<const void*>(dx_h.data()) : dx_f.data(),
-                                 x_layout, sx};
+                                 x_layout, sx, cc.non_negative};
   const auto convolve = [&](const cuda::ActivationsS8& xs, const cuda::OutputS8& ys, bool split) {
     std::int32_t* ws = split ? workspace.data() : nullptr;
     if (cc.transposed)
@@ -610,27 +628,31 @@ void check_conv_s8(const ConvCaseS8& cc) {
   }
 
   // x quantized beforehand (S8x32): the host's quantization in blocks of 32 channels, zeros past
-  // I, and the convolution of it gives the same bits.
+  // I, and the convolution of it gives the same bits. Signed only: u8 x has no int8 layout.
   const std::int64_t plane = s.height * s.width, x_blocks = ip / 32;
   GuardedArray<std::int8_t> dq(
       cuda::activations_s8_bytes(s.batch, s.in_channels, s.height, s.width));
   ASSERT_EQ(dq.size(), s.batch * ip * plane);
-  cuda::quantize_activations_s8(x_in.data, x_layout, sx, s.batch, s.in_channels, s.height, s.width,
-                                dq.data(), nullptr);
-  PS_CUDA_CHECK(cudaDeviceSynchronize());
-  std::vector<std::int8_t> q_expected(static_cast<size_t>(dq.size()), 0);
-  for (std::int64_t b = 0; b < s.batch; ++b)
-    for (std::int64_t c = 0; c < s.in_channels; ++c)
-      for (std::int64_t pixel = 0; pixel < plane; ++pixel)
-        q_expected[static_cast<size_t>(((b * x_blocks + c / 32) * plane + pixel) * 32 + c % 32)] =
-            static_cast<std::int8_t>(
-                qx[static_cast<size_t>((b * s.in_channels + c) * plane + pixel)]);
-  EXPECT_TRUE(kernel_test::same_bits(dq.download(), q_expected)) << "quantize_activations_s8";
-  EXPECT_TRUE(dq.guards_intact());
-  const cuda::ActivationsS8 q_in{dq.data(), ActivationLayout::S8x32, sx};
-  EXPECT_TRUE(kernel_test::same_bits(run(q_in, false), y)) << "S8x32 x";
-  if (workspace_count > 0) {
-    EXPECT_TRUE(kernel_test::same_bits(run(q_in, true), y)) << "S8x32 x, split K";
+  std::vector<cuda::ActivationsS8> inputs = {x_in};
+  if (!cc.non_negative) {
+    cuda::quantize_activations_s8(x_in.data, x_layout, sx, s.batch, s.in_channels, s.height,
+                                  s.width, dq.data(), nullptr);
+    PS_CUDA_CHECK(cudaDeviceSynchronize());
+    std::vector<std::int8_t> q_expected(static_cast<size_t>(dq.size()), 0);
+    for (std::int64_t b = 0; b < s.batch; ++b)
+      for (std::int64_t c = 0; c < s.in_channels; ++c)
+        for (std::int64_t pixel = 0; pixel < plane; ++pixel)
+          q_expected[static_cast<size_t>(((b * x_blocks + c / 32) * plane + pixel) * 32 + c % 32)] =
+              static_cast<std::int8_t>(
+                  qx[static_cast<size_t>((b * s.in_channels + c) * plane + pixel)]);
+    EXPECT_TRUE(kernel_test::same_bits(dq.download(), q_expected)) << "quantize_activations_s8";
+    EXPECT_TRUE(dq.guards_intact());
+    const cuda::ActivationsS8 q_in{dq.data(), ActivationLayout::S8x32, sx};
+    EXPECT_TRUE(kernel_test::same_bits(run(q_in, false), y)) << "S8x32 x";
+    if (workspace_count > 0) {
+      EXPECT_TRUE(kernel_test::same_bits(run(q_in, true), y)) << "S8x32 x, split K";
+    }
+    inputs.push_back(q_in);
   }
 
   double worst = 0;  // |y - exact| in units of the epilogue's rounding bound
@@ -678,14 +700,15 @@ void check_conv_s8(const ConvCaseS8& cc) {
     yq_expected[static_cast<size_t>(((b * (op / 32) + o / 32) * y_plane + pixel) * 32 + o % 32)] =
         static_cast<std::int8_t>(quantize_activation(values[static_cast<size_t>(i)], 1.0f / sy));
   }
-  for (const auto& [xs, split] : {std::pair{x_in, false}, std::pair{q_in, false},
-                                  std::pair{x_in, true}, std::pair{q_in, true}}) {
+  for (const bool split : {false, true}) {
     if (split && workspace_count == 0) continue;
-    convolve(xs, {dyq.data(), ActivationLayout::S8x32, sy}, split);
-    EXPECT_TRUE(kernel_test::same_bits(dyq.download(), yq_expected))
-        << "S8x32 y from " << (xs.layout == ActivationLayout::S8x32 ? "S8x32" : "FP32/BF16") << " x"
-        << (split ? ", split K" : "");
-    EXPECT_TRUE(dyq.guards_intact());
+    for (const cuda::ActivationsS8& xs : inputs) {
+      convolve(xs, {dyq.data(), ActivationLayout::S8x32, sy}, split);
+      EXPECT_TRUE(kernel_test::same_bits(dyq.download(), yq_expected))
+          << "S8x32 y from " << (xs.layout == ActivationLayout::S8x32 ? "S8x32" : "FP32/BF16")
+          << " x" << (split ? ", split K" : "");
+      EXPECT_TRUE(dyq.guards_intact());
+    }
   }
 }
 
@@ -729,6 +752,148 @@ TEST(ConvMmaS8, Transposed2x2Bf16ReluUnitScales) {
 TEST(ConvMmaS8, Transposed2x2SplitK) {
   EXPECT_EQ(cuda::conv_transpose2d_mma_s8_forward_workspace(2, 512, 3, 4, 5), 2 * 24 * 20);
   check_conv_s8({2, 512, 3, 4, 5, 2, 0, true, false, true, false, true});
+}
+
+// Non-negative activations, quantized to u8 as staged and multiplied by mma.sync .u8.s8: the
+// accumulators exact with x up to 254 (negatives 0), FP32 and BF16 x, the transposed kind, split K
+// over a convolution and a transposed one (the same bits as unsplit), values beyond 255 sx that
+// clamp.
+TEST(ConvMmaS8, NonNegativeAccumulatorsExactWithUnitScales) {
+  check_conv_s8({2, 45, 7, 9, 70, 3, 1, false, false, false, false, false, 1.0, true, true});
+}
+TEST(ConvMmaS8, NonNegativeConv3x3PaddedBf16InF32Out) {
+  check_conv_s8({1, 40, 7, 6, 33, 3, 1, false, false, false, true, false, 1.0, false, true});
+}
+TEST(ConvMmaS8, NonNegativeConv3x3PaddedF32InBf16OutBatchNormRelu) {
+  check_conv_s8({2, 19, 5, 13, 12, 3, 1, false, true, true, false, true, 1.0, false, true});
+}
+TEST(ConvMmaS8, NonNegativeTransposed2x2) {
+  check_conv_s8({2, 6, 3, 4, 5, 2, 0, true, false, false, false, false, 1.0, false, true});
+}
+// 64 channels, 3x3: 18 K steps for one tile of 6 pixels x 8 columns, 2 splits; the transposed
+// kind with 512 channels: 16 steps, 2 splits.
+TEST(ConvMmaS8, NonNegativeSplitK) {
+  EXPECT_EQ(cuda::conv2d_mma_s8_forward_workspace({1, 64, 2, 3, 8, 3, 1}), 2 * 6 * 8);
+  check_conv_s8({1, 64, 2, 3, 8, 3, 1, false, false, true, true, false, 1.0, false, true});
+  check_conv_s8({2, 512, 3, 4, 5, 2, 0, true, false, true, false, true, 1.0, false, true});
+}
+TEST(ConvMmaS8, NonNegativeActivationsBeyond255ScalesClamp) {
+  check_conv_s8({2, 7, 6, 7, 9, 3, 1, false, false, false, false, false, 4.0, false, true});
+}
+
+// By hand, 1x1 with one channel of weight 127 (sw 1) and sx 1, so y = 127 q: the unsigned rule
+// q = clamp(rint(x), 0, 255), ties to even, NaN and negatives 0, +inf 255; the signed mode
+// clamps the same x at 127.
+TEST(ConvMmaS8, NonNegativeQuantizesByHand) {
+  std::string why;
+  if (!cuda::mma_supported(&why)) GTEST_SKIP() << why;
+  const float inf = std::numeric_limits<float>::infinity();
+  const std::vector<float> x = {std::numeric_limits<float>::quiet_NaN(),
+                                inf,
+                                -inf,
+                                -0.0f,
+                                -3.5f,
+                                0.49f,
+                                2.5f,
+                                127.5f,
+                                128.5f,
+                                200.0f,
+                                254.5f,
+                                255.4f,
+                                255.6f,
+                                1e30f};
+  const float q_u8[] = {0, 255, 0, 0, 0, 0, 2, 128, 128, 200, 254, 255, 255, 255};
+  const float q_s8[] = {0, 127, -127, 0, -4, 0, 2, 127, 127, 127, 127, 127, 127, 127};
+  const auto n = static_cast<std::int64_t>(x.size());
+  const cuda::Conv2dShape s{1, 1, 1, n, 1, 1, 0};
+  const PreparedS8 p = device_prepare({127.0f}, {}, nullptr, 0.0f, s, false);
+  ASSERT_EQ(p.scale[0], 1.0f);
+  auto dx = DeviceBuffer<float>::from_host(x);
+  auto dw8 = DeviceBuffer<std::int8_t>::from_host(p.w8);
+  auto dscale = DeviceBuffer<float>::from_host(p.scale),
+       dbias = DeviceBuffer<float>::from_host(p.bias);
+  DeviceBuffer<float> dy(x.size());
+  for (const bool non_negative : {true, false}) {
+    cuda::conv2d_mma_s8_forward({dx.data(), cuda::ActivationLayout::F32, 1.0f, non_negative},
+                                dw8.data(), dscale.data(), dbias.data(), s, false,
+                                {dy.data(), cuda::ActivationLayout::F32, 1.0f}, nullptr);
+    PS_CUDA_CHECK(cudaDeviceSynchronize());
+    const std::vector<float> y = dy.to_host();
+    for (size_t i = 0; i < x.size(); ++i)
+      EXPECT_EQ(y[i], 127 * (non_negative ? q_u8[i] : q_s8[i]))
+          << "x = " << x[i] << (non_negative ? ", u8" : ", s8");
+  }
+}
+
+// Padding contributes 0 in the unsigned mode too: a 3 x 3 image of 200 (beyond 127 sx, sx 1)
+// convolved with a 3x3 kernel of 127 (sw 1), pad 1, gives 200 x 127 times the taps inside: 4 at
+// the corners, 6 on the edges, 9 in the middle.
+TEST(ConvMmaS8, NonNegativePaddingContributesZero) {
+  std::string why;
+  if (!cuda::mma_supported(&why)) GTEST_SKIP() << why;
+  const cuda::Conv2dShape s{1, 1, 3, 3, 1, 3, 1};
+  const PreparedS8 p = device_prepare(std::vector<float>(9, 127.0f), {}, nullptr, 0.0f, s, false);
+  ASSERT_EQ(p.scale[0], 1.0f);
+  auto dx = DeviceBuffer<float>::from_host(std::vector<float>(9, 200.0f));
+  auto dw8 = DeviceBuffer<std::int8_t>::from_host(p.w8);
+  auto dscale = DeviceBuffer<float>::from_host(p.scale),
+       dbias = DeviceBuffer<float>::from_host(p.bias);
+  DeviceBuffer<float> dy(9);
+  cuda::conv2d_mma_s8_forward({dx.data(), cuda::ActivationLayout::F32, 1.0f, true}, dw8.data(),
+                              dscale.data(), dbias.data(), s, false,
+                              {dy.data(), cuda::ActivationLayout::F32, 1.0f}, nullptr);
+  PS_CUDA_CHECK(cudaDeviceSynchronize());
+  const std::vector<float> y = dy.to_host();
+  const int taps[9] = {4, 6, 4, 6, 9, 6, 4, 6, 4};
+  for (size_t i = 0; i < 9; ++i)
+    EXPECT_EQ(y[i], static_cast<float>(200 * 127 * taps[i]))
+        << "y[" << i / 3 << "][" << i % 3 << "]";
+}
+
+// The unsigned rule rounds the FP32 product x r too (values whose exact product lies just past a
+// half-integer but rounds onto it go to the even integer), over the whole u8 range, and agrees
+// with the host's rule on values over several orders of magnitude: through a 1x1 convolution of
+// one channel with weight 127 (sw 1), y = fma(127 q, sx, 0).
+TEST(ConvMmaS8, NonNegativeQuantizationRoundsTheFp32ProductFirst) {
+  std::string why;
+  if (!cuda::mma_supported(&why)) GTEST_SKIP() << why;
+  const float sx = 0.3f, r = 1.0f / sx;
+  std::vector<float> x;
+  std::vector<std::int64_t> expected;
+  for (int k = 0; k < 255; ++k) {  // as in QuantizationRoundsTheFp32ProductFirst
+    const float target = static_cast<float>(k) + 0.5f;
+    float v = target / r;
+    for (int i = 0; i < 32; ++i) v = std::nextafter(v, -2 * v);
+    for (int i = 0; i < 64; ++i, v = std::nextafter(v, 2 * v)) {
+      if (v * r == target && static_cast<double>(v) * r > target) {
+        x.push_back(v);
+        expected.push_back(static_cast<std::int64_t>(std::nearbyint(target)));
+        break;
+      }
+    }
+  }
+  ASSERT_GE(x.size(), 40u) << "too few such values found";
+  Rng rng(43);
+  for (int i = 0; i < 500; ++i) {
+    x.push_back(static_cast<float>(rng.normal() * std::pow(10.0, rng.uniform(-2.0, 2.5))));
+    expected.push_back(quantize_activation(x.back(), r, true));
+  }
+  const auto n = static_cast<std::int64_t>(x.size());
+  const cuda::Conv2dShape s{1, 1, 1, n, 1, 1, 0};
+  const PreparedS8 p = device_prepare({127.0f}, {}, nullptr, 0.0f, s, false);
+  auto dx = DeviceBuffer<float>::from_host(x);
+  auto dw8 = DeviceBuffer<std::int8_t>::from_host(p.w8);
+  auto dscale = DeviceBuffer<float>::from_host(p.scale),
+       dbias = DeviceBuffer<float>::from_host(p.bias);
+  DeviceBuffer<float> dy(x.size());
+  cuda::conv2d_mma_s8_forward({dx.data(), cuda::ActivationLayout::F32, sx, true}, dw8.data(),
+                              dscale.data(), dbias.data(), s, false,
+                              {dy.data(), cuda::ActivationLayout::F32, 1.0f}, nullptr);
+  PS_CUDA_CHECK(cudaDeviceSynchronize());
+  const std::vector<float> y = dy.to_host();
+  for (size_t i = 0; i < x.size(); ++i)
+    ASSERT_EQ(y[i], std::fma(static_cast<float>(127 * expected[i]), sx, 0.0f))
+        << "x = " << x[i] << ", x r = " << x[i] * r << ", q " << expected[i];
 }
 
 // The product x r is rounded to FP32 before it is rounded to an integer: values whose exact
@@ -831,7 +996,7 @@ TEST(ConvMmaS8, NonFiniteActivationsQuantizeDeterministically) {
 }
 
 // Scales that are not positive and finite, and a misaligned S8x32 input, are refused with a
-// message; an S8x32 input cannot be quantized again.
+// message; an S8x32 input cannot be quantized again, nor be read as unsigned.
 TEST(ConvMmaS8, RefusesBadScalesAndMisalignedInt8Tensors) {
   std::string why;
   if (!cuda::mma_supported(&why)) GTEST_SKIP() << why;
@@ -863,6 +1028,10 @@ TEST(ConvMmaS8, RefusesBadScalesAndMisalignedInt8Tensors) {
                                   nullptr);
   });
   EXPECT_NE(message.find("must be FP32 or BF16"), std::string::npos) << message;
+  // S8x32 bytes are signed: non_negative (u8) needs FP32 or BF16 x.
+  message = convolve({q.data(), ActivationLayout::S8x32, 1.0f, true},
+                     {y.data(), ActivationLayout::F32, 1.0f});
+  EXPECT_NE(message.find("non_negative needs an FP32 or BF16 input"), std::string::npos) << message;
 }
 
 #if defined(PILLARSEG_CUDA_EMULATION)
@@ -889,19 +1058,21 @@ TEST(ConvMmaS8, EmulationCountsTheIssuedInstructions) {
     PS_CUDA_CHECK(cudaMemset(w8.data(), 0, w8.size()));
     PS_CUDA_CHECK(cudaMemset(scale.data(), 0, scale.size() * sizeof(float)));
     PS_CUDA_CHECK(cudaMemset(bias.data(), 0, bias.size() * sizeof(float)));
-    const emu::InstructionCounts before = emu::instruction_counts();
-    cuda::conv2d_mma_s8_forward({x.data(), cuda::ActivationLayout::F32, 1.0f}, w8.data(),
-                                scale.data(), bias.data(), s, false,
-                                {y.data(), cuda::ActivationLayout::F32, 1.0f}, nullptr);
-    PS_CUDA_CHECK(cudaDeviceSynchronize());
-    const emu::InstructionCounts after = emu::instruction_counts();
-    const std::int64_t blocks = c.blocks_m * c.blocks_n, steps = c.k_padded / 32;
-    EXPECT_EQ(static_cast<std::int64_t>(after.tensor_core_flops() - before.tensor_core_flops()),
-              blocks * 2 * 128 * c.bn * c.k_padded);
-    EXPECT_EQ(static_cast<std::int64_t>(after.mma_m16n8k32 - before.mma_m16n8k32),
-              blocks * steps * c.bn);
-    EXPECT_EQ(static_cast<std::int64_t>(after.cp_async_bytes - before.cp_async_bytes),
-              blocks * steps * c.bn * 32);
+    for (const bool non_negative : {false, true}) {  // s8 x s8 and u8 x s8: the same counts
+      const emu::InstructionCounts before = emu::instruction_counts();
+      cuda::conv2d_mma_s8_forward({x.data(), cuda::ActivationLayout::F32, 1.0f, non_negative},
+                                  w8.data(), scale.data(), bias.data(), s, false,
+                                  {y.data(), cuda::ActivationLayout::F32, 1.0f}, nullptr);
+      PS_CUDA_CHECK(cudaDeviceSynchronize());
+      const emu::InstructionCounts after = emu::instruction_counts();
+      const std::int64_t blocks = c.blocks_m * c.blocks_n, steps = c.k_padded / 32;
+      EXPECT_EQ(static_cast<std::int64_t>(after.tensor_core_flops() - before.tensor_core_flops()),
+                blocks * 2 * 128 * c.bn * c.k_padded);
+      EXPECT_EQ(static_cast<std::int64_t>(after.mma_m16n8k32 - before.mma_m16n8k32),
+                blocks * steps * c.bn);
+      EXPECT_EQ(static_cast<std::int64_t>(after.cp_async_bytes - before.cp_async_bytes),
+                blocks * steps * c.bn * 32);
+    }
   }
 }
 #endif
