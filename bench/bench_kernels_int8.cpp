@@ -8,6 +8,9 @@
 //                                    layers);
 //   Conv2dForwardINT8_s8io/<layer>   S8x32 in and out (activations stored in INT8 between layers:
 //                                    staged by cp.async alone);
+//   Conv2dForwardINT8_u8_bf16io/<layer>
+//                                    BF16 in and out, x non-negative (ActivationsS8::non_negative:
+//                                    quantized to u8, mma.sync .u8.s8), beside INT8_bf16io;
 // and the same for ConvTranspose2dForward*. Weights prepared once, split K with its workspace as
 // the CUDA backend would run it. Each pass is timed with CUDA events after one warm-up run and
 // reported in ms and GFLOP/s (2 multiply-adds per weight tap and output pixel), with its share of
@@ -97,17 +100,21 @@ std::map<std::string, double>& bf16_ms() {
   return times;
 }
 
-DeviceBuffer<float> random_buffer(std::int64_t n, std::uint64_t seed, double spread) {
+// Uniform in [-spread, spread], or [0, spread] when non_negative.
+DeviceBuffer<float> random_buffer(std::int64_t n, std::uint64_t seed, double spread,
+                                  bool non_negative = false) {
   Rng rng(seed);
   std::vector<float> values(static_cast<size_t>(n));
-  for (float& v : values) v = static_cast<float>(rng.uniform(-spread, spread));
+  for (float& v : values) v = static_cast<float>(rng.uniform(non_negative ? 0.0 : -spread, spread));
   return DeviceBuffer<float>::from_host(values);
 }
 
-DeviceBuffer<std::uint16_t> random_bf16_buffer(std::int64_t n, std::uint64_t seed) {
+DeviceBuffer<std::uint16_t> random_bf16_buffer(std::int64_t n, std::uint64_t seed,
+                                               bool non_negative) {
   Rng rng(seed);
   std::vector<std::uint16_t> values(static_cast<size_t>(n));
-  for (auto& v : values) v = cuda::float_to_bf16_bits(static_cast<float>(rng.uniform(-1.0, 1.0)));
+  for (auto& v : values)
+    v = cuda::float_to_bf16_bits(static_cast<float>(rng.uniform(non_negative ? 0.0 : -1.0, 1.0)));
   return DeviceBuffer<std::uint16_t>::from_host(values);
 }
 
@@ -165,8 +172,10 @@ void BM_Bf16(benchmark::State& state, const Layer& l) {
   });
 }
 
-// x and y in `layout` (FP32, BF16, or S8x32: x quantized beforehand, untimed).
-void BM_Int8(benchmark::State& state, const Layer& l, cuda::ActivationLayout layout) {
+// x and y in `layout` (FP32, BF16, or S8x32: x quantized beforehand, untimed); non_negative: x
+// in [0, 1] quantized to u8 (FP32 or BF16 only), otherwise x in [-1, 1] to s8.
+void BM_Int8(benchmark::State& state, const Layer& l, cuda::ActivationLayout layout,
+             bool non_negative) {
   if (!tensor_cores_or_skip(state)) return;
   using cuda::ActivationLayout;
   const cuda::Conv2dShape& s = l.shape;
@@ -178,9 +187,9 @@ void BM_Int8(benchmark::State& state, const Layer& l, cuda::ActivationLayout lay
                      y_width = l.transposed ? 2 * s.width : s.out_width();
   const bool f32 = layout == ActivationLayout::F32, bf16 = layout == ActivationLayout::BF16,
              s8 = layout == ActivationLayout::S8x32;
-  const float x_scale = 1.0f / 127.0f, y_scale = 4.0f / 127.0f;  // x in [-1, 1]
-  DeviceBuffer<float> x = random_buffer(bf16 ? 1 : x_count, 1, 1.0);
-  DeviceBuffer<std::uint16_t> x16 = random_bf16_buffer(bf16 ? x_count : 1, 1);
+  const float x_scale = non_negative ? 1.0f / 255.0f : 1.0f / 127.0f, y_scale = 4.0f / 127.0f;
+  DeviceBuffer<float> x = random_buffer(bf16 ? 1 : x_count, 1, 1.0, non_negative);
+  DeviceBuffer<std::uint16_t> x16 = random_bf16_buffer(bf16 ? x_count : 1, 1, non_negative);
   DeviceBuffer<std::int8_t> x8(static_cast<size_t>(
       s8 ? cuda::activations_s8_bytes(s.batch, s.in_channels, s.height, s.width) : 16));
   if (s8)
@@ -215,7 +224,7 @@ void BM_Int8(benchmark::State& state, const Layer& l, cuda::ActivationLayout lay
   void* y_data = s8     ? static_cast<void*>(y8.data())
                  : bf16 ? static_cast<void*>(y16.data())
                         : y.data();
-  const cuda::ActivationsS8 x_in{x_data, layout, x_scale};
+  const cuda::ActivationsS8 x_in{x_data, layout, x_scale, non_negative};
   const cuda::OutputS8 y_out{y_data, layout, y_scale};
   const double ms = time_layer(state, l, true, [&](cudaStream_t stream) {
     if (l.transposed)
@@ -237,10 +246,17 @@ void register_benchmarks() {
     benchmark::RegisterBenchmark((kind + "BF16/" + l.name).c_str(), BM_Bf16, l)
         ->Unit(benchmark::kMillisecond)
         ->UseManualTime();
-    for (const auto& [suffix, layout] : {std::pair{"INT8/", cuda::ActivationLayout::F32},
-                                         std::pair{"INT8_bf16io/", cuda::ActivationLayout::BF16},
-                                         std::pair{"INT8_s8io/", cuda::ActivationLayout::S8x32}}) {
-      benchmark::RegisterBenchmark((kind + suffix + l.name).c_str(), BM_Int8, l, layout)
+    struct Variant {
+      const char* suffix;
+      cuda::ActivationLayout layout;
+      bool non_negative;
+    };
+    for (const Variant& v : {Variant{"INT8/", cuda::ActivationLayout::F32, false},
+                             Variant{"INT8_bf16io/", cuda::ActivationLayout::BF16, false},
+                             Variant{"INT8_u8_bf16io/", cuda::ActivationLayout::BF16, true},
+                             Variant{"INT8_s8io/", cuda::ActivationLayout::S8x32, false}}) {
+      benchmark::RegisterBenchmark((kind + v.suffix + l.name).c_str(), BM_Int8, l, v.layout,
+                                   v.non_negative)
           ->Unit(benchmark::kMillisecond)
           ->UseManualTime();
     }
