@@ -469,6 +469,55 @@ TEST(Int8Conv, NonNegativeInputIsUnshiftedAndPaddedWithZero) {
   }
 }
 
+// Images whose quantized rows are wide enough (64 or 32 channel quads by about 800 or 1000 pixels:
+// 130 to 200 KiB a row) that a thread's band of rows (about 1 MiB) holds only a few of them: the
+// work is cut into bands, the rows two bands share carried from one to the next, and thread runs
+// end inside bands; 3x3 and 5x5 (reach 3 and 5) and the transposed convolution (reach 1).
+TEST(Int8Conv, WideImagesInManyBandsMatchTheReference) {
+  const ConvCase cases[] = {{1, 256, 9, 13, 800, 3, 1}, {1, 128, 4, 9, 1000, 5, 2}};
+  for (Int8Kernels kernels : kernels_to_test()) {
+    for (const ConvCase& c : cases) {
+      const std::vector<float> w = random_values(c.out * c.in * c.k * c.k, 101, -0.3f, 0.3f);
+      const std::vector<float> bias = random_values(c.out, 102, -1.0f, 1.0f);
+      cpu::Int8ConvWeights p;
+      cpu::prepare_int8_conv(kernels, Ref{const_cast<float*>(w.data()), {c.out, c.in, c.k, c.k}},
+                             Ref{const_cast<float*>(bias.data()), {c.out}}, p);
+      for (const int threads : {1, 3}) {
+        ScopedThreads scoped(threads);
+        const bool non_negative = threads == 3;
+        float sx = 0.0f;
+        Input x = mode_input({c.batch, c.in, c.h, c.w}, 103, true, non_negative, sx);
+        Output y({c.batch, c.out, c.h, c.w}, true);
+        cpu::Int8ConvWorkspace ws;
+        cpu::int8_conv2d_forward(kernels, x.ref(), sx, non_negative, p, c.pad, true, y.ref(), ws);
+        std::string first;
+        EXPECT_EQ(compare(y, reference_conv(x, sx, non_negative, p, c.pad, true), p, sx, true,
+                          c.h * c.w, c.out, &first),
+                  0)
+            << cpu::int8_kernels_name(kernels) << " " << name(c) << " threads " << threads << ": "
+            << first;
+        EXPECT_TRUE(y.guards_intact());
+      }
+    }
+    const std::vector<float> w = random_values(256 * 3 * 4, 104, -0.5f, 0.5f), bias(3, 0.25f);
+    cpu::Int8ConvWeights p;
+    cpu::prepare_int8_conv_transpose(kernels, Ref{const_cast<float*>(w.data()), {256, 3, 2, 2}},
+                                     Ref{const_cast<float*>(bias.data()), {3}}, p);
+    ScopedThreads scoped(3);
+    float sx = 0.0f;
+    Input x = mode_input({2, 256, 7, 800}, 105, false, false, sx);
+    Output y({2, 3, 14, 1600}, false);
+    cpu::Int8ConvWorkspace ws;
+    cpu::int8_conv_transpose2d_forward(kernels, x.ref(), sx, false, p, y.ref(), ws);
+    std::string first;
+    EXPECT_EQ(
+        compare(y, reference_conv_transpose(x, sx, false, p), p, sx, false, 14 * 1600, 3, &first),
+        0)
+        << cpu::int8_kernels_name(kernels) << " transposed: " << first;
+    EXPECT_TRUE(y.guards_intact());
+  }
+}
+
 TEST(Int8Conv, TransposedMatchesTheReferenceBitForBit) {
   struct Case {
     std::int64_t batch, in, out, h, w;

@@ -19,7 +19,8 @@
 //   B (tmm6, tmm7)  row k = quad cq0 + k of pixels x0.. (x0 + 16..) of the tap's input row;
 //   C (tmm0..tmm3)  (A4, B6), (A4, B7), (A5, B6), (A5, B7): int32 column x pixel, stored to a
 //                   32 x 32 block that the epilogue reads.
-// Work items: (batch, row, group of 32 columns), the row's pixels 32 at a time (16 at its end).
+// A band (batch, rows [row_begin, row_end)) as int8_microkernel.hpp's, by groups of 32 columns:
+// each group over the band's rows, each row's pixels 32 at a time (16 at its end).
 // Like the micro-kernel's, this code is in an unnamed namespace and calls no library function.
 #pragma once
 
@@ -29,11 +30,13 @@
 
 namespace pillarseg::cpu {
 
-inline constexpr std::int64_t kInt8AmxColumns = 32;  // columns of a work item (two A tiles)
+inline constexpr std::int64_t kInt8AmxColumns = 32;  // columns of a group (two A tiles)
 inline constexpr std::int64_t kInt8AmxQuads = 16;    // channel quads of one TDPBSUD
 
-// Work items [begin, end) on the tiles (int8_conv_avx512.cpp, where the build has AMX).
-void int8_gemm_rows_amx(const Int8Gemm& g, std::int64_t begin, std::int64_t end);
+// The band (b, rows [row_begin, row_end)) on the tiles (int8_conv_avx512.cpp, where the build has
+// AMX).
+void int8_gemm_band_amx(const Int8Gemm& g, std::int64_t b, std::int64_t row_begin,
+                        std::int64_t row_end);
 
 namespace {
 
@@ -60,7 +63,7 @@ void amx_tile(const Int8Gemm& g, std::int64_t b, std::int64_t row, std::int64_t 
               std::int64_t x0) {
   using Acc = typename Isa::Acc;
   const std::int64_t k_bytes = g.taps * g.quads * 4;  // A's row stride
-  const std::uint8_t* x_row = g.xq + b * g.batch_stride + row * g.row_stride + 4 * x0;
+  const std::uint8_t* x_row = g.xq + (b * g.batch_stride + row * g.row_stride - g.origin) + 4 * x0;
   Tiles::template zero<0>();
   Tiles::template zero<2>();
   if constexpr (NPX > 1) {
@@ -106,20 +109,18 @@ void amx_tile(const Int8Gemm& g, std::int64_t b, std::int64_t row, std::int64_t 
   }
 }
 
-// Items [begin, end), the tiles configured for the calling thread around them (LDTILECFG,
-// TILERELEASE).
+// The band, the tiles configured for the calling thread around it (LDTILECFG, TILERELEASE).
 template <class Isa, class Tiles>
-void amx_rows(const Int8Gemm& g, std::int64_t begin, std::int64_t end) {
+void amx_band(const Int8Gemm& g, std::int64_t b, std::int64_t row_begin, std::int64_t row_end) {
   Tiles::configure(amx_int8_config());
-  const std::int64_t groups = (g.columns + kInt8AmxColumns - 1) / kInt8AmxColumns;
-  for (std::int64_t item = begin; item < end; ++item) {
-    const std::int64_t n0 = item % groups * kInt8AmxColumns, row = item / groups % g.rows,
-                       b = item / groups / g.rows;
-    for (std::int64_t x0 = 0; x0 < g.row_pixels; x0 += 32) {
-      if (g.row_pixels - x0 > 16) {
-        amx_tile<Isa, Tiles, 2>(g, b, row, n0, x0);
-      } else {
-        amx_tile<Isa, Tiles, 1>(g, b, row, n0, x0);
+  for (std::int64_t n0 = 0; n0 < g.columns; n0 += kInt8AmxColumns) {
+    for (std::int64_t row = row_begin; row < row_end; ++row) {
+      for (std::int64_t x0 = 0; x0 < g.row_pixels; x0 += 32) {
+        if (g.row_pixels - x0 > 16) {
+          amx_tile<Isa, Tiles, 2>(g, b, row, n0, x0);
+        } else {
+          amx_tile<Isa, Tiles, 1>(g, b, row, n0, x0);
+        }
       }
     }
   }

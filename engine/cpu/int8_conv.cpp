@@ -286,10 +286,10 @@ void require_activation(const char* op, const char* what, const ActRef& r) {
   PS_CHECK(r.data != nullptr || r.numel() == 0, "{}: {} has no memory", op, what);
 }
 
-// The input quantized into the workspace (`pad` columns and rows of padding around it: u = 128,
-// or 0 for a non-negative input), and the GEMM's input fields.
-void quantize_input(Int8Kernels kernels, [[maybe_unused]] bool on_native, const ActRef& x, float sx,
-                    bool non_negative, int pad, Int8ConvWorkspace& workspace, Int8Gemm& g) {
+// The quantization's fields for x (`pad` columns and rows of padding around it: u = 128, or 0 for
+// a non-negative input) and the GEMM's input fields.
+Int8Quantize input_layout(Int8Kernels kernels, const ActRef& x, float sx, bool non_negative,
+                          int pad, Int8Gemm& g) {
   Int8Quantize q;
   q.x = x.data, q.x_bf16 = x.half;
   q.channels = x.dim(1), q.height = x.dim(2), q.width = x.dim(3);
@@ -299,48 +299,89 @@ void quantize_input(Int8Kernels kernels, [[maybe_unused]] bool on_native, const 
   q.quads = int8_quads(kernels, q.channels);
   // Rows of whole cache lines (16 quads), so that a tap with kx = 0 loads aligned.
   q.padded_height = q.height + 2 * pad, q.padded_width = round_up(q.width + 2 * pad, 16);
-  const std::int64_t bytes = x.dim(0) * q.padded_height * q.quads * q.padded_width * 4;
-  if (workspace.x.size() < static_cast<size_t>(bytes + kInt8Slack))
-    workspace.x.resize(static_cast<size_t>(bytes + kInt8Slack));
-  q.xq = workspace.x.data();
-  parallel_chunks(x.dim(0) * q.padded_height, [&](std::int64_t begin, std::int64_t end, int) {
-#if defined(PILLARSEG_HAVE_AVX512_VNNI_KERNELS)
-    if (on_native) {
-      int8_quantize_rows_avx512(q, begin, end);
-      return;
-    }
-#endif
-    quantize_rows<EmulatedVnniIsa>(q, begin, end);
-  });
-  g.xq = q.xq;
   g.quad_stride = q.padded_width * 4;
   g.row_stride = q.quads * g.quad_stride;
   g.batch_stride = q.padded_height * g.row_stride;
   g.quads = q.quads;
   g.sx = sx;
   g.batch = x.dim(0);
+  return q;
 }
 
-void run_gemm(Int8Kernels kernels, [[maybe_unused]] bool on_native, const Int8Gemm& g) {
+// Padded input rows [begin, end) (r = b Hp + padded row) into q.xq.
+void quantize([[maybe_unused]] bool on_native, const Int8Quantize& q, std::int64_t begin,
+              std::int64_t end) {
+#if defined(PILLARSEG_HAVE_AVX512_VNNI_KERNELS)
+  if (on_native) {
+    int8_quantize_rows_avx512(q, begin, end);
+    return;
+  }
+#endif
+  quantize_rows<EmulatedVnniIsa>(q, begin, end);
+}
+
+// The products and the epilogue of output rows [row_begin, row_end) of image b.
+void gemm_band(Int8Kernels kernels, [[maybe_unused]] bool on_native, const Int8Gemm& g,
+               std::int64_t b, std::int64_t row_begin, std::int64_t row_end) {
   const bool amx = int8_amx_family(kernels);
-  const std::int64_t items = int8_gemm_items(g, amx ? kInt8AmxColumns : kInt8ColumnBlock);
-  parallel_chunks(items, [&](std::int64_t begin, std::int64_t end, int) {
 #if defined(PILLARSEG_HAVE_AMX_INT8_KERNELS)
-    if (on_native && amx) {
-      int8_gemm_rows_amx(g, begin, end);
-      return;
-    }
+  if (on_native && amx) {
+    int8_gemm_band_amx(g, b, row_begin, row_end);
+    return;
+  }
 #endif
 #if defined(PILLARSEG_HAVE_AVX512_VNNI_KERNELS)
-    if (on_native && !amx) {
-      int8_gemm_rows_vnni(g, begin, end);
-      return;
-    }
+  if (on_native && !amx) {
+    int8_gemm_band_vnni(g, b, row_begin, row_end);
+    return;
+  }
 #endif
-    if (amx) {
-      amx_rows<EmulatedVnniIsa, EmulatedAmxInt8Tiles>(g, begin, end);
-    } else {
-      vnni_rows<EmulatedVnniIsa>(g, begin, end);
+  if (amx) {
+    amx_band<EmulatedVnniIsa, EmulatedAmxInt8Tiles>(g, b, row_begin, row_end);
+  } else {
+    vnni_band<EmulatedVnniIsa>(g, b, row_begin, row_end);
+  }
+}
+
+// Quantized input rows a thread holds for one band: about half of a core's L2 cache (2 MiB on
+// Sapphire Rapids), the rest left to a column group's weights and the outputs.
+constexpr std::int64_t kInt8BandBytes = std::int64_t{1} << 20;
+
+// The convolution, whose output row `row` reads the padded input rows [row, row + reach) (reach =
+// kh; 1 for the transposed one, whose rows are input rows). Each thread takes a contiguous run of
+// the (image, output row) pairs and walks it in bands of rows whose input fits kInt8BandBytes: it
+// quantizes the band's input rows into its own slice of the workspace, then runs the band's
+// products while they are still in its cache. The reach - 1 rows the next band shares are moved
+// to the slice's front instead of being quantized again.
+void run_conv(Int8Kernels kernels, bool on_native, const Int8Quantize& q, const Int8Gemm& g,
+              std::int64_t reach, Int8ConvWorkspace& workspace) {
+  const std::int64_t row_bytes = g.row_stride;
+  const std::int64_t band = std::max<std::int64_t>(kInt8BandBytes / row_bytes - (reach - 1), 1);
+  const std::int64_t slice = round_up((band + reach - 1) * row_bytes + kInt8Slack, 64);
+  const int threads = std::max(num_threads(), 1);
+  if (workspace.x.size() < static_cast<size_t>(threads * slice))
+    workspace.x.resize(static_cast<size_t>(threads * slice));
+  parallel_chunks(g.batch * g.rows, [&](std::int64_t begin, std::int64_t end, int thread) {
+    std::uint8_t* buffer = workspace.x.data() + thread * slice;
+    Int8Quantize band_q = q;
+    Int8Gemm band_g = g;
+    band_q.xq = buffer, band_g.xq = buffer;
+    std::int64_t held_first = 0, held_end = 0;  // the input rows in the buffer (r = b Hp + row)
+    for (std::int64_t at = begin; at < end;) {
+      const std::int64_t b = at / g.rows, row = at % g.rows;
+      const std::int64_t rows = std::min({band, g.rows - row, end - at});
+      const std::int64_t first = b * q.padded_height + row, last = first + rows + reach - 1;
+      std::int64_t from = first;
+      if (held_first < first && first < held_end) {  // the same image's next band
+        std::memmove(buffer, buffer + (first - held_first) * row_bytes,
+                     static_cast<size_t>((held_end - first) * row_bytes));
+        from = held_end;
+      }
+      band_q.origin = band_g.origin = first * row_bytes;
+      quantize(on_native, band_q, from, last);
+      gemm_band(kernels, on_native, band_g, b, row, row + rows);
+      held_first = first, held_end = last;
+      at += rows;
     }
   });
 }
@@ -379,7 +420,7 @@ void int8_conv2d_forward(Int8Kernels kernels, const ActRef& x, float sx, bool no
            shape_str(y.shape));
   const bool on_native = native(kernels);
   Int8Gemm g;
-  quantize_input(kernels, on_native, x, sx, non_negative, pad, workspace, g);
+  const Int8Quantize q = input_layout(kernels, x, sx, non_negative, pad, g);
   const std::int64_t kh = w.weight[2], kw = w.weight[3];
   g.taps = static_cast<int>(kh * kw);
   for (std::int64_t ky = 0; ky < kh; ++ky) {
@@ -392,7 +433,7 @@ void int8_conv2d_forward(Int8Kernels kernels, const ActRef& x, float sx, bool no
   g.rows = y_shape[2], g.row_pixels = y_shape[3];
   g.out_height = y_shape[2], g.out_width = y_shape[3], g.out_planes = y_shape[1];
   if (y.numel() == 0) return;
-  run_gemm(kernels, on_native, g);
+  run_conv(kernels, on_native, q, g, kh, workspace);
 }
 
 void int8_conv_transpose2d_forward(Int8Kernels kernels, const ActRef& x, float sx,
@@ -406,7 +447,7 @@ void int8_conv_transpose2d_forward(Int8Kernels kernels, const ActRef& x, float s
            shape_str(y.shape));
   const bool on_native = native(kernels);
   Int8Gemm g;
-  quantize_input(kernels, on_native, x, sx, non_negative, 0, workspace, g);
+  const Int8Quantize q = input_layout(kernels, x, sx, non_negative, 0, g);
   g.taps = 1;
   g.tap_offsets[0] = 0;
   fill_weights(w, non_negative, g);
@@ -415,7 +456,7 @@ void int8_conv_transpose2d_forward(Int8Kernels kernels, const ActRef& x, float s
   g.rows = x.dim(2), g.row_pixels = x.dim(3);
   g.out_height = y_shape[2], g.out_width = y_shape[3], g.out_planes = y_shape[1];
   if (y.numel() == 0) return;
-  run_gemm(kernels, on_native, g);
+  run_conv(kernels, on_native, q, g, 1, workspace);
 }
 
 void int8_conv2d_forward(Int8Kernels kernels, const ActRef& x, float sx, const Int8ConvWeights& w,

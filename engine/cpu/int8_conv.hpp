@@ -92,8 +92,8 @@ void prepare_int8_conv(Int8Kernels kernels, const Ref& w, const Ref& bias, Int8C
 void prepare_int8_conv_transpose(Int8Kernels kernels, const Ref& w, const Ref& bias,
                                  Int8ConvWeights& out);
 
-// The quantized input in the micro-kernel's layout, kept by the caller between calls so that the
-// steady state allocates nothing (it only grows).
+// The quantized input in the micro-kernel's layout, a band of rows for each thread, kept by the
+// caller between calls so that the steady state allocates nothing (it only grows).
 struct Int8ConvWorkspace {
   AlignedVector<std::uint8_t> x;
 };

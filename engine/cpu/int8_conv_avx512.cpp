@@ -191,8 +191,9 @@ void int8_quantize_rows_avx512(const Int8Quantize& q, std::int64_t begin, std::i
   quantize_rows<Avx512VnniIsa>(q, begin, end);
 }
 
-void int8_gemm_rows_vnni(const Int8Gemm& g, std::int64_t begin, std::int64_t end) {
-  vnni_rows<Avx512VnniIsa>(g, begin, end);
+void int8_gemm_band_vnni(const Int8Gemm& g, std::int64_t b, std::int64_t row_begin,
+                         std::int64_t row_end) {
+  vnni_band<Avx512VnniIsa>(g, b, row_begin, row_end);
 }
 
 void int8_winograd_blocks_vnni(const Int8Winograd& g, std::int64_t begin, std::int64_t end,
@@ -201,8 +202,9 @@ void int8_winograd_blocks_vnni(const Int8Winograd& g, std::int64_t begin, std::i
 }
 
 #if defined(PILLARSEG_HAVE_AMX_INT8_KERNELS)
-void int8_gemm_rows_amx(const Int8Gemm& g, std::int64_t begin, std::int64_t end) {
-  amx_rows<Avx512VnniIsa, AmxInt8Tiles>(g, begin, end);
+void int8_gemm_band_amx(const Int8Gemm& g, std::int64_t b, std::int64_t row_begin,
+                        std::int64_t row_end) {
+  amx_band<Avx512VnniIsa, AmxInt8Tiles>(g, b, row_begin, row_end);
 }
 #endif
 

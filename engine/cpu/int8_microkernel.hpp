@@ -23,8 +23,10 @@
 //   - Transposed 2x2 stride 2: rows are input rows, pad 0, one tap; column n = 4 o + 2 dy + dx goes
 //     to y[b, o, 2 row + dy, 2 col + dx]; columns n (dx = 0) and n + 1 (dx = 1) are stored
 //     interleaved.
-// Work items: (batch, row, block of 64 columns); within one, each group of 8 columns over the
-// row's pixels 48 at a time, so that the group's weights stay in cache while the row streams by.
+// A band (batch, rows [row_begin, row_end)), in blocks of 64 columns: each block over the band's
+// rows, each row by groups of 8 columns over its pixels 48 at a time, so that the block's weights
+// stay in cache while the rows stream by. The caller quantizes a band's input just before (into a
+// buffer that holds the quads from byte `origin` of the layout on), so that it is still in cache.
 //
 // Everything here is in an unnamed namespace and calls no library function: the AVX-512 copy's
 // code must not be merged by the linker with a copy that other CPUs run (bf16_microkernel.hpp).
@@ -36,7 +38,7 @@ namespace pillarseg::cpu {
 
 inline constexpr int kInt8MaxTaps = 49;               // kernels up to 7 x 7
 inline constexpr std::int64_t kInt8GroupColumns = 8;  // the Vnni register tile's columns
-inline constexpr std::int64_t kInt8ColumnBlock = 64;  // columns of a work item
+inline constexpr std::int64_t kInt8ColumnBlock = 64;  // columns of a block (vnni_band)
 inline constexpr std::int64_t kInt8Slack = 256;       // bytes after the quads a tile may read
 
 // The quantization of one (batch, padded row): plain data for both compilations.
@@ -47,13 +49,15 @@ struct Int8Quantize {
   float reciprocal = 0.0f;    // 1 / sx
   bool non_negative = false;  // u = q by the non-negative rule, padding 0; else q + 128, 128
   int pad = 0;
-  std::uint8_t* xq = nullptr;  // (B, Hp, quads, Wp, 4)
+  std::uint8_t* xq = nullptr;  // (B, Hp, quads, Wp, 4), from byte `origin` on
+  std::int64_t origin = 0;
   std::int64_t quads = 0, padded_height = 0, padded_width = 0;
 };
 
 // One convolution for the micro-kernel.
 struct Int8Gemm {
   const std::uint8_t* xq = nullptr;                                // the quads above
+  std::int64_t origin = 0;                                         // bytes: where xq starts
   std::int64_t batch_stride = 0, row_stride = 0, quad_stride = 0;  // bytes
   std::int64_t quads = 0;
   std::int64_t tap_offsets[kInt8MaxTaps] = {};  // bytes
@@ -74,8 +78,9 @@ struct Int8Gemm {
 
 // Rows [begin, end) of the quantization, row r = b Hp + padded row (int8_conv_avx512.cpp).
 void int8_quantize_rows_avx512(const Int8Quantize& q, std::int64_t begin, std::int64_t end);
-// Work items [begin, end) on VPDPBUSD (int8_conv_avx512.cpp).
-void int8_gemm_rows_vnni(const Int8Gemm& g, std::int64_t begin, std::int64_t end);
+// The band (b, rows [row_begin, row_end)) on VPDPBUSD (int8_conv_avx512.cpp).
+void int8_gemm_band_vnni(const Int8Gemm& g, std::int64_t b, std::int64_t row_begin,
+                         std::int64_t row_end);
 
 namespace {
 
@@ -95,7 +100,7 @@ void quantize_rows(const Int8Quantize& q, std::int64_t begin, std::int64_t end) 
                      : Isa::pack_quads(shifted_zero, shifted_zero, shifted_zero, shifted_zero);
   for (std::int64_t r = begin; r < end; ++r) {
     const std::int64_t b = r / q.padded_height, row = r % q.padded_height - q.pad;
-    std::uint8_t* out = q.xq + r * q.quads * wp * 4;
+    std::uint8_t* out = q.xq + (r * q.quads * wp * 4 - q.origin);
     for (std::int64_t cq = 0; cq < q.quads; ++cq, out += wp * 4) {
       if (row < 0 || row >= q.height) {
         for (std::int64_t col = 0; col < wp; col += 16)
@@ -201,7 +206,7 @@ void vnni_tile(const Int8Gemm& g, std::int64_t b, std::int64_t row, std::int64_t
   for (int c = 0; c < kCols; ++c)
 #pragma GCC unroll 4
     for (int p = 0; p < NPX; ++p) acc[c][p] = Isa::zero();
-  const std::uint8_t* x_row = g.xq + b * g.batch_stride + row * g.row_stride + 4 * x0;
+  const std::uint8_t* x_row = g.xq + (b * g.batch_stride + row * g.row_stride - g.origin) + 4 * x0;
   const std::int8_t* w = g.w + n0 * g.taps * g.quads * 4;
   const std::int64_t quads = g.quads, quad_stride = g.quad_stride;
   for (int t = 0; t < g.taps; ++t) {
@@ -229,27 +234,22 @@ void vnni_tile(const Int8Gemm& g, std::int64_t b, std::int64_t row, std::int64_t
   }
 }
 
-inline std::int64_t int8_gemm_items(const Int8Gemm& g, std::int64_t column_block) {
-  return g.batch * g.rows * ((g.columns + column_block - 1) / column_block);
-}
-
 template <class Isa>
-void vnni_rows(const Int8Gemm& g, std::int64_t begin, std::int64_t end) {
-  const std::int64_t blocks = (g.columns + kInt8ColumnBlock - 1) / kInt8ColumnBlock;
-  for (std::int64_t item = begin; item < end; ++item) {
-    const std::int64_t block = item % blocks, row = item / blocks % g.rows,
-                       b = item / blocks / g.rows;
+void vnni_band(const Int8Gemm& g, std::int64_t b, std::int64_t row_begin, std::int64_t row_end) {
+  for (std::int64_t block = 0; block < g.columns; block += kInt8ColumnBlock) {
     const std::int64_t n_end =
-        (block + 1) * kInt8ColumnBlock < g.columns ? (block + 1) * kInt8ColumnBlock : g.columns;
-    for (std::int64_t n0 = block * kInt8ColumnBlock; n0 < n_end; n0 += kInt8GroupColumns) {
-      for (std::int64_t x0 = 0; x0 < g.row_pixels; x0 += 48) {
-        const std::int64_t left = g.row_pixels - x0;
-        if (left > 32) {
-          vnni_tile<Isa, 3>(g, b, row, n0, x0);
-        } else if (left > 16) {
-          vnni_tile<Isa, 2>(g, b, row, n0, x0);
-        } else {
-          vnni_tile<Isa, 1>(g, b, row, n0, x0);
+        block + kInt8ColumnBlock < g.columns ? block + kInt8ColumnBlock : g.columns;
+    for (std::int64_t row = row_begin; row < row_end; ++row) {
+      for (std::int64_t n0 = block; n0 < n_end; n0 += kInt8GroupColumns) {
+        for (std::int64_t x0 = 0; x0 < g.row_pixels; x0 += 48) {
+          const std::int64_t left = g.row_pixels - x0;
+          if (left > 32) {
+            vnni_tile<Isa, 3>(g, b, row, n0, x0);
+          } else if (left > 16) {
+            vnni_tile<Isa, 2>(g, b, row, n0, x0);
+          } else {
+            vnni_tile<Isa, 1>(g, b, row, n0, x0);
+          }
         }
       }
     }
