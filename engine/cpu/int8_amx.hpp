@@ -70,6 +70,9 @@ void amx_tile(const Int8Gemm& g, std::int64_t b, std::int64_t row, std::int64_t 
     Tiles::template zero<1>();
     Tiles::template zero<3>();
   }
+  const std::int64_t columns = g.columns - n0 < 32 ? g.columns - n0 : 32;
+  for (std::int64_t m = 0; m < columns; m += g.transposed ? 2 : 1)
+    prefetch_column<Isa, NPX>(g, b, row, n0 + m, x0);
   for (int t = 0; t < g.taps; ++t) {
     const std::int8_t* w = g.w + n0 * k_bytes + t * g.quads * 4;
     const std::uint8_t* x = x_row + g.tap_offsets[t];
@@ -93,7 +96,6 @@ void amx_tile(const Int8Gemm& g, std::int64_t b, std::int64_t row, std::int64_t 
     Tiles::template store<1>(&c[0][16], 128);
     Tiles::template store<3>(&c[16][16], 128);
   }
-  const std::int64_t columns = g.columns - n0 < 32 ? g.columns - n0 : 32;
   for (std::int64_t m = 0; m < columns; ++m) {
     Acc acc[NPX];
 #pragma GCC unroll 2

@@ -120,6 +120,8 @@ struct Avx512VnniIsa {
     _mm512_mask_storeu_epi32(p, static_cast<__mmask16>(mask), b);
   }
 
+  static void prefetch_for_write(const void* p) { __builtin_prefetch(p, 1, 3); }
+
   static F zero_f() { return _mm512_setzero_ps(); }
   static F load_f32_at(const float* base, std::int64_t index, std::uint32_t mask) {
     return _mm512_maskz_loadu_ps(static_cast<__mmask16>(mask), at(base, index));

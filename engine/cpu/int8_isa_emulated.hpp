@@ -137,6 +137,8 @@ struct EmulatedVnniIsa {
     }
     return a;
   }
+  // A hint (PREFETCHW) with no effect on results.
+  static void prefetch_for_write(const void*) {}
   // Dword j: the low bytes of c0[j], c1[j], c2[j], c3[j], in that order.
   static Bytes pack_quads(const Acc& c0, const Acc& c1, const Acc& c2, const Acc& c3) {
     Bytes b;

@@ -98,10 +98,12 @@ void quantize_rows(const Int8Quantize& q, std::int64_t begin, std::int64_t end) 
   const auto padding_quads =
       q.non_negative ? Isa::pack_quads(zero, zero, zero, zero)
                      : Isa::pack_quads(shifted_zero, shifted_zero, shifted_zero, shifted_zero);
-  for (std::int64_t r = begin; r < end; ++r) {
-    const std::int64_t b = r / q.padded_height, row = r % q.padded_height - q.pad;
-    std::uint8_t* out = q.xq + (r * q.quads * wp * 4 - q.origin);
-    for (std::int64_t cq = 0; cq < q.quads; ++cq, out += wp * 4) {
+  // Quad by quad, each over the rows: the input's channel planes are read along their rows, a
+  // long run each, which the hardware prefetchers follow.
+  for (std::int64_t cq = 0; cq < q.quads; ++cq) {
+    for (std::int64_t r = begin; r < end; ++r) {
+      const std::int64_t b = r / q.padded_height, row = r % q.padded_height - q.pad;
+      std::uint8_t* out = q.xq + (r * q.quads * wp * 4 - q.origin) + cq * wp * 4;
       if (row < 0 || row >= q.height) {
         for (std::int64_t col = 0; col < wp; col += 16)
           Isa::store_quads(out + 4 * col, padding_quads,
@@ -147,6 +149,28 @@ template <class Isa>
 typename Isa::F column_result(const Int8Gemm& g, std::int64_t n, const typename Isa::Acc& acc) {
   return Isa::epilogue(acc, g.compensation != nullptr ? g.compensation[n] : 0,
                        g.sx * g.sw[int8_channel(g, n)], g.bias[n], g.relu);
+}
+
+// Asks for the cache lines that column n's outputs over the pixels [x0, x0 + 16 NPX) of `row`
+// will be stored to (transposed: its two output rows' run for dx = 0 and 1), with the intent to
+// write, so that the epilogue's stores do not wait for them.
+template <class Isa, int NPX>
+void prefetch_column(const Int8Gemm& g, std::int64_t b, std::int64_t row, std::int64_t n,
+                     std::int64_t x0) {
+  const std::int64_t pixels = g.row_pixels - x0 < 16 * NPX ? g.row_pixels - x0 : 16 * NPX;
+  const std::int64_t bytes = g.y_bf16 ? 2 : 4;
+  std::int64_t first = 0, count = pixels;
+  if (!g.transposed) {
+    first = ((b * g.out_planes + n) * g.out_height + row) * g.out_width + x0;
+  } else {
+    const std::int64_t o = n / 4, dy = (n % 4) / 2;
+    first = ((b * g.out_planes + o) * g.out_height + 2 * row + dy) * g.out_width + 2 * x0;
+    count = 2 * pixels;
+  }
+  const auto* y = static_cast<const char*>(g.y);
+  for (std::int64_t at = first * bytes; at < (first + count) * bytes; at += 64)
+    Isa::prefetch_for_write(y + at);
+  Isa::prefetch_for_write(y + (first + count) * bytes - 1);
 }
 
 // The epilogue and store of column n's accumulators over the pixels [x0, x0 + 16 NPX) of `row`
