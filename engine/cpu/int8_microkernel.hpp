@@ -146,7 +146,8 @@ inline std::int64_t int8_channel(const Int8Gemm& g, std::int64_t n) {
 
 // The epilogue of column n.
 template <class Isa>
-typename Isa::F column_result(const Int8Gemm& g, std::int64_t n, const typename Isa::Acc& acc) {
+[[gnu::always_inline]] inline typename Isa::F column_result(const Int8Gemm& g, std::int64_t n,
+                                                            const typename Isa::Acc& acc) {
   return Isa::epilogue(acc, g.compensation != nullptr ? g.compensation[n] : 0,
                        g.sx * g.sw[int8_channel(g, n)], g.bias[n], g.relu);
 }
@@ -174,10 +175,12 @@ void prefetch_column(const Int8Gemm& g, std::int64_t b, std::int64_t row, std::i
 }
 
 // The epilogue and store of column n's accumulators over the pixels [x0, x0 + 16 NPX) of `row`
-// (those before row_pixels).
+// (those before row_pixels). Always inlined, like column_result: GCC made it a call per column
+// in the AMX tile, whose cost showed on the layers with few channels.
 template <class Isa, int NPX>
-void store_column(const Int8Gemm& g, std::int64_t b, std::int64_t row, std::int64_t n,
-                  std::int64_t x0, const typename Isa::Acc (&acc)[NPX]) {
+[[gnu::always_inline]] inline void store_column(const Int8Gemm& g, std::int64_t b, std::int64_t row,
+                                                std::int64_t n, std::int64_t x0,
+                                                const typename Isa::Acc (&acc)[NPX]) {
   const std::int64_t base = ((b * g.out_planes + n) * g.out_height + row) * g.out_width + x0;
 #pragma GCC unroll 4
   for (int p = 0; p < NPX; ++p) {
@@ -196,9 +199,11 @@ void store_column(const Int8Gemm& g, std::int64_t b, std::int64_t row, std::int6
 // Transposed: n even, so the columns (n, n + 1) are (dx = 0, dx = 1) of one (o, dy), stored
 // interleaved.
 template <class Isa, int NPX>
-void store_column_pair(const Int8Gemm& g, std::int64_t b, std::int64_t row, std::int64_t n,
-                       std::int64_t x0, const typename Isa::Acc (&even)[NPX],
-                       const typename Isa::Acc (&odd)[NPX]) {
+[[gnu::always_inline]] inline void store_column_pair(const Int8Gemm& g, std::int64_t b,
+                                                     std::int64_t row, std::int64_t n,
+                                                     std::int64_t x0,
+                                                     const typename Isa::Acc (&even)[NPX],
+                                                     const typename Isa::Acc (&odd)[NPX]) {
   const std::int64_t o = n / 4, dy = (n % 4) / 2;
   const std::int64_t base =
       ((b * g.out_planes + o) * g.out_height + 2 * row + dy) * g.out_width + 2 * x0;
