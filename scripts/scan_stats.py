@@ -5,7 +5,8 @@ scans with real HDL-64E ones (docs/simulator.md).
 Per scan: points, rings (a ring ends where the azimuth wraps, as KITTI's and the simulator's
 files are beam by beam), returns per ring, the share of returns by elevation, range
 percentiles, the ground's height (per-2 m-cell lowest point within 20 m of the sensor) and
-roughness (spread of the lowest points of 0.5 m cells within a 2 m cell), and reflectance
+roughness (spread of the lowest points of 0.5 m cells within a 2 m cell), the plane of the
+ground 3-15 m around the sensor (its pitch and roll in the sensor's frame), and reflectance
 percentiles. With labels: per class (DESIGN.md's table) the point count, z, reflectance and
 range percentiles, and how much the reflectance of road, sidewalk, terrain and vegetation
 overlap.
@@ -92,6 +93,28 @@ def ground_profile(pts):
     return lows, np.array(spread)
 
 
+def ground_plane(pts):
+    """Plane z = h + a x + b y through the lowest point of each 1 m cell 3-15 m from the sensor,
+    refitted five times to the cells within 0.15 m of it (kerbs, objects and ditches drop
+    out). Returns h, the pitch (deg; positive: the ground rises ahead, the sensor looks down),
+    the roll (deg; positive: the ground rises to the left) and the share of cells kept."""
+    r = np.hypot(pts[:, 0], pts[:, 1])
+    near = pts[(r > 3) & (r < 15)]
+    if len(near) < 10:
+        return None
+    key = np.floor(near[:, 0]).astype(np.int64) * 100000 + np.floor(near[:, 1]).astype(np.int64)
+    order = np.lexsort((near[:, 2], key))
+    _, first = np.unique(key[order], return_index=True)
+    low = near[order][first]
+    design = np.c_[np.ones(len(low)), low[:, 0], low[:, 1]]
+    keep = np.ones(len(low), bool)
+    for _ in range(5):
+        coef = np.linalg.lstsq(design[keep], low[keep, 2], rcond=None)[0]
+        keep = np.abs(low[:, 2] - design @ coef) < 0.15
+    return (coef[0], np.degrees(np.arctan(coef[1])), np.degrees(np.arctan(coef[2])),
+            keep.mean())
+
+
 def overlap(a, b):
     """Overlap of two reflectance histograms (sum of the minimum of the normalised bins)."""
     if a.size == 0 or b.size == 0:
@@ -127,6 +150,10 @@ def report(path, label_path):
     lows, spread = ground_profile(pts)
     print(f"ground: lowest z per 2 m cell within 20 m, p5 p50 p95: {pct(lows, [5, 50, 95])}; "
           f"0.5 m cells' spread within a 2 m cell p50 p90: {pct(spread, [50, 90])}")
+    plane = ground_plane(pts)
+    if plane:
+        print(f"ground plane 3-15 m: height {plane[0]:.2f} m, pitch {plane[1]:.2f} deg (rising "
+              f"ahead), roll {plane[2]:.2f} deg (rising to the left), cells on it {plane[3]:.2f}")
     if not label_path:
         return
     cls = load_classes(label_path, len(pts))
