@@ -25,7 +25,7 @@ constexpr size_t dtype_bytes(DType dtype) {
   return 4;
 }
 
-// "f32", "bf16", "f16", "i32", "u8".
+// "f32", "bf16", "f16", "i32", "u8", "i8".
 constexpr const char* dtype_name(DType dtype) {
   switch (dtype) {
     case DType::F32:
@@ -45,5 +45,15 @@ constexpr const char* dtype_name(DType dtype) {
 }
 
 constexpr bool is_float16(DType dtype) { return dtype == DType::BF16 || dtype == DType::F16; }
+
+// How an INT8 convolution quantizes its input x, per tensor with r = 1 / scale rounded to FP32:
+// q = clamp(round_half_even(x r), -127, 127) (NaN -> 0, the padding 0), or, for an input that is
+// never negative, q = clamp(round_half_even(x r), 0, 255): twice the levels over the same range
+// (the U-Net's convolution inputs are ReLU outputs, max-pooled, bilinear-upsampled and
+// concatenated; calibration says which, engine/model/calibration.hpp).
+struct Int8Input {
+  float scale = 0.0f;  // > 0
+  bool non_negative = false;
+};
 
 }  // namespace pillarseg

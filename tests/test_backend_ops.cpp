@@ -1,11 +1,12 @@
 // Every op of the Backend interface on every backend of this build against the reference, from
 // one table of cases, in the manner of ggml's test-backend-ops:
-//   - the backends under test: the CPU backend (its Winograd, fused and BF16 paths; BF16 on the
-//     model of the AVX512_BF16 instructions where this CPU lacks them), and the CUDA backend, on
-//     the emulation in test_backend_ops and on the GPU in test_backend_ops_gpu;
-//   - the reference: the CPU reference backend (host/ ops alone), or, for the 16-bit ops, which it
-//     does not have, the op's definition written here on host memory from host/ ops and the
-//     rounding of weights_io/half.hpp;
+//   - the backends under test: the CPU backend (its Winograd, fused, BF16 and INT8 paths; BF16 and
+//     INT8 on the models of the AVX512_BF16 and AVX512-VNNI instructions where this CPU lacks
+//     them), and the CUDA backend, on the emulation in test_backend_ops and on the GPU in
+//     test_backend_ops_gpu;
+//   - the reference: the CPU reference backend (host/ ops alone), or, for the 16-bit and INT8 ops,
+//     which it does not have, the op's definition written here on host memory from host/ ops, the
+//     rounding of weights_io/half.hpp and the INT8 rules of engine/cpu/int8_conv.hpp;
 //   - each case names the op, its dtype and its shapes ("conv2d_prepared_forward/bf16,x=...,w=..."),
 //     and gives its tensors (inputs, outputs, and in-outs such as a canvas that an op writes a
 //     band of, or running statistics) with their random contents;
@@ -61,10 +62,17 @@
 //   supports_precision, supports_training_precision, supports_synchronized_batchnorm: the cases
 //                               that need them ask the backend first (and record why not)
 //   prepared_conv_transform_elements  conv2d_prepared_forward/... (the CPU's Winograd U)
-//   prepare_conv_weights        prepare_conv_weights/bf16|fp16  (bias, BatchNorm folded, neither)
-//   prepare_conv_transpose_weights  prepare_conv_transpose_weights/bf16|fp16
-//   conv2d_prepared_forward     conv2d_prepared_forward/bf16|fp16   (x and y FP32 or 16-bit)
-//   conv_transpose2d_prepared_forward  conv_transpose2d_prepared_forward/bf16|fp16
+//   prepare_conv_weights        prepare_conv_weights/bf16|fp16|int8  (bias, BatchNorm folded,
+//                                                            neither; int8 with weight_scale, an
+//                                                            all-zero output channel)
+//   prepare_conv_transpose_weights  prepare_conv_transpose_weights/bf16|fp16|int8
+//   conv2d_prepared_forward     conv2d_prepared_forward/bf16|fp16|int8  (x and y FP32 or 16-bit;
+//                                                            int8: x and y FP32 or BF16, the
+//                                                            Int8Input signed and non_negative,
+//                                                            clamped values, NaN, +-Inf, ties,
+//                                                            K padded)
+//   conv_transpose2d_prepared_forward  conv_transpose2d_prepared_forward/bf16|fp16|int8
+//                                                            (int8: signed and non_negative)
 //   conv2d_backward (compute 16-bit)  conv2d_backward/bf16|fp16[,dw_only]
 //   conv_transpose2d_backward (compute 16-bit)  conv_transpose2d_backward/bf16|fp16
 //   convert                     convert/bf16|fp16            (ties, overflow, subnormals, NaN)
@@ -104,14 +112,15 @@ using namespace pillarseg;
 
 namespace {
 
-enum class Kind { F32, I32, U32, U8, H16 };  // H16: BF16 or FP16 bits, as the case's precision
+// H16: BF16 or FP16 bits, as the case's precision (BF16 in an INT8 case); I8: int8 values.
+enum class Kind { F32, I32, U32, U8, H16, I8 };
 enum class Role { Input, Output, InOut };
 
 constexpr size_t kGuardBytes = 64;
 constexpr uint8_t kGuardByte = 0xA5;
 
 size_t kind_bytes(Kind k) {
-  return k == Kind::U8 ? 1 : k == Kind::H16 ? 2 : 4;
+  return k == Kind::U8 || k == Kind::I8 ? 1 : k == Kind::H16 ? 2 : 4;
 }
 
 std::string shape_name(const Shape& s) {
@@ -123,11 +132,17 @@ std::string shape_name(const Shape& s) {
   return out;
 }
 
+// The 16-bit type of a case of precision p: p's, or BF16 for INT8 (its activations' 16-bit type).
+Precision half_type(Precision p) {
+  return p == Precision::I8 ? Precision::BF16 : p;
+}
 uint16_t to_bits(float v, Precision p) {
-  return p == Precision::BF16 ? weights::float_to_bf16_bits(v) : weights::float_to_f16_bits(v);
+  return half_type(p) == Precision::BF16 ? weights::float_to_bf16_bits(v)
+                                         : weights::float_to_f16_bits(v);
 }
 float from_bits(uint16_t h, Precision p) {
-  return p == Precision::BF16 ? weights::bf16_bits_to_float(h) : weights::f16_bits_to_float(h);
+  return half_type(p) == Precision::BF16 ? weights::bf16_bits_to_float(h)
+                                         : weights::f16_bits_to_float(h);
 }
 // v rounded to the 16-bit type of p.
 float rounded(float v, Precision p) {
@@ -200,9 +215,13 @@ class Bound {
   URef u32(size_t i) { return ref<uint32_t>(i); }
   LRef u8(size_t i) { return ref<uint8_t>(i); }
   HRef h16(size_t i) { return ref<uint16_t>(i); }
-  // A tensor with its dtype: 16-bit in precision p where the arg's kind is, else FP32.
+  RefT<int8_t> i8(size_t i) { return ref<int8_t>(i); }
+  // A tensor with its dtype: 16-bit in precision p's 16-bit type where the arg's kind is, int8
+  // where it is I8, else FP32.
   TensorRef tensor(size_t i, Precision p) {
-    return {blocks_[i] + kGuardBytes, (*args_)[i].shape, (*args_)[i].kind == Kind::H16 ? dtype_of(p) : DType::F32};
+    const Kind kind = (*args_)[i].kind;
+    return {blocks_[i] + kGuardBytes, (*args_)[i].shape,
+            kind == Kind::H16 ? dtype_of(half_type(p)) : kind == Kind::I8 ? DType::I8 : DType::F32};
   }
   // The same for the references' helpers below.
   ActRef act(size_t i) {
@@ -540,6 +559,137 @@ Tensor<float> decoded(const HRef& h, Precision p) {
 }
 void encode(const Tensor<float>& t, Precision p, HRef& h) {
   for (int64_t i = 0; i < h.numel(); ++i) h.data[i] = to_bits(t.data()[i], p);
+}
+
+// ---- the INT8 ops' definitions on host memory (engine/cpu/int8_conv.hpp's contract, which
+// kernels/conv2d_mma_s8.cuh shares) ----
+
+// An INT8 weight: clamp(round_half_even(v / sw), -127, 127), 0 where sw is 0 (an all-zero channel).
+int8_t quantize_weight(float v, float sw) {
+  if (sw == 0.0f) return 0;
+  return static_cast<int8_t>(std::clamp(std::nearbyint(v / sw), -127.0f, 127.0f));
+}
+// An input value by Int8Input's rule, r = 1 / scale rounded to FP32: clamp(round_half_even(x r),
+// -127, 127), or clamp(..., 0, 255) for a non-negative input; NaN 0, infinities clamped.
+int32_t quantize_input(float x, float r, bool non_negative) {
+  const float v = x * r;
+  if (std::isnan(v)) return 0;
+  return static_cast<int32_t>(std::nearbyint(
+      std::clamp(v, non_negative ? 0.0f : -127.0f, non_negative ? 255.0f : 127.0f)));
+}
+// x (B, C, H, W), FP32 or BF16, quantized by `input`.
+std::vector<int32_t> quantized_input(const ActRef& x, Int8Input input) {
+  const float r = 1.0f / input.scale;
+  std::vector<int32_t> q(static_cast<size_t>(x.numel()));
+  for (size_t i = 0; i < q.size(); ++i) {
+    const float v = x.half ? weights::bf16_bits_to_float(static_cast<const uint16_t*>(x.data)[i])
+                           : static_cast<const float*>(x.data)[i];
+    q[i] = quantize_input(v, r, input.non_negative);
+  }
+  return q;
+}
+// y[i] = act(fma(float(acc), scale, bias)), FP32 or rounded to BF16; the ReLU max(v, 0).
+void store_int8_result(const ActRef& y, int64_t i, int32_t acc, float scale, float bias,
+                       bool relu) {
+  float v = std::fma(static_cast<float>(acc), scale, bias);
+  if (relu) v = v > 0.0f ? v : 0.0f;
+  if (y.half)
+    static_cast<uint16_t*>(y.data)[i] = weights::float_to_bf16_bits(v);
+  else
+    static_cast<float*>(y.data)[i] = v;
+}
+// A convolution's INT8 weights: w' = w s with the BatchNorm folded in as in
+// define_prepare_conv_weights (bias_out too), weight_scale[o] = max |w'[o]| / 127, q8 (O, Kp)
+// tap-major as the 16-bit weights (q8[o][t Ip + c], 0 for c >= I).
+void define_prepare_int8_conv_weights(const Ref& w, const Ref* bias, const BatchNormRefs* bn,
+                                      RefT<int8_t>& q8, Ref& weight_scale, Ref& bias_out) {
+  const int64_t out_channels = w.dim(0), in = w.dim(1), taps = w.dim(2) * w.dim(3);
+  const int64_t padded = op::half16_padded_channels(in), kp = q8.dim(1);
+  for (int64_t o = 0; o < out_channels; ++o) {
+    float s = 1.0f, shift = 0.0f;
+    if (bn != nullptr) {
+      s = bn->gamma.data[o] / std::sqrt(bn->running_var.data[o] + bn->eps);
+      shift = bn->beta.data[o] - s * bn->running_mean.data[o];
+    }
+    const auto folded = [&](int64_t c, int64_t t) { return w.data[(o * in + c) * taps + t] * s; };
+    float max_abs = 0.0f;
+    for (int64_t c = 0; c < in; ++c)
+      for (int64_t t = 0; t < taps; ++t) max_abs = std::max(max_abs, std::abs(folded(c, t)));
+    const float sw = max_abs / 127.0f;
+    weight_scale.data[o] = sw;
+    for (int64_t t = 0; t < taps; ++t)
+      for (int64_t c = 0; c < padded; ++c)
+        q8.data[o * kp + t * padded + c] = c < in ? quantize_weight(folded(c, t), sw) : int8_t{0};
+    bias_out.data[o] = s * (bias != nullptr ? bias->data[o] : 0.0f) + shift;
+  }
+}
+// A transposed one's: w (I, O, 2, 2) -> q8 (4 O, Ip), row 4 o + 2 dy + dx; the scale of output
+// channel o (max over its I x 4 weights / 127) and its bias in each of its four rows.
+void define_prepare_int8_conv_transpose_weights(const Ref& w, const Ref* bias, RefT<int8_t>& q8,
+                                                Ref& weight_scale, Ref& bias_out) {
+  const int64_t in = w.dim(0), out_channels = w.dim(1), kp = q8.dim(1);
+  for (int64_t o = 0; o < out_channels; ++o) {
+    float max_abs = 0.0f;
+    for (int64_t c = 0; c < in; ++c)
+      for (int64_t s = 0; s < 4; ++s)
+        max_abs = std::max(max_abs, std::abs(w.data[(c * out_channels + o) * 4 + s]));
+    const float sw = max_abs / 127.0f;
+    for (int64_t s = 0; s < 4; ++s) {
+      const int64_t n = 4 * o + s;
+      for (int64_t c = 0; c < kp; ++c)
+        q8.data[n * kp + c] =
+            c < in ? quantize_weight(w.data[(c * out_channels + o) * 4 + s], sw) : int8_t{0};
+      weight_scale.data[n] = sw;
+      bias_out.data[n] = bias != nullptr ? bias->data[o] : 0.0f;
+    }
+  }
+}
+// y = act(acc sx weight_scale[o] + bias_out[o]) with the exact integer sums acc of q8 and x
+// quantized by `input` (the padding 0), the epilogue store_int8_result's.
+void define_int8_conv2d_forward(const ActRef& x, const RefT<int8_t>& q8, const Ref& weight_scale,
+                                const Ref& bias_out, const Shape& weight, int pad, bool relu,
+                                Int8Input input, const ActRef& y) {
+  const std::vector<int32_t> xq = quantized_input(x, input);
+  const int64_t B = x.dim(0), I = x.dim(1), H = x.dim(2), W = x.dim(3), O = weight[0],
+                k = weight[2];
+  const int64_t Ho = y.dim(2), Wo = y.dim(3), kp = q8.dim(1),
+                padded = op::half16_padded_channels(I);
+  for (int64_t b = 0; b < B; ++b)
+    for (int64_t o = 0; o < O; ++o)
+      for (int64_t oy = 0; oy < Ho; ++oy)
+        for (int64_t ox = 0; ox < Wo; ++ox) {
+          int32_t acc = 0;
+          for (int64_t c = 0; c < I; ++c)
+            for (int64_t ky = 0; ky < k; ++ky)
+              for (int64_t kx = 0; kx < k; ++kx) {
+                const int64_t iy = oy + ky - pad, ix = ox + kx - pad;
+                if (iy < 0 || iy >= H || ix < 0 || ix >= W) continue;
+                acc += xq[static_cast<size_t>(((b * I + c) * H + iy) * W + ix)] *
+                       q8.data[o * kp + (ky * k + kx) * padded + c];
+              }
+          store_int8_result(y, ((b * O + o) * Ho + oy) * Wo + ox, acc,
+                            input.scale * weight_scale.data[o], bias_out.data[o], relu);
+        }
+}
+// y (B, O, 2H, 2W): y[b][o][2i + dy][2j + dx] from acc = sum_c xq[b][c][i][j] q8[n][c], n = 4 o +
+// 2 dy + dx, no activation.
+void define_int8_conv_transpose2d_forward(const ActRef& x, const RefT<int8_t>& q8,
+                                          const Ref& weight_scale, const Ref& bias_out,
+                                          const Shape& weight, Int8Input input, const ActRef& y) {
+  const std::vector<int32_t> xq = quantized_input(x, input);
+  const int64_t B = x.dim(0), I = x.dim(1), H = x.dim(2), W = x.dim(3), O = weight[1],
+                kp = q8.dim(1);
+  for (int64_t b = 0; b < B; ++b)
+    for (int64_t n = 0; n < 4 * O; ++n)
+      for (int64_t i = 0; i < H; ++i)
+        for (int64_t j = 0; j < W; ++j) {
+          int32_t acc = 0;
+          for (int64_t c = 0; c < I; ++c)
+            acc += xq[static_cast<size_t>(((b * I + c) * H + i) * W + j)] * q8.data[n * kp + c];
+          const int64_t o = n / 4, dy = n % 4 / 2, dx = n % 2;
+          store_int8_result(y, ((b * O + o) * 2 * H + 2 * i + dy) * 2 * W + 2 * j + dx, acc,
+                            input.scale * weight_scale.data[n], bias_out.data[n], false);
+        }
 }
 
 // A data-parallel run of two replicas where the other holds the same values: every piece begun
@@ -1116,6 +1266,223 @@ void add_half_ops(std::vector<Case>& all, Precision p) {
   }
 }
 
+// An INT8 convolution's input x (FP32, or BF16 where `half`) for the input scale sx: uniform in
+// [lo sx, hi sx) (past the clamps where lo or hi lie beyond 127, 255 or below 0), and at fixed
+// positions the rule's edge cases: NaN, +-Inf, half-integer multiples (k + 1/2) sx, |k| < 128
+// (ties to even where sx is a power of two; k + 1/2 fits BF16), and, in FP32, the same one or two
+// units in the last place apart (where x r and x / sx may round to different integers: the rule
+// multiplies).
+Arg int8_input(Shape shape, bool half, float sx, double lo, double hi) {
+  Arg a{"x", std::move(shape), half ? Kind::H16 : Kind::F32, Role::Input, {}};
+  a.fill = [half, sx, lo, hi](Rng& rng, void* dst, int64_t n) {
+    const float inf = std::numeric_limits<float>::infinity();
+    for (int64_t i = 0; i < n; ++i) {
+      float v = static_cast<float>(rng.uniform(lo, hi)) * sx;
+      if (i % 17 == 3)
+        v = std::numeric_limits<float>::quiet_NaN();
+      else if (i % 19 == 5)
+        v = inf;
+      else if (i % 23 == 7)
+        v = -inf;
+      else if (i % 5 == 2 || i % 7 == 4) {
+        const double k = std::floor(rng.uniform(std::max(lo, -127.0), std::min(hi, 127.0)));
+        v = (static_cast<float>(k) + 0.5f) * sx;
+        if (i % 5 != 2) {
+          const float toward = rng.uniform_int(2) == 0 ? -inf : inf;
+          for (uint64_t u = 1 + rng.uniform_int(2); u > 0; --u) v = std::nextafter(v, toward);
+        }
+      }
+      if (half)
+        static_cast<uint16_t*>(dst)[i] = weights::float_to_bf16_bits(v);
+      else
+        static_cast<float*>(dst)[i] = v;
+    }
+  };
+  return a;
+}
+// w (O, ...) with output channel o's weights all 0 (its scale 0, its int8 weights 0).
+Arg with_zero_channel(Arg w, int64_t o) {
+  w.fill = [fill = w.fill, o, per = shape_numel(w.shape) / w.shape.at(0)](Rng& rng, void* dst,
+                                                                           int64_t n) {
+    fill(rng, dst, n);
+    std::fill_n(static_cast<float*>(dst) + o * per, per, 0.0f);
+  };
+  return w;
+}
+
+// The INT8 convolutions (DESIGN.md section 10): weights prepared as I8 with their weight_scale,
+// then the forward with x quantized by an Int8Input, signed or non-negative; x and y FP32 or BF16.
+// Integer sums and one epilogue: every output bit for bit.
+void add_int8_ops(std::vector<Case>& all) {
+  const Precision p = Precision::I8;
+  // Weight preparation: bias and BatchNorm folded, bias alone, neither (with an all-zero output
+  // channel); bias_out as the 16-bit cases' (FMAs on a GPU).
+  const Tolerance folded_bias = within(1e-7, 0x1p-22);
+  for (const auto& [w, folded] : std::vector<std::pair<Shape, int>>{
+           {{4, 3, 3, 3}, 2}, {{33, 17, 3, 3}, 1}, {{12, 6, 1, 1}, 0}}) {
+    const bool with_bias = folded >= 1, with_bn = folded == 2, zero_channel = folded == 0;
+    std::vector<Arg> args = {zero_channel ? with_zero_channel(in_f("w", w), 5) : in_f("w", w),
+                             in_f("bias", {w[0]})};
+    add_bn(args, w[0], false, false);
+    args.push_back(out("w8", op::half16_conv_weights(w, false), Kind::I8));
+    args.push_back(out("weight_scale", {w[0]}));
+    args.push_back(out("bias_out", {w[0]}));
+    args.back().tol = folded_bias;
+    all.push_back({.name = "prepare_conv_weights/int8,w=" + shape_name(w) +
+                           (with_bias ? ",bias" : "") + (with_bn ? ",batchnorm" : "") +
+                           (zero_channel ? ",zero_channel" : ""),
+                   .args = args,
+                   .run =
+                       [p, with_bias, with_bn](Backend& be, Bound& t) {
+                         const Ref bias = t.f(1), weight_scale = t.f(7);
+                         const BatchNormRefs bn = t.bn(2, false);
+                         Ref bias_out = t.f(8);
+                         be.prepare_conv_weights(t.f(0), with_bias ? &bias : nullptr,
+                                                 with_bn ? &bn : nullptr, t.tensor(6, p), bias_out,
+                                                 TensorRef{}, &weight_scale);
+                       },
+                   .tol = bits(),
+                   .precision = p,
+                   .reference =
+                       [with_bias, with_bn](Bound& t) {
+                         const Ref bias = t.f(1);
+                         const BatchNormRefs bn = t.bn(2, false);
+                         RefT<int8_t> w8 = t.i8(6);
+                         Ref weight_scale = t.f(7), bias_out = t.f(8);
+                         define_prepare_int8_conv_weights(t.f(0), with_bias ? &bias : nullptr,
+                                                          with_bn ? &bn : nullptr, w8,
+                                                          weight_scale, bias_out);
+                       }});
+  }
+  for (const auto& [w, with_bias] :
+       std::vector<std::pair<Shape, bool>>{{{6, 3, 2, 2}, true}, {{33, 5, 2, 2}, false}}) {
+    all.push_back({.name = "prepare_conv_transpose_weights/int8,w=" + shape_name(w) +
+                           (with_bias ? ",bias" : ""),
+                   .args = {in_f("w", w), in_f("bias", {w[1]}),
+                            out("w8", op::half16_conv_weights(w, true), Kind::I8),
+                            out("weight_scale", {4 * w[1]}), out("bias_out", {4 * w[1]})},
+                   .run =
+                       [p, with_bias](Backend& be, Bound& t) {
+                         const Ref bias = t.f(1), weight_scale = t.f(3);
+                         Ref bias_out = t.f(4);
+                         be.prepare_conv_transpose_weights(t.f(0), with_bias ? &bias : nullptr,
+                                                           t.tensor(2, p), bias_out, &weight_scale);
+                       },
+                   .tol = bits(),
+                   .precision = p,
+                   .reference =
+                       [with_bias](Bound& t) {
+                         const Ref bias = t.f(1);
+                         RefT<int8_t> w8 = t.i8(2);
+                         Ref weight_scale = t.f(3), bias_out = t.f(4);
+                         define_prepare_int8_conv_transpose_weights(
+                             t.f(0), with_bias ? &bias : nullptr, w8, weight_scale, bias_out);
+                       }});
+  }
+  // The convolutions, on weights the backend prepared itself (BatchNorm folded): a 3x3 pad 1 with
+  // ReLU on a non-negative x reaching past 127 sx and 255 sx (and a few negatives, quantized to
+  // 0); a 3x3 on a signed x past +-127 sx, 17 input channels (K padded to 32 per tap); a 1x1 of 40
+  // channels with an all-zero output channel. The bias and the BatchNorm's mean are 0 here, so
+  // that bias_out = beta whether or not the backend fuses s bias + beta - s mean into FMAs, and y
+  // compares bit for bit (the folding itself: prepare_conv_weights/int8 above).
+  struct Conv {
+    Shape x, w;
+    int pad;
+    bool x_half, y_half, relu, non_negative;
+    float sx;
+    double lo, hi;  // x's range in units of sx
+  };
+  for (const Conv& cv : std::vector<Conv>{
+           {{2, 3, 7, 5}, {4, 3, 3, 3}, 1, false, true, true, true, 0x1p-6f, -20, 300},
+           {{1, 17, 6, 7}, {9, 17, 3, 3}, 1, false, true, false, false, 0.0137f, -150, 150},
+           {{2, 40, 3, 4}, {5, 40, 1, 1}, 0, true, false, true, true, 0x1p-5f, -5, 270}}) {
+    const Shape y = op::conv2d(cv.x, cv.w, cv.pad);
+    Arg w = in_f("w", cv.w, -0.5, 0.5);
+    if (cv.w[2] == 1) w = with_zero_channel(w, 2);
+    std::vector<Arg> args = {int8_input(cv.x, cv.x_half, cv.sx, cv.lo, cv.hi), w,
+                             in_f("bias", {cv.w[0]}, 0, 0)};
+    add_bn(args, cv.w[0], false, false);
+    args[5] = in_f("running_mean", {cv.w[0]}, 0, 0);
+    args.push_back(out("w8", op::half16_conv_weights(cv.w, false), Kind::I8));
+    args.push_back(out("weight_scale", {cv.w[0]}));
+    args.push_back(out("bias_out", {cv.w[0]}));
+    args.push_back(out("y", y, cv.y_half ? Kind::H16 : Kind::F32));
+    const Conv c = cv;
+    all.push_back(
+        {.name = "conv2d_prepared_forward/int8,x=" + shape_name(cv.x) + (cv.x_half ? "h" : "f") +
+                 ",w=" + shape_name(cv.w) + ",pad=" + std::to_string(cv.pad) +
+                 ",y=" + (cv.y_half ? "h" : "f") + (cv.relu ? ",relu" : "") +
+                 (cv.non_negative ? ",non_negative" : ",signed"),
+         .args = args,
+         .run =
+             [p, c](Backend& be, Bound& t) {
+               const Ref bias = t.f(2), weight_scale = t.f(8);
+               const BatchNormRefs bn = t.bn(3, false);
+               Ref bias_out = t.f(9);
+               be.prepare_conv_weights(t.f(1), &bias, &bn, t.tensor(7, p), bias_out, TensorRef{},
+                                       &weight_scale);
+               be.conv2d_prepared_forward(t.tensor(0, p), t.tensor(7, p), TensorRef{}, bias_out,
+                                          c.w, c.pad, c.relu, t.tensor(10, p), &weight_scale,
+                                          Int8Input{c.sx, c.non_negative});
+             },
+         .tol = bits(),
+         .precision = p,
+         .reference =
+             [c](Bound& t) {
+               const Ref bias = t.f(2);
+               const BatchNormRefs bn = t.bn(3, false);
+               RefT<int8_t> w8 = t.i8(7);
+               Ref weight_scale = t.f(8), bias_out = t.f(9);
+               define_prepare_int8_conv_weights(t.f(1), &bias, &bn, w8, weight_scale, bias_out);
+               define_int8_conv2d_forward(t.act(0), w8, weight_scale, bias_out, c.w, c.pad, c.relu,
+                                          Int8Input{c.sx, c.non_negative}, t.act(10));
+             }});
+  }
+  // The transposed 2x2 in both modes; 40 input channels (K padded to 64).
+  struct ConvT {
+    Shape x;
+    int64_t o;
+    bool x_half, y_half, non_negative;
+    float sx;
+    double lo, hi;
+  };
+  for (const ConvT& cv :
+       std::vector<ConvT>{{{1, 6, 3, 4}, 3, false, true, true, 0x1p-4f, -10, 290},
+                          {{2, 40, 2, 3}, 5, true, false, false, 0x1p-6f, -150, 150}}) {
+    const Shape w{cv.x[1], cv.o, 2, 2}, y{cv.x[0], cv.o, 2 * cv.x[2], 2 * cv.x[3]};
+    const Int8Input input{cv.sx, cv.non_negative};
+    all.push_back(
+        {.name = "conv_transpose2d_prepared_forward/int8,x=" + shape_name(cv.x) +
+                 (cv.x_half ? "h" : "f") + ",w=" + shape_name(w) + ",y=" + (cv.y_half ? "h" : "f") +
+                 (cv.non_negative ? ",non_negative" : ",signed"),
+         .args = {int8_input(cv.x, cv.x_half, cv.sx, cv.lo, cv.hi), in_f("w", w, -0.5, 0.5),
+                  in_f("bias", {cv.o}), out("w8", op::half16_conv_weights(w, true), Kind::I8),
+                  out("weight_scale", {4 * cv.o}), out("bias_out", {4 * cv.o}),
+                  out("y", y, cv.y_half ? Kind::H16 : Kind::F32)},
+         .run =
+             [p, w, input](Backend& be, Bound& t) {
+               const Ref bias = t.f(2), weight_scale = t.f(4);
+               Ref bias_out = t.f(5);
+               be.prepare_conv_transpose_weights(t.f(1), &bias, t.tensor(3, p), bias_out,
+                                                 &weight_scale);
+               be.conv_transpose2d_prepared_forward(t.tensor(0, p), t.tensor(3, p), bias_out, w,
+                                                    t.tensor(6, p), &weight_scale, input);
+             },
+         .tol = bits(),
+         .precision = p,
+         .reference =
+             [w, input](Bound& t) {
+               const Ref bias = t.f(2);
+               RefT<int8_t> w8 = t.i8(3);
+               Ref weight_scale = t.f(4), bias_out = t.f(5);
+               define_prepare_int8_conv_transpose_weights(t.f(1), &bias, w8, weight_scale,
+                                                          bias_out);
+               define_int8_conv_transpose2d_forward(t.act(0), w8, weight_scale, bias_out, w, input,
+                                                    t.act(6));
+             }});
+  }
+}
+
 std::vector<Case> cases() {
   std::vector<Case> all;
   add_input_ops(all);
@@ -1612,6 +1979,7 @@ std::vector<Case> cases() {
   }
   add_half_ops(all, Precision::BF16);
   add_half_ops(all, Precision::F16);
+  add_int8_ops(all);
   return all;
 }
 
@@ -1622,7 +1990,7 @@ std::vector<std::vector<uint8_t>> host_data(const Case& c, uint64_t seed) {
     std::vector<uint8_t> bytes(a.bytes());
     if (a.role == Role::Output) {
       // NaN floats (0xFFFF is a NaN as BF16 and FP16), -777 and 0xDEADBEEF integers, 0xEE class
-      // ids: an element no op writes does not compare.
+      // ids, int8 -128 (which no INT8 weight is): an element no op writes does not compare.
       const auto fill_with = [&bytes](auto junk) {
         for (size_t i = 0; i < bytes.size() / sizeof junk; ++i)
           std::memcpy(bytes.data() + i * sizeof junk, &junk, sizeof junk);
@@ -1642,6 +2010,9 @@ std::vector<std::vector<uint8_t>> host_data(const Case& c, uint64_t seed) {
           break;
         case Kind::U8:
           fill_with(uint8_t{0xEE});
+          break;
+        case Kind::I8:
+          fill_with(int8_t{-128});
           break;
       }
     } else {
@@ -1677,6 +2048,8 @@ double element(const std::vector<uint8_t>& bytes, Kind kind, Precision p, size_t
     }
     case Kind::U8:
       return bytes[i];
+    case Kind::I8:
+      return static_cast<int8_t>(bytes[i]);
   }
   return 0;
 }
@@ -1737,11 +2110,12 @@ bool backend_runs(const Backend& be, const Case& c, std::string& why) {
                     : be.supports_precision(c.precision, &why);
 }
 
-// The CPU backend; for a BF16 case where this CPU lacks AVX512_BF16, the same kernels on the
-// model of its instructions.
+// The CPU backend; for a BF16 case where this CPU lacks AVX512_BF16, or an INT8 case where it
+// lacks AVX512-VNNI, the same kernels on the model of its instructions.
 std::unique_ptr<Backend> cpu_backend_for(const Case& c) {
   auto be = make_cpu_backend();
-  if (c.precision == Precision::BF16 && !be->supports_precision(Precision::BF16))
+  if ((c.precision == Precision::BF16 || c.precision == Precision::I8) &&
+      !be->supports_precision(c.precision))
     return make_cpu_backend_emulated_bf16();
   return be;
 }

@@ -48,7 +48,7 @@ double agreement(const Tensor<uint8_t>& a, const Tensor<uint8_t>& b) {
 
 // A few training steps so that the BatchNorms' statistics are the data's, then the scales of the
 // U-Net's inputs from FP32 evaluation forwards of the two batches.
-std::map<std::string, float> train_and_calibrate(PillarSegNet& net, Backend& backend,
+std::map<std::string, Int8Input> train_and_calibrate(PillarSegNet& net, Backend& backend,
                                                  const std::vector<test::TinyData>& data) {
   for (int64_t step = 1; step <= 3; ++step) {
     net.parameters().zero_grads();
@@ -66,13 +66,14 @@ std::map<std::string, float> train_and_calibrate(PillarSegNet& net, Backend& bac
     for (const test::TinyData& d : data) net.forward(d.batch, false);
   }
   EXPECT_EQ(calibrator.forwards("segmentation_head.down1.maxpool_conv.1.double_conv.0"), 2);
-  return calibrator.scales();
+  return calibrator.inputs();
 }
 
 }  // namespace
 
 // Nearest rank over |v|, NaN skipped: of 0..99 (and -100) the 99th percentile is 98, the 100th
-// 100, the 50th 49.
+// 100, the 50th 49. An input with a negative value seen is signed (/ 127), one never negative
+// unsigned (/ 255).
 TEST(Int8Calibration, PercentileAndScaleByHand) {
   std::vector<float> v;
   for (int i = 0; i < 100; ++i) v.push_back(static_cast<float>(i));
@@ -86,12 +87,19 @@ TEST(Int8Calibration, PercentileAndScaleByHand) {
   c.add("a", std::vector<float>{1, -254});
   c.add("a", std::vector<float>{127});
   c.add("zero", std::vector<float>{0, 0});
-  const auto scales = c.scales();
-  EXPECT_EQ(scales.at("a"), 2.0f);  // the largest over the forwards, / 127
-  EXPECT_EQ(scales.at("zero"), 1e-8f);
+  c.add("relu", std::vector<float>{0, 51, 255});
+  c.add("relu", std::vector<float>{510, 0});
+  const auto inputs = c.inputs();
+  EXPECT_EQ(inputs.at("a").scale, 2.0f);  // the largest over the forwards, / 127
+  EXPECT_FALSE(inputs.at("a").non_negative);
+  EXPECT_EQ(inputs.at("relu").scale, 2.0f);  // 510 / 255
+  EXPECT_TRUE(inputs.at("relu").non_negative);
+  EXPECT_EQ(inputs.at("zero").scale, 1e-8f);
+  EXPECT_TRUE(inputs.at("zero").non_negative);
   EXPECT_EQ(c.forwards("a"), 2);
   EXPECT_NE(error_of([] { InputScaleCalibrator bad(0); }).find("percentile"), std::string::npos);
   EXPECT_EQ(input_scale_name("x.double_conv.0"), "quantization.x.double_conv.0.input_scale");
+  EXPECT_EQ(input_non_negative_name("x.double_conv.0"), "quantization.x.double_conv.0.input_non_negative");
 }
 
 // The model in INT8: the same bits on the CPU's VNNI and AMX-INT8 models and on the CUDA
@@ -99,7 +107,9 @@ TEST(Int8Calibration, PercentileAndScaleByHand) {
 // FP32 head's sums in another order on the CUDA backend: within 1e-10 NMSE of each other); within
 // what INT8 costs of FP32 (NMSE below 1e-3: 127 levels an input and a weight; measured 1e-4 to
 // 3e-4) and not equal to it; every U-Net convolution quantized, the head and the occupancy
-// stream's in FP32.
+// stream's in FP32. Every input is calibrated non-negative but the concatenations that hold a
+// transposed convolution's output (no activation), and the unsigned bytes halve the error of
+// quantizing the same inputs signed.
 TEST(Int8Model, TracksFp32TheSameOnEveryBackend) {
   for (const auto& [occupancy, transposed] : std::vector<std::pair<OccupancyInput, bool>>{
            {OccupancyInput::Occupancy3D, false}, {OccupancyInput::None, true}}) {
@@ -108,13 +118,21 @@ TEST(Int8Model, TracksFp32TheSameOnEveryBackend) {
     const std::vector<test::TinyData> data = {test::tiny_data(c, 2, 23, 0.4), test::tiny_data(c, 2, 24, 0.4)};
     auto vnni_model = make_cpu_backend_emulated_bf16(/*amx=*/false);
     PillarSegNet net(c, *vnni_model, 3);
-    const std::map<std::string, float> scales = train_and_calibrate(net, *vnni_model, data);
+    const std::map<std::string, Int8Input> scales = train_and_calibrate(net, *vnni_model, data);
     // Every U-Net convolution: 2 per level of the encoder and the decoder (+ the transposed ups).
     EXPECT_EQ(scales.size(), static_cast<size_t>(4 * c.depth + (transposed ? c.depth : 0)));
+    int signed_inputs = 0;
+    for (const auto& [key, input] : scales) {
+      signed_inputs += !input.non_negative;
+      EXPECT_EQ(input.non_negative, !(transposed && key.ends_with(".conv.double_conv.0") &&
+                                      key.find(".up") != std::string::npos))
+          << key;
+    }
+    EXPECT_EQ(signed_inputs, transposed ? c.depth : 0);
     net.forward(data[1].batch, false);
     const Tensor<float> fp32 = net.download_logits();
     const Tensor<uint8_t> labels32 = net.predict_labels();
-    net.set_input_scales(scales);
+    net.set_int8_inputs(scales);
     net.set_precision(Precision::I8);
     net.forward(data[1].batch, false);
     const Tensor<float> int8 = net.download_logits();
@@ -124,7 +142,7 @@ TEST(Int8Model, TracksFp32TheSameOnEveryBackend) {
         ++quantized;
         EXPECT_EQ(op_label(net.graph(false), n).substr(0, 2), "co");
         EXPECT_NE(op_label(net.graph(false), n).find(" i8"), std::string::npos) << n.name;
-        EXPECT_GT(n.input_scale, 0.0f);
+        EXPECT_GT(n.int8_input.scale, 0.0f);
       }
       fp32_convs += n.op == OpKind::Conv2d || n.op == OpKind::Conv2dBnReluEval;
     }
@@ -135,11 +153,23 @@ TEST(Int8Model, TracksFp32TheSameOnEveryBackend) {
     EXPECT_LT(against_fp32, 1e-3);
     EXPECT_GT(against_fp32, 0.0) << "INT8 must round something";
     EXPECT_GE(agreement(net.predict_labels(), labels32), 0.95);
+    // The same ranges quantized signed: 127 levels where the unsigned bytes have 255.
+    std::map<std::string, Int8Input> all_signed = scales;
+    for (auto& [key, input] : all_signed)
+      if (input.non_negative) input = Int8Input{.scale = input.scale * 255.0f / 127.0f, .non_negative = false};
+    net.set_int8_inputs(all_signed);
+    net.forward(data[1].batch, false);
+    const double signed_nmse = nmse(net.download_logits(), fp32);
+    RecordProperty("nmse_int8_all_signed", fmt::format("{:.3g}", signed_nmse));
+    if (!transposed) {
+      EXPECT_LT(against_fp32, 0.75 * signed_nmse);
+    }
+    net.set_int8_inputs(scales);
 
     const auto int8_logits = [&](Backend& be) {
       PillarSegNet other(c, be, 3);
       other.parameters().copy_values_from(net.parameters());
-      other.set_input_scales(scales);
+      other.set_int8_inputs(scales);
       other.set_precision(Precision::I8);
       other.forward(data[1].batch, false);
       return other.download_logits();
@@ -170,7 +200,8 @@ TEST(Int8Model, ScalesInTheCheckpointAndTheErrors) {
                 .find("precision int8: no input scale for the convolution segmentation_head.down1.maxpool_conv.1."
                       "double_conv.0 (the weights are not calibrated: pillarseg calibrate"),
             std::string::npos);
-  EXPECT_NE(error_of([&] { net.set_input_scales({{"x", -1.0f}}); }).find("not a positive number"), std::string::npos);
+  EXPECT_NE(error_of([&] { net.set_int8_inputs({{"x", Int8Input{.scale = -1.0f}}}); }).find("not a positive number"),
+            std::string::npos);
 
   const auto path = test::temp_dir() / "calibrated.safetensors";
   RunConfig config;
@@ -181,11 +212,20 @@ TEST(Int8Model, ScalesInTheCheckpointAndTheErrors) {
   scale.data()[0] = 0.25f;
   file.add_f32(input_scale_name("segmentation_head.down1.maxpool_conv.1.double_conv.0"), scale);
   file.add_f32(weight_scale_name("segmentation_head.down1.maxpool_conv.1.double_conv.0"), Tensor<float>({4}));
+  Tensor<float> one({1});
+  one.data()[0] = 1.0f;
+  file.add_f32(input_scale_name("segmentation_head.down1.maxpool_conv.1.double_conv.3"), scale);
+  file.add_f32(input_non_negative_name("segmentation_head.down1.maxpool_conv.1.double_conv.3"), one);
   file.write(path);
   PillarSegNet loaded(c, *backend, 9);
   load_weights(read_checkpoint(path), loaded, false);  // FP32: the extra tensors are skipped
-  EXPECT_EQ(loaded.input_scales().size(), 1u);
-  EXPECT_EQ(loaded.input_scales().at("segmentation_head.down1.maxpool_conv.1.double_conv.0"), 0.25f);
+  EXPECT_EQ(loaded.int8_inputs().size(), 2u);
+  const Int8Input first = loaded.int8_inputs().at("segmentation_head.down1.maxpool_conv.1.double_conv.0");
+  const Int8Input second = loaded.int8_inputs().at("segmentation_head.down1.maxpool_conv.1.double_conv.3");
+  EXPECT_EQ(first.scale, 0.25f);
+  EXPECT_FALSE(first.non_negative);  // no input_non_negative: signed
+  EXPECT_EQ(second.scale, 0.25f);
+  EXPECT_TRUE(second.non_negative);
   EXPECT_EQ(loaded.parameters().download(0), net.parameters().download(0));
 
   CudaBackend cuda_backend;

@@ -310,7 +310,7 @@ void run_bench(const BenchArgs& a) {
   }
   if (!a.weights.empty()) load_weights(read_checkpoint(a.weights), segmenter.net(), false);
   PillarSegNet& net = segmenter.net();
-  if (net.precision() == Precision::I8 && net.input_scales().empty()) {
+  if (net.precision() == Precision::I8 && net.int8_inputs().empty()) {
     // No calibrated scales: the benched scan's own FP32 forward gives them (engine/model/calibration.hpp).
     InputScaleCalibrator calibrator;
     net.set_precision(Precision::F32);
@@ -319,7 +319,7 @@ void run_bench(const BenchArgs& a) {
       Tensor<uint8_t> scratch_labels({model.grid.height(), model.grid.width()});
       segmenter.segment(read_points(scan_path, format).points, scratch_labels.data());
     }
-    net.set_input_scales(calibrator.scales());
+    net.set_int8_inputs(calibrator.inputs());
     net.set_precision(Precision::I8);
     fmt::print("--precision int8: {} carries no INT8 scales; calibrated on the benched scan itself ({}th "
                "percentile; pillarseg calibrate gives a checkpoint its own)\n",

@@ -59,18 +59,22 @@ void run_calibrate(const CalibrateArgs& a) {
     }
     progress.finish();
   }
-  const std::map<std::string, float> scales = calibrator.scales();
+  const std::map<std::string, Int8Input> inputs = calibrator.inputs();
   std::vector<std::string> keys;
-  for (const auto& [key, scale] : scales) keys.push_back(key);
+  for (const auto& [key, input] : inputs) keys.push_back(key);
   const auto weight_scales = int8_weight_scales(net.parameters(), keys);
   weights::SafeTensors file;
   for (const std::string& name : ckpt.file.names())
     if (name.rfind(kQuantizationPrefix, 0) != 0) file.add(ckpt.file.at(name));
   file.metadata = ckpt.file.metadata;
-  for (const auto& [key, scale] : scales) {
-    Tensor<float> input({1});
-    input.data()[0] = scale;
-    file.add_f32(input_scale_name(key), input);
+  int64_t non_negative = 0;
+  for (const auto& [key, input] : inputs) {
+    Tensor<float> scale({1}), unsigned_range({1});
+    scale.data()[0] = input.scale;
+    unsigned_range.data()[0] = input.non_negative ? 1.0f : 0.0f;
+    non_negative += input.non_negative;
+    file.add_f32(input_scale_name(key), scale);
+    file.add_f32(input_non_negative_name(key), unsigned_range);
     const std::vector<float>& ws = weight_scales.at(key);
     Tensor<float> w({static_cast<int64_t>(ws.size())});
     std::copy(ws.begin(), ws.end(), w.data());
@@ -78,15 +82,16 @@ void run_calibrate(const CalibrateArgs& a) {
   }
   file.metadata["quantization"] =
       fmt::format("int8: per-tensor input scales (the {}th percentile of |x| over {} scans of sequences {}, "
-                  "largest / 127), per-output-channel weight scales (max |w| / 127, BatchNorm folded)",
+                  "largest / 255 for an input never negative, else / 127), per-output-channel weight scales "
+                  "(max |w| / 127, BatchNorm folded)",
                   a.percentile, n, fmt::join(ids, ", "));
   file.write(a.out);
-  fmt::print("calibrated {} convolutions on {} scans ({}th percentile of |x|); input scales {:.3g} to {:.3g}\n",
-             scales.size(), n, a.percentile,
-             std::min_element(scales.begin(), scales.end(),
-                              [](const auto& x, const auto& y) { return x.second < y.second; })->second,
-             std::max_element(scales.begin(), scales.end(),
-                              [](const auto& x, const auto& y) { return x.second < y.second; })->second);
+  const auto by_scale = [](const auto& x, const auto& y) { return x.second.scale < y.second.scale; };
+  fmt::print("calibrated {} convolutions on {} scans ({}th percentile of |x|; {} inputs never negative, "
+             "quantized to 0..255); input scales {:.3g} to {:.3g}\n",
+             inputs.size(), n, a.percentile, non_negative,
+             std::min_element(inputs.begin(), inputs.end(), by_scale)->second.scale,
+             std::max_element(inputs.begin(), inputs.end(), by_scale)->second.scale);
   fmt::print("wrote {} (loads as FP32 anywhere; --precision int8 uses the scales)\n", a.out);
 }
 

@@ -459,17 +459,6 @@ void int8_conv_transpose2d_forward(Int8Kernels kernels, const ActRef& x, float s
   run_conv(kernels, on_native, q, g, 1, workspace);
 }
 
-void int8_conv2d_forward(Int8Kernels kernels, const ActRef& x, float sx, const Int8ConvWeights& w,
-                         int pad, bool relu, const ActRef& y, Int8ConvWorkspace& workspace) {
-  int8_conv2d_forward(kernels, x, sx, false, w, pad, relu, y, workspace);
-}
-
-void int8_conv_transpose2d_forward(Int8Kernels kernels, const ActRef& x, float sx,
-                                   const Int8ConvWeights& w, const ActRef& y,
-                                   Int8ConvWorkspace& workspace) {
-  int8_conv_transpose2d_forward(kernels, x, sx, false, w, y, workspace);
-}
-
 void prepare_int8_winograd(const Ref& w, const Ref& bias, Int8WinogradWeights& out) {
   const char* op = "prepare_int8_winograd";
   require_shape(op, "w", w, {w.dim(0), w.dim(1), 3, 3});

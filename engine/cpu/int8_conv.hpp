@@ -108,12 +108,6 @@ void int8_conv2d_forward(Int8Kernels kernels, const ActRef& x, float sx, bool no
 void int8_conv_transpose2d_forward(Int8Kernels kernels, const ActRef& x, float sx,
                                    bool non_negative, const Int8ConvWeights& w, const ActRef& y,
                                    Int8ConvWorkspace& workspace);
-// The two above with non_negative = false, for callers that do not pass it.
-void int8_conv2d_forward(Int8Kernels kernels, const ActRef& x, float sx, const Int8ConvWeights& w,
-                         int pad, bool relu, const ActRef& y, Int8ConvWorkspace& workspace);
-void int8_conv_transpose2d_forward(Int8Kernels kernels, const ActRef& x, float sx,
-                                   const Int8ConvWeights& w, const ActRef& y,
-                                   Int8ConvWorkspace& workspace);
 
 // Winograd-domain INT8 F(2x2, 3x3) for the 3x3 pad-1 convolutions (int8_winograd.hpp has the
 // arithmetic), on Vnni or Emulated (the AMX family is refused): weights U = G g G^T per position p

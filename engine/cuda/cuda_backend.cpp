@@ -1175,7 +1175,7 @@ cuda::ActivationLayout s8_layout(const char* op, const TensorRef& t) {
 
 void CudaBackend::conv2d_prepared_forward(const TensorRef& x, const TensorRef& prepared, const TensorRef& transformed,
                                           const Ref& bias_out, const Shape& weight, int pad, bool relu,
-                                          const TensorRef& y, const Ref* weight_scale, float input_scale) {
+                                          const TensorRef& y, const Ref* weight_scale, Int8Input input) {
   const char* op = "conv2d_prepared_forward";
   if (prepared.dtype == DType::I8) {
     PS_CHECK(transformed.data == nullptr, "{}: the CUDA backend has no transformed weights", op);
@@ -1188,7 +1188,8 @@ void CudaBackend::conv2d_prepared_forward(const TensorRef& x, const TensorRef& p
     const cuda::Conv2dShape shape{x.dim(0), x.dim(1), x.dim(2), x.dim(3), weight[0], weight[2], pad};
     auto* workspace = reinterpret_cast<std::int32_t*>(
         float_workspace(static_cast<size_t>(cuda::conv2d_mma_s8_forward_workspace(shape))));
-    cuda::conv2d_mma_s8_forward(cuda::ActivationsS8{x.data, s8_layout(op, x), input_scale}, prepared.i8(op).data,
+    cuda::conv2d_mma_s8_forward(cuda::ActivationsS8{x.data, s8_layout(op, x), input.scale, input.non_negative},
+                                prepared.i8(op).data,
                                 weight_scale->data, bias_out.data, shape, relu,
                                 cuda::OutputS8{y.data, s8_layout(op, y), 1.0f}, stream_.get(), workspace);
     return;
@@ -1199,7 +1200,7 @@ void CudaBackend::conv2d_prepared_forward(const TensorRef& x, const TensorRef& p
 
 void CudaBackend::conv_transpose2d_prepared_forward(const TensorRef& x, const TensorRef& prepared, const Ref& bias_out,
                                                     const Shape& weight, const TensorRef& y, const Ref* weight_scale,
-                                                    float input_scale) {
+                                                    Int8Input input) {
   if (prepared.dtype == DType::I8) {
     const char* op = "conv_transpose2d_prepared_forward";
     PS_CHECK(weight_scale != nullptr, "{}: INT8 needs its weight scales", op);
@@ -1210,7 +1211,8 @@ void CudaBackend::conv_transpose2d_prepared_forward(const TensorRef& x, const Te
     require_shape(op, "weight_scale", *weight_scale, {4 * weight[1]});
     auto* workspace = reinterpret_cast<std::int32_t*>(float_workspace(static_cast<size_t>(
         cuda::conv_transpose2d_mma_s8_forward_workspace(x.dim(0), x.dim(1), x.dim(2), x.dim(3), weight[1]))));
-    cuda::conv_transpose2d_mma_s8_forward(cuda::ActivationsS8{x.data, s8_layout(op, x), input_scale},
+    cuda::conv_transpose2d_mma_s8_forward(cuda::ActivationsS8{x.data, s8_layout(op, x), input.scale,
+                                                              input.non_negative},
                                           prepared.i8(op).data, weight_scale->data, bias_out.data, x.dim(0),
                                           x.dim(1), x.dim(2), x.dim(3), weight[1], /*relu=*/false,
                                           cuda::OutputS8{y.data, s8_layout(op, y), 1.0f}, stream_.get(), workspace);

@@ -172,10 +172,10 @@ class CudaBackend final : public Backend {
                                       const Ref* weight_scale = nullptr) override;
   void conv2d_prepared_forward(const TensorRef& x, const TensorRef& prepared, const TensorRef& transformed,
                                const Ref& bias_out, const Shape& weight, int pad, bool relu, const TensorRef& y,
-                               const Ref* weight_scale = nullptr, float input_scale = 0.0f) override;
+                               const Ref* weight_scale = nullptr, Int8Input input = {}) override;
   void conv_transpose2d_prepared_forward(const TensorRef& x, const TensorRef& prepared, const Ref& bias_out,
                                          const Shape& weight, const TensorRef& y, const Ref* weight_scale = nullptr,
-                                         float input_scale = 0.0f) override;
+                                         Int8Input input = {}) override;
   bool supports_training_precision(Precision p, std::string* why_not) const override;
   // Synchronised BatchNorm: the kernels' statistics summed over the replicas. On a GPU, when
   // BatchNormRefs::replicas is the run's Replicas, in device memory over NCCL on the compute

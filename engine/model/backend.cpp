@@ -104,11 +104,11 @@ void Backend::prepare_conv_transpose_weights(const Ref&, const Ref*, const Tenso
   PS_FAIL("backend {}: no {} convolutions (supports_precision)", name(), dtype_name(prepared.dtype));
 }
 void Backend::conv2d_prepared_forward(const TensorRef&, const TensorRef& prepared, const TensorRef&, const Ref&,
-                                      const Shape&, int, bool, const TensorRef&, const Ref*, float) {
+                                      const Shape&, int, bool, const TensorRef&, const Ref*, Int8Input) {
   PS_FAIL("backend {}: no {} convolutions (supports_precision)", name(), dtype_name(prepared.dtype));
 }
 void Backend::conv_transpose2d_prepared_forward(const TensorRef&, const TensorRef& prepared, const Ref&, const Shape&,
-                                                const TensorRef&, const Ref*, float) {
+                                                const TensorRef&, const Ref*, Int8Input) {
   PS_FAIL("backend {}: no {} convolutions (supports_precision)", name(), dtype_name(prepared.dtype));
 }
 void Backend::convert(const Ref&, const TensorRef& y) {

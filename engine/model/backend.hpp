@@ -340,17 +340,16 @@ class Backend {
                                               const Ref* weight_scale = nullptr);
   // y = act(conv(x, prepared) + bias_out) for the weight shape `weight` (O, I, k, k) and `pad`,
   // in the prepared weights' arithmetic; x and y FP32 or 16-bit; `transformed` as
-  // prepare_conv_weights made it (or data null). INT8: x quantized with the per-tensor
-  // input_scale (q = clamp(round_half_even(x / input_scale), -127, 127)), INT32 sums, y =
-  // act(acc input_scale weight_scale[o] + bias_out[o]).
+  // prepare_conv_weights made it (or data null). INT8: x quantized as `input` says (Int8Input),
+  // INT32 sums, y = act(acc input.scale weight_scale[o] + bias_out[o]).
   virtual void conv2d_prepared_forward(const TensorRef& x, const TensorRef& prepared, const TensorRef& transformed,
                                        const Ref& bias_out, const Shape& weight, int pad, bool relu,
                                        const TensorRef& y, const Ref* weight_scale = nullptr,
-                                       float input_scale = 0.0f);
+                                       Int8Input input = {});
   // y (B, O, 2H, 2W) = the transposed convolution of x (B, I, H, W) for weight (I, O, 2, 2).
   virtual void conv_transpose2d_prepared_forward(const TensorRef& x, const TensorRef& prepared, const Ref& bias_out,
                                                  const Shape& weight, const TensorRef& y,
-                                                 const Ref* weight_scale = nullptr, float input_scale = 0.0f);
+                                                 const Ref* weight_scale = nullptr, Int8Input input = {});
   // Training in `p` (FP32 tensors and master weights; the convolutions' forward is
   // conv2d_prepared_forward / conv_transpose2d_prepared_forward on weights prepared without
   // BatchNorm, the backward conv2d_backward / conv_transpose2d_backward with `compute` p):

@@ -37,12 +37,18 @@ void InputScaleCalibrator::add(const std::string& key, std::span<const float> va
            100 - percentile_);
   float& largest = largest_[key];
   largest = std::max(largest, p);
+  bool& negative = negative_[key];
+  negative = negative || std::any_of(values.begin(), values.end(), [](float v) { return v < 0; });
   ++count_[key];
 }
 
-std::map<std::string, float> InputScaleCalibrator::scales() const {
-  std::map<std::string, float> out;
-  for (const auto& [key, largest] : largest_) out[key] = std::max(largest / 127.0f, 1e-8f);
+std::map<std::string, Int8Input> InputScaleCalibrator::inputs() const {
+  std::map<std::string, Int8Input> out;
+  for (const auto& [key, largest] : largest_) {
+    const bool non_negative = !negative_.at(key);
+    out[key] = Int8Input{.scale = std::max(largest / (non_negative ? 255.0f : 127.0f), 1e-8f),
+                         .non_negative = non_negative};
+  }
   return out;
 }
 
@@ -98,5 +104,8 @@ CalibrationScope::~CalibrationScope() { net_.set_conv_input_observer(nullptr); }
 
 std::string input_scale_name(const std::string& key) { return kQuantizationPrefix + key + ".input_scale"; }
 std::string weight_scale_name(const std::string& key) { return kQuantizationPrefix + key + ".weight_scale"; }
+std::string input_non_negative_name(const std::string& key) {
+  return kQuantizationPrefix + key + ".input_non_negative";
+}
 
 }  // namespace pillarseg

@@ -3,17 +3,27 @@
 // checkpoint.
 //
 // The rule: a convolution's input scale is the largest, over the calibration scans, of the
-// 99.999th percentile of |x| over the input's values, divided by 127 (so that q = x / scale fills
-// [-127, 127]). A percentile rather than the maximum: one outlier among tens of millions of
-// values (a pillar with an extreme reflectance or height, a ReLU output far in the tail) would
-// otherwise set a scale that leaves most values a handful of levels; the 99.999th keeps the range
-// of all but the top 0.001%, which saturate at +-127. Measured on the real scan with the demo's
-// model calibrated on simulated scans (docs/benchmarks.md), arg-max agreement with FP32 on the
-// cells with points: maximum 98.56%, 99.999th 98.97%, 99.99th 98.01%, 99.9th 94.10%: the
-// U-Net's inputs have tails that matter, and clipping them costs more than coarser levels. (The
-// entropy (KL) rule of TensorRT clips harder still.)
+// 99.999th percentile of |x| over the input's values, divided by 255 where no input value was
+// negative (q = x / scale fills [0, 255]: Int8Input::non_negative, core/dtype.hpp) and by 127
+// otherwise (q fills [-127, 127]). In the model every U-Net convolution's input is a ReLU's
+// output, max-pooled, bilinear-upsampled or concatenated, so all are non-negative but those
+// after a transposed convolution (no activation): unsigned bytes give them twice the levels,
+// which the instructions take as they are (VPDPBUSD and AMX multiply unsigned by signed bytes;
+// the tensor cores' mma has a u8 x s8 form).
 //
-// In a checkpoint: quantization.<key>.input_scale (1) and quantization.<key>.weight_scale (O, the
+// A percentile rather than the maximum: one outlier among tens of millions of values (a pillar
+// with an extreme reflectance or height, a ReLU output far in the tail) would otherwise set a
+// scale that leaves most values a handful of levels; the 99.999th keeps the range of all but the
+// top 0.001%, which saturate. Measured with the demo's model calibrated on simulated scans
+// (docs/benchmarks.md#int8), arg-max agreement with FP32 on the cells with points of the real
+// scans 99 / kitti_object 004139 / 004747: unsigned inputs, maximum 99.34 / 99.15 / 99.22%,
+// 99.999th 99.23 / 99.43 / 99.18%, 99.99th 98.20 / 98.71 / 98.65%; all inputs signed, 99.999th
+// 98.97 / 98.91 / 98.55% (maximum 98.56%, 99.9th 94.10% on scan 99): the U-Net's inputs have
+// tails that matter, and clipping them costs more than coarser levels. (The entropy (KL) rule of
+// TensorRT clips harder still.)
+//
+// In a checkpoint: quantization.<key>.input_scale (1), quantization.<key>.input_non_negative (1:
+// 1 or 0; absent means 0) and quantization.<key>.weight_scale (O, the
 // per-output-channel scales max |w'| / 127 of the weights with the BatchNorm folded in, for
 // inspection: the backends derive them again from the weights), key the convolution's parameter
 // prefix ("segmentation_head.down1.maxpool_conv.1.double_conv.0"). Loaders that do not know them
@@ -25,6 +35,8 @@
 #include <span>
 #include <string>
 #include <vector>
+
+#include "core/dtype.hpp"
 
 namespace pillarseg {
 
@@ -40,15 +52,17 @@ class InputScaleCalibrator {
   explicit InputScaleCalibrator(double percentile = kCalibrationPercentile);
   // One forward's input of the convolution `key`, on the host.
   void add(const std::string& key, std::span<const float> values);
-  // key -> the largest percentile seen / 127 (at least 1e-8, so that an all-zero input still has
-  // a valid scale).
-  std::map<std::string, float> scales() const;
+  // key -> the input's quantization: non_negative where no value seen was negative, scale the
+  // largest percentile seen / 255 (non-negative) or / 127, at least 1e-8 (so that an all-zero
+  // input still has a valid scale).
+  std::map<std::string, Int8Input> inputs() const;
   int64_t forwards(const std::string& key) const;
   double percentile() const { return percentile_; }
 
  private:
   double percentile_;
   std::map<std::string, float> largest_;
+  std::map<std::string, bool> negative_;  // whether a negative value was seen
   std::map<std::string, int64_t> count_;
 };
 
@@ -80,6 +94,7 @@ std::map<std::string, std::vector<float>> int8_weight_scales(const ParameterSet&
 // The checkpoint names of a convolution's scales.
 std::string input_scale_name(const std::string& key);
 std::string weight_scale_name(const std::string& key);
+std::string input_non_negative_name(const std::string& key);
 inline constexpr const char* kQuantizationPrefix = "quantization.";
 
 }  // namespace pillarseg

@@ -144,11 +144,11 @@ class CpuBackend final : public Backend {
   }
   void conv2d_prepared_forward(const TensorRef& x, const TensorRef& prepared, const TensorRef& transformed,
                                const Ref& bias_out, const Shape& weight, int pad, bool relu, const TensorRef& y,
-                               const Ref* weight_scale, float input_scale) override {
+                               const Ref* weight_scale, Int8Input input) override {
     const char* op = "CpuBackend::conv2d_prepared_forward";
     if (prepared.dtype == DType::I8) {
       require_precision(Precision::I8);
-      cpu::int8_conv2d_forward(int8_kernels_, int8_activation(x), input_scale,
+      cpu::int8_conv2d_forward(int8_kernels_, int8_activation(x), input.scale, input.non_negative,
                                int8_weights(op, prepared, bias_out, weight_scale, weight), pad, relu,
                                int8_activation(y), int8_workspace_);
       return;
@@ -167,11 +167,11 @@ class CpuBackend final : public Backend {
   }
   void conv_transpose2d_prepared_forward(const TensorRef& x, const TensorRef& prepared, const Ref& bias_out,
                                          const Shape& weight, const TensorRef& y, const Ref* weight_scale,
-                                         float input_scale) override {
+                                         Int8Input input) override {
     if (prepared.dtype == DType::I8) {
       require_precision(Precision::I8);
       const char* op = "CpuBackend::conv_transpose2d_prepared_forward";
-      cpu::int8_conv_transpose2d_forward(int8_kernels_, int8_activation(x), input_scale,
+      cpu::int8_conv_transpose2d_forward(int8_kernels_, int8_activation(x), input.scale, input.non_negative,
                                          int8_weights(op, prepared, bias_out, weight_scale, weight),
                                          int8_activation(y), int8_workspace_);
       return;

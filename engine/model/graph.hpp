@@ -64,8 +64,8 @@ struct GraphNode {
   // The arithmetic of a convolution's backward on FP32 tensors: F32, or BF16 / F16 on the
   // tensor cores (the prepared convolutions' is their prepared weights' dtype).
   DType compute = DType::F32;
-  // INT8 convolutions: the calibrated per-tensor scale of the input (engine/model/calibration.hpp).
-  float input_scale = 0.0f;
+  // INT8 convolutions: how the input is quantized, calibrated (engine/model/calibration.hpp).
+  Int8Input int8_input;
   double flops = 0;       // from the record (Graph::add)
 
   // The arguments as the op's struct (engine/model/op_record.hpp).

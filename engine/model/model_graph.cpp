@@ -121,12 +121,12 @@ class Builder {
   // `precision`: the convolutions'; the evaluation forward also keeps the U-Net's activations in
   // it, training keeps them (and BatchNorm, the loss, gradients) in FP32.
   // INT8 (evaluation only): the U-Net's convolutions on INT8 weights with the calibrated input
-  // scales of `input_scales`, its activations in BF16, the other convolutions (the occupancy
+  // quantization of `int8_inputs`, its activations in BF16, the other convolutions (the occupancy
   // stream's, the head's) in FP32 on FP32 tensors.
   Builder(Graph& g, const ParameterSet& ps, const Backend* backend, const std::vector<BnParams>& bns, bool training,
-          Precision precision, const std::map<std::string, float>* input_scales)
+          Precision precision, const std::map<std::string, Int8Input>* int8_inputs)
       : g_(g), ps_(ps), backend_(backend), bns_(bns), training_(training),
-        half_(training ? Precision::F32 : precision), conv_precision_(precision), input_scales_(input_scales) {
+        half_(training ? Precision::F32 : precision), conv_precision_(precision), int8_inputs_(int8_inputs) {
     PS_CHECK(!(training && precision == Precision::I8), "INT8 is an inference precision (training runs fp32, bf16 or "
                                                         "fp16)");
   }
@@ -193,7 +193,7 @@ class Builder {
     GraphNode n = with_pad(pad);
     n.relu = relu;
     n.weight = w_shape;
-    n.input_scale = dtype == DType::I8 ? input_scale(w) : 0.0f;
+    if (dtype == DType::I8) n.int8_input = int8_input(w);
     add(OpKind::PreparedConv2d, name,
         PreparedConv2dArgs{.x = x, .prepared = w16, .prepared_bias = b16, .transformed = wt, .y = y,
                            .prepared_scale = scale},
@@ -211,15 +211,15 @@ class Builder {
         PrepareConvWeightsArgs{.w = w, .bias = b, .prepared = w16, .prepared_bias = b16, .prepared_scale = scale});
     GraphNode n;
     n.weight = w_shape;
-    n.input_scale = dtype == DType::I8 ? input_scale(w) : 0.0f;
+    if (dtype == DType::I8) n.int8_input = int8_input(w);
     add(OpKind::PreparedConvTranspose2d, name,
         PreparedConv2dArgs{.x = x, .prepared = w16, .prepared_bias = b16, .y = y, .prepared_scale = scale}, n);
   }
-  // The calibrated input scale of the convolution whose weight is graph tensor w.
-  float input_scale(int w) const {
+  // The calibrated input quantization of the convolution whose weight is graph tensor w.
+  Int8Input int8_input(int w) const {
     const std::string key = quantization_key(ps_.entries().at(static_cast<size_t>(g_.at(w).parameter)).name);
-    const auto it = input_scales_ ? input_scales_->find(key) : std::map<std::string, float>::const_iterator{};
-    PS_CHECK(input_scales_ && it != input_scales_->end() && it->second > 0,
+    const auto it = int8_inputs_ ? int8_inputs_->find(key) : std::map<std::string, Int8Input>::const_iterator{};
+    PS_CHECK(int8_inputs_ && it != int8_inputs_->end() && it->second.scale > 0,
              "precision int8: no input scale for the convolution {} (the weights are not calibrated: pillarseg "
              "calibrate writes the scales into a checkpoint)",
              key);
@@ -322,19 +322,19 @@ class Builder {
   const std::vector<BnParams>& bns_;
   bool training_;
   Precision half_, conv_precision_;
-  const std::map<std::string, float>* input_scales_;
+  const std::map<std::string, Int8Input>* int8_inputs_;
 };
 
 }  // namespace
 
 void build_model_graph(ModelGraph& out, const ModelConfig& config, const Modules& modules, const ParameterSet& ps,
                        const Backend* backend, int batch, bool training, Precision precision,
-                       int64_t pillar_capacity, const std::map<std::string, float>* input_scales) {
+                       int64_t pillar_capacity, const std::map<std::string, Int8Input>* int8_inputs) {
   const Modules& m = modules;
   ModelGraph& p = out;
   p = ModelGraph();
   Graph& g = p.graph;
-  Builder bld(g, ps, backend, m.bns, training, precision, input_scales);
+  Builder bld(g, ps, backend, m.bns, training, precision, int8_inputs);
   const int H = config.grid.height(), W = config.grid.width(), depth = config.depth;
   const int64_t N = config.max_points_per_pillar, C = config.pillar_channels, cap = pillar_capacity;
   const int K = config.num_classes;

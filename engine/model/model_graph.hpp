@@ -81,12 +81,12 @@ struct ModelGraph {
 
 // The graph of the evaluation forward (training: the training step) for `batch` samples and
 // pillar buffers of `pillar_capacity` rows, its convolutions in `precision` (the evaluation
-// forward also keeps the U-Net's activations in it; INT8: in BF16, with the U-Net's input scales
-// from `input_scales` by quantization_key, a missing one an error naming it); `backend` (may be
+// forward also keeps the U-Net's activations in it; INT8: in BF16, with the U-Net's inputs
+// quantized as `int8_inputs` says by quantization_key, a missing one an error naming it); `backend` (may be
 // null) gives its own transformed form of prepared weights where it has one.
 void build_model_graph(ModelGraph& out, const ModelConfig& config, const Modules& modules, const ParameterSet& ps,
                        const Backend* backend, int batch, bool training, Precision precision,
-                       int64_t pillar_capacity, const std::map<std::string, float>* input_scales = nullptr);
+                       int64_t pillar_capacity, const std::map<std::string, Int8Input>* int8_inputs = nullptr);
 
 // A convolution's key for its INT8 scales: its weight's name without ".weight"
 // ("segmentation_head.down1.maxpool_conv.1.double_conv.0").

@@ -169,7 +169,7 @@ void check_prepare_conv_transpose(const Graph& g, const GraphNode& n) {
 void check_prepared_conv2d(const Graph& g, const GraphNode& n) {
   const auto a = n.as<PreparedConv2dArgs>();
   check_prepared_scale(g, n, a.prepared, a.prepared_scale);
-  PS_CHECK(dtype_of(g, a.prepared) != DType::I8 || n.input_scale > 0, "graph: node {} ({}): INT8 needs an input scale",
+  PS_CHECK(dtype_of(g, a.prepared) != DType::I8 || n.int8_input.scale > 0, "graph: node {} ({}): INT8 needs an input scale",
            n.name, op_name(n.op));
   require_shape(g, n, a.y, op::conv2d(shape_of(g, a.x), n.weight, n.pad), "y");
   require_shape(g, n, a.prepared, op::half16_conv_weights(n.weight, false), "prepared");
@@ -177,7 +177,7 @@ void check_prepared_conv2d(const Graph& g, const GraphNode& n) {
 void check_prepared_conv_transpose2d(const Graph& g, const GraphNode& n) {
   const auto a = n.as<PreparedConv2dArgs>();
   check_prepared_scale(g, n, a.prepared, a.prepared_scale);
-  PS_CHECK(dtype_of(g, a.prepared) != DType::I8 || n.input_scale > 0, "graph: node {} ({}): INT8 needs an input scale",
+  PS_CHECK(dtype_of(g, a.prepared) != DType::I8 || n.int8_input.scale > 0, "graph: node {} ({}): INT8 needs an input scale",
            n.name, op_name(n.op));
   require_shape(g, n, a.y, op::conv_transpose2d(shape_of(g, a.x), n.weight), "y");
   require_shape(g, n, a.prepared, op::half16_conv_weights(n.weight, true), "prepared");
@@ -417,7 +417,7 @@ double run_prepared_conv2d(OpContext& c, const GraphNode& n) {
   const Ref scale = c.f32(a.prepared_scale);
   c.backend().conv2d_prepared_forward(c.tensor(a.x), c.tensor(a.prepared), c.tensor(a.transformed),
                                       c.f32(a.prepared_bias), n.weight, n.pad, n.relu, c.tensor(a.y),
-                                      a.prepared_scale >= 0 ? &scale : nullptr, n.input_scale);
+                                      a.prepared_scale >= 0 ? &scale : nullptr, n.int8_input);
   return 0;
 }
 double run_prepared_conv_transpose2d(OpContext& c, const GraphNode& n) {
@@ -425,7 +425,7 @@ double run_prepared_conv_transpose2d(OpContext& c, const GraphNode& n) {
   const Ref scale = c.f32(a.prepared_scale);
   c.backend().conv_transpose2d_prepared_forward(c.tensor(a.x), c.tensor(a.prepared), c.f32(a.prepared_bias), n.weight,
                                                 c.tensor(a.y), a.prepared_scale >= 0 ? &scale : nullptr,
-                                                n.input_scale);
+                                                n.int8_input);
   return 0;
 }
 double run_convert(OpContext& c, const GraphNode& n) {

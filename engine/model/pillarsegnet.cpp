@@ -39,7 +39,7 @@ struct PillarSegNet::Impl : Modules {
   GraphPlan* current = nullptr;
   LossKind loss_kind = LossKind::CrossEntropy;
   Precision precision = Precision::F32;        // of the evaluation convolutions
-  std::map<std::string, float> input_scales;   // INT8: the U-Net's calibrated input scales
+  std::map<std::string, Int8Input> int8_inputs;  // INT8: the U-Net's calibrated inputs
   PillarSegNet::ConvInputObserver observer;    // calibration
   Precision train_precision = Precision::F32;  // of the training step's convolutions
   // Pillar buffers are planned for a capacity that grows with headroom (a slowly rising pillar
@@ -82,7 +82,7 @@ void PillarSegNet::build_graph(GraphPlan& p, int batch, bool training) {
   Impl& m = *impl_;
   p.precision = training ? m.train_precision : m.precision;
   build_model_graph(p, config_, m, params_, &backend_, batch, training, p.precision, m.pillar_capacity,
-                    &m.input_scales);
+                    &m.int8_inputs);
   p.batch = batch;
   p.pillar_capacity = m.pillar_capacity;
 }
@@ -240,16 +240,17 @@ void PillarSegNet::set_precision(Precision precision) {
 
 Precision PillarSegNet::precision() const { return impl_->precision; }
 
-void PillarSegNet::set_input_scales(std::map<std::string, float> scales) {
+void PillarSegNet::set_int8_inputs(std::map<std::string, Int8Input> inputs) {
   Impl& m = *impl_;
-  for (const auto& [key, scale] : scales)
-    PS_CHECK(std::isfinite(scale) && scale > 0, "INT8 input scale of {}: {} is not a positive number", key, scale);
-  m.input_scales = std::move(scales);
+  for (const auto& [key, input] : inputs)
+    PS_CHECK(std::isfinite(input.scale) && input.scale > 0, "INT8 input scale of {}: {} is not a positive number", key,
+             input.scale);
+  m.int8_inputs = std::move(inputs);
   m.eval.batch = -1;  // planned again at the next evaluation forward
   m.eval_graph.reset();
 }
 
-const std::map<std::string, float>& PillarSegNet::input_scales() const { return impl_->input_scales; }
+const std::map<std::string, Int8Input>& PillarSegNet::int8_inputs() const { return impl_->int8_inputs; }
 
 void PillarSegNet::set_conv_input_observer(ConvInputObserver observer) {
   impl_->observer = std::move(observer);

@@ -90,13 +90,14 @@ class PillarSegNet {
   // later, the emulation, the CPU with AVX512_BF16), else throws pillarseg::Error with the
   // reason. The evaluation graph is planned again at the next forward.
   // INT8 (DESIGN.md section 10) on a backend that supports it, with the U-Net's input scales
-  // set first (set_input_scales, or a calibrated checkpoint's through load_weights).
+  // set first (set_int8_inputs, or a calibrated checkpoint's through load_weights).
   void set_precision(Precision precision);
   Precision precision() const;
-  // The calibrated per-tensor scales of the U-Net's convolution inputs for INT8, by
-  // quantization_key (engine/model/model_graph.hpp); the evaluation graph is planned again.
-  void set_input_scales(std::map<std::string, float> scales);
-  const std::map<std::string, float>& input_scales() const;
+  // The calibrated quantization of the U-Net's convolution inputs for INT8 (per-tensor scales,
+  // signed or non-negative), by quantization_key (engine/model/model_graph.hpp); the evaluation
+  // graph is planned again.
+  void set_int8_inputs(std::map<std::string, Int8Input> inputs);
+  const std::map<std::string, Int8Input>& int8_inputs() const;
   // Calibration: while set, every U-Net convolution of an evaluation forward hands its input (the
   // backend's memory, with its dtype) and its key to `observer` before it runs; the forward then
   // runs node by node (no recorded graph).

@@ -80,14 +80,17 @@ void load_weights(const Checkpoint& checkpoint, PillarSegNet& net, bool with_opt
   // The optimiser moments and the INT8 scales (engine/model/calibration.hpp) are not model
   // tensors: check the model's set without them.
   weights::SafeTensors model_part;
-  std::map<std::string, float> input_scales;
+  std::map<std::string, Int8Input> int8_inputs;
   const std::string scale_suffix = ".input_scale";
   for (const std::string& name : file.names()) {
     if (name.rfind(kQuantizationPrefix, 0) == 0) {
       if (name.ends_with(scale_suffix)) {
-        const Tensor<float> v = file.get_f32(name, {1});
-        input_scales[name.substr(std::string(kQuantizationPrefix).size(),
-                                 name.size() - std::string(kQuantizationPrefix).size() - scale_suffix.size())] = v[0];
+        const std::string key = name.substr(std::string(kQuantizationPrefix).size(),
+                                            name.size() - std::string(kQuantizationPrefix).size() - scale_suffix.size());
+        Int8Input& input = int8_inputs[key];
+        input.scale = file.get_f32(name, {1})[0];
+        if (file.contains(input_non_negative_name(key)))
+          input.non_negative = file.get_f32(input_non_negative_name(key), {1})[0] != 0.0f;
       }
       continue;
     }
@@ -98,7 +101,7 @@ void load_weights(const Checkpoint& checkpoint, PillarSegNet& net, bool with_opt
     const ParamEntry& e = ps.entries()[i];
     ps.upload(static_cast<int>(i), file.get_f32(e.name, e.shape));
   }
-  if (!input_scales.empty()) net.set_input_scales(std::move(input_scales));
+  if (!int8_inputs.empty()) net.set_int8_inputs(std::move(int8_inputs));
   for (auto& [name, count] : ps.counters()) {
     const auto v = file.get_i64(name);
     PS_CHECK(v.size() == 1, "{}: {} must hold one integer", file.source(), name);

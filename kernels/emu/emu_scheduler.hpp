@@ -123,9 +123,9 @@ AsyncCopies& thread_async_copies();
 
 // What the emulated kernels have issued since the process started, summed over every launch and
 // thread (atomic): warp-level mma.sync m16n8k16 instructions (4,096 flops each: 16 x 8 x 16
-// multiply-adds), m16n8k32 s8 instructions (8,192 each: 16 x 8 x 32) and the bytes cp.async
-// copied from global to shared memory (zero-filled copies included: a GPU issues them too). The
-// benchmarks read differences (Backend::counters()).
+// multiply-adds), m16n8k32 INT8 instructions (u8 or s8 by s8; 8,192 each: 16 x 8 x 32) and the
+// bytes cp.async copied from global to shared memory (zero-filled copies included: a GPU issues
+// them too). The benchmarks read differences (Backend::counters()).
 struct InstructionCounts {
   std::uint64_t mma_m16n8k16 = 0;
   std::uint64_t cp_async_bytes = 0;
