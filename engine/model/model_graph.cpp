@@ -344,9 +344,38 @@ void build_model_graph(ModelGraph& out, const ModelConfig& config, const Modules
   // A mixed-precision evaluation of pillars alone scatters them straight into the U-Net's 16-bit
   // input; with other streams the canvas is FP32 and rounded once it is whole.
   const bool half_canvas = bld.half() && pillars && !occupancy && !config.grid_map_input;
-  const int canvas =
-      g.tensor(half_canvas ? "canvas16" : "canvas", {batch, config.input_channels(), H, W},
-               half_canvas ? bld.half_dtype() : DType::F32);
+  // The U-Net's levels and each Up's concatenation buffer first: a Down's output that is an Up's
+  // skip is written straight into that Up's buffer where no padding comes between them (training
+  // with batch 1 from the first level on; the 16-bit and INT8 evaluation forward with batch 1 from
+  // the canvas on, the U-Net's input, so that no skip is copied), and the evaluation's upsampling
+  // writes the buffer's other band (below). The buffers then live from their skip's producer on:
+  // more planned memory for less traffic (docs/benchmarks.md), which the FP32 evaluation, where
+  // the copies are a small share of the time, does not take.
+  const DType unet_dtype = bld.half() ? bld.half_dtype() : DType::F32;
+  std::vector<int64_t> hs(static_cast<size_t>(depth) + 1, H), ws(static_cast<size_t>(depth) + 1, W);
+  for (int i = 1; i <= depth; ++i) {
+    hs[static_cast<size_t>(i)] = hs[static_cast<size_t>(i - 1)] / 2;
+    ws[static_cast<size_t>(i)] = ws[static_cast<size_t>(i - 1)] / 2;
+  }
+  std::vector<int> cat(static_cast<size_t>(depth), -1);
+  std::vector<bool> skip_in_cat(static_cast<size_t>(depth), false);
+  for (int j = 1; j <= depth; ++j) {
+    const Up& u = m.ups[static_cast<size_t>(j - 1)];
+    const size_t level = static_cast<size_t>(depth - j);
+    cat[static_cast<size_t>(j - 1)] = g.tensor(fmt::format("up{}.cat", j),
+                                               {batch, u.skip_channels + u.up_channels, hs[level], ws[level]}, unet_dtype);
+    skip_in_cat[static_cast<size_t>(j - 1)] = batch == 1 && (training ? depth - j >= 1 : bld.half()) &&
+                                              2 * hs[level + 1] == hs[level] && 2 * ws[level + 1] == ws[level];
+  }
+  // The U-Net's input as the first band of the last Up's buffer (its skip), where that is written
+  // in place: the canvas itself when it is in the U-Net's dtype, else its 16-bit copy below.
+  const bool input_in_cat = depth >= 1 && !training && skip_in_cat[static_cast<size_t>(depth - 1)];
+  const Shape canvas_shape{batch, config.input_channels(), H, W};
+  const DType canvas_dtype = half_canvas ? bld.half_dtype() : DType::F32;
+  const char* canvas_name = half_canvas ? "canvas16" : "canvas";
+  const int canvas = input_in_cat && canvas_dtype == unet_dtype
+                         ? g.view(canvas_name, cat[static_cast<size_t>(depth - 1)], canvas_shape)
+                         : g.tensor(canvas_name, canvas_shape, canvas_dtype);
   int pfn_out = -1, pfn_argmax = -1, pfn_mean = -1, pfn_invstd = -1;
   if (pillars) {
     p.pillar_points = g.tensor("pillar_points", {cap, N, 10});
@@ -401,28 +430,12 @@ void build_model_graph(ModelGraph& out, const ModelConfig& config, const Modules
   // Mixed precision: the U-Net runs on a 16-bit copy of the canvas.
   int unet_input = canvas;
   if (bld.half() && !half_canvas) {
-    unet_input = g.tensor("canvas16", g.at(canvas).shape, bld.half_dtype());
+    unet_input = input_in_cat ? g.view("canvas16", cat[static_cast<size_t>(depth - 1)], canvas_shape)
+                              : g.tensor("canvas16", canvas_shape, bld.half_dtype());
     bld.add(OpKind::Convert, "canvas", UnaryArgs{.x = canvas, .y = unet_input});
   }
   bld.unet = true;
-  // Level sizes; x[i] is level i's tensor (x[0] the canvas).
-  std::vector<int64_t> hs(static_cast<size_t>(depth) + 1, H), ws(static_cast<size_t>(depth) + 1, W);
-  for (int i = 1; i <= depth; ++i) {
-    hs[static_cast<size_t>(i)] = hs[static_cast<size_t>(i - 1)] / 2;
-    ws[static_cast<size_t>(i)] = ws[static_cast<size_t>(i - 1)] / 2;
-  }
-  // An Up's concatenation buffer, made before the Down whose output is its skip when that output
-  // is written straight into it (training, batch 1, no padding: the skip is not kept twice).
-  std::vector<int> cat(static_cast<size_t>(depth), -1);
-  std::vector<bool> skip_in_cat(static_cast<size_t>(depth), false);
-  for (int j = 1; j <= depth; ++j) {
-    const Up& u = m.ups[static_cast<size_t>(j - 1)];
-    const size_t level = static_cast<size_t>(depth - j);
-    cat[static_cast<size_t>(j - 1)] = g.tensor(fmt::format("up{}.cat", j),
-                                               {batch, u.skip_channels + u.up_channels, hs[level], ws[level]}, bld.act());
-    skip_in_cat[static_cast<size_t>(j - 1)] = training && batch == 1 && depth - j >= 1 &&
-                                              2 * hs[level + 1] == hs[level] && 2 * ws[level + 1] == ws[level];
-  }
+  // x[i] is level i's tensor (x[0] the canvas).
   std::vector<int> x(static_cast<size_t>(depth) + 1, -1);
   x[0] = unet_input;
   struct DownActs {
@@ -481,9 +494,12 @@ void build_model_graph(ModelGraph& out, const ModelConfig& config, const Modules
     } else {
       bld.add(OpKind::UpsampleBilinear, name, UnaryArgs{.x = current, .y = a.upsampled});
     }
-    if (upsampled_in_cat) {
+    const bool skip_written = skip_in_cat[static_cast<size_t>(j - 1)];
+    if (upsampled_in_cat && skip_written) {
+      // Both bands were written in place by their producers.
+    } else if (upsampled_in_cat) {
       bld.add(OpKind::CopyChannels, name + ".skip", CopyChannelsArgs{.x = skip, .y = a.cat}, Builder::with_channel0(0));
-    } else if (skip_in_cat[static_cast<size_t>(j - 1)]) {
+    } else if (skip_written) {
       bld.add(OpKind::CopyChannels, name + ".up", CopyChannelsArgs{.x = a.upsampled, .y = a.cat},
               Builder::with_channel0(u.skip_channels));
     } else {
