@@ -8,8 +8,10 @@ percentiles, the ground's height (per-2 m-cell lowest point within 20 m of the s
 roughness (spread of the lowest points of 0.5 m cells within a 2 m cell), the plane of the
 ground 3-15 m around the sensor (its pitch and roll in the sensor's frame), and reflectance
 percentiles. With labels: per class (DESIGN.md's table) the point count, z, reflectance and
-range percentiles, and how much the reflectance of road, sidewalk, terrain and vegetation
-overlap.
+range percentiles, how much the reflectance of road, sidewalk, terrain and vegetation overlap,
+and the ground cells: per 0.4 m cell of road, sidewalk or terrain within 20 m its height against
+the road's, and which of the three lies beside which (the street's cross-section); with several
+labelled scans, the ground cells of all of them pooled as well.
 
 Usage: scripts/scan_stats.py SCAN.bin [--labels SCAN.label] [SCAN.bin [--labels ...]] ...
        scripts/scan_stats.py --sequence ROOT/sequences/SS [--scans N]   (each scan with labels)
@@ -115,6 +117,91 @@ def ground_plane(pts):
             keep.mean())
 
 
+GROUND_CELL_CLASSES = {5: "road", 6: "sidewalk", 12: "terrain"}
+
+
+def ground_cells(pts, cls):
+    """The 0.4 m cells within 20 m of the sensor whose points (at least 3) are all road, all
+    sidewalk or all terrain: their indices, class, median height, range, and for terrain cells
+    the distance to the nearest sidewalk cell and the height against it (NaN otherwise)."""
+    near = np.hypot(pts[:, 0], pts[:, 1]) < 20
+    p, c = pts[near], cls[near]
+    ij = np.floor(p[:, :2] / 0.4).astype(np.int64)
+    key = ij[:, 0] * 1000 + ij[:, 1]
+    order = np.argsort(key, kind="stable")
+    key, p, c, ij = key[order], p[order], c[order], ij[order]
+    _, start, count = np.unique(key, return_index=True, return_counts=True)
+    cells = []
+    for s, n in zip(start, count):
+        cc = c[s:s + n]
+        if n >= 3 and cc[0] in GROUND_CELL_CLASSES and (cc == cc[0]).all():
+            cells.append((ij[s, 0], ij[s, 1], cc[0], np.median(p[s:s + n, 2]),
+                          np.hypot(*p[s, :2]), np.nan, np.nan))
+    cells = np.array(cells, dtype=float).reshape(-1, 7)
+    walk, grass = cells[cells[:, 2] == 6], np.flatnonzero(cells[:, 2] == 12)
+    if len(walk) and len(grass):
+        d = np.hypot(cells[grass, 0, None] - walk[None, :, 0],
+                     cells[grass, 1, None] - walk[None, :, 1])
+        nearest = d.argmin(axis=1)
+        cells[grass, 5] = 0.4 * d[np.arange(len(grass)), nearest]
+        cells[grass, 6] = cells[grass, 3] - walk[nearest, 3]
+    return cells
+
+
+def ground_cell_report(cells):
+    """Per ground class the cells' heights relative to the median road cell within 15 m, and
+    which ground class lies beside which: the shares of each class's 8-neighbour contacts with
+    the other two (the street's cross-section: road | sidewalk | grass, or road | grass |
+    sidewalk)."""
+    road = cells[(cells[:, 2] == 5) & (cells[:, 4] < 15)]
+    if len(road) == 0:
+        return
+    z0 = np.median(road[:, 3])
+    print("ground cells (0.4 m, within 20 m, one class, at least 3 points), height relative to "
+          f"the median road cell within 15 m ({z0:.2f}):")
+    for c, name in GROUND_CELL_CLASSES.items():
+        z = cells[cells[:, 2] == c, 3] - z0
+        print(f"  {name:9s} {len(z):5d} cells, height p10 p50 p90 {pct(z, [10, 50, 90])}")
+    grass = cells[np.isfinite(cells[:, 5])]
+    bands = []
+    for lo, hi in [(0, 1.5), (1.5, 3), (3, 6), (6, 12)]:
+        dz = grass[(grass[:, 5] >= lo) & (grass[:, 5] < hi), 6]
+        if dz.size:
+            bands.append(f"{lo:g}-{hi:g} m {pct(dz, [10, 50, 90]).strip()}")
+    if bands:
+        print("  terrain against the nearest sidewalk cell, by distance to it, height p10 p50 "
+              "p90: " + "; ".join(bands))
+    where = {(int(c[0]), int(c[1])): int(c[2]) for c in cells}
+    contacts = {}
+    for (i, j), c in where.items():
+        for di in (-1, 0, 1):
+            for dj in (-1, 0, 1):
+                o = where.get((i + di, j + dj))
+                if o is not None and o != c:
+                    contacts[(c, o)] = contacts.get((c, o), 0) + 1
+    parts = []
+    for c, name in GROUND_CELL_CLASSES.items():
+        total = sum(n for (a, _), n in contacts.items() if a == c)
+        if total:
+            parts.append(f"{name}: " + ", ".join(
+                f"{GROUND_CELL_CLASSES[o]} {contacts.get((c, o), 0) / total:.2f}"
+                for o in GROUND_CELL_CLASSES if o != c))
+    print("  contacts (share of each class's neighbours of another ground class): " +
+          "; ".join(parts))
+
+
+def ground_cell_report_pooled(pooled):
+    """ground_cell_report over several scans: each scan's cells shifted to its own road level
+    and kept apart (cell indices offset per scan) so that no contact joins two scans."""
+    parts = []
+    for n, (cells, z0) in enumerate(pooled):
+        shifted = cells.copy()
+        shifted[:, 3] -= z0
+        shifted[:, 0] += 100000 * (n + 1)
+        parts.append(shifted)
+    ground_cell_report(np.concatenate(parts))
+
+
 def overlap(a, b):
     """Overlap of two reflectance histograms (sum of the minimum of the normalised bins)."""
     if a.size == 0 or b.size == 0:
@@ -155,7 +242,7 @@ def report(path, label_path):
         print(f"ground plane 3-15 m: height {plane[0]:.2f} m, pitch {plane[1]:.2f} deg (rising "
               f"ahead), roll {plane[2]:.2f} deg (rising to the left), cells on it {plane[3]:.2f}")
     if not label_path:
-        return
+        return None
     cls = load_classes(label_path, len(pts))
     print(f"{'class':13s} {'points':>7s} | {'z p5   p50   p95':>20s} | "
           f"{'refl p10 p50  p90':>20s} | {'range p10 p50 p90':>20s}")
@@ -177,6 +264,9 @@ def report(path, label_path):
         near = road[rr < 20]
         print(f"road within 20 m: z p5 p50 p95 {pct(near[:, 2], [5, 50, 95])}, "
               f"std {near[:, 2].std():.3f}")
+    cells = ground_cells(pts, cls)
+    ground_cell_report(cells)
+    return cells
 
 
 def main():
@@ -186,7 +276,7 @@ def main():
                    help="labels of the scan before it (in order)")
     p.add_argument("--sequence", help="a SemanticKITTI sequence directory")
     p.add_argument("--scans", dest="count", type=int, default=0, help="with --sequence: at most N")
-    a = p.parse_args()
+    a = p.parse_intermixed_args()
     jobs = []
     if a.sequence:
         vel = os.path.join(a.sequence, "velodyne")
@@ -204,11 +294,20 @@ def main():
         jobs.append((s, a.labels[i] if i < len(a.labels) else None))
     if not jobs:
         p.error("no scans given")
+    pooled = []
     for scan, lab in jobs:
         if not os.path.exists(scan):
             sys.exit(f"{scan}: no such file")
-        report(scan, lab)
+        cells = report(scan, lab)
+        if cells is not None and len(cells):
+            # Relative to each scan's own road, so that the scans pool.
+            road = cells[(cells[:, 2] == 5) & (cells[:, 4] < 15), 3]
+            if len(road):
+                pooled.append((cells, np.median(road)))
         print()
+    if len(pooled) > 1:
+        print(f"== the {len(pooled)} labelled scans pooled")
+        ground_cell_report_pooled(pooled)
 
 
 if __name__ == "__main__":
