@@ -32,7 +32,7 @@
 #include "core/rng.hpp"
 #include "core/ops.hpp"
 #include "engine/cpu/bf16_conv.hpp"
-#include "engine/model/backend.hpp"
+#include "engine/backend/backend.hpp"
 #include "engine/model/pillarsegnet.hpp"
 #include "host/conv2d.hpp"
 

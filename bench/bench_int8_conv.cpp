@@ -28,9 +28,9 @@
 #include "bench/support/step_timing.hpp"
 #include "core/ops.hpp"
 #include "core/parallel.hpp"
+#include "engine/backend/backend.hpp"
 #include "engine/cpu/bf16_conv.hpp"
 #include "engine/cpu/int8_conv.hpp"
-#include "engine/model/backend.hpp"
 #include "engine/model/pillarsegnet.hpp"
 #include "weights_io/half.hpp"
 

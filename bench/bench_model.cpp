@@ -45,7 +45,7 @@
 #include "bench/support/report.hpp"
 #include "bench/support/step_timing.hpp"
 #include "core/parallel.hpp"
-#include "engine/model/backend.hpp"
+#include "engine/backend/backend.hpp"
 #include "engine/model/pillarsegnet.hpp"
 
 using namespace pillarseg;

@@ -8,7 +8,7 @@
 #include <memory>
 
 #include "core/error.hpp"
-#include "engine/model/backend.hpp"
+#include "engine/backend/backend.hpp"
 #include "engine/model/pillarsegnet.hpp"
 #include "engine/train/checkpoint.hpp"
 #include "engine/train/run_config.hpp"

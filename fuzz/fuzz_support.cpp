@@ -10,7 +10,7 @@
 #include <fstream>
 
 #include "core/io.hpp"
-#include "engine/model/backend.hpp"
+#include "engine/backend/backend.hpp"
 #include "engine/model/pillarsegnet.hpp"
 #include "engine/train/checkpoint.hpp"
 #include "engine/train/run_config.hpp"

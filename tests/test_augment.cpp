@@ -14,8 +14,8 @@
 
 #include "core/eigen.hpp"
 #include "core/error.hpp"
+#include "engine/backend/backend.hpp"
 #include "engine/data/augment.hpp"
-#include "engine/model/backend.hpp"
 #include "engine/pipeline/scan_inputs.hpp"
 #include "engine/pipeline/scan_pipeline.hpp"
 #include "engine/train/run_config.hpp"

@@ -43,7 +43,7 @@
 #include <vector>
 
 #include "core/tensor.hpp"
-#include "engine/model/backend.hpp"
+#include "engine/backend/backend.hpp"
 
 namespace pillarseg::cpu {
 

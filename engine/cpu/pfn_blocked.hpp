@@ -17,7 +17,7 @@
 // the thread count. The points' own gradient is not computed (they are the network's input).
 #pragma once
 
-#include "engine/model/backend.hpp"
+#include "engine/backend/backend.hpp"
 
 namespace pillarseg::cpu {
 

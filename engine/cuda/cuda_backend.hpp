@@ -1,4 +1,4 @@
-// CudaBackend: the Backend interface (engine/model/backend.hpp) on the CUDA kernels of kernels/,
+// CudaBackend: the Backend interface (engine/backend/backend.hpp) on the CUDA kernels of kernels/,
 // every op of the network one or more kernel launches on the backend's own stream, nothing on the
 // host. The same source builds two libraries, as the kernels do: pillarseg_cuda_backend (nvcc
 // kernels, a GPU) and pillarseg_cuda_backend_emu (the kernels on the CUDA emulation, what the
@@ -33,9 +33,9 @@
 #include <memory>
 #include <string>
 
+#include "engine/backend/backend.hpp"
 #include "engine/cuda/install.hpp"
 #include "engine/cuda/vendor_conv.hpp"
-#include "engine/model/backend.hpp"
 #include "kernels/cuda_handles.hpp"
 #include "kernels/device_buffer.hpp"
 #include "kernels/losses.cuh"

@@ -1,4 +1,4 @@
-// Installing the CUDA backends into make_backend() (engine/model/backend.hpp). The engine holds no
+// Installing the CUDA backends into make_backend() (engine/backend/backend.hpp). The engine holds no
 // CUDA code; each CUDA backend library defines its installer, and a program calls the ones it
 // links: the command line and the library call both.
 #pragma once

@@ -12,7 +12,7 @@
 #include <vector>
 
 #include "core/error.hpp"
-#include "engine/model/backend.hpp"
+#include "engine/backend/backend.hpp"
 #include "engine/model/model_graph.hpp"
 #include "engine/model/parameters.hpp"
 

@@ -12,7 +12,7 @@
 #include <string>
 #include <vector>
 
-#include "engine/model/backend.hpp"
+#include "engine/backend/backend.hpp"
 #include "engine/model/config.hpp"
 #include "engine/model/graph.hpp"
 #include "engine/model/parameters.hpp"

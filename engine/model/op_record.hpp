@@ -19,7 +19,7 @@
 #include <vector>
 
 #include "core/dtype.hpp"
-#include "engine/model/backend.hpp"
+#include "engine/backend/backend.hpp"
 
 namespace pillarseg {
 

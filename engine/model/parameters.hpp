@@ -11,7 +11,7 @@
 #include <string>
 #include <vector>
 
-#include "engine/model/backend.hpp"
+#include "engine/backend/backend.hpp"
 
 namespace pillarseg {
 

@@ -24,7 +24,7 @@
 #include <vector>
 
 #include "core/tensor.hpp"
-#include "engine/model/backend.hpp"
+#include "engine/backend/backend.hpp"
 #include "engine/model/config.hpp"
 #include "engine/model/graph.hpp"
 #include "engine/model/parameters.hpp"

@@ -27,7 +27,7 @@
 
 #include "core/eigen.hpp"
 #include "core/point.hpp"
-#include "engine/model/backend.hpp"
+#include "engine/backend/backend.hpp"
 #include "engine/model/config.hpp"
 #include "engine/model/pillarsegnet.hpp"
 #include "host/pillar_gather.hpp"

@@ -22,8 +22,8 @@
 #include <vector>
 
 #include "core/point.hpp"
+#include "engine/backend/backend.hpp"
 #include "engine/data/input_mapping.hpp"
-#include "engine/model/backend.hpp"
 #include "engine/model/config.hpp"
 #include "engine/model/pillarsegnet.hpp"
 #include "engine/pipeline/scan_pipeline.hpp"

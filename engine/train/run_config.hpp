@@ -14,7 +14,7 @@
 #include "engine/data/augment.hpp"
 #include "engine/data/input_mapping.hpp"
 #include "engine/data/ground_truth.hpp"
-#include "engine/model/backend.hpp"
+#include "engine/backend/backend.hpp"
 #include "engine/model/config.hpp"
 
 namespace pillarseg {

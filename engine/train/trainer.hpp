@@ -15,7 +15,7 @@
 #include <string>
 #include <string_view>
 
-#include "engine/model/backend.hpp"
+#include "engine/backend/backend.hpp"
 #include "core/replicas.hpp"
 #include "engine/train/run_config.hpp"
 

@@ -20,7 +20,7 @@
 #include "engine/cpu/bf16_conv.hpp"
 #include "engine/cpu/int8_conv.hpp"
 #include "engine/cpu/pfn_blocked.hpp"
-#include "engine/model/backend.hpp"
+#include "engine/backend/backend.hpp"
 #include "host/adam.hpp"
 #include "host/batchnorm.hpp"
 #include "host/conv2d.hpp"

@@ -1,4 +1,4 @@
-#include "engine/model/backend.hpp"
+#include "engine/backend/backend.hpp"
 
 #include <algorithm>
 #include <array>
