@@ -22,9 +22,9 @@
 #include "core/parallel.hpp"
 #include "engine/cuda/install.hpp"
 #include "engine/data/point_formats.hpp"
+#include "engine/model/checkpoint.hpp"
 #include "engine/pipeline/segmenter.hpp"
 #include "engine/sim/simulate.hpp"
-#include "engine/train/checkpoint.hpp"
 #include "pillarseg/pillarseg.h"
 
 using namespace pillarseg;

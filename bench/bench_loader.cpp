@@ -16,9 +16,9 @@
 
 #include "core/classes.hpp"
 #include "core/parallel.hpp"
+#include "engine/model/run_config.hpp"
+#include "engine/pipeline/dataset.hpp"
 #include "engine/sim/simulate.hpp"
-#include "engine/train/dataset.hpp"
-#include "engine/train/run_config.hpp"
 
 using namespace pillarseg;
 namespace fs = std::filesystem;

@@ -18,7 +18,7 @@
 #include <vector>
 
 #include "core/error.hpp"
-#include "engine/train/run_config.hpp"
+#include "engine/model/run_config.hpp"
 #include "fuzz/fuzz_support.hpp"
 #include "pillarseg/pillarseg.h"
 

@@ -1,4 +1,4 @@
-// Fuzz target: a checkpoint (engine/train/checkpoint.hpp) as `pillarseg eval`, `infer` and
+// Fuzz target: a checkpoint (engine/model/checkpoint.hpp) as `pillarseg eval`, `infer` and
 // pillarseg_open read it: read_checkpoint (the safetensors file and its metadata: the run config,
 // epoch, step, best mIoU and epoch), config_for (a weights-only file's architecture from its
 // tensor shapes, engine/model/architecture.hpp) and load_weights into the tiny model
@@ -9,9 +9,9 @@
 
 #include "core/error.hpp"
 #include "engine/backend/backend.hpp"
+#include "engine/model/checkpoint.hpp"
 #include "engine/model/pillarsegnet.hpp"
-#include "engine/train/checkpoint.hpp"
-#include "engine/train/run_config.hpp"
+#include "engine/model/run_config.hpp"
 #include "fuzz/fuzz_support.hpp"
 
 namespace fuzz = pillarseg::fuzz;

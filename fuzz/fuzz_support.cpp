@@ -11,9 +11,9 @@
 
 #include "core/io.hpp"
 #include "engine/backend/backend.hpp"
+#include "engine/model/checkpoint.hpp"
 #include "engine/model/pillarsegnet.hpp"
-#include "engine/train/checkpoint.hpp"
-#include "engine/train/run_config.hpp"
+#include "engine/model/run_config.hpp"
 
 namespace pillarseg::fuzz {
 

@@ -1,4 +1,4 @@
-// Fuzz target: the run-config YAML, parse_run_config (engine/train/run_config.hpp), the text of
+// Fuzz target: the run-config YAML, parse_run_config (engine/model/run_config.hpp), the text of
 // --config and of every checkpoint's metadata. A config that parses has a valid model whose cell
 // counts span its ranges (width x cell = x range, likewise y and z).
 #include <cmath>
@@ -7,7 +7,7 @@
 #include <string>
 
 #include "core/error.hpp"
-#include "engine/train/run_config.hpp"
+#include "engine/model/run_config.hpp"
 #include "fuzz/fuzz_support.hpp"
 
 namespace fuzz = pillarseg::fuzz;

@@ -3,11 +3,14 @@
 
 core/ includes only core/; host/, kernels/ and weights_io/ include only core/ and their own
 folder; the public headers in include/pillarseg/ include only each other and system headers.
-engine/, tests/, bench/ and examples/ may include anything below them. Prints every include that
-breaks a rule (file:line: what) and exits 1 if there is one.
+engine/, tests/, bench/ and examples/ may include anything below them. Inside engine/, the
+sub-folders (backend/, model/, cpu/, ...) form layers too: their includes of each other have no
+cycle. Prints every include that breaks a rule (file:line: what) and every cycle (the folders,
+then each include that makes one of its steps) and exits 1 if there is one.
 
 Usage: check_layers.py [SOURCE_DIR]   (default: the directory above this script)
 """
+import collections
 import pathlib
 import re
 import sys
@@ -43,15 +46,119 @@ def violations(root):
                           ", ".join(sorted(a + "/" for a in allowed)) + ")"
 
 
+def engine_includes(root):
+    """{(folder, included folder): ["file:line: \"target\"", ...]} between engine/'s sub-folders."""
+    edges = collections.defaultdict(list)
+    engine = root / "engine"
+    if not engine.is_dir():
+        return edges
+    for path in sorted(engine.rglob("*")):
+        if path.suffix not in SUFFIXES or not path.is_file():
+            continue
+        parts = path.relative_to(engine).parts
+        if len(parts) < 2:
+            continue
+        for number, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
+            match = QUOTED.match(line)
+            if not match:
+                continue
+            target = match.group(1).split("/")
+            if len(target) < 3 or target[0] != "engine" or target[1] == parts[0]:
+                continue
+            edges[(parts[0], target[1])].append(f"{path.relative_to(root)}:{number}: \"{match.group(1)}\"")
+    return edges
+
+
+def strongly_connected(nodes, successors):
+    """Tarjan's components of the graph, each a sorted list (the graph is a few dozen folders)."""
+    index, low, on_stack, stack, found = {}, {}, set(), [], []
+
+    def visit(v):
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in successors[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            found.append(sorted(component))
+
+    for v in sorted(nodes):
+        if v not in index:
+            visit(v)
+    return found
+
+
+def shortest_cycle(start, members, successors):
+    """The shortest path start -> ... -> start through `members` (breadth first)."""
+    previous = {}
+    queue = collections.deque([start])
+    while queue:
+        v = queue.popleft()
+        for w in successors[v]:
+            if w not in members:
+                continue
+            if w == start:
+                path = [v]
+                while path[-1] != start:
+                    path.append(previous[path[-1]])
+                return list(reversed(path)) + [start]
+            if w not in previous:
+                previous[w] = v
+                queue.append(w)
+    return [start]
+
+
+def engine_cycles(root):
+    """One message per cycle of includes between engine/'s sub-folders, with the includes of each
+    step: in each strongly connected set of folders, the shortest cycle through each folder (the
+    same cycle reached from two of its folders once)."""
+    edges = engine_includes(root)
+    successors = collections.defaultdict(list)
+    for source, target in sorted(edges):
+        successors[source].append(target)
+    nodes = {folder for edge in edges for folder in edge}
+    seen = set()
+    for component in strongly_connected(nodes, successors):
+        if len(component) < 2:
+            continue
+        for start in component:
+            cycle = shortest_cycle(start, set(component), successors)
+            steps = frozenset(zip(cycle, cycle[1:]))
+            if steps in seen:
+                continue
+            seen.add(steps)
+            lines = ["engine/ sub-folders include each other in a cycle: " +
+                     " -> ".join(folder + "/" for folder in cycle)]
+            for source, target in zip(cycle, cycle[1:]):
+                lines += ["  " + include for include in edges[(source, target)]]
+            yield "\n".join(lines)
+
+
 def main():
     root = pathlib.Path(sys.argv[1] if len(sys.argv) > 1 else pathlib.Path(__file__).parent.parent)
     found = list(violations(root.resolve()))
-    for v in found:
+    cycles = list(engine_cycles(root.resolve()))
+    for v in found + cycles:
         print(v)
     if found:
         print(f"check_layers: {len(found)} include(s) point up or sideways")
+    if cycles:
+        print(f"check_layers: {len(cycles)} cycle(s) of includes between engine/'s sub-folders")
+    if found or cycles:
         return 1
-    print("check_layers: every layer includes only the layers below it")
+    print("check_layers: every layer includes only the layers below it, and engine/'s sub-folders "
+          "include each other without a cycle")
     return 0
 
 

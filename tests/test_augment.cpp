@@ -16,9 +16,9 @@
 #include "core/error.hpp"
 #include "engine/backend/backend.hpp"
 #include "engine/data/augment.hpp"
+#include "engine/model/run_config.hpp"
 #include "engine/pipeline/scan_inputs.hpp"
 #include "engine/pipeline/scan_pipeline.hpp"
-#include "engine/train/run_config.hpp"
 #include "tests/support/tiny_model.hpp"
 
 using namespace pillarseg;

@@ -5,7 +5,7 @@
 #include <filesystem>
 
 #include "core/error.hpp"
-#include "engine/train/run_config.hpp"
+#include "engine/model/run_config.hpp"
 
 using namespace pillarseg;
 namespace fs = std::filesystem;

@@ -24,8 +24,8 @@
 
 #include "core/error.hpp"
 #include "engine/model/architecture.hpp"
+#include "engine/model/checkpoint.hpp"
 #include "engine/model/pillarsegnet.hpp"
-#include "engine/train/checkpoint.hpp"
 #include "tests/support/test_support.hpp"
 #include "weights_io/safetensors.hpp"
 

@@ -12,9 +12,9 @@
 #include "engine/cpu/int8_conv.hpp"
 #include "engine/cuda/cuda_backend.hpp"
 #include "engine/model/calibration.hpp"
+#include "engine/model/checkpoint.hpp"
 #include "engine/model/model_graph.hpp"
 #include "engine/model/pillarsegnet.hpp"
-#include "engine/train/checkpoint.hpp"
 #include "tests/support/test_support.hpp"
 #include "tests/support/tiny_model.hpp"
 

@@ -23,8 +23,8 @@
 #include "engine/model/graph.hpp"  // memory_report() in failure messages
 #include "engine/model/memory_estimate.hpp"
 #include "engine/model/pillarsegnet.hpp"
+#include "engine/model/run_config.hpp"
 #include "engine/pipeline/segmenter.hpp"
-#include "engine/train/run_config.hpp"
 #include "tests/support/test_support.hpp"
 
 using namespace pillarseg;

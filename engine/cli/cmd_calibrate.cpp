@@ -13,9 +13,9 @@
 #include "engine/cli/commands.hpp"
 #include "engine/data/semantickitti.hpp"
 #include "engine/model/calibration.hpp"
+#include "engine/model/checkpoint.hpp"
 #include "engine/model/model_graph.hpp"
 #include "engine/pipeline/segmenter.hpp"
-#include "engine/train/checkpoint.hpp"
 #include "engine/util/progress.hpp"
 
 namespace pillarseg::cli {

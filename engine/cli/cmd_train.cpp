@@ -12,8 +12,8 @@
 #include "engine/cli/cli_util.hpp"
 #include "engine/cli/commands.hpp"
 #include "engine/eval/evaluate.hpp"
+#include "engine/model/checkpoint.hpp"
 #include "engine/model/memory_estimate.hpp"
-#include "engine/train/checkpoint.hpp"
 #include "engine/train/trainer.hpp"
 #if defined(PILLARSEG_HAVE_MPI)
 #include "engine/mpi/mpi_replicas.hpp"

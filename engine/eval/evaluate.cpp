@@ -1,6 +1,6 @@
 #include "engine/eval/evaluate.hpp"
 
-#include "engine/train/dataset.hpp"
+#include "engine/pipeline/dataset.hpp"
 #include "engine/util/progress.hpp"
 
 namespace pillarseg {

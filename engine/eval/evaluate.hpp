@@ -11,8 +11,8 @@
 #include "engine/data/ground_truth.hpp"
 #include "engine/eval/metrics.hpp"
 #include "engine/model/pillarsegnet.hpp"
+#include "engine/model/run_config.hpp"
 #include "engine/pipeline/segmenter.hpp"
-#include "engine/train/run_config.hpp"
 
 namespace pillarseg {
 

@@ -27,7 +27,7 @@
 // per-output-channel scales max |w'| / 127 of the weights with the BatchNorm folded in, for
 // inspection: the backends derive them again from the weights), key the convolution's parameter
 // prefix ("segmentation_head.down1.maxpool_conv.1.double_conv.0"). Loaders that do not know them
-// skip them (engine/train/checkpoint.cpp), so a calibrated file loads as FP32 anywhere.
+// skip them (engine/model/checkpoint.cpp), so a calibrated file loads as FP32 anywhere.
 #pragma once
 
 #include <cstdint>

@@ -6,7 +6,7 @@
 
 #include "core/error.hpp"
 #include "core/parallel.hpp"
-#include "engine/train/checkpoint.hpp"
+#include "engine/model/checkpoint.hpp"
 
 namespace pillarseg {
 

@@ -17,7 +17,7 @@
 
 #include "engine/backend/backend.hpp"
 #include "core/replicas.hpp"
-#include "engine/train/run_config.hpp"
+#include "engine/model/run_config.hpp"
 
 namespace pillarseg {
 

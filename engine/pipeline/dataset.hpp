@@ -11,8 +11,8 @@
 #include <vector>
 
 #include "engine/data/ground_truth.hpp"
+#include "engine/model/run_config.hpp"
 #include "engine/pipeline/scan_inputs.hpp"
-#include "engine/train/run_config.hpp"
 
 namespace pillarseg {
 

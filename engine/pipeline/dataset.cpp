@@ -1,4 +1,4 @@
-#include "engine/train/dataset.hpp"
+#include "engine/pipeline/dataset.hpp"
 
 #include <fmt/format.h>
 

@@ -11,7 +11,7 @@
 #include <optional>
 
 #include "engine/model/pillarsegnet.hpp"
-#include "engine/train/run_config.hpp"
+#include "engine/model/run_config.hpp"
 #include "weights_io/safetensors.hpp"
 
 namespace pillarseg {

@@ -1,4 +1,4 @@
-#include "engine/train/run_config.hpp"
+#include "engine/model/run_config.hpp"
 
 #include <yaml-cpp/yaml.h>
 

@@ -1,4 +1,4 @@
-#include "engine/train/checkpoint.hpp"
+#include "engine/model/checkpoint.hpp"
 
 #include <fmt/format.h>
 
