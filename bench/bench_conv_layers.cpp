@@ -33,7 +33,6 @@
 #include "core/ops.hpp"
 #include "engine/cpu/bf16_conv.hpp"
 #include "engine/backend/backend.hpp"
-#include "engine/model/pillarsegnet.hpp"
 #include "host/conv2d.hpp"
 
 using namespace pillarseg;
@@ -164,7 +163,7 @@ void BM_Conv3x3(benchmark::State& state, const Layer& l) {
   PeerProcess* peer = conv_peer() && conv_peer()->ok() ? &*conv_peer() : nullptr;
   const std::string command = fmt::format("conv3x3 {}:{}:{}:{}", l.in, l.out, l.h, l.w);
   LayerResult r{
-      l.name, fmt::format("{} -> {} @ {}x{}", l.in, l.out, l.h, l.w), l.flops() * 1e-9, {}, {}, {}, {}, {}, {}};
+      l.name, fmt::format("{} -> {} @ {}x{}", l.in, l.out, l.h, l.w), l.flops * 1e-9, {}, {}, {}, {}, {}, {}};
   int64_t pair = 0;
   for (auto _ : state) {
     // The order alternates so that a load rising or falling through the run weighs on both.
@@ -200,7 +199,7 @@ void BM_Conv3x3(benchmark::State& state, const Layer& l) {
     }
   }
   if (peer && !peer->ok()) finish_conv_peer();
-  set_rate_counters(state, l.flops(), r.ours);
+  set_rate_counters(state, l.flops, r.ours);
   set_peer_counters(state, r.ours, r.torch);
   g_layers.push_back(std::move(r));
 }
@@ -210,9 +209,7 @@ void BM_Conv3x3(benchmark::State& state, const Layer& l) {
 std::vector<Layer> conv3x3_layers() {
   std::vector<Layer> all;
   for (bool transposed : {false, true}) {
-    auto backend = make_cpu_backend();
-    const PillarSegNet net(config_of("full", transposed), *backend);
-    for (Layer l : forward_layers(net, 1, 0)) {
+    for (Layer l : forward_layers(config_of("full", transposed), 1, 0)) {
       if (l.kind != Layer::Kind::Conv || l.k != 3) continue;
       const bool seen = std::any_of(all.begin(), all.end(), [&](const Layer& o) {
         return o.in == l.in && o.out == l.out && o.h == l.h && o.w == l.w;

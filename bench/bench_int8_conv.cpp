@@ -31,7 +31,6 @@
 #include "engine/backend/backend.hpp"
 #include "engine/cpu/bf16_conv.hpp"
 #include "engine/cpu/int8_conv.hpp"
-#include "engine/model/pillarsegnet.hpp"
 #include "weights_io/half.hpp"
 
 using namespace pillarseg;
@@ -214,10 +213,8 @@ void BM_Layer(benchmark::State& state, const Layer& l) {
 
 // Every 3x3 convolution of the full-size U-Net (bilinear upsampling, the default), batch 1.
 std::vector<Layer> unet_3x3_layers() {
-  const std::unique_ptr<Backend> backend = make_cpu_backend();
-  const PillarSegNet net(config_of("full", false), *backend);
   std::vector<Layer> layers;
-  for (Layer l : forward_layers(net, 1, 0)) {
+  for (Layer l : forward_layers(config_of("full", false), 1, 0)) {
     if (l.kind != Layer::Kind::Conv || l.k != 3) continue;
     l.name = l.name.substr(l.name.find('.') + 1);  // drop segmentation_head.
     layers.push_back(l);
@@ -263,7 +260,7 @@ void print_table() {
   } fp32, bf16, bf16_amx, vnni, amx, winograd, non_negative;
   double gop_sum = 0.0;
   for (const LayerResult& r : g_results) {
-    const double gop = r.layer.flops() * 1e-9;
+    const double gop = r.layer.flops * 1e-9;
     const auto rate = [&](const StepTimes& t) {
       return t.wall.empty() ? std::string("-") : fmt::format("{:.0f}", gop / t.wall_median());
     };

@@ -15,8 +15,9 @@
 // -> every non-empty pillar, N = 20 points, decorated (P, N, 10); labels: the sparse ground
 // truth (B, H, W).
 // FLOPs: 2 x the multiply-adds of every conv, transposed conv and linear layer of one forward,
-// from the model's parameter shapes and the level each runs at; a training step counts 3 x
-// that (each layer's backward computes dx and dw, each as many multiply-adds as its forward).
+// the op records' counts over the model's evaluation graph (bench/support/model_layers.hpp, the
+// figures of `pillarseg bench --ops`); a training step counts 3 x that (each layer's backward
+// computes dx and dw, each as many multiply-adds as its forward).
 // Each model case: one warm-up step on each side, then --reps timed steps each; reported:
 // median wall ms, GFLOP/s at it, the median process CPU time of a step (all threads: on a
 // shared machine it varies less with the load than the wall time does), and the peak RSS of
@@ -147,7 +148,7 @@ void BM_Model(benchmark::State& state, const ModelCase& c) {
   PillarSegNet net(config_of(c.size, c.transposed), backend, /*seed=*/1);
   const double step_flops =
       (c.training ? 3.0 : 1.0) *
-      total_flops(forward_layers(net, s.batch, s.inputs.pillar_points.dim(0)));
+      total_flops(forward_layers(net.config(), s.batch, s.inputs.pillar_points.dim(0)));
   int64_t adam_steps = 0;
   model_step(net, backend, s, c.training,
              adam_steps);  // warm-up: plans and first-touches the arenas

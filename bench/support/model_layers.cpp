@@ -1,46 +1,48 @@
 #include "bench/support/model_layers.hpp"
 
+#include <memory>
+#include <string>
+
+#include "engine/backend/backend.hpp"
+#include "engine/model/model_graph.hpp"
+#include "engine/model/op_record.hpp"
+#include "engine/model/parameters.hpp"
+
 namespace pillarseg::bench {
 
-// Level (0 = input resolution, i = after i poolings) of a U-Net parameter, from its name:
-// downI runs at level I, upJ's convs at depth - J, upJ's transposed conv reads level depth-J+1,
-// outc and the occupancy stream at 0.
-namespace {
-
-int level_of(const std::string& name, int depth) {
-  const auto number_after = [&](const std::string& prefix) {
-    return std::stoi(name.substr(prefix.size()));
+std::vector<Layer> forward_layers(const ModelConfig& config, int batch, int64_t pillars) {
+  // The parameters as the model declares them (never finalized: nothing is allocated), and the
+  // graph the model would run on them.
+  const std::unique_ptr<Backend> host = make_cpu_reference_backend();
+  ParameterSet ps(*host);
+  const Modules modules = declare_modules(config, ps);
+  ModelGraph g;
+  build_model_graph(g, config, modules, ps, /*backend=*/nullptr, batch, /*training=*/false, Precision::F32,
+                    pillars);
+  const auto shape = [&](int id) -> const Shape& { return g.graph.at(id).shape; };
+  const auto name_of = [&](int weight) {
+    const std::string& name = ps.entries().at(static_cast<size_t>(g.graph.at(weight).parameter)).name;
+    return name.substr(0, name.rfind('.'));
   };
-  if (name.rfind("segmentation_head.down", 0) == 0) return number_after("segmentation_head.down");
-  if (name.rfind("segmentation_head.up", 0) == 0) {
-    const int j = number_after("segmentation_head.up");
-    return name.find(".up.weight") != std::string::npos ? depth - j + 1 : depth - j;
-  }
-  return 0;
-}
-
-}  // namespace
-
-std::vector<Layer> forward_layers(const PillarSegNet& net, int batch, int64_t pillars) {
-  const ModelConfig& c = net.config();
-  std::vector<int64_t> hs{c.grid.height()}, ws{c.grid.width()};
-  for (int i = 1; i <= c.depth; ++i) hs.push_back(hs.back() / 2), ws.push_back(ws.back() / 2);
   std::vector<Layer> layers;
-  for (const ParamEntry& e : net.parameters().entries()) {
-    if (!e.trainable) continue;
+  for (const GraphNode& n : g.graph.nodes()) {
     Layer l;
-    l.name = e.name.substr(0, e.name.rfind('.'));
-    if (e.name == "vfe.pfn_layers.0.linear.weight") {
-      l.kind = Layer::Kind::Linear;
-      l.out = e.shape[0], l.in = e.shape[1], l.h = pillars * c.max_points_per_pillar;
-    } else if (e.shape.size() == 4) {
-      const size_t level = static_cast<size_t>(level_of(e.name, c.depth));
-      const bool transposed = e.name.find(".up.weight") != std::string::npos;
-      l.kind = transposed ? Layer::Kind::Transposed : Layer::Kind::Conv;
-      l.batch = batch;
-      l.in = transposed ? e.shape[0] : e.shape[1];
-      l.out = transposed ? e.shape[1] : e.shape[0];
-      l.k = e.shape[2], l.h = hs.at(level), l.w = ws.at(level);
+    l.flops = n.flops;
+    if (n.op == OpKind::PfnForward) {
+      const auto a = n.as<PfnForwardArgs>();
+      const Shape &points = shape(a.points), &w = shape(a.w);  // (P, N, 10), (C, 10)
+      l.kind = Layer::Kind::Linear, l.name = name_of(a.w);
+      l.out = w[0], l.in = w[1], l.h = points[0] * points[1];
+    } else if (n.op == OpKind::Conv2d || n.op == OpKind::Conv2dBnReluEval) {
+      const auto a = n.as<Conv2dArgs>();
+      const Shape &y = shape(a.y), &w = shape(a.w);  // (B, O, H, W), (O, I, k, k)
+      l.kind = Layer::Kind::Conv, l.name = name_of(a.w);
+      l.batch = y[0], l.out = w[0], l.in = w[1], l.k = w[2], l.h = y[2], l.w = y[3];
+    } else if (n.op == OpKind::ConvTranspose2d) {
+      const auto a = n.as<Conv2dArgs>();
+      const Shape &x = shape(a.x), &w = shape(a.w);  // (B, I, H, W), (I, O, 2, 2)
+      l.kind = Layer::Kind::Transposed, l.name = name_of(a.w);
+      l.batch = x[0], l.in = w[0], l.out = w[1], l.k = w[2], l.h = x[2], l.w = x[3];
     } else {
       continue;
     }
@@ -51,7 +53,7 @@ std::vector<Layer> forward_layers(const PillarSegNet& net, int batch, int64_t pi
 
 double total_flops(const std::vector<Layer>& layers) {
   double sum = 0.0;
-  for (const Layer& l : layers) sum += l.flops();
+  for (const Layer& l : layers) sum += l.flops;
   return sum;
 }
 
