@@ -129,7 +129,7 @@ Shape loss(const Shape& logits, const Shape& labels, const Shape& coefficients) 
   return logits;
 }
 
-Shape add(const Shape& a, const Shape& b) {
+Shape add_inplace(const Shape& a, const Shape& b) {
   PS_CHECK(a == b, "add: b must have a's shape {}, got {}", shape_str(a), shape_str(b));
   return a;
 }

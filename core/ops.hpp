@@ -51,7 +51,7 @@ Shape argmax(const Shape& logits);
 // id 0..K. Returns the logits' shape (that of their gradient).
 Shape loss(const Shape& logits, const Shape& labels, const Shape& coefficients);
 // a += b: b must have a's shape. Returns it.
-Shape add(const Shape& a, const Shape& b);
+Shape add_inplace(const Shape& a, const Shape& b);
 
 // The 16-bit weights of a tensor-core convolution (kernels/conv2d_mma.cuh), the GEMM's K in
 // tap-major order: k = t Ip + c for the kernel's spatial taps t (k k of them; one for a

@@ -132,9 +132,9 @@ void check_pad_concat_backward(const Graph& g, const GraphNode& n) {
   const auto a = n.as<PadConcatBackwardArgs>();
   require_shape(g, n, a.dy, op::pad_concat(shape_of(g, a.dskip), shape_of(g, a.dup)), "dy");
 }
-void check_add(const Graph& g, const GraphNode& n) {
+void check_add_inplace(const Graph& g, const GraphNode& n) {
   const auto a = n.as<AddInplaceArgs>();
-  op::add(shape_of(g, a.a), shape_of(g, a.b));
+  op::add_inplace(shape_of(g, a.a), shape_of(g, a.b));
 }
 void check_loss(const Graph& g, const GraphNode& n) {
   const auto a = n.as<LossArgs>();
@@ -495,7 +495,7 @@ std::vector<OpRecord> make_records() {
        nullptr, run_pad_concat},
       {OpKind::PadConcatBackward, "pad+concat backward", {{"dy", R, kF32}, {"dskip", W, kF32}, {"dup", W, kF32}},
        check_pad_concat_backward, nullptr, nullptr, run_pad_concat_backward},
-      {OpKind::AddInplace, "add (skip gradients)", {{"a", RW, kF32}, {"b", R, kF32}}, check_add, nullptr, nullptr,
+      {OpKind::AddInplace, "add (skip gradients)", {{"a", RW, kF32}, {"b", R, kF32}}, check_add_inplace, nullptr, nullptr,
        run_add_inplace},
       {OpKind::Loss, "loss",
        {{"logits", R, kF32}, {"labels", R, kU8}, {"coefficients", R, kF32}, {"dlogits", W, kF32}}, check_loss,
