@@ -33,6 +33,7 @@
 #include "core/ops.hpp"
 #include "engine/cpu/bf16_conv.hpp"
 #include "engine/backend/backend.hpp"
+#include "engine/cpu/half_ops.hpp"
 #include "host/conv2d.hpp"
 
 using namespace pillarseg;

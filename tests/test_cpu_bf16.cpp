@@ -24,6 +24,7 @@
 #include "core/parallel.hpp"
 #include "core/rng.hpp"
 #include "engine/cpu/bf16_conv.hpp"
+#include "engine/cpu/half_ops.hpp"
 #include "engine/cpu/bf16_isa_emulated.hpp"
 #include "engine/cuda/cuda_backend.hpp"
 #include "engine/model/pillarsegnet.hpp"

@@ -1,65 +1,27 @@
-// The CPU's BF16 convolutions and 16-bit data movement (bf16_conv.hpp): argument checks, the
+// The CPU's BF16 convolutions (bf16_conv.hpp): argument checks, the
 // GEMM descriptions for the micro-kernel, the run-time choice of its instructions, threads.
 #include "engine/cpu/bf16_conv.hpp"
 
-#if defined(__x86_64__)
-#include <cpuid.h>
-#include <sys/syscall.h>
-#include <unistd.h>
-#endif
-
 #include <algorithm>
-#include <cerrno>
 #include <cmath>
 #include <cstdlib>
 #include <cstring>
 #include <string>
-#include <string_view>
-#include <type_traits>
 #include <vector>
 
 #include "core/error.hpp"
-#include "core/bilinear_taps.hpp"
 #include "core/ops.hpp"
 #include "core/parallel.hpp"
 #include "engine/cpu/bf16_amx.hpp"
 #include "engine/cpu/bf16_isa_emulated.hpp"
 #include "engine/cpu/bf16_microkernel.hpp"
 #include "engine/cpu/bf16_winograd.hpp"
+#include "engine/cpu/half_ops.hpp"
 #include "weights_io/half.hpp"
 
 namespace pillarseg::cpu {
 
 namespace {
-
-std::uint16_t to_bits(float v, Precision p) {
-  return p == Precision::BF16 ? weights::float_to_bf16_bits(v) : weights::float_to_f16_bits(v);
-}
-
-// The 16-bit type as a compile-time value, so that its conversions inline into a loop: calls
-// f(std::true_type) for BF16, f(std::false_type) for FP16; inside f, half_value<decltype(h)::
-// value> and half_bits<...> convert.
-template <class F>
-void with_half_type(Precision p, F&& f) {
-  if (p == Precision::BF16) {
-    f(std::true_type{});
-  } else {
-    f(std::false_type{});
-  }
-}
-template <bool kBf16>
-float half_value(std::uint16_t bits) {
-  return kBf16 ? weights::bf16_bits_to_float(bits) : weights::f16_bits_to_float(bits);
-}
-template <bool kBf16>
-std::uint16_t half_bits(float v) {
-  return kBf16 ? weights::float_to_bf16_bits(v) : weights::float_to_f16_bits(v);
-}
-
-void require_half(const char* op, Precision p) {
-  PS_CHECK(p == Precision::BF16 || p == Precision::F16,
-           "{}: 16-bit activations need bf16 or fp16, got {}", op, precision_name(p));
-}
 
 // K's elements (t, c) for the spatial taps t and the channels c < channels, tap-major, each in
 // its column t Ip + c of the prepared weights, and a zero partner after a tap's last channel
@@ -112,90 +74,6 @@ void require_output(const char* op, const TensorRef& y, const Shape& expected) {
 }
 
 }  // namespace
-
-bool avx512_bf16_available(std::string* why_not) {
-#if defined(PILLARSEG_HAVE_AVX512_BF16_KERNELS)
-  __builtin_cpu_init();
-  // libgcc reports AVX-512 features only where the OS saves the ZMM registers (XCR0).
-  std::string missing;
-  const auto need = [&](bool present, const char* feature) {
-    if (!present) missing += (missing.empty() ? "" : ", ") + std::string(feature);
-  };
-  need(__builtin_cpu_supports("avx512f") != 0, "AVX512F");
-  need(__builtin_cpu_supports("avx512bw") != 0, "AVX512BW");
-  need(__builtin_cpu_supports("avx512vl") != 0, "AVX512VL");
-  need(__builtin_cpu_supports("avx512bf16") != 0, "AVX512_BF16");
-  if (missing.empty()) return true;
-  if (why_not != nullptr) *why_not = "this CPU (or its OS) lacks " + missing;
-  return false;
-#else
-  if (why_not != nullptr) {
-    *why_not =
-        "this build has no AVX512_BF16 micro-kernel (not an x86-64 target, or the compiler lacks "
-        "-mavx512bf16)";
-  }
-  return false;
-#endif
-}
-
-namespace {
-
-// The AMX check's answer, worked out once: "" where the AMX path runs, else what is missing.
-std::string amx_missing() {
-  std::string why;
-  if (!avx512_bf16_available(&why)) return why;
-#if defined(PILLARSEG_HAVE_AMX_BF16_KERNELS) && defined(__x86_64__) && defined(__linux__)
-  unsigned eax = 0, ebx = 0, ecx = 0, edx = 0;
-  if (__get_cpuid_count(7, 0, &eax, &ebx, &ecx, &edx) == 0) return "this CPU has no CPUID leaf 7";
-  std::string missing;
-  if (((edx >> 24) & 1u) == 0) missing = "AMX-TILE";
-  if (((edx >> 22) & 1u) == 0) missing += missing.empty() ? "AMX-BF16" : ", AMX-BF16";
-  if (!missing.empty()) return "this CPU lacks " + missing;
-  unsigned xcr0_lo = 0, xcr0_hi = 0;
-  __asm__ volatile("xgetbv" : "=a"(xcr0_lo), "=d"(xcr0_hi) : "c"(0));  // OSXSAVE: AVX-512 above
-  if (((xcr0_lo >> 17) & 3u) != 3u)
-    return "the OS does not enable the AMX tile state (XCR0 bits 17, 18)";
-  constexpr long kArchReqXcompPerm = 0x1023, kXfeatureXtiledata = 18;  // <asm/prctl.h>
-  if (::syscall(SYS_arch_prctl, kArchReqXcompPerm, kXfeatureXtiledata) != 0) {
-    return std::string(
-               "Linux did not grant this process the AMX tile state (arch_prctl "
-               "ARCH_REQ_XCOMP_PERM: ") +
-           std::strerror(errno) + "; Linux 5.16 or later grants it)";
-  }
-  return "";
-#else
-  return "this build has no AMX-BF16 tiles (not x86-64 Linux, or the compiler lacks -mamx-bf16)";
-#endif
-}
-
-}  // namespace
-
-bool amx_bf16_available(std::string* why_not) {
-  static const std::string missing = amx_missing();
-  if (missing.empty()) return true;
-  if (why_not != nullptr) *why_not = missing;
-  return false;
-}
-
-Bf16Kernels native_bf16_kernels() {
-  const char* amx = std::getenv("PILLARSEG_CPU_AMX");
-  if (amx != nullptr && std::string_view(amx) == "0") return Bf16Kernels::Avx512;
-  return amx_bf16_available() ? Bf16Kernels::Amx : Bf16Kernels::Avx512;
-}
-
-const char* bf16_kernels_name(Bf16Kernels kernels) {
-  switch (kernels) {
-    case Bf16Kernels::Avx512:
-      return "avx512_bf16";
-    case Bf16Kernels::Emulated:
-      return "emulated";
-    case Bf16Kernels::Amx:
-      return "amx_bf16";
-    case Bf16Kernels::AmxEmulated:
-      return "amx_bf16 (emulated)";
-  }
-  return "?";
-}
 
 void prepare_conv_weights(const Ref& w, const Ref* bias, const BatchNormRefs* bn, Precision p,
                           HRef& w16, Ref& bias_out) {
@@ -423,160 +301,6 @@ void conv_transpose2d_forward(Bf16Kernels kernels, const HRef& x, const HRef& w1
   g.rows = h, g.row_pixels = w;
   g.out_height = y_shape[2], g.out_width = y_shape[3], g.out_planes = y_shape[1];
   run_gemm(kernels, g);
-}
-
-void to_half(const Ref& x, Precision p, HRef& y) {
-  require_half("CpuBackend::to_half", p);
-  require_shape("CpuBackend::to_half", "y", y, x.shape);
-  const std::int64_t n = x.numel();
-  parallel_chunks(n, [&](std::int64_t begin, std::int64_t end, int) {
-    for (std::int64_t i = begin; i < end; ++i) y.data[i] = to_bits(x.data[i], p);
-  });
-}
-
-void scatter_half(const Ref& features, const IRef& cells, int channel0, Precision p, HRef& canvas) {
-  const char* op = "CpuBackend::scatter_forward_half";
-  require_half(op, p);
-  op::scatter(features.shape, cells.shape, canvas.shape, channel0, op);
-  const std::int64_t batch = canvas.dim(0), channels = canvas.dim(1), height = canvas.dim(2),
-                     width = canvas.dim(3), plane = height * width, c_band = features.dim(1);
-  const std::int64_t rows = features.dim(0);
-  // Each thread owns whole channels: it zeroes them, then writes every pillar's value in them in
-  // pillar order, so a cell named twice keeps the last pillar's value as the serial loop did.
-  parallel_chunks(c_band, [&](std::int64_t c_begin, std::int64_t c_end, int) {
-    for (std::int64_t b = 0; b < batch; ++b)
-      std::fill_n(canvas.data + (b * channels + channel0 + c_begin) * plane,
-                  (c_end - c_begin) * plane, std::uint16_t{0});
-    for (std::int64_t r = 0; r < rows; ++r) {
-      const std::int32_t* cell = cells.data + 3 * r;
-      if (cell[0] < 0 || cell[0] >= batch || cell[1] < 0 || cell[1] >= height || cell[2] < 0 ||
-          cell[2] >= width)
-        continue;
-      std::uint16_t* out =
-          canvas.data + (cell[0] * channels + channel0) * plane + cell[1] * width + cell[2];
-      for (std::int64_t c = c_begin; c < c_end; ++c)
-        out[c * plane] = to_bits(features.data[r * c_band + c], p);
-    }
-  });
-}
-
-void maxpool2d_half(const HRef& x, Precision p, HRef& y) {
-  const char* op = "CpuBackend::maxpool2d_half";
-  require_half(op, p);
-  require_shape(op, "y", y, op::maxpool2d(x.shape, op));
-  const std::int64_t h = x.dim(2), w = x.dim(3), oh = h / 2, ow = w / 2;
-  with_half_type(p, [&](auto half) {
-    constexpr bool kBf16 = decltype(half)::value;
-    parallel_for(x.dim(0) * x.dim(1), [&](std::int64_t plane) {
-      for (std::int64_t oy = 0; oy < oh; ++oy) {
-        for (std::int64_t ox = 0; ox < ow; ++ox) {
-          const std::uint16_t* in = x.data + plane * h * w + 2 * oy * w + 2 * ox;
-          const std::uint16_t window[4] = {in[0], in[1], in[w], in[w + 1]};
-          std::uint16_t best_bits = window[0];
-          float best = half_value<kBf16>(window[0]);
-          for (int k = 1; k < 4; ++k) {
-            // The FP32 op's rule: a greater value, or NaN, replaces the best so far.
-            const float value = half_value<kBf16>(window[k]);
-            if (value > best || std::isnan(value)) best = value, best_bits = window[k];
-          }
-          y.data[(plane * oh + oy) * ow + ox] = best_bits;
-        }
-      }
-    });
-  });
-}
-
-void upsample_bilinear_half(const HRef& x, Precision p, HRef& y) {
-  const char* op = "CpuBackend::upsample_bilinear_half";
-  require_half(op, p);
-  require_shape(op, "y", y, op::upsample_bilinear(x.shape, op));
-  const std::int64_t in_h = x.dim(2), in_w = x.dim(3), out_h = 2 * in_h, out_w = 2 * in_w;
-  // The taps of core/bilinear_taps.hpp, as the CUDA kernel weighs.
-  using Tap = BilinearTap<float>;
-  const auto taps = [](std::int64_t in, std::int64_t out) {
-    std::vector<Tap> t(static_cast<size_t>(out));
-    for (std::int64_t d = 0; d < out; ++d) t[static_cast<size_t>(d)] = bilinear_tap<float>(d, in, out);
-    return t;
-  };
-  const std::vector<Tap> rows = taps(in_h, out_h), cols = taps(in_w, out_w);
-  with_half_type(p, [&](auto half) {
-    constexpr bool kBf16 = decltype(half)::value;
-    // Per plane: each input row interpolated along x once into FP32 (h_rows, the two a output
-    // row reads), then the rows along y, in the same expression tree as the CUDA kernel.
-    const int threads = std::max(num_threads(), 1);
-    std::vector<float> scratch(static_cast<size_t>(threads * 2 * out_w));
-    parallel_chunks(x.dim(0) * x.dim(1), [&](std::int64_t begin, std::int64_t end, int thread) {
-      float* h_top = scratch.data() + static_cast<std::int64_t>(thread) * 2 * out_w;
-      float* h_bottom = h_top + out_w;
-      const auto along_x = [&](const std::uint16_t* row, float* h) {
-        for (std::int64_t ox = 0; ox < out_w; ++ox) {
-          const Tap& c = cols[static_cast<size_t>(ox)];
-          h[ox] = c.w0 * half_value<kBf16>(row[c.i0]) + c.w1 * half_value<kBf16>(row[c.i1]);
-        }
-      };
-      for (std::int64_t plane = begin; plane < end; ++plane) {
-        const std::uint16_t* in = x.data + plane * in_h * in_w;
-        std::uint16_t* out = y.data + plane * out_h * out_w;
-        std::int64_t top_row = -1, bottom_row = -1;
-        for (std::int64_t oy = 0; oy < out_h; ++oy) {
-          const Tap& r = rows[static_cast<size_t>(oy)];
-          if (r.i0 != top_row) {
-            if (r.i0 == bottom_row) {
-              std::swap(h_top, h_bottom);
-              bottom_row = -1;
-            } else {
-              along_x(in + r.i0 * in_w, h_top);
-            }
-            top_row = r.i0;
-          }
-          if (r.i1 != bottom_row) {
-            along_x(in + r.i1 * in_w, h_bottom);
-            bottom_row = r.i1;
-          }
-          std::uint16_t* o = out + oy * out_w;
-          for (std::int64_t ox = 0; ox < out_w; ++ox) {
-            const float value = r.w0 * h_top[ox] + r.w1 * h_bottom[ox];
-            o[ox] = half_bits<kBf16>(value);
-          }
-        }
-      }
-    });
-  });
-}
-
-void pad_concat_half(const HRef& skip, const HRef& up, HRef& y) {
-  const char* op = "CpuBackend::pad_concat_half";
-  require_shape(op, "y", y, op::pad_concat(skip.shape, up.shape, op));
-  const std::int64_t cs = skip.dim(1), cu = up.dim(1), h = skip.dim(2), w = skip.dim(3),
-                     uh = up.dim(2), uw = up.dim(3);
-  const std::int64_t top = (h - uh) / 2, left = (w - uw) / 2, plane = h * w;
-  parallel_for(skip.dim(0) * (cs + cu), [&](std::int64_t item) {
-    const std::int64_t b = item / (cs + cu), c = item % (cs + cu);
-    std::uint16_t* out = y.data + item * plane;
-    if (c < cs) {
-      std::copy_n(skip.data + (b * cs + c) * plane, plane, out);
-      return;
-    }
-    // Zero only the border the up-sampled plane leaves, then copy its rows in.
-    const std::uint16_t* in = up.data + (b * cu + c - cs) * uh * uw;
-    std::fill_n(out, top * w, std::uint16_t{0});
-    for (std::int64_t uy = 0; uy < uh; ++uy) {
-      std::uint16_t* row = out + (uy + top) * w;
-      std::fill_n(row, left, std::uint16_t{0});
-      std::copy_n(in + uy * uw, uw, row + left);
-      std::fill_n(row + left + uw, w - left - uw, std::uint16_t{0});
-    }
-    std::fill_n(out + (top + uh) * w, (h - top - uh) * w, std::uint16_t{0});
-  });
-}
-
-void copy_channels_half(const HRef& x, int channel0, HRef& y) {
-  op::channel_band(x.shape, y.shape, channel0, "CpuBackend::copy_channels_half");
-  const std::int64_t channels = x.dim(1), inner = x.dim(2) * x.dim(3), wide = y.dim(1);
-  parallel_for(x.dim(0) * channels, [&](std::int64_t item) {
-    const std::int64_t b = item / channels, c = item % channels;
-    std::copy_n(x.data + item * inner, inner, y.data + (b * wide + channel0 + c) * inner);
-  });
 }
 
 }  // namespace pillarseg::cpu

@@ -3,8 +3,7 @@
 // eval BatchNorm folded in, FP32 bias, FP32 accumulation, BF16 or FP32 outputs rounded once), on
 // our own AVX512_BF16 kernels, chosen at run time: a direct micro-kernel (bf16_microkernel.hpp)
 // for any kernel size and the transposed 2x2, and Winograd F(2x2, 3x3) (bf16_winograd.hpp) for
-// the 3x3 pad-1 convolutions, which the CPU backend runs; and the 16-bit activations' data
-// movement of kernels/half_ops.cuh on host memory, bit for bit the same.
+// the 3x3 pad-1 convolutions, which the CPU backend runs.
 //
 // On CPUs with AMX-BF16 (Sapphire Rapids and later, Linux 5.16+), the Winograd convolutions'
 // products run on the AMX tiles (bf16_amx.hpp), the transforms and the other convolutions on
@@ -21,24 +20,9 @@
 
 #include "core/tensor.hpp"
 #include "engine/backend/backend.hpp"
+#include "engine/cpu/cpu_features.hpp"
 
 namespace pillarseg::cpu {
-
-enum class Bf16Kernels { Avx512, Emulated, Amx, AmxEmulated };
-
-// Whether this CPU and its OS run the AVX512_BF16 micro-kernel (AVX512F, BW, VL and BF16, and
-// this build has it); else false with what is missing in why_not.
-bool avx512_bf16_available(std::string* why_not = nullptr);
-// Whether the AMX path runs here: AVX512_BF16 as above, AMX-TILE and AMX-BF16 (CPUID), the tile
-// state enabled by the OS (XCR0) and granted to this process (Linux's arch_prctl
-// ARCH_REQ_XCOMP_PERM, asked once); else false with what is missing in why_not.
-bool amx_bf16_available(std::string* why_not = nullptr);
-// The fastest kernels this CPU runs: Amx where amx_bf16_available (unless PILLARSEG_CPU_AMX=0 is
-// in the environment, read on each call: to compare the two paths), else Avx512 (which may
-// itself be unavailable: avx512_bf16_available says).
-Bf16Kernels native_bf16_kernels();
-// "avx512_bf16", "emulated", "amx_bf16" or "amx_bf16 (emulated)".
-const char* bf16_kernels_name(Bf16Kernels kernels);
 
 // The host version of the CUDA backend's weight preparation, the same arithmetic: w (O, I, k,
 // k) [, bias] [, eval BatchNorm] -> w16 (O, Kp) rounded to `p`, bias_out (O); transposed: w (I,
@@ -77,16 +61,5 @@ void winograd_transform_weights(Bf16Kernels kernels, const HRef& w16, const Shap
 // (I, O, 2, 2).
 void conv_transpose2d_forward(Bf16Kernels kernels, const HRef& x, const HRef& w16,
                                const Ref& bias_out, const Shape& weight, const TensorRef& y);
-
-// The 16-bit data movement (kernels/half_ops.cuh), for BF16 and FP16 bits.
-void to_half(const Ref& x, Precision p, HRef& y);
-void maxpool2d_half(const HRef& x, Precision p, HRef& y);
-void upsample_bilinear_half(const HRef& x, Precision p, HRef& y);
-void pad_concat_half(const HRef& skip, const HRef& up, HRef& y);
-void copy_channels_half(const HRef& x, int channel0, HRef& y);
-// The pillar scatter into channels [channel0, channel0 + C) of a 16-bit canvas (B, Cc, H, W):
-// the band zeroed, then each feature rounded to nearest even at its cell; a cell outside the
-// canvas (an inert row's (-1, -1, -1)) is skipped (kernels/scatter.cuh).
-void scatter_half(const Ref& features, const IRef& cells, int channel0, Precision p, HRef& canvas);
 
 }  // namespace pillarseg::cpu

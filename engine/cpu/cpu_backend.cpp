@@ -18,6 +18,7 @@
 #include "core/ops.hpp"
 #include "core/parallel.hpp"
 #include "engine/cpu/bf16_conv.hpp"
+#include "engine/cpu/half_ops.hpp"
 #include "engine/cpu/int8_conv.hpp"
 #include "engine/cpu/pfn_blocked.hpp"
 #include "engine/backend/backend.hpp"

@@ -1,20 +1,12 @@
-// The CPU's INT8 convolutions (int8_conv.hpp): feature checks, weight quantization and packing,
+// The CPU's INT8 convolutions (int8_conv.hpp): weight quantization and packing,
 // argument checks, the quantized input's layout, the run-time choice of instructions, threads.
 #include "engine/cpu/int8_conv.hpp"
 
-#if defined(__x86_64__)
-#include <cpuid.h>
-#include <sys/syscall.h>
-#include <unistd.h>
-#endif
-
 #include <algorithm>
-#include <cerrno>
 #include <cmath>
 #include <cstdlib>
 #include <cstring>
 #include <string>
-#include <string_view>
 
 #include "core/error.hpp"
 #include "core/ops.hpp"
@@ -26,90 +18,6 @@
 #include "weights_io/half.hpp"
 
 namespace pillarseg::cpu {
-
-bool avx512_vnni_available(std::string* why_not) {
-#if defined(PILLARSEG_HAVE_AVX512_VNNI_KERNELS)
-  __builtin_cpu_init();
-  // libgcc reports AVX-512 features only where the OS saves the ZMM registers (XCR0).
-  std::string missing;
-  const auto need = [&](bool present, const char* feature) {
-    if (!present) missing += (missing.empty() ? "" : ", ") + std::string(feature);
-  };
-  need(__builtin_cpu_supports("avx512f") != 0, "AVX512F");
-  need(__builtin_cpu_supports("avx512bw") != 0, "AVX512BW");
-  need(__builtin_cpu_supports("avx512vl") != 0, "AVX512VL");
-  need(__builtin_cpu_supports("avx512vnni") != 0, "AVX512_VNNI");
-  if (missing.empty()) return true;
-  if (why_not != nullptr) *why_not = "this CPU (or its OS) lacks " + missing;
-  return false;
-#else
-  if (why_not != nullptr) {
-    *why_not =
-        "this build has no AVX512-VNNI micro-kernel (not an x86-64 target, or the compiler lacks "
-        "-mavx512vnni)";
-  }
-  return false;
-#endif
-}
-
-namespace {
-
-// The AMX-INT8 check's answer, worked out once: "" where the tiles run, else what is missing.
-std::string amx_int8_missing() {
-  std::string why;
-  if (!avx512_vnni_available(&why)) return why;
-#if defined(PILLARSEG_HAVE_AMX_INT8_KERNELS) && defined(__x86_64__) && defined(__linux__)
-  unsigned eax = 0, ebx = 0, ecx = 0, edx = 0;
-  if (__get_cpuid_count(7, 0, &eax, &ebx, &ecx, &edx) == 0) return "this CPU has no CPUID leaf 7";
-  std::string missing;
-  if (((edx >> 24) & 1u) == 0) missing = "AMX-TILE";
-  if (((edx >> 25) & 1u) == 0) missing += missing.empty() ? "AMX-INT8" : ", AMX-INT8";
-  if (!missing.empty()) return "this CPU lacks " + missing;
-  unsigned xcr0_lo = 0, xcr0_hi = 0;
-  __asm__ volatile("xgetbv" : "=a"(xcr0_lo), "=d"(xcr0_hi) : "c"(0));  // OSXSAVE: AVX-512 above
-  if (((xcr0_lo >> 17) & 3u) != 3u)
-    return "the OS does not enable the AMX tile state (XCR0 bits 17, 18)";
-  constexpr long kArchReqXcompPerm = 0x1023, kXfeatureXtiledata = 18;  // <asm/prctl.h>
-  if (::syscall(SYS_arch_prctl, kArchReqXcompPerm, kXfeatureXtiledata) != 0) {
-    return std::string(
-               "Linux did not grant this process the AMX tile state (arch_prctl "
-               "ARCH_REQ_XCOMP_PERM: ") +
-           std::strerror(errno) + "; Linux 5.16 or later grants it)";
-  }
-  return "";
-#else
-  return "this build has no AMX-INT8 tiles (not x86-64 Linux, or the compiler lacks -mamx-int8)";
-#endif
-}
-
-}  // namespace
-
-bool amx_int8_available(std::string* why_not) {
-  static const std::string missing = amx_int8_missing();
-  if (missing.empty()) return true;
-  if (why_not != nullptr) *why_not = missing;
-  return false;
-}
-
-Int8Kernels native_int8_kernels() {
-  const char* amx = std::getenv("PILLARSEG_CPU_AMX");
-  if (amx != nullptr && std::string_view(amx) == "0") return Int8Kernels::Vnni;
-  return amx_int8_available() ? Int8Kernels::Amx : Int8Kernels::Vnni;
-}
-
-const char* int8_kernels_name(Int8Kernels kernels) {
-  switch (kernels) {
-    case Int8Kernels::Vnni:
-      return "avx512_vnni";
-    case Int8Kernels::Emulated:
-      return "emulated";
-    case Int8Kernels::Amx:
-      return "amx_int8";
-    case Int8Kernels::AmxEmulated:
-      return "amx_int8 (emulated)";
-  }
-  return "?";
-}
 
 bool int8_amx_family(Int8Kernels kernels) {
   return kernels == Int8Kernels::Amx || kernels == Int8Kernels::AmxEmulated;

@@ -44,25 +44,10 @@
 
 #include "core/tensor.hpp"
 #include "engine/backend/backend.hpp"
+#include "engine/cpu/cpu_features.hpp"
 
 namespace pillarseg::cpu {
 
-enum class Int8Kernels { Vnni, Emulated, Amx, AmxEmulated };
-
-// Whether this CPU and its OS run the VNNI micro-kernel (AVX512F, BW, VL and VNNI, and this build
-// has it); else false with what is missing in why_not.
-bool avx512_vnni_available(std::string* why_not = nullptr);
-// Whether the AMX-INT8 path runs here: VNNI as above, AMX-TILE and AMX-INT8 (CPUID leaf 7 EDX
-// bits 24 and 25; AMX-BF16 is bit 22, a separate feature), the tile state enabled by the OS (XCR0
-// bits 17 and 18) and granted to this process (Linux's arch_prctl ARCH_REQ_XCOMP_PERM, asked
-// once); else false with what is missing in why_not.
-bool amx_int8_available(std::string* why_not = nullptr);
-// The fastest kernels this CPU runs: Amx where amx_int8_available (unless PILLARSEG_CPU_AMX=0 is
-// in the environment, read on each call), else Vnni (which may itself be unavailable:
-// avx512_vnni_available says).
-Int8Kernels native_int8_kernels();
-// "avx512_vnni", "emulated", "amx_int8" or "amx_int8 (emulated)".
-const char* int8_kernels_name(Int8Kernels kernels);
 bool int8_amx_family(Int8Kernels kernels);  // Amx or AmxEmulated
 
 // The quantization rules above, one value at a time (the kernels' reference).
