@@ -147,6 +147,12 @@ Shape half16_conv_weights(const Shape& weight, bool transposed) {
   return {weight[0], half16_weight_k(weight[1], weight[2] * weight[3])};
 }
 
+Shape prepared_conv_weights(const Shape& weight, bool transposed, DType dtype) {
+  if (dtype != DType::F32) return half16_conv_weights(weight, transposed);
+  PS_CHECK(weight.size() == 4, "FP32 prepared weights: weight must have 4 dimensions, got shape {}", shape_str(weight));
+  return weight;
+}
+
 double conv2d_flops(const Shape& y, const Shape& weight) {
   return 2.0 * static_cast<double>(shape_numel(y)) *
          static_cast<double>(weight[1] * weight[2] * weight[3]);

@@ -16,6 +16,7 @@
 #include <cstdint>
 #include <string_view>
 
+#include "core/dtype.hpp"
 #include "core/tensor.hpp"
 
 namespace pillarseg::op {
@@ -63,6 +64,10 @@ inline constexpr int64_t kHalf16WeightK = 32;
 int64_t half16_padded_channels(int64_t channels);
 int64_t half16_weight_k(int64_t channels, int64_t taps);  // taps * Ip
 Shape half16_conv_weights(const Shape& weight, bool transposed);
+// The prepared weights of a convolution whose arithmetic is `dtype`: the layout above for 16-bit
+// and INT8 weights; FP32 ones (a CPU's FP32 kernel inside a BF16 evaluation) keep the weight's own
+// shape.
+Shape prepared_conv_weights(const Shape& weight, bool transposed, DType dtype);
 
 // Multiply-adds x 2 of the ops that do arithmetic on weights (for FLOP counts): a convolution
 // of output (B, O, h, w) with weight (O, I, k, k); a transposed one of input (B, I, H, W) with

@@ -16,13 +16,18 @@
 // the blocks are large and run one after the other, each in three parallel phases: input
 // transform by channel, the 36 GEMMs, output transform by channel. Either way the arithmetic
 // of every block is the same, so the scheduling cannot change the results.
+// Activations stored as BF16 bits are widened as the input rows are read and rounded as the
+// output rows are written, so that the FP32 arithmetic runs on them without a converted copy.
 #include "host/conv2d_winograd.hpp"
 
 #include <algorithm>
 #include <array>
+#include <cstdint>
+#include <type_traits>
 
 #include <omp.h>
 
+#include "core/bf16.hpp"
 #include "core/eigen.hpp"
 #include "core/error.hpp"
 #include "core/parallel.hpp"
@@ -216,10 +221,24 @@ void transform_weights(const WinogradShape& s, const WeightLayout& layout, float
   });
 }
 
+// An activation value as FP32: itself, or widened from its BF16 bits.
+inline float widen(float v) { return v; }
+inline float widen(std::uint16_t bits) { return bf16_bits_to_float(bits); }
+// An output value in the activations' storage: itself, or rounded to BF16 (nearest even).
+template <class Out>
+inline Out narrow(float v) {
+  if constexpr (std::is_same_v<Out, float>) {
+    return v;
+  } else {
+    return float_to_bf16_bits(v);
+  }
+}
+
 // dst[ph * entries + m] = plane(iy, x0 + 4 m + ph) for m < entries, ph < 4: row iy of the (H, W)
 // plane from column x0 on, split by column phase, zero outside the image. padded_row (4 entries
 // values, zero on first use) keeps zeros outside the image's columns from call to call.
-void split_row_by_phase(const float* plane, int64_t H, int64_t W, int64_t iy, int64_t x0,
+template <class In>
+void split_row_by_phase(const In* plane, int64_t H, int64_t W, int64_t iy, int64_t x0,
                         int64_t entries, std::vector<float>& padded_row, float* dst) {
   const int64_t row_len = kTile * entries;
   if (iy < 0 || iy >= H) {
@@ -228,7 +247,8 @@ void split_row_by_phase(const float* plane, int64_t H, int64_t W, int64_t iy, in
   }
   // padded_row[q] = plane(iy, x0 + q) for q in [q0, q1); the rest stays zero.
   const int64_t q0 = std::max<int64_t>(0, -x0), q1 = std::min(row_len, W - x0);
-  std::copy(plane + iy * W + x0 + q0, plane + iy * W + x0 + q1, padded_row.begin() + q0);
+  std::transform(plane + iy * W + x0 + q0, plane + iy * W + x0 + q1, padded_row.begin() + q0,
+                 [](In v) { return widen(v); });
   for (int64_t m = 0; m < entries; ++m)
     for (int ph = 0; ph < kTile; ++ph)
       dst[ph * entries + m] = padded_row[static_cast<size_t>(kTile * m + ph)];
@@ -237,7 +257,8 @@ void split_row_by_phase(const float* plane, int64_t H, int64_t W, int64_t iy, in
 // V[p][i][t] for input channel i of one image plane (H, W) over the block's tiles, t = tile
 // row in the block * cols + tile column in the block. Scratch: band and vert (6 rows of
 // 4 (cols + 1) values), padded_row (4 (cols + 1)).
-void transform_input_channel(const float* plane, const WinogradShape& s, const Block& blk,
+template <class In>
+void transform_input_channel(const In* plane, const WinogradShape& s, const Block& blk,
                              int64_t i, float* v, std::vector<float>& band,
                              std::vector<float>& vert, std::vector<float>& padded_row) {
   const int64_t H = s.height, W = s.width, I = s.in_channels, cols = blk.cols;
@@ -274,8 +295,9 @@ void transform_input_channel(const float* plane, const WinogradShape& s, const B
 // Output channel o of one image plane (H, W) from M[.][o][.] over the block's tiles, through
 // the epilogue. Scratch: cols (6 x 4 rows of tw), tile_out (4 rows of tw), out_rows (4 rows of
 // 4 tw), tw the block's tile columns.
+template <class Out>
 void transform_output_channel(const float* m, const WinogradShape& s, const Block& blk, int64_t o,
-                              const ConvEpilogue& e, float* plane, std::vector<float>& cols,
+                              const ConvEpilogue& e, Out* plane, std::vector<float>& cols,
                               std::vector<float>& tile_out, std::vector<float>& out_rows) {
   const int64_t H = s.height, W = s.width, tw = blk.cols, O = s.out_channels;
   const int64_t block_tiles = blk.tiles();
@@ -314,11 +336,11 @@ void transform_output_channel(const float* m, const WinogradShape& s, const Bloc
       const int64_t oy = kTile * ty + ry;
       if (oy >= H) break;
       const float* src = out_rows.data() + ry * row_len;
-      float* dst = plane + oy * W + x0;
+      Out* dst = plane + oy * W + x0;
       if (e.relu) {
-        for (int64_t ox = 0; ox < out_cols; ++ox) dst[ox] = std::max(src[ox] * scale + shift, 0.0f);
+        for (int64_t ox = 0; ox < out_cols; ++ox) dst[ox] = narrow<Out>(std::max(src[ox] * scale + shift, 0.0f));
       } else {
-        for (int64_t ox = 0; ox < out_cols; ++ox) dst[ox] = src[ox] * scale + shift;
+        for (int64_t ox = 0; ox < out_cols; ++ox) dst[ox] = narrow<Out>(src[ox] * scale + shift);
       }
     }
   }
@@ -366,8 +388,9 @@ struct TransformScratch {
 };
 
 // The transforms and GEMMs of one block on the calling thread: V and M hold its tiles.
-void run_block(const float* x, const WinogradShape& s, const Block& blk, const float* u, float* v,
-               float* m, const ConvEpilogue& e, float* y, TransformScratch& scratch) {
+template <class In, class Out>
+void run_block(const In* x, const WinogradShape& s, const Block& blk, const float* u, float* v,
+               float* m, const ConvEpilogue& e, Out* y, TransformScratch& scratch) {
   const int64_t I = s.in_channels, O = s.out_channels, plane = s.height * s.width;
   const int64_t tiles = blk.tiles();
   for (int64_t i = 0; i < I; ++i)
@@ -386,8 +409,9 @@ void run_block(const float* x, const WinogradShape& s, const Block& blk, const f
 
 // The convolution of x (B, I, H, W) with the kernels kernel(o, i) of the layout (O, I, 3, 3), pad
 // 1, through the epilogue, into y (B, O, H, W).
-void winograd_convolution(const float* x, const WinogradShape& s, const WeightLayout& layout,
-                          const ConvEpilogue& e, float* y, WinogradWorkspace& ws) {
+template <class In, class Out>
+void winograd_convolution(const In* x, const WinogradShape& s, const WeightLayout& layout,
+                          const ConvEpilogue& e, Out* y, WinogradWorkspace& ws) {
   const int64_t I = s.in_channels, O = s.out_channels, plane = s.height * s.width;
   const std::vector<Block> blocks = plan_blocks(s);
   int64_t max_tiles = 0;
@@ -447,7 +471,8 @@ void winograd_convolution(const float* x, const WinogradShape& s, const WeightLa
 }
 
 // Checks a 4D float tensor and returns its sizes with `out_channels` outputs.
-WinogradShape shape_of(const char* op, const Tensor<float>& x, const Tensor<float>& w,
+template <class T>
+WinogradShape shape_of(const char* op, const Tensor<T>& x, const Tensor<float>& w,
                        int64_t weight_in_axis, int64_t weight_out_axis) {
   PS_CHECK(x.rank() == 4, "{}: input must be (B, C, H, W), got shape {}", op, shape_str(x.shape()));
   PS_CHECK(w.rank() == 4 && w.dim(2) == 3 && w.dim(3) == 3,
@@ -466,18 +491,30 @@ WinogradShape shape_of(const char* op, const Tensor<float>& x, const Tensor<floa
   return s;
 }
 
+template <class In, class Out>
+void forward(const Tensor<In>& x, const Tensor<float>& w, const ConvEpilogue& epilogue, Tensor<Out>& y,
+             WinogradWorkspace& workspace) {
+  const WinogradShape s = shape_of("conv3x3_winograd_forward", x, w, 1, 0);
+  y.resize({s.batch, s.out_channels, s.height, s.width});
+  if (y.numel() == 0) return;
+  const WeightLayout layout{w.data(), s.in_channels * 9, 9, false};
+  winograd_convolution(x.data(), s, layout, epilogue, y.data(), workspace);
+}
+
 }  // namespace
 
 void conv3x3_winograd_forward(const Tensor<float>& x, const Tensor<float>& w,
                               const ConvEpilogue& epilogue, Tensor<float>& y,
                               WinogradWorkspace& workspace) {
-  const WinogradShape s = shape_of("conv3x3_winograd_forward", x, w, 1, 0);
   PS_CHECK(&y != &x && &y != &w,
            "conv3x3_winograd_forward: the output y must be a different tensor from x and w");
-  y.resize({s.batch, s.out_channels, s.height, s.width});
-  if (y.numel() == 0) return;
-  const WeightLayout layout{w.data(), s.in_channels * 9, 9, false};
-  winograd_convolution(x.data(), s, layout, epilogue, y.data(), workspace);
+  forward(x, w, epilogue, y, workspace);
+}
+void conv3x3_winograd_forward(const Tensor<std::uint16_t>& x, const Tensor<float>& w,
+                              const ConvEpilogue& epilogue, Tensor<std::uint16_t>& y,
+                              WinogradWorkspace& workspace) {
+  PS_CHECK(&y != &x, "conv3x3_winograd_forward: the output y must be a different tensor from x");
+  forward(x, w, epilogue, y, workspace);
 }
 
 void conv3x3_winograd_input_gradient(const Tensor<float>& dy, const Tensor<float>& w,

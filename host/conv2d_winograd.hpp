@@ -48,6 +48,13 @@ void conv3x3_winograd_forward(const Tensor<float>& x, const Tensor<float>& w,
                               const ConvEpilogue& epilogue, Tensor<float>& y,
                               WinogradWorkspace& workspace);
 
+// The same convolution on activations stored as BF16 bits, x (B, I, H, W) -> y (B, O, H, W),
+// the arithmetic in FP32: each x widened exactly as it is read, each y rounded to nearest even
+// as it is written (the BF16 evaluation's convolutions where FP32 is the faster arithmetic).
+void conv3x3_winograd_forward(const Tensor<std::uint16_t>& x, const Tensor<float>& w,
+                              const ConvEpilogue& epilogue, Tensor<std::uint16_t>& y,
+                              WinogradWorkspace& workspace);
+
 // The input gradient of that convolution (without epilogue): dy (B, O, H, W), w (O, I, 3, 3)
 // -> dx (B, I, H, W) = the correlation of dy with w flipped in y and x and its channel axes
 // swapped (pad 1 again). dx is resized and overwritten.

@@ -9,6 +9,7 @@
 #include <tuple>
 #include <vector>
 
+#include "core/bf16.hpp"
 #include "core/error.hpp"
 #include "core/parallel.hpp"
 #include "core/replicas.hpp"
@@ -69,6 +70,39 @@ TEST_P(WinogradConv, ScaleShiftReluEpilogueIsBatchNormOfTheReference) {
   host::WinogradWorkspace ws;
   host::conv3x3_winograd_forward(x, w, {scale.data(), shift.data(), true}, actual, ws);
   EXPECT_TRUE(test::all_close(actual, expected, 2 * winograd_atol(I), kRtol));
+}
+
+// On activations stored as BF16 bits: each input widened exactly, the same FP32 arithmetic, each
+// output rounded to nearest even once, so bit for bit the FP32 convolution of the widened input,
+// rounded.
+TEST_P(WinogradConv, Bf16ActivationsAreTheFp32ConvolutionOfTheWidenedInputRounded) {
+  const auto [B, I, H, W, O] = GetParam();
+  Rng rng(static_cast<uint64_t>(19 + B + I + H + W + O));
+  const Tensor<float> xf = random_tensor<float>({B, I, H, W}, rng);
+  const Tensor<float> w = random_tensor<float>({O, I, 3, 3}, rng);
+  const Tensor<float> shift = random_tensor<float>({O}, rng);
+  Tensor<uint16_t> x(xf.shape());
+  Tensor<float> widened(xf.shape());
+  for (int64_t i = 0; i < xf.numel(); ++i) {
+    x.data()[i] = float_to_bf16_bits(xf.data()[i]);
+    widened.data()[i] = bf16_bits_to_float(x.data()[i]);
+  }
+  for (const bool relu : {false, true}) {
+    host::WinogradWorkspace ws;
+    Tensor<float> expected;
+    Tensor<uint16_t> actual;
+    host::conv3x3_winograd_forward(widened, w, {nullptr, shift.data(), relu}, expected, ws);
+    host::conv3x3_winograd_forward(x, w, {nullptr, shift.data(), relu}, actual, ws);
+    ASSERT_EQ(actual.shape(), expected.shape());
+    int64_t rounded_away = 0;
+    for (int64_t i = 0; i < expected.numel(); ++i) {
+      ASSERT_EQ(actual.data()[i], float_to_bf16_bits(expected.data()[i])) << "element " << i << ", relu " << relu;
+      rounded_away += bf16_bits_to_float(actual.data()[i]) != expected.data()[i];
+    }
+    if (expected.numel() > 8) {
+      EXPECT_GT(rounded_away, 0) << "the outputs must be rounded to BF16";
+    }
+  }
 }
 
 // dx sums O 9 products per value; dw sums B H W products per weight, in float in both paths.

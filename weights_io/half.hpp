@@ -9,6 +9,8 @@
 #include <bit>
 #include <cstdint>
 
+#include "core/bf16.hpp"
+
 namespace pillarseg::weights {
 
 // float32 -> F16 bit pattern, round to nearest even. |x| >= 65520 (the midpoint between the
@@ -67,20 +69,8 @@ constexpr float f16_bits_to_float(uint16_t half) {
   return std::bit_cast<float>(sign | (float_exponent << 23) | ((mantissa & 0x03FFu) << 13));
 }
 
-// float32 -> BF16 bit pattern, round to nearest even on the dropped low 16 bits. Values that
-// round past the largest BF16 (about 3.39e38) become Inf.
-constexpr uint16_t float_to_bf16_bits(float value) {
-  const uint32_t bits = std::bit_cast<uint32_t>(value);
-  if ((bits & 0x7FFFFFFFu) > 0x7F800000u) {
-    return static_cast<uint16_t>((bits >> 16) | 0x0040u);  // NaN: quiet, keeps sign
-  }
-  const uint32_t round_bias = 0x7FFFu + ((bits >> 16) & 1u);
-  return static_cast<uint16_t>((bits + round_bias) >> 16);
-}
-
-// BF16 bit pattern -> float32, exact (BF16 is the top half of a float32).
-constexpr float bf16_bits_to_float(uint16_t bf16) {
-  return std::bit_cast<float>(static_cast<uint32_t>(bf16) << 16);
-}
+// BF16: core/bf16.hpp (host/ rounds activations with the same functions).
+using pillarseg::bf16_bits_to_float;
+using pillarseg::float_to_bf16_bits;
 
 }  // namespace pillarseg::weights

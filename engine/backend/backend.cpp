@@ -92,6 +92,7 @@ bool Backend::supports_precision(Precision p, std::string* why_not) const {
 }
 
 int64_t Backend::prepared_conv_transform_elements(const Shape&, int, DType) const { return 0; }
+DType Backend::prepared_conv_dtype(const Shape&, int, bool, DType half) const { return half; }
 void Backend::require_precision(Precision p) const {
   std::string why;
   PS_CHECK(supports_precision(p, &why), "backend {}: --precision {}: {}", name(), precision_name(p), why);

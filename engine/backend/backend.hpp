@@ -330,6 +330,12 @@ class Backend {
   // every convolution, of prepared_conv_transform_elements() elements of `dtype` (the caller
   // plans it beside the prepared weights; data null when there is none).
   virtual int64_t prepared_conv_transform_elements(const Shape& weight, int pad, DType dtype) const;
+  // The arithmetic of an evaluation convolution of `weight` (pad `pad`; transposed: (I, O, 2, 2))
+  // on activations of the 16-bit `half`: `half`, or F32 where this backend's FP32 kernel for it
+  // is the faster on this machine, on the same 16-bit activations (FP32 prepared weights:
+  // op::prepared_conv_weights). A fixed rule of the backend's kernels and the shape, never a
+  // timing, so that a model computes the same bits on a machine from run to run.
+  virtual DType prepared_conv_dtype(const Shape& weight, int pad, bool transposed, DType half) const;
   // INT8 prepared weights (DESIGN.md section 10) also write `weight_scale` (O): the per-output-
   // channel symmetric scales max |w'| / 127 of the weights w' with the BatchNorm folded in, the
   // prepared int8 values q = clamp(round_half_even(w' / scale), -127, 127); null for 16-bit.

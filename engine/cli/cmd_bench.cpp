@@ -30,6 +30,7 @@
 #include "engine/data/semantickitti.hpp"
 #include "engine/model/calibration.hpp"
 #include "engine/model/checkpoint.hpp"
+#include "engine/model/op_record.hpp"
 #include "engine/model/pillarsegnet.hpp"
 #include "engine/model/roofline.hpp"
 #include "engine/pipeline/scan_inputs.hpp"
@@ -78,6 +79,20 @@ std::string cpu_model_name() {
     return start == std::string::npos ? "unknown" : line.substr(start);
   }
   return "unknown";
+}
+
+// The evaluation graph's convolutions by arithmetic, "11 convolutions BF16, 6 FP32 where that is
+// faster on this CPU": in a BF16 network on the CPU, a convolution whose FP32 kernel is the faster
+// there runs FP32 (Backend::prepared_conv_dtype).
+std::string conv_arithmetic(const Graph& g) {
+  int half = 0, fp32 = 0;
+  for (const GraphNode& n : g.nodes()) {
+    if (n.op != OpKind::PreparedConv2d && n.op != OpKind::PreparedConvTranspose2d) continue;
+    ++(g.at(n.as<PreparedConv2dArgs>().prepared).dtype == DType::F32 ? fp32 : half);
+  }
+  const auto convolutions = [](int n) { return fmt::format("{} convolution{}", n, n == 1 ? "" : "s"); };
+  if (fp32 == 0) return convolutions(half) + " BF16";
+  return fmt::format("{} BF16, {} FP32 where that is faster on this CPU", convolutions(half), fp32);
 }
 
 int64_t host_inputs_bytes(ScanSegmenter& segmenter, const Scan& scan) {
@@ -380,7 +395,8 @@ void run_bench(const BenchArgs& a) {
   // Which BF16 kernels the CPU runs (the AMX tiles or AVX512_BF16 alone), as the figures depend on it.
   std::string precision_label = precision_name(segmenter.net().precision());
   if (backend.device() == Device::Cpu && segmenter.net().precision() == Precision::BF16)
-    precision_label += fmt::format(" ({})", cpu::bf16_kernels_name(cpu::native_bf16_kernels()));
+    precision_label += fmt::format(" ({}: {})", cpu::bf16_kernels_name(cpu::native_bf16_kernels()),
+                                   conv_arithmetic(segmenter.net().graph(false)));
   if (backend.device() == Device::Cpu && segmenter.net().precision() == Precision::I8)
     precision_label += fmt::format(" ({})", cpu::int8_kernels_name(cpu::native_int8_kernels()));
   fmt::print("pillarseg bench: device {}, precision {}, {} threads, grid {} x {}, C {}, b {}, {} upsampling, "

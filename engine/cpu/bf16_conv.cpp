@@ -75,6 +75,18 @@ void require_output(const char* op, const TensorRef& y, const Shape& expected) {
 
 }  // namespace
 
+// On the AMX tiles, and on AMD's AVX512_BF16, the BF16 products take at most 0.7x the FP32
+// F(4x4)'s time at every U-Net shape, so the BF16 path always pays. On Intel's AVX512_BF16
+// alone, VDPBF16PS's 32 products a cycle are no more than FP32's two 16-wide FMAs, and F(2x2)
+// needs 4 products an output per channel pair to F(4x4)'s 2.25: the BF16 path pays only where
+// its half-size data outweighs that, the channel-doubling convolutions of up to 128 input
+// channels (the measured split: docs/benchmarks.md, "BF16 on the CPU, and OpenVINO").
+bool bf16_winograd_pays(Bf16Kernels kernels, bool dot_outpaces_fma, const Shape& weight) {
+  if (kernels == Bf16Kernels::Amx || kernels == Bf16Kernels::AmxEmulated || dot_outpaces_fma) return true;
+  const std::int64_t out = weight[0], in = weight[1];
+  return in <= 128 && out >= 2 * in;
+}
+
 void prepare_conv_weights(const Ref& w, const Ref* bias, const BatchNormRefs* bn, Precision p,
                           HRef& w16, Ref& bias_out) {
   const char* op = "CpuBackend::prepare_conv_weights";

@@ -24,6 +24,11 @@
 
 namespace pillarseg::cpu {
 
+// Whether `kernels` run the 3 x 3 pad-1 convolution of weight (O, I, 3, 3) by Winograd F(2x2,
+// 3x3) faster than the FP32 Winograd F(4x4, 3x3) on the same BF16 activations, on a CPU whose
+// VDPBF16PS does (`dot_outpaces_fma`, cpu_features.hpp) or does not outpace its FMAs.
+bool bf16_winograd_pays(Bf16Kernels kernels, bool dot_outpaces_fma, const Shape& weight);
+
 // The host version of the CUDA backend's weight preparation, the same arithmetic: w (O, I, k,
 // k) [, bias] [, eval BatchNorm] -> w16 (O, Kp) rounded to `p`, bias_out (O); transposed: w (I,
 // O, 2, 2) -> w16 (4 O, Kp) with row o 4 + dy 2 + dx, bias_out (4 O).

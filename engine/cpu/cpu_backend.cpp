@@ -73,8 +73,10 @@ host::BatchNormSaved<float> bn_saved(const BatchNormRefs& bn) {
 
 class CpuBackend final : public Backend {
  public:
-  CpuBackend(bool fast_paths, cpu::Bf16Kernels bf16_kernels, cpu::Int8Kernels int8_kernels)
-      : fast_paths_(fast_paths), bf16_kernels_(bf16_kernels), int8_kernels_(int8_kernels) {}
+  CpuBackend(bool fast_paths, cpu::Bf16Kernels bf16_kernels, cpu::Int8Kernels int8_kernels,
+             bool bf16_dot_outpaces_fma = false)
+      : fast_paths_(fast_paths), bf16_kernels_(bf16_kernels), int8_kernels_(int8_kernels),
+        bf16_dot_outpaces_fma_(bf16_dot_outpaces_fma) {}
   Device device() const override { return Device::Cpu; }
   std::string name() const override { return fast_paths_ ? "cpu" : "cpu-reference"; }
 
@@ -115,6 +117,10 @@ class CpuBackend final : public Backend {
       return 0;
     return cpu::winograd_weight_elements(bf16_kernels_, weight);
   }
+  DType prepared_conv_dtype(const Shape& weight, int pad, bool transposed, DType half) const override {
+    if (half != DType::BF16 || transposed || !fast_paths_ || !winograd_half_applies(weight, pad)) return half;
+    return cpu::bf16_winograd_pays(bf16_kernels_, bf16_dot_outpaces_fma_, weight) ? half : DType::F32;
+  }
   void prepare_conv_weights(const Ref& w, const Ref* bias, const BatchNormRefs* bn, const TensorRef& prepared,
                             Ref& bias_out, const TensorRef& transformed, const Ref* weight_scale) override {
     const char* op = "CpuBackend::prepare_conv_weights";
@@ -122,6 +128,12 @@ class CpuBackend final : public Backend {
       require_precision(Precision::I8);
       PS_CHECK(transformed.data == nullptr, "{}: no transformed form of INT8 weights", op);
       prepare_int8(op, w, bias, bn, /*transposed=*/false, prepared, bias_out, weight_scale);
+      return;
+    }
+    if (prepared.dtype == DType::F32) {  // FP32 arithmetic on 16-bit activations (prepared_conv_dtype)
+      PS_CHECK(transformed.data == nullptr, "{}: no transformed form of FP32 weights", op);
+      Ref folded = prepared.f32(op);
+      fold_batchnorm(op, w, bias, bn, folded, bias_out);
       return;
     }
     require_precision(precision_of(prepared.dtype));
@@ -152,6 +164,10 @@ class CpuBackend final : public Backend {
       cpu::int8_conv2d_forward(int8_kernels_, int8_activation(x), input.scale, input.non_negative,
                                int8_weights(op, prepared, bias_out, weight_scale, weight), pad, relu,
                                int8_activation(y), int8_workspace_);
+      return;
+    }
+    if (prepared.dtype == DType::F32) {
+      fp32_conv3x3_on_activations(op, x, prepared.f32(op), bias_out, weight, pad, relu, y);
       return;
     }
     const Precision p = precision_of(prepared.dtype);
@@ -547,6 +563,45 @@ class CpuBackend final : public Backend {
     return fast_paths_ && w.shape.size() == 4 && w.dim(2) == 3 && w.dim(3) == 3 && pad == 1;
   }
 
+  // FP32 prepared weights (prepared_conv_dtype): w (O, I, k, k) with the eval BatchNorm folded in
+  // (scale gamma / sqrt(var + eps) and shift in double, as conv2d_bn_relu_eval computes them) ->
+  // folded (O, I, k, k), bias_out (O).
+  static void fold_batchnorm(const char* op, const Ref& w, const Ref* bias, const BatchNormRefs* bn, Ref& folded,
+                             Ref& bias_out) {
+    require_rank(op, "w", w, 4);
+    require_shape(op, "prepared", folded, w.shape);
+    const int64_t out = w.dim(0), k = w.numel() / out;
+    require_shape(op, "bias_out", bias_out, {out});
+    for (int64_t o = 0; o < out; ++o) {
+      double scale = 1.0, shift = bias != nullptr ? bias->data[o] : 0.0;
+      if (bn != nullptr) {
+        scale = bn->gamma.data[o] / std::sqrt(static_cast<double>(bn->running_var.data[o]) + bn->eps);
+        shift = (shift - bn->running_mean.data[o]) * scale + bn->beta.data[o];
+      }
+      for (int64_t j = 0; j < k; ++j) folded.data[o * k + j] = static_cast<float>(w.data[o * k + j] * scale);
+      bias_out.data[o] = static_cast<float>(shift);
+    }
+  }
+  // A 3 x 3 pad-1 convolution in FP32 (Winograd F(4x4, 3x3)) on x and y both FP32 or both BF16
+  // (widened as read, rounded as written, in the transforms: no converted copy).
+  void fp32_conv3x3_on_activations(const char* op, const TensorRef& x, const Ref& w, const Ref& bias_out,
+                                   const Shape& weight, int pad, bool relu, const TensorRef& y) {
+    PS_CHECK(winograd_half_applies(weight, pad) && w.shape == weight,
+             "{}: FP32 prepared weights run the 3 x 3 pad-1 convolutions only, got weight {} pad {}", op,
+             shape_str(weight), pad);
+    PS_CHECK(x.dtype == y.dtype && (x.dtype == DType::F32 || x.dtype == DType::BF16),
+             "{}: FP32 arithmetic takes x and y both f32 or both bf16, got {} and {}", op, dtype_name(x.dtype),
+             dtype_name(y.dtype));
+    const host::ConvEpilogue epilogue{nullptr, bias_out.data, relu};
+    if (x.dtype == DType::F32) {
+      Tensor<float> out = view(y.f32(op));
+      host::conv3x3_winograd_forward(view(x.f32(op)), view(w), epilogue, out, winograd_);
+      return;
+    }
+    Tensor<uint16_t> out = view(y.bits16(op));
+    host::conv3x3_winograd_forward(view(x.bits16(op)), view(w), epilogue, out, winograd_);
+  }
+
   void require_fp32_training(DType compute) const {
     PS_CHECK(compute == DType::F32, "backend {} trains in fp32 only ({} training runs on --device cuda)", name(),
              dtype_name(compute));
@@ -628,6 +683,9 @@ class CpuBackend final : public Backend {
   bool fast_paths_;
   cpu::Bf16Kernels bf16_kernels_;
   cpu::Int8Kernels int8_kernels_;
+  // Whether the BF16 3 x 3 convolutions pay at every shape without AMX (cpu::bf16_winograd_pays):
+  // this CPU's answer natively, the Intel rule on the instruction models.
+  bool bf16_dot_outpaces_fma_;
   std::map<const void*, cpu::Int8ConvWeights> int8_prepared_;
   bool int8_forward_ran_ = false;
   std::vector<float> int8_folded_, int8_bias_;
@@ -659,7 +717,8 @@ class CpuBackend final : public Backend {
 }  // namespace
 
 std::unique_ptr<Backend> make_cpu_backend() {
-  return std::make_unique<CpuBackend>(/*fast_paths=*/true, cpu::native_bf16_kernels(), cpu::native_int8_kernels());
+  return std::make_unique<CpuBackend>(/*fast_paths=*/true, cpu::native_bf16_kernels(), cpu::native_int8_kernels(),
+                                      cpu::bf16_dot_outpaces_fma());
 }
 std::unique_ptr<Backend> make_cpu_reference_backend() {
   return std::make_unique<CpuBackend>(/*fast_paths=*/false, cpu::Bf16Kernels::Avx512, cpu::Int8Kernels::Vnni);

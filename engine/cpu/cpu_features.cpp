@@ -85,6 +85,16 @@ Bf16Kernels native_bf16_kernels() {
   return amx_bf16_available() ? Bf16Kernels::Amx : Bf16Kernels::Avx512;
 }
 
+bool bf16_dot_outpaces_fma() {
+#if defined(__x86_64__)
+  unsigned eax = 0, vendor[3] = {0, 0, 0};
+  if (__get_cpuid(0, &eax, &vendor[0], &vendor[2], &vendor[1]) == 0) return false;
+  return std::memcmp(vendor, "AuthenticAMD", 12) == 0;
+#else
+  return false;
+#endif
+}
+
 const char* bf16_kernels_name(Bf16Kernels kernels) {
   switch (kernels) {
     case Bf16Kernels::Avx512:

@@ -24,6 +24,9 @@ bool amx_bf16_available(std::string* why_not = nullptr);
 Bf16Kernels native_bf16_kernels();
 // "avx512_bf16", "emulated", "amx_bf16" or "amx_bf16 (emulated)".
 const char* bf16_kernels_name(Bf16Kernels kernels);
+// Whether this CPU's VDPBF16PS issues twice the products of its FP32 FMAs a cycle: AMD's (Zen 4
+// and later, CPUID vendor AuthenticAMD), not Intel's cores (one VDPBF16PS a cycle, two FMAs).
+bool bf16_dot_outpaces_fma();
 
 enum class Int8Kernels { Vnni, Emulated, Amx, AmxEmulated };
 

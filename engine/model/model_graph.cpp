@@ -143,6 +143,12 @@ class Builder {
   // and their dtype.
   bool prepared_conv() const { return int8() ? unet && stage == Stage::UNet : half_convs(); }
   DType weight_dtype() const { return int8() ? DType::I8 : half_dtype(); }
+  // The arithmetic of the evaluation convolution of w_shape emitted now: weight_dtype(), or FP32
+  // on the same 16-bit activations where the backend's FP32 kernel for the shape is the faster.
+  DType prepared_dtype(const Shape& w_shape, int pad, bool transposed) const {
+    if (int8() || training_ || !backend_) return weight_dtype();
+    return backend_->prepared_conv_dtype(w_shape, pad, transposed, weight_dtype());
+  }
   // The arithmetic of the training step's convolution backward.
   DType compute() const { return half_convs() ? half_dtype() : DType::F32; }
   // The type of the U-Net's activations: 16-bit in a mixed-precision evaluation forward once
@@ -178,8 +184,8 @@ class Builder {
   // in, when >= 0) and the tensor-core convolution x -> y.
   void half_conv(const std::string& name, int x, int w, int b, int bn, int pad, bool relu, int y) {
     const Shape w_shape = shape(w);
-    const DType dtype = weight_dtype();
-    const int w16 = g_.tensor(name + ".w16", op::half16_conv_weights(w_shape, false), dtype);
+    const DType dtype = prepared_dtype(w_shape, pad, false);
+    const int w16 = g_.tensor(name + ".w16", op::prepared_conv_weights(w_shape, false, dtype), dtype);
     const int b16 = g_.tensor(name + ".bias16", {w_shape[0]});
     const int scale = dtype == DType::I8 ? g_.tensor(name + ".w8_scale", {w_shape[0]}) : -1;
     // The backend's own transformed form of the weights, where it has one (the CPU's Winograd U).
@@ -202,8 +208,8 @@ class Builder {
   // The same for a transposed 2x2 convolution.
   void half_conv_transpose(const std::string& name, int x, int w, int b, int y) {
     const Shape w_shape = shape(w);
-    const DType dtype = weight_dtype();
-    const int w16 = g_.tensor(name + ".w16", op::half16_conv_weights(w_shape, true), dtype);
+    const DType dtype = prepared_dtype(w_shape, 0, true);
+    const int w16 = g_.tensor(name + ".w16", op::prepared_conv_weights(w_shape, true, dtype), dtype);
     const int b16 = g_.tensor(name + ".bias16", {4 * w_shape[1]});
     const int scale = dtype == DType::I8 ? g_.tensor(name + ".w8_scale", {4 * w_shape[1]}) : -1;
     keep_prepared({w16, b16, scale});

@@ -98,7 +98,9 @@ using DTypes = uint32_t;
 constexpr DTypes dtypes_of(DType t) { return DTypes{1} << static_cast<unsigned>(t); }
 constexpr DTypes kF32 = dtypes_of(DType::F32), kI32 = dtypes_of(DType::I32), kU8 = dtypes_of(DType::U8);
 constexpr DTypes kFloat16 = dtypes_of(DType::BF16) | dtypes_of(DType::F16);
-constexpr DTypes kPrepared = kFloat16 | dtypes_of(DType::I8);  // prepared convolution weights
+// Prepared convolution weights: 16-bit, INT8, or FP32 where a backend's FP32 kernel is the
+// faster (Backend::prepared_conv_dtype).
+constexpr DTypes kPrepared = kF32 | kFloat16 | dtypes_of(DType::I8);
 constexpr DTypes kActivation = kF32 | kFloat16;
 
 struct ArgSpec {

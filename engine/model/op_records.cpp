@@ -154,7 +154,7 @@ void check_prepare_conv(const Graph& g, const GraphNode& n) {
   const auto a = n.as<PrepareConvWeightsArgs>();
   check_prepared_scale(g, n, a.prepared, a.prepared_scale);
   const Shape& w = shape_of(g, a.w);
-  require_shape(g, n, a.prepared, op::half16_conv_weights(w, false), "prepared");
+  require_shape(g, n, a.prepared, op::prepared_conv_weights(w, false, dtype_of(g, a.prepared)), "prepared");
   require_shape(g, n, a.prepared_bias, {w.at(0)}, "prepared_bias");
   require_shape(g, n, a.bias, {w.at(0)}, "bias");
 }
@@ -162,7 +162,7 @@ void check_prepare_conv_transpose(const Graph& g, const GraphNode& n) {
   const auto a = n.as<PrepareConvWeightsArgs>();
   check_prepared_scale(g, n, a.prepared, a.prepared_scale);
   const Shape& w = shape_of(g, a.w);
-  require_shape(g, n, a.prepared, op::half16_conv_weights(w, true), "prepared");
+  require_shape(g, n, a.prepared, op::prepared_conv_weights(w, true, dtype_of(g, a.prepared)), "prepared");
   require_shape(g, n, a.prepared_bias, {4 * w.at(1)}, "prepared_bias");
   require_shape(g, n, a.bias, {w.at(1)}, "bias");
 }
@@ -172,7 +172,7 @@ void check_prepared_conv2d(const Graph& g, const GraphNode& n) {
   PS_CHECK(dtype_of(g, a.prepared) != DType::I8 || n.int8_input.scale > 0, "graph: node {} ({}): INT8 needs an input scale",
            n.name, op_name(n.op));
   require_shape(g, n, a.y, op::conv2d(shape_of(g, a.x), n.weight, n.pad), "y");
-  require_shape(g, n, a.prepared, op::half16_conv_weights(n.weight, false), "prepared");
+  require_shape(g, n, a.prepared, op::prepared_conv_weights(n.weight, false, dtype_of(g, a.prepared)), "prepared");
 }
 void check_prepared_conv_transpose2d(const Graph& g, const GraphNode& n) {
   const auto a = n.as<PreparedConv2dArgs>();
@@ -180,7 +180,7 @@ void check_prepared_conv_transpose2d(const Graph& g, const GraphNode& n) {
   PS_CHECK(dtype_of(g, a.prepared) != DType::I8 || n.int8_input.scale > 0, "graph: node {} ({}): INT8 needs an input scale",
            n.name, op_name(n.op));
   require_shape(g, n, a.y, op::conv_transpose2d(shape_of(g, a.x), n.weight), "y");
-  require_shape(g, n, a.prepared, op::half16_conv_weights(n.weight, true), "prepared");
+  require_shape(g, n, a.prepared, op::prepared_conv_weights(n.weight, true, dtype_of(g, a.prepared)), "prepared");
 }
 void check_convert(const Graph& g, const GraphNode& n) {
   const auto a = n.as<UnaryArgs>();
