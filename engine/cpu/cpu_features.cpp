@@ -15,10 +15,21 @@
 
 namespace pillarseg::cpu {
 
-bool avx512_bf16_available(std::string* why_not) {
-#if defined(PILLARSEG_HAVE_AVX512_BF16_KERNELS)
+namespace {
+
+// A check's answer: true where nothing is missing, else false with what is (where asked).
+bool answer(const std::string& missing, std::string* why_not) {
+  if (missing.empty()) return true;
+  if (why_not != nullptr) *why_not = missing;
+  return false;
+}
+
+#if defined(PILLARSEG_HAVE_AVX512_BF16_KERNELS) || defined(PILLARSEG_HAVE_AVX512_VNNI_KERNELS)
+// What AVX-512 lacks for a micro-kernel built on AVX512F, BW and VL and one extension
+// (`extension` present or not, named `name`): "" where nothing does. libgcc reports AVX-512
+// features only where the OS saves the ZMM registers (XCR0).
+std::string avx512_missing(bool extension, const char* name) {
   __builtin_cpu_init();
-  // libgcc reports AVX-512 features only where the OS saves the ZMM registers (XCR0).
   std::string missing;
   const auto need = [&](bool present, const char* feature) {
     if (!present) missing += (missing.empty() ? "" : ", ") + std::string(feature);
@@ -26,32 +37,21 @@ bool avx512_bf16_available(std::string* why_not) {
   need(__builtin_cpu_supports("avx512f") != 0, "AVX512F");
   need(__builtin_cpu_supports("avx512bw") != 0, "AVX512BW");
   need(__builtin_cpu_supports("avx512vl") != 0, "AVX512VL");
-  need(__builtin_cpu_supports("avx512bf16") != 0, "AVX512_BF16");
-  if (missing.empty()) return true;
-  if (why_not != nullptr) *why_not = "this CPU (or its OS) lacks " + missing;
-  return false;
-#else
-  if (why_not != nullptr) {
-    *why_not =
-        "this build has no AVX512_BF16 micro-kernel (not an x86-64 target, or the compiler lacks "
-        "-mavx512bf16)";
-  }
-  return false;
-#endif
+  need(extension, name);
+  return missing.empty() ? "" : "this CPU (or its OS) lacks " + missing;
 }
+#endif
 
-namespace {
-
-// The AMX check's answer, worked out once: "" where the AMX path runs, else what is missing.
-std::string amx_missing() {
-  std::string why;
-  if (!avx512_bf16_available(&why)) return why;
-#if defined(PILLARSEG_HAVE_AMX_BF16_KERNELS) && defined(__x86_64__) && defined(__linux__)
+#if (defined(PILLARSEG_HAVE_AMX_BF16_KERNELS) || defined(PILLARSEG_HAVE_AMX_INT8_KERNELS)) && \
+    defined(__x86_64__) && defined(__linux__)
+// What the AMX tiles with the arithmetic of CPUID.(7, 0):EDX bit `bit` (AMX-BF16 22, AMX-INT8 25)
+// lack on this CPU, OS and process: "" where they run. Asks Linux for the tile state.
+std::string amx_missing(unsigned bit, const char* name) {
   unsigned eax = 0, ebx = 0, ecx = 0, edx = 0;
   if (__get_cpuid_count(7, 0, &eax, &ebx, &ecx, &edx) == 0) return "this CPU has no CPUID leaf 7";
   std::string missing;
   if (((edx >> 24) & 1u) == 0) missing = "AMX-TILE";
-  if (((edx >> 22) & 1u) == 0) missing += missing.empty() ? "AMX-BF16" : ", AMX-BF16";
+  if (((edx >> bit) & 1u) == 0) missing += (missing.empty() ? "" : ", ") + std::string(name);
   if (!missing.empty()) return "this CPU lacks " + missing;
   unsigned xcr0_lo = 0, xcr0_hi = 0;
   __asm__ volatile("xgetbv" : "=a"(xcr0_lo), "=d"(xcr0_hi) : "c"(0));  // OSXSAVE: AVX-512 above
@@ -65,23 +65,57 @@ std::string amx_missing() {
            std::strerror(errno) + "; Linux 5.16 or later grants it)";
   }
   return "";
+}
+#endif
+
+// PILLARSEG_CPU_AMX=0: the AVX-512 kernels even where the AMX tiles run, to compare.
+bool amx_switched_off() {
+  const char* amx = std::getenv("PILLARSEG_CPU_AMX");
+  return amx != nullptr && std::string_view(amx) == "0";
+}
+
+// The AMX-BF16 check's answer, worked out once.
+std::string amx_bf16_missing() {
+  std::string why;
+  if (!avx512_bf16_available(&why)) return why;
+#if defined(PILLARSEG_HAVE_AMX_BF16_KERNELS) && defined(__x86_64__) && defined(__linux__)
+  return amx_missing(22, "AMX-BF16");
 #else
   return "this build has no AMX-BF16 tiles (not x86-64 Linux, or the compiler lacks -mamx-bf16)";
 #endif
 }
 
+// The AMX-INT8 check's answer, worked out once.
+std::string amx_int8_missing() {
+  std::string why;
+  if (!avx512_vnni_available(&why)) return why;
+#if defined(PILLARSEG_HAVE_AMX_INT8_KERNELS) && defined(__x86_64__) && defined(__linux__)
+  return amx_missing(25, "AMX-INT8");
+#else
+  return "this build has no AMX-INT8 tiles (not x86-64 Linux, or the compiler lacks -mamx-int8)";
+#endif
+}
+
 }  // namespace
 
+bool avx512_bf16_available(std::string* why_not) {
+#if defined(PILLARSEG_HAVE_AVX512_BF16_KERNELS)
+  return answer(avx512_missing(__builtin_cpu_supports("avx512bf16") != 0, "AVX512_BF16"), why_not);
+#else
+  return answer(
+      "this build has no AVX512_BF16 micro-kernel (not an x86-64 target, or the compiler lacks "
+      "-mavx512bf16)",
+      why_not);
+#endif
+}
+
 bool amx_bf16_available(std::string* why_not) {
-  static const std::string missing = amx_missing();
-  if (missing.empty()) return true;
-  if (why_not != nullptr) *why_not = missing;
-  return false;
+  static const std::string missing = amx_bf16_missing();
+  return answer(missing, why_not);
 }
 
 Bf16Kernels native_bf16_kernels() {
-  const char* amx = std::getenv("PILLARSEG_CPU_AMX");
-  if (amx != nullptr && std::string_view(amx) == "0") return Bf16Kernels::Avx512;
+  if (amx_switched_off()) return Bf16Kernels::Avx512;
   return amx_bf16_available() ? Bf16Kernels::Amx : Bf16Kernels::Avx512;
 }
 
@@ -111,71 +145,22 @@ const char* bf16_kernels_name(Bf16Kernels kernels) {
 
 bool avx512_vnni_available(std::string* why_not) {
 #if defined(PILLARSEG_HAVE_AVX512_VNNI_KERNELS)
-  __builtin_cpu_init();
-  // libgcc reports AVX-512 features only where the OS saves the ZMM registers (XCR0).
-  std::string missing;
-  const auto need = [&](bool present, const char* feature) {
-    if (!present) missing += (missing.empty() ? "" : ", ") + std::string(feature);
-  };
-  need(__builtin_cpu_supports("avx512f") != 0, "AVX512F");
-  need(__builtin_cpu_supports("avx512bw") != 0, "AVX512BW");
-  need(__builtin_cpu_supports("avx512vl") != 0, "AVX512VL");
-  need(__builtin_cpu_supports("avx512vnni") != 0, "AVX512_VNNI");
-  if (missing.empty()) return true;
-  if (why_not != nullptr) *why_not = "this CPU (or its OS) lacks " + missing;
-  return false;
+  return answer(avx512_missing(__builtin_cpu_supports("avx512vnni") != 0, "AVX512_VNNI"), why_not);
 #else
-  if (why_not != nullptr) {
-    *why_not =
-        "this build has no AVX512-VNNI micro-kernel (not an x86-64 target, or the compiler lacks "
-        "-mavx512vnni)";
-  }
-  return false;
+  return answer(
+      "this build has no AVX512-VNNI micro-kernel (not an x86-64 target, or the compiler lacks "
+      "-mavx512vnni)",
+      why_not);
 #endif
 }
-
-namespace {
-
-// The AMX-INT8 check's answer, worked out once: "" where the tiles run, else what is missing.
-std::string amx_int8_missing() {
-  std::string why;
-  if (!avx512_vnni_available(&why)) return why;
-#if defined(PILLARSEG_HAVE_AMX_INT8_KERNELS) && defined(__x86_64__) && defined(__linux__)
-  unsigned eax = 0, ebx = 0, ecx = 0, edx = 0;
-  if (__get_cpuid_count(7, 0, &eax, &ebx, &ecx, &edx) == 0) return "this CPU has no CPUID leaf 7";
-  std::string missing;
-  if (((edx >> 24) & 1u) == 0) missing = "AMX-TILE";
-  if (((edx >> 25) & 1u) == 0) missing += missing.empty() ? "AMX-INT8" : ", AMX-INT8";
-  if (!missing.empty()) return "this CPU lacks " + missing;
-  unsigned xcr0_lo = 0, xcr0_hi = 0;
-  __asm__ volatile("xgetbv" : "=a"(xcr0_lo), "=d"(xcr0_hi) : "c"(0));  // OSXSAVE: AVX-512 above
-  if (((xcr0_lo >> 17) & 3u) != 3u)
-    return "the OS does not enable the AMX tile state (XCR0 bits 17, 18)";
-  constexpr long kArchReqXcompPerm = 0x1023, kXfeatureXtiledata = 18;  // <asm/prctl.h>
-  if (::syscall(SYS_arch_prctl, kArchReqXcompPerm, kXfeatureXtiledata) != 0) {
-    return std::string(
-               "Linux did not grant this process the AMX tile state (arch_prctl "
-               "ARCH_REQ_XCOMP_PERM: ") +
-           std::strerror(errno) + "; Linux 5.16 or later grants it)";
-  }
-  return "";
-#else
-  return "this build has no AMX-INT8 tiles (not x86-64 Linux, or the compiler lacks -mamx-int8)";
-#endif
-}
-
-}  // namespace
 
 bool amx_int8_available(std::string* why_not) {
   static const std::string missing = amx_int8_missing();
-  if (missing.empty()) return true;
-  if (why_not != nullptr) *why_not = missing;
-  return false;
+  return answer(missing, why_not);
 }
 
 Int8Kernels native_int8_kernels() {
-  const char* amx = std::getenv("PILLARSEG_CPU_AMX");
-  if (amx != nullptr && std::string_view(amx) == "0") return Int8Kernels::Vnni;
+  if (amx_switched_off()) return Int8Kernels::Vnni;
   return amx_int8_available() ? Int8Kernels::Amx : Int8Kernels::Vnni;
 }
 
