@@ -4,6 +4,7 @@
 // quantized weights (DESIGN.md section 10).
 #pragma once
 
+#include <array>
 #include <cstddef>
 
 namespace pillarseg {
@@ -51,9 +52,16 @@ constexpr bool is_float16(DType dtype) { return dtype == DType::BF16 || dtype ==
 // never negative, q = clamp(round_half_even(x r), 0, 255): twice the levels over the same range
 // (the U-Net's convolution inputs are ReLU outputs, max-pooled, bilinear-upsampled and
 // concatenated; calibration says which, engine/model/calibration.hpp).
+// And for a 3x3 pad-1 convolution a CPU without AMX may run in the Winograd domain (F(2x2, 3x3),
+// engine/cpu/int8_conv.hpp), the scales of its transformed input V = B^T d B, one per tile
+// position p (V_p = clamp(round_half_even(V_p / winograd[p]), -127, 127)): calibrated as the
+// per-tensor scale is, all zero where the calibration made none (then the direct kernel runs).
 struct Int8Input {
   float scale = 0.0f;  // > 0
   bool non_negative = false;
+  std::array<float, 16> winograd{};  // > 0 each, or all 0
+
+  bool has_winograd() const { return winograd[0] > 0.0f; }
 };
 
 }  // namespace pillarseg

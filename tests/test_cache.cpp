@@ -38,28 +38,6 @@ void write_bytes(const fs::path& path, const std::vector<char>& bytes) {
   out.write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
 }
 
-// Sets an environment variable for the scope of the object and restores it afterwards.
-class ScopedEnv {
- public:
-  ScopedEnv(const char* name, const char* value) : name_(name) {
-    if (const char* old = std::getenv(name)) old_ = old;
-    if (value)
-      ::setenv(name, value, 1);
-    else
-      ::unsetenv(name);
-  }
-  ~ScopedEnv() {
-    if (old_)
-      ::setenv(name_, old_->c_str(), 1);
-    else
-      ::unsetenv(name_);
-  }
-
- private:
-  const char* name_;
-  std::optional<std::string> old_;
-};
-
 }  // namespace
 
 TEST(Cache, RoundTripsEveryDtype) {
@@ -279,15 +257,15 @@ TEST(Cache, DefaultDirectory) {
   const fs::path dir = test::temp_dir();
   EXPECT_EQ(default_cache_dir(dir), dir / "pillarseg_cache");
   {
-    const ScopedEnv xdg("XDG_CACHE_HOME", (dir / "xdg").c_str());
+    const test::ScopedEnv xdg("XDG_CACHE_HOME", (dir / "xdg").c_str());
     // A data root that does not exist cannot hold the cache.
     EXPECT_EQ(default_cache_dir(dir / "missing"), dir / "xdg" / "pillarseg");
   }
   {
-    const ScopedEnv xdg("XDG_CACHE_HOME", nullptr);
-    const ScopedEnv home("HOME", (dir / "home").c_str());
+    const test::ScopedEnv xdg("XDG_CACHE_HOME", nullptr);
+    const test::ScopedEnv home("HOME", (dir / "home").c_str());
     EXPECT_EQ(default_cache_dir(dir / "missing"), dir / "home" / ".cache" / "pillarseg");
-    const ScopedEnv no_home("HOME", nullptr);
+    const test::ScopedEnv no_home("HOME", nullptr);
     EXPECT_THROW(default_cache_dir(dir / "missing"), Error);
   }
 }

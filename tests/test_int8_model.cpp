@@ -4,8 +4,11 @@
 // against each other and against FP32, the scales in a checkpoint, and the errors a user meets.
 #include <gtest/gtest.h>
 
+#include <algorithm>
+#include <array>
 #include <cmath>
 #include <map>
+#include <span>
 #include <string>
 #include <vector>
 
@@ -15,6 +18,7 @@
 #include "engine/model/checkpoint.hpp"
 #include "engine/model/model_graph.hpp"
 #include "engine/model/pillarsegnet.hpp"
+#include "host/winograd_f2_stats.hpp"
 #include "tests/support/test_support.hpp"
 #include "tests/support/tiny_model.hpp"
 
@@ -102,6 +106,80 @@ TEST(Int8Calibration, PercentileAndScaleByHand) {
   EXPECT_EQ(input_non_negative_name("x.double_conv.0"), "quantization.x.double_conv.0.input_non_negative");
 }
 
+// The Winograd F(2x2, 3x3) transform's statistics by position: the maxima against V = B^T d B
+// worked out with the matrices in double on an odd-sized input (a partial tile at the right and
+// bottom, zero outside the image), bit for bit against the kernel's own maxima (the same FP32
+// order); the 100th percentile is the maximum, a lower one the upper edge of the histogram bin
+// (max / 4096 wide) of the nearest-rank value.
+TEST(Int8Calibration, WinogradDomainStatisticsByPosition) {
+  const Shape shape{2, 3, 5, 7};
+  Rng rng(11);
+  Tensor<float> x = test::random_tensor<float>(shape, rng, -2, 3);
+  const double bt[4][4] = {{1, 0, -1, 0}, {0, 1, 1, 0}, {0, -1, 1, 0}, {0, 1, 0, -1}};
+  std::array<double, 16> expected{};
+  std::vector<std::vector<double>> by_position(16);
+  for (int64_t plane = 0; plane < 6; ++plane) {
+    for (int64_t ty = 0; ty < 3; ++ty) {
+      for (int64_t tx = 0; tx < 4; ++tx) {
+        double d[4][4];
+        for (int r = 0; r < 4; ++r)
+          for (int c = 0; c < 4; ++c) {
+            const int64_t iy = 2 * ty - 1 + r, ix = 2 * tx - 1 + c;
+            d[r][c] = iy < 0 || iy >= 5 || ix < 0 || ix >= 7 ? 0.0 : x.data()[(plane * 5 + iy) * 7 + ix];
+          }
+        for (int i = 0; i < 4; ++i)
+          for (int j = 0; j < 4; ++j) {
+            double v = 0;  // (B^T d B)[i][j] = sum_r sum_c bt[i][r] d[r][c] bt[j][c]
+            for (int r = 0; r < 4; ++r)
+              for (int c = 0; c < 4; ++c) v += bt[i][r] * d[r][c] * bt[j][c];
+            expected[static_cast<size_t>(4 * i + j)] = std::max(expected[static_cast<size_t>(4 * i + j)], std::abs(v));
+            by_position[static_cast<size_t>(4 * i + j)].push_back(std::abs(v));
+          }
+      }
+    }
+  }
+  const std::array<float, 16> absmax = host::winograd_f2_input_absmax(x.data(), shape);
+  float kernel[16];
+  cpu::int8_winograd_input_absmax(ActRef{x.data(), shape, false}, kernel);
+  const std::array<float, 16> p100 = host::winograd_f2_input_percentiles(x.data(), shape, 100);
+  const std::array<float, 16> p50 = host::winograd_f2_input_percentiles(x.data(), shape, 50);
+  for (size_t p = 0; p < 16; ++p) {
+    SCOPED_TRACE(p);
+    EXPECT_NEAR(absmax[p], expected[p], 1e-5 * expected[p]);
+    EXPECT_EQ(absmax[p], kernel[p]);
+    EXPECT_EQ(p100[p], absmax[p]);
+    std::vector<double>& v = by_position[p];
+    ASSERT_EQ(v.size(), 72u);  // 6 planes x 3 x 4 tiles
+    std::nth_element(v.begin(), v.begin() + 35, v.end());  // nearest rank ceil(0.5 72) = 36
+    EXPECT_GE(p50[p], v[35] - 1e-5 * expected[p]);
+    EXPECT_LE(p50[p], v[35] + absmax[p] / 4096.0 + 1e-5 * expected[p]);
+  }
+  EXPECT_NE(test::error_of([&] { host::winograd_f2_input_percentiles(x.data(), shape, 0); }).find("percentile"),
+            std::string::npos);
+
+  // The calibrator: a 3x3 pad-1 convolution's input gets the per-position scales, the largest over
+  // the forwards / 127, besides its per-tensor scale; another convolution's none.
+  InputScaleCalibrator c(100);
+  Tensor<float> half_x = x;
+  for (int64_t i = 0; i < half_x.numel(); ++i) half_x.data()[i] *= 0.5f;
+  c.add_winograd("conv3", std::span<const float>(half_x.data(), static_cast<size_t>(half_x.numel())), shape);
+  c.add_winograd("conv3", std::span<const float>(x.data(), static_cast<size_t>(x.numel())), shape);
+  c.add("conv1", std::vector<float>{1, 2});
+  const auto inputs = c.inputs();
+  ASSERT_TRUE(inputs.at("conv3").has_winograd());
+  for (size_t p = 0; p < 16; ++p) EXPECT_EQ(inputs.at("conv3").winograd[p], std::max(absmax[p] / 127.0f, 1e-8f));
+  float max_x = 0.0f;
+  for (int64_t i = 0; i < x.numel(); ++i) max_x = std::max(max_x, std::abs(x.data()[i]));
+  EXPECT_EQ(inputs.at("conv3").scale, max_x / 127.0f);  // signed: x has negative values
+  EXPECT_FALSE(inputs.at("conv3").non_negative);
+  EXPECT_FALSE(inputs.at("conv1").has_winograd());
+  EXPECT_EQ(c.forwards("conv3"), 2);
+  EXPECT_EQ(winograd_input_scale_name("x.double_conv.0"), "quantization.x.double_conv.0.winograd_input_scale");
+  EXPECT_NE(test::error_of([&] { c.add_winograd("bad", std::vector<float>{1, 2, 3}, {1, 1, 2, 2}); })
+                .find("is not (B, C, H, W) with 3 values"),
+            std::string::npos);
+}
+
 // The model in INT8: the same bits on the CPU's VNNI and AMX-INT8 models and on the CUDA
 // backend's mma.sync emulation (one quantization rule, exact integer sums, one epilogue; the
 // FP32 head's sums in another order on the CUDA backend: within 1e-10 NMSE of each other); within
@@ -187,6 +265,55 @@ TEST(Int8Model, TracksFp32TheSameOnEveryBackend) {
   }
 }
 
+// The Winograd domain on the VNNI kernels (engine/cpu/int8_conv.hpp): calibration gives every 3x3
+// pad-1 U-Net convolution its per-position scales; the tiny model's channels are below the
+// default rule's 256, so it runs direct (the same bits as without those scales) unless
+// PILLARSEG_CPU_INT8_WINOGRAD=1 asks for the Winograd form everywhere: other bits, within what
+// the coarser quantization of V costs of FP32 (NMSE 3e-3; measured below 1e-3). The AMX family
+// never takes it, and the switch's bad values are named.
+TEST(Int8Model, WinogradDomainOnVnniWhereCalibrated) {
+  const ModelConfig c = test::tiny_config();
+  const std::vector<test::TinyData> data = {test::tiny_data(c, 2, 23, 0.4), test::tiny_data(c, 2, 24, 0.4)};
+  auto vnni_model = make_cpu_backend_emulated_bf16(/*amx=*/false);
+  PillarSegNet net(c, *vnni_model, 3);
+  const std::map<std::string, Int8Input> scales = train_and_calibrate(net, *vnni_model, data);
+  std::map<std::string, Int8Input> per_tensor = scales;
+  int with_winograd = 0;
+  for (auto& [key, input] : per_tensor) {
+    EXPECT_TRUE(input.has_winograd()) << key;  // every U-Net convolution here is 3x3 with padding 1
+    with_winograd += input.has_winograd();
+    input.winograd = {};
+  }
+  EXPECT_EQ(with_winograd, 4 * c.depth);
+  net.forward(data[1].batch, false);
+  const Tensor<float> fp32 = net.download_logits();
+  const Tensor<uint8_t> labels32 = net.predict_labels();
+  const auto int8_logits = [&](Backend& be, const std::map<std::string, Int8Input>& inputs, const char* rule) {
+    const test::ScopedEnv env("PILLARSEG_CPU_INT8_WINOGRAD", rule);
+    PillarSegNet other(c, be, 3);
+    other.parameters().copy_values_from(net.parameters());
+    other.set_int8_inputs(inputs);
+    other.set_precision(Precision::I8);
+    other.forward(data[1].batch, false);
+    return std::pair{other.download_logits(), other.predict_labels()};
+  };
+  const auto [direct, direct_labels] = int8_logits(*vnni_model, per_tensor, nullptr);
+  EXPECT_EQ(int8_logits(*vnni_model, scales, nullptr).first, direct) << "below 256 channels: direct";
+  EXPECT_EQ(int8_logits(*vnni_model, scales, "0").first, direct);
+  const auto [winograd, winograd_labels] = int8_logits(*vnni_model, scales, "1");
+  EXPECT_NE(winograd, direct);
+  const double winograd_nmse = nmse(winograd, fp32);
+  RecordProperty("nmse_int8_winograd", fmt::format("{:.3g}", winograd_nmse));
+  RecordProperty("nmse_int8_direct", fmt::format("{:.3g}", nmse(direct, fp32)));
+  EXPECT_LT(winograd_nmse, 3e-3);
+  EXPECT_GE(agreement(winograd_labels, labels32), 0.93);
+  auto amx_model = make_cpu_backend_emulated_bf16(/*amx=*/true);
+  EXPECT_EQ(int8_logits(*amx_model, scales, "1").first, direct) << "AMX-INT8: the direct tiles";
+  EXPECT_NE(test::error_of([&] { int8_logits(*vnni_model, scales, "yes"); })
+                .find("PILLARSEG_CPU_INT8_WINOGRAD must be 0 (the direct INT8 kernel for every convolution) or 1"),
+            std::string::npos);
+}
+
 // The scales travel in the checkpoint: a calibrated file loads as FP32 (the quantization tensors
 // are not model tensors) and sets the model's scales; INT8 without them names the convolution and
 // the command that writes them; training refuses INT8.
@@ -216,6 +343,9 @@ TEST(Int8Model, ScalesInTheCheckpointAndTheErrors) {
   one.data()[0] = 1.0f;
   file.add_f32(input_scale_name("segmentation_head.down1.maxpool_conv.1.double_conv.3"), scale);
   file.add_f32(input_non_negative_name("segmentation_head.down1.maxpool_conv.1.double_conv.3"), one);
+  Tensor<float> positions({16});
+  for (int p = 0; p < 16; ++p) positions.data()[p] = 0.5f + static_cast<float>(p);
+  file.add_f32(winograd_input_scale_name("segmentation_head.down1.maxpool_conv.1.double_conv.3"), positions);
   file.write(path);
   PillarSegNet loaded(c, *backend, 9);
   load_weights(read_checkpoint(path), loaded, false);  // FP32: the extra tensors are skipped
@@ -226,6 +356,9 @@ TEST(Int8Model, ScalesInTheCheckpointAndTheErrors) {
   EXPECT_FALSE(first.non_negative);  // no input_non_negative: signed
   EXPECT_EQ(second.scale, 0.25f);
   EXPECT_TRUE(second.non_negative);
+  EXPECT_FALSE(first.has_winograd());  // no winograd_input_scale: the direct kernel
+  ASSERT_TRUE(second.has_winograd());
+  for (int p = 0; p < 16; ++p) EXPECT_EQ(second.winograd[static_cast<size_t>(p)], 0.5f + static_cast<float>(p));
   EXPECT_EQ(loaded.parameters().download(0), net.parameters().download(0));
 
   CudaBackend cuda_backend;

@@ -95,6 +95,25 @@ std::string conv_arithmetic(const Graph& g) {
   return fmt::format("{} BF16, {} FP32 where that is faster on this CPU", convolutions(half), fp32);
 }
 
+// The INT8 evaluation graph's U-Net convolutions by form on this CPU, "10 convolutions in the
+// Winograd domain F(2x2, 3x3), 7 direct": a 3x3 pad-1 layer calibrated with Winograd-domain scales
+// runs in that domain where cpu::int8_winograd_runs says it pays.
+std::string int8_conv_forms(const Graph& g) {
+  int winograd = 0, direct = 0;
+  const cpu::Int8Kernels kernels = cpu::native_int8_kernels();
+  const cpu::Int8WinogradRule rule = cpu::int8_winograd_rule();
+  for (const GraphNode& n : g.nodes()) {
+    if (n.op != OpKind::PreparedConv2d && n.op != OpKind::PreparedConvTranspose2d) continue;
+    if (g.at(n.as<PreparedConv2dArgs>().prepared).dtype != DType::I8) continue;
+    const bool in_winograd = n.op == OpKind::PreparedConv2d && n.pad == 1 && n.int8_input.has_winograd() &&
+                             cpu::int8_winograd_runs(kernels, n.weight, rule);
+    ++(in_winograd ? winograd : direct);
+  }
+  const auto convolutions = [](int n) { return fmt::format("{} convolution{}", n, n == 1 ? "" : "s"); };
+  if (winograd == 0) return convolutions(direct) + " direct";
+  return fmt::format("{} in the Winograd domain F(2x2, 3x3), {} direct", convolutions(winograd), direct);
+}
+
 int64_t host_inputs_bytes(ScanSegmenter& segmenter, const Scan& scan) {
   Backend& backend = segmenter.backend();
   const ModelConfig& model = segmenter.model();
@@ -398,7 +417,8 @@ void run_bench(const BenchArgs& a) {
     precision_label += fmt::format(" ({}: {})", cpu::bf16_kernels_name(cpu::native_bf16_kernels()),
                                    conv_arithmetic(segmenter.net().graph(false)));
   if (backend.device() == Device::Cpu && segmenter.net().precision() == Precision::I8)
-    precision_label += fmt::format(" ({})", cpu::int8_kernels_name(cpu::native_int8_kernels()));
+    precision_label += fmt::format(" ({}: {})", cpu::int8_kernels_name(cpu::native_int8_kernels()),
+                                   int8_conv_forms(segmenter.net().graph(false)));
   fmt::print("pillarseg bench: device {}, precision {}, {} threads, grid {} x {}, C {}, b {}, {} upsampling, "
              "occupancy {}{}\n",
              backend.name(), precision_label, num_threads(), model.grid.width(), model.grid.height(), model.pillar_channels,

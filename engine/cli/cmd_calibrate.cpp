@@ -67,8 +67,14 @@ void run_calibrate(const CalibrateArgs& a) {
   for (const std::string& name : ckpt.file.names())
     if (name.rfind(kQuantizationPrefix, 0) != 0) file.add(ckpt.file.at(name));
   file.metadata = ckpt.file.metadata;
-  int64_t non_negative = 0;
+  int64_t non_negative = 0, winograd = 0;
   for (const auto& [key, input] : inputs) {
+    if (input.has_winograd()) {
+      Tensor<float> positions({16});
+      std::copy(input.winograd.begin(), input.winograd.end(), positions.data());
+      file.add_f32(winograd_input_scale_name(key), positions);
+      ++winograd;
+    }
     Tensor<float> scale({1}), unsigned_range({1});
     scale.data()[0] = input.scale;
     unsigned_range.data()[0] = input.non_negative ? 1.0f : 0.0f;
@@ -82,14 +88,15 @@ void run_calibrate(const CalibrateArgs& a) {
   }
   file.metadata["quantization"] =
       fmt::format("int8: per-tensor input scales (the {}th percentile of |x| over {} scans of sequences {}, "
-                  "largest / 255 for an input never negative, else / 127), per-output-channel weight scales "
-                  "(max |w| / 127, BatchNorm folded)",
+                  "largest / 255 for an input never negative, else / 127), for the 3x3 pad-1 convolutions also "
+                  "per-position Winograd F(2x2, 3x3) input scales (the same percentile of |V_p|, largest / 127), "
+                  "per-output-channel weight scales (max |w| / 127, BatchNorm folded)",
                   a.percentile, n, fmt::join(ids, ", "));
   file.write(a.out);
   const auto by_scale = [](const auto& x, const auto& y) { return x.second.scale < y.second.scale; };
   fmt::print("calibrated {} convolutions on {} scans ({}th percentile of |x|; {} inputs never negative, "
-             "quantized to 0..255); input scales {:.3g} to {:.3g}\n",
-             inputs.size(), n, a.percentile, non_negative,
+             "quantized to 0..255; {} with Winograd-domain scales); input scales {:.3g} to {:.3g}\n",
+             inputs.size(), n, a.percentile, non_negative, winograd,
              std::min_element(inputs.begin(), inputs.end(), by_scale)->second.scale,
              std::max_element(inputs.begin(), inputs.end(), by_scale)->second.scale);
   fmt::print("wrote {} (loads as FP32 anywhere; --precision int8 uses the scales)\n", a.out);

@@ -161,8 +161,16 @@ class CpuBackend final : public Backend {
     const char* op = "CpuBackend::conv2d_prepared_forward";
     if (prepared.dtype == DType::I8) {
       require_precision(Precision::I8);
-      cpu::int8_conv2d_forward(int8_kernels_, int8_activation(x), input.scale, input.non_negative,
-                               int8_weights(op, prepared, bias_out, weight_scale, weight), pad, relu,
+      const cpu::Int8ConvWeights& direct = int8_weights(op, prepared, bias_out, weight_scale, weight);
+      // The Winograd domain where the preparation made that form (int8_winograd_runs) and the
+      // calibration gave its input scales.
+      const auto winograd = int8_winograd_prepared_.find(prepared.data);
+      if (pad == 1 && input.has_winograd() && winograd != int8_winograd_prepared_.end()) {
+        cpu::int8_winograd_forward(int8_kernels_, int8_activation(x), input.winograd.data(), winograd->second, relu,
+                                   int8_activation(y), int8_winograd_workspace_);
+        return;
+      }
+      cpu::int8_conv2d_forward(int8_kernels_, int8_activation(x), input.scale, input.non_negative, direct, pad, relu,
                                int8_activation(y), int8_workspace_);
       return;
     }
@@ -629,7 +637,7 @@ class CpuBackend final : public Backend {
     require_shape(op, "prepared", prepared.i8(op), pillarseg::op::half16_conv_weights(w.shape, transposed));
     require_shape(op, "bias_out", bias_out, {columns});
     require_shape(op, "weight_scale", *weight_scale, {columns});
-    if (int8_forward_ran_) int8_prepared_.clear(), int8_forward_ran_ = false;
+    if (int8_forward_ran_) int8_prepared_.clear(), int8_winograd_prepared_.clear(), int8_forward_ran_ = false;
     int8_folded_.assign(w.data, w.data + w.numel());
     int8_bias_.assign(static_cast<size_t>(out), 0.0f);
     const int64_t k = transposed ? 0 : w.numel() / out;
@@ -648,6 +656,12 @@ class CpuBackend final : public Backend {
       cpu::prepare_int8_conv_transpose(int8_kernels_, folded, folded_bias, prepared_weights);
     } else {
       cpu::prepare_int8_conv(int8_kernels_, folded, folded_bias, prepared_weights);
+    }
+    // And the Winograd-domain form where this CPU runs it (used when the input has its scales).
+    if (!transposed && cpu::int8_winograd_runs(int8_kernels_, w.shape, cpu::int8_winograd_rule())) {
+      cpu::prepare_int8_winograd(folded, folded_bias, int8_winograd_prepared_[prepared.data]);
+    } else {
+      int8_winograd_prepared_.erase(prepared.data);
     }
     // The tap-major int8 values (the CUDA layout: column n, K index t Ip + c), scales and bias.
     auto* q = static_cast<int8_t*>(prepared.data);
@@ -687,9 +701,11 @@ class CpuBackend final : public Backend {
   // this CPU's answer natively, the Intel rule on the instruction models.
   bool bf16_dot_outpaces_fma_;
   std::map<const void*, cpu::Int8ConvWeights> int8_prepared_;
+  std::map<const void*, cpu::Int8WinogradWeights> int8_winograd_prepared_;  // by the same address
   bool int8_forward_ran_ = false;
   std::vector<float> int8_folded_, int8_bias_;
   cpu::Int8ConvWorkspace int8_workspace_;
+  cpu::Int8WinogradWorkspace int8_winograd_workspace_;
   cpu::Bf16WinogradWorkspace bf16_winograd_;  // the BF16 3 x 3 convolutions' scratch
   std::vector<uint16_t> staging_;
   std::vector<float> transpose_dy_;  // conv_transpose2d_backward's copy of dy

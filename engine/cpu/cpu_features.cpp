@@ -13,6 +13,8 @@
 #include <string>
 #include <string_view>
 
+#include "core/error.hpp"
+
 namespace pillarseg::cpu {
 
 namespace {
@@ -176,6 +178,17 @@ const char* int8_kernels_name(Int8Kernels kernels) {
       return "amx_int8 (emulated)";
   }
   return "?";
+}
+
+Int8WinogradRule int8_winograd_rule() {
+  const char* value = std::getenv("PILLARSEG_CPU_INT8_WINOGRAD");
+  if (value == nullptr || *value == '\0') return Int8WinogradRule::Pays;
+  const std::string_view v(value);
+  if (v == "0") return Int8WinogradRule::Never;
+  if (v == "1") return Int8WinogradRule::Always;
+  PS_CHECK(false, "PILLARSEG_CPU_INT8_WINOGRAD must be 0 (the direct INT8 kernel for every convolution) or 1 "
+           "(the Winograd domain for every 3x3 pad-1 convolution calibrated for it), got '{}'", v);
+  return Int8WinogradRule::Pays;
 }
 
 }  // namespace pillarseg::cpu

@@ -45,4 +45,11 @@ Int8Kernels native_int8_kernels();
 // "avx512_vnni", "emulated", "amx_int8" or "amx_int8 (emulated)".
 const char* int8_kernels_name(Int8Kernels kernels);
 
+// Which INT8 3x3 pad-1 convolutions with calibrated Winograd-domain scales run in that domain on
+// the VNNI kernels (int8_conv.hpp, int8_winograd_runs): Pays, those where it is the faster (the
+// default); Never or Always, from PILLARSEG_CPU_INT8_WINOGRAD=0 or 1 in the environment (read on
+// each call; any other value is an error naming the variable): to compare the two forms.
+enum class Int8WinogradRule { Pays, Never, Always };
+Int8WinogradRule int8_winograd_rule();
+
 }  // namespace pillarseg::cpu

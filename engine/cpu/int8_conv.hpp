@@ -121,4 +121,16 @@ void int8_winograd_forward(Int8Kernels kernels, const ActRef& x, const float* sv
 // max |V_p| over x's tiles and channels for the 16 positions p (V in FP32 as the kernel makes it).
 void int8_winograd_input_absmax(const ActRef& x, float* absmax);
 
+// Whether a 3x3 pad-1 INT8 convolution of `weight` (O, I, 3, 3) whose input has Winograd-domain
+// scales runs in that domain on `kernels`: never on the AMX family (its direct tiles are faster
+// than VNNI's Winograd products); on Vnni and its model by `rule` (cpu_features.hpp), whose
+// default takes the layers with at least 256 input or output channels: there the 2.25x fewer
+// products outweigh the transforms (bench_int8_conv, docs/benchmarks.md#int8), while at 64-128
+// channels and full resolution the transforms cost more than they save.
+inline bool int8_winograd_runs(Int8Kernels kernels, const Shape& weight, Int8WinogradRule rule) {
+  if (int8_amx_family(kernels) || weight.size() != 4 || weight[2] != 3 || weight[3] != 3) return false;
+  if (rule != Int8WinogradRule::Pays) return rule == Int8WinogradRule::Always;
+  return weight[0] >= 256 || weight[1] >= 256;
+}
+
 }  // namespace pillarseg::cpu

@@ -7,6 +7,7 @@
 #include "core/error.hpp"
 #include "engine/model/parameters.hpp"
 #include "engine/model/pillarsegnet.hpp"
+#include "host/winograd_f2_stats.hpp"
 
 namespace pillarseg {
 
@@ -42,12 +43,30 @@ void InputScaleCalibrator::add(const std::string& key, std::span<const float> va
   ++count_[key];
 }
 
+void InputScaleCalibrator::add_winograd(const std::string& key, std::span<const float> values, const Shape& shape) {
+  PS_CHECK(shape.size() == 4 && static_cast<size_t>(shape_numel(shape)) == values.size(),
+           "calibration: the input of {} is not (B, C, H, W) with {} values, got {}", key, values.size(),
+           shape_str(shape));
+  add(key, values);
+  const std::array<float, 16> p = host::winograd_f2_input_percentiles(values.data(), shape, percentile_);
+  std::array<float, 16>& largest = largest_winograd_[key];
+  for (size_t i = 0; i < 16; ++i) {
+    PS_CHECK(std::isfinite(p[i]), "calibration: the Winograd-domain input of {} has an infinite value at position {}",
+             key, i);
+    largest[i] = std::max(largest[i], p[i]);
+  }
+}
+
 std::map<std::string, Int8Input> InputScaleCalibrator::inputs() const {
   std::map<std::string, Int8Input> out;
   for (const auto& [key, largest] : largest_) {
     const bool non_negative = !negative_.at(key);
-    out[key] = Int8Input{.scale = std::max(largest / (non_negative ? 255.0f : 127.0f), 1e-8f),
-                         .non_negative = non_negative};
+    Int8Input& input = out[key];
+    input = Int8Input{.scale = std::max(largest / (non_negative ? 255.0f : 127.0f), 1e-8f),
+                      .non_negative = non_negative};
+    const auto winograd = largest_winograd_.find(key);
+    if (winograd == largest_winograd_.end()) continue;
+    for (size_t p = 0; p < 16; ++p) input.winograd[p] = std::max(winograd->second[p] / 127.0f, 1e-8f);
   }
   return out;
 }
@@ -91,12 +110,16 @@ std::map<std::string, std::vector<float>> int8_weight_scales(const ParameterSet&
 
 CalibrationScope::CalibrationScope(PillarSegNet& net, InputScaleCalibrator& calibrator) : net_(net) {
   Backend& backend = net.backend();
-  net.set_conv_input_observer([this, &backend, &calibrator](const std::string& key, const TensorRef& x) {
+  net.set_conv_input_observer([this, &backend, &calibrator](const std::string& key, const TensorRef& x, bool winograd) {
     PS_CHECK(x.dtype == DType::F32, "calibration: the forward is not FP32 (an input of {} is {})", key,
              dtype_name(x.dtype));
     host_.resize(static_cast<size_t>(x.numel()));
     backend.download(host_.data(), x.data, host_.size() * sizeof(float));
-    calibrator.add(key, host_);
+    if (winograd) {
+      calibrator.add_winograd(key, host_, x.shape);
+    } else {
+      calibrator.add(key, host_);
+    }
   });
 }
 
@@ -104,6 +127,9 @@ CalibrationScope::~CalibrationScope() { net_.set_conv_input_observer(nullptr); }
 
 std::string input_scale_name(const std::string& key) { return kQuantizationPrefix + key + ".input_scale"; }
 std::string weight_scale_name(const std::string& key) { return kQuantizationPrefix + key + ".weight_scale"; }
+std::string winograd_input_scale_name(const std::string& key) {
+  return kQuantizationPrefix + key + ".winograd_input_scale";
+}
 std::string input_non_negative_name(const std::string& key) {
   return kQuantizationPrefix + key + ".input_non_negative";
 }

@@ -22,14 +22,22 @@
 // tails that matter, and clipping them costs more than coarser levels. (The entropy (KL) rule of
 // TensorRT clips harder still.)
 //
+// The 3x3 pad-1 convolutions also get the Winograd-domain scales of Int8Input::winograd
+// (core/dtype.hpp): per tile position p of F(2x2, 3x3), the largest over the scans of the same
+// percentile of |V_p| (host/winograd_f2_stats.hpp), / 127 (V is signed whatever x is). A CPU
+// with AVX512-VNNI and no AMX runs the layers where that form pays in it (engine/cpu/int8_conv.hpp);
+// the other backends and layers use the per-tensor scale.
+//
 // In a checkpoint: quantization.<key>.input_scale (1), quantization.<key>.input_non_negative (1:
-// 1 or 0; absent means 0) and quantization.<key>.weight_scale (O, the
+// 1 or 0; absent means 0), quantization.<key>.winograd_input_scale (16, the 3x3 pad-1
+// convolutions'; absent in files calibrated before it, whose layers then run the direct kernel) and quantization.<key>.weight_scale (O, the
 // per-output-channel scales max |w'| / 127 of the weights with the BatchNorm folded in, for
 // inspection: the backends derive them again from the weights), key the convolution's parameter
 // prefix ("segmentation_head.down1.maxpool_conv.1.double_conv.0"). Loaders that do not know them
 // skip them (engine/model/checkpoint.cpp), so a calibrated file loads as FP32 anywhere.
 #pragma once
 
+#include <array>
 #include <cstdint>
 #include <map>
 #include <span>
@@ -37,6 +45,7 @@
 #include <vector>
 
 #include "core/dtype.hpp"
+#include "core/tensor.hpp"
 
 namespace pillarseg {
 
@@ -52,6 +61,8 @@ class InputScaleCalibrator {
   explicit InputScaleCalibrator(double percentile = kCalibrationPercentile);
   // One forward's input of the convolution `key`, on the host.
   void add(const std::string& key, std::span<const float> values);
+  // ... of a 3x3 pad-1 convolution, x (B, C, H, W): also its Winograd-domain statistics.
+  void add_winograd(const std::string& key, std::span<const float> values, const Shape& shape);
   // key -> the input's quantization: non_negative where no value seen was negative, scale the
   // largest percentile seen / 255 (non-negative) or / 127, at least 1e-8 (so that an all-zero
   // input still has a valid scale).
@@ -62,6 +73,7 @@ class InputScaleCalibrator {
  private:
   double percentile_;
   std::map<std::string, float> largest_;
+  std::map<std::string, std::array<float, 16>> largest_winograd_;
   std::map<std::string, bool> negative_;  // whether a negative value was seen
   std::map<std::string, int64_t> count_;
 };
@@ -95,6 +107,7 @@ std::map<std::string, std::vector<float>> int8_weight_scales(const ParameterSet&
 std::string input_scale_name(const std::string& key);
 std::string weight_scale_name(const std::string& key);
 std::string input_non_negative_name(const std::string& key);
+std::string winograd_input_scale_name(const std::string& key);
 inline constexpr const char* kQuantizationPrefix = "quantization.";
 
 }  // namespace pillarseg

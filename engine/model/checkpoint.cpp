@@ -91,6 +91,10 @@ void load_weights(const Checkpoint& checkpoint, PillarSegNet& net, bool with_opt
         input.scale = file.get_f32(name, {1})[0];
         if (file.contains(input_non_negative_name(key)))
           input.non_negative = file.get_f32(input_non_negative_name(key), {1})[0] != 0.0f;
+        if (file.contains(winograd_input_scale_name(key))) {
+          const Tensor<float> winograd = file.get_f32(winograd_input_scale_name(key), {16});
+          std::copy(winograd.begin(), winograd.end(), input.winograd.begin());
+        }
       }
       continue;
     }

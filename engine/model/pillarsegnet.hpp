@@ -100,8 +100,9 @@ class PillarSegNet {
   const std::map<std::string, Int8Input>& int8_inputs() const;
   // Calibration: while set, every U-Net convolution of an evaluation forward hands its input (the
   // backend's memory, with its dtype) and its key to `observer` before it runs; the forward then
-  // runs node by node (no recorded graph).
-  using ConvInputObserver = std::function<void(const std::string& key, const TensorRef& input)>;
+  // runs node by node (no recorded graph); `winograd`: the convolution is 3x3 with padding 1
+  // (Winograd F(2x2, 3x3) applies to it).
+  using ConvInputObserver = std::function<void(const std::string& key, const TensorRef& input, bool winograd)>;
   void set_conv_input_observer(ConvInputObserver observer);
   // The training step's convolutions (forward, input and weight gradients) in BF16 or FP16 on
   // the tensor cores, with activations, BatchNorm, the loss, gradients, the FP32 master weights
