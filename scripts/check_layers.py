@@ -5,8 +5,12 @@ core/ includes only core/; host/, kernels/ and weights_io/ include only core/ an
 folder; the public headers in include/pillarseg/ include only each other and system headers.
 engine/, tests/, bench/ and examples/ may include anything below them. Inside engine/, the
 sub-folders (backend/, model/, cpu/, ...) form layers too: their includes of each other have no
-cycle. Prints every include that breaks a rule (file:line: what) and every cycle (the folders,
-then each include that makes one of its steps) and exits 1 if there is one.
+cycle, and each folder includes only the folders docs/architecture.md's table of engine's
+sub-folders lists for it (its "includes" column: folders of the rows above its own, or "anything
+above"), so that the documented order is the code's. Prints every include that breaks a rule
+(file:line: what), every cycle (the folders, then each include that makes one of its steps) and
+every departure from the table, and exits 1 if there is one. A tree without
+docs/architecture.md (the tests' small trees) is checked for cycles alone.
 
 Usage: check_layers.py [SOURCE_DIR]   (default: the directory above this script)
 """
@@ -145,20 +149,94 @@ def engine_cycles(root):
             yield "\n".join(lines)
 
 
+TABLE_HEADER = re.compile(r"^\|\s*folder\s*\|\s*what\s*\|\s*includes \(in `engine/`\)\s*\|\s*$")
+ROW = re.compile(r"^\|\s*`([a-z_]+)/`\s*\|.*\|\s*([^|]*?)\s*\|\s*$")
+ANYTHING = "anything above"
+
+
+def documented_order(root):
+    """The table of engine's sub-folders in docs/architecture.md, bottom up: [(folder, the set of
+    folders it may include, or ANYTHING)]; None where the tree has no docs/architecture.md. A file
+    without the table raises ValueError."""
+    doc = root / "docs" / "architecture.md"
+    if not doc.is_file():
+        return None
+    lines = doc.read_text(errors="replace").splitlines()
+    start = next((i for i, line in enumerate(lines) if TABLE_HEADER.match(line)), None)
+    if start is None:
+        raise ValueError("docs/architecture.md: no table of engine's sub-folders (a header "
+                         "'| folder | what | includes (in `engine/`) |')")
+    rows = []
+    for line in lines[start + 2:]:
+        match = ROW.match(line)
+        if not match:
+            break
+        folder, includes = match.group(1), match.group(2)
+        if includes == ANYTHING:
+            rows.append((folder, ANYTHING))
+        else:
+            rows.append((folder, set(re.findall(r"`([a-z_]+)/`", includes))))
+    return rows
+
+
+def order_departures(root):
+    """Each include between engine's sub-folders the table does not allow, and each row of the
+    table that lists a folder not above it."""
+    rows = documented_order(root)
+    if rows is None:
+        return
+    position = {folder: i for i, (folder, _) in enumerate(rows)}
+    for i, (folder, allowed) in enumerate(rows):
+        if allowed == ANYTHING:
+            continue
+        for other in sorted(allowed):
+            if position.get(other, len(rows)) >= i:
+                yield (f"docs/architecture.md: engine/{folder}/ lists {other}/, which is not a row above "
+                       f"its own in the table of engine's sub-folders")
+    edges = engine_includes(root)
+    folders = sorted({source for source, _ in edges} | {target for _, target in edges} |
+                     {p.name for p in (root / "engine").iterdir() if p.is_dir()})
+    for folder in folders:
+        if folder not in position:
+            yield (f"engine/{folder}/ is not in docs/architecture.md's table of engine's sub-folders "
+                   f"(add its row where it belongs, with the folders it includes)")
+    for (source, target), includes in sorted(edges.items()):
+        if source not in position or target not in position:
+            continue
+        allowed = rows[position[source]][1]
+        ok = position[target] < position[source] if allowed == ANYTHING else target in allowed
+        if not ok:
+            lines = [f"engine/{source}/ includes engine/{target}/, which docs/architecture.md's table "
+                     f"does not allow it (it lists: " +
+                     (ANYTHING if allowed == ANYTHING else ", ".join(sorted(a + "/" for a in allowed)) or "-") +
+                     ")"]
+            lines += ["  " + include for include in includes]
+            yield "\n".join(lines)
+
+
 def main():
     root = pathlib.Path(sys.argv[1] if len(sys.argv) > 1 else pathlib.Path(__file__).parent.parent)
     found = list(violations(root.resolve()))
     cycles = list(engine_cycles(root.resolve()))
-    for v in found + cycles:
+    try:
+        departures = list(order_departures(root.resolve()))
+    except ValueError as e:
+        departures = [str(e)]
+    for v in found + cycles + departures:
         print(v)
     if found:
         print(f"check_layers: {len(found)} include(s) point up or sideways")
     if cycles:
         print(f"check_layers: {len(cycles)} cycle(s) of includes between engine/'s sub-folders")
-    if found or cycles:
+    if departures:
+        print(f"check_layers: {len(departures)} departure(s) from docs/architecture.md's order of engine's "
+              "sub-folders")
+    if found or cycles or departures:
         return 1
+    ordered = "" if documented_order(root.resolve()) is None else \
+        ", in docs/architecture.md's order"
     print("check_layers: every layer includes only the layers below it, and engine/'s sub-folders "
-          "include each other without a cycle")
+          f"include each other without a cycle{ordered}")
     return 0
 
 

@@ -1,6 +1,7 @@
 #!/usr/bin/env python3
 """Tests of check_layers.py on small trees: a clean one passes, each kind of upward or sideways
-include fails and is named, and so does a cycle of includes between engine/'s sub-folders."""
+include fails and is named, and so does a cycle of includes between engine/'s sub-folders and an
+include docs/architecture.md's table of them does not allow."""
 import pathlib
 import subprocess
 import sys
@@ -81,6 +82,61 @@ class CheckLayers(unittest.TestCase):
     def test_includes_inside_one_engine_folder_are_no_cycle(self):
         code, out = run({**CLEAN, "engine/model/graph.hpp": '#include "engine/model/graph.cpp"\n'})
         self.assertEqual(code, 0, out)
+
+
+# The CLEAN tree's engine/ folders in a table as docs/architecture.md writes it.
+ARCHITECTURE = """# Architecture
+
+| folder | what | includes (in `engine/`) |
+|---|---|---|
+| `backend/` | the interface | - |
+| `model/` | the network | `backend/` |
+| `cpu/` | the CPU backend | `backend/`, `model/` |
+| `train/` | the trainer | anything above |
+
+After the table.
+"""
+
+
+class DocumentedOrder(unittest.TestCase):
+    def test_a_tree_in_the_documented_order_passes(self):
+        code, out = run({**CLEAN, "docs/architecture.md": ARCHITECTURE})
+        self.assertEqual(code, 0, out)
+        self.assertIn("in docs/architecture.md's order", out)
+
+    def test_an_include_the_table_does_not_list_fails_with_its_includes(self):
+        doc = ARCHITECTURE.replace("| `backend/`, `model/` |", "| `backend/` |")
+        code, out = run({**CLEAN, "docs/architecture.md": doc})
+        self.assertEqual(code, 1, out)
+        self.assertIn("engine/cpu/ includes engine/model/, which docs/architecture.md's table does not allow it "
+                      "(it lists: backend/)", out)
+        self.assertIn('engine/cpu/cpu_backend.cpp:2: "engine/model/graph.hpp"', out)
+
+    def test_anything_above_means_the_rows_above(self):
+        code, out = run({**CLEAN, "docs/architecture.md": ARCHITECTURE,
+                         "engine/model/uses_train.cpp": '#include "engine/backend/backend.hpp"\n',
+                         "engine/cpu/x.cpp": '#include "engine/backend/backend.hpp"\n'})
+        self.assertEqual(code, 0, out)
+        moved = ARCHITECTURE.replace("| `train/` | the trainer | anything above |\n", "").replace(
+            "| `backend/` | the interface | - |\n",
+            "| `backend/` | the interface | - |\n| `train/` | the trainer | anything above |\n")
+        code, out = run({**CLEAN, "docs/architecture.md": moved})
+        self.assertEqual(code, 1, out)
+        self.assertIn("engine/train/ includes engine/cpu/", out)
+
+    def test_a_folder_missing_from_the_table_or_listed_below_its_row_fails(self):
+        code, out = run({**CLEAN, "docs/architecture.md": ARCHITECTURE, "engine/sim/city.cpp": "int x;\n"})
+        self.assertEqual(code, 1, out)
+        self.assertIn("engine/sim/ is not in docs/architecture.md's table", out)
+        upside_down = ARCHITECTURE.replace("| `backend/` | the interface | - |", "| `backend/` | the interface | `cpu/` |")
+        code, out = run({**CLEAN, "docs/architecture.md": upside_down})
+        self.assertEqual(code, 1, out)
+        self.assertIn("engine/backend/ lists cpu/, which is not a row above its own", out)
+
+    def test_a_doc_without_the_table_fails(self):
+        code, out = run({**CLEAN, "docs/architecture.md": "# Architecture\n\nNo table.\n"})
+        self.assertEqual(code, 1, out)
+        self.assertIn("docs/architecture.md: no table of engine's sub-folders", out)
 
 
 if __name__ == "__main__":
