@@ -126,10 +126,14 @@ struct Avx512VnniIsa {
   static F load_f32_at(const float* base, std::int64_t index, std::uint32_t mask) {
     return _mm512_maskz_loadu_ps(static_cast<__mmask16>(mask), at(base, index));
   }
-  static F load_bf16_at(const std::uint16_t* base, std::int64_t index, std::uint32_t mask) {
-    const __m256i words = _mm256_maskz_loadu_epi16(static_cast<__mmask16>(mask), at(base, index));
-    return _mm512_castsi512_ps(_mm512_slli_epi32(_mm512_cvtepu16_epi32(words), 16));
+  static void load_bf16_pairs_at(const std::uint16_t* base, std::int64_t index, std::uint32_t mask,
+                                 F& even, F& odd) {
+    const __m512i words = _mm512_maskz_loadu_epi16(static_cast<__mmask32>(mask), at(base, index));
+    even = _mm512_castsi512_ps(_mm512_slli_epi32(words, 16));
+    odd = _mm512_castsi512_ps(
+        _mm512_and_si512(words, _mm512_set1_epi32(static_cast<std::int32_t>(0xFFFF0000u))));
   }
+  static void prefetch_for_read(const void* p) { __builtin_prefetch(p, 0, 3); }
   static F even(F lo, F hi) {
     return _mm512_permutex2var_ps(lo, _mm512_load_si512(kInt8EvenLanes), hi);
   }

@@ -53,6 +53,8 @@ struct Int8Winograd {
 
 // Tiles of a group: 2 vectors of 16 (16 accumulators; GCC spills a 3-vector tile's 24 here).
 inline constexpr std::int64_t kInt8WinogradGroupTiles = 32;
+// Quads of a run of the products' loop (int8_winograd_position).
+inline constexpr std::int64_t kInt8WinogradQuadRun = 64;
 
 // Blocks [begin, end) (block j of tile row r of image b is item (b tiles_h + r) blocks_per_row
 // + j) on the AVX-512 instructions with the scratch of thread `thread` (int8_conv_avx512.cpp).
@@ -69,26 +71,27 @@ struct Int8WinogradPick {
 inline constexpr Int8WinogradPick kInt8WinogradPick[4] = {
     {0, 2, false}, {1, 2, true}, {2, 1, false}, {1, 3, false}};
 
-// The loads of int8_winograd_row for 16 tiles whose inputs start at column x0: the columns x0..,
-// x0 + 16.., x0 + 2.., x0 + 18.., and their masks (the columns inside the image).
+// The loads of int8_winograd_row for 16 tiles whose inputs start at column x0: the 32 columns x0..
+// and the 32 columns x0 + 2.., and their masks (the columns inside the image).
 struct Int8WinogradColumns {
-  std::int64_t start[4];
-  std::uint32_t mask[4];
+  std::int64_t start[2];
+  std::uint32_t mask[2];
 };
 inline Int8WinogradColumns int8_winograd_columns(std::int64_t x0, std::int64_t width) {
   Int8WinogradColumns c;
-  const std::int64_t offsets[4] = {0, 16, 2, 18};
-  for (int k = 0; k < 4; ++k) {
-    const std::int64_t s = x0 + offsets[k];
-    const std::int64_t lo = s < 0 ? -s : 0, hi = width - s < 16 ? width - s : 16;
+  for (int k = 0; k < 2; ++k) {
+    const std::int64_t s = x0 + 2 * k;
+    const std::int64_t lo = s < 0 ? -s : 0, hi = width - s < 32 ? width - s : 32;
     c.start[k] = s;
-    c.mask[k] = hi <= lo ? 0u : ((std::uint32_t{1} << hi) - 1) & ~((std::uint32_t{1} << lo) - 1);
+    c.mask[k] = hi <= lo ? 0u : int8_first_lanes(hi) & ~int8_first_lanes(lo);
   }
   return c;
 }
 
 // h[j] = (d_r B)[j] of the input row starting at element `row` (none: zero rows) over 16 tiles:
-// lane i holds columns x0 + 2 i + j.
+// lane i holds columns x0 + 2 i + j. BF16 pairs split in place (a column's FP32 bits are its word
+// shifted up: the even columns' low words moved up, the odd columns' high words masked), FP32
+// columns by even and odd permutes of 16-lane halves.
 template <class Isa>
 void int8_winograd_row(const Int8Winograd& g, bool inside, std::int64_t row,
                        const Int8WinogradColumns& columns, typename Isa::F* h) {
@@ -97,20 +100,47 @@ void int8_winograd_row(const Int8Winograd& g, bool inside, std::int64_t row,
     for (int j = 0; j < 4; ++j) h[j] = Isa::zero_f();
     return;
   }
-  F parts[4];
-#pragma GCC unroll 4
-  for (int k = 0; k < 4; ++k) {
-    parts[k] = g.x_bf16 ? Isa::load_bf16_at(static_cast<const std::uint16_t*>(g.x),
-                                            row + columns.start[k], columns.mask[k])
-                        : Isa::load_f32_at(static_cast<const float*>(g.x), row + columns.start[k],
-                                           columns.mask[k]);
+  F d[4];
+  if (g.x_bf16) {
+    const auto* x = static_cast<const std::uint16_t*>(g.x);
+#pragma GCC unroll 2
+    for (int k = 0; k < 2; ++k)
+      Isa::load_bf16_pairs_at(x, row + columns.start[k], columns.mask[k], d[2 * k], d[2 * k + 1]);
+  } else {
+    const auto* x = static_cast<const float*>(g.x);
+#pragma GCC unroll 2
+    for (int k = 0; k < 2; ++k) {
+      const F lo = Isa::load_f32_at(x, row + columns.start[k], columns.mask[k] & 0xFFFFu);
+      const F hi = Isa::load_f32_at(x, row + columns.start[k] + 16, columns.mask[k] >> 16);
+      d[2 * k] = Isa::even(lo, hi), d[2 * k + 1] = Isa::odd(lo, hi);
+    }
   }
-  const F d0 = Isa::even(parts[0], parts[1]), d1 = Isa::odd(parts[0], parts[1]);
-  const F d2 = Isa::even(parts[2], parts[3]), d3 = Isa::odd(parts[2], parts[3]);
-  h[0] = Isa::sub(d0, d2);
-  h[1] = Isa::add(d1, d2);
-  h[2] = Isa::sub(d2, d1);
-  h[3] = Isa::sub(d1, d3);
+  h[0] = Isa::sub(d[0], d[2]);
+  h[1] = Isa::add(d[1], d[2]);
+  h[2] = Isa::sub(d[2], d[1]);
+  h[3] = Isa::sub(d[1], d[3]);
+}
+
+// Asks for the input rows quad cq of the block (tile row ty, tiles from tx0) reads, so that the
+// transform does not wait for them: each channel's four rows are a short run of cache lines in a
+// plane far from the last one, which the hardware prefetchers do not foresee.
+template <class Isa>
+void int8_winograd_prefetch_quad(const Int8Winograd& g, std::int64_t b, std::int64_t ty,
+                                 std::int64_t tx0, std::int64_t cq) {
+  const std::int64_t element = g.x_bf16 ? 2 : 4;
+  const std::int64_t first = 2 * tx0 - 1 < 0 ? 0 : 2 * tx0 - 1;
+  const std::int64_t end_column = 2 * (tx0 + g.block_tiles) + 1;
+  const std::int64_t last = (end_column < g.width ? end_column : g.width) - 1;
+  for (std::int64_t c = 4 * cq; c < 4 * cq + 4 && c < g.channels; ++c) {
+    for (std::int64_t iy = 2 * ty - 1; iy <= 2 * ty + 2; ++iy) {
+      if (iy < 0 || iy >= g.height) continue;
+      const char* row = static_cast<const char*>(g.x) +
+                        ((b * g.channels + c) * g.height + iy) * g.width * element;
+      for (std::int64_t at = first * element; at <= last * element; at += 64)
+        Isa::prefetch_for_read(row + at);
+      Isa::prefetch_for_read(row + last * element);
+    }
+  }
 }
 
 // V[p][cq][tl][i] for the block's tiles tl (16 at a time) of tile row ty from tile tx0 on.
@@ -122,6 +152,7 @@ void int8_winograd_input(const Int8Winograd& g, std::int64_t b, std::int64_t ty,
   const std::int64_t plane_size = g.height * g.width;
   const Acc padding = Isa::set1(128);
   for (std::int64_t cq = 0; cq < g.quads; ++cq) {
+    if (cq + 1 < g.quads) int8_winograd_prefetch_quad<Isa>(g, b, ty, tx0, cq + 1);
     for (std::int64_t tl = 0; tl < g.block_tiles; tl += 16) {
       const Int8WinogradColumns columns = int8_winograd_columns(2 * (tx0 + tl) - 1, g.width);
       Acc u[4][16];
@@ -155,57 +186,54 @@ void int8_winograd_input(const Int8Winograd& g, std::int64_t b, std::int64_t ty,
   }
 }
 
-// m[c][16 px + lane] = float(acc - comp[c]) scale[c] (the epilogue without bias or ReLU): out of
-// line, so that the caller keeps its accumulators in registers.
-template <class Isa, int NPX>
-[[gnu::noinline]] void int8_winograd_dequantize(
-    const typename Isa::Acc (&acc)[kInt8GroupColumns][NPX], const float* scale,
-    const std::int32_t* comp, float* m) {
-  for (int c = 0; c < static_cast<int>(kInt8GroupColumns); ++c) {
-#pragma GCC unroll 4
-    for (int px = 0; px < NPX; ++px) {
-      Isa::store_f(m + c * kInt8WinogradGroupTiles + 16 * px,
-                   Isa::epilogue(acc[c][px], comp[c], scale[c], 0.0f, false));
-    }
-  }
-}
-
 // M[p][c][16 px + lane] for the output channels o0 + c (c < 8) and the tiles tl0 + 16 px + lane
-// of the block: the products over the quads, dequantized. Not inlined: in the caller the output
-// transform's constants would take registers from the 24 accumulators.
+// of the block: the products over the quads, dequantized, M = float(acc - comp[c]) scale[c] (the
+// epilogue without bias or ReLU), inline (handing the accumulators to a function by reference
+// sends them through memory). Not inlined: in the caller the output transform's constants would
+// take registers from the accumulators.
 template <class Isa, int NPX>
 [[gnu::noinline]] void int8_winograd_position(const Int8Winograd& g, const std::uint8_t* v, int p,
                                               std::int64_t o0, std::int64_t tl0, float* m) {
   using Acc = typename Isa::Acc;
   using Bytes = typename Isa::Bytes;
   constexpr int kCols = static_cast<int>(kInt8GroupColumns);
-  float scale[kCols];
-  std::int32_t comp[kCols];
-  for (int c = 0; c < kCols; ++c) {
-    const std::int64_t o = o0 + c < g.out_channels ? o0 + c : g.out_channels - 1;
-    scale[c] = g.sv[p] * g.su[p * g.out_channels + o];
-    comp[c] = g.compensation[p * g.column_groups * kCols + o0 + c];
-  }
+  const std::int64_t quads = g.quads, v_step = g.block_tiles * 4;
   Acc acc[kCols][NPX];
 #pragma GCC unroll 8
   for (int c = 0; c < kCols; ++c)
 #pragma GCC unroll 4
     for (int px = 0; px < NPX; ++px) acc[c][px] = Isa::zero();
-  const std::uint8_t* vp = v + (p * g.quads * g.block_tiles + tl0) * 4;
-  const std::int8_t* w = g.u + ((p * g.column_groups + o0 / kCols) * g.quads) * 4 * kCols;
-  const std::int64_t quads = g.quads, v_step = g.block_tiles * 4;
-  for (std::int64_t cq = 0; cq < quads; ++cq, vp += v_step, w += 4 * kCols) {
-    Bytes a[NPX];
+  const std::uint8_t* vp = v + (p * quads * g.block_tiles + tl0) * 4;
+  const std::int8_t* w = g.u + ((p * g.column_groups + o0 / kCols) * quads) * 4 * kCols;
+  // The quads in runs, a loop in a loop as in vnni_tile (taps, quads): over one flat loop GCC kept
+  // each accumulator in two registers and copied it back on every step (32 moves and a spill a
+  // step); nested, it allocates them in place.
+  for (std::int64_t run = 0; run < quads; run += kInt8WinogradQuadRun) {
+    const std::int64_t run_end =
+        run + kInt8WinogradQuadRun < quads ? run + kInt8WinogradQuadRun : quads;
+    for (std::int64_t cq = run; cq < run_end; ++cq, vp += v_step, w += 4 * kCols) {
+      Bytes a[NPX];
 #pragma GCC unroll 4
-    for (int px = 0; px < NPX; ++px) a[px] = Isa::load(vp + 64 * px);
+      for (int px = 0; px < NPX; ++px) a[px] = Isa::load(vp + 64 * px);
 #pragma GCC unroll 8
-    for (int c = 0; c < kCols; ++c) {
-      const Bytes weights = Isa::broadcast4(w + 4 * c);
+      for (int c = 0; c < kCols; ++c) {
+        const Bytes weights = Isa::broadcast4(w + 4 * c);
 #pragma GCC unroll 4
-      for (int px = 0; px < NPX; ++px) acc[c][px] = Isa::dot(acc[c][px], a[px], weights);
+        for (int px = 0; px < NPX; ++px) acc[c][px] = Isa::dot(acc[c][px], a[px], weights);
+      }
     }
   }
-  int8_winograd_dequantize<Isa, NPX>(acc, scale, comp, m + p * kCols * kInt8WinogradGroupTiles);
+  float* mp = m + p * kCols * kInt8WinogradGroupTiles;
+#pragma GCC unroll 8
+  for (int c = 0; c < kCols; ++c) {
+    const std::int64_t o = o0 + c < g.out_channels ? o0 + c : g.out_channels - 1;
+    const float scale = g.sv[p] * g.su[p * g.out_channels + o];
+    const std::int32_t comp = g.compensation[p * g.column_groups * kCols + o0 + c];
+#pragma GCC unroll 4
+    for (int px = 0; px < NPX; ++px)
+      Isa::store_f(mp + c * kInt8WinogradGroupTiles + 16 * px,
+                   Isa::epilogue(acc[c][px], comp, scale, 0.0f, false));
+  }
 }
 
 // The products of output channels [o0, o0 + 8) and tiles [tl0, tl0 + 16 NPX) of the block into M
