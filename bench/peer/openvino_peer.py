@@ -168,12 +168,13 @@ def pillarseg(args, *command):
 
 
 def bench(args, precision, *extra):
-    """One `pillarseg bench --device cpu` run (one warm-up, one timed repetition): U-Net + head
-    stage time (ms), and the precision it says it ran (with its kernels, e.g. "bf16 (amx_bf16)")."""
-    out = pillarseg(args, "bench", "--device", "cpu", "--precision", precision, "--repeat", "1",
+    """One `pillarseg bench --device cpu` run (one warm-up, then --repeat timed repetitions, their
+    median): U-Net + head stage time (ms), and the precision its header line says it ran (with its
+    kernels, e.g. "bf16 (amx_bf16: 17 convolutions BF16)")."""
+    out = pillarseg(args, "bench", "--device", "cpu", "--precision", precision, "--repeat", str(args.repeat),
                     *(["--config", args.config] if args.config else []), *extra)
     stages = dict(re.findall(r"^(U-Net|head)\s+([0-9.]+)$", out, re.M))
-    ran = re.search(r"precision ([a-z0-9]+(?: \([^)]*\))?)", out)
+    ran = re.search(r"^pillarseg bench: device \S+, precision ([a-z0-9]+(?: \((?:[^()]|\([^()]*\))*\))?)", out, re.M)
     return float(stages["U-Net"]) + float(stages["head"]), ran.group(1) if ran else "?"
 
 
@@ -232,6 +233,9 @@ def main():
                    "U-Net takes the shape of its canvas")
     p.add_argument("--threads", type=int, default=os.cpu_count())
     p.add_argument("--rounds", type=int, default=5)
+    p.add_argument("--repeat", type=int, default=3,
+                   help="timed runs a round on each side (ours: pillarseg bench --repeat, after its warm-up), "
+                        "their median; the rounds' medians are reported")
     p.add_argument("--base-width", type=int, default=64)
     p.add_argument("--depth", type=int, default=4)
     p.add_argument("--calibration-scans", type=int, default=4,
@@ -279,14 +283,18 @@ def main():
             if precision not in ours_error:
                 times["ours " + precision].append(bench(args, precision)[0])
         for hint, r in requests.items():
-            start = time.perf_counter()
-            r.infer({"canvas": canvas})
-            times["openvino " + hint].append((time.perf_counter() - start) * 1e3)
+            runs = []
+            for _ in range(args.repeat):  # as ours: the median of --repeat runs a round
+                start = time.perf_counter()
+                r.infer({"canvas": canvas})
+                runs.append((time.perf_counter() - start) * 1e3)
+            times["openvino " + hint].append(statistics.median(runs))
     med = {k: statistics.median(v) for k, v in times.items()}
 
     print(f"U-Net {channels} -> 12 classes, b {args.base_width}, depth {args.depth}, {height} x {width}, "
           f"{args.threads} threads; CPU: {cpu_line()}; OpenVINO {ov.__version__}"
-          f"{'' if nncf is None else ', NNCF ' + nncf.__version__}; median of {args.rounds} alternating rounds; "
+          f"{'' if nncf is None else ', NNCF ' + nncf.__version__}; median of {args.rounds} alternating rounds "
+          f"(each the median of {args.repeat} runs); "
           f"input: the canvas of ours' benched scan ({occupied.sum()} cells with points); load average "
           f"{load_before:.1f} before, {os.getloadavg()[0]:.1f} after; random weights on both sides")
     if nncf is not None:
