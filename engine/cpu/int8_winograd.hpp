@@ -51,7 +51,8 @@ struct Int8Winograd {
   std::int64_t v_stride = 0, m_stride = 0;
 };
 
-// Tiles of a group: 2 vectors of 16 (16 accumulators; GCC spills a 3-vector tile's 24 here).
+// Tiles of a group: 2 vectors of 16 (16 accumulators; a 3-vector tile of 24, which the nested
+// quad loop also keeps in registers, measured no faster: docs/benchmarks.md#int8).
 inline constexpr std::int64_t kInt8WinogradGroupTiles = 32;
 // Quads of a run of the products' loop (int8_winograd_position).
 inline constexpr std::int64_t kInt8WinogradQuadRun = 64;
