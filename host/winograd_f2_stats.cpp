@@ -104,8 +104,8 @@ std::array<float, 16> winograd_f2_input_percentiles(const float* x, const Shape&
     for (int k = 0; k < kBins; ++k) {
       seen += bins[static_cast<size_t>(k)];
       if (seen >= rank) {
-        out[static_cast<size_t>(p)] =
-            std::min(max_abs[static_cast<size_t>(p)], max_abs[static_cast<size_t>(p)] * static_cast<float>(k + 1) / kBins);
+        const float max_p = max_abs[static_cast<size_t>(p)];
+        out[static_cast<size_t>(p)] = std::min(max_p, max_p * static_cast<float>(k + 1) / kBins);
         break;
       }
     }

@@ -3,10 +3,12 @@
 #include "engine/cpu/int8_conv.hpp"
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <cstdlib>
 #include <cstring>
 #include <string>
+#include <vector>
 
 #include "core/error.hpp"
 #include "core/ops.hpp"
@@ -15,6 +17,7 @@
 #include "engine/cpu/int8_isa_emulated.hpp"
 #include "engine/cpu/int8_microkernel.hpp"
 #include "engine/cpu/int8_winograd.hpp"
+#include "host/winograd_f2_stats.hpp"
 #include "weights_io/half.hpp"
 
 namespace pillarseg::cpu {
@@ -482,42 +485,20 @@ void int8_winograd_forward(Int8Kernels kernels, const ActRef& x, const float* sv
 
 void int8_winograd_input_absmax(const ActRef& x, float* absmax) {
   require_activation("int8_winograd_input_absmax", "x", x);
-  const std::int64_t channels = x.dim(1), h = x.dim(2), wd = x.dim(3);
-  const std::int64_t th = (h + 1) / 2, tw = (wd + 1) / 2;
-  const int threads = std::max(num_threads(), 1);
-  std::vector<float> partial(static_cast<size_t>(16 * threads), 0.0f);
-  parallel_chunks(x.dim(0) * channels, [&](std::int64_t begin, std::int64_t end, int thread) {
-    float* mx = partial.data() + 16 * thread;
-    for (std::int64_t plane = begin; plane < end; ++plane) {
-      const auto at = [&](std::int64_t iy, std::int64_t ix) -> float {
-        if (iy < 0 || iy >= h || ix < 0 || ix >= wd) return 0.0f;
-        const std::int64_t i = (plane * h + iy) * wd + ix;
-        return x.half ? weights::bf16_bits_to_float(static_cast<const std::uint16_t*>(x.data)[i])
-                      : static_cast<const float*>(x.data)[i];
-      };
-      for (std::int64_t ty = 0; ty < th; ++ty) {
-        for (std::int64_t tx = 0; tx < tw; ++tx) {
-          float hr[4][4];
-          for (int r = 0; r < 4; ++r) {
-            float d[4];
-            for (int j = 0; j < 4; ++j) d[j] = at(2 * ty - 1 + r, 2 * tx - 1 + j);
-            hr[r][0] = d[0] - d[2], hr[r][1] = d[1] + d[2], hr[r][2] = d[2] - d[1],
-            hr[r][3] = d[1] - d[3];
-          }
-          for (int j = 0; j < 4; ++j) {
-            const float v[4] = {hr[0][j] - hr[2][j], hr[1][j] + hr[2][j], hr[2][j] - hr[1][j],
-                                hr[1][j] - hr[3][j]};
-            for (int i = 0; i < 4; ++i) mx[4 * i + j] = std::max(mx[4 * i + j], std::abs(v[i]));
-          }
-        }
-      }
-    }
-  });
-  for (int p = 0; p < 16; ++p) {
-    absmax[p] = 0.0f;
-    for (int t = 0; t < threads; ++t)
-      absmax[p] = std::max(absmax[p], partial[static_cast<size_t>(16 * t + p)]);
+  // The transform and its order are host/winograd_f2_stats's (the calibration's); BF16 widens to
+  // FP32 exactly, so the maxima are those of the values the kernel transforms.
+  std::vector<float> widened;
+  const float* values = static_cast<const float*>(x.data);
+  if (x.half) {
+    const auto* bits = static_cast<const std::uint16_t*>(x.data);
+    widened.resize(static_cast<size_t>(x.numel()));
+    parallel_for(x.numel(), [&](std::int64_t i) {
+      widened[static_cast<size_t>(i)] = weights::bf16_bits_to_float(bits[i]);
+    });
+    values = widened.data();
   }
+  const std::array<float, 16> maxima = host::winograd_f2_input_absmax(values, x.shape);
+  std::copy(maxima.begin(), maxima.end(), absmax);
 }
 
 }  // namespace pillarseg::cpu

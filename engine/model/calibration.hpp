@@ -30,8 +30,9 @@
 //
 // In a checkpoint: quantization.<key>.input_scale (1), quantization.<key>.input_non_negative (1:
 // 1 or 0; absent means 0), quantization.<key>.winograd_input_scale (16, the 3x3 pad-1
-// convolutions'; absent in files calibrated before it, whose layers then run the direct kernel) and quantization.<key>.weight_scale (O, the
-// per-output-channel scales max |w'| / 127 of the weights with the BatchNorm folded in, for
+// convolutions'; absent in files calibrated before it, whose layers then run the direct kernel)
+// and quantization.<key>.weight_scale (O, the per-output-channel scales max |w'| / 127 of the
+// weights with the BatchNorm folded in, for
 // inspection: the backends derive them again from the weights), key the convolution's parameter
 // prefix ("segmentation_head.down1.maxpool_conv.1.double_conv.0"). Loaders that do not know them
 // skip them (engine/model/checkpoint.cpp), so a calibrated file loads as FP32 anywhere.
