@@ -115,6 +115,13 @@ void StreetSide::set_edges(double road_half_width, double backyard) {
   e_back = e_front + backyard;
 }
 
+double StreetSide::yard_offset(double a) const {
+  const double t = std::max(0.0, a - e_walk);
+  const double reach = std::abs(yard_drop);
+  const double drop = reach > 0 ? -yard_drop * (1.0 - std::exp(-yard_slope * t / reach)) : 0.0;
+  return terrain_offset + drop;
+}
+
 Street::Street(std::vector<Vector2d> polyline) : points(std::move(polyline)) {
   PS_CHECK(points.size() >= 2, "Street: a centre line needs at least 2 points, got {}",
            points.size());
@@ -351,7 +358,9 @@ class CityBuilder {
     for (StreetSide& side : main.sides) {
       side.bike = narrow ? 0.0 : bike;
       side.parking = rng.bernoulli(0.6) && !narrow ? rng.uniform(2.1, 2.5) : 0.0;
-      side.lawn = rng.bernoulli(0.7) ? rng.uniform(1.2, 3.5) : 0.0;
+      // The sidewalk at the curb on most sides (in the real labelled scan no grass touches the
+      // road), a tree lawn between curb and sidewalk on few.
+      side.lawn = rng.bernoulli(0.15) ? rng.uniform(1.2, 3.5) : 0.0;
       side.sidewalk = rng.uniform(2.0, 5.5);
       side.front = rng.bernoulli(0.75) ? rng.uniform(2.0, 8.0) : rng.uniform(0.0, 2.0);
       side.set_edges(main.lanes * main.lane_width, kBackyard);
@@ -414,7 +423,7 @@ class CityBuilder {
         for (StreetSide& ss : st.sides) {
           ss.bike = bike;
           ss.parking = rng.bernoulli(0.5) ? rng.uniform(2.1, 2.4) : 0.0;
-          ss.lawn = rng.bernoulli(0.6) ? rng.uniform(1.0, 3.0) : 0.0;
+          ss.lawn = rng.bernoulli(0.15) ? rng.uniform(1.0, 3.0) : 0.0;
           ss.sidewalk = rng.uniform(1.8, 5.0);
           ss.front = rng.uniform(0.0, 8.0);
           ss.set_edges(st.lane_width, kBackyard);
@@ -432,9 +441,12 @@ class CityBuilder {
     for (Street& st : city_.streets_) {
       const bool is_main = &st == &city_.streets_[0];
       for (StreetSide& side : st.sides) {
-        // In the real labelled scan the grass lies 0.25 m below the sidewalk (median).
-        side.terrain_offset =
-            levels.bernoulli(0.65) ? levels.uniform(-0.4, 0.0) : levels.uniform(0.0, 0.15);
+        // The yards meet the back of the sidewalk at its level and, on most sides, fall away
+        // beyond it and level off a few decimetres below (StreetSide::yard_offset).
+        side.terrain_offset = levels.uniform(-0.06, 0.02);
+        side.yard_drop =
+            levels.bernoulli(0.7) ? levels.uniform(0.2, 0.6) : -levels.uniform(0.0, 0.15);
+        side.yard_slope = levels.uniform(0.01, 0.06);
         for (double s = 0; s < st.length();) {
           s += rng.uniform(15.0, 45.0);
           side.stretch_end.push_back(s);
@@ -448,6 +460,29 @@ class CityBuilder {
           lot.building = rng.bernoulli(is_main ? 0.72 : 0.65);
           lot.front_label = rng.bernoulli(0.8) ? raw::kTerrain : raw::kOtherGround;
           lot.back_label = rng.bernoulli(0.85) ? raw::kTerrain : raw::kOtherGround;
+          // Half of the lots without a building are open greens, most with a building well
+          // behind the building line; half of those are crossed by a paved path.
+          const bool green = rng.bernoulli(0.5), far = rng.bernoulli(0.7);
+          const bool across = rng.bernoulli(0.5), door = rng.bernoulli(1.0 / 3.0);
+          const double far_setback = rng.uniform(8.0, 20.0);
+          const double path_width = rng.uniform(1.5, 3.5), door_width = rng.uniform(1.2, 2.2);
+          const double path_u = rng.uniform(), path_depth = rng.uniform(8.0, 20.0);
+          const auto put_path = [&](double width, double depth) {
+            const double room = lot.s1 - lot.s0 - width - 2.0;
+            if (room <= 0) return;
+            lot.path_half = 0.5 * width;
+            lot.path_s = lot.s0 + 1.0 + lot.path_half + path_u * room;
+            lot.path_depth = depth;
+          };
+          if (!lot.building && green) {
+            lot.open_green = true;
+            lot.front_label = lot.back_label = raw::kTerrain;
+            if (far) lot.far_setback = far_setback;
+            if (across) put_path(path_width, far ? side.front + far_setback : path_depth);
+          } else if (lot.building && side.front > 1.5 && door) {
+            // A path to the door (into the building's footprint, which covers its end).
+            put_path(door_width, side.front + 1.6);
+          }
           side.lots.push_back(lot);
         }
       }
@@ -489,16 +524,14 @@ class CityBuilder {
           const double height = is_main ? rng.uniform(6.0, 22.0) : rng.uniform(5.0, 16.0);
           const double setback = rng.uniform(0.0, 1.5);
           const float albedo = static_cast<float>(rng.uniform(0.15, 0.5));
-          if (!lot.building) continue;
+          if (!lot.building && lot.far_setback <= 0) continue;
           const double s_mid = 0.5 * (lot.s0 + lot.s1);
-          if (width < 5.0 || s_mid > st.length()) {
-            lot.building = false;
-            continue;
-          }
+          // An open green's building stands far_setback behind the building line.
+          const double back = lot.building ? setback : lot.far_setback;
           const StreetFrame f = st.at(s_mid);
           const double sign = side == 0 ? -1.0 : 1.0;
-          const Vector2d center = f.p + sign * (ss.e_front + setback + 0.5 * depth) * f.normal;
-          bool clear = true;
+          const Vector2d center = f.p + sign * (ss.e_front + back + 0.5 * depth) * f.normal;
+          bool clear = width >= 5.0 && s_mid <= st.length();
           for (double u : {-0.5, 0.0, 0.5})
             for (double v : {-0.5, 0.0, 0.5}) {
               const Vector2d q = center + u * width * f.tangent + v * depth * f.normal;
@@ -506,6 +539,7 @@ class CityBuilder {
             }
           if (!clear) {
             lot.building = false;
+            lot.far_setback = 0;
             continue;
           }
           emit_building(center, f.tangent, width, depth, height, albedo, rng);
@@ -625,22 +659,41 @@ class CityBuilder {
           // Gaps between buildings are closed by fences or hedges; front gardens of
           // buildings often by hedges or fences too (SemanticKITTI: vegetation 27% and
           // fences 7% of the points).
+          // Open greens are open to the sidewalk; elsewhere a path leaves a gap in the wall.
           const bool garden = lot.building && ss.front > 1.5;
-          if ((!lot.building && boundary < 0.35) || (garden && boundary >= 0.6)) {
-            wall_along(ki, side, s0, s1, ss.e_walk + 0.05, 0.03, fence_height, raw::kFence,
-                       fence_albedo, wire ? Surface::kMesh : Surface::kSolid, rng);
-          } else if ((!lot.building && boundary < 0.85) || (garden && boundary < 0.6)) {
-            wall_along(ki, side, s0, s1, ss.e_walk + hedge_half + 0.05, hedge_half, hedge_height,
-                       raw::kVegetation, leaf_albedo, Surface::kFoliage, rng);
+          const bool open = lot.open_green;
+          // The wall's stretches: [s0, s1] less the path's width and 0.2 m on each side of it.
+          std::vector<std::pair<double, double>> spans{{s0, s1}};
+          if (lot.path_depth > 0) {
+            const double p0 = lot.path_s - lot.path_half - 0.2,
+                         p1 = lot.path_s + lot.path_half + 0.2;
+            spans = {{s0, std::min(s1, p0)}, {std::max(s0, p1), s1}};
           }
-          // Trees and bushes in the yards.
+          for (const auto& [w0, w1] : spans) {
+            if (open || w1 - w0 < 0.5) continue;
+            if ((!lot.building && boundary < 0.35) || (garden && boundary >= 0.6)) {
+              wall_along(ki, side, w0, w1, ss.e_walk + 0.05, 0.03, fence_height, raw::kFence,
+                         fence_albedo, wire ? Surface::kMesh : Surface::kSolid, rng);
+            } else if ((!lot.building && boundary < 0.85) || (garden && boundary < 0.6)) {
+              wall_along(ki, side, w0, w1, ss.e_walk + hedge_half + 0.05, hedge_half, hedge_height,
+                         raw::kVegetation, leaf_albedo, Surface::kFoliage, rng);
+            }
+          }
+          // Trees and bushes in the yards, off the paths and, on an open green, at least 4 m
+          // before its far building.
+          const double reach =
+              lot.far_setback > 0 ? ss.e_front + lot.far_setback - 4.0 : ss.e_front + 12.0;
           const int trees = lot.building ? (ss.front > 3.0 && rng.bernoulli(0.6) ? 1 : 0)
                                          : 1 + static_cast<int>(rng.uniform_int(3));
           for (int i = 0; i < trees; ++i) {
             const double s = rng.uniform(lot.s0 + 1.0, lot.s1 - 1.0);
-            const double a = lot.building ? ss.e_walk + 0.5 * ss.front
-                                          : rng.uniform(ss.e_walk + 2.0, ss.e_front + 12.0);
+            const double a = lot.building
+                                 ? ss.e_walk + 0.5 * ss.front
+                                 : rng.uniform(ss.e_walk + 2.0, std::max(ss.e_walk + 2.5, reach));
             const Placement p = on_street(ki, side, s, a);
+            if (lot.path_depth > 0 && a - ss.e_walk < lot.path_depth + 1.0 &&
+                std::abs(s - lot.path_s) < lot.path_half + 1.0)
+              continue;
             if (clear_of_streets({p.x, p.y}, ki, Zone::kFront) && occupancy_.free(p.x, p.y, 1.5))
               add_tree(p, rng);
           }
@@ -651,7 +704,9 @@ class CityBuilder {
                 ss.e_walk + rng.uniform(1.0, std::max(1.2, lot.building ? ss.front - 0.5 : 10.0));
             const Placement p = on_street(ki, side, s, a);
             const double r = rng.uniform(0.6, 1.6), rz = rng.uniform(0.5, 1.2);
-            if (!clear_of_streets({p.x, p.y}, ki, Zone::kFront) || !occupancy_.free(p.x, p.y, r))
+            if (!clear_of_streets({p.x, p.y}, ki, Zone::kFront) || !occupancy_.free(p.x, p.y, r) ||
+                (lot.path_depth > 0 && a - ss.e_walk < lot.path_depth + r &&
+                 std::abs(s - lot.path_s) < lot.path_half + r))
               continue;
             const double width = r * rng.uniform(0.7, 1.0);
             const double yaw = rng.uniform(0.0, kPi);
@@ -866,8 +921,10 @@ class CityBuilder {
           }
         }
         // Bicyclists waiting with their bicycle at the curb (the person is bicyclist 31, the
-        // bicycle 11) and motorcyclists stopped in the parking strip (32 on motorcycle 15).
-        for (double s = rng.uniform(10.0, 80.0); s < st.length(); s += rng.uniform(60.0, 140.0)) {
+        // bicycle 11), now and then: a rider on the sidewalk is rare in KITTI, and models
+        // trained on many of them put riders on real sidewalks and grass. Motorcyclists stopped
+        // in the parking strip (32 on motorcycle 15).
+        for (double s = rng.uniform(10.0, 200.0); s < st.length(); s += rng.uniform(150.0, 350.0)) {
           const Placement p = on_street(ki, side, s, ss.e_lawn + 0.5, side == 0 ? 0.0 : kPi);
           Agent rider = sample_agent(AgentKind::kBicyclist, 0, 0, rng);
           if (!on_ground(p, {raw::kSidewalk}) || !occupancy_.free(p.x, p.y, 1.0)) continue;
@@ -895,7 +952,8 @@ class CityBuilder {
   }
 
   // At the corners of each junction, where no car parks, bicyclists wait with their bicycle
-  // and people wait to cross, at the main street's curb on both sides of the side street.
+  // (at one corner in four) and people wait to cross, at the main street's curb on both sides of
+  // the side street.
   void place_waiting_at_corners(Rng& rng) {
     const Street& main = city_.streets_[0];
     for (size_t k = 1; k < city_.streets_.size(); ++k) {
@@ -907,7 +965,7 @@ class CityBuilder {
         const double s = attach_s_[k] + dir * (half_width / std::cos(city_.side_angle_[k]) +
                                                rng.uniform(0.5, 3.0));
         const double a = ms.e_curb + 0.7;
-        const bool cyclist = rng.bernoulli(0.6);
+        const bool cyclist = rng.bernoulli(0.25);
         const Placement p =
             on_street(0, side, s, a, (side == 0 ? 0.0 : kPi) + rng.uniform(-0.3, 0.3));
         if (!on_ground(p, {raw::kSidewalk, raw::kTerrain}) || !occupancy_.free(p.x, p.y, 1.0))
@@ -1236,7 +1294,7 @@ GroundSample City::ground_at(double x, double y) const {
       g.label = raw::kTerrain;
       albedo = terrain_albedo_;
       rough = relief_.roughness;
-      profile += std::max(0.5 * side.terrain_offset, 0.02 - curb_height_);
+      profile += std::max(side.terrain_offset, 0.02 - curb_height_);
       break;
     case Zone::kSidewalk:
       g.label = raw::kSidewalk;
@@ -1248,10 +1306,20 @@ GroundSample City::ground_at(double x, double y) const {
                                        [](double s, const Lot& lot) { return s < lot.s1; });
       const Lot& lot = it == side.lots.end() ? side.lots.back() : *it;
       g.label = c.zone == Zone::kFront ? lot.front_label : lot.back_label;
+      if (lot.on_path(c.s, a - side.e_walk)) g.label = raw::kSidewalk;
       const bool terrain = g.label == raw::kTerrain;
-      albedo = terrain ? terrain_albedo_ : other_ground_albedo_;
-      rough = terrain ? relief_.roughness : 0.4 * relief_.roughness;
-      if (terrain) profile += side.terrain_offset;
+      albedo = terrain                     ? terrain_albedo_
+               : g.label == raw::kSidewalk ? walk_albedo_
+                                           : other_ground_albedo_;
+      rough = terrain ? relief_.roughness
+                      : (g.label == raw::kSidewalk ? 0.25 : 0.4) * relief_.roughness;
+      // Yards, paved or not, and their paths: the side's yard offset from the back of the
+      // sidewalk, returning with the sidewalk's rise to the level of the ground between the
+      // streets over the backyards' last kYardLevel m (smoothstep).
+      const double u = std::clamp((side.e_back - a) / StreetSide::kYardLevel, 0.0, 1.0);
+      profile =
+          curb_top + u * u * (3.0 - 2.0 * u) *
+                         (relief_.walk_slope * (side.e_walk - side.e_curb) + side.yard_offset(a));
       break;
     }
     case Zone::kOutside:

@@ -17,6 +17,7 @@
 #pragma once
 
 #include <array>
+#include <cmath>
 #include <cstdint>
 #include <utility>
 #include <vector>
@@ -37,15 +38,36 @@ enum class Zone : uint8_t { kRoad, kBikeLane, kParking, kLawn, kSidewalk, kFront
 struct Lot {
   double s0 = 0, s1 = 0;  // arc-length interval
   bool building = false;
+  // A lot without a building at the building line may be an open green: no fence or hedge at
+  // the sidewalk, grass to the back (the real scans' far buildings stand behind open grass).
+  bool open_green = false;
+  double far_setback = 0;  // > 0: a building this far behind the building line (open greens)
   uint32_t front_label = raw::kTerrain;  // ground of the front yard
   uint32_t back_label = raw::kTerrain;   // ground behind the building line
+  // A paved path (sidewalk) from the back of the sidewalk into the yard, at the yard's level:
+  // centred on arc length path_s, path_half wide to each side, path_depth deep (0: none).
+  double path_s = 0, path_half = 0, path_depth = 0;
+  bool on_path(double s, double depth) const {
+    return path_depth > 0 && std::abs(s - path_s) < path_half && depth < path_depth;
+  }
 };
 
 struct StreetSide {
   double bike = 0, parking = 0, lawn = 0, sidewalk = 2, front = 0;  // band widths
-  // Height of the yards' terrain relative to the sidewalk (half of it, and not below the road,
-  // on the lawn): grass is often lower than the paving.
+  // Height of the yards relative to the sidewalk's back edge, where they meet it (grass flush
+  // with the paving, give or take a few centimetres; the tree lawn the same).
   double terrain_offset = 0;
+  // Beyond the sidewalk the yards fall away (yard_drop > 0) or rise (< 0) by up to
+  // |yard_drop| m, at yard_slope where they meet the sidewalk and levelling off further out
+  // (t m behind the sidewalk: -yard_drop (1 - exp(-yard_slope t / |yard_drop|))), back to the
+  // sidewalk's level over the backyards' last kYardLevel m. In the real labelled scan the grass
+  // lies at the paving's level up to 3 m behind the sidewalk, 0.12 m below it 3-6 m out and
+  // 0.24 m below 6-12 m out (medians).
+  double yard_drop = 0, yard_slope = 0.03;
+  static constexpr double kYardLevel = 12.0;
+  // The yards' height relative to the sidewalk's back edge at distance a from the centre line
+  // (a >= e_walk).
+  double yard_offset(double a) const;
   // Outer edge of each band, distance from the centre line.
   double e_road = 0, e_bike = 0, e_curb = 0, e_lawn = 0, e_walk = 0, e_front = 0, e_back = 0;
   std::vector<double> stretch_end;       // parking stretches: arc length where each ends, ascending
@@ -112,7 +134,7 @@ struct Relief {
   // The largest slope of the smooth part (grades, hills, camber, bumps): the LiDAR's march
   // along a pulse steps by the gap over this bound.
   static constexpr double kMaxSlope = 0.2;
-  static constexpr double kHillFade = 8.0;  // m beyond the sidewalk over which hills fade in
+  static constexpr double kHillFade = 20.0;  // m beyond the sidewalk over which hills fade in
   double grade_at(double x, double y) const;
   double hills_at(double x, double y) const;
 };
