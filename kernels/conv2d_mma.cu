@@ -841,6 +841,37 @@ void prepare_conv_weights(const float* w, const float* bias, const FoldedBatchNo
               bias_out, stream);
 }
 
+namespace {
+
+// folded[i] = w[i] scale[o] for i in row o (O rows of k_row values); bias_out[o] = scale bias[o] +
+// shift, the scale and shift as prepare_weights_kernel computes them.
+__global__ void fold_weights_kernel(const float* __restrict__ w, const float* __restrict__ bias,
+                                    FoldedBatchNorm bn, std::int64_t rows, std::int64_t k_row,
+                                    float* __restrict__ folded, float* __restrict__ bias_out) {
+  const std::int64_t i = static_cast<std::int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (i >= rows * k_row) return;
+  const std::int64_t o = i / k_row;
+  float scale = 1.0f, shift = 0.0f;
+  if (bn.gamma != nullptr) {
+    scale = bn.gamma[o] / sqrtf(bn.running_var[o] + bn.eps);
+    shift = bn.beta[o] - scale * bn.running_mean[o];
+  }
+  folded[i] = w[i] * scale;
+  if (i % k_row == 0) bias_out[o] = scale * (bias != nullptr ? bias[o] : 0.0f) + shift;
+}
+
+}  // namespace
+
+void fold_conv_weights(const float* w, const float* bias, const FoldedBatchNorm& bn,
+                       const Conv2dShape& shape, float* folded, float* bias_out,
+                       cudaStream_t stream) {
+  const std::int64_t k_row = shape.in_channels * shape.kernel * shape.kernel;
+  const std::int64_t total = shape.out_channels * k_row;
+  if (total == 0) return;
+  launch_kernel(fold_weights_kernel, dim3(static_cast<unsigned>(ceil_div(total, 256))), dim3(256),
+                0, stream, w, bias, bn, shape.out_channels, k_row, folded, bias_out);
+}
+
 void prepare_conv_transpose_weights(const float* w, const float* bias, std::int64_t in_channels,
                                     std::int64_t out_channels, Half16 type, std::uint16_t* w16,
                                     float* bias_out, cudaStream_t stream) {

@@ -48,6 +48,11 @@ struct FoldedBatchNorm {
 void prepare_conv_weights(const float* w, const float* bias, const FoldedBatchNorm& bn,
                           const Conv2dShape& shape, Half16 type, std::uint16_t* w16,
                           float* bias_out, cudaStream_t stream);
+// The same fold in FP32, for the FP32 kernels (conv2d.cuh) on 16-bit activations: w (O, I, k, k)
+// [, bias] [, BatchNorm] -> folded (O, I, k, k) with the scale multiplied in, bias_out (O).
+void fold_conv_weights(const float* w, const float* bias, const FoldedBatchNorm& bn,
+                       const Conv2dShape& shape, float* folded, float* bias_out,
+                       cudaStream_t stream);
 // w (I, O, 2, 2) [, bias (O)] -> w16 (4 O, Ip) with row o 4 + dy 2 + dx, bias_out (4 O).
 void prepare_conv_transpose_weights(const float* w, const float* bias, std::int64_t in_channels,
                                     std::int64_t out_channels, Half16 type, std::uint16_t* w16,

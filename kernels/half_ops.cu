@@ -30,6 +30,35 @@ __global__ void to_half_kernel(const float* __restrict__ x, std::int64_t n,
   for (std::int64_t i = first_index(); i < n; i += stride()) y[i] = to_half16<H>(x[i]);
 }
 
+// One thread a pixel; its outputs in chunks of kPointwiseOutputs sums held in registers, x read
+// once a chunk.
+constexpr int kPointwiseOutputs = 16;
+
+template <Half16 H>
+__global__ void pointwise_conv_kernel(const std::uint16_t* __restrict__ x, const float* __restrict__ w,
+                                      const float* __restrict__ bias, std::int64_t batch,
+                                      std::int64_t in_channels, std::int64_t out_channels,
+                                      std::int64_t plane, float* __restrict__ y) {
+  const std::int64_t n = batch * plane;
+  for (std::int64_t i = first_index(); i < n; i += stride()) {
+    const std::int64_t b = i / plane, p = i % plane;
+    const std::uint16_t* xp = x + b * in_channels * plane + p;
+    float* yp = y + b * out_channels * plane + p;
+    for (std::int64_t o0 = 0; o0 < out_channels; o0 += kPointwiseOutputs) {
+      const std::int64_t m = out_channels - o0 < kPointwiseOutputs ? out_channels - o0 : kPointwiseOutputs;
+      float acc[kPointwiseOutputs];
+      for (int j = 0; j < kPointwiseOutputs; ++j) acc[j] = 0.0f;
+      for (std::int64_t c = 0; c < in_channels; ++c) {
+        const float v = from_half16<H>(xp[c * plane]);
+        for (int j = 0; j < kPointwiseOutputs; ++j)
+          if (j < m) acc[j] += w[(o0 + j) * in_channels + c] * v;
+      }
+      for (int j = 0; j < kPointwiseOutputs; ++j)
+        if (j < m) yp[(o0 + j) * plane] = acc[j] + bias[o0 + j];
+    }
+  }
+}
+
 template <Half16 H>
 __global__ void maxpool_kernel(const std::uint16_t* __restrict__ x, std::int64_t planes,
                                std::int64_t height, std::int64_t width,
@@ -104,6 +133,17 @@ void to_half16(const float* x, std::int64_t n, Half16 type, std::uint16_t* y, cu
   if (n == 0) return;
   with_half16(type, [&](auto h) {
     launch_kernel(to_half_kernel<decltype(h)::value>, grid_for(n), dim3(kBlock), 0, stream, x, n, y);
+  });
+}
+
+void pointwise_conv_half16(const std::uint16_t* x, Half16 type, const float* w, const float* bias,
+                           std::int64_t batch, std::int64_t in_channels, std::int64_t out_channels,
+                           std::int64_t plane, float* y, cudaStream_t stream) {
+  const std::int64_t n = batch * plane;
+  if (n == 0 || out_channels == 0) return;
+  with_half16(type, [&](auto h) {
+    launch_kernel(pointwise_conv_kernel<decltype(h)::value>, grid_for(n), dim3(kBlock), 0, stream, x, w,
+                  bias, batch, in_channels, out_channels, plane, y);
   });
 }
 

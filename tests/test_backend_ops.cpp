@@ -1163,6 +1163,76 @@ void add_half_ops(std::vector<Case>& all, Precision p) {
              },
          .cpu_tol = winograd ? std::optional<Tolerance>(nmse_within(1e-4)) : std::nullopt});
   }
+  // FP32 prepared weights on 16-bit activations (the INT8 forward's head, a 1 x 1 convolution):
+  // the weights folded in FP32 (the CPU folds the BatchNorm scale in double, a GPU in FP32: an
+  // FP32 unit or two), then FP32 sums of the widened x. The CUDA backend runs them without ReLU
+  // into an FP32 y only; the CPU backend also with ReLU into a 16-bit y (BF16 only: its FP32
+  // kernels take no FP16).
+  struct Pointwise {
+    Shape x, w;
+    bool relu, y_half;
+  };
+  for (const Pointwise& cv : std::vector<Pointwise>{{{2, 6, 5, 4}, {12, 6, 1, 1}, false, false},
+                                                    {{1, 40, 23, 29}, {13, 40, 1, 1}, false, false},
+                                                    {{1, 17, 3, 37}, {7, 17, 1, 1}, true, true}}) {
+    if (cv.relu && p != Precision::BF16) continue;  // no backend runs it
+    const Shape y = op::conv2d(cv.x, cv.w, 0);
+    std::vector<Arg> args = {in_h("x", cv.x, p, -2, 2), in_f("w", cv.w, -0.5, 0.5), in_f("bias", {cv.w[0]})};
+    add_bn(args, cv.w[0], false, false);
+    args.push_back(out("folded", cv.w));
+    args.back().tol = within(1e-7, 0x1p-21);
+    args.push_back(out("bias_out", {cv.w[0]}));
+    args.back().tol = folded_bias;
+    args.push_back(out("y", y, cv.y_half ? Kind::H16 : Kind::F32));
+    const Pointwise c = cv;
+    all.push_back(
+        {.name = "conv2d_prepared_forward/f32_weights," + d + ",x=" + shape_name(cv.x) + ",w=" + shape_name(cv.w) +
+                 ",y=" + (cv.y_half ? "h" : "f") + (cv.relu ? ",relu" : ""),
+         .args = args,
+         .run =
+             [p, c](Backend& be, Bound& t) {
+               const Ref bias = t.f(2);
+               const BatchNormRefs bn = t.bn(3, false);
+               Ref bias_out = t.f(8);
+               const TensorRef folded = t.tensor(7, p);
+               be.prepare_conv_weights(t.f(1), &bias, &bn, folded, bias_out, TensorRef{});
+               be.conv2d_prepared_forward(t.tensor(0, p), folded, TensorRef{}, bias_out, c.w, 0, c.relu,
+                                          t.tensor(9, p));
+             },
+         .tol = cv.y_half ? within(1e-6, ulp) : nmse_within(1e-12),
+         .precision = p,
+         .reference =
+             [p, c](Bound& t) {
+               const Ref w = t.f(1), bias = t.f(2), folded = t.f(7), bias_out = t.f(8);
+               const BatchNormRefs bn = t.bn(3, false);
+               const int64_t O = c.w[0], I = c.w[1], B = c.x[0], P = c.x[2] * c.x[3];
+               for (int64_t o = 0; o < O; ++o) {
+                 const double s = bn.gamma.data[o] / std::sqrt(double{bn.running_var.data[o]} + bn.eps);
+                 for (int64_t i = 0; i < I; ++i) folded.data[o * I + i] = static_cast<float>(w.data[o * I + i] * s);
+                 bias_out.data[o] =
+                     static_cast<float>(s * bias.data[o] + (bn.beta.data[o] - s * bn.running_mean.data[o]));
+               }
+               const std::vector<double> xv = rounded_activation(t.act(0), p);
+               const ActRef yr = t.act(9);
+               for (int64_t b = 0; b < B; ++b)
+                 for (int64_t o = 0; o < O; ++o)
+                   for (int64_t q = 0; q < P; ++q) {
+                     double sum = bias_out.data[o];
+                     for (int64_t i = 0; i < I; ++i)
+                       sum += double{folded.data[o * I + i]} * xv[static_cast<size_t>((b * I + i) * P + q)];
+                     store(yr, (b * O + o) * P + q, c.relu ? std::max(sum, 0.0) : sum, p);
+                   }
+             },
+         .runs_on =
+             [c, p](const Backend& be, std::string& why) {
+               if (be.device() == Device::Cpu) {
+                 why = "the CPU's FP32 kernels take bf16 activations, not fp16";
+                 return p == Precision::BF16;
+               }
+               why = "the CUDA backend's FP32 prepared weights run without ReLU into an f32 y";
+               return !c.relu && !c.y_half;
+             }});
+  }
   struct ConvT {
     Shape x;
     int64_t o;

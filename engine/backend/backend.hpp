@@ -31,8 +31,9 @@ enum class Device { Cpu, Cuda };
 //
 // INT8 (DESIGN.md section 10): the U-Net's convolutions on INT8 weights (per output channel) and
 // inputs (per tensor, the calibrated scales of engine/model/calibration.hpp) with INT32
-// accumulation, BatchNorm folded, the epilogue in FP32; the activations between them, the head's
-// and the occupancy stream's convolutions in BF16; the PFN, softmax and arg-max in FP32.
+// accumulation, BatchNorm folded, the epilogue in FP32; the activations between them in BF16; the
+// head in FP32 arithmetic (FP32 prepared weights) on the U-Net's BF16 last output; the occupancy
+// stream's convolutions, the PFN, softmax and arg-max in FP32.
 enum class Precision { F32, BF16, F16, I8 };
 const char* precision_name(Precision p);  // "fp32", "bf16", "fp16", "int8"
 // "fp32", "bf16", "fp16" or "int8"; throws pillarseg::Error naming `what` (the option) otherwise.
@@ -345,7 +346,8 @@ class Backend {
   virtual void prepare_conv_transpose_weights(const Ref& w, const Ref* bias, const TensorRef& prepared, Ref& bias_out,
                                               const Ref* weight_scale = nullptr);
   // y = act(conv(x, prepared) + bias_out) for the weight shape `weight` (O, I, k, k) and `pad`,
-  // in the prepared weights' arithmetic; x and y FP32 or 16-bit; `transformed` as
+  // in the prepared weights' arithmetic (FP32 prepared weights: FP32 sums of x as stored, the INT8
+  // forward's 1 x 1 head on every backend); x and y FP32 or 16-bit; `transformed` as
   // prepare_conv_weights made it (or data null). INT8: x quantized as `input` says (Int8Input),
   // INT32 sums, y = act(acc input.scale weight_scale[o] + bias_out[o]).
   virtual void conv2d_prepared_forward(const TensorRef& x, const TensorRef& prepared, const TensorRef& transformed,

@@ -21,6 +21,7 @@
 #include "engine/cpu/half_ops.hpp"
 #include "engine/cpu/int8_conv.hpp"
 #include "engine/cpu/pfn_blocked.hpp"
+#include "engine/cpu/pointwise_conv.hpp"
 #include "engine/backend/backend.hpp"
 #include "host/adam.hpp"
 #include "host/batchnorm.hpp"
@@ -175,6 +176,12 @@ class CpuBackend final : public Backend {
       return;
     }
     if (prepared.dtype == DType::F32) {
+      if (weight.size() == 4 && weight[2] == 1 && pad == 0) {  // the head of the INT8 forward
+        PS_CHECK(prepared.shape == weight, "{}: prepared must be {}, got {}", op, shape_str(weight),
+                 shape_str(prepared.shape));
+        cpu::pointwise_conv_forward(op, x, prepared.f32(op), bias_out, relu, y);
+        return;
+      }
       fp32_conv3x3_on_activations(op, x, prepared.f32(op), bias_out, weight, pad, relu, y);
       return;
     }
@@ -595,7 +602,7 @@ class CpuBackend final : public Backend {
   void fp32_conv3x3_on_activations(const char* op, const TensorRef& x, const Ref& w, const Ref& bias_out,
                                    const Shape& weight, int pad, bool relu, const TensorRef& y) {
     PS_CHECK(winograd_half_applies(weight, pad) && w.shape == weight,
-             "{}: FP32 prepared weights run the 3 x 3 pad-1 convolutions only, got weight {} pad {}", op,
+             "{}: FP32 prepared weights run the 3 x 3 pad-1 and the 1 x 1 convolutions only, got weight {} pad {}", op,
              shape_str(weight), pad);
     PS_CHECK(x.dtype == y.dtype && (x.dtype == DType::F32 || x.dtype == DType::BF16),
              "{}: FP32 arithmetic takes x and y both f32 or both bf16, got {} and {}", op, dtype_name(x.dtype),

@@ -1139,6 +1139,22 @@ void CudaBackend::prepare_conv_weights(const Ref& w, const Ref* bias, const Batc
                                   weight_scale->data, bias_out.data, stream_.get());
     return;
   }
+  if (prepared.dtype == DType::F32) {  // the FP32 kernel on 16-bit activations: the INT8 forward's head
+    PS_CHECK(transformed.data == nullptr, "{}: the CUDA backend has no transformed weights", op);
+    require_rank(op, "w", w, 4);
+    if (bias) require_shape(op, "bias", *bias, {w.dim(0)});
+    require_shape(op, "prepared", prepared.f32(op), w.shape);
+    require_shape(op, "bias_out", bias_out, {w.dim(0)});
+    cuda::FoldedBatchNorm folded;
+    if (bn != nullptr) {
+      require_shape(op, "gamma", bn->gamma, {w.dim(0)});
+      folded = {bn->gamma.data, bn->beta.data, bn->running_mean.data, bn->running_var.data, bn->eps};
+    }
+    const cuda::Conv2dShape shape{1, w.dim(1), w.dim(2), w.dim(3), w.dim(0), w.dim(2), 0};
+    cuda::fold_conv_weights(w.data, bias ? bias->data : nullptr, folded, shape, prepared.f32(op).data, bias_out.data,
+                            stream_.get());
+    return;
+  }
   HRef w16 = prepared.bits16(op);
   prepare_conv_weights_16(w, bias, bn, precision_of(prepared.dtype), w16, bias_out,
                           HRef{static_cast<uint16_t*>(transformed.data), transformed.shape});
@@ -1192,6 +1208,31 @@ void CudaBackend::conv2d_prepared_forward(const TensorRef& x, const TensorRef& p
                                 prepared.i8(op).data,
                                 weight_scale->data, bias_out.data, shape, relu,
                                 cuda::OutputS8{y.data, s8_layout(op, y), 1.0f}, stream_.get(), workspace);
+    return;
+  }
+  if (prepared.dtype == DType::F32) {
+    // FP32 arithmetic on x as stored: conv2d.cuh's kernel on FP32 x, a 1 x 1 convolution's own
+    // kernel on 16-bit x (half_ops.cuh; no workspace, so that a graph can record it). The INT8
+    // forward's head: no ReLU, an FP32 y.
+    PS_CHECK(transformed.data == nullptr, "{}: the CUDA backend has no transformed weights", op);
+    PS_CHECK(!relu && y.dtype == DType::F32,
+             "{}: FP32 prepared weights run without ReLU into an f32 y on the CUDA backend, got relu {} and y {}", op,
+             relu, dtype_name(y.dtype));
+    const Shape y_shape = op::conv2d(x.shape, weight, pad, nullptr, op);
+    PS_CHECK(y.shape == y_shape, "{}: y must be {}, got {}", op, shape_str(y_shape), shape_str(y.shape));
+    require_shape(op, "prepared", prepared.f32(op), weight);
+    require_shape(op, "bias_out", bias_out, {weight[0]});
+    if (x.dtype == DType::F32) {
+      const cuda::Conv2dShape shape{x.dim(0), x.dim(1), x.dim(2), x.dim(3), weight[0], weight[2], pad};
+      cuda::conv2d_forward(x.f32(op).data, prepared.f32(op).data, bias_out.data, y.f32(op).data, shape,
+                           stream_.get());
+      return;
+    }
+    PS_CHECK(weight[2] == 1 && pad == 0, "{}: FP32 prepared weights on {} x run 1 x 1 convolutions only, got {} pad {}",
+             op, dtype_name(x.dtype), shape_str(weight), pad);
+    cuda::pointwise_conv_half16(x.bits16(op).data, half_type(op, precision_of(x.dtype)), prepared.f32(op).data,
+                                bias_out.data, x.dim(0), x.dim(1), weight[0], x.dim(2) * x.dim(3), y.f32(op).data,
+                                stream_.get());
     return;
   }
   conv2d_prepared_16(x, prepared.bits16(op), HRef{static_cast<uint16_t*>(transformed.data), transformed.shape},

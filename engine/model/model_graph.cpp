@@ -5,7 +5,6 @@
 
 #include <algorithm>
 #include <map>
-#include <optional>
 #include <initializer_list>
 #include <string>
 #include <utility>
@@ -121,8 +120,9 @@ class Builder {
   // `precision`: the convolutions'; the evaluation forward also keeps the U-Net's activations in
   // it, training keeps them (and BatchNorm, the loss, gradients) in FP32.
   // INT8 (evaluation only): the U-Net's convolutions on INT8 weights with the calibrated input
-  // quantization of `int8_inputs`, its activations in BF16, the other convolutions (the occupancy
-  // stream's, the head's) in FP32 on FP32 tensors.
+  // quantization of `int8_inputs`, its activations in BF16; the head in FP32 arithmetic (FP32
+  // prepared weights) on the U-Net's BF16 last output, the occupancy stream's convolutions in FP32
+  // on FP32 tensors.
   Builder(Graph& g, const ParameterSet& ps, const Backend* backend, const std::vector<BnParams>& bns, bool training,
           Precision precision, const std::map<std::string, Int8Input>* int8_inputs)
       : g_(g), ps_(ps), backend_(backend), bns_(bns), training_(training),
@@ -139,10 +139,15 @@ class Builder {
   bool int8() const { return conv_precision_ == Precision::I8; }
   // The dtype of the 16-bit activations (and of 16-bit prepared weights): BF16 also for INT8.
   DType half_dtype() const { return conv_precision_ == Precision::F16 ? DType::F16 : DType::BF16; }
-  // Whether the convolution emitted now runs on prepared weights (16-bit; INT8 in the U-Net),
-  // and their dtype.
-  bool prepared_conv() const { return int8() ? unet && stage == Stage::UNet : half_convs(); }
-  DType weight_dtype() const { return int8() ? DType::I8 : half_dtype(); }
+  // Whether the convolution emitted now runs on prepared weights (16-bit; INT8 in the U-Net,
+  // FP32 for the head after it), and their dtype.
+  bool prepared_conv() const {
+    return int8() ? unet && (stage == Stage::UNet || stage == Stage::Head) : half_convs();
+  }
+  DType weight_dtype() const {
+    if (int8()) return stage == Stage::Head ? DType::F32 : DType::I8;
+    return half_dtype();
+  }
   // The arithmetic of the evaluation convolution of w_shape emitted now: weight_dtype(), or FP32
   // on the same 16-bit activations where the backend's FP32 kernel for the shape is the faster.
   DType prepared_dtype(const Shape& w_shape, int pad, bool transposed) const {
@@ -274,8 +279,7 @@ class Builder {
   struct Activations {
     int conv_out = -1, out = -1, save_mean = -1, save_invstd = -1;
   };
-  Activations conv_bn_relu(const std::string& name, const ConvBnRelu& m, int x, int into = -1,
-                           std::optional<DType> out_dtype = std::nullopt) {
+  Activations conv_bn_relu(const std::string& name, const ConvBnRelu& m, int x, int into = -1) {
     Activations a;
     if (training_) {
       a.conv_out = conv(name, m.conv, x, "conv_out");
@@ -287,7 +291,7 @@ class Builder {
     const int w = param(m.conv.weight), b = param(m.conv.bias);
     const Shape b_shape = b >= 0 ? shape(b) : Shape{};
     const Shape y_shape = op::conv2d(shape(x), shape(w), m.conv.pad, b >= 0 ? &b_shape : nullptr);
-    a.out = into >= 0 ? into : g_.tensor(name + ".out", y_shape, out_dtype.value_or(act()));
+    a.out = into >= 0 ? into : g_.tensor(name + ".out", y_shape, act());
     if (prepared_conv()) {
       half_conv(name, x, w, b, m.bn, m.conv.pad, true, a.out);
       return a;
@@ -512,9 +516,7 @@ void build_model_graph(ModelGraph& out, const ModelConfig& config, const Modules
       bld.add(OpKind::PadConcat, name, PadConcatArgs{.skip = skip, .up = a.upsampled, .y = a.cat});
     }
     a.first = bld.conv_bn_relu(name + ".conv1", u.conv.first, a.cat);
-    // INT8: the U-Net's last output in FP32, the FP32 head's input.
-    a.second = bld.conv_bn_relu(name + ".conv2", u.conv.second, a.first.out, -1,
-                                j == depth && bld.int8() ? std::optional<DType>(DType::F32) : std::nullopt);
+    a.second = bld.conv_bn_relu(name + ".conv2", u.conv.second, a.first.out);
     current = a.second.out;
   }
   bld.stage = Stage::Head;
