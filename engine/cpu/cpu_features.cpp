@@ -26,11 +26,12 @@ bool answer(const std::string& missing, std::string* why_not) {
   return false;
 }
 
-#if defined(PILLARSEG_HAVE_AVX512_BF16_KERNELS) || defined(PILLARSEG_HAVE_AVX512_VNNI_KERNELS)
-// What AVX-512 lacks for a micro-kernel built on AVX512F, BW and VL and one extension
-// (`extension` present or not, named `name`): "" where nothing does. libgcc reports AVX-512
-// features only where the OS saves the ZMM registers (XCR0).
-std::string avx512_missing(bool extension, const char* name) {
+#if defined(PILLARSEG_HAVE_AVX512_BF16_KERNELS) || defined(PILLARSEG_HAVE_AVX512_VNNI_KERNELS) || \
+    defined(PILLARSEG_HAVE_AVX512_HALF_OPS)
+// What AVX-512 lacks for kernels built on AVX512F, BW and VL and one extension (`extension`
+// present or not, named `name`; none where name is null): "" where nothing does. libgcc reports
+// AVX-512 features only where the OS saves the ZMM registers (XCR0).
+std::string avx512_missing(bool extension = true, const char* name = nullptr) {
   __builtin_cpu_init();
   std::string missing;
   const auto need = [&](bool present, const char* feature) {
@@ -39,7 +40,7 @@ std::string avx512_missing(bool extension, const char* name) {
   need(__builtin_cpu_supports("avx512f") != 0, "AVX512F");
   need(__builtin_cpu_supports("avx512bw") != 0, "AVX512BW");
   need(__builtin_cpu_supports("avx512vl") != 0, "AVX512VL");
-  need(extension, name);
+  if (name != nullptr) need(extension, name);
   return missing.empty() ? "" : "this CPU (or its OS) lacks " + missing;
 }
 #endif
@@ -143,6 +144,17 @@ const char* bf16_kernels_name(Bf16Kernels kernels) {
       return "amx_bf16 (emulated)";
   }
   return "?";
+}
+
+bool avx512_half_ops_available(std::string* why_not) {
+#if defined(PILLARSEG_HAVE_AVX512_HALF_OPS)
+  return answer(avx512_missing(), why_not);
+#else
+  return answer(
+      "this build has no AVX-512 16-bit data movement (not an x86-64 target, or the compiler lacks "
+      "-mavx512bw)",
+      why_not);
+#endif
 }
 
 bool avx512_vnni_available(std::string* why_not) {

@@ -1,5 +1,5 @@
 // Which of the CPU backend's own 16-bit and INT8 kernels this CPU, its OS and this build run,
-// asked at run time: AVX512_BF16 and AVX512-VNNI (libgcc's CPU model), AMX-BF16 and AMX-INT8
+// asked at run time: AVX512_BF16, AVX512-VNNI and AVX512BW (libgcc's CPU model), AMX-BF16 and AMX-INT8
 // (CPUID, the tile state in XCR0, and Linux's grant of it to this process), and the fastest
 // kernels of each family (PILLARSEG_CPU_AMX=0 keeps to AVX-512, to compare). The kernels
 // themselves: bf16_conv.hpp and int8_conv.hpp.
@@ -27,6 +27,10 @@ const char* bf16_kernels_name(Bf16Kernels kernels);
 // Whether this CPU's VDPBF16PS issues twice the products of its FP32 FMAs a cycle: AMD's (Zen 4
 // and later, CPUID vendor AuthenticAMD), not Intel's cores (one VDPBF16PS a cycle, two FMAs).
 bool bf16_dot_outpaces_fma();
+
+// Whether this CPU and its OS run the AVX-512 forms of the 16-bit data movement (half_ops.hpp:
+// AVX512F, BW and VL, and this build has them); else false with what is missing in why_not.
+bool avx512_half_ops_available(std::string* why_not = nullptr);
 
 enum class Int8Kernels { Vnni, Emulated, Amx, AmxEmulated };
 
