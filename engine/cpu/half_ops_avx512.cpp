@@ -55,8 +55,9 @@ __m512 half_values(__m256i words) {
 // float_to_bf16_bits's (bits + 0x7FFF + lsb) >> 16; a NaN keeps its top half, made quiet.
 __m512i bf16_in_high_halves(__m512 v) {
   const __m512i bits = _mm512_castps_si512(v);
-  const __m512i lsb = _mm512_and_si512(_mm512_srli_epi32(bits, 16), _mm512_set1_epi32(1));
-  const __m512i rounded = _mm512_add_epi32(bits, _mm512_add_epi32(lsb, _mm512_set1_epi32(0x7FFF)));
+  const __mmask16 odd = _mm512_test_epi32_mask(bits, _mm512_set1_epi32(0x10000));  // the kept lsb
+  const __m512i half_down = _mm512_add_epi32(bits, _mm512_set1_epi32(0x7FFF));
+  const __m512i rounded = _mm512_mask_add_epi32(half_down, odd, half_down, _mm512_set1_epi32(1));
   const __mmask16 nan = _mm512_cmp_ps_mask(v, v, _CMP_UNORD_Q);
   return _mm512_mask_or_epi32(rounded, nan, bits, _mm512_set1_epi32(0x00400000));
 }
