@@ -9,6 +9,7 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <initializer_list>
 #include <array>
 #include <bit>
 #include <cmath>
@@ -93,6 +94,29 @@ std::int64_t first_difference(const std::vector<std::uint16_t>& a, const std::ve
   return -1;
 }
 
+// run(y, kernels) into a guarded output of `shape` (its words `fill` before): once with the scalar
+// loop, then with the AVX-512 form at each thread count, expecting the same words and intact
+// guards (`label` names the case); returns the scalar loop's output.
+template <class Run>
+Guarded expect_avx512_equals_scalar(const Shape& shape, std::uint16_t fill, std::initializer_list<int> thread_counts,
+                                    const std::string& label, const Run& run) {
+  Guarded scalar(shape_numel(shape), fill);
+  HRef sr = scalar.ref(shape);
+  run(sr, HalfOpsKernels::Scalar);
+  for (int threads : thread_counts) {
+    ScopedThreads scoped(threads);
+    Guarded fast(shape_numel(shape), fill);
+    HRef fr = fast.ref(shape);
+    run(fr, HalfOpsKernels::Avx512);
+    const std::int64_t at = first_difference(scalar.words, fast.words);
+    EXPECT_EQ(at, -1) << label << ", " << threads << " threads: word " << at << " is "
+                      << fast.words[static_cast<size_t>(at < 0 ? 0 : at)] << ", the scalar loop's "
+                      << scalar.words[static_cast<size_t>(at < 0 ? 0 : at)];
+    EXPECT_TRUE(fast.guards_intact()) << label;
+  }
+  return scalar;
+}
+
 class HalfOpsAvx512 : public ::testing::TestWithParam<Precision> {
  protected:
   void SetUp() override {
@@ -113,20 +137,8 @@ TEST_P(HalfOpsAvx512, MaxPoolMatchesTheScalarLoopBitForBit) {
     const Shape ys = op::maxpool2d(xs);
     std::vector<std::uint16_t> x = random_words(shape_numel(xs), p, seed++, /*with_specials=*/true);
     const HRef xr{x.data(), xs};
-    Guarded scalar(shape_numel(ys));
-    HRef sr = scalar.ref(ys);
-    cpu::maxpool2d_half(xr, p, sr, HalfOpsKernels::Scalar);
-    for (int threads : {1, 3}) {
-      ScopedThreads scoped(threads);
-      Guarded fast(shape_numel(ys));
-      HRef fr = fast.ref(ys);
-      cpu::maxpool2d_half(xr, p, fr, HalfOpsKernels::Avx512);
-      const std::int64_t at = first_difference(scalar.words, fast.words);
-      EXPECT_EQ(at, -1) << name(p) << " x " << shape_str(xs) << ", " << threads << " threads: word " << at
-                        << " is " << fast.words[static_cast<size_t>(at < 0 ? 0 : at)] << ", the scalar loop's "
-                        << scalar.words[static_cast<size_t>(at < 0 ? 0 : at)];
-      EXPECT_TRUE(fast.guards_intact()) << shape_str(xs);
-    }
+    expect_avx512_equals_scalar(ys, kGuardWord, {1, 3}, name(p) + " x " + shape_str(xs),
+                                [&](HRef& y, HalfOpsKernels k) { cpu::maxpool2d_half(xr, p, y, k); });
   }
 }
 
@@ -190,20 +202,8 @@ TEST_P(HalfOpsAvx512, UpsampleMatchesTheScalarLoopBitForBit) {
     const Shape ys = op::upsample_bilinear(xs);
     std::vector<std::uint16_t> x = upsample_input(xs, p, seed++);
     const HRef xr{x.data(), xs};
-    Guarded scalar(shape_numel(ys));
-    HRef sr = scalar.ref(ys);
-    cpu::upsample_bilinear_half(xr, p, sr, HalfOpsKernels::Scalar);
-    for (int threads : {1, 3}) {
-      ScopedThreads scoped(threads);
-      Guarded fast(shape_numel(ys));
-      HRef fr = fast.ref(ys);
-      cpu::upsample_bilinear_half(xr, p, fr, HalfOpsKernels::Avx512);
-      const std::int64_t at = first_difference(scalar.words, fast.words);
-      EXPECT_EQ(at, -1) << name(p) << " x " << shape_str(xs) << ", " << threads << " threads: word " << at
-                        << " is " << fast.words[static_cast<size_t>(at < 0 ? 0 : at)] << ", the scalar loop's "
-                        << scalar.words[static_cast<size_t>(at < 0 ? 0 : at)];
-      EXPECT_TRUE(fast.guards_intact()) << shape_str(xs);
-    }
+    expect_avx512_equals_scalar(ys, kGuardWord, {1, 3}, name(p) + " x " + shape_str(xs),
+                                [&](HRef& y, HalfOpsKernels k) { cpu::upsample_bilinear_half(xr, p, y, k); });
   }
 }
 
@@ -341,20 +341,10 @@ TEST_P(HalfOpsAvx512, ScatterMatchesTheScalarLoopBitForBit) {
     const Shape canvas{c.batch, c.canvas_channels, c.height, c.width};
     const auto label = name(p) + " " + std::to_string(c.pillars) + " pillars x " + std::to_string(c.channels) +
                        " into " + shape_str(canvas) + " at " + std::to_string(c.channel0);
-    Guarded scalar(shape_numel(canvas), kStale);
-    HRef sr = scalar.ref(canvas);
-    cpu::scatter_half(fr, cr, static_cast<int>(c.channel0), p, sr, HalfOpsKernels::Scalar);
-    for (int threads : {1, 2, 3}) {
-      ScopedThreads scoped(threads);
-      Guarded fast(shape_numel(canvas), kStale);
-      HRef fa = fast.ref(canvas);
-      cpu::scatter_half(fr, cr, static_cast<int>(c.channel0), p, fa, HalfOpsKernels::Avx512);
-      const std::int64_t at = first_difference(scalar.words, fast.words);
-      EXPECT_EQ(at, -1) << label << ", " << threads << " threads: word " << at << " is "
-                        << fast.words[static_cast<size_t>(at < 0 ? 0 : at)] << ", the scalar loop's "
-                        << scalar.words[static_cast<size_t>(at < 0 ? 0 : at)];
-      EXPECT_TRUE(fast.guards_intact()) << label;
-    }
+    const Guarded scalar =
+        expect_avx512_equals_scalar(canvas, kStale, {1, 2, 3}, label, [&](HRef& y, HalfOpsKernels k) {
+          cpu::scatter_half(fr, cr, static_cast<int>(c.channel0), p, y, k);
+        });
     // Every word of the band written (zero or a feature), the channels outside it untouched.
     const std::int64_t plane = c.height * c.width;
     for (std::int64_t i = 0; i < shape_numel(canvas); ++i) {
