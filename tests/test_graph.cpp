@@ -163,8 +163,8 @@ TEST(Graph, RecordsDeriveAccessesAndCheckArguments) {
   EXPECT_NE(message([&] { g.add(OpKind::MaxPool2d, "mixed", MaxPool2dArgs{.x = x16, .y = p32}); }).find("mixed"),
             std::string::npos);
   // The label of a node says its dtype; the 16-bit convolutions run on the tensor cores.
-  EXPECT_EQ(op_label(g, g.nodes()[0]), "conv forward");
-  EXPECT_EQ(op_label(g, g.nodes().back()), "maxpool forward bf16");
+  EXPECT_EQ(op_label(g, g.nodes()[0], Device::Cuda), "conv forward");
+  EXPECT_EQ(op_label(g, g.nodes().back(), Device::Cuda), "maxpool forward bf16");
   EXPECT_FALSE(on_matrix_units(g, g.nodes()[0]));
 }
 
@@ -211,7 +211,8 @@ TEST(Roofline, BoundsAnOpByItsFlopsAndBytes) {
                              PreparedConv2dArgs{.x = x, .prepared = w16, .prepared_bias = b16, .y = y}, conv);
   EXPECT_DOUBLE_EQ(c.flops, 2.0 * 400 * 200 * 2500);  // 0.4 GFLOP
   EXPECT_TRUE(on_matrix_units(g, c));
-  EXPECT_EQ(op_label(g, c), "conv forward bf16 (tensor cores)");
+  EXPECT_EQ(op_label(g, c, Device::Cuda), "conv forward bf16 (tensor cores)");
+  EXPECT_EQ(op_label(g, c, Device::Cpu), "conv forward bf16");
   const int b = g.tensor("b", {1000000});
   GraphNode relu;
   relu.op = OpKind::BatchNormRelu, relu.reads = {b}, relu.writes = {b}, relu.flops = 1e6;

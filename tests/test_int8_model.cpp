@@ -227,8 +227,8 @@ TEST(Int8Model, TracksFp32TheSameOnEveryBackend) {
           continue;
         }
         ++quantized;
-        EXPECT_EQ(op_label(net.graph(false), n).substr(0, 2), "co");
-        EXPECT_NE(op_label(net.graph(false), n).find(" i8"), std::string::npos) << n.name;
+        EXPECT_EQ(op_label(net.graph(false), n, Device::Cpu).substr(0, 2), "co");
+        EXPECT_NE(op_label(net.graph(false), n, Device::Cpu).find(" i8"), std::string::npos) << n.name;
         EXPECT_GT(n.int8_input.scale, 0.0f);
       }
       fp32_convs += n.op == OpKind::Conv2d || n.op == OpKind::Conv2dBnReluEval;

@@ -158,10 +158,12 @@ struct OpRecord {
 };
 
 const OpRecord& op_record(OpKind kind);
-// The record's name; with the node's dtype where it is not FP32 ("maxpool2d bf16"): the key of
-// the per-op timing.
 const char* op_name(OpKind kind);
-std::string op_label(const Graph& g, const GraphNode& n);
+// The record's name; with the node's dtype where it is not FP32 ("maxpool forward bf16"), and on
+// a CUDA device " (tensor cores)" where on_matrix_units (the CPU's matrix instructions, VNNI, AMX
+// or AVX512_BF16, depend on the CPU: `bench` names them in its header): the key of the per-op
+// timing.
+std::string op_label(const Graph& g, const GraphNode& n, Device device);
 // Whether node n's arithmetic runs on matrix units (tensor cores, AMX; the roofline's 16-bit or
 // INT8 peak): a matrix op whose compute dtype is 16-bit or INT8.
 bool on_matrix_units(const Graph& g, const GraphNode& n);

@@ -565,11 +565,12 @@ bool on_int8_units(const Graph& g, const GraphNode& n) {
   return on_matrix_units(g, n) && node_dtype(g, n) == DType::I8;
 }
 
-std::string op_label(const Graph& g, const GraphNode& n) {
+std::string op_label(const Graph& g, const GraphNode& n, Device device) {
   const OpRecord& record = op_record(n.op);
   const DType dtype = n.args.empty() ? DType::F32 : node_dtype(g, n);
   if (dtype == DType::F32) return record.name;
-  return fmt::format("{} {}{}", record.name, dtype_name(dtype), on_matrix_units(g, n) ? " (tensor cores)" : "");
+  const bool tensor_cores = device == Device::Cuda && on_matrix_units(g, n);
+  return fmt::format("{} {}{}", record.name, dtype_name(dtype), tensor_cores ? " (tensor cores)" : "");
 }
 
 }  // namespace pillarseg

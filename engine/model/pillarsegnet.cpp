@@ -208,7 +208,7 @@ double PillarSegNet::execute(const GraphPlan& p, size_t begin, size_t end, bool 
     const double value = op_record(n.op).run(context, n);
     if (n.op == OpKind::Loss) loss_value = value;
     if (time_ops_) {
-      OpTime& t = op_times_[op_label(p.graph, n)];
+      OpTime& t = op_times_[op_label(p.graph, n, be.device())];
       t.ms += be.clock_ms() - op_start;
       t.flops += n.flops;
       t.bytes += static_cast<double>(p.graph.node_bytes(i, m.pillar_rows));
