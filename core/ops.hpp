@@ -34,6 +34,13 @@ Shape channel_band(const Shape& x, const Shape& y, int64_t channel0,
 // - k + 1, W + 2 pad - k + 1), each at least 1. bias, when given, (O).
 Shape conv2d(const Shape& x, const Shape& weight, int pad, const Shape* bias = nullptr,
              const char* caller = "conv2d");
+// Whether a convolution of `weight` (O, I, kh, kw) with `pad` is the 3x3 pad-1 form (stride 1,
+// the same size out) that every Winograd path takes: the CPU's FP32 F(4x4, 3x3) and BF16 F(2x2,
+// 3x3), the INT8 Winograd domain, and the calibration's Winograd-domain input scales.
+inline bool winograd_3x3(const Shape& weight, int pad) {
+  return weight.size() == 4 && weight[2] == 3 && weight[3] == 3 && pad == 1;
+}
+
 // ConvTranspose2d kernel 2 stride 2: x (B, I, H, W), weight (I, O, 2, 2) -> (B, O, 2 H, 2 W).
 Shape conv_transpose2d(const Shape& x, const Shape& weight, const Shape* bias = nullptr,
                         const char* caller = "conv_transpose2d");

@@ -96,8 +96,7 @@ std::string conv_arithmetic(const Graph& g) {
 }
 
 // The INT8 evaluation graph's U-Net convolutions by form on this CPU, "10 convolutions in the
-// Winograd domain F(2x2, 3x3), 7 direct": a 3x3 pad-1 layer calibrated with Winograd-domain scales
-// runs in that domain where cpu::int8_winograd_runs says it pays.
+// Winograd domain F(2x2, 3x3), 7 direct", by the backend's own rule (cpu::int8_forward_in_winograd).
 std::string int8_conv_forms(const Graph& g) {
   int winograd = 0, direct = 0;
   const cpu::Int8Kernels kernels = cpu::native_int8_kernels();
@@ -105,8 +104,8 @@ std::string int8_conv_forms(const Graph& g) {
   for (const GraphNode& n : g.nodes()) {
     if (n.op != OpKind::PreparedConv2d && n.op != OpKind::PreparedConvTranspose2d) continue;
     if (g.at(n.as<PreparedConv2dArgs>().prepared).dtype != DType::I8) continue;
-    const bool in_winograd = n.op == OpKind::PreparedConv2d && n.pad == 1 && n.int8_input.has_winograd() &&
-                             cpu::int8_winograd_runs(kernels, n.weight, rule);
+    const bool in_winograd = cpu::int8_forward_in_winograd(kernels, n.weight, n.pad, n.op != OpKind::PreparedConv2d,
+                                                           n.int8_input.has_winograd(), rule);
     ++(in_winograd ? winograd : direct);
   }
   const auto convolutions = [](int n) { return fmt::format("{} convolution{}", n, n == 1 ? "" : "s"); };

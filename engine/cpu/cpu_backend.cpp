@@ -114,12 +114,12 @@ class CpuBackend final : public Backend {
   // The 3 x 3 pad-1 convolutions run by Winograd; their transformed weights U are made with the
   // prepared weights.
   int64_t prepared_conv_transform_elements(const Shape& weight, int pad, DType dtype) const override {
-    if (dtype != DType::BF16 || !supports_precision(Precision::BF16, nullptr) || !winograd_half_applies(weight, pad))
+    if (dtype != DType::BF16 || !supports_precision(Precision::BF16, nullptr) || !op::winograd_3x3(weight, pad))
       return 0;
     return cpu::winograd_weight_elements(bf16_kernels_, weight);
   }
   DType prepared_conv_dtype(const Shape& weight, int pad, bool transposed, DType half) const override {
-    if (half != DType::BF16 || transposed || !fast_paths_ || !winograd_half_applies(weight, pad)) return half;
+    if (half != DType::BF16 || transposed || !fast_paths_ || !op::winograd_3x3(weight, pad)) return half;
     return cpu::bf16_winograd_pays(bf16_kernels_, bf16_dot_outpaces_fma_, weight) ? half : DType::F32;
   }
   void prepare_conv_weights(const Ref& w, const Ref* bias, const BatchNormRefs* bn, const TensorRef& prepared,
@@ -163,10 +163,13 @@ class CpuBackend final : public Backend {
     if (prepared.dtype == DType::I8) {
       require_precision(Precision::I8);
       const cpu::Int8ConvWeights& direct = int8_weights(op, prepared, bias_out, weight_scale, weight);
-      // The Winograd domain where the preparation made that form (int8_winograd_runs) and the
-      // calibration gave its input scales.
-      const auto winograd = int8_winograd_prepared_.find(prepared.data);
-      if (pad == 1 && input.has_winograd() && winograd != int8_winograd_prepared_.end()) {
+      // The Winograd domain where the preparation made that form and the calibration gave its
+      // input scales.
+      if (cpu::int8_forward_in_winograd(int8_kernels_, weight, pad, false, input.has_winograd(),
+                                        cpu::int8_winograd_rule())) {
+        const auto winograd = int8_winograd_prepared_.find(prepared.data);
+        PS_CHECK(winograd != int8_winograd_prepared_.end(),
+                 "{}: the weights were prepared without their Winograd-domain form: prepare them again", op);
         cpu::int8_winograd_forward(int8_kernels_, int8_activation(x), input.winograd.data(), winograd->second, relu,
                                    int8_activation(y), int8_winograd_workspace_);
         return;
@@ -188,7 +191,7 @@ class CpuBackend final : public Backend {
     const Precision p = precision_of(prepared.dtype);
     require_precision(p);
     const HRef w16 = prepared.bits16(op);
-    if (winograd_half_applies(weight, pad)) {  // the U-Net's: Winograd F(2x2, 3x3)
+    if (op::winograd_3x3(weight, pad)) {  // the U-Net's: Winograd F(2x2, 3x3)
       if (transformed.data != nullptr)
         require_shape(op, "transformed", transformed.bits16(op), {cpu::winograd_weight_elements(bf16_kernels_, weight)});
       cpu::conv3x3_winograd_forward(bf16_kernels_, half_input(x, p), w16, static_cast<uint16_t*>(transformed.data),
@@ -570,13 +573,8 @@ class CpuBackend final : public Backend {
   }
 
  private:
-  static bool winograd_half_applies(const Shape& weight, int pad) {
-    return weight.size() == 4 && weight[2] == 3 && weight[3] == 3 && pad == 1;
-  }
-  // The Winograd fast path covers the U-Net's 3x3 / pad 1 convolutions.
-  bool winograd_applies(const Ref& w, int pad) const {
-    return fast_paths_ && w.shape.size() == 4 && w.dim(2) == 3 && w.dim(3) == 3 && pad == 1;
-  }
+  // The Winograd fast path covers the U-Net's 3x3 / pad 1 convolutions (op::winograd_3x3).
+  bool winograd_applies(const Ref& w, int pad) const { return fast_paths_ && op::winograd_3x3(w.shape, pad); }
 
   // FP32 prepared weights (prepared_conv_dtype): w (O, I, k, k) with the eval BatchNorm folded in
   // (scale gamma / sqrt(var + eps) and shift in double, as conv2d_bn_relu_eval computes them) ->
@@ -601,7 +599,7 @@ class CpuBackend final : public Backend {
   // (widened as read, rounded as written, in the transforms: no converted copy).
   void fp32_conv3x3_on_activations(const char* op, const TensorRef& x, const Ref& w, const Ref& bias_out,
                                    const Shape& weight, int pad, bool relu, const TensorRef& y) {
-    PS_CHECK(winograd_half_applies(weight, pad) && w.shape == weight,
+    PS_CHECK(op::winograd_3x3(weight, pad) && w.shape == weight,
              "{}: FP32 prepared weights run the 3 x 3 pad-1 and the 1 x 1 convolutions only, got weight {} pad {}", op,
              shape_str(weight), pad);
     PS_CHECK(x.dtype == y.dtype && (x.dtype == DType::F32 || x.dtype == DType::BF16),

@@ -42,6 +42,7 @@
 #include <string>
 #include <vector>
 
+#include "core/ops.hpp"
 #include "core/tensor.hpp"
 #include "engine/backend/backend.hpp"
 #include "engine/cpu/cpu_features.hpp"
@@ -131,6 +132,14 @@ inline bool int8_winograd_runs(Int8Kernels kernels, const Shape& weight, Int8Win
   if (int8_amx_family(kernels) || weight.size() != 4 || weight[2] != 3 || weight[3] != 3) return false;
   if (rule != Int8WinogradRule::Pays) return rule == Int8WinogradRule::Always;
   return weight[0] >= 256 || weight[1] >= 256;
+}
+
+// Whether an INT8 convolution's forward runs in the Winograd domain (CpuBackend's choice, which
+// `bench` reports): the 3x3 pad-1 form (op::winograd_3x3), not transposed, its input calibrated
+// with Winograd-domain scales (Int8Input::winograd), and int8_winograd_runs.
+inline bool int8_forward_in_winograd(Int8Kernels kernels, const Shape& weight, int pad, bool transposed,
+                                     bool winograd_scales, Int8WinogradRule rule) {
+  return !transposed && winograd_scales && op::winograd_3x3(weight, pad) && int8_winograd_runs(kernels, weight, rule);
 }
 
 }  // namespace pillarseg::cpu

@@ -274,8 +274,7 @@ void PillarSegNet::observe_conv_input(const GraphPlan& p, const GraphNode& n, Op
   }
   const GraphTensor& weight = p.graph.at(w);
   if (weight.parameter < 0) return;
-  const bool winograd = n.op != OpKind::ConvTranspose2d && weight.shape.size() == 4 && weight.shape[2] == 3 &&
-                        weight.shape[3] == 3 && n.pad == 1;
+  const bool winograd = n.op != OpKind::ConvTranspose2d && op::winograd_3x3(weight.shape, n.pad);
   impl_->observer(quantization_key(params_.entries().at(static_cast<size_t>(weight.parameter)).name),
                   context.tensor(x), winograd);
 }
