@@ -8,7 +8,9 @@
 #include <gtest/gtest.h>
 #include <unistd.h>
 
+#include <cstdint>
 #include <cstdlib>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <functional>
@@ -17,6 +19,7 @@
 #include <string>
 #include <vector>
 
+#include "core/host_memory.hpp"
 #include "core/memory_budget.hpp"
 #include "core/point.hpp"
 #include "engine/data/semantickitti.hpp"
@@ -408,4 +411,28 @@ TEST(ModelMemoryEstimate, BinFileLargerThanTheMemoryIsRefusedBeforeReading) {
                         "32-bit point indices "
                         "(at most 2147483646 a scan)"));
   remove_files();
+}
+
+// Host buffers: a small one on a cache line, a large one (the CPU backend's activation block) on
+// a 2 MiB boundary, where the kernel can back it with transparent huge pages; both usable to
+// their last byte.
+TEST(HostMemory, LargeBuffersOnHugePageBoundariesSmallOnesOnCacheLines) {
+  const auto address = [](const void* p) { return reinterpret_cast<std::uintptr_t>(p); };
+  void* small = pillarseg::allocate_host(100);
+  ASSERT_NE(small, nullptr);
+  EXPECT_EQ(address(small) % 64, 0u);
+  std::memset(small, 0xA5, 100);
+  std::free(small);
+  const std::size_t large_bytes = (std::size_t{3} << 20) + 5;
+  auto* large = static_cast<unsigned char*>(pillarseg::allocate_host(large_bytes));
+  ASSERT_NE(large, nullptr);
+  EXPECT_EQ(address(large) % (std::size_t{2} << 20), 0u);
+  large[0] = 1, large[large_bytes - 1] = 2;
+  EXPECT_EQ(large[0] + large[large_bytes - 1], 3);
+  std::free(large);
+  // The CPU backend's allocations are these.
+  auto backend = pillarseg::make_cpu_backend();
+  void* block = backend->allocate(std::size_t{4} << 20);
+  EXPECT_EQ(address(block) % (std::size_t{2} << 20), 0u);
+  backend->deallocate(block);
 }

@@ -15,6 +15,7 @@
 
 #include "core/eigen.hpp"
 #include "core/error.hpp"
+#include "core/host_memory.hpp"
 #include "core/ops.hpp"
 #include "core/parallel.hpp"
 #include "engine/cpu/bf16_conv.hpp"
@@ -224,7 +225,7 @@ class CpuBackend final : public Backend {
   }
 
   void* allocate(size_t bytes) override {
-    void* p = std::aligned_alloc(64, (bytes + 63) / 64 * 64);
+    void* p = allocate_host(bytes);
     PS_CHECK(p, "out of host memory allocating {} bytes", bytes);
     return p;
   }
