@@ -2,7 +2,7 @@
 // order (checked stage by stage and composed), labels, origin and neighbour poses move with the
 // points, seeds reproduce, switches turn stages off, flips happen half of the time. Domain
 // randomisation: sensor tilt and height after the other stages, reflectance jitter and dropout,
-// point dropout with the labels, bad settings rejected; a model without reflectance
+// point dropout with the labels, the ground bend's heights by hand, bad settings rejected; a model without reflectance
 // (model.reflectance: false) sees r = 0 on the host path and the backend pipeline.
 #include <gtest/gtest.h>
 
@@ -407,6 +407,81 @@ TEST(Augment, RandomisationDropsReflectanceAndPointsWithTheirLabels) {
   EXPECT_EQ(labels, original_labels);
 }
 
+TEST(Augment, GroundBendRaisesThePointsBeyondItsLineByAVerticalCurve) {
+  GroundBend bend;
+  bend.direction = {0.6, 0.8};
+  bend.start = 10.0;
+  bend.length = 8.0;
+  bend.grade = 0.05;
+  // d = 0.6 x + 0.8 y - 10 beyond the line.
+  std::vector<Point> points = {
+      {0.0f, 0.0f, -1.7f, 0.3f},    // the origin: d = -10, unchanged
+      {6.0f, 8.0f, -1.0f, 0.3f},    // d = 0: on the line, unchanged
+      {-8.0f, 6.0f, 0.5f, 0.3f},    // across the direction: d = -10, unchanged
+      {9.0f, 12.0f, -1.5f, 0.3f},   // d = 5: in the curve, 0.05 * 25 / 16 = 0.078125
+      {12.0f, 16.0f, -1.5f, 0.3f},  // d = 10: beyond it, 0.05 * (10 - 4) = 0.3
+      {24.0f, 32.0f, 0.0f, 0.3f},   // d = 30: 0.05 * 26 = 1.3
+  };
+  const std::vector<double> expected = {0.0, 0.0, 0.0, 0.078125, 0.3, 1.3};
+  const std::vector<Point> original = points;
+  bend.apply(points);
+  for (size_t i = 0; i < points.size(); ++i) {
+    EXPECT_NEAR(bend.offset(original[i].x, original[i].y), expected[i], 1e-12) << i;
+    EXPECT_FLOAT_EQ(points[i].z, static_cast<float>(original[i].z + expected[i])) << i;
+    EXPECT_EQ(points[i].x, original[i].x);
+    EXPECT_EQ(points[i].y, original[i].y);
+    EXPECT_EQ(points[i].r, original[i].r);
+  }
+  // Continuous with a continuous slope where the curve meets the grade (d = length = 8).
+  const double h = 1e-6;
+  const auto at = [&](double d) { return bend.offset(0.6 * (d + 10.0), 0.8 * (d + 10.0)); };
+  EXPECT_NEAR(at(8.0 - h), at(8.0 + h), 3 * 0.05 * h);
+  EXPECT_NEAR((at(8.0) - at(8.0 - h)) / h, 0.05, 1e-5);
+  EXPECT_NEAR((at(8.0 + h) - at(8.0)) / h, 0.05, 1e-5);
+  EXPECT_NEAR((at(h) - at(0.0)) / h, 0.0, 1e-5);
+  // A dip: the opposite grade mirrors the heights.
+  bend.grade = -0.05;
+  EXPECT_NEAR(bend.offset(24.0, 32.0), -1.3, 1e-12);
+}
+
+TEST(Augment, GroundBendDrawsOnlyWhenOnAndSpreadsAsConfigured) {
+  AugmentConfig off;
+  Rng untouched(3), reference(3);
+  EXPECT_TRUE(sample_ground_bend(off, untouched).is_identity());
+  EXPECT_EQ(untouched.state(), reference.state()) << "a bend that is off draws nothing";
+
+  AugmentConfig cfg;
+  cfg.grade_change = 0.04;
+  cfg.bend_start_min = 6.0;
+  cfg.bend_start_max = 20.0;
+  cfg.bend_length = 12.0;
+  const int trials = 4000;
+  double sum_grade = 0, sum_sq_grade = 0, sum_cos = 0, sum_sin = 0, low = 1e9, high = -1e9;
+  for (uint64_t seed = 0; seed < trials; ++seed) {
+    Rng rng(seed);
+    const GroundBend b = sample_ground_bend(cfg, rng);
+    EXPECT_NEAR(b.direction.norm(), 1.0, 1e-12);
+    EXPECT_EQ(b.length, 12.0);
+    low = std::min(low, b.start), high = std::max(high, b.start);
+    sum_grade += b.grade, sum_sq_grade += b.grade * b.grade;
+    sum_cos += b.direction.x(), sum_sin += b.direction.y();
+    Rng again(seed);
+    const GroundBend same = sample_ground_bend(cfg, again);
+    EXPECT_EQ(same.grade, b.grade);
+    EXPECT_EQ(same.start, b.start);
+  }
+  EXPECT_GE(low, 6.0);
+  EXPECT_LT(high, 20.0);
+  EXPECT_LT(low, 6.5);
+  EXPECT_GT(high, 19.5);
+  const double mean = sum_grade / trials;
+  EXPECT_NEAR(mean, 0.0, 5 * 0.04 / std::sqrt(trials));
+  EXPECT_NEAR(std::sqrt(sum_sq_grade / trials - mean * mean), 0.04, 0.003);
+  // Directions uniform on the circle: the mean unit vector near 0.
+  EXPECT_NEAR(sum_cos / trials, 0.0, 0.05);
+  EXPECT_NEAR(sum_sin / trials, 0.0, 0.05);
+}
+
 TEST(Augment, RejectsBadRandomisation) {
   Rng rng(1);
   const auto rejects = [&](auto change) {
@@ -423,6 +498,11 @@ TEST(Augment, RejectsBadRandomisation) {
   rejects([](AugmentConfig& c) { c.reflectance_noise = -0.1; });
   rejects([](AugmentConfig& c) { c.reflectance_dropout = 1.5; });
   rejects([](AugmentConfig& c) { c.point_dropout = 1.0; });
+  rejects([](AugmentConfig& c) { c.grade_change = -0.01; });
+  rejects([](AugmentConfig& c) { c.grade_change = 0.5; });
+  rejects([](AugmentConfig& c) { c.bend_start_min = -1.0; });
+  rejects([](AugmentConfig& c) { c.bend_start_max = 2.0; });
+  rejects([](AugmentConfig& c) { c.bend_length = 0.0; });
   try {
     AugmentConfig c;
     c.point_dropout = 2.0;
@@ -481,7 +561,7 @@ TEST(Augment, RunConfigReadsTheRandomisationKeys) {
       "model: {reflectance: false}\n"
       "train:\n"
       "  augmentation: {tilt_deg: 2.0, height: 0.07, reflectance_jitter: true,\n"
-      "                 reflectance_dropout: 0.25, point_dropout: 0.3}\n",
+      "                 reflectance_dropout: 0.25, point_dropout: 0.3, grade_change: 0.03}\n",
       "dr.yaml");
   EXPECT_FALSE(c.model.reflectance);
   const AugmentConfig& a = c.train.augmentation;
@@ -490,6 +570,7 @@ TEST(Augment, RunConfigReadsTheRandomisationKeys) {
   EXPECT_TRUE(a.reflectance_jitter);
   EXPECT_EQ(a.reflectance_dropout, 0.25);
   EXPECT_EQ(a.point_dropout, 0.3);
+  EXPECT_EQ(a.grade_change, 0.03);
   EXPECT_TRUE(parse_run_config("train: {epochs: 1}\n", "plain.yaml").model.reflectance);
   try {
     parse_run_config("train: {augmentation: {point_dropout: 1.5}}\n", "bad.yaml");

@@ -5,6 +5,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <numbers>
 
 #include "core/error.hpp"
 
@@ -24,6 +25,18 @@ Pose AugmentTransform::as_matrix() const {
   m.topLeftCorner<3, 3>() = linear;
   m.topRightCorner<3, 1>() = translation;
   return m;
+}
+
+double GroundBend::offset(double x, double y) const {
+  const double d = direction.x() * x + direction.y() * y - start;
+  if (d <= 0.0) return 0.0;
+  if (d < length) return grade * d * d / (2.0 * length);
+  return grade * (d - 0.5 * length);
+}
+
+void GroundBend::apply(std::vector<Point>& points) const {
+  if (is_identity()) return;
+  for (Point& pt : points) pt.z = static_cast<float>(pt.z + offset(pt.x, pt.y));
 }
 
 bool AugmentTransform::is_identity() const {
@@ -60,6 +73,15 @@ void validate_augmentation(const AugmentConfig& cfg) {
            cfg.reflectance_dropout);
   PS_CHECK(cfg.point_dropout >= 0.0 && cfg.point_dropout < 1.0,
            "augmentation: point_dropout must be in [0, 1), given {}", cfg.point_dropout);
+  PS_CHECK(std::isfinite(cfg.grade_change) && cfg.grade_change >= 0.0 && cfg.grade_change <= 0.2,
+           "augmentation: grade_change must be in [0, 0.2] (a sigma, rise over run), given {}",
+           cfg.grade_change);
+  PS_CHECK(std::isfinite(cfg.bend_start_min) && std::isfinite(cfg.bend_start_max) &&
+               cfg.bend_start_min >= 0.0 && cfg.bend_start_min <= cfg.bend_start_max,
+           "augmentation: the ground bend's start needs 0 <= min <= max (m), given [{}, {}]",
+           cfg.bend_start_min, cfg.bend_start_max);
+  PS_CHECK(std::isfinite(cfg.bend_length) && cfg.bend_length > 0.0,
+           "augmentation: bend_length must be > 0 m, given {}", cfg.bend_length);
 }
 
 AugmentTransform sample_augmentation(const AugmentConfig& cfg, Rng& rng) {
@@ -98,6 +120,18 @@ AugmentTransform sample_augmentation(const AugmentConfig& cfg, Rng& rng) {
   if (cfg.translate) transform.translation = shift;
   if (cfg.height > 0.0) transform.translation.z() += lift;
   return transform;
+}
+
+GroundBend sample_ground_bend(const AugmentConfig& cfg, Rng& rng) {
+  validate_augmentation(cfg);
+  GroundBend bend;
+  if (cfg.grade_change == 0.0) return bend;
+  const double angle = rng.uniform(0.0, 2.0 * std::numbers::pi);
+  bend.direction = {std::cos(angle), std::sin(angle)};
+  bend.start = rng.uniform(cfg.bend_start_min, cfg.bend_start_max);
+  bend.length = cfg.bend_length;
+  bend.grade = rng.normal(0.0, cfg.grade_change);
+  return bend;
 }
 
 ScanRandomisation sample_randomisation(const AugmentConfig& cfg, Rng& rng) {

@@ -18,7 +18,13 @@
 //      (a ~ U(reflectance_scale), b ~ N(0, reflectance_offset^2), per point
 //      N(0, reflectance_noise^2), clipped to [0, 1]); reflectance dropout, every r -> 0 with
 //      probability reflectance_dropout (a sensor without intensities); point dropout, each point
-//      removed with probability U(0, point_dropout) drawn per scan, with its label.
+//      removed with probability U(0, point_dropout) drawn per scan, with its label;
+//   7. ground bend (GroundBend), after the affine stages: beyond a line at U(bend_start_min,
+//      bend_start_max) m from the origin, in a direction drawn uniformly, the ground's grade
+//      changes by N(0, grade_change^2) over a parabolic vertical curve of bend_length m, so that
+//      far buildings, cars and grass stand on a climb or a dip while the near ground keeps its
+//      heights (a rigid tilt moves the near heights too). It draws only when it is on, after the
+//      affine stages' draws: configurations without it keep their streams.
 #pragma once
 
 #include <cstdint>
@@ -47,6 +53,9 @@ struct AugmentConfig {
   double reflectance_offset = 0.03, reflectance_noise = 0.03;  // sigmas
   double reflectance_dropout = 0.0;  // probability that a scan's reflectance is all 0
   double point_dropout = 0.0;        // largest share of points a scan loses
+  double grade_change = 0.0;         // sigma of the ground bend's change of grade; 0: off
+  double bend_start_min = 5.0, bend_start_max = 25.0;  // metres, the bend's line from the origin
+  double bend_length = 10.0;                           // metres, its vertical curve
 
   // Any per-point randomisation on (only then does a scan draw one).
   bool randomises_points() const {
@@ -83,6 +92,24 @@ struct AugmentTransform {
   bool is_identity() const;
 };
 
+// A change of the ground's grade along one horizontal direction u: with d = u . (x, y) the
+// distance beyond `start`, every point's z moves by
+//   offset = 0                                  d <= start
+//          = grade (d - start)^2 / (2 length)   start < d < start + length
+//          = grade (d - start - length / 2)     d >= start + length,
+// a parabolic vertical curve (continuous, with a continuous slope) into the grade change.
+struct GroundBend {
+  Eigen::Vector2d direction{1.0, 0.0};  // unit
+  double start = 0.0;                   // metres along direction; >= 0, so the origin stays
+  double length = 1.0;                  // metres, > 0
+  double grade = 0.0;                   // rise over run beyond the curve; 0: the identity
+
+  bool is_identity() const { return grade == 0.0; }
+  double offset(double x, double y) const;
+  // Moves z of every point (computed in double, stored as float).
+  void apply(std::vector<Point>& points) const;
+};
+
 // Throws pillarseg::Error naming the first setting out of its range.
 void validate_augmentation(const AugmentConfig& cfg);
 
@@ -91,6 +118,10 @@ void validate_augmentation(const AugmentConfig& cfg);
 // one stage off leaves the values of the others unchanged for a given seed (ablations compare
 // like with like); a stage switched off contributes the identity. Same seed, same transform.
 AugmentTransform sample_augmentation(const AugmentConfig& cfg, Rng& rng);
+
+// Draws one scan's ground bend from `rng` (direction angle, start, grade), after
+// sample_augmentation; nothing is drawn and the identity returned when grade_change is 0.
+GroundBend sample_ground_bend(const AugmentConfig& cfg, Rng& rng);
 
 // Draws the per-point randomisation of one scan from `rng`, after sample_augmentation: always
 // the same draws (scale, offset, the reflectance dropout's, the drop share's, the points'

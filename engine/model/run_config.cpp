@@ -88,6 +88,7 @@ void read_train(const YAML::Node& t, const ClassTable& classes, const std::strin
         else if (k == "reflectance_jitter") c.augmentation.reflectance_jitter = get<bool>(a.second, w);
         else if (k == "reflectance_dropout") c.augmentation.reflectance_dropout = get<double>(a.second, w);
         else if (k == "point_dropout") c.augmentation.point_dropout = get<double>(a.second, w);
+        else if (k == "grade_change") c.augmentation.grade_change = get<double>(a.second, w);
         else PS_FAIL("{}: unknown key", w);
       }
     } else {

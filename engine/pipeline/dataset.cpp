@@ -50,14 +50,15 @@ std::string ScanDataset::describe(size_t i) const {
 namespace {
 
 // The labels of an augmented scan: its sparse ground truth, or the dense one of its aggregated
-// neighbours moved by the same transform.
+// neighbours moved by the same transform and ground bend.
 Tensor<uint8_t> training_labels(const Scan& scan, const GroundTruthBuilder& builder, size_t index,
                                 GroundTruthKind kind, const AugmentTransform& transform,
-                                const ClassTable& classes, const GridSpec& grid) {
+                                const GroundBend& bend, const ClassTable& classes, const GridSpec& grid) {
   if (kind == GroundTruthKind::sparse) return rasterize_labels(scan.points, scan.labels, classes, grid);
-  if (transform.is_identity()) return builder.map(index, GroundTruthKind::dense);
+  if (transform.is_identity() && bend.is_identity()) return builder.map(index, GroundTruthKind::dense);
   LabelledPoints aggregated = builder.dense_points(index);
   aggregated.transform(transform.as_matrix());
+  bend.apply(aggregated.points);
   return rasterize_classes(aggregated.points, aggregated.classes, classes, grid);
 }
 
@@ -66,13 +67,16 @@ Tensor<uint8_t> training_labels(const Scan& scan, const GroundTruthBuilder& buil
 ScanDataset::AugmentedScan ScanDataset::augmented_scan(size_t i, uint64_t epoch, const TrainConfig& train) const {
   const Item& it = item(i);
   const GroundTruthBuilder& builder = *builders_[it.sequence_slot];
-  AugmentedScan a{builder.sequence().load(it.scan), Rng::derive(train.seed, epoch, i), {}, Eigen::Vector3d::Zero(), {}};
+  AugmentedScan a{builder.sequence().load(it.scan), Rng::derive(train.seed, epoch, i), {}, {}, Eigen::Vector3d::Zero(), {}};
   if (train.augment) a.transform = sample_augmentation(train.augmentation, a.rng);
   if (!a.transform.is_identity()) a.transform.apply(a.scan.points);
+  if (train.augment) a.bend = sample_ground_bend(train.augmentation, a.rng);
+  a.bend.apply(a.scan.points);
   if (train.augment && train.augmentation.randomises_points())
     sample_randomisation(train.augmentation, a.rng).apply(a.scan.points, a.scan.labels);
   a.origin = a.transform.apply(Eigen::Vector3d::Zero());
-  a.labels = training_labels(a.scan, builder, it.scan, kind_, a.transform, classes_, model_.grid);
+  a.origin.z() += a.bend.offset(a.origin.x(), a.origin.y());
+  a.labels = training_labels(a.scan, builder, it.scan, kind_, a.transform, a.bend, classes_, model_.grid);
   return a;
 }
 

@@ -72,6 +72,7 @@ class ScanDataset {
     Scan scan;
     Rng rng;
     AugmentTransform transform;
+    GroundBend bend;
     Eigen::Vector3d origin = Eigen::Vector3d::Zero();
     Tensor<uint8_t> labels;
   };
