@@ -1132,7 +1132,7 @@ void add_half_ops(std::vector<Case>& all, Precision p) {
     args.back().tol = folded_bias;
     args.push_back(out("y", y, cv.y_half ? Kind::H16 : Kind::F32));
     const Conv c = cv;
-    const bool winograd = cv.w[2] == 3 && cv.pad == 1;
+    const bool winograd = op::winograd_3x3(cv.w, cv.pad);
     all.push_back(
         {.name = "conv2d_prepared_forward/" + d + ",x=" + shape_name(cv.x) + (cv.x_half ? "h" : "f") +
                  ",w=" + shape_name(cv.w) + ",pad=" + std::to_string(cv.pad) +

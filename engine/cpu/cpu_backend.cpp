@@ -164,13 +164,10 @@ class CpuBackend final : public Backend {
     if (prepared.dtype == DType::I8) {
       require_precision(Precision::I8);
       const cpu::Int8ConvWeights& direct = int8_weights(op, prepared, bias_out, weight_scale, weight);
-      // The Winograd domain where the preparation made that form and the calibration gave its
-      // input scales.
-      if (cpu::int8_forward_in_winograd(int8_kernels_, weight, pad, false, input.has_winograd(),
-                                        cpu::int8_winograd_rule())) {
-        const auto winograd = int8_winograd_prepared_.find(prepared.data);
-        PS_CHECK(winograd != int8_winograd_prepared_.end(),
-                 "{}: the weights were prepared without their Winograd-domain form: prepare them again", op);
+      // The Winograd domain where the preparation made that form (cpu::int8_winograd_runs) and the
+      // calibration gave its input scales: cpu::int8_forward_in_winograd, read from what was prepared.
+      const auto winograd = int8_winograd_prepared_.find(prepared.data);
+      if (winograd != int8_winograd_prepared_.end() && op::winograd_3x3(weight, pad) && input.has_winograd()) {
         cpu::int8_winograd_forward(int8_kernels_, int8_activation(x), input.winograd.data(), winograd->second, relu,
                                    int8_activation(y), int8_winograd_workspace_);
         return;

@@ -134,9 +134,10 @@ inline bool int8_winograd_runs(Int8Kernels kernels, const Shape& weight, Int8Win
   return weight[0] >= 256 || weight[1] >= 256;
 }
 
-// Whether an INT8 convolution's forward runs in the Winograd domain (CpuBackend's choice, which
-// `bench` reports): the 3x3 pad-1 form (op::winograd_3x3), not transposed, its input calibrated
-// with Winograd-domain scales (Int8Input::winograd), and int8_winograd_runs.
+// Whether an INT8 convolution's forward runs in the Winograd domain, as `bench` reports it: what
+// CpuBackend's preparation (int8_winograd_runs, not transposed) and forward (the 3x3 pad-1 form,
+// op::winograd_3x3, and an input calibrated with Winograd-domain scales, Int8Input::winograd)
+// choose together.
 inline bool int8_forward_in_winograd(Int8Kernels kernels, const Shape& weight, int pad, bool transposed,
                                      bool winograd_scales, Int8WinogradRule rule) {
   return !transposed && winograd_scales && op::winograd_3x3(weight, pad) && int8_winograd_runs(kernels, weight, rule);
