@@ -712,26 +712,60 @@ std::vector<float> winograd_v(const Input& x, std::int64_t b) {
   return v;
 }
 
-// y by the contract of int8_winograd.hpp: V quantized per position, int64 products, M = float(acc)
-// (sv su), the output transform in the kernel's order, the bias, the ReLU.
+// V16 (C, tiles, 16) of one image by the contract of int8_winograd.hpp: each input element to
+// x16 = clamp(round_half_even(x r16), -8191, 8191) (NaN -> 0), then B^T x16 B in integers.
+std::vector<std::int32_t> winograd_v16(const Input& x, std::int64_t b, float r16) {
+  const std::int64_t in = x.shape[1], h = x.shape[2], w = x.shape[3];
+  const std::int64_t th = (h + 1) / 2, tw = (w + 1) / 2;
+  const auto x16 = [&](std::int64_t c, std::int64_t iy, std::int64_t ix) -> std::int32_t {
+    if (iy < 0 || iy >= h || ix < 0 || ix >= w) return 0;
+    const float v = x.values[static_cast<size_t>(((b * in + c) * h + iy) * w + ix)] * r16;
+    if (std::isnan(v)) return 0;
+    return static_cast<std::int32_t>(std::nearbyint(std::clamp(v, -8191.0f, 8191.0f)));
+  };
+  std::vector<std::int32_t> v(static_cast<size_t>(in * th * tw * 16));
+  for (std::int64_t c = 0; c < in; ++c)
+    for (std::int64_t t = 0; t < th * tw; ++t) {
+      std::int32_t hr[4][4];
+      for (int r = 0; r < 4; ++r) {
+        std::int32_t d[4];
+        for (int j = 0; j < 4; ++j) d[j] = x16(c, 2 * (t / tw) - 1 + r, 2 * (t % tw) - 1 + j);
+        hr[r][0] = d[0] - d[2], hr[r][1] = d[1] + d[2], hr[r][2] = d[2] - d[1];
+        hr[r][3] = d[1] - d[3];
+      }
+      for (int j = 0; j < 4; ++j) {
+        const std::int32_t col[4] = {hr[0][j] - hr[2][j], hr[1][j] + hr[2][j],
+                                     hr[2][j] - hr[1][j], hr[1][j] - hr[3][j]};
+        for (int i = 0; i < 4; ++i)
+          v[static_cast<size_t>((c * th * tw + t) * 16 + 4 * i + j)] = col[i];
+      }
+    }
+  return v;
+}
+
+// y by the contract of int8_winograd.hpp: V16 requantized per position by its multiplier
+// ((V16 m + 2^14) >> 15, clamped to +-127), int64 products, M = float(acc) (sv_eff su), the output
+// transform in the kernel's order, the bias, the ReLU.
 std::vector<float> reference_winograd(const Input& x, const float* sv,
                                       const cpu::Int8WinogradWeights& w, bool relu) {
   const std::int64_t batch = x.shape[0], in = x.shape[1], h = x.shape[2], wd = x.shape[3];
   const std::int64_t out = w.weight[0], th = (h + 1) / 2, tw = (wd + 1) / 2;
+  const cpu::Int8WinogradInputScales scales = cpu::int8_winograd_input_scales(sv);
   std::vector<float> y(static_cast<size_t>(batch * out * h * wd));
   for (std::int64_t b = 0; b < batch; ++b) {
-    const std::vector<float> v = winograd_v(x, b);
+    const std::vector<std::int32_t> v = winograd_v16(x, b, scales.r16);
     for (std::int64_t o = 0; o < out; ++o)
       for (std::int64_t t = 0; t < th * tw; ++t) {
         float m[16];
         for (int p = 0; p < 16; ++p) {
           std::int64_t acc = 0;
           for (std::int64_t c = 0; c < in; ++c) {
-            acc += cpu::quantize_int8(v[static_cast<size_t>((c * th * tw + t) * 16 + p)],
-                                      1.0f / sv[p]) *
-                   w.q[static_cast<size_t>((p * out + o) * in + c)];
+            const std::int32_t v16 = v[static_cast<size_t>((c * th * tw + t) * 16 + p)];
+            const std::int32_t q = std::clamp((v16 * scales.multiplier[p] + (1 << 14)) >> 15, -127, 127);
+            acc += q * w.q[static_cast<size_t>((p * out + o) * in + c)];
           }
-          m[p] = static_cast<float>(acc) * (sv[p] * w.scale[static_cast<size_t>(p * out + o)]);
+          m[p] = static_cast<float>(acc) *
+                 (scales.sv_eff[p] * w.scale[static_cast<size_t>(p * out + o)]);
         }
         float rows[2][4];
         for (int j = 0; j < 4; ++j) {
@@ -752,6 +786,32 @@ std::vector<float> reference_winograd(const Input& x, const float* sv,
       }
   }
   return y;
+}
+
+// The 16-bit transform's constants, by hand: equal scales give s16 = sv / 64 and m = 2^15 / 64 =
+// 512; a position 3x finer, m = round(512 3) = 1536; one 100x finer caps s16 at its scale (m =
+// 32767 for it, its effective scale 2^15 / 32767 of its own).
+TEST(Int8Winograd, InputScalesByHand) {
+  float sv[16];
+  std::fill(sv, sv + 16, 0.5f);
+  cpu::Int8WinogradInputScales s = cpu::int8_winograd_input_scales(sv);
+  EXPECT_EQ(s.r16, 128.0f);
+  for (int p = 0; p < 16; ++p) {
+    EXPECT_EQ(s.multiplier[p], 512);
+    EXPECT_EQ(s.sv_eff[p], 0.5f);
+  }
+  sv[5] = 0.5f / 3.0f;
+  s = cpu::int8_winograd_input_scales(sv);
+  EXPECT_EQ(s.r16, 128.0f);
+  EXPECT_EQ(s.multiplier[5], 1536);
+  EXPECT_FLOAT_EQ(s.sv_eff[5], static_cast<float>(32768.0 / 128.0 / 1536.0));
+  EXPECT_EQ(s.multiplier[0], 512);
+  sv[5] = 0.005f;  // 100x finer than the others: s16 = 0.005, not 0.5 / 64
+  s = cpu::int8_winograd_input_scales(sv);
+  EXPECT_FLOAT_EQ(s.r16, 200.0f);
+  EXPECT_EQ(s.multiplier[5], 32767);
+  EXPECT_FLOAT_EQ(s.sv_eff[5], static_cast<float>(0.005 * 32768.0 / 32767.0));
+  EXPECT_EQ(s.multiplier[0], 328);  // round(32768 0.005 / 0.5) = round(327.68)
 }
 
 TEST(Int8Winograd, MatchesTheReferenceBitForBit) {

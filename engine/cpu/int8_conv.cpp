@@ -427,6 +427,19 @@ void prepare_int8_winograd(const Ref& w, const Ref& bias, Int8WinogradWeights& o
   out.bias.assign(bias.data, bias.data + o_count);
 }
 
+Int8WinogradInputScales int8_winograd_input_scales(const float* sv) {
+  const float largest = *std::max_element(sv, sv + 16), smallest = *std::min_element(sv, sv + 16);
+  const float s16 = std::min(largest / 64.0f, smallest);
+  Int8WinogradInputScales out;
+  out.r16 = 1.0f / s16;
+  for (int p = 0; p < 16; ++p) {
+    const double m = std::clamp(std::nearbyint(32768.0 * s16 / sv[p]), 1.0, 32767.0);
+    out.multiplier[p] = static_cast<std::int16_t>(m);
+    out.sv_eff[p] = static_cast<float>(32768.0 * s16 / m);
+  }
+  return out;
+}
+
 void int8_winograd_forward(Int8Kernels kernels, const ActRef& x, const float* sv,
                            const Int8WinogradWeights& w, bool relu, const ActRef& y,
                            Int8WinogradWorkspace& workspace) {
@@ -438,18 +451,17 @@ void int8_winograd_forward(Int8Kernels kernels, const ActRef& x, const float* sv
   const Shape y_shape = op::conv2d(x.shape, w.weight, 1, nullptr, op);
   PS_CHECK(y.shape == y_shape, "{}: y must be {}, got {}", op, shape_str(y_shape),
            shape_str(y.shape));
-  float reciprocal[16];
   for (int p = 0; p < 16; ++p) {
     PS_CHECK(std::isfinite(sv[p]) && sv[p] > 0.0f && std::isfinite(1.0f / sv[p]),
              "{}: the input scale of position {} must be positive and finite, got {}", op, p,
              sv[p]);
-    reciprocal[p] = 1.0f / sv[p];
   }
+  const Int8WinogradInputScales scales = int8_winograd_input_scales(sv);
   const bool on_native = native(kernels);
   Int8Winograd g;
   g.x = x.data, g.x_bf16 = x.half;
   g.batch = x.dim(0), g.channels = x.dim(1), g.height = x.dim(2), g.width = x.dim(3);
-  g.reciprocal = reciprocal, g.sv = sv;
+  g.r16 = scales.r16, g.multiplier = scales.multiplier, g.sv = scales.sv_eff;
   g.quads = (g.channels + 3) / 4;
   g.u = w.packed.data(), g.su = w.scale.data(), g.compensation = w.compensation.data();
   g.bias = w.bias.data();
@@ -465,11 +477,15 @@ void int8_winograd_forward(Int8Kernels kernels, const ActRef& x, const float* sv
   const int threads = std::max(num_threads(), 1);
   g.v_stride = 16 * g.quads * g.block_tiles * 4;
   g.m_stride = 16 * kInt8GroupColumns * kInt8WinogradGroupTiles;
+  g.x16_tiles = round_up(g.block_tiles, 32) + 32;
+  g.x16_stride = 4 * 4 * 2 * g.x16_tiles;  // 4 channels x 4 rows x (even, odd), 64-byte multiple
   if (workspace.v.size() < static_cast<size_t>(threads * g.v_stride))
     workspace.v.resize(static_cast<size_t>(threads * g.v_stride));
   if (workspace.m.size() < static_cast<size_t>(threads * g.m_stride))
     workspace.m.resize(static_cast<size_t>(threads * g.m_stride));
-  g.v = workspace.v.data(), g.m = workspace.m.data();
+  if (workspace.x16.size() < static_cast<size_t>(threads * g.x16_stride))
+    workspace.x16.resize(static_cast<size_t>(threads * g.x16_stride));
+  g.v = workspace.v.data(), g.m = workspace.m.data(), g.x16 = workspace.x16.data();
   if (y.numel() == 0) return;
   parallel_chunks(g.batch * g.tiles_h * g.blocks_per_row,
                   [&](std::int64_t begin, std::int64_t end, int thread) {

@@ -113,7 +113,20 @@ void prepare_int8_winograd(const Ref& w, const Ref& bias, Int8WinogradWeights& o
 struct Int8WinogradWorkspace {
   AlignedVector<std::uint8_t> v;
   AlignedVector<float> m;
+  AlignedVector<std::int16_t> x16;
 };
+
+// The 16-bit input transform's constants (int8_winograd.hpp) for the 16 calibrated scales sv > 0:
+// s16 = min(max_p sv[p] / 64, min_p sv[p]) (the first unless the positions' scales differ 64-fold,
+// where inputs beyond 8191 s16 clip), r16 = 1 / s16 rounded to FP32, multiplier[p] = round(2^15
+// s16 / sv[p]) within [1, 32767], and the effective scale sv_eff[p] = s16 2^15 / multiplier[p]
+// (rounded to FP32) that the products are dequantized with.
+struct Int8WinogradInputScales {
+  float r16 = 0.0f;
+  std::int16_t multiplier[16] = {};
+  float sv_eff[16] = {};
+};
+Int8WinogradInputScales int8_winograd_input_scales(const float* sv);
 
 // x (B, I, H, W) FP32 or BF16 -> y (B, O, H, W) FP32 or BF16, for the 16 input scales sv > 0.
 void int8_winograd_forward(Int8Kernels kernels, const ActRef& x, const float* sv,

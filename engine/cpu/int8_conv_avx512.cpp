@@ -148,6 +148,82 @@ struct Avx512VnniIsa {
   }
   static F load_f(const float* p) { return _mm512_load_ps(p); }
   static void store_f(float* p, F f) { _mm512_store_ps(p, f); }
+
+  using I16 = __m512i;
+  static __m512i quantize_x16(F x, __m512 r) {
+    const __m512 v = _mm512_mul_ps(x, r);
+    const __mmask16 ordered = _mm512_cmp_ps_mask(v, v, _CMP_ORD_Q);
+    const __m512 clamped =
+        _mm512_min_ps(_mm512_max_ps(v, _mm512_set1_ps(-8191.0f)), _mm512_set1_ps(8191.0f));
+    return _mm512_maskz_cvt_roundps_epi32(ordered, clamped,
+                                          _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
+  }
+  // One value (the columns after a block's last step), in scalar SSE arithmetic: the same
+  // product, clamp and rounding (MXCSR's nearest even) as the vectors'.
+  static std::int16_t quantize_x16_f32(float x, float r) {
+    const float v = x * r;
+    if (v != v) return 0;
+    const float clamped = v < -8191.0f ? -8191.0f : v > 8191.0f ? 8191.0f : v;
+    return static_cast<std::int16_t>(_mm_cvtss_si32(_mm_set_ss(clamped)));
+  }
+  static std::int16_t quantize_x16_bf16(std::uint16_t x, float r) {
+    return quantize_x16_f32(__builtin_bit_cast(float, static_cast<std::uint32_t>(x) << 16), r);
+  }
+  // Two vectors of 16 int32 (lanes 0..15 and 16..31) as 32 int16 in lane order: VPACKSSDW
+  // interleaves them by 64-bit quarters of each 128-bit lane, VPERMQ puts the quarters back.
+  static I16 narrow(__m512i lo, __m512i hi) {
+    return _mm512_permutexvar_epi64(_mm512_set_epi64(7, 5, 3, 1, 6, 4, 2, 0),
+                                    _mm512_packs_epi32(lo, hi));
+  }
+  static void quantize_x16_pairs_bf16(const std::uint16_t* base, std::int64_t index,
+                                      std::uint64_t mask, float r, I16& even, I16& odd) {
+    const __m512 rv = _mm512_set1_ps(r);
+    const __m512i high = _mm512_set1_epi32(static_cast<std::int32_t>(0xFFFF0000u));
+    __m512i e[2], o[2];
+    for (int k = 0; k < 2; ++k) {
+      const __m512i words = _mm512_maskz_loadu_epi16(static_cast<__mmask32>(mask >> (32 * k)),
+                                                     at(base, index + 32 * k));
+      e[k] = quantize_x16(_mm512_castsi512_ps(_mm512_slli_epi32(words, 16)), rv);
+      o[k] = quantize_x16(_mm512_castsi512_ps(_mm512_and_si512(words, high)), rv);
+    }
+    even = narrow(e[0], e[1]), odd = narrow(o[0], o[1]);
+  }
+  static void quantize_x16_pairs_f32(const float* base, std::int64_t index, std::uint64_t mask,
+                                     float r, I16& even, I16& odd) {
+    const __m512 rv = _mm512_set1_ps(r);
+    __m512i e[2], o[2];
+    for (int k = 0; k < 2; ++k) {
+      const __m512 lo = _mm512_maskz_loadu_ps(static_cast<__mmask16>(mask >> (32 * k)),
+                                              at(base, index + 32 * k));
+      const __m512 hi = _mm512_maskz_loadu_ps(static_cast<__mmask16>(mask >> (32 * k + 16)),
+                                              at(base, index + 32 * k + 16));
+      e[k] = quantize_x16(Avx512VnniIsa::even(lo, hi), rv);
+      o[k] = quantize_x16(Avx512VnniIsa::odd(lo, hi), rv);
+    }
+    even = narrow(e[0], e[1]), odd = narrow(o[0], o[1]);
+  }
+  static I16 zero_i16() { return _mm512_setzero_si512(); }
+  static I16 load_i16(const std::int16_t* p) { return _mm512_loadu_si512(p); }
+  static void store_i16(std::int16_t* p, I16 a) { _mm512_storeu_si512(p, a); }
+  static I16 add_i16(I16 a, I16 b) { return _mm512_add_epi16(a, b); }
+  static I16 sub_i16(I16 a, I16 b) { return _mm512_sub_epi16(a, b); }
+  static I16 requantize(I16 a, std::int16_t m) { return _mm512_mulhrs_epi16(a, _mm512_set1_epi16(m)); }
+  // VPACKSSWB (c0, c2) and (c1, c3): per 128-bit lane L the bytes of 8 tiles 8 L.. of two
+  // channels; VPUNPCK{L,H}BW pair the channels 0, 1 and 2, 3 a word per tile, VPUNPCK{L,H}WD
+  // make the dwords of tiles 8 L..8 L + 3 and 8 L + 4..8 L + 7, VPERMT2Q puts the tiles in order.
+  static void store_quads_i16(std::uint8_t* out, I16 c0, I16 c1, I16 c2, I16 c3, int tiles) {
+    const __m512i floor = _mm512_set1_epi8(-127), flip = _mm512_set1_epi8(-128);
+    const __m512i p = _mm512_xor_si512(_mm512_max_epi8(_mm512_packs_epi16(c0, c2), floor), flip);
+    const __m512i q = _mm512_xor_si512(_mm512_max_epi8(_mm512_packs_epi16(c1, c3), floor), flip);
+    const __m512i x = _mm512_unpacklo_epi8(p, q), y = _mm512_unpackhi_epi8(p, q);
+    const __m512i z0 = _mm512_unpacklo_epi16(x, y), z1 = _mm512_unpackhi_epi16(x, y);
+    _mm512_storeu_si512(out, _mm512_permutex2var_epi64(
+                                 z0, _mm512_set_epi64(11, 10, 3, 2, 9, 8, 1, 0), z1));
+    if (tiles > 16) {
+      _mm512_storeu_si512(out + 64, _mm512_permutex2var_epi64(
+                                        z0, _mm512_set_epi64(15, 14, 7, 6, 13, 12, 5, 4), z1));
+    }
+  }
 };
 
 #if defined(PILLARSEG_HAVE_AMX_INT8_KERNELS)

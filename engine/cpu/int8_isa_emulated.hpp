@@ -11,7 +11,9 @@
 //   even, NaN kept quiet, no flushing), masked loads and stores reading or writing only the lanes
 //   the mask names; for the Winograd transforms (int8_winograd.hpp) VPERMT2PS's even and odd
 //   lanes of a pair of vectors, the words of BF16 pairs as FP32 (VPSLLD, VPANDD), FP32 adds and
-//   subtractions (VADDPS, VSUBPS: one rounding each).
+//   subtractions (VADDPS, VSUBPS: one rounding each); and the 16-bit integer input transform:
+//   FP32 -> int16 (VCVTPS2DQ {rn-sae} of a clamped product, VPACKSSDW), VPADDW, VPSUBW, VPMULHRSW,
+//   VPACKSSWB, VPMAXSB and the unpacks that interleave four channels' bytes.
 // And of the AMX-INT8 tile instructions (int8_amx.hpp), EmulatedAmxInt8Tiles:
 //   TDPBSUD      C[m].dword[n] += sext(A[m].byte[4k + i]) * zext(B[k].byte[4n + i]) for k <
 //                16, i < 4, wrapping like VPDPBUSD (signed A, unsigned B: the operand roles of
@@ -221,6 +223,81 @@ struct EmulatedVnniIsa {
     return f;
   }
   static void store_f(float* p, const F& f) { std::memcpy(p, f.v, sizeof(f.v)); }
+
+  // The Winograd input transform in 16-bit integers (int8_winograd.hpp): 32 lanes of int16.
+  struct I16 {
+    std::int16_t v[32];
+  };
+  // x16 = clamp(round_half_even(x * r), -8191, 8191), NaN -> 0 (VMULPS, VMAXPS, VMINPS,
+  // VCVTPS2DQ {rn-sae} zero-masked on the ordered lanes).
+  static std::int16_t quantize_x16(float x, float r) {
+    float v = x * r;
+    if (std::isnan(v)) return 0;
+    v = v < -8191.0f ? -8191.0f : v > 8191.0f ? 8191.0f : v;
+    return static_cast<std::int16_t>(std::nearbyint(v));
+  }
+  static std::int16_t quantize_x16_f32(float x, float r) { return quantize_x16(x, r); }
+  static std::int16_t quantize_x16_bf16(std::uint16_t x, float r) {
+    return quantize_x16(std::bit_cast<float>(static_cast<std::uint32_t>(x) << 16), r);
+  }
+  // even[i] = x16 of column index + 2 i, odd[i] of index + 2 i + 1 (i < 32), for the bits of
+  // the 64-lane mask, 0 elsewhere (only named lanes are read).
+  static void quantize_x16_pairs_bf16(const std::uint16_t* base, std::int64_t index,
+                                      std::uint64_t mask, float r, I16& even, I16& odd) {
+    even = I16{}, odd = I16{};
+    for (int i = 0; i < 64; ++i) {
+      if ((mask >> i) & 1u) {
+        const float x = std::bit_cast<float>(static_cast<std::uint32_t>(base[index + i]) << 16);
+        (i % 2 == 0 ? even : odd).v[i / 2] = quantize_x16(x, r);
+      }
+    }
+  }
+  static void quantize_x16_pairs_f32(const float* base, std::int64_t index, std::uint64_t mask,
+                                     float r, I16& even, I16& odd) {
+    even = I16{}, odd = I16{};
+    for (int i = 0; i < 64; ++i)
+      if ((mask >> i) & 1u) (i % 2 == 0 ? even : odd).v[i / 2] = quantize_x16(base[index + i], r);
+  }
+  static I16 zero_i16() { return I16{}; }
+  static I16 load_i16(const std::int16_t* p) {
+    I16 a;
+    std::memcpy(a.v, p, sizeof(a.v));
+    return a;
+  }
+  static void store_i16(std::int16_t* p, const I16& a) { std::memcpy(p, a.v, sizeof(a.v)); }
+  // VPADDW, VPSUBW: wrap (the transform's sums stay within int16, see int8_winograd.hpp).
+  static I16 add_i16(const I16& a, const I16& b) {
+    I16 c;
+    for (int i = 0; i < 32; ++i) c.v[i] = static_cast<std::int16_t>(a.v[i] + b.v[i]);
+    return c;
+  }
+  static I16 sub_i16(const I16& a, const I16& b) {
+    I16 c;
+    for (int i = 0; i < 32; ++i) c.v[i] = static_cast<std::int16_t>(a.v[i] - b.v[i]);
+    return c;
+  }
+  // VPMULHRSW by m: (a m + 2^14) >> 15, arithmetic (nearest, ties up), low 16 bits.
+  static I16 requantize(const I16& a, std::int16_t m) {
+    I16 c;
+    for (int i = 0; i < 32; ++i) {
+      const std::int32_t prod = static_cast<std::int32_t>(a.v[i]) * m + (1 << 14);
+      c.v[i] = static_cast<std::int16_t>(prod >> 15);
+    }
+    return c;
+  }
+  // Dword j < tiles (16 or 32) at out: u(c0[j]), u(c1[j]), u(c2[j]), u(c3[j]) with u(q) =
+  // clamp(q, -127, 127) + 128 (VPACKSSWB's saturation, VPMAXSB, VPXORD 0x80; the unpacks and
+  // VPERMT2Q only move bytes).
+  static void store_quads_i16(std::uint8_t* out, const I16& c0, const I16& c1, const I16& c2,
+                              const I16& c3, int tiles) {
+    const I16* c[4] = {&c0, &c1, &c2, &c3};
+    for (int j = 0; j < tiles; ++j) {
+      for (int k = 0; k < 4; ++k) {
+        const std::int16_t q = c[k]->v[j];
+        out[4 * j + k] = static_cast<std::uint8_t>((q < -127 ? -127 : q > 127 ? 127 : q) + 128);
+      }
+    }
+  }
 };
 
 // The tile instructions (see above), the interface of AmxInt8Tiles in int8_conv_avx512.cpp.

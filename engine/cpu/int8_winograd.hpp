@@ -5,18 +5,28 @@
 // Each 2x2 output tile (ty, tx) comes from the 4x4 input tile d at rows 2 ty - 1.., columns
 // 2 tx - 1.. (zero outside the image): Y = A^T [sum_c U_oc . V_c] A with V_c = B^T d_c B and
 // U_oc = G g_oc G^T (bf16_winograd.hpp has the matrices). Quantized in the Winograd domain as in
-// LoWino (Li et al., 2021): V_p of each of the 16 positions p with its own per-tensor scale sv[p]
-// (V_p = clamp(round_half_even(V_p * (1 / sv[p])), -127, 127), the reciprocal rounded to FP32
-// once), U_p per position and output channel (su[p][o] = max over the input channels / 127); the
-// products M_p = sum_c qU qV in INT32, M_p = float(acc) * (sv[p] su[p][o]) (one rounding each);
-// the output transform adds M in FP32 in a fixed order, then the bias and the ReLU, and rounds
-// once for a BF16 output. The input transform adds and subtracts FP32 values only, so the two
-// compilations give the same bits, and the tests compare them bit for bit.
+// LoWino (Li et al., 2021): V_p of each of the 16 positions p with its own per-tensor scale, U_p
+// per position and output channel (su[p][o] = max over the input channels / 127). The input
+// transform runs in 16-bit integers (int8_winograd_input_scales in int8_conv.hpp derives the
+// constants from the calibrated scales): each input element once to x16 = clamp(round_half_even(x
+// r16), -8191, 8191) (NaN -> 0; r16 = 1 / s16 rounded to FP32, s16 = max_p sv / 64, so that the
+// x16 grid is 64 times finer than the coarsest V's), V16 = B^T x16 B exactly (|V16| <= 4 8191
+// fits int16), then V_p = clamp((V16 m[p] + 2^14) >> 15, -127, 127) (VPMULHRSW: nearest, ties
+// up) with the 15-bit multiplier m[p] = round(2^15 s16 / sv[p]), whose scale s16 2^15 / m[p] is
+// the one the products are dequantized with (sv_eff). About 4 integer operations a value where
+// the FP32 transform took 10: the requantization is one multiply, and the conversion of each input
+// element is shared by the 4 tiles that read it. The products M_p = sum_c qU qV in INT32, M_p =
+// float(acc) * (sv_eff[p] su[p][o]) (one rounding each); the output transform adds M in FP32 in a
+// fixed order, then the bias and the ReLU, and rounds once for a BF16 output. Every step is exact
+// integer arithmetic or one FP32 rounding, so the two compilations give the same bits, and the
+// tests compare them bit for bit.
 //
 // Layout and blocking. A block is a run of `block_tiles` (a multiple of 16) tiles of one tile row
-// of one image, taken by one thread from its input transform to its output: V (16, quads,
-// block_tiles, 4) in bytes, u = q + 128 of four channels a dword as the direct kernel's quads
-// (the tiles past the row's end are transformed from the zero padding and never stored); then for
+// of one image, taken by one thread from its input transform to its output: per quad of input
+// channels, its 4 x 4 input rows' x16 in even and odd columns (x16_tiles int16 each, in L1), then
+// V (16, quads, block_tiles, 4) in bytes, u = q + 128 of four channels a dword as the direct
+// kernel's quads, 32 tiles a step (the tiles past the row's end are transformed from the zero
+// padding and never stored); then for
 // each group of 8 output channels and 32 tiles, the 16 products in a register tile of 8 channels
 // x 2 vectors of 16 tiles into M (16, 8, 32) FP32, and that group's output transform, whose 16
 // tiles a vector are 32 consecutive output columns of two rows. U (16, O / 8, quads, 8, 4) is
@@ -33,8 +43,9 @@ struct Int8Winograd {
   const void* x = nullptr;  // (B, C, H, W) FP32 or (x_bf16) BF16
   bool x_bf16 = false;
   std::int64_t batch = 0, channels = 0, height = 0, width = 0;
-  const float* reciprocal = nullptr;  // (16): 1 / sv[p]
-  const float* sv = nullptr;          // (16)
+  float r16 = 0.0f;                        // 1 / s16: x16 = clamp(round(x r16), +-8191)
+  const std::int16_t* multiplier = nullptr;  // (16): V_p = (V16 multiplier[p] + 2^14) >> 15
+  const float* sv = nullptr;                 // (16): V_p's scale, s16 2^15 / multiplier[p]
   std::int64_t quads = 0;
   const std::int8_t* u = nullptr;                    // packed qU
   const float* su = nullptr;                         // (16, O)
@@ -45,10 +56,12 @@ struct Int8Winograd {
   void* y = nullptr;  // (B, O, H, W) FP32 or (y_bf16) BF16
   bool y_bf16 = false;
   std::int64_t tiles_h = 0, tiles_w = 0, block_tiles = 0, blocks_per_row = 0;
-  // Per thread t: v + t v_stride bytes, m + t m_stride floats (64-byte aligned).
+  // Per thread t: v + t v_stride bytes, m + t m_stride floats, x16 + t x16_stride int16 (64-byte
+  // aligned); x16_tiles = block_tiles rounded up to 32, plus 32.
   std::uint8_t* v = nullptr;
   float* m = nullptr;
-  std::int64_t v_stride = 0, m_stride = 0;
+  std::int16_t* x16 = nullptr;
+  std::int64_t v_stride = 0, m_stride = 0, x16_stride = 0, x16_tiles = 0;
 };
 
 // Tiles of a group: 2 vectors of 16 (16 accumulators; a 3-vector tile of 24, which the nested
@@ -72,58 +85,68 @@ struct Int8WinogradPick {
 inline constexpr Int8WinogradPick kInt8WinogradPick[4] = {
     {0, 2, false}, {1, 2, true}, {2, 1, false}, {1, 3, false}};
 
-// The loads of int8_winograd_row for 16 tiles whose inputs start at column x0: the 32 columns x0..
-// and the 32 columns x0 + 2.., and their masks (the columns inside the image).
-struct Int8WinogradColumns {
-  std::int64_t start[2];
-  std::uint32_t mask[2];
-};
-inline Int8WinogradColumns int8_winograd_columns(std::int64_t x0, std::int64_t width) {
-  Int8WinogradColumns c;
-  for (int k = 0; k < 2; ++k) {
-    const std::int64_t s = x0 + 2 * k;
-    const std::int64_t lo = s < 0 ? -s : 0, hi = width - s < 32 ? width - s : 32;
-    c.start[k] = s;
-    c.mask[k] = hi <= lo ? 0u : int8_first_lanes(hi) & ~int8_first_lanes(lo);
-  }
-  return c;
+inline std::int64_t round_up_32(std::int64_t n) { return (n + 31) / 32 * 32; }
+
+// The 64-lane mask of the columns x0.. inside the image.
+inline std::uint64_t int8_winograd_column_mask(std::int64_t x0, std::int64_t width) {
+  const std::int64_t lo = x0 < 0 ? -x0 : 0, hi = width - x0 < 64 ? width - x0 : 64;
+  if (hi <= lo) return 0;
+  const std::uint64_t below_hi = hi == 64 ? ~std::uint64_t{0} : (std::uint64_t{1} << hi) - 1;
+  return below_hi & ~((std::uint64_t{1} << lo) - 1);
 }
 
-// h[j] = (d_r B)[j] of the input row starting at element `row` (none: zero rows) over 16 tiles:
-// lane i holds columns x0 + 2 i + j. BF16 pairs split in place (a column's FP32 bits are its word
-// shifted up: the even columns' low words moved up, the odd columns' high words masked), FP32
-// columns by even and odd permutes of 16-lane halves.
+// x16 of the quad cq's input rows for the block (tile row ty of image b, tiles tx0..): for channel
+// i < 4 and row r < 4 (input row 2 ty - 1 + r), the even and odd columns of the tiles' inputs,
+// E[t] = x16(column 2 (tx0 + t) - 1), O[t] = x16(column 2 (tx0 + t)) for t <= block_tiles
+// rounded up to 32 (32 a step, the one after them as scalars), at
+// x16 + ((i 4 + r) 2 + {0: E, 1: O}) g.x16_tiles. Rows and channels outside the image are marked
+// in `inside` and not converted.
 template <class Isa>
-void int8_winograd_row(const Int8Winograd& g, bool inside, std::int64_t row,
-                       const Int8WinogradColumns& columns, typename Isa::F* h) {
-  using F = typename Isa::F;
-  if (!inside) {
-    for (int j = 0; j < 4; ++j) h[j] = Isa::zero_f();
-    return;
-  }
-  F d[4];
-  if (g.x_bf16) {
-    const auto* x = static_cast<const std::uint16_t*>(g.x);
-#pragma GCC unroll 2
-    for (int k = 0; k < 2; ++k)
-      Isa::load_bf16_pairs_at(x, row + columns.start[k], columns.mask[k], d[2 * k], d[2 * k + 1]);
-  } else {
-    const auto* x = static_cast<const float*>(g.x);
-#pragma GCC unroll 2
-    for (int k = 0; k < 2; ++k) {
-      const F lo = Isa::load_f32_at(x, row + columns.start[k], columns.mask[k] & 0xFFFFu);
-      const F hi = Isa::load_f32_at(x, row + columns.start[k] + 16, columns.mask[k] >> 16);
-      d[2 * k] = Isa::even(lo, hi), d[2 * k + 1] = Isa::odd(lo, hi);
+void int8_winograd_quad_x16(const Int8Winograd& g, std::int64_t b, std::int64_t ty,
+                            std::int64_t tx0, std::int64_t cq, std::int16_t* x16,
+                            bool (&inside)[4][4]) {
+  using I16 = typename Isa::I16;
+  const std::int64_t plane_size = g.height * g.width;
+  for (int i = 0; i < 4; ++i) {
+    const std::int64_t c = 4 * cq + i;
+    for (int r = 0; r < 4; ++r) {
+      const std::int64_t iy = 2 * ty - 1 + r;
+      inside[i][r] = c < g.channels && iy >= 0 && iy < g.height;
+      if (!inside[i][r]) continue;
+      const std::int64_t row = (b * g.channels + c) * plane_size + iy * g.width;
+      std::int16_t* even = x16 + (i * 4 + r) * 2 * g.x16_tiles;
+      std::int16_t* odd = even + g.x16_tiles;
+      const std::int64_t steps = round_up_32(g.block_tiles);
+      for (std::int64_t t = 0; t < steps; t += 32) {
+        const std::int64_t x0 = 2 * (tx0 + t) - 1;
+        const std::uint64_t mask = int8_winograd_column_mask(x0, g.width);
+        I16 e, o;
+        if (g.x_bf16) {
+          Isa::quantize_x16_pairs_bf16(static_cast<const std::uint16_t*>(g.x), row + x0, mask,
+                                       g.r16, e, o);
+        } else {
+          Isa::quantize_x16_pairs_f32(static_cast<const float*>(g.x), row + x0, mask, g.r16, e, o);
+        }
+        Isa::store_i16(even + t, e);
+        Isa::store_i16(odd + t, o);
+      }
+      // The last step's tiles also read E and O of the tile after them: two columns, one at a time.
+      const std::int64_t x0 = 2 * (tx0 + steps) - 1;
+      for (int k = 0; k < 2; ++k) {
+        const std::int64_t column = x0 + k;
+        std::int16_t q = 0;
+        if (column >= 0 && column < g.width) {
+          q = g.x_bf16 ? Isa::quantize_x16_bf16(static_cast<const std::uint16_t*>(g.x)[row + column], g.r16)
+                       : Isa::quantize_x16_f32(static_cast<const float*>(g.x)[row + column], g.r16);
+        }
+        (k == 0 ? even : odd)[steps] = q;
+      }
     }
   }
-  h[0] = Isa::sub(d[0], d[2]);
-  h[1] = Isa::add(d[1], d[2]);
-  h[2] = Isa::sub(d[2], d[1]);
-  h[3] = Isa::sub(d[1], d[3]);
 }
 
 // Asks for the input rows quad cq of the block (tile row ty, tiles from tx0) reads, so that the
-// transform does not wait for them: each channel's four rows are a short run of cache lines in a
+// conversion does not wait for them: each channel's four rows are a short run of cache lines in a
 // plane far from the last one, which the hardware prefetchers do not foresee.
 template <class Isa>
 void int8_winograd_prefetch_quad(const Int8Winograd& g, std::int64_t b, std::int64_t ty,
@@ -144,44 +167,50 @@ void int8_winograd_prefetch_quad(const Int8Winograd& g, std::int64_t b, std::int
   }
 }
 
-// V[p][cq][tl][i] for the block's tiles tl (16 at a time) of tile row ty from tile tx0 on.
+// V[p][cq][tl][i] for the block's tiles tl (32 at a time) of tile row ty from tile tx0 on: each
+// quad's rows converted to x16 once (int8_winograd_quad_x16), then V = B^T d B in int16 from
+// them (E[t], O[t], E[t + 1], O[t + 1] are a tile's four columns), each position requantized by
+// its multiplier[p] and four channels' bytes interleaved into dwords.
 template <class Isa>
 void int8_winograd_input(const Int8Winograd& g, std::int64_t b, std::int64_t ty, std::int64_t tx0,
-                         std::uint8_t* v) {
-  using Acc = typename Isa::Acc;
-  using F = typename Isa::F;
-  const std::int64_t plane_size = g.height * g.width;
-  const Acc padding = Isa::set1(128);
+                         std::int16_t* x16, std::uint8_t* v) {
+  using I16 = typename Isa::I16;
   for (std::int64_t cq = 0; cq < g.quads; ++cq) {
     if (cq + 1 < g.quads) int8_winograd_prefetch_quad<Isa>(g, b, ty, tx0, cq + 1);
-    for (std::int64_t tl = 0; tl < g.block_tiles; tl += 16) {
-      const Int8WinogradColumns columns = int8_winograd_columns(2 * (tx0 + tl) - 1, g.width);
-      Acc u[4][16];
+    bool inside[4][4];
+    int8_winograd_quad_x16<Isa>(g, b, ty, tx0, cq, x16, inside);
+    for (std::int64_t tl = 0; tl < g.block_tiles; tl += 32) {
+      I16 u[4][16];
       for (int i = 0; i < 4; ++i) {
-        const std::int64_t c = 4 * cq + i;
-        if (c >= g.channels) {
-          for (Acc& a : u[i]) a = padding;
-          continue;
-        }
-        const std::int64_t plane = (b * g.channels + c) * plane_size;
-        F h[4][4];
+        I16 h[4][4];
 #pragma GCC unroll 4
         for (int r = 0; r < 4; ++r) {
-          const std::int64_t iy = 2 * ty - 1 + r;
-          int8_winograd_row<Isa>(g, iy >= 0 && iy < g.height, plane + iy * g.width, columns, h[r]);
+          if (!inside[i][r]) {
+            for (int j = 0; j < 4; ++j) h[r][j] = Isa::zero_i16();
+            continue;
+          }
+          const std::int16_t* even = x16 + (i * 4 + r) * 2 * g.x16_tiles + tl;
+          const std::int16_t* odd = even + g.x16_tiles;
+          const I16 d0 = Isa::load_i16(even), d1 = Isa::load_i16(odd);
+          const I16 d2 = Isa::load_i16(even + 1), d3 = Isa::load_i16(odd + 1);
+          h[r][0] = Isa::sub_i16(d0, d2);
+          h[r][1] = Isa::add_i16(d1, d2);
+          h[r][2] = Isa::sub_i16(d2, d1);
+          h[r][3] = Isa::sub_i16(d1, d3);
         }
         for (int row = 0; row < 4; ++row) {
           const Int8WinogradPick pick = kInt8WinogradPick[row];
           for (int j = 0; j < 4; ++j) {
-            const F vij = pick.sum ? Isa::add(h[pick.first][j], h[pick.second][j])
-                                   : Isa::sub(h[pick.first][j], h[pick.second][j]);
-            u[i][4 * row + j] = Isa::quantize_u8(vij, g.reciprocal[4 * row + j]);
+            const I16 vij = pick.sum ? Isa::add_i16(h[pick.first][j], h[pick.second][j])
+                                     : Isa::sub_i16(h[pick.first][j], h[pick.second][j]);
+            u[i][4 * row + j] = Isa::requantize(vij, g.multiplier[4 * row + j]);
           }
         }
       }
+      const int tiles = g.block_tiles - tl < 32 ? 16 : 32;
       for (int p = 0; p < 16; ++p) {
-        Isa::store_quads(v + ((p * g.quads + cq) * g.block_tiles + tl) * 4,
-                         Isa::pack_quads(u[0][p], u[1][p], u[2][p], u[3][p]), 0xFFFFu);
+        Isa::store_quads_i16(v + ((p * g.quads + cq) * g.block_tiles + tl) * 4, u[0][p], u[1][p],
+                             u[2][p], u[3][p], tiles);
       }
     }
   }
@@ -228,7 +257,7 @@ template <class Isa, int NPX>
 #pragma GCC unroll 8
   for (int c = 0; c < kCols; ++c) {
     const std::int64_t o = o0 + c < g.out_channels ? o0 + c : g.out_channels - 1;
-    const float scale = g.sv[p] * g.su[p * g.out_channels + o];
+    const float scale = g.sv[p] * g.su[p * g.out_channels + o];  // g.sv: the effective scales
     const std::int32_t comp = g.compensation[p * g.column_groups * kCols + o0 + c];
 #pragma GCC unroll 4
     for (int px = 0; px < NPX; ++px)
@@ -284,11 +313,12 @@ template <class Isa>
 void int8_winograd_blocks(const Int8Winograd& g, std::int64_t begin, std::int64_t end, int thread) {
   std::uint8_t* v = g.v + thread * g.v_stride;
   float* m = g.m + thread * g.m_stride;
+  std::int16_t* x16 = g.x16 + thread * g.x16_stride;
   for (std::int64_t item = begin; item < end; ++item) {
     const std::int64_t block = item % g.blocks_per_row, ty = item / g.blocks_per_row % g.tiles_h,
                        b = item / g.blocks_per_row / g.tiles_h;
     const std::int64_t tx0 = block * g.block_tiles;
-    int8_winograd_input<Isa>(g, b, ty, tx0, v);
+    int8_winograd_input<Isa>(g, b, ty, tx0, x16, v);
     const std::int64_t tiles = g.tiles_w - tx0 < g.block_tiles ? g.tiles_w - tx0 : g.block_tiles;
     for (std::int64_t o0 = 0; o0 < g.out_channels; o0 += kInt8GroupColumns) {
       for (std::int64_t tl0 = 0; tl0 < tiles; tl0 += kInt8WinogradGroupTiles) {
