@@ -67,6 +67,10 @@ struct Int8Winograd {
 // Tiles of a group: 2 vectors of 16 (16 accumulators; a 3-vector tile of 24, which the nested
 // quad loop also keeps in registers, measured no faster: docs/benchmarks.md#int8).
 inline constexpr std::int64_t kInt8WinogradGroupTiles = 32;
+// How many quads ahead the input transform asks for its rows: the 16-bit transform waits on the
+// rows' loads (perf: most of its samples after them), and 2 ahead ran 4-8% faster than 1 on the
+// full-size Winograd layers (docs/benchmarks.md, 2026-12-06).
+inline constexpr std::int64_t kInt8WinogradPrefetchQuads = 2;
 // Quads of a run of the products' loop (int8_winograd_position).
 inline constexpr std::int64_t kInt8WinogradQuadRun = 64;
 
@@ -176,7 +180,12 @@ void int8_winograd_input(const Int8Winograd& g, std::int64_t b, std::int64_t ty,
                          std::int16_t* x16, std::uint8_t* v) {
   using I16 = typename Isa::I16;
   for (std::int64_t cq = 0; cq < g.quads; ++cq) {
-    if (cq + 1 < g.quads) int8_winograd_prefetch_quad<Isa>(g, b, ty, tx0, cq + 1);
+    if (cq == 0) {
+      for (std::int64_t k = 1; k < kInt8WinogradPrefetchQuads && k < g.quads; ++k)
+        int8_winograd_prefetch_quad<Isa>(g, b, ty, tx0, k);
+    }
+    if (cq + kInt8WinogradPrefetchQuads < g.quads)
+      int8_winograd_prefetch_quad<Isa>(g, b, ty, tx0, cq + kInt8WinogradPrefetchQuads);
     bool inside[4][4];
     int8_winograd_quad_x16<Isa>(g, b, ty, tx0, cq, x16, inside);
     for (std::int64_t tl = 0; tl < g.block_tiles; tl += 32) {
