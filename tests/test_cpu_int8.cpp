@@ -734,8 +734,8 @@ std::vector<std::int32_t> winograd_v16(const Input& x, std::int64_t b, float r16
         hr[r][3] = d[1] - d[3];
       }
       for (int j = 0; j < 4; ++j) {
-        const std::int32_t col[4] = {hr[0][j] - hr[2][j], hr[1][j] + hr[2][j],
-                                     hr[2][j] - hr[1][j], hr[1][j] - hr[3][j]};
+        const std::int32_t col[4] = {hr[0][j] - hr[2][j], hr[1][j] + hr[2][j], hr[2][j] - hr[1][j],
+                                     hr[1][j] - hr[3][j]};
         for (int i = 0; i < 4; ++i)
           v[static_cast<size_t>((c * th * tw + t) * 16 + 4 * i + j)] = col[i];
       }
@@ -761,7 +761,8 @@ std::vector<float> reference_winograd(const Input& x, const float* sv,
           std::int64_t acc = 0;
           for (std::int64_t c = 0; c < in; ++c) {
             const std::int32_t v16 = v[static_cast<size_t>((c * th * tw + t) * 16 + p)];
-            const std::int32_t q = std::clamp((v16 * scales.multiplier[p] + (1 << 14)) >> 15, -127, 127);
+            const std::int32_t q =
+                std::clamp((v16 * scales.multiplier[p] + (1 << 14)) >> 15, -127, 127);
             acc += q * w.q[static_cast<size_t>((p * out + o) * in + c)];
           }
           m[p] = static_cast<float>(acc) *

@@ -193,8 +193,8 @@ struct Avx512VnniIsa {
     const __m512 rv = _mm512_set1_ps(r);
     __m512i e[2], o[2];
     for (int k = 0; k < 2; ++k) {
-      const __m512 lo = _mm512_maskz_loadu_ps(static_cast<__mmask16>(mask >> (32 * k)),
-                                              at(base, index + 32 * k));
+      const __m512 lo =
+          _mm512_maskz_loadu_ps(static_cast<__mmask16>(mask >> (32 * k)), at(base, index + 32 * k));
       const __m512 hi = _mm512_maskz_loadu_ps(static_cast<__mmask16>(mask >> (32 * k + 16)),
                                               at(base, index + 32 * k + 16));
       e[k] = quantize_x16(Avx512VnniIsa::even(lo, hi), rv);
@@ -207,7 +207,9 @@ struct Avx512VnniIsa {
   static void store_i16(std::int16_t* p, I16 a) { _mm512_storeu_si512(p, a); }
   static I16 add_i16(I16 a, I16 b) { return _mm512_add_epi16(a, b); }
   static I16 sub_i16(I16 a, I16 b) { return _mm512_sub_epi16(a, b); }
-  static I16 requantize(I16 a, std::int16_t m) { return _mm512_mulhrs_epi16(a, _mm512_set1_epi16(m)); }
+  static I16 requantize(I16 a, std::int16_t m) {
+    return _mm512_mulhrs_epi16(a, _mm512_set1_epi16(m));
+  }
   // VPACKSSWB (c0, c2) and (c1, c3): per 128-bit lane L the bytes of 8 tiles 8 L.. of two
   // channels; VPUNPCK{L,H}BW pair the channels 0, 1 and 2, 3 a word per tile, VPUNPCK{L,H}WD
   // make the dwords of tiles 8 L..8 L + 3 and 8 L + 4..8 L + 7, VPERMT2Q puts the tiles in order.
@@ -217,8 +219,8 @@ struct Avx512VnniIsa {
     const __m512i q = _mm512_xor_si512(_mm512_max_epi8(_mm512_packs_epi16(c1, c3), floor), flip);
     const __m512i x = _mm512_unpacklo_epi8(p, q), y = _mm512_unpackhi_epi8(p, q);
     const __m512i z0 = _mm512_unpacklo_epi16(x, y), z1 = _mm512_unpackhi_epi16(x, y);
-    _mm512_storeu_si512(out, _mm512_permutex2var_epi64(
-                                 z0, _mm512_set_epi64(11, 10, 3, 2, 9, 8, 1, 0), z1));
+    _mm512_storeu_si512(
+        out, _mm512_permutex2var_epi64(z0, _mm512_set_epi64(11, 10, 3, 2, 9, 8, 1, 0), z1));
     if (tiles > 16) {
       _mm512_storeu_si512(out + 64, _mm512_permutex2var_epi64(
                                         z0, _mm512_set_epi64(15, 14, 7, 6, 13, 12, 5, 4), z1));

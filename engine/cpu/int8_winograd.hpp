@@ -8,18 +8,19 @@
 // LoWino (Li et al., 2021): V_p of each of the 16 positions p with its own per-tensor scale, U_p
 // per position and output channel (su[p][o] = max over the input channels / 127). The input
 // transform runs in 16-bit integers (int8_winograd_input_scales in int8_conv.hpp derives the
-// constants from the calibrated scales): each input element once to x16 = clamp(round_half_even(x
+// constants from the calibrated scales): each input element to x16 = clamp(round_half_even(x
 // r16), -8191, 8191) (NaN -> 0; r16 = 1 / s16 rounded to FP32, s16 = max_p sv / 64, so that the
-// x16 grid is 64 times finer than the coarsest V's), V16 = B^T x16 B exactly (|V16| <= 4 8191
-// fits int16), then V_p = clamp((V16 m[p] + 2^14) >> 15, -127, 127) (VPMULHRSW: nearest, ties
-// up) with the 15-bit multiplier m[p] = round(2^15 s16 / sv[p]), whose scale s16 2^15 / m[p] is
-// the one the products are dequantized with (sv_eff). About 4 integer operations a value where
-// the FP32 transform took 10: the requantization is one multiply, and the conversion of each input
-// element is shared by the 4 tiles that read it. The products M_p = sum_c qU qV in INT32, M_p =
-// float(acc) * (sv_eff[p] su[p][o]) (one rounding each); the output transform adds M in FP32 in a
-// fixed order, then the bias and the ReLU, and rounds once for a BF16 output. Every step is exact
-// integer arithmetic or one FP32 rounding, so the two compilations give the same bits, and the
-// tests compare them bit for bit.
+// x16 grid is 64 times finer than the coarsest V's; min_p sv where the positions' scales differ
+// 64-fold), V16 = B^T x16 B exactly (|V16| <= 4 8191 fits int16), then V_p = clamp((V16 m[p] +
+// 2^14) >> 15, -127, 127) (VPMULHRSW: nearest, ties up) with the 15-bit multiplier m[p] =
+// round(2^15 s16 / sv[p]), whose scale s16 2^15 / m[p] is the one the products are dequantized
+// with (sv_eff). The FP32 transform spent 7 of its about 10 operations a V value on quantizing it;
+// here that is one VPMULHRSW, the adds run on 32 tiles a vector, and each element is converted
+// once a tile row (the two tiles of the row that read it share it). The products M_p = sum_c qU qV
+// in INT32, M_p = float(acc) * (sv_eff[p] su[p][o]) (one rounding each); the output transform adds
+// M in FP32 in a fixed order, then the bias and the ReLU, and rounds once for a BF16 output. Every
+// step is exact integer arithmetic or one FP32 rounding, so the two compilations give the same
+// bits, and the tests compare them bit for bit.
 //
 // Layout and blocking. A block is a run of `block_tiles` (a multiple of 16) tiles of one tile row
 // of one image, taken by one thread from its input transform to its output: per quad of input
@@ -43,7 +44,7 @@ struct Int8Winograd {
   const void* x = nullptr;  // (B, C, H, W) FP32 or (x_bf16) BF16
   bool x_bf16 = false;
   std::int64_t batch = 0, channels = 0, height = 0, width = 0;
-  float r16 = 0.0f;                        // 1 / s16: x16 = clamp(round(x r16), +-8191)
+  float r16 = 0.0f;                          // 1 / s16: x16 = clamp(round(x r16), +-8191)
   const std::int16_t* multiplier = nullptr;  // (16): V_p = (V16 multiplier[p] + 2^14) >> 15
   const float* sv = nullptr;                 // (16): V_p's scale, s16 2^15 / multiplier[p]
   std::int64_t quads = 0;
@@ -89,7 +90,9 @@ struct Int8WinogradPick {
 inline constexpr Int8WinogradPick kInt8WinogradPick[4] = {
     {0, 2, false}, {1, 2, true}, {2, 1, false}, {1, 3, false}};
 
-inline std::int64_t round_up_32(std::int64_t n) { return (n + 31) / 32 * 32; }
+inline std::int64_t round_up_32(std::int64_t n) {
+  return (n + 31) / 32 * 32;
+}
 
 // The 64-lane mask of the columns x0.. inside the image.
 inline std::uint64_t int8_winograd_column_mask(std::int64_t x0, std::int64_t width) {
@@ -140,7 +143,8 @@ void int8_winograd_quad_x16(const Int8Winograd& g, std::int64_t b, std::int64_t 
         const std::int64_t column = x0 + k;
         std::int16_t q = 0;
         if (column >= 0 && column < g.width) {
-          q = g.x_bf16 ? Isa::quantize_x16_bf16(static_cast<const std::uint16_t*>(g.x)[row + column], g.r16)
+          q = g.x_bf16 ? Isa::quantize_x16_bf16(
+                             static_cast<const std::uint16_t*>(g.x)[row + column], g.r16)
                        : Isa::quantize_x16_f32(static_cast<const float*>(g.x)[row + column], g.r16);
         }
         (k == 0 ? even : odd)[steps] = q;
