@@ -46,14 +46,10 @@ float int8_weight_scale(float max_abs) {
 
 namespace {
 
-std::int64_t round_up(std::int64_t n, std::int64_t to) {
-  return (n + to - 1) / to * to;
-}
-
 // Channel quads the input is stored in: every quad of the channels, and for AMX a multiple of 16.
 std::int64_t int8_quads(Int8Kernels kernels, std::int64_t channels) {
   const std::int64_t quads = (channels + 3) / 4;
-  return int8_amx_family(kernels) ? round_up(quads, kInt8AmxQuads) : quads;
+  return int8_amx_family(kernels) ? int8_round_up(quads, kInt8AmxQuads) : quads;
 }
 
 // q[(n, tap, c)] of GEMM column n -> the packing of `kernels`: Vnni w[n / 8][tap][cq][n % 8][i],
@@ -64,7 +60,7 @@ void pack_weights(Int8Kernels kernels, std::int64_t columns, std::int64_t taps,
                   std::int64_t channels, Qw&& qw, AlignedVector<std::int8_t>& packed) {
   const std::int64_t quads = int8_quads(kernels, channels);
   const bool amx = int8_amx_family(kernels);
-  const std::int64_t padded = round_up(columns, amx ? kInt8AmxColumns : kInt8GroupColumns);
+  const std::int64_t padded = int8_round_up(columns, amx ? kInt8AmxColumns : kInt8GroupColumns);
   packed.assign(static_cast<size_t>(padded * taps * quads * 4), 0);
   parallel_for(columns, [&](std::int64_t n) {
     for (std::int64_t t = 0; t < taps; ++t) {
@@ -209,7 +205,7 @@ Int8Quantize input_layout(Int8Kernels kernels, const ActRef& x, float sx, bool n
   q.pad = pad;
   q.quads = int8_quads(kernels, q.channels);
   // Rows of whole cache lines (16 quads), so that a tap with kx = 0 loads aligned.
-  q.padded_height = q.height + 2 * pad, q.padded_width = round_up(q.width + 2 * pad, 16);
+  q.padded_height = q.height + 2 * pad, q.padded_width = int8_round_up(q.width + 2 * pad, 16);
   g.quad_stride = q.padded_width * 4;
   g.row_stride = q.quads * g.quad_stride;
   g.batch_stride = q.padded_height * g.row_stride;
@@ -268,7 +264,7 @@ void run_conv(Int8Kernels kernels, bool on_native, const Int8Quantize& q, const 
               std::int64_t reach, Int8ConvWorkspace& workspace) {
   const std::int64_t row_bytes = g.row_stride;
   const std::int64_t band = std::max<std::int64_t>(kInt8BandBytes / row_bytes - (reach - 1), 1);
-  const std::int64_t slice = round_up((band + reach - 1) * row_bytes + kInt8Slack, 64);
+  const std::int64_t slice = int8_round_up((band + reach - 1) * row_bytes + kInt8Slack, 64);
   const int threads = std::max(num_threads(), 1);
   if (workspace.x.size() < static_cast<size_t>(threads * slice))
     workspace.x.resize(static_cast<size_t>(threads * slice));
@@ -472,12 +468,12 @@ void int8_winograd_forward(Int8Kernels kernels, const ActRef& x, const float* sv
   // Blocks whose V (64 quads bytes a tile) stays within 512 KiB of a core's L2, a multiple of 16
   // tiles, at most a tile row.
   const std::int64_t fit = (512 << 10) / (64 * g.quads) / 16 * 16;
-  g.block_tiles = std::min(std::max<std::int64_t>(fit, 16), round_up(g.tiles_w, 16));
+  g.block_tiles = std::min(std::max<std::int64_t>(fit, 16), int8_round_up(g.tiles_w, 16));
   g.blocks_per_row = (g.tiles_w + g.block_tiles - 1) / g.block_tiles;
   const int threads = std::max(num_threads(), 1);
   g.v_stride = 16 * g.quads * g.block_tiles * 4;
   g.m_stride = 16 * kInt8GroupColumns * kInt8WinogradGroupTiles;
-  g.x16_tiles = round_up(g.block_tiles, 32) + 32;
+  g.x16_tiles = int8_round_up(g.block_tiles, 32) + 32;
   g.x16_stride = 4 * 4 * 2 * g.x16_tiles;  // 4 channels x 4 rows x (even, odd), 64-byte multiple
   if (workspace.v.size() < static_cast<size_t>(threads * g.v_stride))
     workspace.v.resize(static_cast<size_t>(threads * g.v_stride));

@@ -122,17 +122,6 @@ struct Avx512VnniIsa {
 
   static void prefetch_for_write(const void* p) { __builtin_prefetch(p, 1, 3); }
 
-  static F zero_f() { return _mm512_setzero_ps(); }
-  static F load_f32_at(const float* base, std::int64_t index, std::uint32_t mask) {
-    return _mm512_maskz_loadu_ps(static_cast<__mmask16>(mask), at(base, index));
-  }
-  static void load_bf16_pairs_at(const std::uint16_t* base, std::int64_t index, std::uint32_t mask,
-                                 F& even, F& odd) {
-    const __m512i words = _mm512_maskz_loadu_epi16(static_cast<__mmask32>(mask), at(base, index));
-    even = _mm512_castsi512_ps(_mm512_slli_epi32(words, 16));
-    odd = _mm512_castsi512_ps(
-        _mm512_and_si512(words, _mm512_set1_epi32(static_cast<std::int32_t>(0xFFFF0000u))));
-  }
   static void prefetch_for_read(const void* p) { __builtin_prefetch(p, 0, 3); }
   static F even(F lo, F hi) {
     return _mm512_permutex2var_ps(lo, _mm512_load_si512(kInt8EvenLanes), hi);

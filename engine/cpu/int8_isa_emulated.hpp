@@ -9,11 +9,12 @@
 //                0..255 for a non-negative input, first);
 //   the BF16 rounding of the outputs in integer operations (weights::float_to_bf16_bits: nearest
 //   even, NaN kept quiet, no flushing), masked loads and stores reading or writing only the lanes
-//   the mask names; for the Winograd transforms (int8_winograd.hpp) VPERMT2PS's even and odd
-//   lanes of a pair of vectors, the words of BF16 pairs as FP32 (VPSLLD, VPANDD), FP32 adds and
-//   subtractions (VADDPS, VSUBPS: one rounding each); and the 16-bit integer input transform:
-//   FP32 -> int16 (VCVTPS2DQ {rn-sae} of a clamped product, VPACKSSDW), VPADDW, VPSUBW, VPMULHRSW,
-//   VPACKSSWB, VPMAXSB and the unpacks that interleave four channels' bytes.
+//   the mask names; for the Winograd transforms (int8_winograd.hpp) the 16-bit integer input
+//   transform: the input's even and odd columns (VPERMT2PS of FP32 pairs of vectors, or the words
+//   of BF16 pairs as FP32: VPSLLD, VPANDD) to int16 (VCVTPS2DQ {rn-sae} of a clamped product,
+//   VPACKSSDW), VPADDW, VPSUBW, VPMULHRSW, VPACKSSWB, VPMAXSB and the unpacks that interleave four
+//   channels' bytes; and the output transform's FP32 adds and subtractions (VADDPS, VSUBPS: one
+//   rounding each).
 // And of the AMX-INT8 tile instructions (int8_amx.hpp), EmulatedAmxInt8Tiles:
 //   TDPBSUD      C[m].dword[n] += sext(A[m].byte[4k + i]) * zext(B[k].byte[4n + i]) for k <
 //                16, i < 4, wrapping like VPDPBUSD (signed A, unsigned B: the operand roles of
@@ -164,41 +165,10 @@ struct EmulatedVnniIsa {
       if ((mask >> j) & 1u) std::memcpy(p + 4 * j, b.v + 4 * j, 4);
   }
 
-  // The Winograd transforms (int8_winograd.hpp): lane i of base[index + i] where the mask names it,
-  // else 0 (only named lanes are read); BF16 columns split into even and odd ones; the even and odd
-  // lanes of (lo, hi) as one vector; FP32 adds, subtractions, the bias and the ReLU; plain loads
-  // and stores of M.
-  static F zero_f() { return F{}; }
-  static F load_f32_at(const float* base, std::int64_t index, std::uint32_t mask) {
-    F f{};
-    for (int i = 0; i < 16; ++i)
-      if ((mask >> i) & 1u) f.v[i] = base[index + i];
-    return f;
-  }
-  // Columns 2 i (even) and 2 i + 1 (odd) of the 32 at base[index..] for the bits of the 32-lane
-  // mask, 0 elsewhere.
-  static void load_bf16_pairs_at(const std::uint16_t* base, std::int64_t index, std::uint32_t mask,
-                                 F& even, F& odd) {
-    even = F{}, odd = F{};
-    for (int i = 0; i < 32; ++i) {
-      if ((mask >> i) & 1u) {
-        (i % 2 == 0 ? even : odd).v[i / 2] =
-            std::bit_cast<float>(static_cast<std::uint32_t>(base[index + i]) << 16);
-      }
-    }
-  }
+  // The Winograd output transform (int8_winograd.hpp): FP32 adds, subtractions, the bias and the
+  // ReLU; plain loads and stores of M.
   // A hint (PREFETCHT0) with no effect on results.
   static void prefetch_for_read(const void*) {}
-  static F even(const F& lo, const F& hi) {
-    F f;
-    for (int i = 0; i < 16; ++i) f.v[i] = i < 8 ? lo.v[2 * i] : hi.v[2 * i - 16];
-    return f;
-  }
-  static F odd(const F& lo, const F& hi) {
-    F f;
-    for (int i = 0; i < 16; ++i) f.v[i] = i < 8 ? lo.v[2 * i + 1] : hi.v[2 * i - 15];
-    return f;
-  }
   static F add(const F& a, const F& b) {
     F f;
     for (int i = 0; i < 16; ++i) f.v[i] = a.v[i] + b.v[i];

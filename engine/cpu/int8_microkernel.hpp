@@ -88,6 +88,10 @@ inline std::uint32_t int8_first_lanes(std::int64_t count) {
   return count >= 32 ? ~std::uint32_t{0} : (std::uint32_t{1} << count) - 1;
 }
 
+inline std::int64_t int8_round_up(std::int64_t n, std::int64_t to) {
+  return (n + to - 1) / to * to;
+}
+
 template <class Isa>
 void quantize_rows(const Int8Quantize& q, std::int64_t begin, std::int64_t end) {
   using Acc = typename Isa::Acc;

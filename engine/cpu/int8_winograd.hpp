@@ -90,10 +90,6 @@ struct Int8WinogradPick {
 inline constexpr Int8WinogradPick kInt8WinogradPick[4] = {
     {0, 2, false}, {1, 2, true}, {2, 1, false}, {1, 3, false}};
 
-inline std::int64_t round_up_32(std::int64_t n) {
-  return (n + 31) / 32 * 32;
-}
-
 // The 64-lane mask of the columns x0.. inside the image.
 inline std::uint64_t int8_winograd_column_mask(std::int64_t x0, std::int64_t width) {
   const std::int64_t lo = x0 < 0 ? -x0 : 0, hi = width - x0 < 64 ? width - x0 : 64;
@@ -123,7 +119,7 @@ void int8_winograd_quad_x16(const Int8Winograd& g, std::int64_t b, std::int64_t 
       const std::int64_t row = (b * g.channels + c) * plane_size + iy * g.width;
       std::int16_t* even = x16 + (i * 4 + r) * 2 * g.x16_tiles;
       std::int16_t* odd = even + g.x16_tiles;
-      const std::int64_t steps = round_up_32(g.block_tiles);
+      const std::int64_t steps = int8_round_up(g.block_tiles, 32);
       for (std::int64_t t = 0; t < steps; t += 32) {
         const std::int64_t x0 = 2 * (tx0 + t) - 1;
         const std::uint64_t mask = int8_winograd_column_mask(x0, g.width);
