@@ -92,8 +92,8 @@ struct AugmentTransform {
   bool is_identity() const;
 };
 
-// A change of the ground's grade along one horizontal direction u: with d = u . (x, y) the
-// distance beyond `start`, every point's z moves by
+// A change of the ground's grade along one horizontal direction u: with d = u . (x, y) a point's
+// distance along u, every point's z moves by
 //   offset = 0                                  d <= start
 //          = grade (d - start)^2 / (2 length)   start < d < start + length
 //          = grade (d - start - length / 2)     d >= start + length,
