@@ -518,6 +518,115 @@ TEST(Int8Conv, WideImagesInManyBandsMatchTheReference) {
   }
 }
 
+// A scan's BEV grid is mostly empty: the U-Net's canvas is 0 there and the first layers' outputs
+// one constant vector. The windows without a busy input pixel (int8_microkernel.hpp) skip their
+// products and take the accumulators of a window of the image's reference pixel (row and column
+// 8, or the last). Inputs of one background but for a few pixels (at the image's corners and
+// edges, at and beside the 16- and 48-pixel vector and tile boundaries, a lone one inside), or a
+// row of them, or none: a zero background (the padding's quads; values below half a step quantize
+// to it too), and a constant one of random values per channel, whose padding is busy, with the
+// reference pixel in the background or busy itself. Every output must still be the reference's
+// bit for bit, in both modes (the signed one's idle accumulator for a zero background is the
+// compensation, not 0), on a direct 3x3, a 5x5 and a 1x1 kernel and the transposed convolution,
+// over several bands and threads.
+TEST(Int8Conv, EmptyWindowsMatchTheReferenceBitForBit) {
+  struct Case {
+    std::int64_t batch, in, out, h, w, k;
+    int pad;
+  };
+  const Case cases[] = {{2, 6, 10, 9, 100, 3, 1},
+                        {1, 67, 33, 7, 130, 5, 2},
+                        {1, 8, 9, 5, 70, 1, 0},
+                        {1, 160, 20, 6, 70, 3, 1}};
+  const std::int64_t columns[] = {0, 1, 15, 16, 17, 31, 32, 47, 48, 49, 64, 95, 96};
+  for (Int8Kernels kernels : kernels_to_test()) {
+    for (const Case& c : cases) {
+      const std::vector<float> w = random_values(c.out * c.in * c.k * c.k, 201, -0.3f, 0.3f);
+      const std::vector<float> bias = random_values(c.out, 202, -1.0f, 1.0f);
+      cpu::Int8ConvWeights p;
+      cpu::prepare_int8_conv(kernels, Ref{const_cast<float*>(w.data()), {c.out, c.in, c.k, c.k}},
+                             Ref{const_cast<float*>(bias.data()), {c.out}}, p);
+      // Zero background: scattered pixels, a busy row, all zero; constant background: scattered
+      // pixels, and the reference pixel busy too; the first half of the channels scattered pixels
+      // on zero, the others dense (the concatenation of a canvas and a decoder's output: the busy
+      // bits for the leading quads only, 1, 8, 20 or on AMX 16 of them).
+      for (const int pattern : {0, 1, 2, 3, 4, 5}) {
+        for (const bool non_negative : {false, true}) {
+          ScopedThreads scoped(pattern == 1 ? 3 : 2);
+          float sx = 0.0f;
+          const Input dense =
+              mode_input({c.batch, c.in, c.h, c.w}, 203, pattern % 2 == 0, non_negative, sx);
+          Input x = dense;
+          const std::int64_t plane = c.h * c.w;
+          const bool constant = pattern >= 3;
+          std::vector<bool> keep(static_cast<size_t>(c.batch * plane), false);
+          if (pattern == 4) {
+            keep[static_cast<size_t>(std::min<std::int64_t>(8, c.h - 1) * c.w + 8)] = true;
+          }
+          if (pattern == 0 || pattern == 5 || constant) {
+            for (const std::int64_t col : columns) {
+              if (col >= c.w) continue;
+              keep[static_cast<size_t>(col)] = true;  // first row
+              keep[static_cast<size_t>((c.batch - 1) * plane + (c.h - 1) * c.w + col)] =
+                  true;  // last
+            }
+            keep[static_cast<size_t>(plane / 2 + 3)] = true;      // a lone pixel inside
+            keep[static_cast<size_t>(c.w * 2 + c.w - 1)] = true;  // the right edge
+          } else if (pattern == 1) {
+            for (std::int64_t col = 0; col < c.w; ++col)
+              keep[static_cast<size_t>(3 * c.w + col)] = true;
+          }
+          for (std::int64_t b = 0; b < c.batch; ++b) {
+            for (std::int64_t ch = 0; ch < c.in; ++ch) {
+              if (pattern == 5 && c.in >= 8 && ch >= c.in / 2) continue;
+              for (std::int64_t i = 0; i < plane; ++i) {
+                if (keep[static_cast<size_t>(b * plane + i)]) continue;
+                const size_t at = static_cast<size_t>((b * c.in + ch) * plane + i);
+                // Zero, or for one pixel in 5 a value below half a quantization step; or channel
+                // ch's value at pixel 5 of image 0.
+                if (constant) {
+                  x.values[at] = dense.values[static_cast<size_t>(ch * plane + 5)];
+                } else {
+                  x.values[at] = i % 5 == 0 ? 0.4f * sx : 0.0f;
+                }
+                if (x.half) x.bits[at] = weights::float_to_bf16_bits(x.values[at]);
+                if (x.half) x.values[at] = weights::bf16_bits_to_float(x.bits[at]);
+              }
+            }
+          }
+          const std::int64_t ho = c.h + 2 * c.pad - c.k + 1, wo = c.w + 2 * c.pad - c.k + 1;
+          Output y({c.batch, c.out, ho, wo}, pattern == 1);
+          cpu::Int8ConvWorkspace ws;
+          cpu::int8_conv2d_forward(kernels, x.ref(), sx, non_negative, p, c.pad, true, y.ref(), ws);
+          std::string first;
+          EXPECT_EQ(compare(y, reference_conv(x, sx, non_negative, p, c.pad, true), p, sx, true,
+                            ho * wo, c.out, &first),
+                    0)
+              << cpu::int8_kernels_name(kernels) << " " << c.k << "x" << c.k << " pattern "
+              << pattern << " " << mode_name(non_negative) << ": " << first;
+          EXPECT_TRUE(y.guards_intact());
+          if (c.k != 3) continue;
+          // The transposed convolution on the same input.
+          const std::vector<float> wt = random_values(c.in * 6 * 4, 204, -0.5f, 0.5f);
+          const std::vector<float> bt = random_values(6, 205, -1.0f, 1.0f);
+          cpu::Int8ConvWeights pt;
+          cpu::prepare_int8_conv_transpose(kernels,
+                                           Ref{const_cast<float*>(wt.data()), {c.in, 6, 2, 2}},
+                                           Ref{const_cast<float*>(bt.data()), {6}}, pt);
+          Output yt({c.batch, 6, 2 * c.h, 2 * c.w}, false);
+          cpu::int8_conv_transpose2d_forward(kernels, x.ref(), sx, non_negative, pt, yt.ref(), ws);
+          EXPECT_EQ(compare(yt, reference_conv_transpose(x, sx, non_negative, pt), pt, sx, false,
+                            4 * plane, 6, &first),
+                    0)
+              << cpu::int8_kernels_name(kernels) << " transposed pattern " << pattern << " "
+              << mode_name(non_negative) << ": " << first;
+          EXPECT_TRUE(yt.guards_intact());
+        }
+      }
+    }
+  }
+}
+
 TEST(Int8Conv, TransposedMatchesTheReferenceBitForBit) {
   struct Case {
     std::int64_t batch, in, out, h, w;

@@ -20,7 +20,8 @@
 //   C (tmm0..tmm3)  (A4, B6), (A4, B7), (A5, B6), (A5, B7): int32 column x pixel, stored to a
 //                   32 x 32 block that the epilogue reads.
 // A band (batch, rows [row_begin, row_end)) as int8_microkernel.hpp's, by groups of 32 columns:
-// each group over the band's rows, each row's pixels 32 at a time (16 at its end).
+// each group over the band's rows, each row's pixels 32 at a time (16 at its end, and where one
+// of the two vectors' windows is idle).
 // Like the micro-kernel's, this code is in an unnamed namespace and calls no library function.
 #pragma once
 
@@ -57,26 +58,42 @@ inline AmxInt8TileConfig amx_int8_config() {
 }
 
 // C[m][16 j + lane] for the columns n0 + m (m < 32) and the pixels x0 + 16 j + lane (j < NPX)
-// into c (32 x 32 int32), then the epilogue.
+// into c (32 x 32 int32), then the epilogue; over the channel quads from cq_begin on (0, or for
+// windows idle in the leading idle_quads, a multiple of 16 here, the quads after them on top of
+// the idle accumulators).
 template <class Isa, class Tiles, int NPX>
-void amx_tile(const Int8Gemm& g, std::int64_t b, std::int64_t row, std::int64_t n0,
-              std::int64_t x0) {
+void amx_tile(const Int8Gemm& g, std::int64_t b, std::int64_t row, std::int64_t n0, std::int64_t x0,
+              std::int64_t cq_begin) {
   using Acc = typename Isa::Acc;
   const std::int64_t k_bytes = g.taps * g.quads * 4;  // A's row stride
   const std::uint8_t* x_row = g.xq + (b * g.batch_stride + row * g.row_stride - g.origin) + 4 * x0;
-  Tiles::template zero<0>();
-  Tiles::template zero<2>();
-  if constexpr (NPX > 1) {
-    Tiles::template zero<1>();
-    Tiles::template zero<3>();
-  }
   const std::int64_t columns = g.columns - n0 < 32 ? g.columns - n0 : 32;
+  alignas(64) std::int32_t c[32][32];
+  if (cq_begin > 0) {
+    for (std::int64_t m = 0; m < 32; ++m) {
+      const std::int32_t idle = m < columns ? g.idle[b * g.columns + n0 + m] : 0;
+      for (int j = 0; j < 32; ++j) c[m][j] = idle;
+    }
+    Tiles::template load<0>(&c[0][0], 128);
+    Tiles::template load<2>(&c[16][0], 128);
+    if constexpr (NPX > 1) {
+      Tiles::template load<1>(&c[0][16], 128);
+      Tiles::template load<3>(&c[16][16], 128);
+    }
+  } else {
+    Tiles::template zero<0>();
+    Tiles::template zero<2>();
+    if constexpr (NPX > 1) {
+      Tiles::template zero<1>();
+      Tiles::template zero<3>();
+    }
+  }
   for (std::int64_t m = 0; m < columns; m += g.transposed ? 2 : 1)
     prefetch_column<Isa, NPX>(g, b, row, n0 + m, x0);
   for (int t = 0; t < g.taps; ++t) {
     const std::int8_t* w = g.w + n0 * k_bytes + t * g.quads * 4;
     const std::uint8_t* x = x_row + g.tap_offsets[t];
-    for (std::int64_t cq = 0; cq < g.quads; cq += kInt8AmxQuads) {
+    for (std::int64_t cq = cq_begin; cq < g.quads; cq += kInt8AmxQuads) {
       Tiles::template load<4>(w + 4 * cq, k_bytes);
       Tiles::template load<5>(w + 16 * k_bytes + 4 * cq, k_bytes);
       Tiles::template load<6>(x + cq * g.quad_stride, g.quad_stride);
@@ -89,7 +106,6 @@ void amx_tile(const Int8Gemm& g, std::int64_t b, std::int64_t row, std::int64_t 
       }
     }
   }
-  alignas(64) std::int32_t c[32][32];
   Tiles::template store<0>(&c[0][0], 128);
   Tiles::template store<2>(&c[16][0], 128);
   if constexpr (NPX > 1) {
@@ -118,10 +134,17 @@ void amx_band(const Int8Gemm& g, std::int64_t b, std::int64_t row_begin, std::in
   for (std::int64_t n0 = 0; n0 < g.columns; n0 += kInt8AmxColumns) {
     for (std::int64_t row = row_begin; row < row_end; ++row) {
       for (std::int64_t x0 = 0; x0 < g.row_pixels; x0 += 32) {
-        if (g.row_pixels - x0 > 16) {
-          amx_tile<Isa, Tiles, 2>(g, b, row, n0, x0);
-        } else {
-          amx_tile<Isa, Tiles, 1>(g, b, row, n0, x0);
+        const int vectors = g.row_pixels - x0 > 16 ? 2 : 1;
+        // The vectors whose windows hold a busy pixel (int8_microkernel.hpp) over every quad, the
+        // idle ones over the quads after idle_quads.
+        const std::uint32_t busy = int8_busy_vectors(g, b, row, x0, vectors);
+        if (vectors == 2 && (busy == 3 || busy == 0)) {
+          amx_tile<Isa, Tiles, 2>(g, b, row, n0, x0, busy == 0 ? g.idle_quads : 0);
+          continue;
+        }
+        for (int p = 0; p < vectors; ++p) {
+          amx_tile<Isa, Tiles, 1>(g, b, row, n0, x0 + 16 * p,
+                                  (busy >> p & 1u) != 0 ? 0 : g.idle_quads);
         }
       }
     }

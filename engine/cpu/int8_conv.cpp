@@ -215,6 +215,89 @@ Int8Quantize input_layout(Int8Kernels kernels, const ActRef& x, float sx, bool n
   return q;
 }
 
+// The reference pixel of the idle windows (int8_microkernel.hpp): row and column 8 of each image,
+// or its last row or column where it has fewer. In a BEV grid centred on the sensor that is near
+// a corner of the area, far out and empty in most scans, and far enough inside that the first
+// layers' outputs there are not those of the border (whose padding changes them).
+constexpr std::int64_t kInt8ReferenceInset = 8;
+// Pixels of the reference row sampled to find the channel quads worth busy bits.
+constexpr std::int64_t kInt8IdleSamples = 64;
+
+// Pixel (row, col) of image b: its channel quad cq's four u bytes as one dword (byte i: channel 4
+// cq + i; the padding's u past the channels).
+std::uint32_t quad_at(const ActRef& x, const Int8Quantize& q, std::int64_t b, std::int64_t cq,
+                      std::int64_t row, std::int64_t col) {
+  std::uint32_t quad = 0;
+  for (std::int64_t i = 0; i < 4; ++i) {
+    const std::int64_t c = 4 * cq + i;
+    std::uint32_t code = q.non_negative ? 0u : 128u;
+    if (c < q.channels) {
+      const std::int64_t at = ((b * q.channels + c) * q.height + row) * q.width + col;
+      const float v =
+          x.half ? weights::bf16_bits_to_float(static_cast<const std::uint16_t*>(x.data)[at])
+                 : static_cast<const float*>(x.data)[at];
+      code = q.non_negative ? quantize_uint8(v, q.reciprocal)
+                            : static_cast<std::uint32_t>(quantize_int8(v, q.reciprocal) + 128);
+    }
+    quad |= code << (8 * i);
+  }
+  return quad;
+}
+
+// The idle windows' set-up, into the workspace and the fields of q and g: each image's reference
+// quads; the leading quads most of whose sampled reference-row pixels equal the reference's
+// (idle_quads: every quad of a scan's canvas, the canvas's of the first up-sampling block's
+// concatenation, none of a layer deep in the U-Net, which then keeps no busy bits), a multiple of
+// 16 on the AMX family (its quad block); whether each image's padding differs from its reference
+// in them; and the idle accumulators idle[b][n] = sum over (tap, channel c < 4 idle_quads) of
+// u_ref[c] qw(n, tap, c).
+template <class Qw>
+void idle_windows(Int8Kernels kernels, const ActRef& x, Int8Quantize& q, Int8Gemm& g,
+                  std::int64_t columns, int taps, Qw&& qw, Int8ConvWorkspace& workspace) {
+  const std::int64_t batch = x.dim(0);
+  const std::int64_t ry = std::min(kInt8ReferenceInset, q.height - 1);
+  const std::int64_t rx = std::min(kInt8ReferenceInset, q.width - 1);
+  const std::int64_t samples = std::min(kInt8IdleSamples, q.width);
+  workspace.reference.resize(static_cast<size_t>(batch * q.quads));
+  std::int64_t idle_quads = q.quads;
+  for (std::int64_t b = 0; b < batch; ++b) {
+    std::uint32_t* reference = workspace.reference.data() + b * q.quads;
+    for (std::int64_t cq = 0; cq < q.quads; ++cq) {
+      reference[cq] = quad_at(x, q, b, cq, ry, rx);
+      if (cq >= idle_quads) continue;
+      std::int64_t equal = 0;
+      for (std::int64_t j = 0; j < samples; ++j)
+        equal += quad_at(x, q, b, cq, ry, j * q.width / samples) == reference[cq] ? 1 : 0;
+      if (2 * equal < samples) idle_quads = cq;
+    }
+  }
+  if (int8_amx_family(kernels)) idle_quads = idle_quads / kInt8AmxQuads * kInt8AmxQuads;
+  q.idle_quads = g.idle_quads = idle_quads;
+  if (idle_quads == 0) return;
+  const std::uint32_t padding = q.non_negative ? 0u : 0x80808080u;
+  workspace.padding_busy.assign(static_cast<size_t>(batch), 0);
+  workspace.idle.assign(static_cast<size_t>(batch * columns), 0);
+  const std::int64_t idle_channels = std::min(4 * idle_quads, q.channels);
+  for (std::int64_t b = 0; b < batch; ++b) {
+    const std::uint32_t* reference = workspace.reference.data() + b * q.quads;
+    for (std::int64_t cq = 0; cq < idle_quads; ++cq) {
+      if (reference[cq] != padding) workspace.padding_busy[static_cast<size_t>(b)] = 1;
+    }
+    for (std::int64_t n = 0; n < columns; ++n) {
+      std::int32_t sum = 0;
+      for (int t = 0; t < taps; ++t) {
+        for (std::int64_t c = 0; c < idle_channels; ++c) {
+          const auto u = static_cast<std::int32_t>((reference[c / 4] >> (8 * (c % 4))) & 0xFFu);
+          sum += u * qw(n, t, c);
+        }
+      }
+      workspace.idle[static_cast<size_t>(b * columns + n)] = sum;
+    }
+  }
+  q.reference = workspace.reference.data(), q.padding_busy = workspace.padding_busy.data();
+  g.idle = workspace.idle.data();
+}
+
 // Padded input rows [begin, end) (r = b Hp + padded row) into q.xq.
 void quantize([[maybe_unused]] bool on_native, const Int8Quantize& q, std::int64_t begin,
               std::int64_t end) {
@@ -268,11 +351,19 @@ void run_conv(Int8Kernels kernels, bool on_native, const Int8Quantize& q, const 
   const int threads = std::max(num_threads(), 1);
   if (workspace.x.size() < static_cast<size_t>(threads * slice))
     workspace.x.resize(static_cast<size_t>(threads * slice));
+  const std::int64_t busy_words = int8_busy_words(q.padded_width);
+  const std::int64_t busy_slice = (band + reach - 1) * busy_words;
+  if (workspace.busy.size() < static_cast<size_t>(threads * busy_slice))
+    workspace.busy.resize(static_cast<size_t>(threads * busy_slice));
   parallel_chunks(g.batch * g.rows, [&](std::int64_t begin, std::int64_t end, int thread) {
     std::uint8_t* buffer = workspace.x.data() + thread * slice;
+    std::uint64_t* busy = workspace.busy.data() + thread * busy_slice;
     Int8Quantize band_q = q;
     Int8Gemm band_g = g;
     band_q.xq = buffer, band_g.xq = buffer;
+    if (q.idle_quads > 0) band_q.busy = busy, band_g.busy = busy;
+    band_q.busy_words = band_g.busy_words = busy_words;
+    band_g.padded_height = q.padded_height;
     std::int64_t held_first = 0, held_end = 0;  // the input rows in the buffer (r = b Hp + row)
     for (std::int64_t at = begin; at < end;) {
       const std::int64_t b = at / g.rows, row = at % g.rows;
@@ -282,9 +373,12 @@ void run_conv(Int8Kernels kernels, bool on_native, const Int8Quantize& q, const 
       if (held_first < first && first < held_end) {  // the same image's next band
         std::memmove(buffer, buffer + (first - held_first) * row_bytes,
                      static_cast<size_t>((held_end - first) * row_bytes));
+        std::memmove(busy, busy + (first - held_first) * busy_words,
+                     static_cast<size_t>((held_end - first) * busy_words) * sizeof(std::uint64_t));
         from = held_end;
       }
       band_q.origin = band_g.origin = first * row_bytes;
+      band_q.busy_origin = band_g.busy_origin = first;
       quantize(on_native, band_q, from, last);
       gemm_band(kernels, on_native, band_g, b, row, row + rows);
       held_first = first, held_end = last;
@@ -327,9 +421,11 @@ void int8_conv2d_forward(Int8Kernels kernels, const ActRef& x, float sx, bool no
            shape_str(y.shape));
   const bool on_native = native(kernels);
   Int8Gemm g;
-  const Int8Quantize q = input_layout(kernels, x, sx, non_negative, pad, g);
+  Int8Quantize q = input_layout(kernels, x, sx, non_negative, pad, g);
   const std::int64_t kh = w.weight[2], kw = w.weight[3];
   g.taps = static_cast<int>(kh * kw);
+  g.window_rows = kh, g.window_cols = kw;
+  const std::int64_t in = w.weight[1];
   for (std::int64_t ky = 0; ky < kh; ++ky) {
     for (std::int64_t kx = 0; kx < kw; ++kx)
       g.tap_offsets[ky * kw + kx] = ky * g.row_stride + 4 * kx;
@@ -340,6 +436,12 @@ void int8_conv2d_forward(Int8Kernels kernels, const ActRef& x, float sx, bool no
   g.rows = y_shape[2], g.row_pixels = y_shape[3];
   g.out_height = y_shape[2], g.out_width = y_shape[3], g.out_planes = y_shape[1];
   if (y.numel() == 0) return;
+  idle_windows(
+      kernels, x, q, g, w.columns, g.taps,
+      [&](std::int64_t n, int t, std::int64_t c) {
+        return w.q[static_cast<size_t>((n * in + c) * g.taps + t)];
+      },
+      workspace);
   run_conv(kernels, on_native, q, g, kh, workspace);
 }
 
@@ -354,7 +456,7 @@ void int8_conv_transpose2d_forward(Int8Kernels kernels, const ActRef& x, float s
            shape_str(y.shape));
   const bool on_native = native(kernels);
   Int8Gemm g;
-  const Int8Quantize q = input_layout(kernels, x, sx, non_negative, 0, g);
+  Int8Quantize q = input_layout(kernels, x, sx, non_negative, 0, g);
   g.taps = 1;
   g.tap_offsets[0] = 0;
   fill_weights(w, non_negative, g);
@@ -363,6 +465,13 @@ void int8_conv_transpose2d_forward(Int8Kernels kernels, const ActRef& x, float s
   g.rows = x.dim(2), g.row_pixels = x.dim(3);
   g.out_height = y_shape[2], g.out_width = y_shape[3], g.out_planes = y_shape[1];
   if (y.numel() == 0) return;
+  const std::int64_t out_channels = w.weight[1];
+  idle_windows(
+      kernels, x, q, g, w.columns, 1,
+      [&](std::int64_t n, int, std::int64_t c) {
+        return w.q[static_cast<size_t>((c * out_channels + n / 4) * 4 + n % 4)];
+      },
+      workspace);
   run_conv(kernels, on_native, q, g, 1, workspace);
 }
 

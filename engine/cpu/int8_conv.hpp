@@ -32,6 +32,8 @@
 //                (int8_isa_emulated.hpp): the tests' way to check both on any CPU (slow).
 // Vnni and Emulated share a weight packing, Amx and AmxEmulated another (prepare for the family
 // the forward will use). Threads: num_threads(); results do not depend on the thread count.
+// The windows of a scan's empty cells (no input pixel unlike a reference pixel) skip their
+// products on every kernel and give the same bits (int8_microkernel.hpp, "Idle windows").
 // And for the 3x3 pad-1 convolutions, Winograd-domain INT8 F(2x2, 3x3) on Vnni (below): 2.25x
 // fewer multiply-adds for its transforms' cost and a larger error (about 1.4x the direct one's);
 // bench_int8_conv measures both per layer. Its transformed input is signed whatever x is, so it has
@@ -82,6 +84,12 @@ void prepare_int8_conv_transpose(Int8Kernels kernels, const Ref& w, const Ref& b
 // caller between calls so that the steady state allocates nothing (it only grows).
 struct Int8ConvWorkspace {
   AlignedVector<std::uint8_t> x;
+  // The idle windows' state (int8_microkernel.hpp): the bands' busy bits, each image's reference
+  // quads, whether its padding differs from them, and its idle accumulators (B, columns).
+  std::vector<std::uint64_t> busy;
+  std::vector<std::uint32_t> reference;
+  std::vector<std::uint8_t> padding_busy;
+  std::vector<std::int32_t> idle;
 };
 
 // x (B, I, H, W) FP32 or BF16 (x.half) -> y (B, O, Ho, Wo) = act(conv(x, w) + bias), stride 1,
@@ -144,7 +152,8 @@ void int8_winograd_input_absmax(const ActRef& x, float* absmax);
 // there too, but every layer in the Winograd domain put the demo model's real-scan arg-max
 // agreement with FP32 at 97.4-98.2% (the direct layers: 99.2-99.4%; the target is 99.0%).
 inline bool int8_winograd_runs(Int8Kernels kernels, const Shape& weight, Int8WinogradRule rule) {
-  if (int8_amx_family(kernels) || weight.size() != 4 || weight[2] != 3 || weight[3] != 3) return false;
+  if (int8_amx_family(kernels) || weight.size() != 4 || weight[2] != 3 || weight[3] != 3)
+    return false;
   if (rule != Int8WinogradRule::Pays) return rule == Int8WinogradRule::Always;
   return weight[0] >= 256 || weight[1] >= 256;
 }
@@ -153,9 +162,10 @@ inline bool int8_winograd_runs(Int8Kernels kernels, const Shape& weight, Int8Win
 // CpuBackend's preparation (int8_winograd_runs, not transposed) and forward (the 3x3 pad-1 form,
 // op::winograd_3x3, and an input calibrated with Winograd-domain scales, Int8Input::winograd)
 // choose together.
-inline bool int8_forward_in_winograd(Int8Kernels kernels, const Shape& weight, int pad, bool transposed,
-                                     bool winograd_scales, Int8WinogradRule rule) {
-  return !transposed && winograd_scales && op::winograd_3x3(weight, pad) && int8_winograd_runs(kernels, weight, rule);
+inline bool int8_forward_in_winograd(Int8Kernels kernels, const Shape& weight, int pad,
+                                     bool transposed, bool winograd_scales, Int8WinogradRule rule) {
+  return !transposed && winograd_scales && op::winograd_3x3(weight, pad) &&
+         int8_winograd_runs(kernels, weight, rule);
 }
 
 }  // namespace pillarseg::cpu

@@ -116,6 +116,7 @@ struct Avx512VnniIsa {
     return _mm512_or_si512(v, _mm512_slli_epi32(c3, 24));
   }
   static Acc set1(std::int32_t v) { return _mm512_set1_epi32(v); }
+  static std::uint32_t differing_dwords(Bytes a, Bytes b) { return _mm512_cmpneq_epi32_mask(a, b); }
   static void store_quads(std::uint8_t* p, Bytes b, std::uint32_t mask) {
     _mm512_mask_storeu_epi32(p, static_cast<__mmask16>(mask), b);
   }
@@ -233,7 +234,11 @@ struct AmxInt8Tiles {
   }
   template <int T>
   static void load(const void* base, std::int64_t stride_bytes) {
-    static_assert(T >= 4 && T <= 7, "the operands are tmm4..tmm7");
+    static_assert(T >= 0 && T <= 7, "the tiles are tmm0..tmm7");
+    if constexpr (T == 0) _tile_loadd(0, base, stride_bytes);
+    if constexpr (T == 1) _tile_loadd(1, base, stride_bytes);
+    if constexpr (T == 2) _tile_loadd(2, base, stride_bytes);
+    if constexpr (T == 3) _tile_loadd(3, base, stride_bytes);
     if constexpr (T == 4) _tile_loadd(4, base, stride_bytes);
     if constexpr (T == 5) _tile_loadd(5, base, stride_bytes);
     if constexpr (T == 6) _tile_loadd(6, base, stride_bytes);

@@ -159,6 +159,14 @@ struct EmulatedVnniIsa {
     for (std::int32_t& x : a.v) x = v;
     return a;
   }
+  // VPCMPNEQD: bit j where dword j of a differs from that of b.
+  static std::uint32_t differing_dwords(const Bytes& a, const Bytes& b) {
+    std::uint32_t mask = 0;
+    for (int j = 0; j < 16; ++j) {
+      if (std::memcmp(a.v + 4 * j, b.v + 4 * j, 4) != 0) mask |= std::uint32_t{1} << j;
+    }
+    return mask;
+  }
   // The dwords the 16-lane mask names.
   static void store_quads(std::uint8_t* p, const Bytes& b, std::uint32_t mask) {
     for (int j = 0; j < 16; ++j)

@@ -28,6 +28,20 @@
 // stay in cache while the rows stream by. The caller quantizes a band's input just before (into a
 // buffer that holds the quads from byte `origin` of the layout on), so that it is still in cache.
 //
+// Idle windows. Most of a scan's BEV grid is empty: the U-Net's input canvas is 0 there, and the
+// first layers' outputs there are one constant vector (the bias through the layer, then that
+// through the next) away from the points and the image's border. The quantization takes the
+// quads of one reference pixel of each image (int8_conv.cpp picks it and the leading channel
+// quads [0, idle_quads) that are worth it: all of them, or a concatenation's first part, such
+// as the canvas beside the decoder's output) and marks every pixel whose quads there differ from
+// the reference's busy, a bit per padded pixel, and the padding pixels too where the padding
+// differs from the reference. Sixteen output pixels whose input windows hold no busy pixel share
+// the leading quads' part of their accumulators, idle[b][n] = sum over (tap, channel < 4
+// idle_quads) of u_ref qw (for a reference equal to the padding: comp[n], or 0 for the
+// non-negative input), so those products are not run: the tile starts from idle[b][n] and runs the
+// quads after idle_quads, none where they are all. The results are the same bits as with every
+// product run (the tests hold it).
+
 // Everything here is in an unnamed namespace and calls no library function: the AVX-512 copy's
 // code must not be merged by the linker with a copy that other CPUs run (bf16_microkernel.hpp).
 #pragma once
@@ -52,7 +66,21 @@ struct Int8Quantize {
   std::uint8_t* xq = nullptr;  // (B, Hp, quads, Wp, 4), from byte `origin` on
   std::int64_t origin = 0;
   std::int64_t quads = 0, padded_height = 0, padded_width = 0;
+  // The busy bits of padded row r (r = b Hp + padded row, from row busy_origin on): bit col % 64
+  // of word col / 64 of the row's busy_words, set where pixel col's quads differ from reference[b
+  // quads + cq] (the reference pixel's quad cq of image b, its four u bytes), and for the padding
+  // pixels where padding_busy[b] (the padding differs from image b's reference).
+  std::uint64_t* busy = nullptr;
+  std::int64_t busy_origin = 0, busy_words = 0, idle_quads = 0;  // the bits: quads [0, idle_quads)
+  const std::uint32_t* reference = nullptr;
+  const std::uint8_t* padding_busy = nullptr;
 };
+
+// 64-bit words a padded row's busy bits take: the Wp columns and one word to spare, so that a
+// window's test reads the word after its last column without a bound.
+inline std::int64_t int8_busy_words(std::int64_t padded_width) {
+  return padded_width / 64 + 2;
+}
 
 // One convolution for the micro-kernel.
 struct Int8Gemm {
@@ -74,6 +102,15 @@ struct Int8Gemm {
   bool y_bf16 = false;
   std::int64_t batch = 0, rows = 0, row_pixels = 0;            // the GEMM's pixel grid
   std::int64_t out_height = 0, out_width = 0, out_planes = 0;  // y (B, out_planes, ...)
+  // The quantization's busy bits (Int8Quantize), null to run every window; an output pixel's
+  // window is window_rows x window_cols input pixels from (row, col) on (kh x kw; 1 x 1 for the
+  // transposed convolution); idle (B, columns): the accumulators of a window of image b's
+  // reference pixels.
+  const std::uint64_t* busy = nullptr;
+  const std::int32_t* idle = nullptr;
+  std::int64_t idle_quads = 0;  // the leading quads the busy bits describe
+  std::int64_t busy_origin = 0, busy_words = 0, padded_height = 0;
+  std::int64_t window_rows = 1, window_cols = 1;
 };
 
 // Rows [begin, end) of the quantization, row r = b Hp + padded row (int8_conv_avx512.cpp).
@@ -102,6 +139,22 @@ void quantize_rows(const Int8Quantize& q, std::int64_t begin, std::int64_t end) 
   const auto padding_quads =
       q.non_negative ? Isa::pack_quads(zero, zero, zero, zero)
                      : Isa::pack_quads(shifted_zero, shifted_zero, shifted_zero, shifted_zero);
+  if (q.busy != nullptr) {
+    // Clear the rows' bits, and mark the padding busy where it differs from the reference.
+    for (std::int64_t r = begin; r < end; ++r) {
+      const std::int64_t row = r % q.padded_height - q.pad;
+      std::uint64_t* words = q.busy + (r - q.busy_origin) * q.busy_words;
+      const bool padding_busy = q.padding_busy[r / q.padded_height] != 0;
+      const bool padding_row = row < 0 || row >= q.height;
+      for (std::int64_t i = 0; i < q.busy_words; ++i)
+        words[i] = padding_busy && padding_row ? ~std::uint64_t{0} : 0;
+      if (!padding_busy || padding_row) continue;
+      for (std::int64_t col = 0; col < q.pad; ++col)
+        words[col / 64] |= std::uint64_t{1} << (col % 64);
+      for (std::int64_t col = q.pad + q.width; col < 2 * q.pad + q.width; ++col)
+        words[col / 64] |= std::uint64_t{1} << (col % 64);
+    }
+  }
   // Quad by quad, each over the rows: the input's channel planes are read along their rows, a
   // long run each, which the hardware prefetchers follow.
   for (std::int64_t cq = 0; cq < q.quads; ++cq) {
@@ -137,7 +190,18 @@ void quantize_rows(const Int8Quantize& q, std::int64_t begin, std::int64_t end) 
           u[i] = q.non_negative ? Isa::quantize_unsigned(v, q.reciprocal)
                                 : Isa::quantize_u8(v, q.reciprocal);
         }
-        Isa::store_quads(out + 4 * (q.pad + x0), Isa::pack_quads(u[0], u[1], u[2], u[3]), mask);
+        const auto quads = Isa::pack_quads(u[0], u[1], u[2], u[3]);
+        Isa::store_quads(out + 4 * (q.pad + x0), quads, mask);
+        if (q.busy != nullptr && cq < q.idle_quads) {
+          const auto* reference =
+              reinterpret_cast<const std::int8_t*>(q.reference + b * q.quads + cq);
+          const std::uint64_t differ =
+              Isa::differing_dwords(quads, Isa::broadcast4(reference)) & mask;
+          const std::int64_t col = q.pad + x0, shift = col % 64;
+          std::uint64_t* words = q.busy + (r - q.busy_origin) * q.busy_words + col / 64;
+          words[0] |= differ << shift;
+          if (shift > 48) words[1] |= differ >> (64 - shift);
+        }
       }
     }
   }
@@ -226,25 +290,63 @@ template <class Isa, int NPX>
   }
 }
 
+// Whether the padded input columns [from, from + count) of a row's busy bits hold a busy pixel.
+inline bool int8_any_busy(const std::uint64_t* words, std::int64_t from, std::int64_t count) {
+  while (count > 0) {
+    const std::int64_t shift = from % 64, n = count < 64 - shift ? count : 64 - shift;
+    const std::uint64_t bits = n == 64 ? ~std::uint64_t{0} : ((std::uint64_t{1} << n) - 1) << shift;
+    if ((words[from / 64] & bits) != 0) return true;
+    from += n, count -= n;
+  }
+  return false;
+}
+
+// Which of the `vectors` 16-pixel vectors from x0 of `row` (those before row_pixels) have a busy
+// pixel in their windows: bit p for the pixels [x0 + 16 p, x0 + 16 p + 16); all where g.busy is
+// null.
+inline std::uint32_t int8_busy_vectors(const Int8Gemm& g, std::int64_t b, std::int64_t row,
+                                       std::int64_t x0, int vectors) {
+  if (g.busy == nullptr) return (std::uint32_t{1} << vectors) - 1;
+  std::uint32_t busy = 0;
+  const std::uint64_t* first = g.busy + (b * g.padded_height + row - g.busy_origin) * g.busy_words;
+  for (int p = 0; p < vectors; ++p) {
+    const std::int64_t x = x0 + 16 * p, left = g.row_pixels - x;
+    if (left <= 0) break;
+    const std::int64_t count = (left < 16 ? left : 16) + g.window_cols - 1;
+    for (std::int64_t ky = 0; ky < g.window_rows; ++ky) {
+      if (int8_any_busy(first + ky * g.busy_words, x, count)) {
+        busy |= std::uint32_t{1} << p;
+        break;
+      }
+    }
+  }
+  return busy;
+}
+
 // One register tile: the 8 columns of group n0 / 8, pixels [x0, x0 + 16 NPX) of `row` (those
-// before row_pixels) of batch b.
+// before row_pixels) of batch b, over the channel quads from cq_begin on: 0, or for windows idle
+// in the leading idle_quads the quads after them, on top of the idle accumulators.
 template <class Isa, int NPX>
 void vnni_tile(const Int8Gemm& g, std::int64_t b, std::int64_t row, std::int64_t n0,
-               std::int64_t x0) {
+               std::int64_t x0, std::int64_t cq_begin) {
   using Acc = typename Isa::Acc;
   using Bytes = typename Isa::Bytes;
   constexpr int kCols = static_cast<int>(kInt8GroupColumns);
   Acc acc[kCols][NPX];
 #pragma GCC unroll 8
-  for (int c = 0; c < kCols; ++c)
+  for (int c = 0; c < kCols; ++c) {
+    const std::int32_t start =
+        cq_begin > 0 && n0 + c < g.columns ? g.idle[b * g.columns + n0 + c] : 0;
 #pragma GCC unroll 4
-    for (int p = 0; p < NPX; ++p) acc[c][p] = Isa::zero();
+    for (int p = 0; p < NPX; ++p) acc[c][p] = cq_begin > 0 ? Isa::set1(start) : Isa::zero();
+  }
   const std::uint8_t* x_row = g.xq + (b * g.batch_stride + row * g.row_stride - g.origin) + 4 * x0;
-  const std::int8_t* w = g.w + n0 * g.taps * g.quads * 4;
   const std::int64_t quads = g.quads, quad_stride = g.quad_stride;
+  const std::int8_t* w_group = g.w + n0 * g.taps * quads * 4;
   for (int t = 0; t < g.taps; ++t) {
-    const std::uint8_t* x = x_row + g.tap_offsets[t];
-    for (std::int64_t cq = 0; cq < quads; ++cq, x += quad_stride, w += 4 * kCols) {
+    const std::uint8_t* x = x_row + g.tap_offsets[t] + cq_begin * quad_stride;
+    const std::int8_t* w = w_group + (t * quads + cq_begin) * 4 * kCols;
+    for (std::int64_t cq = cq_begin; cq < quads; ++cq, x += quad_stride, w += 4 * kCols) {
       Bytes a[NPX];
 #pragma GCC unroll 4
       for (int p = 0; p < NPX; ++p) a[p] = Isa::load(x + 64 * p);
@@ -267,6 +369,19 @@ void vnni_tile(const Int8Gemm& g, std::int64_t b, std::int64_t row, std::int64_t
   }
 }
 
+// vnni_tile over `vectors` (1 to 3) vectors of 16 pixels from x0.
+template <class Isa>
+void vnni_tiles(const Int8Gemm& g, std::int64_t b, std::int64_t row, std::int64_t n0,
+                std::int64_t x0, int vectors, std::int64_t cq_begin) {
+  if (vectors == 3) {
+    vnni_tile<Isa, 3>(g, b, row, n0, x0, cq_begin);
+  } else if (vectors == 2) {
+    vnni_tile<Isa, 2>(g, b, row, n0, x0, cq_begin);
+  } else {
+    vnni_tile<Isa, 1>(g, b, row, n0, x0, cq_begin);
+  }
+}
+
 template <class Isa>
 void vnni_band(const Int8Gemm& g, std::int64_t b, std::int64_t row_begin, std::int64_t row_end) {
   for (std::int64_t block = 0; block < g.columns; block += kInt8ColumnBlock) {
@@ -276,13 +391,18 @@ void vnni_band(const Int8Gemm& g, std::int64_t b, std::int64_t row_begin, std::i
       for (std::int64_t n0 = block; n0 < n_end; n0 += kInt8GroupColumns) {
         for (std::int64_t x0 = 0; x0 < g.row_pixels; x0 += 48) {
           const std::int64_t left = g.row_pixels - x0;
-          if (left > 32) {
-            vnni_tile<Isa, 3>(g, b, row, n0, x0);
-          } else if (left > 16) {
-            vnni_tile<Isa, 2>(g, b, row, n0, x0);
-          } else {
-            vnni_tile<Isa, 1>(g, b, row, n0, x0);
+          const int vectors = left > 32 ? 3 : left > 16 ? 2 : 1;
+          const std::uint32_t busy = int8_busy_vectors(g, b, row, x0, vectors);
+          if (busy == (std::uint32_t{1} << vectors) - 1 || busy == 0) {
+            vnni_tiles<Isa>(g, b, row, n0, x0, vectors, busy == 0 ? g.idle_quads : 0);
+            continue;
           }
+          // The busy vectors' span in one tile, the idle ones around it in tiles of their own.
+          const int lo = __builtin_ctz(busy), hi = 31 - __builtin_clz(busy);
+          for (int p = 0; p < vectors; ++p) {
+            if (p < lo || p > hi) vnni_tile<Isa, 1>(g, b, row, n0, x0 + 16 * p, g.idle_quads);
+          }
+          vnni_tiles<Isa>(g, b, row, n0, x0 + 16 * lo, hi - lo + 1, 0);
         }
       }
     }
