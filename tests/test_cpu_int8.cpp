@@ -520,15 +520,15 @@ TEST(Int8Conv, WideImagesInManyBandsMatchTheReference) {
 
 // A scan's BEV grid is mostly empty: the U-Net's canvas is 0 there and the first layers' outputs
 // one constant vector. The windows without a busy input pixel (int8_microkernel.hpp) skip their
-// products and take the accumulators of a window of the image's reference pixel (row and column
-// 8, or the last). Inputs of one background but for a few pixels (at the image's corners and
-// edges, at and beside the 16- and 48-pixel vector and tile boundaries, a lone one inside), or a
-// row of them, or none: a zero background (the padding's quads; values below half a step quantize
-// to it too), and a constant one of random values per channel, whose padding is busy, with the
-// reference pixel in the background or busy itself. Every output must still be the reference's
-// bit for bit, in both modes (the signed one's idle accumulator for a zero background is the
-// compensation, not 0), on a direct 3x3, a 5x5 and a 1x1 kernel and the transposed convolution,
-// over several bands and threads.
+// products and take the accumulators of a window of the image's reference pixel (int8_conv.cpp:
+// one of the pixels 8 rows and columns in from the corners). Inputs of one background but for a
+// few pixels (at the image's corners and edges, at and beside the 16- and 48-pixel vector and
+// tile boundaries, a lone one inside), or a row of them, or none: a zero background (the
+// padding's quads; values below half a step quantize to it too), and a constant one of random
+// values per channel, whose padding is busy, with the pixel at row and column 8 in the background
+// or busy itself. Every output must still be the reference's bit for bit, in both modes (the
+// signed one's idle accumulator for a zero background is the compensation, not 0), on a direct
+// 3x3, a 5x5 and a 1x1 kernel and the transposed convolution, over several bands and threads.
 TEST(Int8Conv, EmptyWindowsMatchTheReferenceBitForBit) {
   struct Case {
     std::int64_t batch, in, out, h, w, k;

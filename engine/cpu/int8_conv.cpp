@@ -215,12 +215,14 @@ Int8Quantize input_layout(Int8Kernels kernels, const ActRef& x, float sx, bool n
   return q;
 }
 
-// The reference pixel of the idle windows (int8_microkernel.hpp): row and column 8 of each image,
-// or its last row or column where it has fewer. In a BEV grid centred on the sensor that is near
-// a corner of the area, far out and empty in most scans, and far enough inside that the first
+// The reference pixel of the idle windows (int8_microkernel.hpp): of the four pixels 8 rows and
+// columns in from the image's corners (or its last row or column where it has fewer), the one
+// whose quads most of the pixels sampled along its row share. In a BEV grid centred on the sensor
+// the corners are the far ends of the area, empty in most scans, though not all four in every
+// one (the real SemanticKITTI scan in ../shared has points near one), and 8 pixels in, the first
 // layers' outputs there are not those of the border (whose padding changes them).
 constexpr std::int64_t kInt8ReferenceInset = 8;
-// Pixels of the reference row sampled to find the channel quads worth busy bits.
+// Pixels of a candidate's row sampled to judge it.
 constexpr std::int64_t kInt8IdleSamples = 64;
 
 // Pixel (row, col) of image b: its channel quad cq's four u bytes as one dword (byte i: channel 4
@@ -257,19 +259,32 @@ void idle_windows(Int8Kernels kernels, const ActRef& x, Int8Quantize& q, Int8Gem
   const std::int64_t batch = x.dim(0);
   const std::int64_t ry = std::min(kInt8ReferenceInset, q.height - 1);
   const std::int64_t rx = std::min(kInt8ReferenceInset, q.width - 1);
+  const std::int64_t rows[4] = {ry, ry, q.height - 1 - ry, q.height - 1 - ry};
+  const std::int64_t cols[4] = {rx, q.width - 1 - rx, rx, q.width - 1 - rx};
   const std::int64_t samples = std::min(kInt8IdleSamples, q.width);
   workspace.reference.resize(static_cast<size_t>(batch * q.quads));
   std::int64_t idle_quads = q.quads;
   for (std::int64_t b = 0; b < batch; ++b) {
-    std::uint32_t* reference = workspace.reference.data() + b * q.quads;
-    for (std::int64_t cq = 0; cq < q.quads; ++cq) {
-      reference[cq] = quad_at(x, q, b, cq, ry, rx);
-      if (cq >= idle_quads) continue;
-      std::int64_t equal = 0;
-      for (std::int64_t j = 0; j < samples; ++j)
-        equal += quad_at(x, q, b, cq, ry, j * q.width / samples) == reference[cq] ? 1 : 0;
-      if (2 * equal < samples) idle_quads = cq;
+    // Each candidate's leading quads shared by at least half the samples, and its matches in them.
+    int best = 0;
+    std::int64_t best_quads = -1, best_matches = -1;
+    for (int k = 0; k < 4; ++k) {
+      std::int64_t shared = 0, matches = 0;
+      for (; shared < q.quads; ++shared) {
+        const std::uint32_t reference = quad_at(x, q, b, shared, rows[k], cols[k]);
+        std::int64_t equal = 0;
+        for (std::int64_t j = 0; j < samples; ++j)
+          equal += quad_at(x, q, b, shared, rows[k], j * q.width / samples) == reference ? 1 : 0;
+        if (2 * equal < samples) break;
+        matches += equal;
+      }
+      if (shared > best_quads || (shared == best_quads && matches > best_matches))
+        best = k, best_quads = shared, best_matches = matches;
     }
+    std::uint32_t* reference = workspace.reference.data() + b * q.quads;
+    for (std::int64_t cq = 0; cq < q.quads; ++cq)
+      reference[cq] = quad_at(x, q, b, cq, rows[best], cols[best]);
+    idle_quads = std::min(idle_quads, best_quads);
   }
   if (int8_amx_family(kernels)) idle_quads = idle_quads / kInt8AmxQuads * kInt8AmxQuads;
   q.idle_quads = g.idle_quads = idle_quads;
