@@ -257,6 +257,8 @@ template <class Qw>
 void idle_windows(Int8Kernels kernels, const ActRef& x, Int8Quantize& q, Int8Gemm& g,
                   std::int64_t columns, int taps, Qw&& qw, Int8ConvWorkspace& workspace) {
   const std::int64_t batch = x.dim(0);
+  q.idle_quads = g.idle_quads = 0;
+  if (q.height == 0 || q.width == 0) return;  // an empty input padded to a non-empty output
   const std::int64_t ry = std::min(kInt8ReferenceInset, q.height - 1);
   const std::int64_t rx = std::min(kInt8ReferenceInset, q.width - 1);
   const std::int64_t rows[4] = {ry, ry, q.height - 1 - ry, q.height - 1 - ry};
@@ -299,14 +301,16 @@ void idle_windows(Int8Kernels kernels, const ActRef& x, Int8Quantize& q, Int8Gem
       if (reference[cq] != padding) workspace.padding_busy[static_cast<size_t>(b)] = 1;
     }
     for (std::int64_t n = 0; n < columns; ++n) {
-      std::int32_t sum = 0;
+      std::int64_t sum = 0;
       for (int t = 0; t < taps; ++t) {
         for (std::int64_t c = 0; c < idle_channels; ++c) {
-          const auto u = static_cast<std::int32_t>((reference[c / 4] >> (8 * (c % 4))) & 0xFFu);
+          const auto u = static_cast<std::int64_t>((reference[c / 4] >> (8 * (c % 4))) & 0xFFu);
           sum += u * qw(n, t, c);
         }
       }
-      workspace.idle[static_cast<size_t>(b * columns + n)] = sum;
+      // Wrapped to 32 bits as the accumulators wrap.
+      workspace.idle[static_cast<size_t>(b * columns + n)] =
+          static_cast<std::int32_t>(static_cast<std::uint32_t>(static_cast<std::uint64_t>(sum)));
     }
   }
   q.reference = workspace.reference.data(), q.padding_busy = workspace.padding_busy.data();
