@@ -10,7 +10,8 @@ ground 3-15 m around the sensor (its pitch and roll in the sensor's frame), and 
 percentiles. With labels: per class (DESIGN.md's table) the point count, z, reflectance and
 range percentiles, how much the reflectance of road, sidewalk, terrain and vegetation overlap,
 and the ground cells: per 0.4 m cell of road, sidewalk or terrain within 20 m its height against
-the road's, and which of the three lies beside which (the street's cross-section); with several
+the road's and its mean reflectance, the share of sidewalk cells 5 m or more from a road cell,
+and which of the three lies beside which (the street's cross-section); with several
 labelled scans, the ground cells of all of them pooled as well.
 
 Usage: scripts/scan_stats.py SCAN.bin [--labels SCAN.label] [SCAN.bin [--labels ...]] ...
@@ -122,8 +123,9 @@ GROUND_CELL_CLASSES = {5: "road", 6: "sidewalk", 12: "terrain"}
 
 def ground_cells(pts, cls):
     """The 0.4 m cells within 20 m of the sensor whose points (at least 3) are all road, all
-    sidewalk or all terrain: their indices, class, median height, range, and for terrain cells
-    the distance to the nearest sidewalk cell and the height against it (NaN otherwise)."""
+    sidewalk or all terrain: their indices, class, median height, range, for terrain cells
+    the distance to the nearest sidewalk cell and the height against it (NaN otherwise), the
+    mean reflectance, and the distance to the nearest road cell (NaN without one)."""
     near = np.hypot(pts[:, 0], pts[:, 1]) < 20
     p, c = pts[near], cls[near]
     ij = np.floor(p[:, :2] / 0.4).astype(np.int64)
@@ -136,8 +138,8 @@ def ground_cells(pts, cls):
         cc = c[s:s + n]
         if n >= 3 and cc[0] in GROUND_CELL_CLASSES and (cc == cc[0]).all():
             cells.append((ij[s, 0], ij[s, 1], cc[0], np.median(p[s:s + n, 2]),
-                          np.hypot(*p[s, :2]), np.nan, np.nan))
-    cells = np.array(cells, dtype=float).reshape(-1, 7)
+                          np.hypot(*p[s, :2]), np.nan, np.nan, p[s:s + n, 3].mean(), np.nan))
+    cells = np.array(cells, dtype=float).reshape(-1, 9)
     walk, grass = cells[cells[:, 2] == 6], np.flatnonzero(cells[:, 2] == 12)
     if len(walk) and len(grass):
         d = np.hypot(cells[grass, 0, None] - walk[None, :, 0],
@@ -145,6 +147,10 @@ def ground_cells(pts, cls):
         nearest = d.argmin(axis=1)
         cells[grass, 5] = 0.4 * d[np.arange(len(grass)), nearest]
         cells[grass, 6] = cells[grass, 3] - walk[nearest, 3]
+    road = cells[cells[:, 2] == 5]
+    if len(road):
+        for k in range(len(cells)):
+            cells[k, 8] = 0.4 * np.hypot(road[:, 0] - cells[k, 0], road[:, 1] - cells[k, 1]).min()
     return cells
 
 
@@ -160,8 +166,16 @@ def ground_cell_report(cells):
     print("ground cells (0.4 m, within 20 m, one class, at least 3 points), height relative to "
           f"the median road cell within 15 m ({z0:.2f}):")
     for c, name in GROUND_CELL_CLASSES.items():
-        z = cells[cells[:, 2] == c, 3] - z0
-        print(f"  {name:9s} {len(z):5d} cells, height p10 p50 p90 {pct(z, [10, 50, 90])}")
+        mine = cells[cells[:, 2] == c]
+        print(f"  {name:9s} {len(mine):5d} cells, height p10 p50 p90 "
+              f"{pct(mine[:, 3] - z0, [10, 50, 90])}, mean reflectance p10 p50 p90 "
+              f"{pct(mine[:, 7], [10, 50, 90])}")
+    walk, grass = cells[cells[:, 2] == 6], cells[cells[:, 2] == 12]
+    if len(walk) and len(grass):
+        ratio = np.median(grass[:, 7]) / np.median(walk[:, 7])
+        far = (walk[:, 8] >= 5).mean()
+        print(f"  terrain / sidewalk median reflectance {ratio:.2f}; sidewalk cells 5 m or more "
+              f"from a road cell {far:.2f}")
     grass = cells[np.isfinite(cells[:, 5])]
     bands = []
     for lo, hi in [(0, 1.5), (1.5, 3), (3, 6), (6, 12)]:
