@@ -518,6 +518,42 @@ TEST(SimCity, SidewalkAtTheCurbGrassFallingAwayAndPathsThroughIt) {
   for (double z : fall10) EXPECT_LT(z, 0.15) << "a falling side does not rise";
 }
 
+TEST(SimCity, GrassALittleBrighterThanPavingBothFinelyTextured) {
+  // The ground's albedo 0-30 m across the main street, per city: grass 1-1.32 times the
+  // paving at the median (the real labelled scan: 1.16), and both with a texture of +-20%
+  // (the middle 60% of their albedos within 0.32 of the median: 0.24 for +-20%, 0.42 for the
+  // asphalt's +-35%; dark patches are 8% of the cells and stay outside it).
+  const auto quantile = [](std::vector<double> v, double q) {
+    std::sort(v.begin(), v.end());
+    return v[static_cast<size_t>(q * static_cast<double>(v.size() - 1))];
+  };
+  int cities = 0;
+  for (uint64_t seed : {1, 2, 3, 4, 5, 6, 7, 8}) {
+    const City city = City::generate(seed, 20);
+    const Street& main = city.streets()[0];
+    std::map<uint32_t, std::vector<double>> albedo;
+    for (double s = city.ego().s0; s < city.ego().s0 + 120.0; s += 0.37)
+      for (double d = -30.0; d <= 30.0; d += 0.29) {
+        const Vector2d q = main.point(s, d);
+        const GroundSample g = city.ground_at(q.x(), q.y());
+        albedo[g.label].push_back(g.albedo);
+      }
+    const std::vector<double>& walk = albedo[raw::kSidewalk];
+    const std::vector<double>& grass = albedo[raw::kTerrain];
+    if (walk.size() < 500 || grass.size() < 500) continue;
+    ++cities;
+    const double walk50 = quantile(walk, 0.5), grass50 = quantile(grass, 0.5);
+    EXPECT_GE(grass50 / walk50, 0.97) << "seed " << seed;
+    EXPECT_LE(grass50 / walk50, 1.36) << "seed " << seed;
+    for (const std::vector<double>* v : {&walk, &grass}) {
+      const double spread = (quantile(*v, 0.8) - quantile(*v, 0.2)) / quantile(*v, 0.5);
+      EXPECT_GT(spread, 0.15) << "seed " << seed << ": textured";
+      EXPECT_LT(spread, 0.32) << "seed " << seed;
+    }
+  }
+  EXPECT_GE(cities, 6);
+}
+
 TEST(SimCity, HasSideStreetsEvery100mAndDiffersBySeed) {
   const City a = City::generate(3, 200), b = City::generate(3, 200), c = City::generate(4, 200);
   ASSERT_EQ(a.static_scene().size(), b.static_scene().size());
