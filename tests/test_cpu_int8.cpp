@@ -406,14 +406,21 @@ const char* mode_name(bool non_negative) {
   return non_negative ? "non-negative" : "signed";
 }
 
+// The case's convolution with random weights in [-0.3, 0.3) (seed) and biases in [-1, 1) (seed +
+// 1), prepared for `kernels`.
+cpu::Int8ConvWeights random_conv(Int8Kernels kernels, const ConvCase& c, std::uint32_t seed) {
+  const std::vector<float> w = random_values(c.out * c.in * c.k * c.k, seed, -0.3f, 0.3f);
+  const std::vector<float> bias = random_values(c.out, seed + 1, -1.0f, 1.0f);
+  cpu::Int8ConvWeights p;
+  cpu::prepare_int8_conv(kernels, Ref{const_cast<float*>(w.data()), {c.out, c.in, c.k, c.k}},
+                         Ref{const_cast<float*>(bias.data()), {c.out}}, p);
+  return p;
+}
+
 TEST(Int8Conv, EveryKernelMatchesTheReferenceBitForBit) {
   for (Int8Kernels kernels : kernels_to_test()) {
     for (const ConvCase& c : kConvCases) {
-      const std::vector<float> w = random_values(c.out * c.in * c.k * c.k, 7, -0.3f, 0.3f);
-      const std::vector<float> bias = random_values(c.out, 8, -1.0f, 1.0f);
-      cpu::Int8ConvWeights p;
-      cpu::prepare_int8_conv(kernels, Ref{const_cast<float*>(w.data()), {c.out, c.in, c.k, c.k}},
-                             Ref{const_cast<float*>(bias.data()), {c.out}}, p);
+      const cpu::Int8ConvWeights p = random_conv(kernels, c, 7);
       for (const bool non_negative : {false, true}) {
         for (const bool x_half : {false, true}) {
           for (const bool y_half : {false, true}) {
@@ -477,11 +484,7 @@ TEST(Int8Conv, WideImagesInManyBandsMatchTheReference) {
   const ConvCase cases[] = {{1, 256, 9, 8, 700, 3, 1}, {1, 128, 4, 9, 1000, 5, 2}};
   for (Int8Kernels kernels : kernels_to_test()) {
     for (const ConvCase& c : cases) {
-      const std::vector<float> w = random_values(c.out * c.in * c.k * c.k, 101, -0.3f, 0.3f);
-      const std::vector<float> bias = random_values(c.out, 102, -1.0f, 1.0f);
-      cpu::Int8ConvWeights p;
-      cpu::prepare_int8_conv(kernels, Ref{const_cast<float*>(w.data()), {c.out, c.in, c.k, c.k}},
-                             Ref{const_cast<float*>(bias.data()), {c.out}}, p);
+      const cpu::Int8ConvWeights p = random_conv(kernels, c, 101);
       for (const int threads : {1, 3}) {
         ScopedThreads scoped(threads);
         const bool non_negative = threads == 3;
@@ -530,22 +533,14 @@ TEST(Int8Conv, WideImagesInManyBandsMatchTheReference) {
 // signed one's idle accumulator for a zero background is the compensation, not 0), on a direct
 // 3x3, a 5x5 and a 1x1 kernel and the transposed convolution, over several bands and threads.
 TEST(Int8Conv, EmptyWindowsMatchTheReferenceBitForBit) {
-  struct Case {
-    std::int64_t batch, in, out, h, w, k;
-    int pad;
-  };
-  const Case cases[] = {{2, 6, 10, 9, 100, 3, 1},
-                        {1, 67, 33, 7, 130, 5, 2},
-                        {1, 8, 9, 5, 70, 1, 0},
-                        {1, 160, 20, 6, 70, 3, 1}};
+  const ConvCase cases[] = {{2, 6, 10, 9, 100, 3, 1},
+                            {1, 67, 33, 7, 130, 5, 2},
+                            {1, 8, 9, 5, 70, 1, 0},
+                            {1, 160, 20, 6, 70, 3, 1}};
   const std::int64_t columns[] = {0, 1, 15, 16, 17, 31, 32, 47, 48, 49, 64, 95, 96};
   for (Int8Kernels kernels : kernels_to_test()) {
-    for (const Case& c : cases) {
-      const std::vector<float> w = random_values(c.out * c.in * c.k * c.k, 201, -0.3f, 0.3f);
-      const std::vector<float> bias = random_values(c.out, 202, -1.0f, 1.0f);
-      cpu::Int8ConvWeights p;
-      cpu::prepare_int8_conv(kernels, Ref{const_cast<float*>(w.data()), {c.out, c.in, c.k, c.k}},
-                             Ref{const_cast<float*>(bias.data()), {c.out}}, p);
+    for (const ConvCase& c : cases) {
+      const cpu::Int8ConvWeights p = random_conv(kernels, c, 201);
       // Zero background: scattered pixels, a busy row, all zero; constant background: scattered
       // pixels, and the reference pixel busy too; the first half of the channels scattered pixels
       // on zero, the others dense (the concatenation of a canvas and a decoder's output: the busy

@@ -392,8 +392,10 @@ void run_conv(Int8Kernels kernels, bool on_native, const Int8Quantize& q, const 
       if (held_first < first && first < held_end) {  // the same image's next band
         std::memmove(buffer, buffer + (first - held_first) * row_bytes,
                      static_cast<size_t>((held_end - first) * row_bytes));
-        std::memmove(busy, busy + (first - held_first) * busy_words,
-                     static_cast<size_t>((held_end - first) * busy_words) * sizeof(std::uint64_t));
+        if (band_q.busy != nullptr)
+          std::memmove(
+              busy, busy + (first - held_first) * busy_words,
+              static_cast<size_t>((held_end - first) * busy_words) * sizeof(std::uint64_t));
         from = held_end;
       }
       band_q.origin = band_g.origin = first * row_bytes;
