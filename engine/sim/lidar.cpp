@@ -21,8 +21,21 @@ constexpr double kFoliagePath = 0.45;  // mean free path of a pulse in foliage, 
 constexpr double kMinRange = 0.9;      // nearer returns are not reported, m
 constexpr double kWeakPower = 0.02;    // below this relative power a return fades out
 constexpr float kCurbAlbedo = 0.4f;
-// Intensities below kZeroFloor + kZeroFloorSlope * (range - 12 m), range in [12, 54] m, read 0.
-constexpr double kZeroFloor = 0.04, kZeroFloorSlope = 0.0085;
+// The intensity falls with the range beyond kFalloffStart: divided by 1 + ((range -
+// kFalloffStart) / kFalloffScale)^2 (0.79 at 25 m, 0.44 at 40 m). On the real labelled scan the
+// median of the non-zero intensities of sidewalk, terrain and vegetation falls from 0.32-0.36
+// within 20 m to 0.19-0.25 at 30-40 m and 0.16-0.18 at 40-60 m (road 0.23 -> 0.14 at 30-40 m);
+// without the falloff the simulated ones rose with the range (the floor below took the dim ones).
+constexpr double kFalloffStart = 12.0, kFalloffScale = 25.0;
+// Intensities below a floor read 0: kZeroFloor within 12 m, rising by kZeroFloorSlope a metre
+// over the next kZeroFloorRamp m (to 0.12) and level beyond. With the falloff, 17% of the
+// simulated sidewalk returns 30-40 m out and 66% 40-60 m out read 0 (the real scan: 15% and 70%;
+// terrain 10% and 48%, real 7% and 50%; road 58% at 30-40 m, real 83%; cars 63% at 20-30 m, real
+// 81%). The floor before the falloff (rising 0.0085 a metre to 54 m: 0.28 at 40 m) would take
+// the dim far returns that the real scan keeps (its far sidewalk and terrain read 0.16-0.25);
+// one rising 0.0025 a metre to 54 m kept the far dark cars, which the real scan's read 0
+// (docs/simulator.md, experiments 37 and 40).
+constexpr double kZeroFloor = 0.04, kZeroFloorSlope = 0.008, kZeroFloorRamp = 10.0;
 constexpr double kMinStep = 0.25;     // the ground march's shortest step, m
 constexpr int kMaxGroundSteps = 400;  // a pulse grazing the ground this long is lost
 
@@ -236,12 +249,16 @@ SimScan cast_scan(const LidarModel& lidar, const City& city, const SceneGrid& mo
         if (!ok) continue;
         const double range = ret.t + rng.normal(0.0, lidar.range_noise);
         // The intensity: the surface's albedo, a little less at grazing incidence, through this
-        // sensor's and this beam's gain, with speckle; below a floor that rises with the range
-        // the HDL-64E reports 0 (most dark cars, far road, much far vegetation in KITTI).
+        // sensor's and this beam's gain, with speckle, falling with the range beyond 12 m; below
+        // a floor that rises from 12 to 22 m the HDL-64E reports 0 (most dark cars, much of the
+        // far road, half of everything 40-60 m out in KITTI).
         double reflectance = lidar.gain * lidar.beam_gain(b) * ret.albedo *
                                  (0.7 + 0.3 * ret.cos_incidence) * (1.0 + 0.15 * rng.normal()) +
                              rng.normal(0.0, 0.02);
-        const double floor = kZeroFloor + kZeroFloorSlope * std::clamp(range - 12.0, 0.0, 42.0);
+        const double beyond = std::max(range - kFalloffStart, 0.0) / kFalloffScale;
+        reflectance /= 1.0 + beyond * beyond;
+        const double floor =
+            kZeroFloor + kZeroFloorSlope * std::clamp(range - 12.0, 0.0, kZeroFloorRamp);
         if (reflectance < floor) reflectance = 0.0;
         reflectance = std::clamp(reflectance, 0.0, 1.0);
         const size_t slot =
