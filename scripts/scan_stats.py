@@ -9,7 +9,8 @@ roughness (spread of the lowest points of 0.5 m cells within a 2 m cell), the pl
 ground 3-15 m around the sensor (its pitch and roll in the sensor's frame), and reflectance
 percentiles. With labels: per class (DESIGN.md's table) the point count, z, reflectance and
 range percentiles, how much the reflectance of road, sidewalk, terrain and vegetation overlap,
-and the ground cells: per 0.4 m cell of road, sidewalk or terrain within 20 m its height against
+the reflectance by range band (share of zeros, median of the others) of six classes, and the
+ground cells: per 0.4 m cell of road, sidewalk or terrain within 20 m its height against
 the road's and its mean reflectance, the share of sidewalk cells 5 m or more from a road cell,
 and which of the three lies beside which (the street's cross-section); with several
 labelled scans, the ground cells of all of them pooled as well.
@@ -226,6 +227,26 @@ def overlap(a, b):
     return float(np.minimum(ha, hb).sum())
 
 
+def intensity_by_range(pts, cls):
+    """Per class and horizontal range band: the share of returns that read 0 and the median of
+    the others (the HDL-64E's intensity falls with the range; far dim returns read 0)."""
+    bands = [0, 10, 20, 30, 40, 60]
+    r = np.hypot(pts[:, 0], pts[:, 1])
+    print("reflectance by range: share of zeros / median of the non-zero ones (points), bands " +
+          " ".join(f"{lo}-{hi} m" for lo, hi in zip(bands[:-1], bands[1:])))
+    for c in (5, 6, 12, 10, 8, 1):
+        cells = []
+        for lo, hi in zip(bands[:-1], bands[1:]):
+            v = pts[(cls == c) & (r >= lo) & (r < hi), 3]
+            if len(v) < 50:
+                cells.append(f"{'-':>17s}")
+                continue
+            nonzero = v[v > 0]
+            med = f"{np.median(nonzero):.2f}" if len(nonzero) else "  - "
+            cells.append(f"{(v == 0).mean():.2f} / {med} ({len(v):5d})")
+        print(f"  {CLASSES[c]:10s} " + "  ".join(cells))
+
+
 def report(path, label_path):
     pts = load_points(path)
     print(f"== {path}{' + ' + label_path if label_path else ''}")
@@ -272,6 +293,7 @@ def report(path, label_path):
     for i, a in enumerate(keys):
         for b in keys[i + 1:]:
             print(f"  {names[a]}/{names[b]}: {overlap(pts[cls == a, 3], pts[cls == b, 3]):.2f}")
+    intensity_by_range(pts, cls)
     road = pts[cls == 5]
     if len(road):
         rr = np.hypot(road[:, 0], road[:, 1])
