@@ -663,7 +663,7 @@ TEST(SimLidar, HillyGroundAndAWallByHand) {
                  std::abs(p.y) < lidar.body_max.y() && p.z < lidar.body_max.z());
 }
 
-TEST(SimLidar, IntensityFallsWithTheRangeLikeARealScans) {
+TEST(SimLidar, IntensityFallsWithTheRangeAsInARealScan) {
   // Two walls of one albedo facing the sensor, 8 m ahead and 40 m behind it: beyond 12 m the
   // intensity is divided by 1 + ((range - 12) / 25)^2, so the far wall reads 0.44 of the near
   // one (the real labelled scan's sidewalk, terrain and vegetation: 0.5-0.6 at 30-60 m, non-zero
