@@ -80,6 +80,30 @@ double median(std::vector<double> v) {
   return v[v.size() / 2];
 }
 
+// A noiseless sensor (no dropout, outliers or range noise) of azimuth_steps pulses a revolution,
+// far from every street of the city: at (kX, kY) on its terrain, kSensorHeight above it; the
+// scenes around it are built by hand.
+struct RemoteSensor {
+  static constexpr double kX = 1e6, kY = 1e6;
+  LidarModel lidar;
+  double ground;  // the terrain's height under the sensor
+  Pose pose = Pose::Identity();
+
+  RemoteSensor(const City& city, int azimuth_steps)
+      : lidar(LidarModel::hdl64e(azimuth_steps)), ground(city.ground_z(kX, kY)) {
+    lidar.dropout = 0.0;
+    lidar.outlier_rate = 0.0;
+    lidar.range_noise = 0.0;
+    pose.topRightCorner<3, 1>() = Vector3d(kX, kY, ground + kSensorHeight);
+  }
+  // A building wall 1 m thick and 10 m tall facing the sensor along x, its centre dx ahead
+  // (behind where negative), half_width to each side of the sensor's line.
+  Primitive wall(double dx, double half_width, float albedo) const {
+    return make_box({kX + dx, kY, ground + 5}, {0.5, half_width, 5}, 0.0,
+                    label_word(raw::kBuilding, 0), albedo);
+  }
+};
+
 // Histogram overlap of two samples in [0, 1] (50 bins): 1 for equal distributions.
 double overlap(const std::vector<double>& a, const std::vector<double>& b) {
   std::array<double, 50> ha{}, hb{};
@@ -621,17 +645,9 @@ TEST(SimLidar, HillyGroundAndAWallByHand) {
   // A city far away: the sensor stands on its terrain (hills, grades, bumps), with one wall
   // 10 m ahead.
   const City city = City::generate(1, 1);
-  LidarModel lidar = LidarModel::hdl64e(720);
-  lidar.dropout = 0.0;
-  lidar.outlier_rate = 0.0;
-  lidar.range_noise = 0.0;
-  const double ground = city.ground_z(1e6, 1e6);
-  Pose pose = Pose::Identity();
-  pose.topRightCorner<3, 1>() = Vector3d(1e6, 1e6, ground + kSensorHeight);
-  const SceneGrid wall({make_box({1e6 + 10.5, 1e6, ground + 5}, {0.5, 20, 5}, 0.0,
-                                 label_word(raw::kBuilding, 0), 0.4f)},
-                       2.0);
-  const SimScan scan = cast_scan(lidar, city, wall, pose, 1);
+  const RemoteSensor sensor(city, 720);
+  const SimScan scan =
+      cast_scan(sensor.lidar, city, SceneGrid({sensor.wall(10.5, 20, 0.4f)}, 2.0), sensor.pose, 1);
   int on_wall = 0, on_ground = 0;
   std::vector<double> heights;
   for (size_t i = 0; i < scan.points.size(); ++i) {
@@ -644,7 +660,8 @@ TEST(SimLidar, HillyGroundAndAWallByHand) {
       ++on_ground;
       // On the height field, or in the grass's top 7 cm above it (the march stops within 2 mm
       // of the surface, below it).
-      const double surface = city.ground_z(1e6 + p.x, 1e6 + p.y) - ground - kSensorHeight;
+      const double surface = city.ground_z(RemoteSensor::kX + p.x, RemoteSensor::kY + p.y) -
+                             sensor.ground - kSensorHeight;
       EXPECT_GE(p.z, surface - 3e-3);
       EXPECT_LE(p.z, surface + 0.07 + 1e-4);
       heights.push_back(p.z);
@@ -659,8 +676,8 @@ TEST(SimLidar, HillyGroundAndAWallByHand) {
       << "the terrain is not flat";
   // No return from inside the ego body box.
   for (const Point& p : scan.points)
-    EXPECT_FALSE(p.x > lidar.body_min.x() && p.x < lidar.body_max.x() &&
-                 std::abs(p.y) < lidar.body_max.y() && p.z < lidar.body_max.z());
+    EXPECT_FALSE(p.x > sensor.lidar.body_min.x() && p.x < sensor.lidar.body_max.x() &&
+                 std::abs(p.y) < sensor.lidar.body_max.y() && p.z < sensor.lidar.body_max.z());
 }
 
 TEST(SimLidar, IntensityFallsWithTheRangeAsInARealScan) {
@@ -669,19 +686,9 @@ TEST(SimLidar, IntensityFallsWithTheRangeAsInARealScan) {
   // one (the real labelled scan's sidewalk, terrain and vegetation: 0.5-0.6 at 30-60 m, non-zero
   // returns), and its returns (0.22 against a floor of 0.12 there) do not read 0.
   const City city = City::generate(1, 1);
-  LidarModel lidar = LidarModel::hdl64e(1440);
-  lidar.dropout = 0.0;
-  lidar.outlier_rate = 0.0;
-  lidar.range_noise = 0.0;
-  const double ground = city.ground_z(1e6, 1e6);
-  Pose pose = Pose::Identity();
-  pose.topRightCorner<3, 1>() = Vector3d(1e6, 1e6, ground + kSensorHeight);
-  const SceneGrid walls({make_box({1e6 + 8.5, 1e6, ground + 5}, {0.5, 4, 5}, 0.0,
-                                  label_word(raw::kBuilding, 0), 0.5f),
-                         make_box({1e6 - 40.5, 1e6, ground + 5}, {0.5, 20, 5}, 0.0,
-                                  label_word(raw::kBuilding, 0), 0.5f)},
-                        2.0);
-  const SimScan scan = cast_scan(lidar, city, walls, pose, 1);
+  const RemoteSensor sensor(city, 1440);
+  const SceneGrid walls({sensor.wall(8.5, 4, 0.5f), sensor.wall(-40.5, 20, 0.5f)}, 2.0);
+  const SimScan scan = cast_scan(sensor.lidar, city, walls, sensor.pose, 1);
   double near_sum = 0, far_sum = 0;
   int near = 0, far = 0, far_zero = 0;
   for (size_t i = 0; i < scan.points.size(); ++i) {
