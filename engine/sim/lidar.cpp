@@ -27,8 +27,8 @@ constexpr float kCurbAlbedo = 0.4f;
 // within 20 m to 0.19-0.25 at 30-40 m and 0.16-0.18 at 40-60 m (road 0.23 -> 0.14 at 30-40 m);
 // without the falloff the simulated ones rose with the range (the floor below took the dim ones).
 constexpr double kFalloffStart = 12.0, kFalloffScale = 25.0;
-// Intensities below a floor read 0: kZeroFloor within 12 m, rising by kZeroFloorSlope a metre
-// over the next kZeroFloorRamp m (to 0.12) and level beyond. With the falloff, 17% of the
+// Intensities below a floor read 0: kZeroFloor within kFalloffStart, rising by kZeroFloorSlope a
+// metre over the next kZeroFloorRamp m (to 0.12) and level beyond. With the falloff, 17% of the
 // simulated sidewalk returns 30-40 m out and 66% 40-60 m out read 0 (the real scan: 15% and 70%;
 // terrain 10% and 48%, real 7% and 50%; road 58% at 30-40 m, real 83%; cars 63% at 20-30 m, real
 // 81%). The floor before the falloff (rising 0.0085 a metre to 54 m: 0.28 at 40 m) would take
@@ -258,7 +258,7 @@ SimScan cast_scan(const LidarModel& lidar, const City& city, const SceneGrid& mo
         const double beyond = std::max(range - kFalloffStart, 0.0) / kFalloffScale;
         reflectance /= 1.0 + beyond * beyond;
         const double floor =
-            kZeroFloor + kZeroFloorSlope * std::clamp(range - 12.0, 0.0, kZeroFloorRamp);
+            kZeroFloor + kZeroFloorSlope * std::clamp(range - kFalloffStart, 0.0, kZeroFloorRamp);
         if (reflectance < floor) reflectance = 0.0;
         reflectance = std::clamp(reflectance, 0.0, 1.0);
         const size_t slot =
