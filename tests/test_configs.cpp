@@ -58,6 +58,14 @@ TEST(Configs, ErrorsNameTheKey) {
             std::string::npos);
   EXPECT_NE(message("train: {epochs: 0}").find("train.epochs"), std::string::npos);
   EXPECT_NE(message("train: {precise_bn_batches: -1}").find("train.precise_bn_batches"), std::string::npos);
+  EXPECT_NE(message("train: {epochs: 4, average_epochs: 5, precise_bn_batches: 2}").find("train.average_epochs"),
+            std::string::npos);
+  EXPECT_NE(message("train: {average_epochs: -1}").find("train.average_epochs"), std::string::npos);
+  EXPECT_NE(message("train: {epochs: 4, average_epochs: 2}").find("precise_bn_batches"), std::string::npos);
+  EXPECT_EQ(parse_run_config("train: {epochs: 4, average_epochs: 4, precise_bn_batches: 2}", "my.yaml")
+                .train.average_epochs,
+            4);
+  EXPECT_EQ(parse_run_config("train: {}", "my.yaml").train.average_epochs, 0);
   EXPECT_NE(message("train: {gradient_bucket_mb: -0.5}").find("train.gradient_bucket_mb"), std::string::npos);
   EXPECT_EQ(parse_run_config("train: {gradient_bucket_mb: 0.25}", "my.yaml").train.gradient_bucket_mb, 0.25);
   EXPECT_EQ(parse_run_config("train: {}", "my.yaml").train.gradient_bucket_mb, 4.0);

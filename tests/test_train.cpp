@@ -3,9 +3,11 @@
 #include <gtest/gtest.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <atomic>
 #include <chrono>
 #include <fstream>
+#include <map>
 #include <sstream>
 #include <thread>
 
@@ -177,6 +179,80 @@ TEST(Train, ResumeIsExact) {
   TrainOptions changed = options_for(dir / "split", other);
   changed.resume = true;
   EXPECT_THROW(train(changed), Error);
+}
+
+// train.average_epochs: the final weights are the mean of the last K epochs' weights (the
+// training itself unchanged), the BatchNorm statistics estimated again for them, and a run
+// resumed inside the averaging window ends with the same bits.
+TEST(Train, AveragesTheLastEpochsWeights) {
+  const fs::path dir = test::temp_dir();
+  const auto with = [](const std::string& extra) {
+    std::string text = tiny_config_text("  precise_bn_batches: 1\n" + extra);
+    text.replace(text.find("epochs: 2"), 9, "epochs: 3");
+    return text;
+  };
+  // Without averaging, epoch by epoch: the weights after epochs 2 and 3.
+  std::vector<std::map<std::string, Tensor<float>>> plain;
+  for (int epoch = 1; epoch <= 3; ++epoch) {
+    TrainOptions o = options_for(dir / "plain", with(""));
+    o.max_epochs_this_run = 1;
+    o.resume = epoch > 1;
+    train(o);
+    const Checkpoint c = read_checkpoint(dir / "plain" / "checkpoint.safetensors");
+    EXPECT_EQ(c.file.contains(kAverageSumName), false);
+    std::map<std::string, Tensor<float>> tensors;
+    for (const std::string& name : c.file.names())
+      if (c.file.at(name).dtype == weights::DType::F32) tensors.emplace(name, c.file.get_f32(name));
+    plain.push_back(std::move(tensors));
+  }
+  train(options_for(dir / "averaged", with("  average_epochs: 2\n")));
+  const Checkpoint averaged = read_checkpoint(dir / "averaged" / "checkpoint.safetensors");
+  EXPECT_FALSE(averaged.file.contains(kAverageSumName)) << "the finished run drops the sum";
+  int trainable = 0, statistics = 0, moved = 0;
+  for (const std::string& name : averaged.file.names()) {
+    if (name.rfind("optimizer.", 0) == 0 || averaged.file.at(name).dtype != weights::DType::F32)
+      continue;
+    const Tensor<float> got = averaged.file.get_f32(name);
+    const Tensor<float>&w2 = plain[1].at(name), &w3 = plain[2].at(name);
+    if (name.find("running_") != std::string::npos) {
+      // Estimated again under the averaged weights: not the last epoch's statistics.
+      ++statistics;
+      moved += !(got == w3);
+      continue;
+    }
+    ++trainable;
+    ASSERT_EQ(got.numel(), w3.numel()) << name;
+    for (int64_t i = 0; i < got.numel(); ++i)
+      ASSERT_EQ(got[i], (w2[i] + w3[i]) / 2.0f) << name << "[" << i << "]";
+  }
+  EXPECT_GT(trainable, 20);
+  EXPECT_GT(statistics, 4);
+  EXPECT_GT(moved, statistics / 2);
+  // The weights did move between the two epochs (an average of equal weights proves nothing).
+  EXPECT_FALSE(plain[1].at("segmentation_head.outc.conv.weight") ==
+               plain[2].at("segmentation_head.outc.conv.weight"));
+  // Resumed after epoch 2, inside the window: the checkpoint carries the sum, and the run ends
+  // with the straight run's bits.
+  TrainOptions first = options_for(dir / "split", with("  average_epochs: 2\n"));
+  first.max_epochs_this_run = 2;
+  train(first);
+  const Checkpoint mid = read_checkpoint(dir / "split" / "checkpoint.safetensors");
+  ASSERT_TRUE(mid.file.contains(kAverageSumName));
+  // After epoch 2 the sum is epoch 2's weights (compared as sorted multisets: the sum is in the
+  // parameter set's flat order, the file in the names' order).
+  const Tensor<float> sum = mid.file.get_f32(kAverageSumName);
+  std::vector<float> sum_sorted(sum.begin(), sum.end()), epoch2;
+  for (const auto& [name, t] : plain[1])
+    if (name.rfind("optimizer.", 0) != 0 && name.find("running_") == std::string::npos)
+      epoch2.insert(epoch2.end(), t.begin(), t.end());
+  std::sort(sum_sorted.begin(), sum_sorted.end());
+  std::sort(epoch2.begin(), epoch2.end());
+  EXPECT_EQ(sum_sorted, epoch2);
+  TrainOptions second = options_for(dir / "split", with("  average_epochs: 2\n"));
+  second.resume = true;
+  train(second);
+  EXPECT_EQ(checkpoint_values(dir / "averaged" / "checkpoint.safetensors"),
+            checkpoint_values(dir / "split" / "checkpoint.safetensors"));
 }
 
 // The step lines of a metrics log without their wall-clock field.

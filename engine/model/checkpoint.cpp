@@ -40,6 +40,14 @@ void save_checkpoint(const fs::path& path, const PillarSegNet& net, const RunCon
     std::copy(hv.begin(), hv.end(), v.begin());
     file.add_f32("optimizer.exp_avg", m);
     file.add_f32("optimizer.exp_avg_sq", v);
+    if (!state.average_sum.empty()) {
+      PS_CHECK(static_cast<int64_t>(state.average_sum.size()) == ps.num_trainable(),
+               "{}: the weight average holds {} values, the model {}", path.string(),
+               state.average_sum.size(), ps.num_trainable());
+      Tensor<float> sum({ps.num_trainable()});
+      std::copy(state.average_sum.begin(), state.average_sum.end(), sum.begin());
+      file.add_f32(kAverageSumName, sum);
+    }
   }
   file.metadata["format"] = kFormat;
   file.metadata["config"] = config.text;

@@ -9,6 +9,7 @@
 #include <cstdint>
 #include <filesystem>
 #include <optional>
+#include <vector>
 
 #include "engine/model/pillarsegnet.hpp"
 #include "engine/model/run_config.hpp"
@@ -22,7 +23,11 @@ struct TrainState {
   // Validation while training: the best mIoU so far (negative: none yet) and its epoch.
   double best_miou = -1;
   int64_t best_epoch = 0;
+  // train.average_epochs: the sum of the trainable values at the end of each epoch of the
+  // averaging window so far (empty outside it); kept with the optimizer state.
+  std::vector<float> average_sum;
 };
+inline constexpr const char* kAverageSumName = "optimizer.average_sum";
 
 // Writes atomically (temporary file, then rename).
 void save_checkpoint(const std::filesystem::path& path, const PillarSegNet& net, const RunConfig& config,

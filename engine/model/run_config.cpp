@@ -38,6 +38,7 @@ void read_train(const YAML::Node& t, const ClassTable& classes, const std::strin
     else if (key == "max_scans_per_sequence") c.max_scans_per_sequence = get<int>(v, where);
     else if (key == "scan_stride") c.scan_stride = get<int>(v, where);
     else if (key == "precise_bn_batches") c.precise_bn_batches = get<int>(v, where);
+    else if (key == "average_epochs") c.average_epochs = get<int>(v, where);
     else if (key == "workers") {
       c.workers = get<int>(v, where);
       PS_CHECK(c.workers >= 0 && c.workers <= 64, "{}: expected 0..64 threads, got {}", where, c.workers);
@@ -111,6 +112,13 @@ void read_train(const YAML::Node& t, const ClassTable& classes, const std::strin
   PS_CHECK(c.scan_stride >= 1, "{}: train.scan_stride must be >= 1, got {}", source, c.scan_stride);
   PS_CHECK(c.precise_bn_batches >= 0, "{}: train.precise_bn_batches must be >= 0, got {}", source,
            c.precise_bn_batches);
+  PS_CHECK(c.average_epochs >= 0 && c.average_epochs <= c.epochs,
+           "{}: train.average_epochs must be 0..train.epochs ({}), got {}", source, c.epochs,
+           c.average_epochs);
+  PS_CHECK(c.average_epochs == 0 || c.precise_bn_batches > 0,
+           "{}: train.average_epochs {} needs train.precise_bn_batches > 0 (the averaged weights' "
+           "BatchNorm statistics are estimated again)",
+           source, c.average_epochs);
   PS_CHECK(c.lr > 0, "{}: train.optimizer.lr must be > 0, got {}", source, c.lr);
   PS_CHECK(c.pct_start > 0 && c.pct_start < 1, "{}: train.optimizer.pct_start must be in (0, 1)", source);
   try {

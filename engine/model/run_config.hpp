@@ -41,6 +41,11 @@ struct TrainConfig {
   // momentum averages). Short runs need it: the PFN's momentum of 0.01 still remembers weights
   // from hundreds of steps before.
   int precise_bn_batches = 0;
+  // Weight averaging (stochastic weight averaging, Izmailov et al. 2018): the weights at the
+  // end of each of the last this many epochs are summed, and after the last epoch the model
+  // takes their mean, whose BatchNorm statistics precise BatchNorm then estimates (it must be
+  // on). 0: off, the model is the last epoch's weights.
+  int average_epochs = 0;
   // Threads preparing samples ahead of the step into a bounded queue (engine/train/prefetcher.hpp);
   // 0: each batch is prepared when the step needs it. The results do not depend on it.
   int workers = 0;

@@ -215,6 +215,27 @@ void recalibrate_batchnorm(PillarSegNet& net, const ScanDataset& data, const Tra
   net.set_batchnorm_momentum(0);
 }
 
+// Weight averaging (train.average_epochs = K), called at the end of each of the last K epochs:
+// adds the trainable values to state.average_sum (in float, in the same order in a resumed run:
+// the same bits), and after the last epoch sets the model to their mean and empties the sum.
+// Precise BatchNorm, which runs next, then estimates the averaged weights' statistics. Every
+// replica holds the same values, so each averages its own.
+void average_weights(ParameterSet& ps, const TrainConfig& tc, TrainState& state, bool leader) {
+  const std::vector<float> values = ps.download_flat(ps.values());
+  if (state.average_sum.empty()) state.average_sum.assign(values.size(), 0.0f);
+  for (size_t i = 0; i < values.size(); ++i) state.average_sum[i] += values[i];
+  if (state.epoch < tc.epochs) return;
+  const float k = static_cast<float>(tc.average_epochs);
+  std::vector<float> mean(values.size());
+  for (size_t i = 0; i < mean.size(); ++i) mean[i] = state.average_sum[i] / k;
+  ps.upload_flat(ps.values(), mean);
+  state.average_sum.clear();
+  if (leader)
+    spdlog::info("the model takes the mean of its weights at the end of the last {} epochs "
+                 "(train.average_epochs)",
+                 tc.average_epochs);
+}
+
 // Data-parallel training: each bucket of the gradients summed over the replicas as soon as the
 // backward has finished it (Backend::begin_sum_over_replicas), and the begun sums moved along
 // between the backward's nodes.
@@ -297,6 +318,14 @@ TrainResult train(const TrainOptions& options) {
         ckpt_path.string(), cfg.source);
     load_weights(ckpt, net, /*with_optimizer=*/true);
     state = ckpt.state;
+    // Inside the averaging window (and before its last epoch) the checkpoint holds the sum.
+    if (state.epoch > tc.epochs - tc.average_epochs && state.epoch < tc.epochs) {
+      PS_CHECK(ckpt.file.contains(kAverageSumName),
+               "--resume: {} has no {} for train.average_epochs {} at epoch {}",
+               ckpt_path.string(), kAverageSumName, tc.average_epochs, state.epoch);
+      const Tensor<float> sum = ckpt.file.get_f32(kAverageSumName, {ps.num_trainable()});
+      state.average_sum.assign(sum.begin(), sum.end());
+    }
     spdlog::info("resuming from {} (epoch {}, step {})", ckpt_path.string(), state.epoch,
                  state.step);
   } else {
@@ -492,6 +521,7 @@ TrainResult train(const TrainOptions& options) {
       progress.finish(fmt::format("mean loss {:.4f}, waited {:.1f} s for data",
                                   result.last_epoch_loss, data_wait));
     }
+    if (state.epoch > tc.epochs - tc.average_epochs) average_weights(ps, tc, state, leader);
     if (tc.precise_bn_batches > 0) recalibrate_batchnorm(net, data, tc, replicas);
     if (R > 1) require_identical_replicas(ps, replicas, state.epoch);
     const int every = cfg.eval.every_epochs;
