@@ -19,8 +19,10 @@ if [[ ! -d data/sequences/00 ]]; then
   "$bin" simulate --out data --sequences 1 --scans "$scans" --seed 1 > /dev/null
   "$bin" simulate --out data --sequences 1 --scans 4 --seed 2 --first-sequence 8 > /dev/null
 fi
-# One epoch, no precise BatchNorm (its forwards are not steps), sequence 00 only.
+# One epoch, no precise BatchNorm (its forwards are not steps) and so no weight averaging,
+# sequence 00 only.
 sed -e 's/^  epochs: .*/  epochs: 1/' -e 's/^  precise_bn_batches: .*/  precise_bn_batches: 0/' \
+    -e 's/^  average_epochs: .*/  average_epochs: 0/' \
     -e 's/^  sequences: \[0, 1, 2, 3, 4, 5, 6, 7, 9, 10, 11, 12\]/  sequences: [0]/' -e 's/every_epochs: 4/every_epochs: 0/' "$here/configs/small_cpu.yaml" > bench.yaml
 sum_wait() {  # run_dir -> ms per step between the backward's end and the gradient sums' end
   python3 - "$1/metrics.jsonl" <<'PY'

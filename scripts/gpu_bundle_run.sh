@@ -358,6 +358,7 @@ work=$(mktemp -d)
 if (( $(left) > 60 )); then
   "$here/bin/pillarseg" simulate --out "$work/data" --sequences 1 --scans 200 --seed 3 >> "$train_log" 2>&1
   sed -e 's/^  epochs: [0-9]*$/  epochs: 1/' -e 's/precise_bn_batches: 8/precise_bn_batches: 0/' -e 's/every_epochs: 4/every_epochs: 0/' \
+      -e 's/^  average_epochs: [0-9]*$/  average_epochs: 0/' \
       -e 's/sequences: \[0, 1, 2, 3, 4, 5, 6, 7, 9, 10, 11, 12\]/sequences: [0]/' "$here/configs/small_cpu.yaml" > "$work/check.yaml"
   for run in cuda cuda_bf16 cpu; do
     precision=fp32
