@@ -76,6 +76,10 @@ Checkpoint read_checkpoint(const fs::path& path) {
   }
   if (auto it = md.find("best_epoch"); it != md.end()) c.state.best_epoch = parse_int(it->second, "best_epoch", path);
   c.has_optimizer = c.file.contains("optimizer.exp_avg") && c.file.contains("optimizer.exp_avg_sq");
+  if (c.file.contains(kAverageSumName)) {
+    const Tensor<float> sum = c.file.get_f32(kAverageSumName);
+    c.state.average_sum.assign(sum.begin(), sum.end());
+  }
   return c;
 }
 

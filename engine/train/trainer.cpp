@@ -215,6 +215,11 @@ void recalibrate_batchnorm(PillarSegNet& net, const ScanDataset& data, const Tra
   net.set_batchnorm_momentum(0);
 }
 
+// Whether the epoch `epochs_done` (1-based) ends inside train.average_epochs' window.
+bool averaging(const TrainConfig& tc, int64_t epochs_done) {
+  return epochs_done > tc.epochs - tc.average_epochs;
+}
+
 // Weight averaging (train.average_epochs = K), called at the end of each of the last K epochs:
 // adds the trainable values to state.average_sum (in float, in the same order in a resumed run:
 // the same bits), and after the last epoch sets the model to their mean and empties the sum.
@@ -226,9 +231,8 @@ void average_weights(ParameterSet& ps, const TrainConfig& tc, TrainState& state,
   for (size_t i = 0; i < values.size(); ++i) state.average_sum[i] += values[i];
   if (state.epoch < tc.epochs) return;
   const float k = static_cast<float>(tc.average_epochs);
-  std::vector<float> mean(values.size());
-  for (size_t i = 0; i < mean.size(); ++i) mean[i] = state.average_sum[i] / k;
-  ps.upload_flat(ps.values(), mean);
+  for (float& sum : state.average_sum) sum /= k;  // now the mean
+  ps.upload_flat(ps.values(), state.average_sum);
   state.average_sum.clear();
   if (leader)
     spdlog::info("the model takes the mean of its weights at the end of the last {} epochs "
@@ -319,12 +323,12 @@ TrainResult train(const TrainOptions& options) {
     load_weights(ckpt, net, /*with_optimizer=*/true);
     state = ckpt.state;
     // Inside the averaging window (and before its last epoch) the checkpoint holds the sum.
-    if (state.epoch > tc.epochs - tc.average_epochs && state.epoch < tc.epochs) {
-      PS_CHECK(ckpt.file.contains(kAverageSumName),
-               "--resume: {} has no {} for train.average_epochs {} at epoch {}",
-               ckpt_path.string(), kAverageSumName, tc.average_epochs, state.epoch);
-      const Tensor<float> sum = ckpt.file.get_f32(kAverageSumName, {ps.num_trainable()});
-      state.average_sum.assign(sum.begin(), sum.end());
+    if (averaging(tc, state.epoch) && state.epoch < tc.epochs) {
+      PS_CHECK(static_cast<int64_t>(state.average_sum.size()) == ps.num_trainable(),
+               "--resume: {} holds {} values of {} for train.average_epochs {} at epoch {}, the "
+               "model {}",
+               ckpt_path.string(), state.average_sum.size(), kAverageSumName, tc.average_epochs,
+               state.epoch, ps.num_trainable());
     }
     spdlog::info("resuming from {} (epoch {}, step {})", ckpt_path.string(), state.epoch,
                  state.step);
@@ -521,7 +525,7 @@ TrainResult train(const TrainOptions& options) {
       progress.finish(fmt::format("mean loss {:.4f}, waited {:.1f} s for data",
                                   result.last_epoch_loss, data_wait));
     }
-    if (state.epoch > tc.epochs - tc.average_epochs) average_weights(ps, tc, state, leader);
+    if (averaging(tc, state.epoch)) average_weights(ps, tc, state, leader);
     if (tc.precise_bn_batches > 0) recalibrate_batchnorm(net, data, tc, replicas);
     if (R > 1) require_identical_replicas(ps, replicas, state.epoch);
     const int every = cfg.eval.every_epochs;
