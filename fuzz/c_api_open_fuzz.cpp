@@ -4,7 +4,8 @@
 //   u8 choices: bits 0-1 device (cpu, emu, cuda, a string), bits 2-3 convolution (own, cudnn,
 //               cublas, a string), bits 4-5 precision (fp32, bf16, fp16, a string), bit 6 options
 //               NULL, bit 7 a config path
-//   u8 struct_size (0: sizeof(pillarseg_options)), i8 threads, i8 cuda_device, u8 mask_unobserved,
+//   u8 struct_size (0: sizeof(pillarseg_options)), i8 threads, i8 cuda_device, u8 mask_and_flips
+//   (bit 0 mask_unobserved, bits 1-2 flips 1, 2, 4 or the whole byte as a signed value),
 //   the chosen strings (a length byte each), then the config text.
 // A config whose grid has more than 2^16 cells or 64 layers is valid but too slow to fuzz and is
 // skipped. A failure must be a clean error; what opens must segment.
@@ -73,7 +74,11 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   if (struct_size != 0) options.struct_size = struct_size;
   options.threads = in.take<int8_t>();
   options.cuda_device = in.take<int8_t>();
-  options.mask_unobserved = in.take<uint8_t>();
+  const auto mask_and_flips = in.take<uint8_t>();
+  options.mask_unobserved = mask_and_flips & 1u;
+  static const int kFlips[3] = {1, 2, 4};
+  const unsigned flips_choice = (mask_and_flips >> 1) & 3u;
+  options.flips = flips_choice < 3 ? kFlips[flips_choice] : static_cast<int8_t>(mask_and_flips);
   const std::string device = (choices & 3u) == 3 ? in.take_string() : "";
   const std::string convolution = ((choices >> 2) & 3u) == 3 ? in.take_string() : "";
   const std::string precision = ((choices >> 4) & 3u) == 3 ? in.take_string() : "";

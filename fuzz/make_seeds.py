@@ -412,6 +412,12 @@ input:
             "negative_threads": c_api_open_input(threads=-3, cuda_device=-1),
             "other_model": c_api_open_input(choices=0x80, config=tiny.replace(b"base_width: 4", b"base_width: 8")),
             "other_grid": c_api_open_input(choices=0x80, config=tiny.replace(b"cell: 0.4", b"cell: 0.2")),
+            # mask byte: bit 0 mask_unobserved, bits 1-2 flips 1, 2, 4 or the byte as a signed value.
+            "flips_4": c_api_open_input(mask=0x04),
+            "flips_2_masked_emu": c_api_open_input(choices=0x01, mask=0x03),
+            "flips_bad": c_api_open_input(mask=0x86),
+            "flips_asymmetric_grid": c_api_open_input(choices=0x80, mask=0x02,
+                                                      config=tiny.replace(b"y: [-3.2, 3.2]", b"y: [-3.2, 4.8]")),
         },
     }
 

@@ -154,6 +154,17 @@ python3 -c 'import struct, sys; w, h = struct.unpack(">II", open(sys.argv[1], "r
 run infer --weights "$weights" --scan "$velodyne/000001.bin" --out "$work/emu_one" --device emu > /dev/null
 run eval --data "$work/data" --weights "$weights" --mode sparse --device emu --report "$work/eval_emu.json" > /dev/null 2>&1
 [[ -s $work/eval_emu.json ]] || fail "eval --device emu wrote no report"
+# Test-time flips: --flips, else the config's eval.flips; named in the output and the report.
+run eval --data "$work/data" --weights "$weights" --mode sparse --flips 4 --report "$work/eval_flips.json" \
+  > "$work/eval_flips.log" 2>&1 || { cat "$work/eval_flips.log"; fail "eval --flips 4 failed"; }
+grep -q "each scan's softmax the mean of 4 mirrored copies" "$work/eval_flips.log" || fail "eval --flips 4: not said"
+grep -q '(4 flips)' "$work/eval_flips.json" || fail "eval --flips 4: the report does not say so"
+sed 's/eval: {sequences: \[0\]}/eval: {sequences: [0], flips: 2}/' "$work/tiny.yaml" > "$work/tiny_flips.yaml"
+run eval --data "$work/data" --weights "$weights" --config "$work/tiny_flips.yaml" --mode sparse \
+  --report "$work/eval_flips2.json" > "$work/eval_flips2.log" 2>&1 || { cat "$work/eval_flips2.log"; fail "eval with eval.flips 2 failed"; }
+grep -q '(2 flips)' "$work/eval_flips2.json" || fail "eval: the config's eval.flips 2 not used"
+message=$(run bench --config "$work/tiny.yaml" --flips 2 --ops 2>&1) && fail "bench --flips 2 --ops succeeded"
+[[ $message == *"--flips 2: --ops and --roofline time one pass"* ]] || fail "bench --flips 2 --ops: '$message'"
 
 run bench --device emu --config "$work/tiny.yaml" --weights "$weights" --scan "$velodyne/000001.bin" --repeat 2 \
   > "$work/bench.log" 2>&1 || { cat "$work/bench.log"; fail "bench --device emu failed"; }

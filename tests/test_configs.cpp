@@ -69,4 +69,10 @@ TEST(Configs, ErrorsNameTheKey) {
   EXPECT_NE(message("train: {gradient_bucket_mb: -0.5}").find("train.gradient_bucket_mb"), std::string::npos);
   EXPECT_EQ(parse_run_config("train: {gradient_bucket_mb: 0.25}", "my.yaml").train.gradient_bucket_mb, 0.25);
   EXPECT_EQ(parse_run_config("train: {}", "my.yaml").train.gradient_bucket_mb, 4.0);
+  EXPECT_NE(message("eval: {flips: 3}").find("eval.flips: 3 mirrored copies"), std::string::npos);
+  EXPECT_NE(message("grid: {y: [-20, 25]}\neval: {flips: 2}").find("grid.y is [-20, 25]"), std::string::npos);
+  EXPECT_NE(message("grid: {x: [0, 100]}\neval: {flips: 4}").find("grid.x is [0, 100]"), std::string::npos);
+  EXPECT_EQ(parse_run_config("grid: {x: [0, 100]}\neval: {flips: 2}", "my.yaml").eval.flips, 2);
+  EXPECT_EQ(parse_run_config("eval: {flips: 4}", "my.yaml").eval.flips, 4);
+  EXPECT_EQ(parse_run_config("eval: {}", "my.yaml").eval.flips, 1);
 }

@@ -337,3 +337,134 @@ TEST(Segmenter, ErrorsSayWhatIsWrong) {
     EXPECT_NE(std::string(e.what()).find("labels must point to H x W = 513 bytes"), std::string::npos) << e.what();
   }
 }
+
+namespace {
+
+// The tiny model with 2D occupancy on a grid symmetric about the sensor: 27 x 19 cells of 0.25 m.
+ModelConfig symmetric_config() {
+  ModelConfig c = pipeline_config(kVariants[1]);
+  c.grid.x_min = -3.375, c.grid.x_max = 3.375;
+  c.grid.y_min = -2.375, c.grid.y_max = 2.375;
+  return c;
+}
+
+std::unique_ptr<ScanSegmenter> flipping_segmenter(const ModelConfig& c, std::unique_ptr<Backend> backend, int flips,
+                                                  bool mask) {
+  SegmenterOptions o;
+  o.flips = flips;
+  o.mask_unobserved = mask;
+  return std::make_unique<ScanSegmenter>(c, std::move(backend), o, /*seed=*/7);
+}
+
+// The points mirrored: y -> -y where bit 0 of `copy` is set, x -> -x where bit 1 is.
+std::vector<Point> mirrored(std::vector<Point> points, int copy) {
+  for (Point& p : points) {
+    if (copy & 1) p.y = -p.y;
+    if (copy & 2) p.x = -p.x;
+  }
+  return points;
+}
+
+// Probabilities (12 H W) mirrored in the same way, cell (iy, ix) from (H - 1 - iy, ix) etc.
+std::vector<float> mirrored(const std::vector<float>& probs, const GridSpec& grid, int copy) {
+  const int64_t w = grid.width(), h = grid.height();
+  std::vector<float> out(probs.size());
+  for (int64_t k = 0; k < 12; ++k)
+    for (int64_t iy = 0; iy < h; ++iy)
+      for (int64_t ix = 0; ix < w; ++ix)
+        out[static_cast<size_t>((k * h + iy) * w + ix)] = probs[static_cast<size_t>(
+            (k * h + ((copy & 1) ? h - 1 - iy : iy)) * w + ((copy & 2) ? w - 1 - ix : ix))];
+  return out;
+}
+
+}  // namespace
+
+// flips 2 and 4: the softmax is the mean of the one-pass segmenter's on the mirrored copies,
+// mirrored back (summed in the copies' order, then scaled: bit for bit), the labels its arg-max,
+// 0 where every copy masked the cell; and the segmenter then commutes with the mirrors.
+TEST(Segmenter, FlipsAverageTheMirroredCopies) {
+  const ModelConfig c = symmetric_config();
+  const int64_t cells = c.grid.cells();
+  for (const bool mask : {false, true}) {
+    SCOPED_TRACE(mask ? "masking unobserved cells" : "every cell");
+    auto single = flipping_segmenter(c, make_cpu_reference_backend(), 1, mask);
+    // (With masking, few points: cells no ray of any copy reaches.)
+    const std::vector<Point> points = test::random_scan(mask ? 60 : 1500, c.grid, 910);
+    for (const int flips : {2, 4}) {
+      SCOPED_TRACE(::testing::Message() << flips << " flips");
+      auto flipping = flipping_segmenter(c, make_cpu_reference_backend(), flips, mask);
+      std::vector<float> sum(static_cast<size_t>(12 * cells), 0.0f);
+      for (int copy = 0; copy < flips; ++copy) {
+        const std::vector<float> p = mirrored(segment(*single, mirrored(points, copy)).probabilities, c.grid, copy);
+        for (size_t i = 0; i < sum.size(); ++i) sum[i] += p[i];
+      }
+      Segmented expected{std::vector<uint8_t>(static_cast<size_t>(cells), 0), sum};
+      for (float& v : expected.probabilities) v *= 1.0f / static_cast<float>(flips);
+      int64_t unobserved = 0;
+      for (int64_t i = 0; i < cells; ++i) {
+        float best = 0.0f;
+        for (int64_t k = 0; k < 12; ++k) {
+          const float v = sum[static_cast<size_t>(k * cells + i)];
+          if (v > best) best = v, expected.labels[static_cast<size_t>(i)] = static_cast<uint8_t>(k + 1);
+        }
+        unobserved += expected.labels[static_cast<size_t>(i)] == 0;
+      }
+      EXPECT_EQ(unobserved > 0, mask);
+      const Segmented got = segment(*flipping, points);
+      EXPECT_EQ(got.probabilities, expected.probabilities);
+      EXPECT_EQ(got.labels, expected.labels);
+      const Segmented one = segment(*single, points);
+      EXPECT_NE(got.probabilities, one.probabilities) << "the mirrored copies must change the result";
+      // Labels alone: the same map.
+      EXPECT_EQ(segment(*flipping, points, false).labels, got.labels);
+      // Commuting with the mirrors: the copies of a mirrored scan are the scan's copies, in
+      // another order (so within rounding).
+      for (int copy = 1; copy < flips; ++copy) {
+        SCOPED_TRACE(::testing::Message() << "scan mirrored as copy " << copy);
+        const Segmented m = segment(*flipping, mirrored(points, copy));
+        const std::vector<float> back = mirrored(m.probabilities, c.grid, copy);
+        EXPECT_TRUE(test::all_close(back.data(), got.probabilities.data(), static_cast<int64_t>(back.size()), 1e-6,
+                                    1e-6));
+      }
+    }
+  }
+}
+
+// The CUDA backend's segmenter (its recorded graph with the probabilities) flips as the CPU's.
+TEST(Segmenter, FlipsOnTheCudaBackendEqualTheCpuBackend) {
+  const ModelConfig c = symmetric_config();
+  auto cpu = flipping_segmenter(c, make_cpu_reference_backend(), 4, true);
+  CudaBackendOptions options;
+  auto cuda = flipping_segmenter(c, std::make_unique<CudaBackend>(options), 4, true);
+  std::uint64_t seed = 920;
+  for (const std::int64_t m : {1200, 800}) {
+    const std::vector<Point> points = test::random_scan(m, c.grid, seed++);
+    const Segmented expected = segment(*cpu, points), got = segment(*cuda, points);
+    EXPECT_TRUE(test::all_close(got.probabilities.data(), expected.probabilities.data(),
+                                static_cast<int64_t>(got.probabilities.size()), 1e-6, 2e-5));
+    expect_same_decided_labels(got, expected, 1e-4);
+  }
+}
+
+TEST(Segmenter, FlipsNeedAGridSymmetricAboutTheSensor) {
+  const auto message = [](const ModelConfig& c, int flips) {
+    try {
+      flipping_segmenter(c, make_cpu_reference_backend(), flips, false);
+    } catch (const Error& e) {
+      return std::string(e.what());
+    }
+    return std::string();
+  };
+  const ModelConfig odd = pipeline_config(kVariants[0]);  // x [-3, 3.75], y [-2.25, 2.5]
+  EXPECT_NE(message(odd, 2).find("flips 2: the mirror y -> -y maps the grid onto itself only when it is symmetric "
+                                 "about the sensor; grid.y is [-2.25, 2.5]"),
+            std::string::npos)
+      << message(odd, 2);
+  ModelConfig half = symmetric_config();
+  half.grid.x_min = 0.0, half.grid.x_max = 6.75;
+  EXPECT_EQ(message(half, 2), "");
+  EXPECT_NE(message(half, 4).find("grid.x is [0, 6.75]"), std::string::npos) << message(half, 4);
+  EXPECT_NE(message(symmetric_config(), 3).find("flips: 3 mirrored copies"), std::string::npos);
+  EXPECT_EQ(message(odd, 1), "");
+}
+

@@ -130,6 +130,7 @@ void pillarseg_init_options(pillarseg_options* options, size_t struct_size) {
   defaults.reflectance_offset = 0.0f;
   defaults.reflectance_clip = 1;
   for (int i = 0; i < 16; ++i) defaults.transform[i] = i % 5 == 0 ? 1.0 : 0.0;
+  defaults.flips = 1;
   std::memcpy(options, &defaults, defaults.struct_size);
 }
 
@@ -165,6 +166,12 @@ pillarseg_segmenter* pillarseg_open(const char* weights_path, const char* config
     if (PS_OPTION_PRESENT(o, convolution) && o->convolution != nullptr) so.backend.convolution = o->convolution;
     if (PS_OPTION_PRESENT(o, precision) && o->precision != nullptr)
       so.precision = pillarseg::parse_precision(o->precision, "options->precision");
+    if (PS_OPTION_PRESENT(o, flips)) {
+      PS_CHECK(o->flips == 1 || o->flips == 2 || o->flips == 4,
+               "options->flips must be 1 (the scan alone), 2 (and y -> -y) or 4 (and x -> -x, and both), got {}",
+               o->flips);
+      so.flips = o->flips;
+    }
     PS_CHECK(so.device == "cpu" || so.device == "cuda" || so.device == "emu",
              "options->device must be \"cpu\", \"cuda\" or \"emu\", got \"{}\"", so.device);
     const InputOverrides input = input_overrides(*o);

@@ -55,6 +55,14 @@ inline void add_device_options(CLI::App* cmd, DeviceArgs& args) {
       ->check(CLI::IsMember({"fp32", "bf16", "fp16", "int8"}));
 }
 
+// --flips on infer, render and bench (eval: its default is the config's eval.flips).
+inline constexpr const char* kFlipsHelp =
+    "test-time mirrors: the softmax averaged over 1, 2 (and y -> -y) or 4 (and x -> -x, and both) copies of "
+    "each scan, that many passes; the grid must be symmetric about the sensor";
+inline void add_flips_option(CLI::App* cmd, int& flips, const std::string& default_note = " (default 1)") {
+  cmd->add_option("--flips", flips, kFlipsHelp + default_note)->check(CLI::IsMember({1, 2, 4}));
+}
+
 // The segmenter options of --device, --conv, --cuda-device and --precision.
 inline SegmenterOptions segmenter_options(const DeviceArgs& args) {
   SegmenterOptions options;

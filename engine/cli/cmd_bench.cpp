@@ -50,6 +50,7 @@ struct BenchArgs {
   std::string config, weights, scan, format = "auto";
   DeviceArgs device;
   int repeat = 5;
+  int flips = 1;
   bool transposed = false, mask_unobserved = false;
   bool ops = false;      // the network's time per op of its graph
   std::string roofline;  // a GPU (engine/model/roofline.hpp) to bound each op's time on
@@ -328,6 +329,9 @@ void run_bench(const BenchArgs& a) {
   model.transposed = model.transposed || a.transposed;
   SegmenterOptions options = segmenter_options(a.device);
   options.mask_unobserved = a.mask_unobserved;
+  options.flips = a.flips;
+  PS_CHECK(a.flips == 1 || (!a.ops && a.roofline.empty()),
+           "--flips {}: --ops and --roofline time one pass of the network; leave out --flips", a.flips);
   // The device first: no device, no scratch files left behind.
   ScanSegmenter segmenter(model, make_backend(options.device, options.backend), options);
   Backend& backend = segmenter.backend();
@@ -419,10 +423,11 @@ void run_bench(const BenchArgs& a) {
     precision_label += fmt::format(" ({}: {})", cpu::int8_kernels_name(cpu::native_int8_kernels()),
                                    int8_conv_forms(segmenter.net().graph(false)));
   fmt::print("pillarseg bench: device {}, precision {}, {} threads, grid {} x {}, C {}, b {}, {} upsampling, "
-             "occupancy {}{}\n",
+             "occupancy {}{}{}\n",
              backend.name(), precision_label, num_threads(), model.grid.width(), model.grid.height(), model.pillar_channels,
              model.base_width, model.transposed ? "transposed" : "bilinear", occupancy_name(model.occupancy),
-             model.grid_map_input ? ", grid-map input" : "");
+             model.grid_map_input ? ", grid-map input" : "",
+             a.flips > 1 ? fmt::format(", {} flips (each stage the sum over the {} passes)", a.flips, a.flips) : "");
   std::string bf16_line, why;
   if (!cpu::avx512_bf16_available(&why)) {
     bf16_line = "no BF16 kernels (" + why + ")";
@@ -506,6 +511,7 @@ void add_bench(CLI::App& app) {
   cmd->add_option("--format", a->format, "the point file's format: auto (by extension), kitti, pcd, ply, npy, nuscenes")
       ->check(CLI::IsMember({"auto", "kitti", "pcd", "ply", "npy", "nuscenes"}));
   cmd->add_option("--repeat", a->repeat, "timed repetitions")->check(CLI::PositiveNumber);
+  add_flips_option(cmd, a->flips);
   cmd->add_flag(
       "--ops", a->ops,
       "also time the network per op of its graph, with each op's FLOPs and least bytes (and, on "

@@ -38,6 +38,7 @@ struct InferArgs {
   std::vector<std::string> scans;
   DeviceArgs device;
   bool probabilities = false, mask_unobserved = false, no_png = false;
+  int flips = 1;
   // The input mapping's parts set on the command line (the run config's input: section otherwise).
   std::optional<float> reflectance_scale, reflectance_offset;
   bool no_reflectance = false;
@@ -50,12 +51,14 @@ struct RenderArgs {
   DeviceArgs device;
   int sequence = -1, scan = -1;
   bool mask_unobserved = false;
+  int flips = 1;
 };
 
 std::unique_ptr<ScanSegmenter> open_for(const std::string& weights, const std::string& config,
-                                        const DeviceArgs& device, bool mask_unobserved) {
+                                        const DeviceArgs& device, bool mask_unobserved, int flips) {
   SegmenterOptions options = segmenter_options(device);
   options.mask_unobserved = mask_unobserved;
+  options.flips = flips;
   return open_segmenter(weights, config, options);
 }
 
@@ -129,7 +132,7 @@ void run_infer(const InferArgs& a) {
     fs::create_directories(a.out);
   }
   const PointFormat format = parse_point_format(a.format);
-  auto segmenter = open_for(a.weights, a.config, a.device, a.mask_unobserved);
+  auto segmenter = open_for(a.weights, a.config, a.device, a.mask_unobserved, a.flips);
   segmenter->set_input_mapping(input_mapping(a, segmenter->input_mapping()));
   if (!segmenter->input_mapping().is_identity())
     fmt::print(stderr, "input mapping: {}\n", segmenter->input_mapping().describe());
@@ -189,7 +192,7 @@ void run_render(const RenderArgs& a) {
   GridSpec grid;
   std::unique_ptr<ScanSegmenter> segmenter;
   if (!a.weights.empty()) {
-    segmenter = open_for(a.weights, a.config, a.device, false);
+    segmenter = open_for(a.weights, a.config, a.device, false, a.flips);
     grid = segmenter->model().grid;
   }
   // Every panel in the model's frame: the sequence maps its points and poses as the config says.
@@ -213,8 +216,9 @@ void run_render(const RenderArgs& a) {
     segmenter->segment_mapped(scan.points, labels.data());
     ImageRgb prediction = render_label_map(labels, classes);
     if (a.mask_unobserved) apply_mask(prediction, mask);
-    panels.push_back({fmt::format("Prediction ({}, {}{})", fs::path(a.weights).filename().string(),
-                                  segmenter->backend().name(), masked),
+    const std::string flips = a.flips > 1 ? fmt::format(", {} flips", a.flips) : "";
+    panels.push_back({fmt::format("Prediction ({}, {}{}{})", fs::path(a.weights).filename().string(),
+                                  segmenter->backend().name(), flips, masked),
                       std::move(prediction)});
   }
   if (seq.has_labels(index)) {
@@ -276,6 +280,7 @@ void add_infer(CLI::App& app) {
                   "run config (default: the one stored in the checkpoint; for a weights-only file its "
                   "tensor shapes on the paper's grid)");
   add_device_options(cmd, a->device);
+  add_flips_option(cmd, a->flips);
   cmd->callback([a] { run_infer(*a); });
 
   auto r = std::make_shared<RenderArgs>();
@@ -292,6 +297,7 @@ void add_infer(CLI::App& app) {
   rc->add_option("--mode", r->mode, "ground truth: sparse or dense")->check(CLI::IsMember({"sparse", "dense"}));
   rc->add_flag("--mask-unobserved", r->mask_unobserved, "black out cells no ray observed");
   add_device_options(rc, r->device);
+  add_flips_option(rc, r->flips);
   rc->add_option("--cache", r->cache, "ground-truth cache directory");
   rc->callback([r] { run_render(*r); });
 }

@@ -43,6 +43,7 @@ struct EvalArgs {
   DeviceArgs device;
   std::vector<int> sequences;
   int stride = 0;
+  int flips = 0;  // 0: the config's eval.flips
 };
 
 // Training's memory, checked before the trainer reads any data: on the host for the CPU backend and
@@ -109,7 +110,8 @@ void run_train(const TrainArgs& a) {
 void run_eval(const EvalArgs& a) {
   const Checkpoint ckpt = read_checkpoint(a.weights);
   const RunConfig config = config_for(ckpt, a.config);
-  const SegmenterOptions options = segmenter_options(a.device);
+  SegmenterOptions options = segmenter_options(a.device);
+  options.flips = a.flips > 0 ? a.flips : config.eval.flips;
   ScanSegmenter segmenter(config.model, make_backend(options.device, options.backend), options);
   load_weights(ckpt, segmenter.net(), false);
   EvalOptions o;
@@ -121,9 +123,12 @@ void run_eval(const EvalArgs& a) {
   const SegmentationMetrics m = evaluate(segmenter, config, o);
   const ClassTable classes = ClassTable::defaults();
   const std::string mode = eval_mode_label(config.train.ground_truth, o.mode),
-                    method = method_label(config.model);
+                    method = method_label(config.model) +
+                             (options.flips > 1 ? fmt::format(" ({} flips)", options.flips) : "");
   fmt::print("\n{}\n", m.markdown_table(classes, mode, method));
-  fmt::print("mIoU {:.1f}% over {} labelled cells\n", 100.0 * m.miou(), m.labelled_cells());
+  fmt::print("mIoU {:.1f}% over {} labelled cells{}\n", 100.0 * m.miou(), m.labelled_cells(),
+             options.flips > 1 ? fmt::format(", each scan's softmax the mean of {} mirrored copies", options.flips)
+                               : "");
   const std::string report = a.report.empty()
                                  ? std::filesystem::path(a.weights).replace_extension().string() +
                                        "." + a.mode + "_eval.json"
@@ -166,6 +171,7 @@ void add_train(CLI::App& app) {
   ev->add_option("--sequences", e->sequences,
                  "sequences to evaluate (default: the config's eval.sequences)");
   ev->add_option("--stride", e->stride, "every n-th scan (default: the config's eval.scan_stride)");
+  add_flips_option(ev, e->flips, " (default: the config's eval.flips, else 1)");
   add_device_options(ev, e->device);
   ev->add_option("--cache", e->cache, "ground-truth cache directory");
   ev->add_option("--report", e->report, "JSON report path (default: beside the checkpoint)");

@@ -8,7 +8,8 @@ namespace pillarseg {
 SegmentationMetrics evaluate(ScanSegmenter& segmenter, const RunConfig& config,
                              const EvalOptions& options) {
   PillarSegNet& net = segmenter.net();
-  const bool on_host = segmenter.backend().device() == Device::Cpu;
+  // Mirrored copies (flips > 1) are the segmenter's: then the CPU, too, runs it on the raw points.
+  const bool on_host = segmenter.backend().device() == Device::Cpu && segmenter.flips() == 1;
   const std::vector<int>& sequences =
       options.sequences.empty() ? config.eval.sequences : options.sequences;
   const int stride = options.scan_stride > 0 ? options.scan_stride : config.eval.scan_stride;

@@ -29,8 +29,9 @@ struct EvalOptions {
 };
 
 // The segmenter's model over the split. On the CPU backend the inputs come from the host pipeline
-// with the cached maps (as training reads them); on a CUDA backend each scan's raw points go
-// through the device pipeline (ScanSegmenter::segment).
+// with the cached maps (as training reads them); on a CUDA backend, and with the segmenter's
+// mirrored copies (flips > 1) on any, each scan's raw points go through the segmenter's pipeline
+// (ScanSegmenter::segment_mapped).
 SegmentationMetrics evaluate(ScanSegmenter& segmenter, const RunConfig& config, const EvalOptions& options);
 
 // Table I row labels: "Sparse Train / Dense Eval" and "Pillar + 2D Occupancy".

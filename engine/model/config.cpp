@@ -145,4 +145,18 @@ ModelConfig model_config_from_yaml(const YAML::Node& root, const std::string& so
   return c;
 }
 
+void check_flips(int flips, const GridSpec& grid, const std::string& what) {
+  PS_CHECK(flips == 1 || flips == 2 || flips == 4,
+           "{}: {} mirrored copies of the scan: expected 1 (none), 2 (and y -> -y) or 4 (and x -> -x, and both)",
+           what, flips);
+  PS_CHECK(flips == 1 || grid.y_min == -grid.y_max,
+           "{} {}: the mirror y -> -y maps the grid onto itself only when it is symmetric about the sensor; "
+           "grid.y is [{}, {}]",
+           what, flips, grid.y_min, grid.y_max);
+  PS_CHECK(flips < 4 || grid.x_min == -grid.x_max,
+           "{} {}: the mirror x -> -x maps the grid onto itself only when it is symmetric about the sensor; "
+           "grid.x is [{}, {}] (2 mirrors y alone)",
+           what, flips, grid.x_min, grid.x_max);
+}
+
 }  // namespace pillarseg

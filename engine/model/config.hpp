@@ -44,4 +44,9 @@ ModelConfig model_config_from_yaml(const YAML::Node& root, const std::string& so
 GridSpec grid_from_yaml(const YAML::Node& node, const std::string& source);
 std::string occupancy_name(OccupancyInput o);
 
+// Test-time flips (SegmenterOptions::flips, eval.flips): 1, 2 (and the mirror y -> -y) or 4 (and
+// x -> -x, and both); a mirror maps the grid onto itself only where the grid is symmetric about
+// the sensor on that axis. Errors name `what` (the option or key), the value and the grid.
+void check_flips(int flips, const GridSpec& grid, const std::string& what);
+
 }  // namespace pillarseg

@@ -189,7 +189,10 @@ RunConfig run_config_from_yaml(const YAML::Node& root, const std::string& yaml_t
         PS_CHECK(c.eval.every_epochs >= 0, "{}: eval.every_epochs must be >= 0 (0: off), got {}", source,
                  c.eval.every_epochs);
       } else if (key == "mode") c.eval.mode = parse_ground_truth_kind(get<std::string>(kv.second, source + ": eval.mode"));
-      else PS_FAIL("{}: eval.{}: unknown key", source, key);
+      else if (key == "flips") {
+        c.eval.flips = get<int>(kv.second, source + ": eval.flips");
+        check_flips(c.eval.flips, c.model.grid, source + ": eval.flips");
+      } else PS_FAIL("{}: eval.{}: unknown key", source, key);
     }
     PS_CHECK(c.eval.scan_stride >= 1, "{}: eval.scan_stride must be >= 1", source);
   }

@@ -64,6 +64,10 @@ struct EvalConfig {
   // weights kept in RUN_DIR/best.safetensors. 0: off.
   int every_epochs = 0;
   std::optional<GroundTruthKind> mode;
+  // Test-time flips of `pillarseg eval` and of the validation while training: the softmax
+  // averaged over 1, 2 or 4 mirrored copies of each scan (SegmenterOptions::flips; flips times
+  // the work). infer, render, bench and the library run one pass unless asked (--flips).
+  int flips = 1;
 };
 
 struct RunConfig {

@@ -17,6 +17,7 @@ ScanSegmenter::ScanSegmenter(const ModelConfig& model, std::unique_ptr<Backend> 
       backend_(std::move(backend)),
       net_(std::make_unique<PillarSegNet>(model, *backend_, seed)),
       pipeline_(model, *backend_, options.mask_unobserved) {
+  check_flips(options.flips, model.grid, "flips");
   if (options.precision == Precision::F32) return;
   std::string why;
   if (backend_->supports_precision(options.precision, &why)) {
@@ -91,8 +92,70 @@ void ScanSegmenter::segment(std::span<const Point> points, uint8_t* labels, floa
   segment_mapped(mapped_, labels, probabilities);
 }
 
+ScanSegmenter::StageTimes& ScanSegmenter::StageTimes::operator+=(const StageTimes& o) {
+  upload += o.upload, pillars += o.pillars, maps += o.maps, pfn += o.pfn, scatter += o.scatter;
+  occupancy += o.occupancy, unet += o.unet, head += o.head, predict += o.predict, download += o.download;
+  return *this;
+}
+
 void ScanSegmenter::segment_mapped(std::span<const Point> points, uint8_t* labels, float* probabilities) {
   PS_CHECK(labels != nullptr, "segment: labels must point to H x W = {} bytes", model_.grid.cells());
+  if (options_.flips == 1) return segment_once(points, labels, probabilities);
+  segment_flipped(points, labels, probabilities);
+}
+
+void ScanSegmenter::segment_flipped(std::span<const Point> points, uint8_t* labels, float* probabilities) {
+  const int64_t width = model_.grid.width(), height = model_.grid.height(), cells = model_.grid.cells();
+  const int classes = model_.num_classes;
+  const size_t values = static_cast<size_t>(cells) * static_cast<size_t>(classes);
+  pass_labels_.resize(static_cast<size_t>(cells));
+  pass_probs_.resize(values);
+  sum_probs_.assign(values, 0.0f);
+  StageTimes total;
+  // Copy f mirrors y where bit 0 is set and x where bit 1 is: the scan, y, x, both. A point at
+  // y lands in row height - 1 - iy of the mirrored copy (the grid is symmetric: check_flips), so
+  // cell (iy, ix) of the scan reads the copy's cell (height - 1 - iy, ix).
+  for (int f = 0; f < options_.flips; ++f) {
+    const bool mirror_y = (f & 1) != 0, mirror_x = (f & 2) != 0;
+    mirrored_.assign(points.begin(), points.end());
+    for (Point& p : mirrored_) {
+      if (mirror_y) p.y = -p.y;
+      if (mirror_x) p.x = -p.x;
+    }
+    segment_once(mirrored_, pass_labels_.data(), pass_probs_.data());
+    total += times_;
+    for (int k = 0; k < classes; ++k) {
+      const float* pass = pass_probs_.data() + static_cast<size_t>(k) * static_cast<size_t>(cells);
+      float* sum = sum_probs_.data() + static_cast<size_t>(k) * static_cast<size_t>(cells);
+      for (int64_t iy = 0; iy < height; ++iy) {
+        const float* row = pass + (mirror_y ? height - 1 - iy : iy) * width;
+        float* out = sum + iy * width;
+        if (mirror_x) {
+          for (int64_t ix = 0; ix < width; ++ix) out[ix] += row[width - 1 - ix];
+        } else {
+          for (int64_t ix = 0; ix < width; ++ix) out[ix] += row[ix];
+        }
+      }
+    }
+  }
+  times_ = total;
+  // The arg-max of the sum is the mean's (the first class wins a tie, as the backends' arg-max);
+  // a cell masked as unobserved in every copy has probabilities 0 in all of them: class 0.
+  const float scale = 1.0f / static_cast<float>(options_.flips);
+  for (int64_t i = 0; i < cells; ++i) {
+    float best = 0.0f;
+    uint8_t id = 0;
+    for (int k = 0; k < classes; ++k) {
+      const float v = sum_probs_[static_cast<size_t>(k) * static_cast<size_t>(cells) + static_cast<size_t>(i)];
+      if (v > best) best = v, id = static_cast<uint8_t>(k + 1);
+    }
+    labels[i] = id;
+  }
+  if (probabilities != nullptr)
+    for (size_t i = 0; i < values; ++i) probabilities[i] = sum_probs_[i] * scale;
+}
+
+void ScanSegmenter::segment_once(std::span<const Point> points, uint8_t* labels, float* probabilities) {
   Backend& be = *backend_;
   be.make_current();
   const ScopedThreads threads(options_.threads);

@@ -38,6 +38,13 @@ struct SegmenterOptions {
   // The evaluation convolutions' arithmetic; a backend without it (the CPU) says so in one
   // warning line and runs FP32 (precision() tells which runs).
   Precision precision = Precision::F32;
+  // Test-time augmentation: the softmax averaged over this many mirrored copies of the scan, the
+  // label map its arg-max: 1 the scan alone; 2 and its left-right mirror (y -> -y); 4 and the
+  // front-back mirror (x -> -x) and both. Each copy is a whole pass (flips times the work); the
+  // mirrors need a grid symmetric about the sensor (check_flips). Training's flip augmentation
+  // shows the network both sides, so the copies are in its domain: the mean is an ensemble of
+  // four views (docs/simulator.md, experiment 44).
+  int flips = 1;
 };
 
 class ScanSegmenter {
@@ -63,17 +70,24 @@ class ScanSegmenter {
   void segment(std::span<const Point> points, uint8_t* labels, float* probabilities = nullptr);
   // The same for points already in the model's frame and scale (a data set's mapped scans).
   void segment_mapped(std::span<const Point> points, uint8_t* labels, float* probabilities = nullptr);
+  int flips() const { return options_.flips; }
 
   // Stage timing (for pillarseg bench): each segment() then runs without the graph and reads the
   // backend's clock (CUDA events) between stages, in ms.
   struct StageTimes {
     double upload = 0, pillars = 0, maps = 0, pfn = 0, scatter = 0, occupancy = 0, unet = 0,
            head = 0, predict = 0, download = 0;
+    StageTimes& operator+=(const StageTimes& o);
   };
   void set_stage_timing(bool on) { time_stages_ = on; }
   const StageTimes& stage_times() const { return times_; }
 
  private:
+  // One pass over the points as given (segment_mapped with flips 1).
+  void segment_once(std::span<const Point> points, uint8_t* labels, float* probabilities);
+  // flips > 1: the passes over the mirrored copies, their probabilities mirrored back and
+  // averaged; stage times are the passes' sums.
+  void segment_flipped(std::span<const Point> points, uint8_t* labels, float* probabilities);
   // Everything after the upload on the whole point buffer, shaped by the capacity: what a graph
   // records (and, once, runs uncaptured to grow every buffer first).
   void queue_recordable(bool probabilities);
@@ -90,6 +104,10 @@ class ScanSegmenter {
   ScanPipeline pipeline_;
   InputMapping input_;
   std::vector<Point> mapped_;  // the mapped copy of the last scan's points (its capacity kept)
+  // flips > 1: a mirrored copy's points, one pass's outputs and the running sum of probabilities.
+  std::vector<Point> mirrored_;
+  std::vector<uint8_t> pass_labels_;
+  std::vector<float> pass_probs_, sum_probs_;
   bool time_stages_ = false;
   StageTimes times_;
   // The recorded pipelines, without and with the probabilities, and what they were recorded on.

@@ -530,9 +530,11 @@ TrainResult train(const TrainOptions& options) {
     if (R > 1) require_identical_replicas(ps, replicas, state.epoch);
     const int every = cfg.eval.every_epochs;
     if (every > 0 && (state.epoch % every == 0 || state.epoch == tc.epochs)) {
-      if (!validator)
-        validator = std::make_unique<ScanSegmenter>(cfg.model,
-                                                    make_backend(options.device, options.backend));
+      if (!validator) {
+        SegmenterOptions vo;
+        vo.flips = cfg.eval.flips;
+        validator = std::make_unique<ScanSegmenter>(cfg.model, make_backend(options.device, options.backend), vo);
+      }
       validator->net().parameters().copy_values_from(ps);
       EvalOptions eo;
       eo.data_root = options.data_root;

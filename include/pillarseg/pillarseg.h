@@ -48,7 +48,7 @@ extern "C" {
 #endif
 
 #define PILLARSEG_VERSION_MAJOR 0
-#define PILLARSEG_VERSION_MINOR 4
+#define PILLARSEG_VERSION_MINOR 5
 #define PILLARSEG_VERSION_PATCH 0
 
 /* Classes of the map: 1 vehicle, 2 person, 3 two-wheel, 4 rider, 5 road, 6 sidewalk,
@@ -81,15 +81,19 @@ typedef struct pillarseg_options {
   int reflectance_clip;       /* non-zero: clamp to [0, 1] (default 1) */
   double transform[16];       /* row-major 4x4 from the sensor's frame into the model's
                                  (identity by default) */
+  /* Since 0.5: test-time mirrors. The softmax averaged over 1 (default: the scan alone), 2 (and
+     its mirror y -> -y) or 4 (and x -> -x, and both) copies of the scan, the labels its arg-max:
+     that many passes of the network; the grid must be symmetric about the sensor. */
+  int flips;
 } pillarseg_options;
 
-/* "0.4.0": the library's version (the header's is PILLARSEG_VERSION_*). */
+/* "0.5.0": the library's version (the header's is PILLARSEG_VERSION_*). */
 PILLARSEG_API const char* pillarseg_version(void);
 
 /* Fills the first struct_size bytes of *options with the defaults and sets options->struct_size
  * to struct_size (at most this library's sizeof(pillarseg_options)): device "cpu", threads 0,
  * cuda_device 0, mask_unobserved 0, convolution "own", precision "fp32", reflectance_none 0,
- * reflectance_scale 1, reflectance_offset 0, reflectance_clip 1, transform the identity. With
+ * reflectance_scale 1, reflectance_offset 0, reflectance_clip 1, transform the identity, flips 1. With
  * scale 1 and offset 0 the reflectance is passed as stored (clip applies to a scaled or offset
  * one). Nothing past struct_size is written, so a program built against an older header, whose
  * struct is shorter, is safe with a newer library. Call it through pillarseg_default_options. */

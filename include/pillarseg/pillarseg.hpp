@@ -40,6 +40,7 @@ struct Options {
   float reflectance_scale = 1, reflectance_offset = 0;
   bool reflectance_clip = true;
   std::array<double, 16> transform = {1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1};  // row-major 4 x 4
+  int flips = 1;  // test-time mirrors: 1, 2 or 4 copies of the scan averaged (see pillarseg_options)
 };
 
 class Segmenter {
@@ -61,6 +62,7 @@ class Segmenter {
     o.reflectance_offset = options.reflectance_offset;
     o.reflectance_clip = options.reflectance_clip ? 1 : 0;
     std::copy(options.transform.begin(), options.transform.end(), o.transform);
+    o.flips = options.flips;
     char error[1024];
     handle_ = pillarseg_open(weights.c_str(), config.empty() ? nullptr : config.c_str(), &o, error,
                              sizeof error);

@@ -24,12 +24,12 @@ from . import _capi
 __all__ = ["Error", "Segmenter", "Geometry", "read_points", "as_points", "class_names", "NUM_CLASSES",
            "library_version", "library_path"]
 
-__version__ = "0.4.0"
+__version__ = "0.5.0"
 
 NUM_CLASSES = _capi.NUM_CLASSES
 # class_names[k]: the name of class id k ("unlabeled" for 0, then "vehicle" ... "terrain").
 class_names = tuple(_capi.lib.pillarseg_class_name(k).decode() for k in range(NUM_CLASSES + 1))
-# The library's own version ("0.4.0") and the file it was loaded from.
+# The library's own version ("0.5.0") and the file it was loaded from.
 library_version = _capi.lib.pillarseg_version().decode()
 library_path = _capi.library_path
 
@@ -110,12 +110,15 @@ class Segmenter:
     transform: a 4 x 4 matrix (nested lists or an array) taking the sensor's frame into the
         model's (sensor at the origin, x forward, z up); None or the identity: the points' own
         frame (or the config's input: transform).
+    flips: test-time mirrors, 1 (the scan alone), 2 (and its mirror y -> -y) or 4 (and x -> -x,
+        and both): the probabilities are the mean over the copies, each a pass of the network
+        (flips times the work); the grid must be symmetric about the sensor.
 
     One call at a time: calls from several threads are serialised. Use it as a context manager or
     call close(); a closed segmenter raises Error."""
 
     def __init__(self, weights, config=None, device="cpu", precision="fp32", threads=0, *, cuda_device=0,
-                 mask_unobserved=False, convolution="own", reflectance=None, transform=None):
+                 mask_unobserved=False, convolution="own", reflectance=None, transform=None, flips=1):
         options = _capi.default_options()
         options.device = _encode(device, "device")
         options.precision = _encode(precision, "precision")
@@ -123,6 +126,7 @@ class Segmenter:
         options.threads = _integer(threads, "threads")
         options.cuda_device = _integer(cuda_device, "cuda_device")
         options.mask_unobserved = 1 if mask_unobserved else 0
+        options.flips = _integer(flips, "flips")
         _set_reflectance(options, reflectance)
         if transform is not None:
             options.transform[:] = _transform(transform)

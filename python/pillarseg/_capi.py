@@ -33,6 +33,7 @@ class Options(ctypes.Structure):
         ("reflectance_offset", ctypes.c_float),
         ("reflectance_clip", ctypes.c_int),
         ("transform", ctypes.c_double * 16),
+        ("flips", ctypes.c_int),
     ]
 
 

@@ -504,3 +504,63 @@ TEST(CApi, InputMappingOptions) {
   EXPECT_NE(open_error(tiny_checkpoint().c_str(), nullptr, &options).find("reflectance_offset must be finite"),
             std::string::npos);
 }
+
+// options.flips: the engine's mirrored copies (the same bits as a ScanSegmenter with flips), a
+// 0.4 struct (which ends before flips) runs one pass, and a value or grid the mirrors do not fit
+// is an error message.
+TEST(CApi, FlipsOption) {
+  const std::vector<float> xyzr = tiny_scan(3000, 9);
+  std::vector<pillarseg::Point> points;
+  for (size_t i = 0; i + 3 < xyzr.size(); i += 4) points.push_back({xyzr[i], xyzr[i + 1], xyzr[i + 2], xyzr[i + 3]});
+  pillarseg_options options;
+  pillarseg_default_options(&options);
+  EXPECT_EQ(options.flips, 1);
+  options.flips = 4;
+  char error[512];
+  pillarseg_segmenter* flipping = pillarseg_open(tiny_checkpoint().c_str(), nullptr, &options, error, sizeof error);
+  ASSERT_NE(flipping, nullptr) << error;
+  pillarseg_segmenter* plain = open_tiny();
+  ASSERT_NE(plain, nullptr);
+  const Output four = segment(flipping, xyzr), one = segment(plain, xyzr);
+  pillarseg::SegmenterOptions engine_options;
+  engine_options.flips = 4;
+  auto engine = pillarseg::open_segmenter(tiny_checkpoint(), "", engine_options);
+  std::vector<uint8_t> labels(four.labels.size());
+  std::vector<float> probabilities(four.probabilities.size());
+  engine->segment(points, labels.data(), probabilities.data());
+  EXPECT_EQ(four.labels, labels);
+  EXPECT_EQ(four.probabilities, probabilities);
+  EXPECT_NE(four.probabilities, one.probabilities);
+  pillarseg_close(flipping);
+
+  pillarseg_options old;
+  pillarseg_default_options(&old);
+  std::memset(&old.flips, 0x5a, sizeof old - offsetof(pillarseg_options, flips));
+  old.struct_size = offsetof(pillarseg_options, flips);
+  pillarseg_segmenter* previous = pillarseg_open(tiny_checkpoint().c_str(), nullptr, &old, error, sizeof error);
+  ASSERT_NE(previous, nullptr) << error;
+  EXPECT_EQ(segment(previous, xyzr).probabilities, one.probabilities);
+  pillarseg_close(previous);
+  pillarseg_close(plain);
+
+  options.flips = 3;
+  EXPECT_NE(open_error(tiny_checkpoint().c_str(), nullptr, &options)
+                .find("options->flips must be 1 (the scan alone), 2 (and y -> -y) or 4 (and x -> -x, and both), got 3"),
+            std::string::npos);
+  // A grid reaching further to the left than to the right: no mirror y -> -y maps it onto itself.
+  const fs::path config = fs::path(PILLARSEG_BINARY_DIR) / "tests" / "library_flips_grid.yaml";
+  {
+    std::ofstream out(config);
+    out << "grid: {x: [-6.4, 6.4], y: [-3.2, 4.8], z: [-2.5, 1.5], cell: 0.2, voxel_z: 0.5}\n"
+           "model: {max_points_per_pillar: 8, pillar_channels: 4, occupancy: 2d, occupancy_channels: 2, "
+           "base_width: 4, depth: 2}\n";
+  }
+  options.flips = 2;
+  EXPECT_NE(open_error(tiny_checkpoint().c_str(), config.c_str(), &options).find("grid.y is [-3.2, 4.8]"),
+            std::string::npos);
+  options.flips = 1;
+  pillarseg_segmenter* wide = pillarseg_open(tiny_checkpoint().c_str(), config.c_str(), &options, error, sizeof error);
+  EXPECT_NE(wide, nullptr) << error;
+  pillarseg_close(wide);
+}
+

@@ -218,6 +218,36 @@ class InputSettingsTest(unittest.TestCase):
         self.check(turned, transform=quarter_turn)
         self.check(self.points, transform=np.eye(4))
 
+    def test_flips(self):
+        # The probabilities of 4 flips: the plain segmenter's over the scan mirrored y -> -y, x -> -x
+        # and both, each mirrored back, summed in that order and scaled (the library's operations:
+        # the same bits); the labels their arg-max; infer --flips 4 the same labels.
+        total = np.zeros((12, 16, 32), dtype=np.float32)
+        for copy in range(4):
+            mirrored = self.points.copy()
+            if copy & 1:
+                mirrored[:, 1] = -mirrored[:, 1]
+            if copy & 2:
+                mirrored[:, 0] = -mirrored[:, 0]
+            _, p = self.plain.segment(mirrored, probabilities=True)
+            if copy & 1:
+                p = p[:, ::-1, :]
+            if copy & 2:
+                p = p[:, :, ::-1]
+            total += p
+        with pillarseg.Segmenter(WEIGHTS, threads=2, flips=4) as s:
+            labels, probabilities = s.segment(self.points, probabilities=True)
+        np.testing.assert_array_equal(probabilities, total * np.float32(0.25))
+        np.testing.assert_array_equal(labels, probabilities.argmax(axis=0) + 1)
+        _, one = self.plain.segment(self.points, probabilities=True)
+        self.assertFalse(np.array_equal(probabilities, one), "the mirrored copies changed nothing")
+        scan = WORK / "flips.bin"
+        self.points.tofile(scan)
+        expected_labels, _ = infer(scan, "flips", "--flips", "4")
+        np.testing.assert_array_equal(labels.ravel(), expected_labels)
+        with self.assertRaisesRegex(pillarseg.Error, "options->flips must be 1 .* got 3"):
+            pillarseg.Segmenter(WEIGHTS, flips=3)
+
     def test_bad_settings(self):
         with self.assertRaisesRegex(ValueError, r"transform: expected a 4 x 4 matrix, got shape \(3, 3\)"):
             pillarseg.Segmenter(WEIGHTS, transform=np.eye(3))
