@@ -117,12 +117,14 @@ void ScanSegmenter::segment_flipped(std::span<const Point> points, uint8_t* labe
   // cell (iy, ix) of the scan reads the copy's cell (height - 1 - iy, ix).
   for (int f = 0; f < options_.flips; ++f) {
     const bool mirror_y = (f & 1) != 0, mirror_x = (f & 2) != 0;
-    mirrored_.assign(points.begin(), points.end());
-    for (Point& p : mirrored_) {
-      if (mirror_y) p.y = -p.y;
-      if (mirror_x) p.x = -p.x;
+    if (f > 0) {
+      mirrored_.assign(points.begin(), points.end());
+      for (Point& p : mirrored_) {
+        if (mirror_y) p.y = -p.y;
+        if (mirror_x) p.x = -p.x;
+      }
     }
-    segment_once(mirrored_, pass_labels_.data(), pass_probs_.data());
+    segment_once(f > 0 ? std::span<const Point>(mirrored_) : points, pass_labels_.data(), pass_probs_.data());
     total += times_;
     for (int k = 0; k < classes; ++k) {
       const float* pass = pass_probs_.data() + static_cast<size_t>(k) * static_cast<size_t>(cells);

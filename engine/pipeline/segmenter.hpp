@@ -86,7 +86,8 @@ class ScanSegmenter {
   // One pass over the points as given (segment_mapped with flips 1).
   void segment_once(std::span<const Point> points, uint8_t* labels, float* probabilities);
   // flips > 1: the passes over the mirrored copies, their probabilities mirrored back and
-  // averaged; stage times are the passes' sums.
+  // averaged on the host (on a GPU each pass's 12 x H x W probabilities come down: 24 MB at the
+  // paper's grid); stage times are the passes' sums.
   void segment_flipped(std::span<const Point> points, uint8_t* labels, float* probabilities);
   // Everything after the upload on the whole point buffer, shaped by the capacity: what a graph
   // records (and, once, runs uncaptured to grow every buffer first).
