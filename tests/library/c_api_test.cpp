@@ -95,6 +95,16 @@ struct Output {
   std::vector<float> probabilities;
 };
 
+// Options as a program built against an older header passes them: the defaults in a struct that
+// ends at `size` bytes (its struct_size), the bytes after it garbage the library must not read.
+pillarseg_options older_header_options(size_t size) {
+  pillarseg_options o;
+  pillarseg_default_options(&o);
+  std::memset(reinterpret_cast<unsigned char*>(&o) + size, 0x5a, sizeof o - size);
+  o.struct_size = size;
+  return o;
+}
+
 Output segment(pillarseg_segmenter* s, const std::vector<float>& xyzr) {
   int width = 0, height = 0;
   pillarseg_grid(s, &width, &height);
@@ -483,11 +493,7 @@ TEST(CApi, InputMappingOptions) {
 
   // The previous version's struct: its size ends before reflectance_none; the bytes after it are
   // not read.
-  pillarseg_options old;
-  std::memset(&old, 0x5a, sizeof old);
-  pillarseg_default_options(&old);
-  std::memset(&old.reflectance_none, 0x5a, sizeof old - offsetof(pillarseg_options, reflectance_none));
-  old.struct_size = offsetof(pillarseg_options, reflectance_none);
+  const pillarseg_options old = older_header_options(offsetof(pillarseg_options, reflectance_none));
   pillarseg_segmenter* previous = pillarseg_open(tiny_checkpoint().c_str(), nullptr, &old, error, sizeof error);
   ASSERT_NE(previous, nullptr) << error;
   EXPECT_EQ(segment(previous, xyzr).probabilities, unmapped.probabilities);
@@ -533,10 +539,7 @@ TEST(CApi, FlipsOption) {
   EXPECT_NE(four.probabilities, one.probabilities);
   pillarseg_close(flipping);
 
-  pillarseg_options old;
-  pillarseg_default_options(&old);
-  std::memset(&old.flips, 0x5a, sizeof old - offsetof(pillarseg_options, flips));
-  old.struct_size = offsetof(pillarseg_options, flips);
+  const pillarseg_options old = older_header_options(offsetof(pillarseg_options, flips));
   pillarseg_segmenter* previous = pillarseg_open(tiny_checkpoint().c_str(), nullptr, &old, error, sizeof error);
   ASSERT_NE(previous, nullptr) << error;
   EXPECT_EQ(segment(previous, xyzr).probabilities, one.probabilities);
