@@ -1,6 +1,8 @@
-// Channel softmax (B, K, H, W) -> (B, K, H, W) and arg-max class ids (B, K, H, W) -> (B, H, W).
+// Channel softmax (B, K, H, W) -> (B, K, H, W) and arg-max class ids (B, K, H, W) -> (B, H, W),
+// of any values or of the largest positive one.
 #include "host/softmax.hpp"
 
+#include <algorithm>
 #include <cmath>
 
 #include "core/eigen.hpp"
@@ -79,9 +81,39 @@ void argmax_class_ids(const Tensor<T>& logits, Tensor<uint8_t>& class_ids) {
   }
 }
 
+template <class T>
+void argmax_positive_class_ids(const Tensor<T>& values, Tensor<uint8_t>& class_ids) {
+  const char* op = "argmax_positive_class_ids";
+  check_logits(op, values.shape());
+  const int64_t batch = values.dim(0), classes = values.dim(1);
+  const int64_t height = values.dim(2), width = values.dim(3);
+  PS_CHECK(classes <= 255, "{}: expected at most 255 channels for uint8 class ids, given {}", op,
+           classes);
+  const int64_t plane = height * width;
+  class_ids.resize({batch, height, width});
+  Plane<T> best(plane);
+  for (int64_t b = 0; b < batch; ++b) {
+    const T* z = values.data() + b * classes * plane;
+    uint8_t* ids = class_ids.data() + b * plane;
+    best.setZero();
+    std::fill(ids, ids + plane, uint8_t{0});
+    for (int64_t k = 0; k < classes; ++k) {
+      const T* zk = z + k * plane;
+      for (int64_t i = 0; i < plane; ++i) {
+        if (zk[i] > best[i]) {
+          best[i] = zk[i];
+          ids[i] = static_cast<uint8_t>(k + 1);
+        }
+      }
+    }
+  }
+}
+
 template void softmax_channels<float>(const Tensor<float>&, Tensor<float>&);
 template void softmax_channels<double>(const Tensor<double>&, Tensor<double>&);
 template void argmax_class_ids<float>(const Tensor<float>&, Tensor<uint8_t>&);
 template void argmax_class_ids<double>(const Tensor<double>&, Tensor<uint8_t>&);
+template void argmax_positive_class_ids<float>(const Tensor<float>&, Tensor<uint8_t>&);
+template void argmax_positive_class_ids<double>(const Tensor<double>&, Tensor<uint8_t>&);
 
 }  // namespace pillarseg::host

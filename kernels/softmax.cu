@@ -1,4 +1,4 @@
-// Channel softmax and arg-max class ids (see softmax.cuh). A grid of (cells of a batch item,
+// Channel softmax and the arg-max class ids (see softmax.cuh). A grid of (cells of a batch item,
 // batch items); each thread walks its cell's K channels three times for the softmax (max, sum
 // of exponentials, normalised outputs), reading them back from L1 rather than holding K values in
 // registers, so any K compiles to the same kernel.
@@ -70,6 +70,24 @@ static __global__ void __launch_bounds__(kBlockSize)
   class_ids[std::int64_t{blockIdx.y} * inner + cell] = static_cast<std::uint8_t>(best_channel + 1);
 }
 
+static __global__ void __launch_bounds__(kBlockSize)
+    argmax_positive_kernel(const float* values, std::int64_t classes, std::int64_t inner,
+                           std::uint8_t* class_ids) {
+  const std::int64_t cell = std::int64_t{blockIdx.x} * kBlockSize + threadIdx.x;
+  if (cell >= inner) return;
+  const float* z = values + std::int64_t{blockIdx.y} * classes * inner + cell;
+  float best = 0.0f;
+  std::int64_t best_id = 0;
+  for (std::int64_t k = 0; k < classes; ++k) {
+    const float v = z[k * inner];
+    if (v > best) {
+      best = v;
+      best_id = k + 1;
+    }
+  }
+  class_ids[std::int64_t{blockIdx.y} * inner + cell] = static_cast<std::uint8_t>(best_id);
+}
+
 void softmax_channels(const float* logits, std::int64_t batch, std::int64_t classes,
                       std::int64_t inner, float* probabilities, cudaStream_t stream) {
   const char* op = "softmax_channels";
@@ -93,6 +111,18 @@ void argmax_class_ids(const float* logits, std::int64_t batch, std::int64_t clas
            batch * classes * inner, batch * inner);
   launch_kernel(argmax_kernel, cell_grid(batch, inner), dim3(kBlockSize), 0, stream, logits,
                 classes, inner, class_ids);
+}
+
+void argmax_positive_class_ids(const float* values, std::int64_t batch, std::int64_t classes,
+                               std::int64_t inner, std::uint8_t* class_ids, cudaStream_t stream) {
+  const char* op = "argmax_positive_class_ids";
+  check_shape(op, batch, classes, inner, 255);
+  if (batch * inner == 0) return;
+  PS_CHECK(values != nullptr && class_ids != nullptr,
+           "{}: values ({} floats) and class_ids ({} bytes) must be device memory", op,
+           batch * classes * inner, batch * inner);
+  launch_kernel(argmax_positive_kernel, cell_grid(batch, inner), dim3(kBlockSize), 0, stream,
+                values, classes, inner, class_ids);
 }
 
 }  // namespace pillarseg::cuda

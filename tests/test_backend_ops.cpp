@@ -50,6 +50,8 @@
 //   add_inplace                 add_inplace/...              (0 and 1 element)
 //   softmax                     softmax/[large,|empty,]...  (one cell)
 //   argmax                      argmax/[ties,|empty,]...
+//   mirror_add                  mirror_add/[y,][x,]...       (each mirror; a 1 x 1 map)
+//   argmax_positive             argmax_positive/...          (no positive value, ties, NaN)
 //   loss                        loss/ce|bce[,large|,unlabelled|,empty]  (logits up to +-100,
 //                                                            no labelled cell, a batch of 0)
 //   sum_of_squares              sum_of_squares/n=..          (0 and 1 element)
@@ -1895,6 +1897,34 @@ std::vector<Case> cases() {
            LRef labels = t.u8(1);
            be.argmax(t.f(0), labels);
          }});
+    // The test-time flips' ops (ScanSegmenter): a pass's probabilities mirrored back onto the
+    // running sum, each mirror; and the class of the largest positive value, where every third
+    // cell holds none (0, ties and negative values: class 0) and NaN, never the largest, is strewn.
+    for (const bool mirror_y : {false, true}) {
+      for (const bool mirror_x : {false, true}) {
+        all.push_back({std::string("mirror_add/") + (mirror_y ? "y," : "") + (mirror_x ? "x," : "") + shapes,
+                       {in_f("x", logits, 0, 1), inout_f("sum", logits, 0, 3)},
+                       [mirror_y, mirror_x](Backend& be, Bound& t) {
+                         Ref sum = t.f(1);
+                         be.mirror_add(t.f(0), mirror_y, mirror_x, sum);
+                       },
+                       bits()});
+      }
+    }
+    Arg sums = in_f("values", logits);
+    sums.fill = [plane = logits[2] * logits[3]](Rng& rng, void* dst, int64_t n) {
+      for (int64_t i = 0; i < n; ++i) {
+        float v = static_cast<float>(rng.uniform_int(3));
+        if ((i % plane) % 3 == 0) v = -v;
+        if (rng.uniform_int(7) == 0) v = std::numeric_limits<float>::quiet_NaN();
+        static_cast<float*>(dst)[i] = v;
+      }
+    };
+    all.push_back({"argmax_positive/" + shapes, {sums, out("labels", map, Kind::U8)},
+                   [](Backend& be, Bound& t) {
+                     LRef labels = t.u8(1);
+                     be.argmax_positive(t.f(0), labels);
+                   }});
     for (LossKind kind : {LossKind::CrossEntropy, LossKind::Bce}) {
       all.push_back({std::string("loss/") + (kind == LossKind::Bce ? "bce," : "ce,") + shapes,
                      {in_f("logits", logits, -4, 4), labels_arg(map),

@@ -23,6 +23,7 @@
 #include "host/adam.hpp"
 #include "host/losses.hpp"
 #include "host/maxpool2d.hpp"
+#include "host/mirror_add.hpp"
 #include "host/pad_concat.hpp"
 #include "host/scatter.hpp"
 #include "host/softmax.hpp"
@@ -31,6 +32,7 @@
 #include "kernels/elementwise.cuh"
 #include "kernels/losses.cuh"
 #include "kernels/maxpool2d.cuh"
+#include "kernels/mirror_add.cuh"
 #include "kernels/pad_concat.cuh"
 #include "kernels/scatter.cuh"
 #include "kernels/softmax.cuh"
@@ -507,6 +509,59 @@ TEST(SoftmaxKernels, ArgmaxByHand) {
   GuardedArray<std::uint8_t> ids(4);
   cuda::argmax_class_ids(device_logits.data(), 1, 4, 4, ids.data(), nullptr);
   EXPECT_TRUE(same_bits(ids.download(), std::vector<std::uint8_t>{2, 1, 2, 1}));
+}
+
+TEST(SoftmaxKernels, ArgmaxPositiveByHand) {
+  // Five cells of K = 3 values, channel-major: the largest in the last channel (class 3); a tie
+  // of channels 1 and 2 (the lower: class 2); all 0 (class 0); negative and 0 (class 0); NaN on
+  // both sides of a positive (the positive: NaN never wins).
+  const std::vector<float> values = {0.2f, 1, 0, -1, kNan, /**/ 0.1f, 3, 0, 0, 0.5f,
+                                     /**/ 0.7f, 3, 0, -2, kNan};
+  const std::vector<std::uint8_t> expected = {3, 2, 0, 0, 2};
+  GuardedArray<float> device_values(values);
+  GuardedArray<std::uint8_t> ids(5);
+  cuda::argmax_positive_class_ids(device_values.data(), 1, 3, 5, ids.data(), nullptr);
+  EXPECT_TRUE(same_bits(ids.download(), expected));
+  EXPECT_TRUE(ids.guards_intact());
+  Tensor<float> host_values({1, 3, 1, 5});
+  std::copy(values.begin(), values.end(), host_values.begin());
+  Tensor<std::uint8_t> host_ids;
+  host::argmax_positive_class_ids(host_values, host_ids);
+  EXPECT_TRUE(same_bits(std::vector<std::uint8_t>(host_ids.begin(), host_ids.end()), expected));
+}
+
+TEST(MirrorAddKernel, ByHandAndAsTheHost) {
+  // One plane of 2 x 3 onto a sum of 1s: each mirror by hand.
+  const std::vector<float> x = {1, 2, 3, /**/ 4, 5, 6};
+  const std::vector<std::vector<float>> expected = {{2, 3, 4, 5, 6, 7},   // as it is
+                                                    {5, 6, 7, 2, 3, 4},   // rows mirrored
+                                                    {4, 3, 2, 7, 6, 5},   // columns
+                                                    {7, 6, 5, 4, 3, 2}};  // both
+  GuardedArray<float> device_x(x);
+  for (int f = 0; f < 4; ++f) {
+    const bool mirror_y = (f & 1) != 0, mirror_x = (f & 2) != 0;
+    GuardedArray<float> sum(std::vector<float>(6, 1.0f));
+    cuda::mirror_add(device_x.data(), 1, 2, 3, mirror_y, mirror_x, sum.data(), nullptr);
+    EXPECT_TRUE(same_bits(sum.download(), expected[f])) << "flip " << f;
+    EXPECT_TRUE(sum.guards_intact());
+  }
+  // Random planes and odd sizes: the kernel's sum is the host's bit for bit.
+  for (const Shape& shape : std::vector<Shape>{{1, 1, 1, 1}, {2, 12, 7, 5}, {1, 3, 9, 16}}) {
+    const Tensor<float> pass = kernel_test::normal_tensor(shape, 91);
+    for (int f = 0; f < 4; ++f) {
+      Tensor<float> host_sum = kernel_test::normal_tensor(shape, 92);
+      GuardedArray<float> device_pass(pass), device_sum(host_sum);
+      cuda::mirror_add(device_pass.data(), shape[0] * shape[1], shape[2], shape[3], (f & 1) != 0,
+                       (f & 2) != 0, device_sum.data(), nullptr);
+      host::mirror_add(pass, (f & 1) != 0, (f & 2) != 0, host_sum);
+      EXPECT_TRUE(same_bits(device_sum.download(), host_sum)) << shape_str(shape) << " flip " << f;
+      EXPECT_TRUE(device_sum.guards_intact());
+    }
+  }
+  const std::string overlap = error_message([&] {
+    cuda::mirror_add(device_x.data(), 1, 2, 3, true, false, device_x.data() + 1, nullptr);
+  });
+  EXPECT_NE(overlap.find("must not overlap"), std::string::npos) << overlap;
 }
 
 TEST(SoftmaxKernels, LaunchersCheckTheirArguments) {

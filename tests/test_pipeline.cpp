@@ -446,6 +446,33 @@ TEST(Segmenter, FlipsOnTheCudaBackendEqualTheCpuBackend) {
   }
 }
 
+// On a GPU the copies' probabilities are summed where they are (Backend::mirror_add): after the
+// first scan, each scan's four passes replay the recorded graph, upload the copies' points and
+// bring down only the result, the H x W labels (and 12 x H x W probabilities where asked).
+TEST(Segmenter, FlipsOnTheDeviceMoveOnlyPointsAndTheResult) {
+  const ModelConfig c = symmetric_config();
+  CudaBackendOptions options;
+  auto segmenter = flipping_segmenter(c, std::make_unique<CudaBackend>(options), 4, true);
+  Backend& backend = segmenter->backend();
+  segment(*segmenter, test::random_scan(1500, c.grid, 930), false);  // plans, records
+  segment(*segmenter, test::random_scan(1500, c.grid, 931), true);   // the same with probabilities
+  const Backend::Counters warm = backend.counters();
+  std::uint64_t seed = 932;
+  const int64_t cells = c.grid.cells();
+  for (const auto& [m, probabilities] :
+       std::vector<std::pair<std::int64_t, bool>>{{1400, false}, {900, true}, {0, false}}) {
+    const Backend::Counters before = backend.counters();
+    segment(*segmenter, test::random_scan(m, c.grid, seed++), probabilities);
+    const Backend::Counters after = backend.counters();
+    EXPECT_EQ(after.bytes_uploaded - before.bytes_uploaded, 4 * (16 * m + 4)) << "4 copies of " << m << " points";
+    EXPECT_EQ(after.bytes_downloaded - before.bytes_downloaded, cells + (probabilities ? 12 * 4 * cells : 0))
+        << m << " points, probabilities " << probabilities;
+    EXPECT_EQ(after.graph_replays - before.graph_replays, 4);
+  }
+  EXPECT_EQ(backend.counters().allocations, warm.allocations);
+  EXPECT_EQ(backend.counters().graphs_captured, warm.graphs_captured);
+}
+
 TEST(Segmenter, FlipsNeedAGridSymmetricAboutTheSensor) {
   const auto message = [](const ModelConfig& c, int flips) {
     try {

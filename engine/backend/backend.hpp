@@ -302,6 +302,12 @@ class Backend {
   // Head outputs: logits (B, 12, H, W).
   virtual void softmax(const Ref& logits, Ref& probs) = 0;
   virtual void argmax(const Ref& logits, LRef& labels) = 0;  // (B, H, W), class ids 1..12
+  // Test-time flips (ScanSegmenter, SegmenterOptions::flips), on the device: sum (B, K, H, W) +=
+  // x mirrored back (rows where mirror_y, columns where mirror_x; host/mirror_add.hpp), one float
+  // addition per element; and the class ids of the largest positive value of the sum, 0 where
+  // none is (a cell masked as unobserved in every copy).
+  virtual void mirror_add(const Ref& x, bool mirror_y, bool mirror_x, Ref& sum) = 0;
+  virtual void argmax_positive(const Ref& values, LRef& labels) = 0;  // (B, H, W), class ids 0..12
   // Mean loss over labelled cells; writes dlogits. coefficients: (13) per class id.
   virtual double loss(LossKind kind, const Ref& logits, const LRef& labels, const Ref& coefficients,
                       Ref& dlogits) = 0;

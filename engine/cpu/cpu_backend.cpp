@@ -33,6 +33,7 @@
 #include "host/mask_unobserved.hpp"
 #include "host/losses.hpp"
 #include "host/maxpool2d.hpp"
+#include "host/mirror_add.hpp"
 #include "host/observability_input.hpp"
 #include "host/pad_concat.hpp"
 #include "host/pfn.hpp"
@@ -465,6 +466,14 @@ class CpuBackend final : public Backend {
   void argmax(const Ref& logits, LRef& labels) override {
     Tensor<uint8_t> l = view(labels);
     host::argmax_class_ids(view(logits), l);
+  }
+  void mirror_add(const Ref& x, bool mirror_y, bool mirror_x, Ref& sum) override {
+    Tensor<float> s = view(sum);
+    host::mirror_add(view(x), mirror_y, mirror_x, s);
+  }
+  void argmax_positive(const Ref& values, LRef& labels) override {
+    Tensor<uint8_t> l = view(labels);
+    host::argmax_positive_class_ids(view(values), l);
   }
   double loss(LossKind kind, const Ref& logits, const LRef& labels, const Ref& coefficients, Ref& dlogits) override {
     PS_CHECK(coefficients.numel() == 13, "loss: 13 class coefficients expected, got {}", coefficients.numel());

@@ -23,6 +23,7 @@
 #include "kernels/grid_map_features.cuh"
 #include "kernels/mask_unobserved.cuh"
 #include "kernels/maxpool2d.cuh"
+#include "kernels/mirror_add.cuh"
 #include "kernels/observability_input.cuh"
 #include "kernels/pad_concat.cuh"
 #include "kernels/pfn.cuh"
@@ -790,6 +791,20 @@ void CudaBackend::argmax(const Ref& logits, LRef& labels) {
   require_shape("argmax", "labels", labels, {logits.dim(0), logits.dim(2), logits.dim(3)});
   cuda::argmax_class_ids(logits.data, logits.dim(0), logits.dim(1), logits.dim(2) * logits.dim(3),
                          labels.data, stream_.get());
+}
+
+void CudaBackend::mirror_add(const Ref& x, bool mirror_y, bool mirror_x, Ref& sum) {
+  require_rank("mirror_add", "x", x, 4);
+  require_shape("mirror_add", "sum", sum, x.shape);
+  cuda::mirror_add(x.data, x.dim(0) * x.dim(1), x.dim(2), x.dim(3), mirror_y, mirror_x, sum.data,
+                   stream_.get());
+}
+
+void CudaBackend::argmax_positive(const Ref& values, LRef& labels) {
+  require_rank("argmax_positive", "values", values, 4);
+  require_shape("argmax_positive", "labels", labels, {values.dim(0), values.dim(2), values.dim(3)});
+  cuda::argmax_positive_class_ids(values.data, values.dim(0), values.dim(1),
+                                  values.dim(2) * values.dim(3), labels.data, stream_.get());
 }
 
 double CudaBackend::loss(LossKind kind, const Ref& logits, const LRef& labels,

@@ -154,6 +154,8 @@ class CudaBackend final : public Backend {
   void add_inplace(Ref& a, const Ref& b) override;
   void softmax(const Ref& logits, Ref& probs) override;
   void argmax(const Ref& logits, LRef& labels) override;
+  void mirror_add(const Ref& x, bool mirror_y, bool mirror_x, Ref& sum) override;
+  void argmax_positive(const Ref& values, LRef& labels) override;
   double loss(LossKind kind, const Ref& logits, const LRef& labels, const Ref& coefficients,
               Ref& dlogits) override;
   double sum_of_squares(const Ref& x) override;

@@ -105,16 +105,28 @@ void ScanSegmenter::segment_mapped(std::span<const Point> points, uint8_t* label
 }
 
 void ScanSegmenter::segment_flipped(std::span<const Point> points, uint8_t* labels, float* probabilities) {
-  const int64_t width = model_.grid.width(), height = model_.grid.height(), cells = model_.grid.cells();
-  const int classes = model_.num_classes;
-  const size_t values = static_cast<size_t>(cells) * static_cast<size_t>(classes);
-  pass_labels_.resize(static_cast<size_t>(cells));
-  pass_probs_.resize(values);
-  sum_probs_.assign(values, 0.0f);
+  Backend& be = *backend_;
+  be.make_current();
+  const ScopedThreads threads(options_.threads);
+  const int64_t width = model_.grid.width(), height = model_.grid.height();
+  if (!flip_arena_) {
+    // The running sum (1, K, H, W) and its arg-max (1, H, W), in the backend's memory: on a GPU
+    // only the result comes down.
+    flip_arena_ = std::make_unique<Arena>(be);
+    const Shape sum_shape{1, model_.num_classes, height, width}, label_shape{1, height, width};
+    flip_arena_->begin_measure();
+    (void)flip_arena_->take<float>(sum_shape);
+    (void)flip_arena_->take<uint8_t>(label_shape);
+    flip_arena_->reserve(flip_arena_->used());
+    flip_arena_->reset();
+    flip_sum_ = flip_arena_->take<float>(sum_shape);
+    flip_labels_ = flip_arena_->take<uint8_t>(label_shape);
+  }
+  be.fill_zero(flip_sum_.data, flip_sum_.bytes());
   StageTimes total;
   // Copy f mirrors y where bit 0 is set and x where bit 1 is: the scan, y, x, both. A point at
   // y lands in row height - 1 - iy of the mirrored copy (the grid is symmetric: check_flips), so
-  // cell (iy, ix) of the scan reads the copy's cell (height - 1 - iy, ix).
+  // cell (iy, ix) of the scan reads the copy's cell (height - 1 - iy, ix): mirror_add.
   for (int f = 0; f < options_.flips; ++f) {
     const bool mirror_y = (f & 1) != 0, mirror_x = (f & 2) != 0;
     if (f > 0) {
@@ -124,44 +136,43 @@ void ScanSegmenter::segment_flipped(std::span<const Point> points, uint8_t* labe
         if (mirror_x) p.x = -p.x;
       }
     }
-    segment_once(f > 0 ? std::span<const Point>(mirrored_) : points, pass_labels_.data(), pass_probs_.data());
+    queue_pass(f > 0 ? std::span<const Point>(mirrored_) : points, /*probabilities=*/true);
+    const double start = time_stages_ ? be.clock_ms() : 0.0;
+    be.mirror_add(net_->probs(), mirror_y, mirror_x, flip_sum_);
+    if (time_stages_) times_.predict += be.clock_ms() - start;
     total += times_;
-    for (int k = 0; k < classes; ++k) {
-      const float* pass = pass_probs_.data() + static_cast<size_t>(k) * static_cast<size_t>(cells);
-      float* sum = sum_probs_.data() + static_cast<size_t>(k) * static_cast<size_t>(cells);
-      for (int64_t iy = 0; iy < height; ++iy) {
-        const float* row = pass + (mirror_y ? height - 1 - iy : iy) * width;
-        float* out = sum + iy * width;
-        if (mirror_x) {
-          for (int64_t ix = 0; ix < width; ++ix) out[ix] += row[width - 1 - ix];
-        } else {
-          for (int64_t ix = 0; ix < width; ++ix) out[ix] += row[ix];
-        }
-      }
-    }
   }
-  times_ = total;
   // The arg-max of the sum is the mean's (the first class wins a tie, as the backends' arg-max);
   // a cell masked as unobserved in every copy has probabilities 0 in all of them: class 0.
-  const float scale = 1.0f / static_cast<float>(options_.flips);
-  for (int64_t i = 0; i < cells; ++i) {
-    float best = 0.0f;
-    uint8_t id = 0;
-    for (int k = 0; k < classes; ++k) {
-      const float v = sum_probs_[static_cast<size_t>(k) * static_cast<size_t>(cells) + static_cast<size_t>(i)];
-      if (v > best) best = v, id = static_cast<uint8_t>(k + 1);
-    }
-    labels[i] = id;
-  }
-  if (probabilities != nullptr)
-    for (size_t i = 0; i < values; ++i) probabilities[i] = sum_probs_[i] * scale;
+  const double start = time_stages_ ? be.clock_ms() : 0.0;
+  be.argmax_positive(flip_sum_, flip_labels_);
+  if (probabilities != nullptr) be.scale(flip_sum_, 1.0f / static_cast<float>(options_.flips));
+  if (time_stages_) total.predict += be.clock_ms() - start;
+  times_ = total;
+  download(flip_labels_.data, flip_sum_.data, labels, probabilities);
 }
 
 void ScanSegmenter::segment_once(std::span<const Point> points, uint8_t* labels, float* probabilities) {
+  const ScopedThreads threads(options_.threads);
+  queue_pass(points, probabilities != nullptr);
+  download(net_->predicted().data, net_->probs().data, labels, probabilities);
+}
+
+void ScanSegmenter::download(const uint8_t* device_labels, const float* device_probabilities, uint8_t* labels,
+                             float* probabilities) {
+  Backend& be = *backend_;
+  const double start = time_stages_ ? be.clock_ms() : 0.0;
+  const int64_t cells = model_.grid.cells();
+  be.download(labels, device_labels, static_cast<size_t>(cells));
+  if (probabilities != nullptr)
+    be.download(probabilities, device_probabilities,
+                static_cast<size_t>(cells) * static_cast<size_t>(model_.num_classes) * sizeof(float));
+  if (time_stages_) times_.download = be.clock_ms() - start;
+}
+
+void ScanSegmenter::queue_pass(std::span<const Point> points, bool with_probabilities) {
   Backend& be = *backend_;
   be.make_current();
-  const ScopedThreads threads(options_.threads);
-  const bool with_probabilities = probabilities != nullptr;
   times_ = StageTimes{};
   double last = time_stages_ ? be.clock_ms() : 0.0;
   const Ref loaded = pipeline_.load_points(points);
@@ -189,14 +200,6 @@ void ScanSegmenter::segment_once(std::span<const Point> points, uint8_t* labels,
   } else {
     queue_direct(loaded, with_probabilities);
   }
-
-  last = time_stages_ ? be.clock_ms() : 0.0;
-  const int64_t cells = model_.grid.cells();
-  be.download(labels, net_->predicted().data, static_cast<size_t>(cells));
-  if (with_probabilities)
-    be.download(probabilities, net_->probs().data,
-                static_cast<size_t>(cells) * static_cast<size_t>(model_.num_classes) * sizeof(float));
-  if (time_stages_) times_.download = be.clock_ms() - last;
 }
 
 std::unique_ptr<ScanSegmenter> open_segmenter(const std::filesystem::path& weights,

@@ -85,10 +85,18 @@ class ScanSegmenter {
  private:
   // One pass over the points as given (segment_mapped with flips 1).
   void segment_once(std::span<const Point> points, uint8_t* labels, float* probabilities);
-  // flips > 1: the passes over the mirrored copies, their probabilities mirrored back and
-  // averaged on the host (on a GPU each pass's 12 x H x W probabilities come down: 24 MB at the
-  // paper's grid); stage times are the passes' sums.
+  // flips > 1: the passes over the mirrored copies, their probabilities mirrored back and summed
+  // in the backend's memory (Backend::mirror_add), the labels the sum's arg-max and the
+  // probabilities the sum over flips, computed there too: on a GPU only the result comes down.
+  // Stage times are the passes' sums (the sum and its arg-max count as predict).
   void segment_flipped(std::span<const Point> points, uint8_t* labels, float* probabilities);
+  // Loads the points and queues one pass (the recorded graph where the backend records), up to
+  // the labels and, with_probabilities, the softmax; nothing comes down.
+  void queue_pass(std::span<const Point> points, bool with_probabilities);
+  // The labels (H x W bytes) and, where probabilities is not null, K x H x W floats down from the
+  // backend's memory; times the download.
+  void download(const uint8_t* device_labels, const float* device_probabilities, uint8_t* labels,
+                float* probabilities);
   // Everything after the upload on the whole point buffer, shaped by the capacity: what a graph
   // records (and, once, runs uncaptured to grow every buffer first).
   void queue_recordable(bool probabilities);
@@ -105,10 +113,12 @@ class ScanSegmenter {
   ScanPipeline pipeline_;
   InputMapping input_;
   std::vector<Point> mapped_;  // the mapped copy of the last scan's points (its capacity kept)
-  // flips > 1: a mirrored copy's points, one pass's outputs and the running sum of probabilities.
+  // flips > 1: a mirrored copy's points; the running sum of probabilities (1, K, H, W) and its
+  // arg-max (1, H, W) in the backend's memory (flip_arena_, made on the first flipped scan).
   std::vector<Point> mirrored_;
-  std::vector<uint8_t> pass_labels_;
-  std::vector<float> pass_probs_, sum_probs_;
+  std::unique_ptr<Arena> flip_arena_;
+  Ref flip_sum_;
+  LRef flip_labels_;
   bool time_stages_ = false;
   StageTimes times_;
   // The recorded pipelines, without and with the probabilities, and what they were recorded on.
