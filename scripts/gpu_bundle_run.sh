@@ -9,7 +9,7 @@
 #   sanitizer        compute-sanitizer memcheck, racecheck, synccheck, initcheck over the kernel tests
 #   kernels          the kernel benchmarks
 #   bench            pillarseg bench --device cuda at full size, every variant
-#   ops              the bf16 network per op against each op's roofline bound on an H200
+#   ops              the bf16 and int8 networks per op against each op's roofline bound on an H200
 #   train            100 training steps on cuda (fp32, bf16) and on cpu
 # The files:
 #   nvidia-smi.txt   the device, driver and clocks
@@ -18,8 +18,8 @@
 #   kernels.log      the kernel benchmarks: ours against cuDNN and cuBLAS, the 16-bit training
 #                    gradients against our FP32 ones
 #   bench.log        pillarseg bench --device cuda at full size (bilinear, transposed, 2D and 3D
-#                    occupancy; --conv own, cudnn, cublas), and the bf16 network per op against
-#                    each op's roofline bound on an H200
+#                    occupancy; --conv own, cudnn, cublas; bf16, fp16, int8; 4 flips), and the bf16
+#                    and int8 networks per op against each op's roofline bound on an H200
 #   train.log        100 steps of the small config on cuda (fp32, bf16) and on cpu, their loss curves
 #   environment.txt  the libraries found, the bundle's commit
 #   report.md        the figures of all of them, and what failed
@@ -315,16 +315,18 @@ run_bench "bilinear" cublas
 run_bench "transposed" own --transposed
 run_bench "bilinear, bf16 tensor cores" own --precision bf16
 run_bench "bilinear, fp16 tensor cores" own --precision fp16
+run_bench "bilinear, int8 tensor cores (scales from the scan)" own --precision int8
 run_bench "transposed, bf16 tensor cores" own --transposed --precision bf16
 run_bench "pillar + 2D occupancy" own --config "$here/configs/pillar_2d_sparse.yaml"
 run_bench "pillar + 3D occupancy" own --config "$here/configs/pillar_3d_sparse.yaml"
+run_bench "bilinear, bf16, 4 flips (4 passes)" own --precision bf16 --flips 4
 rm -f "$out/.bench"
 note
 end_stage bench
 fi
 
-# ---- 5. the bf16 network op by op ----
-# The bf16 network op by op (the device waits after every op) beside each op's roofline bound on
+# ---- 5. the bf16 and int8 networks op by op ----
+# The bf16 network (then, time left, the int8 one) op by op (the device waits after every op) beside each op's roofline bound on
 # an H200 (the machine lent to this project; engine/model/roofline.cpp): what share of the bound
 # each op reaches.
 if wants ops && (( $(left) > 120 )); then
@@ -342,8 +344,24 @@ if wants ops && (( $(left) > 120 )); then
     note "bench --ops failed: see bench.log"
   fi
   cat "$out/.ops" >> "$bench_log"
-  rm -f "$out/.ops"
   note
+  if (( $(left) > 120 )); then
+    echo "=== bilinear int8 --ops --roofline h200" >> "$bench_log"
+    if timeout 60 "$here/bin/pillarseg" bench --device cuda --precision int8 --repeat 3 ${scan:+--scan "$scan"} \
+        --ops --roofline h200 > "$out/.ops" 2>&1; then
+      note "### The int8 network per op against its roofline bound on an H200"
+      note
+      note '```'
+      sed -n '/^the network per op/,/^roofline bound/p' "$out/.ops" >> "$report"
+      note '```'
+    else
+      failures+=("bench --ops int8")
+      note "bench --ops --precision int8 failed: see bench.log"
+    fi
+    cat "$out/.ops" >> "$bench_log"
+    note
+  fi
+  rm -f "$out/.ops"
   end_stage ops
 fi
 

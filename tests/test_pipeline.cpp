@@ -21,6 +21,7 @@
 #include "engine/backend/backend.hpp"
 #include "engine/cuda/cuda_backend.hpp"
 #include "engine/data/semantickitti.hpp"
+#include "engine/model/calibration.hpp"
 #include "engine/model/pillarsegnet.hpp"
 #include "engine/pipeline/scan_pipeline.hpp"
 #include "engine/pipeline/segmenter.hpp"
@@ -296,6 +297,36 @@ TEST(Segmenter, SteadyStateAllocatesNothingAndMovesOnlyPointsAndLabels) {
   EXPECT_EQ(steady.allocations, warm.allocations);
   EXPECT_EQ(steady.graphs_captured, warm.graphs_captured);
   EXPECT_EQ(steady.graph_replays, warm.graph_replays + 5);
+}
+
+// INT8 calibration through a segmenter on a backend that records its pipeline (what bench
+// --precision int8 does without stored scales): while the calibration observes, the passes run
+// unrecorded (it downloads each convolution's input as the forward runs), and give the CPU's
+// scales; afterwards the recording replays again.
+TEST(Segmenter, CalibratesOnABackendThatRecords) {
+  const ModelConfig c = pipeline_config(kVariants[0]);
+  auto cpu = cpu_segmenter(c, false);
+  auto cuda = cuda_segmenter(c, false);
+  const std::vector<Point> points = test::random_scan(2500, c.grid, 940);
+  segment(*cuda, points, false);  // records the pipeline
+  const auto calibrate = [&](ScanSegmenter& segmenter) {
+    InputScaleCalibrator calibrator;
+    const CalibrationScope observing(segmenter.net(), calibrator);
+    segment(segmenter, points, false);
+    return calibrator.inputs();
+  };
+  const Backend::Counters before = cuda->backend().counters();
+  const std::map<std::string, Int8Input> expected = calibrate(*cpu), got = calibrate(*cuda);
+  EXPECT_EQ(cuda->backend().counters().graph_replays, before.graph_replays);
+  ASSERT_EQ(got.size(), expected.size());
+  ASSERT_GT(got.size(), 0u);
+  for (const auto& [key, input] : expected) {
+    ASSERT_TRUE(got.contains(key)) << key;
+    EXPECT_NEAR(got.at(key).scale, input.scale, 1e-4 * input.scale) << key;
+    EXPECT_EQ(got.at(key).non_negative, input.non_negative) << key;
+  }
+  segment(*cuda, points, false);
+  EXPECT_EQ(cuda->backend().counters().graph_replays, before.graph_replays + 1);
 }
 
 TEST(Segmenter, RealScanAtAReducedGridMatchesTheCpuBackend) {

@@ -358,7 +358,7 @@ void run_bench(const BenchArgs& a) {
     }
     net.set_int8_inputs(calibrator.inputs());
     net.set_precision(Precision::I8);
-    fmt::print("--precision int8: {} carries no INT8 scales; calibrated on the benched scan itself ({}th "
+    fmt::print("--precision int8: no INT8 scales in {}; calibrated on the benched scan itself ({}th "
                "percentile; pillarseg calibrate gives a checkpoint its own)\n",
                a.weights.empty() ? "the random weights" : a.weights, calibrator.percentile());
   }

@@ -257,6 +257,8 @@ void PillarSegNet::set_conv_input_observer(ConvInputObserver observer) {
   impl_->eval_graph.reset();
 }
 
+bool PillarSegNet::observing_conv_inputs() const { return static_cast<bool>(impl_->observer); }
+
 // The U-Net's convolutions of an evaluation graph and their inputs, for the observer.
 void PillarSegNet::observe_conv_input(const GraphPlan& p, const GraphNode& n, OpContext& context) {
   if (n.stage != Stage::UNet) return;

@@ -104,6 +104,7 @@ class PillarSegNet {
   // (Winograd F(2x2, 3x3) applies to it).
   using ConvInputObserver = std::function<void(const std::string& key, const TensorRef& input, bool winograd)>;
   void set_conv_input_observer(ConvInputObserver observer);
+  bool observing_conv_inputs() const;  // an observer is set: no recorded graph may hold the forward
   // The training step's convolutions (forward, input and weight gradients) in BF16 or FP16 on
   // the tensor cores, with activations, BatchNorm, the loss, gradients, the FP32 master weights
   // and the optimiser state in FP32, on a backend that supports_training_precision() it (the

@@ -181,7 +181,9 @@ void ScanSegmenter::queue_pass(std::span<const Point> points, bool with_probabil
     times_.upload = now - last;
   }
 
-  if (be.supports_capture() && !time_stages_) {
+  // Recorded where the backend records, except while timing stages or while a calibration
+  // observes the convolutions' inputs (it downloads them as the forward runs).
+  if (be.supports_capture() && !time_stages_ && !net_->observing_conv_inputs()) {
     Recording& r = recordings_[with_probabilities ? 1 : 0];
     const bool current = r.graph && r.graph->valid() && r.buffer_generation == pipeline_.buffer_generation() &&
                          r.model_generation == net_->memory_generation();
