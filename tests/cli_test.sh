@@ -274,10 +274,14 @@ fi
 [[ $message == *"no input scale for the convolution"*"pillarseg calibrate"* ]] ||
   fail "infer --precision int8 without scales: '$message'"
 # bench --precision int8 of weights without scales calibrates on the benched scan itself, also on
-# a device that records its pipeline as a graph (the calibrating pass runs unrecorded).
-run bench --device emu --precision int8 --config "$work/tiny.yaml" --weights "$weights" --scan "$velodyne/000001.bin" \
-  --repeat 1 > "$work/bench_int8.log" 2>&1 || { cat "$work/bench_int8.log"; fail "bench --device emu --precision int8 failed"; }
+# a device that records its pipeline as a graph (the calibrating pass runs unrecorded); with
+# --flips 2 the steady state replays the graph once per copy.
+run bench --device emu --precision int8 --flips 2 --config "$work/tiny.yaml" --weights "$weights" \
+  --scan "$velodyne/000001.bin" --repeat 1 > "$work/bench_int8.log" 2>&1 ||
+  { cat "$work/bench_int8.log"; fail "bench --device emu --precision int8 failed"; }
 grep -q 'calibrated on the benched scan itself' "$work/bench_int8.log" || fail "bench --precision int8: no calibration line"
+grep -qE '^steady state \(upload, 2 graph replays, one per copy, download\): [0-9.]+ ms' "$work/bench_int8.log" ||
+  fail "bench --flips 2: no steady state of two replays"
 grep -qE '^int8 against fp32: arg-max agreement [0-9.]+%' "$work/bench_int8.log" ||
   fail "bench --precision int8: no agreement with fp32"
 grep -qE '^roofline bound on h200 .*: [0-9.]+ ms for the network' "$work/bench_bf16.log" ||

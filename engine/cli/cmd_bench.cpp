@@ -5,9 +5,9 @@
 // write; median over repetitions, the total, and the process's peak resident memory. Stages the
 // config does not have are not listed. Device stages are timed on the backend's clock (CUDA events
 // on a CUDA backend), which waits between stages; where the backend records graphs, the whole
-// pipeline is also timed as the steady state runs it (upload, one graph replay, download). On a
-// CUDA backend the bytes that cross the bus per scan are counted, and compared with inputs
-// prepared on the host and uploaded (the network's decorated pillars and maps). --ops adds the
+// pipeline is also timed as the steady state runs it (upload, one graph replay a copy of the scan,
+// download). On a CUDA backend the bytes that cross the bus per scan are counted, and compared
+// with inputs prepared on the host and uploaded (the network's decorated pillars and maps). --ops adds the
 // network op by op (print_op_table), --roofline each op's and a training step's lower bound on a
 // GPU (engine/model/roofline.hpp). --save-canvas writes the U-Net's FP32 input canvas of the scan
 // as .npy, for calibrating a peer's INT8 quantization on real inputs (bench/peer/).
@@ -448,9 +448,10 @@ void run_bench(const BenchArgs& a) {
   if (!steady.empty()) {
     double staged = 0;
     for (size_t i = 1; i <= 10; ++i) staged += median(times[i]);
-    fmt::print("steady state (upload, one graph replay, download): {:.2f} ms; stage by stage above: {:.2f} ms "
-               "({:.2f}x)\n",
-               median(steady), staged, staged / std::max(median(steady), 1e-9));
+    const std::string replays =
+        a.flips > 1 ? fmt::format("{} graph replays, one per copy", a.flips) : std::string("one graph replay");
+    fmt::print("steady state (upload, {}, download): {:.2f} ms; stage by stage above: {:.2f} ms ({:.2f}x)\n",
+               replays, median(steady), staged, staged / std::max(median(steady), 1e-9));
   }
   if (backend.device() != Device::Cpu) {
     fmt::print("bytes over the bus per scan: {:.2f} MB (the raw points up, the label map down); with the inputs "
