@@ -7,9 +7,9 @@
 // on a CUDA backend), which waits between stages; where the backend records graphs, the whole
 // pipeline is also timed as the steady state runs it (upload, one graph replay a copy of the scan,
 // download). On a CUDA backend the bytes that cross the bus per scan are counted, and compared
-// with inputs prepared on the host and uploaded (the network's decorated pillars and maps). --ops adds the
-// network op by op (print_op_table), --roofline each op's and a training step's lower bound on a
-// GPU (engine/model/roofline.hpp). --save-canvas writes the U-Net's FP32 input canvas of the scan
+// with inputs prepared on the host and uploaded (the network's decorated pillars and maps). --ops
+// adds the network op by op (print_op_table), --roofline each op's and a training step's lower
+// bound on a GPU (engine/model/roofline.hpp). --save-canvas writes the U-Net's FP32 input canvas of the scan
 // as .npy, for calibrating a peer's INT8 quantization on real inputs (bench/peer/).
 #include <fmt/format.h>
 #include <sys/resource.h>
