@@ -9,8 +9,8 @@
 // download). On a CUDA backend the bytes that cross the bus per scan are counted, and compared
 // with inputs prepared on the host and uploaded (the network's decorated pillars and maps). --ops
 // adds the network op by op (print_op_table), --roofline each op's and a training step's lower
-// bound on a GPU (engine/model/roofline.hpp). --save-canvas writes the U-Net's FP32 input canvas of the scan
-// as .npy, for calibrating a peer's INT8 quantization on real inputs (bench/peer/).
+// bound on a GPU (engine/model/roofline.hpp). --save-canvas writes the U-Net's FP32 input canvas
+// of the scan as .npy, for calibrating a peer's INT8 quantization on real inputs (bench/peer/).
 #include <fmt/format.h>
 #include <sys/resource.h>
 
