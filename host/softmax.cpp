@@ -2,7 +2,6 @@
 // of any values or of the largest positive one.
 #include "host/softmax.hpp"
 
-#include <algorithm>
 #include <cmath>
 
 #include "core/eigen.hpp"
@@ -51,39 +50,13 @@ void softmax_channels(const Tensor<T>& logits, Tensor<T>& probabilities) {
   }
 }
 
-template <class T>
-void argmax_class_ids(const Tensor<T>& logits, Tensor<uint8_t>& class_ids) {
-  const char* op = "argmax_class_ids";
-  check_logits(op, logits.shape());
-  const int64_t batch = logits.dim(0), classes = logits.dim(1);
-  const int64_t height = logits.dim(2), width = logits.dim(3);
-  PS_CHECK(classes <= 255, "{}: expected at most 255 channels for uint8 class ids, given {}", op,
-           classes);
-  const int64_t plane = height * width;
-  class_ids.resize({batch, height, width});
-  Plane<T> best(plane);
-  for (int64_t b = 0; b < batch; ++b) {
-    const T* z = logits.data() + b * classes * plane;
-    uint8_t* ids = class_ids.data() + b * plane;
-    for (int64_t i = 0; i < plane; ++i) {
-      best[i] = z[i];
-      ids[i] = 1;
-    }
-    for (int64_t k = 1; k < classes; ++k) {
-      const T* zk = z + k * plane;
-      for (int64_t i = 0; i < plane; ++i) {
-        if (zk[i] > best[i] || (std::isnan(zk[i]) && !std::isnan(best[i]))) {
-          best[i] = zk[i];
-          ids[i] = static_cast<uint8_t>(k + 1);
-        }
-      }
-    }
-  }
-}
+namespace {
 
-template <class T>
-void argmax_positive_class_ids(const Tensor<T>& values, Tensor<uint8_t>& class_ids) {
-  const char* op = "argmax_positive_class_ids";
+// Per cell, 1 + the channel of the best value over the K channels (a channel wins where
+// `better(value, best so far)`): from channel 0's value, or, with `from_zero`, from 0 with class 0.
+template <class T, class Better>
+void best_class_ids(const char* op, const Tensor<T>& values, bool from_zero, Better better,
+                    Tensor<uint8_t>& class_ids) {
   check_logits(op, values.shape());
   const int64_t batch = values.dim(0), classes = values.dim(1);
   const int64_t height = values.dim(2), width = values.dim(3);
@@ -95,18 +68,34 @@ void argmax_positive_class_ids(const Tensor<T>& values, Tensor<uint8_t>& class_i
   for (int64_t b = 0; b < batch; ++b) {
     const T* z = values.data() + b * classes * plane;
     uint8_t* ids = class_ids.data() + b * plane;
-    best.setZero();
-    std::fill(ids, ids + plane, uint8_t{0});
-    for (int64_t k = 0; k < classes; ++k) {
+    for (int64_t i = 0; i < plane; ++i) {
+      best[i] = from_zero ? T(0) : z[i];
+      ids[i] = from_zero ? 0 : 1;
+    }
+    for (int64_t k = from_zero ? 0 : 1; k < classes; ++k) {
       const T* zk = z + k * plane;
       for (int64_t i = 0; i < plane; ++i) {
-        if (zk[i] > best[i]) {
+        if (better(zk[i], best[i])) {
           best[i] = zk[i];
           ids[i] = static_cast<uint8_t>(k + 1);
         }
       }
     }
   }
+}
+
+}  // namespace
+
+template <class T>
+void argmax_class_ids(const Tensor<T>& logits, Tensor<uint8_t>& class_ids) {
+  best_class_ids("argmax_class_ids", logits, /*from_zero=*/false,
+                 [](T v, T best) { return v > best || (std::isnan(v) && !std::isnan(best)); }, class_ids);
+}
+
+template <class T>
+void argmax_positive_class_ids(const Tensor<T>& values, Tensor<uint8_t>& class_ids) {
+  best_class_ids("argmax_positive_class_ids", values, /*from_zero=*/true, [](T v, T best) { return v > best; },
+                 class_ids);
 }
 
 template void softmax_channels<float>(const Tensor<float>&, Tensor<float>&);

@@ -50,42 +50,27 @@ static __global__ void __launch_bounds__(kBlockSize)
     p[k * inner] = expf(z[k * inner] - max_logit) * inv_sum;
 }
 
+// kPositive: the largest positive value wins, from 0 with class 0 (NaN never wins); else the
+// largest of all, from channel 0's value, a NaN counting as the largest.
+template <bool kPositive>
 static __global__ void __launch_bounds__(kBlockSize)
-    argmax_kernel(const float* logits, std::int64_t classes, std::int64_t inner,
+    argmax_kernel(const float* values, std::int64_t classes, std::int64_t inner,
                   std::uint8_t* class_ids) {
   const std::int64_t cell = std::int64_t{blockIdx.x} * kBlockSize + threadIdx.x;
   if (cell >= inner) return;
-  const float* z = logits + std::int64_t{blockIdx.y} * classes * inner + cell;
-  float best = z[0];
-  std::int64_t best_channel = 0;
-  for (std::int64_t k = 1; k < classes; ++k) {
+  const float* z = values + std::int64_t{blockIdx.y} * classes * inner + cell;
+  float best = kPositive ? 0.0f : z[0];
+  std::int64_t best_channel = kPositive ? -1 : 0;
+  for (std::int64_t k = kPositive ? 0 : 1; k < classes; ++k) {
     const float v = z[k * inner];
     const bool v_is_nan = v != v;
     const bool best_is_nan = best != best;
-    if (v > best || (v_is_nan && !best_is_nan)) {
+    if (v > best || (!kPositive && v_is_nan && !best_is_nan)) {
       best = v;
       best_channel = k;
     }
   }
   class_ids[std::int64_t{blockIdx.y} * inner + cell] = static_cast<std::uint8_t>(best_channel + 1);
-}
-
-static __global__ void __launch_bounds__(kBlockSize)
-    argmax_positive_kernel(const float* values, std::int64_t classes, std::int64_t inner,
-                           std::uint8_t* class_ids) {
-  const std::int64_t cell = std::int64_t{blockIdx.x} * kBlockSize + threadIdx.x;
-  if (cell >= inner) return;
-  const float* z = values + std::int64_t{blockIdx.y} * classes * inner + cell;
-  float best = 0.0f;
-  std::int64_t best_id = 0;
-  for (std::int64_t k = 0; k < classes; ++k) {
-    const float v = z[k * inner];
-    if (v > best) {
-      best = v;
-      best_id = k + 1;
-    }
-  }
-  class_ids[std::int64_t{blockIdx.y} * inner + cell] = static_cast<std::uint8_t>(best_id);
 }
 
 void softmax_channels(const float* logits, std::int64_t batch, std::int64_t classes,
@@ -101,28 +86,33 @@ void softmax_channels(const float* logits, std::int64_t batch, std::int64_t clas
                 classes, inner, probabilities);
 }
 
-void argmax_class_ids(const float* logits, std::int64_t batch, std::int64_t classes,
-                      std::int64_t inner, std::uint8_t* class_ids, cudaStream_t stream) {
-  const char* op = "argmax_class_ids";
+namespace {
+
+template <bool kPositive>
+void launch_argmax(const char* op, const char* what, const float* values, std::int64_t batch,
+                   std::int64_t classes, std::int64_t inner, std::uint8_t* class_ids,
+                   cudaStream_t stream) {
   check_shape(op, batch, classes, inner, 255);
   if (batch * inner == 0) return;
-  PS_CHECK(logits != nullptr && class_ids != nullptr,
-           "{}: logits ({} floats) and class_ids ({} bytes) must be device memory", op,
+  PS_CHECK(values != nullptr && class_ids != nullptr,
+           "{}: {} ({} floats) and class_ids ({} bytes) must be device memory", op, what,
            batch * classes * inner, batch * inner);
-  launch_kernel(argmax_kernel, cell_grid(batch, inner), dim3(kBlockSize), 0, stream, logits,
-                classes, inner, class_ids);
+  launch_kernel(argmax_kernel<kPositive>, cell_grid(batch, inner), dim3(kBlockSize), 0, stream,
+                values, classes, inner, class_ids);
+}
+
+}  // namespace
+
+void argmax_class_ids(const float* logits, std::int64_t batch, std::int64_t classes,
+                      std::int64_t inner, std::uint8_t* class_ids, cudaStream_t stream) {
+  launch_argmax<false>("argmax_class_ids", "logits", logits, batch, classes, inner, class_ids,
+                       stream);
 }
 
 void argmax_positive_class_ids(const float* values, std::int64_t batch, std::int64_t classes,
                                std::int64_t inner, std::uint8_t* class_ids, cudaStream_t stream) {
-  const char* op = "argmax_positive_class_ids";
-  check_shape(op, batch, classes, inner, 255);
-  if (batch * inner == 0) return;
-  PS_CHECK(values != nullptr && class_ids != nullptr,
-           "{}: values ({} floats) and class_ids ({} bytes) must be device memory", op,
-           batch * classes * inner, batch * inner);
-  launch_kernel(argmax_positive_kernel, cell_grid(batch, inner), dim3(kBlockSize), 0, stream,
-                values, classes, inner, class_ids);
+  launch_argmax<true>("argmax_positive_class_ids", "values", values, batch, classes, inner,
+                      class_ids, stream);
 }
 
 }  // namespace pillarseg::cuda

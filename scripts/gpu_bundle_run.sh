@@ -326,42 +326,32 @@ end_stage bench
 fi
 
 # ---- 5. the bf16 and int8 networks op by op ----
-# The bf16 network (then, time left, the int8 one) op by op (the device waits after every op) beside each op's roofline bound on
-# an H200 (the machine lent to this project; engine/model/roofline.cpp): what share of the bound
-# each op reaches.
-if wants ops && (( $(left) > 120 )); then
-  begin_stage ops
-  echo "=== bilinear bf16 --ops --roofline h200" >> "$bench_log"
-  if timeout 60 "$here/bin/pillarseg" bench --device cuda --precision bf16 --repeat 3 ${scan:+--scan "$scan"} \
+# The bf16 network (then, time left, the int8 one) op by op (the device waits after every op)
+# beside each op's roofline bound on an H200 (the machine lent to this project;
+# engine/model/roofline.cpp): what share of the bound each op reaches.
+run_ops() {
+  local precision=$1
+  (( $(left) > 120 )) || return 0
+  echo "=== bilinear $precision --ops --roofline h200" >> "$bench_log"
+  if timeout 60 "$here/bin/pillarseg" bench --device cuda --precision "$precision" --repeat 3 ${scan:+--scan "$scan"} \
       --ops --roofline h200 > "$out/.ops" 2>&1; then
-    note "### The bf16 network per op against its roofline bound on an H200"
+    note "### The $precision network per op against its roofline bound on an H200"
     note
     note '```'
     sed -n '/^the network per op/,/^roofline bound/p' "$out/.ops" >> "$report"
     note '```'
   else
-    failures+=("bench --ops")
-    note "bench --ops failed: see bench.log"
+    failures+=("bench --ops $precision")
+    note "bench --ops --precision $precision failed: see bench.log"
   fi
   cat "$out/.ops" >> "$bench_log"
-  note
-  if (( $(left) > 120 )); then
-    echo "=== bilinear int8 --ops --roofline h200" >> "$bench_log"
-    if timeout 60 "$here/bin/pillarseg" bench --device cuda --precision int8 --repeat 3 ${scan:+--scan "$scan"} \
-        --ops --roofline h200 > "$out/.ops" 2>&1; then
-      note "### The int8 network per op against its roofline bound on an H200"
-      note
-      note '```'
-      sed -n '/^the network per op/,/^roofline bound/p' "$out/.ops" >> "$report"
-      note '```'
-    else
-      failures+=("bench --ops int8")
-      note "bench --ops --precision int8 failed: see bench.log"
-    fi
-    cat "$out/.ops" >> "$bench_log"
-    note
-  fi
   rm -f "$out/.ops"
+  note
+}
+if wants ops && (( $(left) > 120 )); then
+  begin_stage ops
+  run_ops bf16
+  run_ops int8
   end_stage ops
 fi
 
