@@ -1,9 +1,12 @@
-// Weighted softmax cross-entropy and one-hot sigmoid BCE over the labelled cells of
-// logits (B, K, H, W) with labels (B, H, W); each returns the loss and writes d_logits.
+// Weighted softmax cross-entropy, one-hot sigmoid BCE and the Lovász-softmax loss over the
+// labelled cells of logits (B, K, H, W) with labels (B, H, W); each returns the loss and writes
+// d_logits.
 #include "host/losses.hpp"
 
 #include <algorithm>
+#include <array>
 #include <cmath>
+#include <vector>
 
 #include "core/eigen.hpp"
 
@@ -146,6 +149,99 @@ double bce_loss(const Tensor<T>& logits, const Tensor<uint8_t>& labels,
   return loss * inv_pairs;
 }
 
+template <class T>
+double lovasz_softmax_loss(const Tensor<T>& logits, const Tensor<uint8_t>& labels,
+                           std::type_identity_t<Tensor<T>>* d_logits) {
+  const int64_t classes = logits.rank() == 4 ? logits.dim(1) : 0;
+  const std::vector<double> unit_weights(static_cast<size_t>(std::max<int64_t>(classes, 0) + 1), 1.0);
+  const int64_t labelled =
+      check_and_count_labelled("lovasz_softmax_loss", logits, labels, unit_weights, d_logits);
+  if (d_logits) {
+    d_logits->resize(logits.shape());
+    std::fill(d_logits->data(), d_logits->data() + d_logits->numel(), T(0));
+  }
+  if (labelled == 0) return 0.0;
+
+  const int64_t batch = logits.dim(0), plane = logits.dim(2) * logits.dim(3);
+  // The softmax of each labelled cell, cell-major: probs[m * K + k].
+  std::vector<T> probs(static_cast<size_t>(labelled * classes));
+  std::vector<uint8_t> cell_label(static_cast<size_t>(labelled));
+  std::vector<int64_t> cell_offset(static_cast<size_t>(labelled));  // b * K * plane + i
+  int64_t m = 0;
+  for (int64_t b = 0; b < batch; ++b) {
+    const T* zb = logits.data() + b * classes * plane;
+    const uint8_t* y = labels.data() + b * plane;
+    for (int64_t i = 0; i < plane; ++i) {
+      if (y[i] == 0) continue;
+      T* p = probs.data() + m * classes;
+      T max_logit = zb[i];
+      for (int64_t k = 1; k < classes; ++k) max_logit = std::max(max_logit, zb[k * plane + i]);
+      T sum = 0;
+      for (int64_t k = 0; k < classes; ++k) sum += p[k] = std::exp(zb[k * plane + i] - max_logit);
+      for (int64_t k = 0; k < classes; ++k) p[k] /= sum;
+      cell_label[m] = y[i];
+      cell_offset[m] = b * classes * plane + i;
+      ++m;
+    }
+  }
+
+  // step[c][bin]: the Jaccard step over the bin shared by its cells; present: classes in labels.
+  std::vector<std::array<int64_t, 2>> counts(kLovaszBins);  // [background, foreground]
+  std::vector<double> step(static_cast<size_t>(classes * kLovaszBins));
+  std::vector<int64_t> foreground(static_cast<size_t>(classes + 1), 0);
+  for (int64_t j = 0; j < labelled; ++j) ++foreground[cell_label[j]];
+  int present = 0;
+  double loss = 0;
+  for (int64_t k = 0; k < classes; ++k) {
+    const int64_t total_fg = foreground[k + 1];
+    if (total_fg == 0) continue;
+    ++present;
+    std::fill(counts.begin(), counts.end(), std::array<int64_t, 2>{0, 0});
+    for (int64_t j = 0; j < labelled; ++j) {
+      const bool fg = cell_label[j] == k + 1;
+      const T p = probs[j * classes + k];
+      ++counts[lovasz_bin(fg ? T(1) - p : p)][fg];
+    }
+    double* class_step = step.data() + k * kLovaszBins;
+    int64_t ranked_fg = 0, ranked_bg = 0;  // the cells of the bins ranked before this one
+    for (int bin = kLovaszBins - 1; bin >= 0; --bin) {
+      const int64_t n = counts[bin][0] + counts[bin][1];
+      if (n == 0) continue;
+      const double before = lovasz_jaccard(total_fg, ranked_fg, ranked_bg);
+      ranked_fg += counts[bin][1];
+      ranked_bg += counts[bin][0];
+      class_step[bin] =
+          (lovasz_jaccard(total_fg, ranked_fg, ranked_bg) - before) / static_cast<double>(n);
+    }
+    for (int64_t j = 0; j < labelled; ++j) {
+      const bool fg = cell_label[j] == k + 1;
+      const T p = probs[j * classes + k];
+      const T error = fg ? T(1) - p : p;
+      loss += static_cast<double>(error) * class_step[lovasz_bin(error)];
+    }
+  }
+  if (d_logits) {
+    // d/dz_k of (1 / C) sum_c s_c p_c, s_c = +-step (error = p or 1 - p): p_k (s_k - sum_c s_c p_c).
+    const double inv_present = 1.0 / present;
+    std::vector<double> s(static_cast<size_t>(classes));
+    for (int64_t j = 0; j < labelled; ++j) {
+      const T* p = probs.data() + j * classes;
+      double weighted = 0;
+      for (int64_t k = 0; k < classes; ++k) {
+        s[k] = 0;
+        if (foreground[k + 1] == 0) continue;
+        const bool fg = cell_label[j] == k + 1;
+        const T error = fg ? T(1) - p[k] : p[k];
+        s[k] = (fg ? -inv_present : inv_present) * step[k * kLovaszBins + lovasz_bin(error)];
+        weighted += s[k] * p[k];
+      }
+      T* d = d_logits->data() + cell_offset[j];
+      for (int64_t k = 0; k < classes; ++k) d[k * plane] = static_cast<T>(p[k] * (s[k] - weighted));
+    }
+  }
+  return loss / present;
+}
+
 template double cross_entropy_loss<float>(const Tensor<float>&, const Tensor<uint8_t>&,
                                           std::span<const double>, Tensor<float>*);
 template double cross_entropy_loss<double>(const Tensor<double>&, const Tensor<uint8_t>&,
@@ -154,5 +250,9 @@ template double bce_loss<float>(const Tensor<float>&, const Tensor<uint8_t>&,
                                 std::span<const double>, Tensor<float>*);
 template double bce_loss<double>(const Tensor<double>&, const Tensor<uint8_t>&,
                                  std::span<const double>, Tensor<double>*);
+template double lovasz_softmax_loss<float>(const Tensor<float>&, const Tensor<uint8_t>&,
+                                           Tensor<float>*);
+template double lovasz_softmax_loss<double>(const Tensor<double>&, const Tensor<uint8_t>&,
+                                            Tensor<double>*);
 
 }  // namespace pillarseg::host

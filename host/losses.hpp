@@ -11,6 +11,7 @@
 #include <span>
 #include <type_traits>
 
+#include "core/lovasz.hpp"
 #include "core/tensor.hpp"
 
 namespace pillarseg::host {
@@ -31,5 +32,19 @@ double cross_entropy_loss(const Tensor<T>& logits, const Tensor<uint8_t>& labels
 template <class T>
 double bce_loss(const Tensor<T>& logits, const Tensor<uint8_t>& labels,
                 std::span<const double> class_weights, std::type_identity_t<Tensor<T>>* d_logits);
+
+// Lovász-softmax (Berman, Rannen Triki and Blaschko, CVPR 2018), the convex surrogate of the
+// Jaccard loss that SalsaNext and Cylinder3D add to the cross-entropy: for each class c present in
+// the labels, the errors e_i = |[y_i == c] - softmax(z_i)[c - 1]| of the M labelled cells, taken
+// from the largest down, weigh the steps of the Jaccard loss 1 - |fg \ first j| / |fg u first j|;
+// the loss is the mean over the present classes, in [0, 1]. The errors are ranked by 4096 bins
+// of [0, 1] (core/lovasz.hpp) rather than sorted: the cells of one bin share its Jaccard step equally (the step over
+// a bin does not depend on the order inside it), so the result is the sorted loss wherever no two
+// cells of one bin differ, within 1 / 4096 of it otherwise, and needs no sort on a device. Its
+// gradient, as the paper's, holds the ranking fixed. Class weights are not used: the loss already
+// weighs each class's IoU alike.
+template <class T>
+double lovasz_softmax_loss(const Tensor<T>& logits, const Tensor<uint8_t>& labels,
+                           std::type_identity_t<Tensor<T>>* d_logits);
 
 }  // namespace pillarseg::host

@@ -1,4 +1,5 @@
-// Weighted softmax cross-entropy and one-hot sigmoid BCE with their gradients (see losses.cuh).
+// Weighted softmax cross-entropy and one-hot sigmoid BCE with their gradients (see losses.cuh);
+// the Lovász-softmax term's four kernels are in the section of their own below.
 //   [partials] a grid of at most kLossPartials blocks walks the B * S cells (grid-stride), one
 //              thread per cell over its K channels: loss sums in double, label counts;
 //   [finalize] one block adds the partials in a fixed order -> LossResult;
@@ -7,10 +8,12 @@
 #include "kernels/losses.cuh"
 
 #include <algorithm>
+#include <cmath>
 #include <cstdint>
 #include <limits>
 
 #include "kernels/block_reduce.cuh"
+#include "kernels/block_scan.cuh"
 #include "kernels/common.cuh"
 
 namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
@@ -24,18 +27,17 @@ enum class Loss { CrossEntropy, Bce };
 
 void check_arguments(const char* op, const float* logits, const std::uint8_t* labels,
                      std::int64_t batch, std::int64_t classes, std::int64_t inner,
-                     const float* class_weights, const float* d_logits,
-                     const LossPartial* workspace, const LossResult* result) {
+                     const float* d_logits, const LossPartial* workspace,
+                     const LossResult* result) {
   PS_CHECK(batch >= 0 && inner >= 0 && classes >= 1 && classes <= 255,
            "{}: expected logits (B, K, H * W) with B, H * W >= 0 and 1 <= K <= 255, given ({}, "
            "{}, {})",
            op, batch, classes, inner);
   PS_CHECK(batch <= 65535 && ceil_div(inner, kBlockSize) <= std::numeric_limits<int>::max(),
            "{}: a batch of {} items of {} cells exceeds the grid", op, batch, inner);
-  PS_CHECK(class_weights != nullptr && workspace != nullptr && result != nullptr,
-           "{}: class_weights ({} floats), the workspace ({} LossPartial) and the result must be "
-           "device memory",
-           op, classes + 1, kLossPartials);
+  PS_CHECK(workspace != nullptr && result != nullptr,
+           "{}: the workspace ({} LossPartial) and the result must be device memory", op,
+           kLossPartials);
   PS_CHECK(batch * inner == 0 || (logits != nullptr && labels != nullptr),
            "{}: logits ({} floats) and labels ({} bytes) must be device memory", op,
            batch * classes * inner, batch * inner);
@@ -176,8 +178,9 @@ template <Loss kind>
 void run_loss(const char* op, const float* logits, const std::uint8_t* labels, std::int64_t batch,
               std::int64_t classes, std::int64_t inner, const float* class_weights, float* d_logits,
               LossPartial* workspace, LossResult* result, cudaStream_t stream) {
-  check_arguments(op, logits, labels, batch, classes, inner, class_weights, d_logits, workspace,
-                  result);
+  check_arguments(op, logits, labels, batch, classes, inner, d_logits, workspace, result);
+  PS_CHECK(class_weights != nullptr, "{}: class_weights ({} floats) must be device memory", op,
+           classes + 1);
   const std::int64_t cells = batch * inner;
   const std::int64_t blocks =
       std::clamp<std::int64_t>(ceil_div(cells, kBlockSize * kCellsPerThread), 1, kLossPartials);
@@ -208,6 +211,164 @@ void bce_loss(const float* logits, const std::uint8_t* labels, std::int64_t batc
               LossPartial* workspace, LossResult* result, cudaStream_t stream) {
   run_loss<Loss::Bce>("bce_loss", logits, labels, batch, classes, inner, class_weights, d_logits,
                       workspace, result, stream);
+}
+
+// ---------------------------------------------------------------- Lovász-softmax
+
+// The softmax of a cell as the host computes it: exp(z - max) / sum, the sum in class order.
+struct CellSoftmax {
+  float max_logit;
+  float sum;
+  __device__ float operator()(const float* z, std::int64_t k, std::int64_t inner) const {
+    return expf(z[k * inner] - max_logit) / sum;
+  }
+};
+
+static __device__ __forceinline__ CellSoftmax cell_softmax(const float* z, std::int64_t classes,
+                                                           std::int64_t inner) {
+  float max_logit = z[0];
+  for (std::int64_t k = 1; k < classes; ++k) max_logit = fmaxf(max_logit, z[k * inner]);
+  float sum = 0.0f;
+  for (std::int64_t k = 0; k < classes; ++k) sum += expf(z[k * inner] - max_logit);
+  return CellSoftmax{max_logit, sum};
+}
+
+static __global__ void __launch_bounds__(kBlockSize)
+    lovasz_histogram_kernel(const float* logits, const std::uint8_t* labels, std::int64_t classes,
+                            std::int64_t inner, std::int64_t cells, int* counts) {
+  const std::int64_t stride = std::int64_t{gridDim.x} * kBlockSize;
+  for (std::int64_t i = std::int64_t{blockIdx.x} * kBlockSize + threadIdx.x; i < cells;
+       i += stride) {
+    const int label = labels[i];
+    if (label == 0 || label > classes) continue;
+    const std::int64_t b = i / inner;
+    const float* z = logits + b * classes * inner + (i - b * inner);
+    const CellSoftmax softmax = cell_softmax(z, classes, inner);
+    for (std::int64_t k = 0; k < classes; ++k) {
+      const bool fg = label == k + 1;
+      const float p = softmax(z, k, inner);
+      atomicAdd(&counts[(k * kLovaszBins + lovasz_bin(fg ? 1.0f - p : p)) * 2 + fg], 1);
+    }
+  }
+}
+
+// One block per class: the bins from the largest error down, kBinsPerThread of them a thread.
+static __global__ void __launch_bounds__(kBlockSize)
+    lovasz_steps_kernel(std::int64_t classes, int* counts, double* steps) {
+  constexpr int kBinsPerThread = kLovaszBins / kBlockSize;
+  static_assert(kLovaszBins % kBlockSize == 0, "the bins must split evenly over the threads");
+  const std::int64_t k = blockIdx.x;
+  const int* class_counts = counts + k * kLovaszBins * 2;
+  const int first = static_cast<int>(threadIdx.x) * kBinsPerThread;  // rank of its first bin
+  int fg = 0, bg = 0;
+  for (int j = 0; j < kBinsPerThread; ++j) {
+    const int bin = kLovaszBins - 1 - (first + j);
+    bg += class_counts[bin * 2];
+    fg += class_counts[bin * 2 + 1];
+  }
+  int total_fg = 0, total_bg = 0;
+  fg = block_exclusive_scan<kBlockSize>(fg, &total_fg);
+  bg = block_exclusive_scan<kBlockSize>(bg, &total_bg);
+  if (threadIdx.x == 0) counts[classes * kLovaszBins * 2 + k] = total_fg;
+  if (total_fg == 0) return;  // an absent class: no steps are read
+  double* class_steps = steps + k * kLovaszBins;
+  for (int j = 0; j < kBinsPerThread; ++j) {
+    const int bin = kLovaszBins - 1 - (first + j);
+    const int n = class_counts[bin * 2] + class_counts[bin * 2 + 1];
+    if (n == 0) continue;
+    const double before = lovasz_jaccard(total_fg, fg, bg);
+    bg += class_counts[bin * 2];
+    fg += class_counts[bin * 2 + 1];
+    class_steps[bin] = (lovasz_jaccard(total_fg, fg, bg) - before) / n;
+  }
+}
+
+// The weight of class k's error in a cell's loss: the Jaccard step of the error's bin over the C
+// present classes (times the loss's weight); 0 for an absent class. The error is 1 - p for the
+// cell's own class and p for the others, so its derivative in p is -1 or +1.
+static __device__ __forceinline__ double lovasz_error_weight(const int* totals,
+                                                             const double* steps, std::int64_t k,
+                                                             float error, double scale) {
+  return totals[k] == 0 ? 0.0 : scale * steps[k * kLovaszBins + lovasz_bin(error)];
+}
+
+static __global__ void __launch_bounds__(kBlockSize)
+    lovasz_cells_kernel(const float* logits, const std::uint8_t* labels, std::int64_t classes,
+                        std::int64_t inner, std::int64_t cells, float weight, const int* counts,
+                        const double* steps, float* d_logits, LossPartial* partials) {
+  const int* totals = counts + classes * kLovaszBins * 2;
+  int present = 0;
+  for (std::int64_t k = 0; k < classes; ++k) present += totals[k] > 0;
+  const double scale = present > 0 ? static_cast<double>(weight) / present : 0.0;
+  double loss = 0.0;
+  const std::int64_t stride = std::int64_t{gridDim.x} * kBlockSize;
+  for (std::int64_t i = std::int64_t{blockIdx.x} * kBlockSize + threadIdx.x; i < cells;
+       i += stride) {
+    const int label = labels[i];
+    if (label == 0 || label > classes) continue;
+    const std::int64_t b = i / inner;
+    const std::int64_t offset = b * classes * inner + (i - b * inner);
+    const float* z = logits + offset;
+    const CellSoftmax softmax = cell_softmax(z, classes, inner);
+    // d loss / d p_k = slope_k = -+ weight_k; d loss / d z_k = p_k (slope_k - sum_c slope_c p_c).
+    double slope_dot_p = 0.0;
+    for (std::int64_t k = 0; k < classes; ++k) {
+      const bool fg = label == k + 1;
+      const float p = softmax(z, k, inner);
+      const float error = fg ? 1.0f - p : p;
+      const double error_weight = lovasz_error_weight(totals, steps, k, error, scale);
+      loss += error_weight * error;
+      slope_dot_p += (fg ? -error_weight : error_weight) * p;
+    }
+    if (d_logits == nullptr) continue;
+    float* d = d_logits + offset;
+    for (std::int64_t k = 0; k < classes; ++k) {
+      const bool fg = label == k + 1;
+      const float p = softmax(z, k, inner);
+      const float error = fg ? 1.0f - p : p;
+      const double error_weight = lovasz_error_weight(totals, steps, k, error, scale);
+      d[k * inner] += static_cast<float>(p * ((fg ? -error_weight : error_weight) - slope_dot_p));
+    }
+  }
+  loss = block_sum<kBlockSize>(loss);
+  if (threadIdx.x == 0) partials[blockIdx.x] = LossPartial{loss, 0, 0};
+}
+
+static __global__ void __launch_bounds__(kBlockSize)
+    lovasz_finalize_kernel(const LossPartial* partials, int count, LossResult* result) {
+  double loss = 0.0;
+  for (int i = static_cast<int>(threadIdx.x); i < count; i += kBlockSize) loss += partials[i].loss;
+  loss = block_sum<kBlockSize>(loss);
+  if (threadIdx.x == 0) result->loss += loss;
+}
+
+void lovasz_softmax_loss(const float* logits, const std::uint8_t* labels, std::int64_t batch,
+                         std::int64_t classes, std::int64_t inner, float weight, float* d_logits,
+                         int* counts, double* steps, LossPartial* workspace, LossResult* result,
+                         cudaStream_t stream) {
+  const char* op = "lovasz_softmax_loss";
+  check_arguments(op, logits, labels, batch, classes, inner, d_logits, workspace, result);
+  PS_CHECK(counts != nullptr && steps != nullptr,
+           "{}: counts ({} ints) and steps ({} doubles) must be device memory", op,
+           lovasz_count_ints(classes), lovasz_step_doubles(classes));
+  PS_CHECK(std::isfinite(weight) && weight >= 0, "{}: expected a finite weight >= 0, given {}", op,
+           weight);
+  const std::int64_t cells = batch * inner;
+  PS_CHECK(cells <= std::numeric_limits<int>::max(),
+           "{}: {} cells exceed the bins' int counts", op, cells);
+  PS_CUDA_CHECK(cudaMemsetAsync(counts, 0, sizeof(int) * lovasz_count_ints(classes), stream));
+  const std::int64_t blocks =
+      std::clamp<std::int64_t>(ceil_div(cells, kBlockSize * kCellsPerThread), 1, kLossPartials);
+  const std::int64_t cell_stride = std::max<std::int64_t>(inner, 1);
+  launch_kernel(lovasz_histogram_kernel, dim3(static_cast<unsigned>(blocks)), dim3(kBlockSize), 0,
+                stream, logits, labels, classes, cell_stride, cells, counts);
+  launch_kernel(lovasz_steps_kernel, dim3(static_cast<unsigned>(classes)), dim3(kBlockSize), 0,
+                stream, classes, counts, steps);
+  launch_kernel(lovasz_cells_kernel, dim3(static_cast<unsigned>(blocks)), dim3(kBlockSize), 0,
+                stream, logits, labels, classes, cell_stride, cells, weight, counts, steps,
+                d_logits, workspace);
+  launch_kernel(lovasz_finalize_kernel, dim3(1), dim3(kBlockSize), 0, stream, workspace,
+                static_cast<int>(blocks), result);
 }
 
 double loss_value(const LossResult* result, cudaStream_t stream) {

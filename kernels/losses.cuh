@@ -17,6 +17,7 @@
 
 #include <cstdint>
 
+#include "core/lovasz.hpp"
 #include "kernels/emu/cuda_compat.cuh"
 
 namespace pillarseg::cuda::inline PILLARSEG_CUDA_NAMESPACE {
@@ -50,6 +51,26 @@ void cross_entropy_loss(const float* logits, const std::uint8_t* labels, std::in
 void bce_loss(const float* logits, const std::uint8_t* labels, std::int64_t batch,
               std::int64_t classes, std::int64_t inner, const float* class_weights, float* d_logits,
               LossPartial* workspace, LossResult* result, cudaStream_t stream);
+
+// Lovász-softmax (host/losses.hpp: lovasz_softmax_loss, the spec; errors ranked by
+// kLovaszBins bins of [0, 1]), weighted by `weight` and ADDED to result->loss and to d_logits
+// (which hold a loss already: the cross-entropy's), or only to the loss when d_logits is null.
+//   [histogram] one thread per cell: its softmax, then per class the bin of its error, counted
+//               (foreground, background) with integer atomics: the counts are exact;
+//   [steps]     one block per class: descending prefix sums of the counts over the bins, each
+//               bin's Jaccard step shared by its cells; the class's foreground total;
+//   [cells]     one thread per cell: the loss terms (per-block sums in double) and the gradient;
+//   [finalize]  one block adds the block sums in a fixed order into result->loss.
+// counts: (K, kLovaszBins, 2) + K ints, steps: K * kLovaszBins doubles (lovasz_workspace_*).
+constexpr std::int64_t lovasz_count_ints(std::int64_t classes) {
+  return classes * kLovaszBins * 2 + classes;
+}
+constexpr std::int64_t lovasz_step_doubles(std::int64_t classes) { return classes * kLovaszBins; }
+
+void lovasz_softmax_loss(const float* logits, const std::uint8_t* labels, std::int64_t batch,
+                         std::int64_t classes, std::int64_t inner, float weight, float* d_logits,
+                         int* counts, double* steps, LossPartial* workspace, LossResult* result,
+                         cudaStream_t stream);
 
 // Waits for `stream`, copies *result to the host and returns the loss. Throws pillarseg::Error
 // when some labels were not class ids 0..K (their cells counted as unlabeled).

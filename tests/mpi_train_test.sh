@@ -16,7 +16,8 @@
 #   per step (measured ~1e-5).
 # The same one-step check on --device emu (the CUDA backend's kernels on the emulation: their
 # BatchNorm statistics combined over the ranks on the host, the gradients summed through it).
-# Exact: two 2-rank runs give the same bytes (the sums' order never depends on timing), and so do
+# The Lovász term (train.loss ce+lovasz) on 2 ranks: each rank's term over its own share,
+# weighted 1/2. Exact: two 2-rank runs give the same bytes (the sums' order never depends on timing), and so do
 # gradients summed in many small buckets during the backward and in one after it; each
 # step is logged once, best.safetensors and the eval lines exist; a rank that fails stops all
 # ranks with its message; a batch that does not split over the ranks is refused.
@@ -64,6 +65,20 @@ same_losses single1 ranks1 1e-6
   fail "the weights after one step differ"
 "${compare[@]}" single1/checkpoint.safetensors ranks1/checkpoint.safetensors --exclude "optimizer" --max-abs 6e-3 ||
   fail "a weight moved by more than 2 lr"
+
+echo "== the Lovász term on 2 ranks: each rank ranks its share, its term weighted 1/2"
+# The first step's loss is the cross-entropy of the global batch plus the mean of the ranks' two
+# terms, each in [0, 1]: without the weight it would be their sum (~1.7 at the start).
+sed 's/^  loss: ce$/  loss: ce+lovasz/' one_step.yaml > one_step_lovasz.yaml
+grep -q "loss: ce+lovasz" one_step_lovasz.yaml || fail "one_step_lovasz.yaml holds no ce+lovasz"
+"${mpi[@]}" -np 2 "$bin" --threads 1 train --data data --config one_step_lovasz.yaml --out ranks1_lovasz --cache cache \
+  > lovasz.log 2>&1 || { cat lovasz.log; fail "mpirun -np 2 train with ce+lovasz failed"; }
+python3 - "$(losses ranks1 | head -1)" "$(losses ranks1_lovasz | head -1)" <<'PY' || fail "the 2-rank Lovász term is not in (0.05, 1]"
+import sys
+ce, both = float(sys.argv[1]), float(sys.argv[2])
+print(f"first step: cross-entropy {ce:.4f}, with the Lovász term {both:.4f}")
+sys.exit(0 if 0.05 < both - ce <= 1.0 + 1e-6 else 1)
+PY
 
 echo "== one step on the CUDA backend (on the emulation): synchronised BatchNorm in the kernels"
 "$bin" --threads 2 train --device emu --data data --config one_step.yaml --out emu_single1 --cache cache > /dev/null 2>&1

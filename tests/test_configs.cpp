@@ -50,7 +50,10 @@ TEST(Configs, ErrorsNameTheKey) {
     return std::string();
   };
   EXPECT_NE(message("model: {base_widht: 8}").find("model.base_widht"), std::string::npos);
-  EXPECT_NE(message("train: {loss: hinge}").find("train.loss"), std::string::npos);
+  EXPECT_NE(message("train: {loss: hinge}").find("train.loss: expected ce, bce or ce+lovasz, got 'hinge'"),
+            std::string::npos);
+  EXPECT_EQ(parse_run_config("train: {loss: ce+lovasz}", "my.yaml").train.loss, LossKind::CrossEntropyLovasz);
+  EXPECT_EQ(parse_run_config("train: {loss: bce}", "my.yaml").train.loss, LossKind::Bce);
   EXPECT_NE(message("modle: {}").find("modle"), std::string::npos);
   EXPECT_NE(message("model: {occupancy: 4d}").find("my.yaml"), std::string::npos);
   EXPECT_NE(message("train: {coefficients: {car: 3}}").find("car"), std::string::npos);

@@ -96,8 +96,10 @@ TEST_P(CudaBackendModel, MatchesTheCpuBackend) {
   ASSERT_EQ(cuda_ps.download_flat(cuda_ps.values()), cpu_ps.download_flat(cpu_ps.values()));
 
   const TinyData data = tiny_data(c, 2, 21);
-  for (LossKind kind : {LossKind::CrossEntropy, LossKind::Bce}) {
-    const char* kind_name = kind == LossKind::Bce ? "bce" : "cross-entropy";
+  for (LossKind kind : {LossKind::CrossEntropy, LossKind::Bce, LossKind::CrossEntropyLovasz}) {
+    const char* kind_name = kind == LossKind::Bce                ? "bce"
+                            : kind == LossKind::CrossEntropy ? "cross-entropy"
+                                                             : "cross-entropy + Lovász";
     SCOPED_TRACE(kind_name);
     cpu_net.forward(data.batch, true);
     cuda_net.forward(data.batch, true);

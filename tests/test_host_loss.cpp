@@ -334,3 +334,124 @@ TEST(HostLoss, RejectsBadArguments) {
                 HasSubstr("expected labels of shape (1, 2, 3)"));
   }
 }
+
+// ---------------------------------------------------------------- Lovász-softmax
+
+namespace {
+
+// The Lovász-softmax loss as the paper's reference computes it: per present class, the errors
+// sorted from the largest down (std::stable_sort), the Jaccard loss's steps as their weights.
+double sorted_lovasz(const TensorD& logits, const Tensor<uint8_t>& labels) {
+  const int64_t batch = logits.dim(0), classes = logits.dim(1);
+  const int64_t plane = logits.dim(2) * logits.dim(3);
+  TensorD probs;
+  softmax_channels(logits, probs);
+  double sum = 0;
+  int present = 0;
+  for (int64_t k = 0; k < classes; ++k) {
+    std::vector<std::pair<double, bool>> errors;  // (error, foreground)
+    for (int64_t b = 0; b < batch; ++b) {
+      for (int64_t i = 0; i < plane; ++i) {
+        const uint8_t y = labels[b * plane + i];
+        if (y == 0) continue;
+        const double p = probs[(b * classes + k) * plane + i];
+        errors.emplace_back(y == k + 1 ? 1 - p : p, y == k + 1);
+      }
+    }
+    const auto foreground = std::count_if(errors.begin(), errors.end(),
+                                          [](const auto& e) { return e.second; });
+    if (foreground == 0) continue;
+    ++present;
+    std::stable_sort(errors.begin(), errors.end(),
+                     [](const auto& a, const auto& b) { return a.first > b.first; });
+    double fg = 0, bg = 0, jaccard_before = 0;
+    for (const auto& [error, is_fg] : errors) {
+      (is_fg ? fg : bg) += 1;
+      const double jaccard = 1 - (static_cast<double>(foreground) - fg) / (foreground + bg);
+      sum += error * (jaccard - jaccard_before);
+      jaccard_before = jaccard;
+    }
+  }
+  return sum / present;
+}
+
+double lovasz(const TensorD& logits, const Tensor<uint8_t>& labels, std::span<const double>,
+              TensorD* grad) {
+  return lovasz_softmax_loss(logits, labels, grad);
+}
+
+}  // namespace
+
+TEST(HostLovasz, ThreeCellsByHand) {
+  // Two classes; cells 0 and 1 of class 1 with p(1) = 0.9 and 0.3, cell 2 of class 2 with
+  // p(1) = 0.2, cell 3 unlabeled. Class 1: errors 0.1 (fg), 0.7 (fg), 0.2 (bg); from the largest,
+  // the Jaccard loss goes 1/2, 2/3, 1: 0.7 / 2 + 0.2 / 6 + 0.1 / 3. Class 2: errors 0.1 (bg), 0.7
+  // (bg), 0.2 (fg); the steps 1/2, 1/2, 0: 0.7 / 2 + 0.2 / 2. The loss is their mean.
+  TensorD logits({1, 2, 1, 4});
+  const double p1[] = {0.9, 0.3, 0.2};
+  for (int i = 0; i < 3; ++i) logits(0, 0, 0, i) = std::log(p1[i]), logits(0, 1, 0, i) = std::log(1 - p1[i]);
+  logits(0, 0, 0, 3) = kNaN;
+  Tensor<uint8_t> labels({1, 1, 4});
+  labels[0] = 1, labels[1] = 1, labels[2] = 2, labels[3] = 0;
+  TensorD grad;
+  const double expected = ((0.35 + 0.2 / 6 + 0.1 / 3) + (0.35 + 0.1)) / 2;
+  EXPECT_NEAR(lovasz_softmax_loss(logits, labels, &grad), expected, 1e-12);
+  // Cell 0: class 1's error 0.1 (fg) weighs 1/3, class 2's error 0.1 (bg) 0; over the 2 present
+  // classes s = (-1/6, 0), sum s p = -0.15, d_k = p_k (s_k + 0.15): -0.015 and +0.015.
+  EXPECT_NEAR(grad(0, 0, 0, 0), -0.015, 1e-12);
+  EXPECT_NEAR(grad(0, 1, 0, 0), 0.015, 1e-12);
+  EXPECT_EQ(grad(0, 0, 0, 3), 0.0);
+  EXPECT_EQ(grad(0, 1, 0, 3), 0.0);
+}
+
+TEST(HostLovasz, EqualsTheSortedLossWithinABin) {
+  Rng rng(13);
+  for (int trial = 0; trial < 4; ++trial) {
+    SCOPED_TRACE(trial);
+    const Tensor<uint8_t> labels = random_labels({2, 6, 5}, rng);
+    const TensorD logits = random_tensor({2, kClasses, 6, 5}, rng, -4, 4);
+    EXPECT_NEAR(lovasz_softmax_loss(logits, labels, nullptr), sorted_lovasz(logits, labels),
+                1.0 / kLovaszBins);
+  }
+  // Equal errors (equal logits in every cell) leave nothing to order: the two agree exactly.
+  const Tensor<uint8_t> labels = random_labels({1, 4, 4}, rng);
+  const TensorD flat({1, kClasses, 4, 4}, 0.25);
+  EXPECT_NEAR(lovasz_softmax_loss(flat, labels, nullptr), sorted_lovasz(flat, labels), 1e-15);
+}
+
+TEST(HostLovasz, GradientMatchesFiniteDifferences) {
+  // A step of 1e-8 moves no error across a bin's edge for this seed (the loss is piecewise
+  // smooth, with steps of at most 1 / 4096 of a Jaccard step at the edges).
+  Rng rng(14);
+  const Tensor<uint8_t> labels = random_labels({2, 3, 3}, rng);
+  TensorD logits = random_tensor({2, kClasses, 3, 3}, rng, -3, 3);
+  TensorD grad;
+  lovasz_softmax_loss(logits, labels, &grad);
+  const TensorD numeric = numeric_gradient(
+      logits, [&] { return lovasz_softmax_loss(logits, labels, nullptr); }, 1e-8);
+  EXPECT_TRUE(test::all_close(grad, numeric, 1e-7, 1e-5));
+}
+
+TEST(HostLovasz, UnlabeledCellsInertAndFloatAgreesWithDouble) {
+  Rng rng(15);
+  const Tensor<uint8_t> labels = random_labels({2, 5, 3}, rng);
+  const TensorD logits = random_tensor({2, kClasses, 5, 3}, rng, -3, 3);
+  TensorD scrambled = logits;
+  for (int64_t b = 0; b < 2; ++b) {
+    for (int64_t k = 0; k < kClasses; ++k) {
+      for (int64_t i = 0; i < 15; ++i) {
+        if (labels[b * 15 + i] == 0) scrambled[(b * kClasses + k) * 15 + i] = kNaN;
+      }
+    }
+  }
+  TensorD grad, grad_scrambled;
+  const double loss = lovasz(logits, labels, kWeights, &grad);
+  EXPECT_EQ(lovasz(scrambled, labels, kWeights, &grad_scrambled), loss);
+  EXPECT_TRUE(test::all_close(grad_scrambled, grad, 0, 0));
+  TensorF grad_f;
+  EXPECT_NEAR(lovasz_softmax_loss(tensor_cast<float>(logits), labels, &grad_f), loss, 1e-4);
+  EXPECT_TRUE(test::all_close(tensor_cast<double>(grad_f), grad, 1e-5, 1e-3));
+  TensorD zero_grad({1}, 7.0);
+  EXPECT_EQ(lovasz_softmax_loss(logits, Tensor<uint8_t>(labels.shape()), &zero_grad), 0.0);
+  EXPECT_TRUE(test::all_close(zero_grad, TensorD(logits.shape(), 0.0), 0, 0));
+}

@@ -579,10 +579,12 @@ TEST(SoftmaxKernels, LaunchersCheckTheirArguments) {
 
 namespace {
 
-enum class LossKind { CrossEntropy, Bce };
+enum class LossKind { CrossEntropy, Bce, CrossEntropyLovasz };
 
 // Class weights as the configs set them: vehicle 2, person, two-wheel, rider 8, others 1.
 const std::vector<float> kClassWeights = {0, 2, 8, 8, 8, 1, 1, 1, 1, 1, 1, 1, 1};
+// The Lovász term's weight in the combined loss (a data-parallel replica's 1 / R).
+constexpr float kLovaszWeight = 0.5f;
 
 Tensor<std::uint8_t> random_labels(const Shape& shape, std::uint64_t seed, double unlabeled) {
   Rng rng(seed);
@@ -606,9 +608,19 @@ DeviceLoss device_loss(LossKind kind, const Tensor<float>& logits,
   GuardedArray<std::uint8_t> device_labels(std::vector<std::uint8_t>(labels.begin(), labels.end()));
   GuardedArray<cuda::LossPartial> workspace(cuda::kLossPartials);
   GuardedArray<cuda::LossResult> result(1);
-  const auto run = kind == LossKind::CrossEntropy ? cuda::cross_entropy_loss : cuda::bce_loss;
+  const auto run = kind == LossKind::Bce ? cuda::bce_loss : cuda::cross_entropy_loss;
   run(device_logits.data(), device_labels.data(), batch, classes, plane, weights.data(),
       with_gradient ? d_logits.data() : nullptr, workspace.data(), result.data(), nullptr);
+  if (kind == LossKind::CrossEntropyLovasz) {
+    GuardedArray<int> counts(cuda::lovasz_count_ints(classes));
+    GuardedArray<double> steps(cuda::lovasz_step_doubles(classes));
+    cuda::lovasz_softmax_loss(device_logits.data(), device_labels.data(), batch, classes, plane,
+                              kLovaszWeight, with_gradient ? d_logits.data() : nullptr,
+                              counts.data(), steps.data(), workspace.data(), result.data(),
+                              nullptr);
+    EXPECT_TRUE(counts.guards_intact());
+    EXPECT_TRUE(steps.guards_intact());
+  }
   EXPECT_TRUE(d_logits.guards_intact());
   EXPECT_TRUE(workspace.guards_intact());
   EXPECT_TRUE(result.guards_intact());
@@ -618,21 +630,30 @@ DeviceLoss device_loss(LossKind kind, const Tensor<float>& logits,
 double host_loss(LossKind kind, const Tensor<float>& logits, const Tensor<std::uint8_t>& labels,
                  Tensor<float>& d_logits) {
   const std::vector<double> weights(kClassWeights.begin(), kClassWeights.end());
-  return kind == LossKind::CrossEntropy
-             ? host::cross_entropy_loss(logits, labels, weights, &d_logits)
-             : host::bce_loss(logits, labels, weights, &d_logits);
+  if (kind == LossKind::Bce) return host::bce_loss(logits, labels, weights, &d_logits);
+  const double ce = host::cross_entropy_loss(logits, labels, weights, &d_logits);
+  if (kind == LossKind::CrossEntropy) return ce;
+  Tensor<float> d_lovasz;
+  const double lovasz = host::lovasz_softmax_loss(logits, labels, &d_lovasz);
+  for (std::int64_t i = 0; i < d_logits.numel(); ++i) d_logits[i] += kLovaszWeight * d_lovasz[i];
+  return ce + kLovaszWeight * lovasz;
 }
 
 const char* loss_name(LossKind kind) {
-  return kind == LossKind::CrossEntropy ? "cross-entropy" : "bce";
+  return kind == LossKind::CrossEntropy ? "cross-entropy"
+         : kind == LossKind::Bce        ? "bce"
+                                        : "cross-entropy + Lovász";
 }
+
+constexpr LossKind kLossKinds[] = {LossKind::CrossEntropy, LossKind::Bce,
+                                   LossKind::CrossEntropyLovasz};
 
 }  // namespace
 
 TEST(LossKernels, LossAndGradientMatchTheReference) {
   const std::vector<Shape> shapes = {{2, 12, 9, 11}, {1, 12, 1, 1}, {2, 12, 64, 64}};
   std::uint64_t seed = 3000;
-  for (const LossKind kind : {LossKind::CrossEntropy, LossKind::Bce}) {
+  for (const LossKind kind : kLossKinds) {
     for (const Shape& shape : shapes) {
       SCOPED_TRACE(std::string(loss_name(kind)) + " " + shape_str(shape));
       Tensor<float> logits = normal_tensor(shape, seed++, 4.0);
@@ -661,7 +682,7 @@ TEST(LossKernels, LossAndGradientMatchTheReference) {
 }
 
 TEST(LossKernels, NoLabelledCellGivesZeroLossAndGradient) {
-  for (const LossKind kind : {LossKind::CrossEntropy, LossKind::Bce}) {
+  for (const LossKind kind : kLossKinds) {
     SCOPED_TRACE(loss_name(kind));
     const Tensor<float> logits = normal_tensor({2, 12, 3, 5}, 3100);
     const Tensor<std::uint8_t> labels({2, 3, 5});
@@ -692,7 +713,7 @@ TEST(LossKernels, SameBitsForEveryRunAndThreadCount) {
   const Tensor<float> logits = normal_tensor({2, 12, 64, 64}, 3200, 3.0);
   const Tensor<std::uint8_t> labels = random_labels({2, 64, 64}, 3201, 0.2);
   const int threads = omp_get_max_threads();
-  for (const LossKind kind : {LossKind::CrossEntropy, LossKind::Bce}) {
+  for (const LossKind kind : kLossKinds) {
     omp_set_num_threads(threads);
     const DeviceLoss reference = device_loss(kind, logits, labels, true);
     for (const int t : {1, 3}) {
@@ -715,6 +736,27 @@ TEST(LossKernels, LabelsOutsideTheClassesAreReported) {
   const std::string message =
       error_message([&] { device_loss(LossKind::Bce, logits, labels, true); });
   EXPECT_NE(message.find("loss: 2 labels are not class ids 0..12"), std::string::npos) << message;
+}
+
+TEST(LossKernels, LovaszLauncherChecksItsArguments) {
+  GuardedArray<float> logits(24), d_logits(24);
+  GuardedArray<std::uint8_t> labels(std::vector<std::uint8_t>{1, 2});
+  GuardedArray<cuda::LossPartial> workspace(cuda::kLossPartials);
+  GuardedArray<cuda::LossResult> result(1);
+  GuardedArray<int> counts(cuda::lovasz_count_ints(12));
+  GuardedArray<double> steps(cuda::lovasz_step_doubles(12));
+  const auto run = [&](float weight, int* c, double* s) {
+    return error_message([&] {
+      cuda::lovasz_softmax_loss(logits.data(), labels.data(), 1, 12, 2, weight, d_logits.data(), c,
+                                s, workspace.data(), result.data(), nullptr);
+    });
+  };
+  EXPECT_NE(run(1.0f, nullptr, steps.data()).find("lovasz_softmax_loss: counts (98316 ints) and "
+                                                  "steps (49152 doubles) must be device memory"),
+            std::string::npos);
+  EXPECT_NE(run(-1.0f, counts.data(), steps.data()).find("a finite weight >= 0, given -1"),
+            std::string::npos);
+  EXPECT_NE(run(kNan, counts.data(), steps.data()).find("a finite weight >= 0"), std::string::npos);
 }
 
 // ---------------------------------------------------------------------------------------------

@@ -330,6 +330,23 @@ TEST(Train, WritesTensorBoardEventFiles) {
   EXPECT_EQ(std::count_if(scalars.begin(), scalars.end(), [](const EventScalar& e) { return e.tag == "train/epoch_mean_loss"; }), 2);
 }
 
+// train.loss ce+lovasz: the first step (same weights, same batch) costs the cross-entropy plus a
+// Lovász term in (0, 1], and the run ends elsewhere than the cross-entropy's.
+TEST(Train, LovaszTermAddsToTheCrossEntropy) {
+  const fs::path dir = test::temp_dir();
+  const auto first_loss = [](const fs::path& run) {
+    const std::string line = step_lines(run / "metrics.jsonl").at(0);
+    return std::stod(line.substr(line.find(R"("loss": )") + 8));
+  };
+  train(options_for(dir / "ce", tiny_config_text()));
+  train(options_for(dir / "lovasz", tiny_config_text("  loss: ce+lovasz\n")));
+  const double lovasz = first_loss(dir / "lovasz") - first_loss(dir / "ce");
+  EXPECT_GT(lovasz, 0.05);
+  EXPECT_LE(lovasz, 1.0 + 1e-6);
+  EXPECT_NE(checkpoint_values(dir / "ce" / "checkpoint.safetensors"),
+            checkpoint_values(dir / "lovasz" / "checkpoint.safetensors"));
+}
+
 // The loader's queue: items in order whatever the workers' timing, never more than `ahead` made
 // and not taken, and 0 workers makes each item when it is taken.
 TEST(Prefetcher, InOrderAndBounded) {

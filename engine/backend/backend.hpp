@@ -138,7 +138,19 @@ struct BatchNormRefs {
   ReplicaSum* replicas = nullptr;
 };
 
-enum class LossKind { CrossEntropy, Bce };
+// CrossEntropyLovasz: the weighted cross-entropy plus the Lovász-softmax loss (host/losses.hpp).
+enum class LossKind { CrossEntropy, Bce, CrossEntropyLovasz };
+
+// What Backend::loss computes: the kind, and the weight of its Lovász term. A data-parallel
+// replica gives its Lovász term 1 / R: the loss of a class's IoU over the whole batch is not a sum
+// over cells, so each replica ranks its own share's cells (as PyTorch's DDP runs it) and the
+// replicas' sum is the mean of their terms.
+struct LossSpec {
+  LossSpec(LossKind k = LossKind::CrossEntropy, float lovasz = 1.0f)  // NOLINT: from a LossKind
+      : kind(k), lovasz_weight(lovasz) {}
+  LossKind kind;
+  float lovasz_weight;
+};
 
 // Device work recorded once by Backend::capture() (a CUDA graph) and run again by replay(), on
 // the memory the recorded ops named, with whatever it holds at replay time. Must not outlive its
@@ -308,8 +320,9 @@ class Backend {
   // none is (a cell masked as unobserved in every copy).
   virtual void mirror_add(const Ref& x, bool mirror_y, bool mirror_x, Ref& sum) = 0;
   virtual void argmax_positive(const Ref& values, LRef& labels) = 0;  // (B, H, W), class ids 0..12
-  // Mean loss over labelled cells; writes dlogits. coefficients: (13) per class id.
-  virtual double loss(LossKind kind, const Ref& logits, const LRef& labels, const Ref& coefficients,
+  // The loss of spec (mean over labelled cells; the Lovász term over the present classes); writes
+  // dlogits. coefficients: (13) per class id, the cross-entropy's and BCE's.
+  virtual double loss(const LossSpec& spec, const Ref& logits, const LRef& labels, const Ref& coefficients,
                       Ref& dlogits) = 0;
 
   // Optimiser over one flat parameter array.

@@ -475,14 +475,21 @@ class CpuBackend final : public Backend {
     Tensor<uint8_t> l = view(labels);
     host::argmax_positive_class_ids(view(values), l);
   }
-  double loss(LossKind kind, const Ref& logits, const LRef& labels, const Ref& coefficients, Ref& dlogits) override {
+  double loss(const LossSpec& spec, const Ref& logits, const LRef& labels, const Ref& coefficients,
+              Ref& dlogits) override {
     PS_CHECK(coefficients.numel() == 13, "loss: 13 class coefficients expected, got {}", coefficients.numel());
     double c[13];
     for (int i = 0; i < 13; ++i) c[i] = coefficients.data[i];
     Tensor<float> d = view(dlogits);
     const std::span<const double> weights(c, 13);
-    return kind == LossKind::CrossEntropy ? host::cross_entropy_loss(view(logits), view(labels), weights, &d)
-                                          : host::bce_loss(view(logits), view(labels), weights, &d);
+    if (spec.kind == LossKind::Bce) return host::bce_loss(view(logits), view(labels), weights, &d);
+    const double ce = host::cross_entropy_loss(view(logits), view(labels), weights, &d);
+    if (spec.kind == LossKind::CrossEntropy) return ce;
+    Tensor<float> d_lovasz;
+    const double lovasz = host::lovasz_softmax_loss(view(logits), view(labels), &d_lovasz);
+    const float w = spec.lovasz_weight;
+    for (int64_t i = 0; i < d.numel(); ++i) d[i] += w * d_lovasz[i];
+    return ce + static_cast<double>(w) * lovasz;
   }
 
   double sum_of_squares(const Ref& x) override {

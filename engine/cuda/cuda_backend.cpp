@@ -807,7 +807,7 @@ void CudaBackend::argmax_positive(const Ref& values, LRef& labels) {
                                   values.dim(2) * values.dim(3), labels.data, stream_.get());
 }
 
-double CudaBackend::loss(LossKind kind, const Ref& logits, const LRef& labels,
+double CudaBackend::loss(const LossSpec& spec, const Ref& logits, const LRef& labels,
                          const Ref& coefficients, Ref& dlogits) {
   const char* op = "loss";
   require_not_capturing(op);
@@ -816,9 +816,16 @@ double CudaBackend::loss(LossKind kind, const Ref& logits, const LRef& labels,
   require_shape(op, "labels", labels, {B, logits.dim(2), logits.dim(3)});
   require_shape(op, "coefficients (one per class id, 0 unused)", coefficients, {K + 1});
   require_shape(op, "dlogits", dlogits, logits.shape);
-  const auto run = kind == LossKind::CrossEntropy ? &cuda::cross_entropy_loss : &cuda::bce_loss;
+  const auto run = spec.kind == LossKind::Bce ? &cuda::bce_loss : &cuda::cross_entropy_loss;
   run(logits.data, labels.data, B, K, S, coefficients.data, dlogits.data,
       workspace_.loss_partials.data(), workspace_.loss_result.data(), stream_.get());
+  if (spec.kind == LossKind::CrossEntropyLovasz) {
+    int* counts = grow(workspace_.lovasz_counts, static_cast<size_t>(cuda::lovasz_count_ints(K)));
+    double* steps = grow(workspace_.lovasz_steps, static_cast<size_t>(cuda::lovasz_step_doubles(K)));
+    cuda::lovasz_softmax_loss(logits.data, labels.data, B, K, S, spec.lovasz_weight, dlogits.data,
+                              counts, steps, workspace_.loss_partials.data(),
+                              workspace_.loss_result.data(), stream_.get());
+  }
   const double value = cuda::loss_value(workspace_.loss_result.data(), stream_.get());
   staging_used_ = 0;  // loss_value waited for the stream
   return value;

@@ -156,7 +156,7 @@ class CudaBackend final : public Backend {
   void argmax(const Ref& logits, LRef& labels) override;
   void mirror_add(const Ref& x, bool mirror_y, bool mirror_x, Ref& sum) override;
   void argmax_positive(const Ref& values, LRef& labels) override;
-  double loss(LossKind kind, const Ref& logits, const LRef& labels, const Ref& coefficients,
+  double loss(const LossSpec& spec, const Ref& logits, const LRef& labels, const Ref& coefficients,
               Ref& dlogits) override;
   double sum_of_squares(const Ref& x) override;
   void scale(Ref& x, float factor) override;
@@ -233,6 +233,9 @@ class CudaBackend final : public Backend {
     cuda::DeviceBuffer<double> sum_of_squares;  // kSumOfSquaresPartials partials, then the result
     cuda::DeviceBuffer<cuda::LossPartial> loss_partials;
     cuda::DeviceBuffer<cuda::LossResult> loss_result;
+    // The Lovász term's bin counts and steps (cuda::lovasz_softmax_loss), made on its first use.
+    cuda::DeviceBuffer<int> lovasz_counts;
+    cuda::DeviceBuffer<double> lovasz_steps;
   };
   float* float_workspace(size_t count);
   std::uint16_t* half_workspace(size_t count);

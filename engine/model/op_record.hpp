@@ -126,7 +126,7 @@ class OpContext {
   virtual void batchnorm_ran(const GraphNode& n) = 0;
   virtual int64_t pillar_rows() const = 0;
   virtual IRef live_rows() const = 0;
-  virtual LossKind loss_kind() const = 0;
+  virtual LossSpec loss_spec() const = 0;
 
   template <class T>
   RefT<T> ref(int id) {

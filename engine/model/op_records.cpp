@@ -389,7 +389,7 @@ double run_add_inplace(OpContext& c, const GraphNode& n) {
 double run_loss(OpContext& c, const GraphNode& n) {
   const auto a = n.as<LossArgs>();
   Ref dlogits = c.f32(a.dlogits);
-  return c.backend().loss(c.loss_kind(), c.f32(a.logits), c.ref<uint8_t>(a.labels), c.f32(a.coefficients),
+  return c.backend().loss(c.loss_spec(), c.f32(a.logits), c.ref<uint8_t>(a.labels), c.f32(a.coefficients),
                           dlogits);
 }
 double run_prepare_conv(OpContext& c, const GraphNode& n) {

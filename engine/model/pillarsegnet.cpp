@@ -37,7 +37,7 @@ struct GraphPlan : ModelGraph {
 struct PillarSegNet::Impl : Modules {
   GraphPlan eval, train;
   GraphPlan* current = nullptr;
-  LossKind loss_kind = LossKind::CrossEntropy;
+  LossSpec loss_spec;
   Precision precision = Precision::F32;        // of the evaluation convolutions
   std::map<std::string, Int8Input> int8_inputs;  // INT8: the U-Net's calibrated inputs
   PillarSegNet::ConvInputObserver observer;    // calibration
@@ -189,7 +189,7 @@ double PillarSegNet::execute(const GraphPlan& p, size_t begin, size_t end, bool 
     }
     int64_t pillar_rows() const override { return net_.impl_->pillar_rows; }
     IRef live_rows() const override { return net_.impl_->live_rows; }
-    LossKind loss_kind() const override { return net_.impl_->loss_kind; }
+    LossSpec loss_spec() const override { return net_.impl_->loss_spec; }
 
    private:
     PillarSegNet& net_;
@@ -498,14 +498,15 @@ void PillarSegNet::queue_predictions(bool probabilities) {
 const LRef& PillarSegNet::predicted() const { return impl_->predicted; }
 const Ref& PillarSegNet::probs() const { return impl_->probs; }
 
-double PillarSegNet::loss(const Tensor<uint8_t>& labels, LossKind kind, const std::array<float, 13>& coefficients) {
+double PillarSegNet::loss(const Tensor<uint8_t>& labels, const LossSpec& spec,
+                          const std::array<float, 13>& coefficients) {
   Impl& m = *impl_;
   PS_CHECK(m.current != nullptr, "loss() before forward()");
   PS_CHECK(labels.shape() == m.labels.shape, "loss: labels must be {}, got {}", shape_str(m.labels.shape),
            shape_str(labels.shape()));
   backend_.upload(m.labels.data, labels.data(), m.labels.bytes());
   backend_.upload(m.coefficients.data, coefficients.data(), m.coefficients.bytes());
-  m.loss_kind = kind;
+  m.loss_spec = spec;
   const double value = execute(*m.current, m.current->loss_node, m.current->loss_node + 1);
   m.loss_gradient_ready = true;
   return value;

@@ -154,7 +154,7 @@ class PillarSegNet {
   const Ref& probs() const;
   // After forward: the mean loss over labelled cells of labels (B, H, W), and the gradient
   // of the logits, ready for backward(). coefficients: per class id 0..12.
-  double loss(const Tensor<uint8_t>& labels, LossKind kind, const std::array<float, 13>& coefficients);
+  double loss(const Tensor<uint8_t>& labels, const LossSpec& spec, const std::array<float, 13>& coefficients);
   // After loss(): every parameter gradient. Once per loss() (it consumes the logits' gradient).
   // With a listener (data-parallel training): the gradient array in buckets of at least
   // bucket_elements floats (Graph::gradient_buckets; <= 0: one, after the last node), each

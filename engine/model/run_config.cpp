@@ -30,8 +30,9 @@ void read_train(const YAML::Node& t, const ClassTable& classes, const std::strin
     if (key == "ground_truth") c.ground_truth = parse_ground_truth_kind(get<std::string>(v, where));
     else if (key == "loss") {
       const std::string l = get<std::string>(v, where);
-      PS_CHECK(l == "ce" || l == "bce", "{}: expected ce or bce, got '{}'", where, l);
-      c.loss = l == "ce" ? LossKind::CrossEntropy : LossKind::Bce;
+      PS_CHECK(l == "ce" || l == "bce" || l == "ce+lovasz", "{}: expected ce, bce or ce+lovasz, got '{}'",
+               where, l);
+      c.loss = l == "ce" ? LossKind::CrossEntropy : l == "bce" ? LossKind::Bce : LossKind::CrossEntropyLovasz;
     } else if (key == "epochs") c.epochs = get<int>(v, where);
     else if (key == "batch_size") c.batch_size = get<int>(v, where);
     else if (key == "seed") c.seed = get<uint64_t>(v, where);

@@ -459,7 +459,8 @@ TrainResult train(const TrainOptions& options) {
       }
       double loss = 0;
       if (R > 1) {
-        loss = net.loss(labels, tc.loss, share_coefficients(tc.coefficients, labels, replicas));
+        loss = net.loss(labels, LossSpec(tc.loss, 1.0f / static_cast<float>(R)),
+                        share_coefficients(tc.coefficients, labels, replicas));
         replicas.sum(&loss, 1);
       } else {
         loss = net.loss(labels, tc.loss, tc.coefficients);
