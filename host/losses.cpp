@@ -17,11 +17,10 @@ namespace {
 template <class T>
 using Plane = Eigen::Array<T, Eigen::Dynamic, 1>;
 
-// Checks the shapes, the labels and the weights; returns M, the number of labelled cells.
+// Checks the shapes and the labels; returns M, the number of labelled cells.
 template <class T>
 int64_t check_and_count_labelled(const char* op, const Tensor<T>& logits,
-                                 const Tensor<uint8_t>& labels,
-                                 std::span<const double> class_weights, const Tensor<T>* d_logits) {
+                                 const Tensor<uint8_t>& labels, const Tensor<T>* d_logits) {
   PS_CHECK(logits.rank() == 4 && logits.dim(1) > 0,
            "{}: expected logits of shape (B, K, H, W) with K > 0, given {}", op,
            shape_str(logits.shape()));
@@ -30,14 +29,6 @@ int64_t check_and_count_labelled(const char* op, const Tensor<T>& logits,
   PS_CHECK(labels.shape() == label_shape,
            "{}: expected labels of shape {} for logits of shape {}, given {}", op,
            shape_str(label_shape), shape_str(logits.shape()), shape_str(labels.shape()));
-  PS_CHECK(static_cast<int64_t>(class_weights.size()) == classes + 1,
-           "{}: expected {} class weights (one per class id 0..{}), given {}", op, classes + 1,
-           classes, class_weights.size());
-  for (int64_t k = 1; k <= classes; ++k) {
-    PS_CHECK(std::isfinite(class_weights[k]) && class_weights[k] >= 0,
-             "{}: expected finite class weights >= 0, given {} for class {}", op, class_weights[k],
-             k);
-  }
   PS_CHECK(d_logits != &logits, "{}: d_logits must not be the logits (not in place)", op);
   int64_t labelled = 0;
   for (int64_t i = 0; i < labels.numel(); ++i) {
@@ -49,14 +40,26 @@ int64_t check_and_count_labelled(const char* op, const Tensor<T>& logits,
   return labelled;
 }
 
+// The cross-entropy's and BCE's class weights: one per class id 0..K, finite and >= 0.
+void check_class_weights(const char* op, int64_t classes, std::span<const double> class_weights) {
+  PS_CHECK(static_cast<int64_t>(class_weights.size()) == classes + 1,
+           "{}: expected {} class weights (one per class id 0..{}), given {}", op, classes + 1,
+           classes, class_weights.size());
+  for (int64_t k = 1; k <= classes; ++k) {
+    PS_CHECK(std::isfinite(class_weights[k]) && class_weights[k] >= 0,
+             "{}: expected finite class weights >= 0, given {} for class {}", op, class_weights[k],
+             k);
+  }
+}
+
 }  // namespace
 
 template <class T>
 double cross_entropy_loss(const Tensor<T>& logits, const Tensor<uint8_t>& labels,
                           std::span<const double> class_weights,
                           std::type_identity_t<Tensor<T>>* d_logits) {
-  const int64_t labelled =
-      check_and_count_labelled("cross_entropy_loss", logits, labels, class_weights, d_logits);
+  const int64_t labelled = check_and_count_labelled("cross_entropy_loss", logits, labels, d_logits);
+  check_class_weights("cross_entropy_loss", logits.dim(1), class_weights);
   if (d_logits) d_logits->resize(logits.shape());
   if (labelled == 0) return 0.0;
 
@@ -104,8 +107,8 @@ double cross_entropy_loss(const Tensor<T>& logits, const Tensor<uint8_t>& labels
 template <class T>
 double bce_loss(const Tensor<T>& logits, const Tensor<uint8_t>& labels,
                 std::span<const double> class_weights, std::type_identity_t<Tensor<T>>* d_logits) {
-  const int64_t labelled =
-      check_and_count_labelled("bce_loss", logits, labels, class_weights, d_logits);
+  const int64_t labelled = check_and_count_labelled("bce_loss", logits, labels, d_logits);
+  check_class_weights("bce_loss", logits.dim(1), class_weights);
   if (d_logits) d_logits->resize(logits.shape());
   if (labelled == 0) return 0.0;
 
@@ -152,17 +155,15 @@ double bce_loss(const Tensor<T>& logits, const Tensor<uint8_t>& labels,
 template <class T>
 double lovasz_softmax_loss(const Tensor<T>& logits, const Tensor<uint8_t>& labels,
                            std::type_identity_t<Tensor<T>>* d_logits) {
-  const int64_t classes = logits.rank() == 4 ? logits.dim(1) : 0;
-  const std::vector<double> unit_weights(static_cast<size_t>(std::max<int64_t>(classes, 0) + 1), 1.0);
-  const int64_t labelled =
-      check_and_count_labelled("lovasz_softmax_loss", logits, labels, unit_weights, d_logits);
+  const int64_t labelled = check_and_count_labelled("lovasz_softmax_loss", logits, labels, d_logits);
   if (d_logits) {
     d_logits->resize(logits.shape());
     std::fill(d_logits->data(), d_logits->data() + d_logits->numel(), T(0));
   }
   if (labelled == 0) return 0.0;
 
-  const int64_t batch = logits.dim(0), plane = logits.dim(2) * logits.dim(3);
+  const int64_t batch = logits.dim(0), classes = logits.dim(1);
+  const int64_t plane = logits.dim(2) * logits.dim(3);
   // The softmax of each labelled cell, cell-major: probs[m * K + k].
   std::vector<T> probs(static_cast<size_t>(labelled * classes));
   std::vector<uint8_t> cell_label(static_cast<size_t>(labelled));

@@ -47,6 +47,13 @@ void check_arguments(const char* op, const float* logits, const std::uint8_t* la
 
 }  // namespace
 
+// Where cell i of the B * S cells starts in logits (B, K, S): its channel 0.
+static __device__ __forceinline__ std::int64_t cell_offset(std::int64_t i, std::int64_t classes,
+                                                           std::int64_t inner) {
+  const std::int64_t b = i / inner;
+  return b * classes * inner + (i - b * inner);
+}
+
 // log(sum_k exp(z_k)) of a cell as the host computes it: max + log(sum exp(z - max)), in float.
 static __device__ __forceinline__ float log_sum_exp(const float* z, std::int64_t classes,
                                                     std::int64_t inner) {
@@ -103,8 +110,7 @@ static __global__ void __launch_bounds__(kBlockSize)
       continue;
     }
     ++labelled;
-    const std::int64_t b = i / inner;
-    const float* z = logits + b * classes * inner + (i - b * inner);
+    const float* z = logits + cell_offset(i, classes, inner);
     loss += cell_loss<kind>(z, label, classes, inner, class_weights);
   }
   loss = block_sum<kBlockSize>(loss);
@@ -233,6 +239,22 @@ static __device__ __forceinline__ CellSoftmax cell_softmax(const float* z, std::
   return CellSoftmax{max_logit, sum};
 }
 
+// Class k's part of a labelled cell: its probability and its error, 1 - p for the cell's own class
+// (fg) and p for the others.
+struct LovaszTerm {
+  float p;
+  float error;
+  bool fg;
+};
+
+static __device__ __forceinline__ LovaszTerm lovasz_term(const float* z, std::int64_t k,
+                                                         std::int64_t inner, int label,
+                                                         const CellSoftmax& softmax) {
+  const bool fg = label == k + 1;
+  const float p = softmax(z, k, inner);
+  return LovaszTerm{p, fg ? 1.0f - p : p, fg};
+}
+
 static __global__ void __launch_bounds__(kBlockSize)
     lovasz_histogram_kernel(const float* logits, const std::uint8_t* labels, std::int64_t classes,
                             std::int64_t inner, std::int64_t cells, int* counts) {
@@ -241,13 +263,11 @@ static __global__ void __launch_bounds__(kBlockSize)
        i += stride) {
     const int label = labels[i];
     if (label == 0 || label > classes) continue;
-    const std::int64_t b = i / inner;
-    const float* z = logits + b * classes * inner + (i - b * inner);
+    const float* z = logits + cell_offset(i, classes, inner);
     const CellSoftmax softmax = cell_softmax(z, classes, inner);
     for (std::int64_t k = 0; k < classes; ++k) {
-      const bool fg = label == k + 1;
-      const float p = softmax(z, k, inner);
-      atomicAdd(&counts[(k * kLovaszBins + lovasz_bin(fg ? 1.0f - p : p)) * 2 + fg], 1);
+      const LovaszTerm term = lovasz_term(z, k, inner, label, softmax);
+      atomicAdd(&counts[(k * kLovaszBins + lovasz_bin(term.error)) * 2 + term.fg], 1);
     }
   }
 }
@@ -284,12 +304,11 @@ static __global__ void __launch_bounds__(kBlockSize)
 }
 
 // The weight of class k's error in a cell's loss: the Jaccard step of the error's bin over the C
-// present classes (times the loss's weight); 0 for an absent class. The error is 1 - p for the
-// cell's own class and p for the others, so its derivative in p is -1 or +1.
+// present classes (times the loss's weight); 0 for an absent class.
 static __device__ __forceinline__ double lovasz_error_weight(const int* totals,
                                                              const double* steps, std::int64_t k,
-                                                             float error, double scale) {
-  return totals[k] == 0 ? 0.0 : scale * steps[k * kLovaszBins + lovasz_bin(error)];
+                                                             const LovaszTerm& term, double scale) {
+  return totals[k] == 0 ? 0.0 : scale * steps[k * kLovaszBins + lovasz_bin(term.error)];
 }
 
 static __global__ void __launch_bounds__(kBlockSize)
@@ -306,28 +325,26 @@ static __global__ void __launch_bounds__(kBlockSize)
        i += stride) {
     const int label = labels[i];
     if (label == 0 || label > classes) continue;
-    const std::int64_t b = i / inner;
-    const std::int64_t offset = b * classes * inner + (i - b * inner);
+    const std::int64_t offset = cell_offset(i, classes, inner);
     const float* z = logits + offset;
     const CellSoftmax softmax = cell_softmax(z, classes, inner);
-    // d loss / d p_k = slope_k = -+ weight_k; d loss / d z_k = p_k (slope_k - sum_c slope_c p_c).
+    // d loss / d p_k = slope_k = -+ weight_k (d error / d p = -1 for fg, +1 else);
+    // d loss / d z_k = p_k (slope_k - sum_c slope_c p_c). The second pass recomputes each term
+    // rather than keeping K of them per thread.
     double slope_dot_p = 0.0;
     for (std::int64_t k = 0; k < classes; ++k) {
-      const bool fg = label == k + 1;
-      const float p = softmax(z, k, inner);
-      const float error = fg ? 1.0f - p : p;
-      const double error_weight = lovasz_error_weight(totals, steps, k, error, scale);
-      loss += error_weight * error;
-      slope_dot_p += (fg ? -error_weight : error_weight) * p;
+      const LovaszTerm term = lovasz_term(z, k, inner, label, softmax);
+      const double error_weight = lovasz_error_weight(totals, steps, k, term, scale);
+      loss += error_weight * term.error;
+      slope_dot_p += (term.fg ? -error_weight : error_weight) * term.p;
     }
     if (d_logits == nullptr) continue;
     float* d = d_logits + offset;
     for (std::int64_t k = 0; k < classes; ++k) {
-      const bool fg = label == k + 1;
-      const float p = softmax(z, k, inner);
-      const float error = fg ? 1.0f - p : p;
-      const double error_weight = lovasz_error_weight(totals, steps, k, error, scale);
-      d[k * inner] += static_cast<float>(p * ((fg ? -error_weight : error_weight) - slope_dot_p));
+      const LovaszTerm term = lovasz_term(z, k, inner, label, softmax);
+      const double error_weight = lovasz_error_weight(totals, steps, k, term, scale);
+      const double slope = term.fg ? -error_weight : error_weight;
+      d[k * inner] += static_cast<float>(term.p * (slope - slope_dot_p));
     }
   }
   loss = block_sum<kBlockSize>(loss);
