@@ -18,6 +18,7 @@
 #include "engine/model/checkpoint.hpp"
 #include "engine/model/model_graph.hpp"
 #include "engine/model/pillarsegnet.hpp"
+#include "host/softmax.hpp"
 #include "host/winograd_f2_stats.hpp"
 #include "tests/support/test_support.hpp"
 #include "tests/support/tiny_model.hpp"
@@ -42,6 +43,13 @@ double nmse(const Tensor<float>& a, const Tensor<float>& r) {
     num += e * e, den += static_cast<double>(r.data()[i]) * r.data()[i];
   }
   return num / den;
+}
+
+// The class map of logits (B, 12, H, W).
+Tensor<uint8_t> class_ids(const Tensor<float>& logits) {
+  Tensor<uint8_t> ids;
+  host::argmax_class_ids(logits, ids);
+  return ids;
 }
 
 double agreement(const Tensor<uint8_t>& a, const Tensor<uint8_t>& b) {
@@ -180,9 +188,14 @@ TEST(Int8Calibration, WinogradDomainStatisticsByPosition) {
             std::string::npos);
 }
 
-// The model in INT8: the same bits on the CPU's VNNI and AMX-INT8 models and on the CUDA
-// backend's mma.sync emulation (one quantization rule, exact integer sums, one epilogue; the
-// FP32 head's sums in another order on the CUDA backend: within 1e-10 NMSE of each other); within
+// The model in INT8: the same bits on the CPU's VNNI and AMX-INT8 models, and on the CUDA
+// backend's mma.sync emulation the same integer sums of the same quantized inputs (one
+// quantization rule, one epilogue), while what the two backends compute in FP32 (the occupancy
+// stream's convolutions before the U-Net, the head after it) sums in other orders: an FP32 input
+// that lands on a rounding boundary of its quantization can take the next level on one backend,
+// so they agree within 1e-6 NMSE (measured 0 on an AMD Zen 4 and 2.7e-8 on a Zen 3, whose FP32
+// convolutions run AVX2 code; a wrong fragment layout or epilogue gives the quantization noise's
+// 1e-4 and more) and on the label map; within
 // what INT8 costs of FP32 (NMSE below 1e-3: 127 levels an input and a weight; measured 1e-4 to
 // 3e-4) and not equal to it; every U-Net convolution quantized, the head on FP32 prepared weights
 // reading the U-Net's BF16 last output, the occupancy stream's convolutions in FP32. Every input is calibrated non-negative but the concatenations that hold a
@@ -269,9 +282,11 @@ TEST(Int8Model, TracksFp32TheSameOnEveryBackend) {
       EXPECT_EQ(int8_logits(*native), int8) << "this CPU's instructions: the same bits as their models";
     }
     CudaBackend cuda_backend;
-    const double against_cuda = nmse(int8_logits(cuda_backend), int8);
+    const Tensor<float> cuda_int8 = int8_logits(cuda_backend);
+    const double against_cuda = nmse(cuda_int8, int8);
     RecordProperty("nmse_cuda_vs_cpu_int8", fmt::format("{:.3g}", against_cuda));
-    EXPECT_LT(against_cuda, 1e-10);
+    EXPECT_LT(against_cuda, 1e-6);
+    EXPECT_EQ(class_ids(cuda_int8), class_ids(int8));
   }
 }
 

@@ -212,7 +212,9 @@ std::unique_ptr<ScanSegmenter> open_segmenter(const std::filesystem::path& weigh
   auto segmenter = std::make_unique<ScanSegmenter>(config.model, make_backend(options.device, options.backend),
                                                    options);
   load_weights(checkpoint, segmenter->net(), /*with_optimizer=*/false);
-  PS_CHECK(segmenter->net().precision() != Precision::I8 || !segmenter->net().int8_inputs().empty(),
+  // Asked, not what runs: an uncalibrated checkpoint is refused on every CPU, also on one whose INT8
+  // falls back to FP32, so that it fails where it is made and not first where it is deployed.
+  PS_CHECK(options.precision != Precision::I8 || !segmenter->net().int8_inputs().empty(),
            "{}: precision int8: no input scale for the convolutions (the weights are not calibrated: pillarseg "
            "calibrate writes the scales into a checkpoint)",
            weights.string());
