@@ -70,8 +70,8 @@ typedef struct pillarseg_options {
   const char* precision;    /* the convolutions: "fp32" (default), "bf16" or "fp16" (tensor cores
                                with "cuda" on compute capability 8.0+, or "emu"; elsewhere fp32
                                runs, see pillarseg_precision), or "int8" (the U-Net on INT8: weights
-                               calibrated by `pillarseg calibrate`; CPUs with AVX512-VNNI, "cuda"
-                               8.0+, "emu") */
+                               calibrated by `pillarseg calibrate`, required everywhere; CPUs with
+                               AVX512-VNNI, "cuda" 8.0+, "emu"; elsewhere fp32 runs) */
   /* The sensor's points into the model's frame and scale (docs/formats.md), applied by
      pillarseg_segment before anything else; the identity (the defaults) leaves the points as given,
      and then a run config's input: section (config_path) applies. */
