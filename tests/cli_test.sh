@@ -273,6 +273,13 @@ if message=$(run infer --weights "$weights" --scan "$velodyne/000001.bin" --out 
 fi
 [[ $message == *"no input scale for the convolution"*"pillarseg calibrate"* ]] ||
   fail "infer --precision int8 without scales: '$message'"
+# eval too, and on every CPU: also where INT8 falls back to FP32 (no VNNI), the scales are asked for.
+if message=$(run eval --data "$work/data" --weights "$weights" --mode sparse --precision int8 \
+             --report "$work/eval_int8_bad.json" 2>&1); then
+  fail "eval --precision int8 without calibrated scales succeeded"
+fi
+[[ $message == *"no input scale for the convolutions"*"pillarseg calibrate"* && ! -e "$work/eval_int8_bad.json" ]] ||
+  fail "eval --precision int8 without scales: '$message'"
 # bench --precision int8 of weights without scales calibrates on the benched scan itself, also on
 # a device that records its pipeline as a graph (the calibrating pass runs unrecorded); with
 # --flips 2 the steady state replays the graph once per copy.

@@ -114,6 +114,7 @@ void run_eval(const EvalArgs& a) {
   options.flips = a.flips > 0 ? a.flips : config.eval.flips;
   ScanSegmenter segmenter(config.model, make_backend(options.device, options.backend), options);
   load_weights(ckpt, segmenter.net(), false);
+  require_int8_scales(segmenter, a.weights);
   EvalOptions o;
   o.data_root = a.data;
   o.mode = parse_ground_truth_kind(a.mode);

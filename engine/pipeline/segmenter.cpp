@@ -204,6 +204,13 @@ void ScanSegmenter::queue_pass(std::span<const Point> points, bool with_probabil
   }
 }
 
+void require_int8_scales(const ScanSegmenter& segmenter, const std::filesystem::path& weights) {
+  PS_CHECK(segmenter.options().precision != Precision::I8 || !segmenter.net().int8_inputs().empty(),
+           "{}: precision int8: no input scale for the convolutions (the weights are not calibrated: pillarseg "
+           "calibrate writes the scales into a checkpoint)",
+           weights.string());
+}
+
 std::unique_ptr<ScanSegmenter> open_segmenter(const std::filesystem::path& weights,
                                               const std::filesystem::path& config_path,
                                               const SegmenterOptions& options) {
@@ -212,12 +219,7 @@ std::unique_ptr<ScanSegmenter> open_segmenter(const std::filesystem::path& weigh
   auto segmenter = std::make_unique<ScanSegmenter>(config.model, make_backend(options.device, options.backend),
                                                    options);
   load_weights(checkpoint, segmenter->net(), /*with_optimizer=*/false);
-  // Asked, not what runs: an uncalibrated checkpoint is refused on every CPU, also on one whose INT8
-  // falls back to FP32, so that it fails where it is made and not first where it is deployed.
-  PS_CHECK(options.precision != Precision::I8 || !segmenter->net().int8_inputs().empty(),
-           "{}: precision int8: no input scale for the convolutions (the weights are not calibrated: pillarseg "
-           "calibrate writes the scales into a checkpoint)",
-           weights.string());
+  require_int8_scales(*segmenter, weights);
   segmenter->set_input_mapping(config.input);
   return segmenter;
 }

@@ -57,6 +57,7 @@ class ScanSegmenter {
   const ModelConfig& model() const { return model_; }
   Backend& backend() { return *backend_; }
   PillarSegNet& net() { return *net_; }
+  const PillarSegNet& net() const { return *net_; }
   const SegmenterOptions& options() const { return options_; }
 
   // The sensor's points into the model's frame and scale (engine/data/input_mapping.hpp), applied
@@ -128,6 +129,11 @@ class ScanSegmenter {
   };
   std::array<Recording, 2> recordings_;
 };
+
+// With options().precision int8 (asked, not what runs), the U-Net's calibrated input scales must
+// have come with `weights`: an uncalibrated checkpoint is refused on every CPU, also on one whose
+// INT8 falls back to FP32, so that it fails where it is made and not first where it is deployed.
+void require_int8_scales(const ScanSegmenter& segmenter, const std::filesystem::path& weights);
 
 // A segmenter for a checkpoint: the run config of config_path when given (its grid, model and
 // input mapping win), else the checkpoint's, else (a weights-only file) the architecture of its
