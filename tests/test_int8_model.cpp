@@ -193,7 +193,7 @@ TEST(Int8Calibration, WinogradDomainStatisticsByPosition) {
 // quantization rule, one epilogue), while what the two backends compute in FP32 (the occupancy
 // stream's convolutions before the U-Net, the head after it) sums in other orders: an FP32 input
 // that lands on a rounding boundary of its quantization can take the next level on one backend,
-// so they agree within 1e-6 NMSE (measured 0 on an AMD Zen 4 and 2.7e-8 on a Zen 3, whose FP32
+// so they agree within 1e-6 NMSE (below 1e-10 on an AMD Zen 4, 2.7e-8 on a Zen 3, whose FP32
 // convolutions run AVX2 code; a wrong fragment layout or epilogue gives the quantization noise's
 // 1e-4 and more) and on the label map; within
 // what INT8 costs of FP32 (NMSE below 1e-3: 127 levels an input and a weight; measured 1e-4 to
