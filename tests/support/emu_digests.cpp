@@ -3,7 +3,7 @@
 // hashes of all it copied back from the emulated device, in order, to
 // PILLARSEG_EMU_DIGESTS_DIR/<order>/<Suite.Test> (order: the schedule's name without its seed);
 // tests/compare_emu_digests.py then checks that reverse and random read back forward's bits.
-// Compiled into each emulated test executable (an interface source of pillarseg_test_support),
+// Its object (pillarseg_test_emu_digests, compiled once) is in each emulated test executable,
 // so its listener registers itself before main runs.
 #include <gtest/gtest.h>
 
