@@ -2,7 +2,7 @@
 // expected and what was given (and names the file or argument involved).
 #pragma once
 
-#include <fmt/format.h>
+#include <fmt/core.h>
 
 #include <stdexcept>
 #include <string>

@@ -128,7 +128,7 @@ void add_inplace(float* a, const float* b, std::int64_t n, cudaStream_t stream) 
   if (n == 0) return;
   PS_CHECK(a != nullptr && b != nullptr,
            "add_inplace: a and b must point to {} floats of device memory, got a = {}, b = {}", n,
-           fmt::ptr(a), fmt::ptr(b));
+           static_cast<const void*>(a), static_cast<const void*>(b));
   const Float4Split split = split_for_float4(n, {a, b});
   launch_kernel(add_inplace_kernel, elementwise_grid(split.items()),
                 dim3(kElementwiseBlock), 0, stream, a, b, split);

@@ -630,7 +630,8 @@ inline void check_disjoint(const char* op, const char* a_name, const float* a, s
   PS_CHECK(a_end <= b_begin || b_end <= a_begin,
            "{}: {} ({} floats at {}) and {} ({} floats at {}) overlap; outputs must not alias "
            "inputs or each other",
-           op, a_name, a_count, fmt::ptr(a), b_name, b_count, fmt::ptr(b));
+           op, a_name, a_count, static_cast<const void*>(a), b_name, b_count,
+           static_cast<const void*>(b));
 }
 
 // The element counts of a convolution's input x, weight w and output y.
@@ -674,7 +675,7 @@ inline void check_backward_weights_operands(const char* op, const char* workspac
   check_pointer(op, "dw", dw, n.w);
   PS_CHECK(workspace_floats >= needed && (needed == 0 || workspace != nullptr),
            "{}: the workspace must hold {}(shape) = {} floats, got {} floats at {}", op,
-           workspace_function, needed, workspace_floats, fmt::ptr(workspace));
+           workspace_function, needed, workspace_floats, static_cast<const void*>(workspace));
   const auto ws = static_cast<std::int64_t>(needed);
   check_disjoint(op, "dw", dw, n.w, "x", x, n.x);
   check_disjoint(op, "dw", dw, n.w, "dy", dy, n.y);

@@ -28,7 +28,7 @@ void pad_points(const std::int32_t* num_points, std::int64_t capacity, float* po
            capacity);
   PS_CHECK(reinterpret_cast<std::uintptr_t>(points) % 16 == 0,
            "pad_points: points must be 16-byte aligned (rows of 4 floats), given {}",
-           fmt::ptr(points));
+           static_cast<const void*>(points));
   if (capacity == 0) return;
   launch_kernel(pad_points_kernel, elementwise_grid(capacity),
                 dim3(kElementwiseBlock), 0, stream, num_points, capacity,

@@ -334,7 +334,7 @@ void check_workspace(const char* op, std::int64_t num_points, const GridSpec& gr
   PS_CHECK(workspace != nullptr && workspace_size_given >= needed,
            "{}: the workspace must hold pillar_gather_workspace_size(M, grid) = {} int32, given {} "
            "at {}",
-           op, needed, workspace_size_given, fmt::ptr(workspace));
+           op, needed, workspace_size_given, static_cast<const void*>(workspace));
 }
 
 // The grouping steps, [cells] to [rank]; arguments checked by the caller.

@@ -474,7 +474,7 @@ void observability_2d(const float* points, std::int64_t num_points, const Sensor
   PS_CHECK(workspace != nullptr && workspace_size >= cells,
            "{}: the workspace must hold observability_2d_workspace_size(grid) = {} uint32, given "
            "{} at {}",
-           kOp, cells, workspace_size, fmt::ptr(workspace));
+           kOp, cells, workspace_size, static_cast<const void*>(workspace));
   const auto bytes = static_cast<std::size_t>(cells) * sizeof(std::uint32_t);
   PS_CUDA_CHECK(cudaMemsetAsync(transmissions, 0, bytes, stream));
   PS_CUDA_CHECK(cudaMemsetAsync(detections, 0, bytes, stream));

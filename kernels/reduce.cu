@@ -70,7 +70,8 @@ void sum_of_squares(const float* x, std::int64_t n, double* partials, double* re
            "sum_of_squares: partials ({} doubles of scratch) and result (1 double) must be device "
            "memory, got "
            "partials = {}, result = {}",
-           kSumOfSquaresPartials, fmt::ptr(partials), fmt::ptr(result));
+           kSumOfSquaresPartials, static_cast<const void*>(partials),
+           static_cast<const void*>(result));
   const std::int64_t blocks = std::clamp<std::int64_t>(ceil_div(n, kBlockSize * kElementsPerThread),
                                                        1, kSumOfSquaresPartials);
   launch_kernel(sum_of_squares_partials_kernel, dim3(static_cast<unsigned>(blocks)),

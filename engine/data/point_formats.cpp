@@ -1,5 +1,6 @@
 #include "engine/data/point_formats.hpp"
 
+#include <fmt/format.h>
 #include <spdlog/spdlog.h>
 
 #include <algorithm>
