@@ -81,6 +81,7 @@ struct ConvTile {
   static constexpr std::size_t kSharedBytes = std::size_t{kStages} * kStageElements * 2;
   static_assert(kM == kThreads, "a thread stages one pixel's row of A");
   static_assert(2 * kWarpM == kM && kThreads == 4 * 32, "four warps, 2 x 2 over the tile");
+  static_assert(kFragsM * 16 == kWarpM && kFragsN * 8 == kWarpN, "whole m16 by n8 fragments");
 };
 
 // The 16-bit bits of an activation: rounded from FP32, or as stored.
@@ -219,6 +220,9 @@ template <Half16 H, class TIn, class TOut, class Tile>
 __global__ void __launch_bounds__(Tile::kThreads, 2)
     conv_gemm_kernel(const TIn* __restrict__ x, const std::uint16_t* __restrict__ w16,
                      const float* __restrict__ bias, ConvGemm g, TOut* __restrict__ y) {
+#if !PILLARSEG_MMA_ARCH
+  __trap();  // before sm_80 (see PILLARSEG_MMA_ARCH)
+#else
   std::uint16_t* shared = dynamic_shared<std::uint16_t>();
   const int tid = static_cast<int>(threadIdx.x), lane = tid % 32, warp = tid / 32;
   const int warp_m = warp % 2, warp_n = warp / 2;
@@ -346,6 +350,7 @@ __global__ void __launch_bounds__(Tile::kThreads, 2)
       }
     }
   }
+#endif
 }
 
 // Split K: y at pixel m (blockIdx.x, threadIdx.x) and column n (blockIdx.y) = act(the splits'

@@ -80,6 +80,7 @@ struct TileS8 {
   static_assert(kM == kThreads, "a thread stages one pixel's row of A");
   static_assert(2 * kWarpM == kM && kThreads == 4 * 32, "four warps, 2 x 2 over the tile");
   static_assert(kFragsN % 2 == 0, "B fragments are loaded in pairs");
+  static_assert(kFragsM * 16 == kWarpM && kFragsN * 8 == kWarpN, "whole m16 by n8 fragments");
   static_assert(kSharedBytes <= 48 * 1024, "within the default dynamic shared memory limit");
 };
 
@@ -285,6 +286,9 @@ __global__ void __launch_bounds__(Tile::kThreads, 2)
     conv_gemm_s8_kernel(const TIn* __restrict__ x, const std::int8_t* __restrict__ w8,
                         const float* __restrict__ w_scale, const float* __restrict__ bias, GemmS8 g,
                         TOut* __restrict__ y) {
+#if !PILLARSEG_MMA_ARCH
+  __trap();  // before sm_80 (see PILLARSEG_MMA_ARCH)
+#else
   std::uint8_t* shared = dynamic_shared<std::uint8_t>();
   const int tid = static_cast<int>(threadIdx.x), lane = tid % 32, warp = tid / 32;
   const int warp_m = warp % 2, warp_n = warp / 2;
@@ -419,6 +423,7 @@ __global__ void __launch_bounds__(Tile::kThreads, 2)
       }
     }
   }
+#endif
 }
 
 // Split K: y at pixel m (blockIdx.x, threadIdx.x) and column n (blockIdx.y) from the splits'
