@@ -331,8 +331,10 @@ static __global__ void __launch_bounds__(kBlockSize)
     // d loss / d p_k = slope_k = -+ weight_k (d error / d p = -1 for fg, +1 else);
     // d loss / d z_k = p_k (slope_k - sum_c slope_c p_c). The second pass recomputes each term
     // rather than keeping K of them per thread.
+    // The class loops count in int (classes <= 255, check_arguments): with a 64-bit k ptxas spilled
+    // 24 bytes on sm_80-89.
     double slope_dot_p = 0.0;
-    for (std::int64_t k = 0; k < classes; ++k) {
+    for (int k = 0; k < static_cast<int>(classes); ++k) {
       const LovaszTerm term = lovasz_term(z, k, inner, label, softmax);
       const double error_weight = lovasz_error_weight(totals, steps, k, term, scale);
       loss += error_weight * term.error;
@@ -340,7 +342,7 @@ static __global__ void __launch_bounds__(kBlockSize)
     }
     if (d_logits == nullptr) continue;
     float* d = d_logits + offset;
-    for (std::int64_t k = 0; k < classes; ++k) {
+    for (int k = 0; k < static_cast<int>(classes); ++k) {
       const LovaszTerm term = lovasz_term(z, k, inner, label, softmax);
       const double error_weight = lovasz_error_weight(totals, steps, k, term, scale);
       const double slope = term.fg ? -error_weight : error_weight;
