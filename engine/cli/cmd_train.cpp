@@ -112,16 +112,14 @@ void run_eval(const EvalArgs& a) {
   const RunConfig config = config_for(ckpt, a.config);
   SegmenterOptions options = segmenter_options(a.device);
   options.flips = a.flips > 0 ? a.flips : config.eval.flips;
-  ScanSegmenter segmenter(config.model, make_backend(options.device, options.backend), options);
-  load_weights(ckpt, segmenter.net(), false);
-  require_int8_scales(segmenter, a.weights);
+  const std::unique_ptr<ScanSegmenter> segmenter = open_segmenter(ckpt, config, a.weights, options);
   EvalOptions o;
   o.data_root = a.data;
   o.mode = parse_ground_truth_kind(a.mode);
   o.sequences = a.sequences;
   o.scan_stride = a.stride;
   if (!a.cache.empty()) o.cache_dir = a.cache;
-  const SegmentationMetrics m = evaluate(segmenter, config, o);
+  const SegmentationMetrics m = evaluate(*segmenter, config, o);
   const ClassTable classes = ClassTable::defaults();
   const std::string mode = eval_mode_label(config.train.ground_truth, o.mode),
                     method = method_label(config.model) +

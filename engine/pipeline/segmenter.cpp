@@ -204,24 +204,25 @@ void ScanSegmenter::queue_pass(std::span<const Point> points, bool with_probabil
   }
 }
 
-void require_int8_scales(const ScanSegmenter& segmenter, const std::filesystem::path& weights) {
-  PS_CHECK(segmenter.options().precision != Precision::I8 || !segmenter.net().int8_inputs().empty(),
+std::unique_ptr<ScanSegmenter> open_segmenter(const Checkpoint& checkpoint, const RunConfig& config,
+                                              const std::filesystem::path& weights,
+                                              const SegmenterOptions& options) {
+  auto segmenter = std::make_unique<ScanSegmenter>(config.model, make_backend(options.device, options.backend),
+                                                   options);
+  load_weights(checkpoint, segmenter->net(), /*with_optimizer=*/false);
+  PS_CHECK(options.precision != Precision::I8 || !segmenter->net().int8_inputs().empty(),
            "{}: precision int8: no input scale for the convolutions (the weights are not calibrated: pillarseg "
            "calibrate writes the scales into a checkpoint)",
            weights.string());
+  segmenter->set_input_mapping(config.input);
+  return segmenter;
 }
 
 std::unique_ptr<ScanSegmenter> open_segmenter(const std::filesystem::path& weights,
                                               const std::filesystem::path& config_path,
                                               const SegmenterOptions& options) {
   const Checkpoint checkpoint = read_checkpoint(weights);
-  const RunConfig config = config_for(checkpoint, config_path);
-  auto segmenter = std::make_unique<ScanSegmenter>(config.model, make_backend(options.device, options.backend),
-                                                   options);
-  load_weights(checkpoint, segmenter->net(), /*with_optimizer=*/false);
-  require_int8_scales(*segmenter, weights);
-  segmenter->set_input_mapping(config.input);
-  return segmenter;
+  return open_segmenter(checkpoint, config_for(checkpoint, config_path), weights, options);
 }
 
 }  // namespace pillarseg

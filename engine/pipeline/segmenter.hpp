@@ -30,6 +30,9 @@
 
 namespace pillarseg {
 
+struct Checkpoint;  // engine/model/checkpoint.hpp
+struct RunConfig;   // engine/model/run_config.hpp
+
 struct SegmenterOptions {
   std::string device = "cpu";  // cpu, cuda or emu (make_backend)
   BackendOptions backend;      // the CUDA backends' convolution and device
@@ -57,7 +60,6 @@ class ScanSegmenter {
   const ModelConfig& model() const { return model_; }
   Backend& backend() { return *backend_; }
   PillarSegNet& net() { return *net_; }
-  const PillarSegNet& net() const { return *net_; }
   const SegmenterOptions& options() const { return options_; }
 
   // The sensor's points into the model's frame and scale (engine/data/input_mapping.hpp), applied
@@ -130,17 +132,18 @@ class ScanSegmenter {
   std::array<Recording, 2> recordings_;
 };
 
-// With options().precision int8 (asked, not what runs), the U-Net's calibrated input scales must
-// have come with `weights`: an uncalibrated checkpoint is refused on every CPU, also on one whose
-// INT8 falls back to FP32, so that it fails where it is made and not first where it is deployed.
-void require_int8_scales(const ScanSegmenter& segmenter, const std::filesystem::path& weights);
-
 // A segmenter for a checkpoint: the run config of config_path when given (its grid, model and
 // input mapping win), else the checkpoint's, else (a weights-only file) the architecture of its
-// tensor shapes on the paper's grid; the weights loaded and checked. Errors name the file and what
-// is wrong.
+// tensor shapes on the paper's grid; the weights loaded and checked. With options.precision int8
+// (asked, not what runs) the weights must carry calibrated input scales: an uncalibrated checkpoint
+// is refused on every CPU, also on one whose INT8 falls back to FP32, so that it fails where it is
+// made and not first where it is deployed. Errors name the file and what is wrong.
 std::unique_ptr<ScanSegmenter> open_segmenter(const std::filesystem::path& weights,
                                               const std::filesystem::path& config_path,
+                                              const SegmenterOptions& options);
+// The same for a checkpoint already read from `weights` and its run config (config_for).
+std::unique_ptr<ScanSegmenter> open_segmenter(const Checkpoint& checkpoint, const RunConfig& config,
+                                              const std::filesystem::path& weights,
                                               const SegmenterOptions& options);
 
 }  // namespace pillarseg
