@@ -9,7 +9,7 @@
 //                           + Adam(W) step; PyTorch reads the same pillars and labels, written
 //                           to a temporary directory.
 // Sizes: full = the paper's (grid 1000 x 500 cells of 0.1 m, C = b = 64, depth 4, batch 1);
-// small (--small) = the CPU configs' (0.2 m cells: 500 x 250, C = b = 16, batch 2). Variants:
+// small (--small) = the CPU configs' (0.4 m cells: 250 x 125, C = 32, b = 16, batch 2). Variants:
 // bilinear (the authors' UNet(64, 12)) and transposed. Input: simulated scans (engine/sim:
 // 64-beam LiDAR in a procedural street), or a labelled SemanticKITTI scan given with --scan,
 // -> every non-empty pillar, N = 20 points, decorated (P, N, 10); labels: the sparse ground

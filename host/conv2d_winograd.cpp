@@ -495,7 +495,7 @@ template <class In, class Out>
 void forward(const Tensor<In>& x, const Tensor<float>& w, const ConvEpilogue& epilogue, Tensor<Out>& y,
              WinogradWorkspace& workspace) {
   const WinogradShape s = shape_of("conv3x3_winograd_forward", x, w, 1, 0);
-  y.resize({s.batch, s.out_channels, s.height, s.width});
+  y.resize_for_overwrite({s.batch, s.out_channels, s.height, s.width});  // every element written
   if (y.numel() == 0) return;
   const WeightLayout layout{w.data(), s.in_channels * 9, 9, false};
   winograd_convolution(x.data(), s, layout, epilogue, y.data(), workspace);
@@ -523,7 +523,7 @@ void conv3x3_winograd_input_gradient(const Tensor<float>& dy, const Tensor<float
   const WinogradShape s = shape_of("conv3x3_winograd_input_gradient", dy, w, 0, 1);
   PS_CHECK(&dx != &dy && &dx != &w,
            "conv3x3_winograd_input_gradient: dx must be a different tensor from dy and w");
-  dx.resize({s.batch, s.out_channels, s.height, s.width});
+  dx.resize_for_overwrite({s.batch, s.out_channels, s.height, s.width});  // every element written
   if (dx.numel() == 0) return;
   // The correlation's kernel(c, o) = w[o][c] flipped: c indexes dx's channels (w's I), o dy's.
   const WeightLayout layout{w.data(), 9, w.dim(1) * 9, true};
@@ -548,7 +548,7 @@ void conv3x3_winograd_weight_gradient(const Tensor<float>& x, const Tensor<float
   PS_CHECK(s.height >= 1 && s.width >= 1, "{}: the image must be at least 1x1, got {}x{}", kOp,
            s.height, s.width);
   const int64_t I = s.in_channels, O = s.out_channels, plane = s.height * s.width;
-  dw.resize({O, I, 3, 3});
+  dw.resize_for_overwrite({O, I, 3, 3});  // every element written
   if (dw.numel() == 0) return;
   // dU (36, O, I) = sum over blocks of G[p] (O, T) V[p]^T (T, I), each position's sum in block
   // order: the blocks run one after the other, each in three parallel phases (input transform

@@ -2,6 +2,8 @@
 // backward dy (B, C, H / 2, W / 2) -> dx (B, C, H, W). One plane (b, c) per parallel item.
 #include "host/maxpool2d.hpp"
 
+#include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <limits>
 
@@ -23,8 +25,8 @@ void maxpool2d_forward(const Tensor<T>& x, Tensor<T>& y, Tensor<int32_t>* argmax
   const int64_t in_w = x.dim(3);
   const int64_t out_h = in_h / 2;
   const int64_t out_w = in_w / 2;
-  y.resize({x.dim(0), x.dim(1), out_h, out_w});
-  if (argmax != nullptr) argmax->resize(y.shape());
+  y.resize_for_overwrite({x.dim(0), x.dim(1), out_h, out_w});  // every element written
+  if (argmax != nullptr) argmax->resize_for_overwrite(y.shape());
 
   parallel_for(planes, [&](int64_t plane) {
     const T* in = x.data() + plane * in_h * in_w;
@@ -71,26 +73,37 @@ void maxpool2d_backward(const Tensor<T>& dy, const Tensor<int32_t>& argmax, cons
            shape_str(y_shape), shape_str(x_shape), shape_str(argmax.shape()));
   PS_CHECK(&dx != &dy, "maxpool2d_backward: the output dx must be a different tensor from dy");
   // Each index must lie in its own window: anything else is an argmax from another shape, and
-  // would write outside its plane.
-  for (int64_t i = 0; i < argmax.numel(); ++i) {
-    const int64_t oy = i / out_w % out_h;
-    const int64_t ox = i % out_w;
-    const int64_t iy = argmax[i] / in_w;
-    const int64_t ix = argmax[i] % in_w;
-    PS_CHECK(argmax[i] >= 0 && iy / 2 == oy && ix / 2 == ox,
-             "maxpool2d_backward: argmax element {} = {} is not in its 2x2 window at output "
-             "({}, {}) of a {}x{} plane; pass the argmax that maxpool2d_forward gave for x {}",
-             i, argmax[i], oy, ox, in_h, in_w, shape_str(x_shape));
-  }
-
-  dx.resize(x_shape);
+  // would write outside its plane. Checked plane by plane before the plane is written; the first
+  // bad element in the tensor's order is reported.
+  dx.resize_for_overwrite(x_shape);  // each plane zeroed below, then its gradients added
   const int64_t planes = x_shape[0] * x_shape[1];
+  const int64_t no_error = argmax.numel();
+  std::atomic<int64_t> first_bad{no_error};
   parallel_for(planes, [&](int64_t plane) {
     const T* grad_out = dy.data() + plane * out_h * out_w;
     const int32_t* index = argmax.data() + plane * out_h * out_w;
+    for (int64_t oy = 0; oy < out_h; ++oy)
+      for (int64_t ox = 0; ox < out_w; ++ox) {
+        // The window's four elements: its first, the one right of it, and the two below.
+        const int64_t d = index[oy * out_w + ox] - (2 * oy * in_w + 2 * ox);
+        if (d != 0 && d != 1 && d != in_w && d != in_w + 1) {
+          const int64_t bad = plane * out_h * out_w + oy * out_w + ox;
+          int64_t seen = first_bad.load();
+          while (bad < seen && !first_bad.compare_exchange_weak(seen, bad)) {
+          }
+          return;
+        }
+      }
     T* grad_in = dx.data() + plane * in_h * in_w;
+    std::fill(grad_in, grad_in + in_h * in_w, T{0});
     for (int64_t o = 0; o < out_h * out_w; ++o) grad_in[index[o]] += grad_out[o];
   });
+  if (const int64_t i = first_bad.load(); i != no_error) {
+    dx.set_zero();
+    PS_FAIL("maxpool2d_backward: argmax element {} = {} is not in its 2x2 window at output "
+            "({}, {}) of a {}x{} plane; pass the argmax that maxpool2d_forward gave for x {}",
+            i, argmax[i], i / out_w % out_h, i % out_w, in_h, in_w, shape_str(x_shape));
+  }
 }
 
 template void maxpool2d_forward<float>(const Tensor<float>&, Tensor<float>&, Tensor<int32_t>*);

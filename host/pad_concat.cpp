@@ -51,7 +51,7 @@ void pad_concat_forward(const Tensor<T>& skip, const Tensor<T>& up, Tensor<T>& y
            "pad_concat_forward: the output y must be a different tensor from skip and up");
   const int64_t channels = p.skip_channels + p.up_channels;
   const int64_t plane_size = p.height * p.width;
-  y.resize({p.batch, channels, p.height, p.width});
+  y.resize_for_overwrite({p.batch, channels, p.height, p.width});  // every plane written below
 
   parallel_for(p.batch * channels, [&](int64_t plane) {
     const int64_t b = plane / channels;
@@ -62,7 +62,8 @@ void pad_concat_forward(const Tensor<T>& skip, const Tensor<T>& up, Tensor<T>& y
       std::copy(in, in + plane_size, out);
       return;
     }
-    // y was zeroed by resize: only the rows of up are written, the padding stays zero.
+    // The padding zero, the rows of up copied into it.
+    if (p.up_height < p.height || p.up_width < p.width) std::fill(out, out + plane_size, T{0});
     const T* in = up.data() + (b * p.up_channels + c - p.skip_channels) * p.up_height * p.up_width;
     for (int64_t r = 0; r < p.up_height; ++r) {
       std::copy(in + r * p.up_width, in + (r + 1) * p.up_width,
@@ -84,8 +85,9 @@ void pad_concat_backward(const Tensor<T>& dy, const Shape& skip_shape, const Sha
            "pad_concat_backward: the outputs d_skip, d_up must be different tensors from dy");
   const int64_t channels = p.skip_channels + p.up_channels;
   const int64_t plane_size = p.height * p.width;
-  if (d_skip != nullptr) d_skip->resize(skip_shape);
-  if (d_up != nullptr) d_up->resize(up_shape);
+  // Every element of both is written below.
+  if (d_skip != nullptr) d_skip->resize_for_overwrite(skip_shape);
+  if (d_up != nullptr) d_up->resize_for_overwrite(up_shape);
 
   parallel_for(p.batch * channels, [&](int64_t plane) {
     const int64_t b = plane / channels;

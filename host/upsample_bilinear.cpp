@@ -41,7 +41,7 @@ void upsample_bilinear_forward(const Tensor<T>& x, Tensor<T>& y) {
   const int64_t out_w = 2 * in_w;
   const std::vector<Tap<T>> rows = axis_taps<T>(in_h, out_h);
   const std::vector<Tap<T>> cols = axis_taps<T>(in_w, out_w);
-  y.resize({x.dim(0), x.dim(1), out_h, out_w});
+  y.resize_for_overwrite({x.dim(0), x.dim(1), out_h, out_w});  // every element written
 
   parallel_for(x.dim(0) * x.dim(1), [&](int64_t plane) {
     const T* in = x.data() + plane * in_h * in_w;
@@ -73,11 +73,12 @@ void upsample_bilinear_backward(const Tensor<T>& dy, Tensor<T>& dx) {
   const int64_t in_w = out_w / 2;
   const std::vector<Tap<T>> rows = axis_taps<T>(in_h, out_h);
   const std::vector<Tap<T>> cols = axis_taps<T>(in_w, out_w);
-  dx.resize({dy.dim(0), dy.dim(1), in_h, in_w});
+  dx.resize_for_overwrite({dy.dim(0), dy.dim(1), in_h, in_w});  // each plane zeroed below
 
   parallel_for(dy.dim(0) * dy.dim(1), [&](int64_t plane) {
     const T* grad_out = dy.data() + plane * out_h * out_w;
     T* grad_in = dx.data() + plane * in_h * in_w;
+    std::fill(grad_in, grad_in + in_h * in_w, T{0});
     for (int64_t oy = 0; oy < out_h; ++oy) {
       const Tap<T>& r = rows[static_cast<size_t>(oy)];
       T* top = grad_in + r.i0 * in_w;

@@ -166,7 +166,28 @@ TEST(MaxPool2d, ShapeErrorsNameTheProblem) {
   TensorD dx;
   EXPECT_THROW(maxpool2d_backward(y, argmax, Shape{1, 2, 6, 6}, dx), Error);  // 3x3 != 2x2
   argmax[1] = 0;  // window (0, 1) covers columns 2-3: index 0 is outside it
-  EXPECT_THROW(maxpool2d_backward(y, argmax, x.shape(), dx), Error);
+  argmax[6] = 1;  // plane 1's window (1, 0) covers rows 2-3: index 1 is outside it
+  try {
+    maxpool2d_backward(y, argmax, x.shape(), dx);
+    FAIL() << "expected pillarseg::Error";
+  } catch (const Error& e) {  // the first bad element in the tensor's order, whatever the threads
+    EXPECT_NE(std::string(e.what()).find("argmax element 1 = 0 is not in its 2x2 window at "
+                                         "output (0, 1) of a 5x5 plane"),
+              std::string::npos)
+        << e.what();
+  }
+  argmax[1] = 2;  // right again: only plane 1's is left
+  EXPECT_THROW(
+      {
+        try {
+          maxpool2d_backward(y, argmax, x.shape(), dx);
+        } catch (const Error& e) {
+          EXPECT_NE(std::string(e.what()).find("argmax element 6 = 1 "), std::string::npos)
+              << e.what();
+          throw;
+        }
+      },
+      Error);
 }
 
 // ---- Bilinear upsampling, align_corners = true ----

@@ -21,9 +21,9 @@ namespace pillarseg::bench {
 
 ModelConfig config_of(const std::string& size, bool transposed) {
   ModelConfig c;  // the paper's full size
-  if (size == "small") {
-    c.grid.cell = 0.2;
-    c.pillar_channels = 16;
+  if (size == "small") {  // configs/small_cpu.yaml's network (make demo)
+    c.grid.cell = 0.4;
+    c.pillar_channels = 32;
     c.base_width = 16;
   }
   c.transposed = transposed;

@@ -28,8 +28,8 @@ struct SizeSetup {
   std::filesystem::path peer_inputs;  // the same arrays as raw files for the PyTorch peer
 };
 
-// full: the paper's (grid 1000 x 500 cells of 0.1 m, C = b = 64, depth 4); small: 0.2 m cells,
-// C = b = 16.
+// full: the paper's (grid 1000 x 500 cells of 0.1 m, C = b = 64, depth 4); small: make demo's
+// (configs/small_cpu.yaml): 0.4 m cells, C = 32, b = 16.
 ModelConfig config_of(const std::string& size, bool transposed);
 
 // The inputs of `size` (full: batch 1; small: batch 2), made on first use and kept.
