@@ -566,7 +566,7 @@ void conv3x3_winograd_weight_gradient(const Tensor<float>& x, const Tensor<float
   float* du = workspace.weights.data();
   float* v = workspace.inputs.data();
   float* g = workspace.products.data();
-  std::fill(du, du + kPositions * O * I, 0.0f);
+  if (blocks.empty()) std::fill(du, du + kPositions * O * I, 0.0f);  // no image: dw = 0
   const int threads = num_threads();
   const bool parallel =
       threads > 1 &&
@@ -588,6 +588,7 @@ void conv3x3_winograd_weight_gradient(const Tensor<float>& x, const Tensor<float
         const ConstMatrixView g_p(g + p * O * tiles, O, tiles, Eigen::OuterStride<>(tiles));
         const ConstMatrixView v_p(v + p * I * tiles, I, tiles, Eigen::OuterStride<>(tiles));
         MatrixView du_p(du + p * O * I, O, I, Eigen::OuterStride<>(I));
+        if (&blk == blocks.data()) du_p.setZero();  // zeroed by the thread that sums it first
         du_p.noalias() += g_p * v_p.transpose();
       });
     }
