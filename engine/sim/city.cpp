@@ -1245,7 +1245,10 @@ GroundSample City::ground_at(double x, double y) const {
                            ? 0.3
                            : 1.0;
   const double bumps = value_noise(x, y, 1.3, salt + 1) + 0.5 * value_noise(x, y, 0.45, salt + 2);
-  const double base = relief_.grade_at(x, y) + hill_weight * relief_.hills_at(x, y);
+  // Within a street's sidewalks the hills weigh 0: their three sines are not evaluated (the sum
+  // then differs from grade + 0 x hills at most in the sign of a zero).
+  const double hills = hill_weight > 0 ? hill_weight * relief_.hills_at(x, y) : 0.0;
+  const double base = relief_.grade_at(x, y) + hills;
   // Height of the raised side at the curb of the owner's street side, and of the terrain
   // between streets (a typical street's).
   const double road_edge = -relief_.camber * kCamberWidth;
