@@ -63,6 +63,17 @@ TensorD stale_output() {
   return TensorD({3, 1}, kNaN);
 }
 
+// The executor's case: the output a view of arena memory full of NaN, already of its shape (a
+// view keeps its memory when resized): an op that leaves any element unwritten, or adds into
+// what was there, shows NaN.
+struct StaleView {
+  explicit StaleView(const Shape& shape)
+      : memory(static_cast<size_t>(shape_numel(shape)), kNaN),
+        tensor(TensorD::view(memory.data(), shape)) {}
+  std::vector<double> memory;
+  TensorD tensor;
+};
+
 // The odd image sizes every op is checked on, with B = 2 and C = 3.
 const std::vector<Shape> kOddShapes = {{2, 3, 5, 7}, {2, 3, 3, 1}, {2, 3, 1, 1}, {2, 3, 4, 6}};
 
@@ -122,6 +133,12 @@ TEST(MaxPool2d, BackwardScattersToTheArgmaxOnly) {
   expected(0, 0, 3, 1) = 3;
   expected(0, 0, 3, 3) = 4;
   EXPECT_TRUE(test::all_close(dx, expected, 0, 0));
+  StaleView in_arena(x.shape());  // row 4 and column 4 get no gradient: zero, not what was there
+  maxpool2d_backward(filled({1, 1, 2, 2}, {1, 2, 3, 4}), argmax, x.shape(), in_arena.tensor);
+  EXPECT_TRUE(test::all_close(in_arena.tensor, expected, 0, 0));
+  StaleView pooled({1, 1, 2, 2});
+  maxpool2d_forward(x, pooled.tensor, nullptr);
+  EXPECT_TRUE(test::all_close(pooled.tensor, filled({1, 1, 2, 2}, {6, 8, 16, 18}), 0, 0));
 }
 
 TEST(MaxPool2d, BackwardMatchesFiniteDifferences) {
@@ -260,12 +277,17 @@ TEST(UpsampleBilinear, BackwardMatchesFiniteDifferencesAndConservesTheSum) {
       return dot(dy, out);
     });
     EXPECT_TRUE(test::all_close(dx, numeric, kGradAtol, kGradRtol));
+    StaleView in_arena(shape), y_in_arena(dy.shape());
+    upsample_bilinear_backward(dy, in_arena.tensor);
+    EXPECT_TRUE(test::all_close(in_arena.tensor, dx, 0, 0));
     // Each output's weights sum to 1, so the backward moves all of the gradient.
     EXPECT_NEAR(sum(dx), sum(dy), 1e-12);
 
     TensorF yf, dxf;
     TensorD y;
     upsample_bilinear_forward(x, y);
+    upsample_bilinear_forward(x, y_in_arena.tensor);
+    EXPECT_TRUE(test::all_close(y_in_arena.tensor, y, 0, 0));
     upsample_bilinear_forward(tensor_cast<float>(x), yf);
     upsample_bilinear_backward(tensor_cast<float>(dy), dxf);
     EXPECT_TRUE(test::all_close(tensor_cast<double>(yf), y, 1e-6, 1e-6));
@@ -322,6 +344,9 @@ TEST(PadConcat, OddDifferencePutsTheExtraZeroRowAndColumnAfter) {
       for (int64_t col = 0; col < 5; ++col) EXPECT_EQ(y(b, c, 6, col), 0.0);
       for (int64_t r = 0; r < 7; ++r) EXPECT_EQ(y(b, c, r, 4), 0.0);
     }
+  StaleView in_arena({2, 5, 7, 5});  // the padding is written zero, not left as it was
+  pad_concat_forward(skip, up, in_arena.tensor);
+  expect_padded_concat(skip, up, in_arena.tensor, 0, 0);
 }
 
 TEST(PadConcat, LargerDifferencesSplitAsPyTorchPads) {
@@ -358,6 +383,10 @@ TEST(PadConcat, BackwardMatchesFiniteDifferences) {
     pad_concat_backward(dy, skip_shape, up_shape, &d_skip, &d_up);
     EXPECT_TRUE(test::all_close(d_skip, numeric_gradient(skip, loss), kGradAtol, kGradRtol));
     EXPECT_TRUE(test::all_close(d_up, numeric_gradient(up, loss), kGradAtol, kGradRtol));
+    StaleView skip_in_arena(skip_shape), up_in_arena(up_shape);
+    pad_concat_backward(dy, skip_shape, up_shape, &skip_in_arena.tensor, &up_in_arena.tensor);
+    EXPECT_TRUE(test::all_close(skip_in_arena.tensor, d_skip, 0, 0));
+    EXPECT_TRUE(test::all_close(up_in_arena.tensor, d_up, 0, 0));
 
     // Either output alone, and float against double (pure copies: exact).
     TensorD d_up_only;
