@@ -6,7 +6,6 @@
 
 #include <algorithm>
 #include <cmath>
-#include <limits>
 #include <tuple>
 #include <vector>
 
@@ -122,23 +121,17 @@ TEST_P(WinogradConv, InputAndWeightGradientsMatchReference) {
   EXPECT_TRUE(
       test::all_close(dw, expected_dw, 2e-5 * std::sqrt(static_cast<double>(B * H * W)), kRtol));
 
-  // As the executor passes its outputs: views of arena memory holding NaN, already of their
-  // shape, and the workspace left by another convolution (its forward). Every element written,
-  // the same bits.
-  const float nan = std::numeric_limits<float>::quiet_NaN();
-  std::vector<float> y_memory(static_cast<size_t>(B * O * H * W), nan),
-      dx_memory(static_cast<size_t>(dx.numel()), nan), dw_memory(static_cast<size_t>(dw.numel()), nan);
-  Tensor<float> y_view = Tensor<float>::view(y_memory.data(), {B, O, H, W});
-  Tensor<float> dx_view = Tensor<float>::view(dx_memory.data(), dx.shape());
-  Tensor<float> dw_view = Tensor<float>::view(dw_memory.data(), dw.shape());
+  // As the executor passes its outputs (test::StaleView), with the workspace left by another
+  // convolution (its forward): every element written, the same bits.
+  test::StaleView<float> y_view({B, O, H, W}), dx_view(dx.shape()), dw_view(dw.shape());
   Tensor<float> y;
   host::conv3x3_winograd_forward(x, w, {}, y, ws);
-  host::conv3x3_winograd_forward(x, w, {}, y_view, ws);
-  host::conv3x3_winograd_input_gradient(dy, w, dx_view, ws);
-  host::conv3x3_winograd_weight_gradient(x, dy, dw_view, ws);
-  EXPECT_TRUE(test::all_close(y_view, y, 0, 0));
-  EXPECT_TRUE(test::all_close(dx_view, dx, 0, 0));
-  EXPECT_TRUE(test::all_close(dw_view, dw, 0, 0));
+  host::conv3x3_winograd_forward(x, w, {}, y_view.tensor, ws);
+  host::conv3x3_winograd_input_gradient(dy, w, dx_view.tensor, ws);
+  host::conv3x3_winograd_weight_gradient(x, dy, dw_view.tensor, ws);
+  EXPECT_TRUE(test::all_close(y_view.tensor, y, 0, 0));
+  EXPECT_TRUE(test::all_close(dx_view.tensor, dx, 0, 0));
+  EXPECT_TRUE(test::all_close(dw_view.tensor, dw, 0, 0));
 }
 
 INSTANTIATE_TEST_SUITE_P(Shapes, WinogradConv,

@@ -63,16 +63,7 @@ TensorD stale_output() {
   return TensorD({3, 1}, kNaN);
 }
 
-// The executor's case: the output a view of arena memory full of NaN, already of its shape (a
-// view keeps its memory when resized): an op that leaves any element unwritten, or adds into
-// what was there, shows NaN.
-struct StaleView {
-  explicit StaleView(const Shape& shape)
-      : memory(static_cast<size_t>(shape_numel(shape)), kNaN),
-        tensor(TensorD::view(memory.data(), shape)) {}
-  std::vector<double> memory;
-  TensorD tensor;
-};
+using StaleView = test::StaleView<double>;
 
 // The odd image sizes every op is checked on, with B = 2 and C = 3.
 const std::vector<Shape> kOddShapes = {{2, 3, 5, 7}, {2, 3, 3, 1}, {2, 3, 1, 1}, {2, 3, 4, 6}};

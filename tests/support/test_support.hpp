@@ -7,8 +7,10 @@
 #include <cstdlib>
 #include <filesystem>
 #include <functional>
+#include <limits>
 #include <optional>
 #include <string>
+#include <vector>
 
 #include "core/error.hpp"
 #include "core/rng.hpp"
@@ -35,6 +37,20 @@ template <class T>
            << "shape " << shape_str(actual.shape()) << " != expected " << shape_str(expected.shape());
   return all_close(actual.data(), expected.data(), actual.numel(), atol, rtol);
 }
+
+// An output as the model's executor passes it: a view of arena memory holding NaN, already of
+// its shape (a view keeps its memory when resized, so nothing zeroes it): an op that leaves any
+// element unwritten, or adds into what was there, shows NaN.
+template <class T>
+struct StaleView {
+  explicit StaleView(const Shape& shape)
+      : memory(static_cast<size_t>(shape_numel(shape)), std::numeric_limits<T>::quiet_NaN()),
+        tensor(Tensor<T>::view(memory.data(), shape)) {}
+  StaleView(const StaleView&) = delete;  // the view would still point at the original's memory
+  StaleView& operator=(const StaleView&) = delete;
+  std::vector<T> memory;
+  Tensor<T> tensor;
+};
 
 // Elements drawn uniformly from [lo, hi).
 template <class T = double>
