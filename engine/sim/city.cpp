@@ -134,6 +134,10 @@ Street::Street(std::vector<Vector2d> polyline) : points(std::move(polyline)) {
   arc.assign(points.size(), 0.0);
   for (size_t i = 1; i < points.size(); ++i)
     arc[i] = arc[i - 1] + (points[i] - points[i - 1]).norm();
+  for (size_t i = 0; i + 1 < points.size(); ++i) {
+    segment_vector.push_back(points[i + 1] - points[i]);
+    segment_length2.push_back(segment_vector.back().squaredNorm());
+  }
 }
 
 StreetFrame Street::at(double s) const {
@@ -162,13 +166,30 @@ Vector2d Street::point(double s, double d) const {
 
 int Street::project(const Vector2d& q, int hint, double* s, double* d) const {
   const int n = segments();
-  const auto dist = [&](int k) { return point_segment_distance(q, points[k], points[k + 1]); };
+  // The squared distance from q to segment k: point_segment_distance's before its square root.
+  const auto dist2 = [&](int k) {
+    const Vector2d& a = points[static_cast<size_t>(k)];
+    const Vector2d& ab = segment_vector[static_cast<size_t>(k)];
+    const double len2 = segment_length2[static_cast<size_t>(k)];
+    // u = clamp(along / len2, 0, 1), dividing only where the quotient lies inside (0, 1).
+    const double along = (q - a).dot(ab);
+    const double u = !(len2 > 0) || along < 0 ? 0.0 : along >= len2 ? 1.0 : along / len2;
+    return (q - (a + u * ab)).squaredNorm();
+  };
+  // Walks from the hint while the next segment is nearer, comparing the distances as rounded
+  // square roots: sqrt is monotonic, so a smaller square is not farther, and only a smaller
+  // square within a few ulps (its root may round to the same value) needs the roots.
+  const auto farther_or_equal = [](double d2k, double d2best) {
+    if (d2k >= d2best) return true;
+    if (d2k < d2best * (1.0 - 1e-14)) return false;
+    return std::sqrt(d2k) >= std::sqrt(d2best);
+  };
   int j = std::clamp(hint, 0, n - 1);
-  double best = dist(j);
+  double best = dist2(j);
   for (int step : {-1, 1}) {
     while (j + step >= 0 && j + step < n) {
-      const double dk = dist(j + step);
-      if (dk >= best) break;
+      const double dk = dist2(j + step);
+      if (farther_or_equal(dk, best)) break;
       best = dk;
       j += step;
     }

@@ -104,6 +104,9 @@ struct Street {
   int project(const Eigen::Vector2d& q, int hint, double* s, double* d) const;
   Zone zone(double s, double d) const;
   const StreetSide& side_of(double d) const { return sides[d < 0 ? 0 : 1]; }
+  // Segment k's vector points[k + 1] - points[k] and its squared length, for project().
+  std::vector<Eigen::Vector2d> segment_vector;
+  std::vector<double> segment_length2;
 };
 
 // Where a point lies relative to one street.

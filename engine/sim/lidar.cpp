@@ -70,7 +70,9 @@ bool hits_body(const LidarModel& lidar, const Eigen::Vector3d& dir) {
 // The first step that ends below the ground is bisected to where the pulse meets it: on the
 // surface, or on a curb's face where the ground steps up by more than a few centimetres
 // within the last interval.
-bool ground_hit(const City& city, const Ray& ray, double t_max, Rng& rng, Return* out) {
+// `below_sensor` is the ground at the pulse's origin (the same for every pulse of a scan).
+bool ground_hit(const City& city, const Ray& ray, const GroundSample& below_sensor, double t_max,
+                Rng& rng, Return* out) {
   const double dz = ray.dir.z(), horizontal = std::hypot(ray.dir.x(), ray.dir.y());
   const double closing = Relief::kMaxSlope * horizontal - dz;  // fastest the gap can shrink
   const auto ground = [&](double t) {
@@ -79,20 +81,20 @@ bool ground_hit(const City& city, const Ray& ray, double t_max, Rng& rng, Return
   const auto gap_at = [&](double t, const GroundSample& g) {
     return ray.origin.z() + t * dz - g.z;
   };
-  double t = 0, gap = gap_at(0.0, ground(0.0));
+  double t = 0, gap = gap_at(0.0, below_sensor);
   if (gap <= 0) return false;  // the sensor is below the ground
   double t_prev = 0;
-  GroundSample g;
+  GroundSample g = below_sensor, g_prev;
   for (int step = 0;; ++step) {
     if (closing <= 0 || t >= t_max || step >= kMaxGroundSteps) return false;
-    t_prev = t;
+    t_prev = t, g_prev = g;
     t = std::min(t_max, t + std::max(gap / closing, kMinStep));
     g = ground(t);
     gap = gap_at(t, g);
     if (gap <= 0) break;
   }
   double lo = t_prev, hi = t;
-  GroundSample g_lo = ground(lo);
+  GroundSample g_lo = g_prev;
   while (hi - lo > 2e-3) {
     const double mid = 0.5 * (lo + hi);
     const GroundSample gm = ground(mid);
@@ -118,9 +120,9 @@ bool ground_hit(const City& city, const Ray& ray, double t_max, Rng& rng, Return
 
 // The first surface that answers the pulse: objects (static or moving) before the ground.
 bool first_return(const LidarModel& lidar, const City& city, const SceneGrid& moving,
-                  const Ray& ray, Rng& rng, Return* out) {
+                  const Ray& ray, const GroundSample& below_sensor, Rng& rng, Return* out) {
   Return ground;
-  const bool has_ground = ground_hit(city, ray, lidar.max_range, rng, &ground);
+  const bool has_ground = ground_hit(city, ray, below_sensor, lidar.max_range, rng, &ground);
   const double t_limit = has_ground ? ground.t : lidar.max_range;
   double t_min = kMinRange;
   for (int pass = 0; pass < 6; ++pass) {
@@ -216,6 +218,7 @@ SimScan cast_scan(const LidarModel& lidar, const City& city, const SceneGrid& mo
   std::vector<uint8_t> valid(slots, 0);
   const Eigen::Matrix3d rotation = lidar_to_world.topLeftCorner<3, 3>();
   const Eigen::Vector3d origin = lidar_to_world.topRightCorner<3, 1>();
+  const GroundSample below_sensor = city.ground_at(origin.x(), origin.y());
   std::vector<double> sin_el(static_cast<size_t>(beams)), cos_el(static_cast<size_t>(beams));
   for (int b = 0; b < beams; ++b) {
     const double el = lidar.elevation_deg[static_cast<size_t>(b)] * kPi / 180.0;
@@ -223,52 +226,63 @@ SimScan cast_scan(const LidarModel& lidar, const City& city, const SceneGrid& mo
     cos_el[static_cast<size_t>(b)] = std::cos(el);
   }
 
-  parallel_chunks(steps, [&](int64_t begin, int64_t end, int) {
-    for (int64_t k = begin; k < end; ++k) {
-      const double az = lidar.azimuth(static_cast<int>(k));
-      const double ca = std::cos(az), sa = std::sin(az);
-      for (int b = 0; b < beams; ++b) {
-        Rng rng = Rng::derive(seed, static_cast<uint64_t>(b), static_cast<uint64_t>(k));
-        const Eigen::Vector3d dir(cos_el[static_cast<size_t>(b)] * ca,
-                                  cos_el[static_cast<size_t>(b)] * sa,
-                                  sin_el[static_cast<size_t>(b)]);
-        if (rng.bernoulli(lidar.beam_dropout(b)) || hits_body(lidar, dir)) continue;
-        Ray ray{origin, rotation * dir};
-        Return ret;
-        bool ok = first_return(lidar, city, moving, ray, rng, &ret);
-        if (ok) {
-          // Weak returns (dark, far, grazing) fade out.
-          const double power =
-              ret.albedo * (0.3 + 0.7 * ret.cos_incidence) / std::pow(ret.t / 40.0, 2);
-          if (power < kWeakPower && rng.uniform() * kWeakPower > power) ok = false;
-        }
-        if (rng.bernoulli(lidar.outlier_rate)) {
-          ret = {rng.uniform(1.5, ok ? ret.t : 30.0), raw::kOutlier, rng.uniform(0.0, 0.2), 1.0};
-          ok = true;
-        }
-        if (!ok) continue;
-        const double range = ret.t + rng.normal(0.0, lidar.range_noise);
-        // The intensity: the surface's albedo, a little less at grazing incidence, through this
-        // sensor's and this beam's gain, with speckle, falling with the range beyond 12 m; below
-        // a floor that rises from 12 to 22 m the HDL-64E reports 0 (most dark cars, much of the
-        // far road, half of everything 40-60 m out in KITTI).
-        double reflectance = lidar.gain * lidar.beam_gain(b) * ret.albedo *
-                                 (0.7 + 0.3 * ret.cos_incidence) * (1.0 + 0.15 * rng.normal()) +
-                             rng.normal(0.0, 0.02);
-        const double beyond = std::max(range - kFalloffStart, 0.0) / kFalloffScale;
-        reflectance /= 1.0 + beyond * beyond;
-        const double floor =
-            kZeroFloor + kZeroFloorSlope * std::clamp(range - kFalloffStart, 0.0, kZeroFloorRamp);
-        if (reflectance < floor) reflectance = 0.0;
-        reflectance = std::clamp(reflectance, 0.0, 1.0);
-        const size_t slot =
-            static_cast<size_t>(b) * static_cast<size_t>(steps) + static_cast<size_t>(k);
-        points[slot] = {static_cast<float>(range * dir.x()), static_cast<float>(range * dir.y()),
-                        static_cast<float>(range * dir.z()), static_cast<float>(reflectance)};
-        labels[slot] = ret.label;
-        valid[slot] = 1;
+  // The pulses of azimuth step k (each draws from its own generator: any order gives the same).
+  const auto cast_step = [&](int64_t k) {
+    const double az = lidar.azimuth(static_cast<int>(k));
+    const double ca = std::cos(az), sa = std::sin(az);
+    for (int b = 0; b < beams; ++b) {
+      Rng rng = Rng::derive(seed, static_cast<uint64_t>(b), static_cast<uint64_t>(k));
+      const Eigen::Vector3d dir(cos_el[static_cast<size_t>(b)] * ca,
+                                cos_el[static_cast<size_t>(b)] * sa,
+                                sin_el[static_cast<size_t>(b)]);
+      if (rng.bernoulli(lidar.beam_dropout(b)) || hits_body(lidar, dir)) continue;
+      Ray ray{origin, rotation * dir};
+      Return ret;
+      bool ok = first_return(lidar, city, moving, ray, below_sensor, rng, &ret);
+      if (ok) {
+        // Weak returns (dark, far, grazing) fade out.
+        const double power =
+            ret.albedo * (0.3 + 0.7 * ret.cos_incidence) / std::pow(ret.t / 40.0, 2);
+        if (power < kWeakPower && rng.uniform() * kWeakPower > power) ok = false;
       }
+      if (rng.bernoulli(lidar.outlier_rate)) {
+        ret = {rng.uniform(1.5, ok ? ret.t : 30.0), raw::kOutlier, rng.uniform(0.0, 0.2), 1.0};
+        ok = true;
+      }
+      if (!ok) continue;
+      const double range = ret.t + rng.normal(0.0, lidar.range_noise);
+      // The intensity: the surface's albedo, a little less at grazing incidence, through this
+      // sensor's and this beam's gain, with speckle, falling with the range beyond 12 m; below
+      // a floor that rises from 12 to 22 m the HDL-64E reports 0 (most dark cars, much of the
+      // far road, half of everything 40-60 m out in KITTI).
+      double reflectance = lidar.gain * lidar.beam_gain(b) * ret.albedo *
+                               (0.7 + 0.3 * ret.cos_incidence) * (1.0 + 0.15 * rng.normal()) +
+                           rng.normal(0.0, 0.02);
+      const double beyond = std::max(range - kFalloffStart, 0.0) / kFalloffScale;
+      reflectance /= 1.0 + beyond * beyond;
+      const double floor =
+          kZeroFloor + kZeroFloorSlope * std::clamp(range - kFalloffStart, 0.0, kZeroFloorRamp);
+      if (reflectance < floor) reflectance = 0.0;
+      reflectance = std::clamp(reflectance, 0.0, 1.0);
+      const size_t slot =
+          static_cast<size_t>(b) * static_cast<size_t>(steps) + static_cast<size_t>(k);
+      points[slot] = {static_cast<float>(range * dir.x()), static_cast<float>(range * dir.y()),
+                      static_cast<float>(range * dir.z()), static_cast<float>(reflectance)};
+      labels[slot] = ret.label;
+      valid[slot] = 1;
     }
+  };
+  // Runs of kAzimuthRun steps dealt to the threads in turn: the scene's work is uneven around the
+  // car, and halves of the circle kept one thread waiting for the other.
+  constexpr int64_t kAzimuthRun = 16;
+  const int64_t runs = (steps + kAzimuthRun - 1) / kAzimuthRun;
+  const int64_t threads = std::min<int64_t>(num_threads(), runs);
+  parallel_chunks(threads, [&](int64_t begin, int64_t end, int) {
+    for (int64_t first = begin; first < end; ++first)
+      for (int64_t run = first; run < runs; run += threads) {
+        const int64_t run_end = std::min<int64_t>(steps, (run + 1) * kAzimuthRun);
+        for (int64_t k = run * kAzimuthRun; k < run_end; ++k) cast_step(k);
+      }
   });
 
   SimScan scan;
