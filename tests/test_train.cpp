@@ -95,6 +95,16 @@ std::vector<float> checkpoint_values(const fs::path& path) {
   return all;
 }
 
+// The checkpoint's num_batches_tracked counters, name by name.
+std::map<std::string, int64_t> checkpoint_counters(const fs::path& path) {
+  const Checkpoint c = read_checkpoint(path);
+  std::map<std::string, int64_t> counters;
+  for (const std::string& name : c.file.names())
+    if (name.find("num_batches_tracked") != std::string::npos)
+      counters[name] = c.file.get_i64(name).at(0);
+  return counters;
+}
+
 }  // namespace
 
 // Taking one scan's tensors gives the batch that copying them does; the scan keeps its
@@ -151,7 +161,9 @@ TEST(Train, WritesCheckpointAndLogAndIsBitwiseReproducible) {
 
 TEST(Train, ResumeIsExact) {
   const fs::path dir = test::temp_dir();
-  // With precise BatchNorm too: the recalibrated statistics are part of the checkpoint.
+  // With precise BatchNorm too: the recalibrated statistics are part of the checkpoint. The
+  // straight run recalibrates after epoch 2 only, the split one after each of its runs: the
+  // statistics of epoch 1's end are overwritten unread.
   for (const std::string extra : {"", "  precise_bn_batches: 1\n"}) {
     const std::string name = extra.empty() ? "" : "_precise_bn";
     train(options_for(dir / ("straight" + name), tiny_config_text(extra)));
@@ -172,6 +184,13 @@ TEST(Train, ResumeIsExact) {
             precise.file.get_f32("segmentation_head.outc.conv.weight"));
   EXPECT_FALSE(plain.file.get_f32("vfe.pfn_layers.0.norm.running_mean") ==
                precise.file.get_f32("vfe.pfn_layers.0.norm.running_mean"));
+  // num_batches_tracked counts the training batches, not the recalibration's forwards.
+  const std::map<std::string, int64_t> counted =
+      checkpoint_counters(dir / "straight" / "checkpoint.safetensors");
+  ASSERT_FALSE(counted.empty());
+  EXPECT_GT(counted.begin()->second, 0);
+  EXPECT_EQ(checkpoint_counters(dir / "straight_precise_bn" / "checkpoint.safetensors"), counted);
+  EXPECT_EQ(checkpoint_counters(dir / "split_precise_bn" / "checkpoint.safetensors"), counted);
   // A fresh run refuses to overwrite, and resume refuses another config.
   EXPECT_THROW(train(options_for(dir / "split", tiny_config_text())), Error);
   std::string other = tiny_config_text();

@@ -12,6 +12,7 @@
 #include <ctime>
 #include <limits>
 #include <fstream>
+#include <map>
 #include <numeric>
 #include <optional>
 
@@ -193,8 +194,10 @@ void require_identical_replicas(const ParameterSet& ps, Replicas& replicas, int6
 // batch statistics of K full batches of unaugmented training scans, spread evenly over the data
 // set, under the current weights. Deterministic: the same scans in the same order every time.
 // Data-parallel, each replica forwards its share of every batch (the statistics are synchronised).
+// Its forwards are not training batches: num_batches_tracked keeps its count.
 void recalibrate_batchnorm(PillarSegNet& net, const ScanDataset& data, const TrainConfig& tc,
                            const Replicas& replicas) {
+  const std::map<std::string, int64_t> batches_tracked = net.parameters().counters();
   const size_t n = data.size();
   const size_t B = std::min(n, static_cast<size_t>(tc.batch_size));
   const size_t batches = std::clamp<size_t>(n / B, 1, static_cast<size_t>(tc.precise_bn_batches));
@@ -213,6 +216,7 @@ void recalibrate_batchnorm(PillarSegNet& net, const ScanDataset& data, const Tra
     net.forward(collate(inputs, net.config()), /*training=*/true);
   }
   net.set_batchnorm_momentum(0);
+  net.parameters().counters() = batches_tracked;
 }
 
 // Whether the epoch `epochs_done` (1-based) ends inside train.average_epochs' window.
@@ -527,10 +531,15 @@ TrainResult train(const TrainOptions& options) {
                                   result.last_epoch_loss, data_wait));
     }
     if (averaging(tc, state.epoch)) average_weights(ps, tc, state, leader);
-    if (tc.precise_bn_batches > 0) recalibrate_batchnorm(net, data, tc, replicas);
-    if (R > 1) require_identical_replicas(ps, replicas, state.epoch);
     const int every = cfg.eval.every_epochs;
-    if (every > 0 && (state.epoch % every == 0 || state.epoch == tc.epochs)) {
+    const bool validate = every > 0 && (state.epoch % every == 0 || state.epoch == tc.epochs);
+    // The running statistics are read only by the validation and by whoever takes the checkpoint
+    // this run ends with (training normalises with the batch's own): precise BatchNorm runs where
+    // they are read, and the checkpoints between hold the training's own averages.
+    if (tc.precise_bn_batches > 0 && (validate || state.epoch == last_epoch))
+      recalibrate_batchnorm(net, data, tc, replicas);
+    if (R > 1) require_identical_replicas(ps, replicas, state.epoch);
+    if (validate) {
       if (!validator) {
         SegmenterOptions vo;
         vo.flips = cfg.eval.flips;
