@@ -2,9 +2,11 @@
 #include "host/adam.hpp"
 
 #include <cmath>
+#include <cstdint>
 
 #include "core/eigen.hpp"
 #include "core/error.hpp"
+#include "core/parallel.hpp"
 
 namespace pillarseg::host {
 
@@ -40,20 +42,53 @@ void adam_step(std::span<T> params, std::span<const T> grads, std::span<T> exp_a
   PS_CHECK(options.beta1 >= 0 && options.beta1 < 1 && options.beta2 >= 0 && options.beta2 < 1,
            "{}: expected beta1, beta2 in [0, 1), given {}, {}", op, options.beta1, options.beta2);
 
-  auto p = flat(params);
-  const auto g = flat(grads);
-  auto m = flat(exp_avg);
-  auto v = flat(exp_avg_sq);
   const double bias_correction1 = 1 - std::pow(options.beta1, static_cast<double>(step));
   const double bias_correction2 = 1 - std::pow(options.beta2, static_cast<double>(step));
-
-  p *= static_cast<T>(1 - options.lr * options.weight_decay);
-  m = static_cast<T>(options.beta1) * m + static_cast<T>(1 - options.beta1) * g;
-  v = static_cast<T>(options.beta2) * v + static_cast<T>(1 - options.beta2) * g.square();
+  const auto decay = static_cast<T>(1 - options.lr * options.weight_decay);
+  const auto beta1 = static_cast<T>(options.beta1);
+  const auto one_minus_beta1 = static_cast<T>(1 - options.beta1);
+  const auto beta2 = static_cast<T>(options.beta2);
+  const auto one_minus_beta2 = static_cast<T>(1 - options.beta2);
   // PyTorch's arrangement of lr * mhat / (sqrt(vhat) + eps).
   const auto step_size = static_cast<T>(options.lr / bias_correction1);
   const auto inv_sqrt_bias_correction2 = static_cast<T>(1 / std::sqrt(bias_correction2));
-  p -= step_size * m / (v.sqrt() * inv_sqrt_bias_correction2 + static_cast<T>(options.eps));
+  const auto eps = static_cast<T>(options.eps);
+  const auto update = [&](size_t begin, size_t end) {
+    auto p = flat(params.subspan(begin, end - begin));
+    const auto g = flat(grads.subspan(begin, end - begin));
+    auto m = flat(exp_avg.subspan(begin, end - begin));
+    auto v = flat(exp_avg_sq.subspan(begin, end - begin));
+    p *= decay;
+    m = beta1 * m + one_minus_beta1 * g;
+    v = beta2 * v + one_minus_beta2 * g.square();
+    p -= step_size * m / (v.sqrt() * inv_sqrt_bias_correction2 + eps);
+  };
+  // Every element's update is its own, but Eigen computes the elements before a destination's
+  // first aligned packet and after its last whole one without vectors (where the compiler may
+  // contract a multiply-add differently): the threads' ranges start and end at addresses aligned
+  // for the widest packet in all three destinations, so that each element takes the path it
+  // takes in one pass. Where the three are not aligned alike, one pass.
+  constexpr size_t kAlign = 64;
+  const auto phase = [](const T* x) { return reinterpret_cast<std::uintptr_t>(x) % kAlign; };
+  const size_t n = params.size();
+  const std::uintptr_t misalignment = phase(params.data());
+  const int threads = num_threads();
+  if (threads < 2 || n < 4 * kAlign || misalignment % sizeof(T) != 0 ||
+      phase(exp_avg.data()) != misalignment || phase(exp_avg_sq.data()) != misalignment) {
+    update(0, n);
+    return;
+  }
+  const size_t head = (kAlign - misalignment) % kAlign / sizeof(T);  // elements before alignment
+  const size_t unit = kAlign / sizeof(T);
+  const size_t units = (n - head) / unit;
+  parallel_chunks(threads, [&](int64_t t0, int64_t t1, int) {
+    for (int64_t t = t0; t < t1; ++t) {
+      const size_t begin = t == 0 ? 0 : head + units * static_cast<size_t>(t) / threads * unit;
+      const size_t end =
+          t + 1 == threads ? n : head + units * static_cast<size_t>(t + 1) / threads * unit;
+      if (begin < end) update(begin, end);
+    }
+  });
 }
 
 template <class T>

@@ -9,6 +9,7 @@
 #include <vector>
 
 #include "core/eigen.hpp"
+#include "core/parallel.hpp"
 
 namespace pillarseg::host {
 
@@ -60,47 +61,58 @@ double cross_entropy_loss(const Tensor<T>& logits, const Tensor<uint8_t>& labels
                           std::type_identity_t<Tensor<T>>* d_logits) {
   const int64_t labelled = check_and_count_labelled("cross_entropy_loss", logits, labels, d_logits);
   check_class_weights("cross_entropy_loss", logits.dim(1), class_weights);
-  if (d_logits) d_logits->resize(logits.shape());
-  if (labelled == 0) return 0.0;
+  if (labelled == 0) {
+    if (d_logits) d_logits->resize(logits.shape());  // all zero
+    return 0.0;
+  }
+  if (d_logits) d_logits->resize_for_overwrite(logits.shape());  // every element written below
 
   const int64_t batch = logits.dim(0), classes = logits.dim(1);
   const int64_t plane = logits.dim(2) * logits.dim(3);
   const double inv_labelled = 1.0 / static_cast<double>(labelled);
-  Plane<T> max_logit(plane);
-  Plane<T> sum_exp(plane);
-  Plane<T> log_sum_exp(plane);
-  Plane<T> cell_weight(plane);  // c[y] / M in labelled cells
+  const auto z = [&](int64_t b, int64_t k) {
+    return Eigen::Map<const Plane<T>>(logits.data() + (b * classes + k) * plane, plane);
+  };
+  // Per image (in parallel: each image's planes whole on one thread), log sum_k exp(z_k) per cell.
+  std::vector<Plane<T>> log_sum_exp(static_cast<size_t>(batch));
+  parallel_for(batch, [&](int64_t b) {
+    Plane<T> max_logit = z(b, 0);
+    for (int64_t k = 1; k < classes; ++k) max_logit = max_logit.max(z(b, k));
+    Plane<T> sum_exp = Plane<T>::Zero(plane);
+    for (int64_t k = 0; k < classes; ++k) sum_exp += (z(b, k) - max_logit).exp();
+    log_sum_exp[static_cast<size_t>(b)] = max_logit + sum_exp.log();
+  });
+  // The loss over the labelled cells in the order (b, cell): one sum, as one thread adds it.
+  std::vector<Plane<T>> cell_weight(static_cast<size_t>(batch));  // c[y] / M in labelled cells
   double loss = 0;
   for (int64_t b = 0; b < batch; ++b) {
     const T* zb = logits.data() + b * classes * plane;
-    auto z = [&](int64_t k) { return Eigen::Map<const Plane<T>>(zb + k * plane, plane); };
     const uint8_t* y = labels.data() + b * plane;
-
-    max_logit = z(0);
-    for (int64_t k = 1; k < classes; ++k) max_logit = max_logit.max(z(k));
-    sum_exp.setZero();
-    for (int64_t k = 0; k < classes; ++k) sum_exp += (z(k) - max_logit).exp();
-    log_sum_exp = max_logit + sum_exp.log();
-
+    Plane<T>& weight = cell_weight[static_cast<size_t>(b)];
+    weight.resize(plane);
     for (int64_t i = 0; i < plane; ++i) {
       const int label = y[i];
       if (label == 0) continue;
       const double true_logit = zb[(label - 1) * plane + i];
-      loss += class_weights[label] * (static_cast<double>(log_sum_exp[i]) - true_logit);
-      cell_weight[i] = static_cast<T>(class_weights[label] * inv_labelled);
-    }
-    if (!d_logits) continue;
-    // d_k = c[y] / M * (softmax_k - [k == y - 1]) in labelled cells, 0 elsewhere (even for NaN
-    // logits there). The exponentials are vectorised over the plane; the per-cell choice is a
-    // plain loop (Eigen 3.4 does not vectorise select()).
-    for (int64_t k = 0; k < classes; ++k) {
-      T* d = d_logits->data() + (b * classes + k) * plane;
-      Eigen::Map<Plane<T>>(d, plane) = (z(k) - log_sum_exp).exp();
-      for (int64_t i = 0; i < plane; ++i) {
-        d[i] = y[i] == 0 ? T(0) : cell_weight[i] * (d[i] - T(y[i] == k + 1));
-      }
+      loss += class_weights[label] *
+              (static_cast<double>(log_sum_exp[static_cast<size_t>(b)][i]) - true_logit);
+      weight[i] = static_cast<T>(class_weights[label] * inv_labelled);
     }
   }
+  if (!d_logits) return loss * inv_labelled;
+  // d_k = c[y] / M * (softmax_k - [k == y - 1]) in labelled cells, 0 elsewhere (even for NaN
+  // logits there), plane by plane in parallel. The exponentials are vectorised over the plane;
+  // the per-cell choice is a plain loop (Eigen 3.4 does not vectorise select()).
+  parallel_for(batch * classes, [&](int64_t bk) {
+    const int64_t b = bk / classes, k = bk % classes;
+    const uint8_t* y = labels.data() + b * plane;
+    const Plane<T>& weight = cell_weight[static_cast<size_t>(b)];
+    T* d = d_logits->data() + bk * plane;
+    Eigen::Map<Plane<T>>(d, plane) = (z(b, k) - log_sum_exp[static_cast<size_t>(b)]).exp();
+    for (int64_t i = 0; i < plane; ++i) {
+      d[i] = y[i] == 0 ? T(0) : weight[i] * (d[i] - T(y[i] == k + 1));
+    }
+  });
   return loss * inv_labelled;
 }
 

@@ -6,11 +6,13 @@
 
 #include <array>
 #include <cmath>
+#include <cstring>
 #include <functional>
 #include <limits>
 #include <string>
 #include <vector>
 
+#include "core/parallel.hpp"
 #include "core/rng.hpp"
 #include "host/losses.hpp"
 #include "host/softmax.hpp"
@@ -310,6 +312,27 @@ TEST(HostLoss, FloatAgreesWithDouble) {
   const double bce = bce_loss(logits, labels, kWeights, &grad);
   EXPECT_NEAR(bce_loss(logits_f, labels, kWeights, &grad_f), bce, 1e-5 * bce);
   EXPECT_TRUE(test::all_close(tensor_cast<double>(grad_f), grad, 1e-7, 1e-5));
+}
+
+// The images' statistics and the gradient's planes run in parallel, the loss summed in one
+// order: the loss and every gradient bit are the same for any thread count.
+TEST(HostLoss, CrossEntropyIsTheSameForAnyThreadCount) {
+  Rng rng(5);
+  const Tensor<float> logits = random_tensor<float>({3, kClasses, 7, 9}, rng, -4.0, 4.0);
+  const Tensor<uint8_t> labels = random_labels({3, 7, 9}, rng);
+  const auto run = [&](int threads) {
+    const ScopedThreads scoped(threads);
+    Tensor<float> d;
+    const double loss = cross_entropy_loss<float>(logits, labels, kWeights, &d);
+    return std::make_pair(loss, d);
+  };
+  const auto [loss, d] = run(1);
+  for (int threads : {2, 4}) {
+    const auto [loss_t, d_t] = run(threads);
+    EXPECT_EQ(loss_t, loss) << threads << " threads";
+    ASSERT_EQ(d_t.shape(), d.shape());
+    EXPECT_EQ(std::memcmp(d_t.data(), d.data(), sizeof(float) * d.numel()), 0) << threads;
+  }
 }
 
 TEST(HostLoss, RejectsBadArguments) {

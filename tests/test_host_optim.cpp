@@ -3,7 +3,11 @@
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
 
+#include <algorithm>
+#include <array>
 #include <cmath>
+#include <cstdint>
+#include <cstring>
 #include <functional>
 #include <limits>
 #include <span>
@@ -12,6 +16,8 @@
 #include <vector>
 
 #include "core/error.hpp"
+#include "core/parallel.hpp"
+#include "core/rng.hpp"
 #include "host/adam.hpp"
 #include "host/lr_schedule.hpp"
 
@@ -85,6 +91,49 @@ TYPED_TEST(HostAdam, ZeroGradientWithoutDecayKeepsParameters) {
   const std::vector<T> zero = {0, 0, 0};
   for (int64_t step = 1; step <= 3; ++step) adam_step<T>(params, zero, m, v, step, {.weight_decay = 0});
   EXPECT_EQ(params, (std::vector<T>{0.5, -3, 7}));
+}
+
+// The threads split the arrays at addresses aligned alike in all three destinations (else one
+// pass): every element updated once, with the bits of one pass, for any thread count and offset.
+TYPED_TEST(HostAdam, AnyThreadCountGivesTheBitsOfOnePass) {
+  using T = TypeParam;
+  const size_t n = 1237;
+  Rng rng(11);
+  std::vector<T> init(4 * n);
+  for (T& x : init) x = static_cast<T>(rng.normal());
+  const AdamOptions options{.lr = 0.003, .beta1 = 0.9, .beta2 = 0.999, .eps = 1e-8, .weight_decay = 0.01};
+  // p, m, v at element offsets (op, om, ov) past 64-byte boundaries of one buffer each.
+  const auto run = [&](int threads, size_t op, size_t om, size_t ov) {
+    const ScopedThreads scoped(threads);
+    struct Aligned {
+      std::vector<T> storage;
+      T* at(size_t offset) {
+        const auto address = reinterpret_cast<std::uintptr_t>(storage.data());
+        return storage.data() + (64 - address % 64) % 64 / sizeof(T) + offset;
+      }
+    } buffers[3];
+    for (Aligned& b : buffers) b.storage.assign(n + 64, T(0));
+    const std::span<T> p(buffers[0].at(op), n), m(buffers[1].at(om), n), v(buffers[2].at(ov), n);
+    std::copy_n(init.begin(), n, p.begin());
+    std::copy_n(init.begin() + n, n, m.begin());
+    for (size_t i = 0; i < n; ++i) v[i] = init[2 * n + i] * init[2 * n + i];
+    const std::span<const T> g(init.data() + 3 * n, n);
+    for (int64_t step = 1; step <= 3; ++step) adam_step<T>(p, g, m, v, step, options);
+    std::vector<T> out(p.begin(), p.end());
+    out.insert(out.end(), m.begin(), m.end());
+    out.insert(out.end(), v.begin(), v.end());
+    return out;
+  };
+  for (const auto& [op, om, ov] : {std::array<size_t, 3>{0, 0, 0}, {3, 3, 3}, {1, 2, 3}}) {
+    const std::vector<T> one = run(1, op, om, ov);
+    for (int threads : {2, 3, 7}) {
+      const std::vector<T> many = run(threads, op, om, ov);
+      ASSERT_EQ(many.size(), one.size());
+      for (size_t i = 0; i < one.size(); ++i)
+        ASSERT_EQ(std::memcmp(&many[i], &one[i], sizeof(T)), 0)
+            << threads << " threads, offsets " << op << " " << om << " " << ov << ", element " << i;
+    }
+  }
 }
 
 TEST(HostAdamErrors, RejectsBadArguments) {
