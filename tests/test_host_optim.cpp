@@ -101,7 +101,8 @@ TYPED_TEST(HostAdam, AnyThreadCountGivesTheBitsOfOnePass) {
   Rng rng(11);
   std::vector<T> init(4 * n);
   for (T& x : init) x = static_cast<T>(rng.normal());
-  const AdamOptions options{.lr = 0.003, .beta1 = 0.9, .beta2 = 0.999, .eps = 1e-8, .weight_decay = 0.01};
+  const AdamOptions options{
+      .lr = 0.003, .beta1 = 0.9, .beta2 = 0.999, .eps = 1e-8, .weight_decay = 0.01};
   // p, m, v at element offsets (op, om, ov) past 64-byte boundaries of one buffer each.
   const auto run = [&](int threads, size_t op, size_t om, size_t ov) {
     const ScopedThreads scoped(threads);
