@@ -77,11 +77,18 @@ double sum_waves(const std::vector<Relief::Wave>& waves, double x, double y) {
   return z;
 }
 
+// The squared distance from q to the segment from a along ab, len2 = |ab|^2: to the foot of the
+// perpendicular, u = clamp((q - a).ab / len2, 0, 1) along it, dividing only where u lies inside.
+double point_segment_distance2(const Vector2d& q, const Vector2d& a, const Vector2d& ab,
+                               double len2) {
+  const double along = (q - a).dot(ab);
+  const double u = !(len2 > 0) || along < 0 ? 0.0 : along >= len2 ? 1.0 : along / len2;
+  return (q - (a + u * ab)).squaredNorm();
+}
+
 double point_segment_distance(const Vector2d& q, const Vector2d& a, const Vector2d& b) {
   const Vector2d ab = b - a;
-  const double len2 = ab.squaredNorm();
-  const double u = len2 > 0 ? std::clamp((q - a).dot(ab) / len2, 0.0, 1.0) : 0.0;
-  return (q - (a + u * ab)).norm();
+  return std::sqrt(point_segment_distance2(q, a, ab, ab.squaredNorm()));
 }
 
 // Discs of ground taken by static things, so that new ones are not put on top of old ones.
@@ -166,15 +173,9 @@ Vector2d Street::point(double s, double d) const {
 
 int Street::project(const Vector2d& q, int hint, double* s, double* d) const {
   const int n = segments();
-  // The squared distance from q to segment k: point_segment_distance's before its square root.
   const auto dist2 = [&](int k) {
-    const Vector2d& a = points[static_cast<size_t>(k)];
-    const Vector2d& ab = segment_vector[static_cast<size_t>(k)];
-    const double len2 = segment_length2[static_cast<size_t>(k)];
-    // u = clamp(along / len2, 0, 1), dividing only where the quotient lies inside (0, 1).
-    const double along = (q - a).dot(ab);
-    const double u = !(len2 > 0) || along < 0 ? 0.0 : along >= len2 ? 1.0 : along / len2;
-    return (q - (a + u * ab)).squaredNorm();
+    const auto i = static_cast<size_t>(k);
+    return point_segment_distance2(q, points[i], segment_vector[i], segment_length2[i]);
   };
   // Walks from the hint while the next segment is nearer, comparing the distances as rounded
   // square roots: sqrt is monotonic, so a smaller square is not farther, and only a smaller
